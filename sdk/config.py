@@ -1,0 +1,81 @@
+"""Speaker model configuration shared by the exporter (builds the torch speaker) and the runtime (reads the bundle).
+
+Plain dataclasses of numbers so they round-trip through a weights-only checkpoint and a JSON manifest.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+
+# FLAME joint order (kinematic tree: global is the root, neck its child, jaw and eyes children of the neck).
+FLAME_JOINTS = ("global", "neck", "jaw", "left_eye", "right_eye")
+FLAME_PARENTS = (-1, 0, 1, 1, 1)
+# Full FLAME pose vector: one axis-angle triple per joint, in FLAME_JOINTS order.
+POSE_DIM = 3 * len(FLAME_JOINTS)
+# The latent-pose MLP sees every pose triple except the global (head) rotation: neck, jaw, eyes.
+LATENT_POSE_INPUT_DIM = POSE_DIM - 3
+# Audio is framed so that one video frame is exactly this many encoder features (50 Hz features, 25 fps video).
+FEATURES_PER_FRAME = 2
+
+
+@dataclass
+class TranslatorConfig:
+    """Sizes of the Motion Translator (wav2vec 2.0-style encoder + identity embedding + motion decoder)."""
+
+    conv_channels: int = 64  # channels of every layer of the convolutional feature encoder
+    conv_strides: tuple[int, ...] = (5, 2, 2, 2, 2, 2, 2)  # product = 320 samples per feature at 16 kHz
+    encoder_dim: int = 64
+    encoder_layers: int = 2
+    encoder_heads: int = 4
+    encoder_ffn: int = 128
+    pos_conv_kernel: int = 16  # wav2vec 2.0 convolutional relative positional embedding (128 in the paper's)
+    pos_conv_groups: int = 8
+    decoder_dim: int = 64
+    decoder_layers: int = 2
+    decoder_heads: int = 4
+    decoder_ffn: int = 128
+    n_speakers: int = 4
+
+    @property
+    def samples_per_feature(self) -> int:
+        product = 1
+        for stride in self.conv_strides:
+            product *= stride
+        return product
+
+
+@dataclass
+class SpeakerConfig:
+    """Everything that fixes a speaker's tensor shapes and timing."""
+
+    n_shape: int = 20
+    n_expr: int = 20
+    sh_degree: int = 3
+    fps: int = 25
+    sample_rate: int = 16000
+    speaker_id: int = 0
+    latent_dim: int = 8  # dimension of gamma = W_gamma(psi), the rank of the speaker-specific blendshapes
+    latent_hidden: int = 64
+    translator: TranslatorConfig = field(default_factory=TranslatorConfig)
+
+    @property
+    def samples_per_frame(self) -> int:
+        """Audio samples per video frame (640 at 16 kHz / 25 fps)."""
+        return self.sample_rate // self.fps
+
+    def to_dict(self) -> dict:
+        data = asdict(self)
+        data["translator"]["conv_strides"] = list(self.translator.conv_strides)
+        return data
+
+    @classmethod
+    def from_dict(cls, data: dict) -> SpeakerConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown speaker config keys: {sorted(unknown)}")
+        values = dict(data)
+        tr = dict(values.pop("translator", {}))
+        if "conv_strides" in tr:
+            tr["conv_strides"] = tuple(int(s) for s in tr["conv_strides"])
+        return cls(translator=TranslatorConfig(**tr), **values)

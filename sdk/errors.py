@@ -1,0 +1,33 @@
+"""The SDK's own exception types: every user-facing failure is one of these, with a message naming the problem."""
+
+
+class GaussianTalkerError(Exception):
+    """Base class of every error the SDK raises on purpose."""
+
+
+class BundleError(GaussianTalkerError):
+    """A `.gtb` bundle is unreadable: truncated, corrupt, wrong version, or inconsistent with its manifest."""
+
+
+class CheckpointError(GaussianTalkerError):
+    """A `speaker.ckpt` is unreadable, unsafe (would run code) or missing/mis-shaped entries."""
+
+
+class AudioError(GaussianTalkerError):
+    """Audio input cannot be used (empty, non-finite, unreadable file, unsupported layout)."""
+
+
+class CameraError(GaussianTalkerError):
+    """A camera is invalid (non-positive size or focal length, non-finite values, non-rotation R)."""
+
+
+class DriveError(GaussianTalkerError):
+    """Per-frame drive parameters (FLAME expression/pose, head pose) have the wrong shape or non-finite values."""
+
+
+class RenderError(GaussianTalkerError):
+    """The OpenGL splatter cannot run: no context could be created, or a shader failed to compile."""
+
+
+class VerificationError(GaussianTalkerError):
+    """An exported bundle does not reproduce the torch speaker within the stated tolerances."""
