@@ -1,0 +1,154 @@
+"""`gt-bench`: median per-stage timings of the runtime vs the torch reference on the demo speaker.
+
+Stages per frame: translator (amortised: one windowed run over the clip / frames), deformation (ONNX graph),
+sort, upload, draw, readback (GL). FPS is audio-to-pixels: 1000 / (sum of the stage medians). Speed-up is the
+torch reference's median full frame (deformation + reference rasterizer) over the runtime's, same frames.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import typer
+
+from .demo_audio import synth_speech
+
+app = typer.Typer(add_completion=False, help=__doc__)
+
+RUNTIME_STAGES = ("translator", "deformation", "sort", "upload", "draw", "readback")
+
+
+def _machine() -> dict:
+    import moderngl
+
+    from gaussiantalker.runtime.gl_context import create_context
+
+    ctx = create_context()
+    info = {"cpu": platform.processor() or platform.machine(), "cores": __import__("os").cpu_count(),
+            "python": platform.python_version(), "torch": torch.__version__,
+            "gl_renderer": ctx.info.get("GL_RENDERER", "?"), "moderngl": moderngl.__version__}
+    ctx.release()
+    return info
+
+
+def bench_runtime(bundle: Path, size: int, audio: np.ndarray, sample_rate: int, warmup: int) -> dict:
+    """Render the whole clip through the runtime; medians exclude the first `warmup` frames."""
+    from gaussiantalker.runtime.head import TalkingHead
+
+    with TalkingHead(bundle, resolution=(size, size)) as head:
+        walls = []
+        start = time.perf_counter()
+        for frame_index, _ in enumerate(head.frames(audio, sample_rate)):
+            now = time.perf_counter()
+            walls.append(now - start)
+            start = now
+            del frame_index
+        frames = len(walls)
+        translator_ms = 1000.0 * sum(head.timings["translator"]) / frames
+        stages = {"translator": translator_ms}
+        for stage in RUNTIME_STAGES[1:]:
+            stages[stage] = 1000.0 * float(np.median(head.timings[stage][warmup:]))
+    walls_ms = 1000.0 * np.asarray(walls[warmup:])
+    total = sum(stages.values())
+    return {"frames": frames, "stages_ms": stages, "frame_ms": total, "fps": 1000.0 / total,
+            "wall_frame_ms_median": float(np.median(walls_ms))}
+
+
+def bench_torch(speaker, size: int, audio: np.ndarray, frames: int) -> dict:
+    """Median ms of a full torch reference frame (deformation + tiled reference rasterizer)."""
+    from .verify import driven_clip
+
+    camera = speaker.camera.resized(size, size)
+    _, drives = driven_clip(speaker, frames)
+    times = []
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    for drive in drives:
+        start = time.perf_counter()
+        speaker.render(drive, camera)
+        times.append(time.perf_counter() - start)
+    return {"frames": frames, "frame_ms": 1000.0 * float(np.median(times))}
+
+
+def bench_paper_translator(seconds: float = 10.0) -> dict:
+    """Export and run the paper-size translator (wav2vec 2.0 large class) once: parameters, export and run time."""
+    from gaussiantalker.sdk.bundle import BundleWriter
+
+    from .onnx_export import add_graph, export_onnx
+    from .translator import MotionTranslator, count_parameters, paper_translator_config
+
+    model = MotionTranslator(paper_translator_config(), n_expr=100, speaker_id=0).eval()
+    params = count_parameters(model)
+    frames = torch.export.Dim("frames", min=1, max=100_000)
+    start = time.perf_counter()
+    proto = export_onnx(model, (torch.zeros(1, 640 * 8),), ["audio"], ["expression", "jaw_pose"],
+                        {"audio": {1: 640 * frames}})
+    export_s = time.perf_counter() - start
+    with tempfile.TemporaryDirectory() as tmp:
+        writer = BundleWriter({})
+        add_graph(writer, "translator", proto)
+        path = Path(tmp) / "paper.gtb"
+        size = writer.write(path)
+        from gaussiantalker.runtime.graphs import OnnxRuntimeBackend
+        from gaussiantalker.sdk.bundle import Bundle
+
+        backend = OnnxRuntimeBackend(Bundle(path))
+        audio = synth_speech(seconds, seed=3)
+        audio = audio[: len(audio) // 640 * 640]
+        start = time.perf_counter()
+        out = backend.run("translator", {"audio": audio[None]})
+        run_s = time.perf_counter() - start
+    with torch.no_grad():
+        reference = model(torch.from_numpy(audio)[None])[0].numpy()
+    return {"parameters": params, "bundle_mb": size / 1e6, "export_s": export_s, "audio_s": seconds,
+            "run_s": run_s, "max_abs_err": float(np.abs(reference - out["expression"]).max())}
+
+
+@app.command()
+def main(
+    checkpoint: Path = typer.Option(None, "--checkpoint", help="speaker checkpoint [default: untrained demo]"),
+    gaussians: int = typer.Option(20_000, "--gaussians", help="demo speaker size when no checkpoint is given"),
+    sizes: str = typer.Option("256,512", "--sizes", help="square resolutions to bench"),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio length driven through the runtime"),
+    torch_frames: int = typer.Option(3, "--torch-frames", help="frames rendered by the torch reference"),
+    paper_translator: bool = typer.Option(False, "--paper-translator", help="also export/run the ~300M translator"),
+    json_path: Path = typer.Option(None, "--json", help="write results as JSON"),
+) -> None:
+    """Benchmark the demo speaker through the runtime and the torch reference."""
+    from .checkpoint import load_checkpoint
+    from .demo_speaker import make_demo_speaker
+    from .export import export_bundle
+
+    if checkpoint is not None:
+        speaker = load_checkpoint(checkpoint)
+    else:
+        speaker, _ = make_demo_speaker(gaussians, train_seconds=0, progress=False)
+    audio = synth_speech(seconds, seed=7)
+    results = {"machine": _machine(), "gaussians": speaker.gaussians.count, "audio_seconds": seconds, "sizes": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        bundle = Path(tmp) / "bench.gtb"
+        export_bundle(speaker, bundle, progress=False)
+        for size in (int(s) for s in sizes.split(",")):
+            runtime = bench_runtime(bundle, size, audio, speaker.config.sample_rate, warmup=5)
+            reference = bench_torch(speaker, size, audio, torch_frames)
+            runtime["speedup_vs_torch"] = reference["frame_ms"] / runtime["frame_ms"]
+            results["sizes"][str(size)] = {"runtime": runtime, "torch_reference": reference}
+            stages = " ".join(f"{k}={v:.2f}" for k, v in runtime["stages_ms"].items())
+            typer.echo(f"{size}x{size}: runtime {runtime['frame_ms']:.1f} ms/frame ({runtime['fps']:.1f} FPS; "
+                       f"{stages}), torch reference {reference['frame_ms']:.0f} ms/frame, speed-up "
+                       f"{runtime['speedup_vs_torch']:.0f}x")
+    if paper_translator:
+        results["paper_translator"] = bench_paper_translator()
+        typer.echo(f"paper-size translator: {json.dumps(results['paper_translator'])}")
+    if json_path is not None:
+        json_path.write_text(json.dumps(results, indent=2))
+        typer.echo(f"wrote {json_path}")
+
+
+def main_entry() -> None:
+    app(prog_name="gt-bench")

@@ -1,0 +1,98 @@
+"""`gt-export speaker.ckpt -o speaker.gtb [--verify] [--report report.json]`: the exporter's command line."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+import typer
+
+from gaussiantalker.sdk.errors import GaussianTalkerError
+
+app = typer.Typer(add_completion=False, help=__doc__)
+
+# JSON has no infinity: identical frames (PSNR = +inf) are written as this many dB.
+PSNR_CAP_DB = 200.0
+
+
+def _json_safe(value):
+    if isinstance(value, float) and math.isinf(value):
+        return PSNR_CAP_DB if value > 0 else -PSNR_CAP_DB
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _resolution(text: str) -> tuple[int, int]:
+    parts = text.lower().split("x")
+    try:
+        size = tuple(int(p) for p in parts)
+    except ValueError:
+        raise typer.BadParameter(f"resolution must be N or WxH, got {text!r}") from None
+    if len(size) == 1:
+        size = (size[0], size[0])
+    if len(size) != 2 or min(size) < 1:
+        raise typer.BadParameter(f"resolution must be N or WxH with positive sides, got {text!r}")
+    return size
+
+
+@app.command()
+def export(
+    checkpoint: Path = typer.Argument(..., help="speaker checkpoint (torch.save file, read weights-only)"),
+    output: Path = typer.Option(None, "-o", "--output", help="bundle to write [default: CHECKPOINT with .gtb]"),
+    verify: bool = typer.Option(False, "--verify", help="prove the bundle against the torch speaker"),
+    report: Path = typer.Option(None, "--report", help="write the verification report as JSON (implies --verify)"),
+    frames: int = typer.Option(25, "--frames", min=1, help="audio-driven frames to compare when verifying"),
+    resolution: str = typer.Option("256", "--resolution", help="verification frame size, N or WxH"),
+    codec: str = typer.Option("raw", "--codec", help="buffer codec: raw (fp32) or fp16"),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bars"),
+) -> None:
+    """Export a speaker checkpoint to a bundle; with --verify, place it only if it reproduces the torch frames."""
+    from .checkpoint import load_checkpoint
+    from .export import export_bundle
+
+    output = output or checkpoint.with_suffix(".gtb")
+    verify = verify or report is not None
+    size = _resolution(resolution)
+    try:
+        speaker = load_checkpoint(checkpoint)
+        target = output.with_name(f".{output.name}.unverified") if verify else output
+        result = export_bundle(speaker, target, codec=codec, progress=not quiet)
+        typer.echo(f"wrote {result.bytes_written / 1e6:.2f} MB bundle "
+                   f"({speaker.gaussians.count} Gaussians, graphs: {', '.join(result.graphs)})")
+        if not verify:
+            typer.echo(f"bundle: {output}")
+            return
+        from .verify import format_report, verify_bundle
+
+        outcome = verify_bundle(speaker, target, frames=frames, resolution=size, progress=not quiet)
+        typer.echo(format_report(outcome))
+        outcome["bundle"] = str(output)
+        if report is not None:
+            report.parent.mkdir(parents=True, exist_ok=True)
+            report.write_text(json.dumps(_json_safe(outcome), indent=2))
+            typer.echo(f"report: {report}")
+        if not outcome["passed"]:
+            failed = output.with_name(output.stem + ".unverified.gtb")
+            os.replace(target, failed)
+            typer.echo(f"verification failed: bundle kept at {failed}, not at {output}", err=True)
+            raise typer.Exit(1)
+        os.replace(target, output)
+        typer.echo(f"bundle: {output} (verified)")
+    except GaussianTalkerError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app(prog_name="gt-export")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

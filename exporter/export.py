@@ -1,0 +1,84 @@
+"""torch Speaker -> `.gtb` bundle: the translator and deformation graphs plus every buffer they need."""
+
+from __future__ import annotations
+
+import os
+import platform
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from gaussiantalker.sdk import __version__ as sdk_version
+from gaussiantalker.sdk.bundle import BundleWriter
+from gaussiantalker.sdk.config import POSE_DIM
+
+from .onnx_export import add_graph, export_onnx
+from .speaker import DeformationGraph, Speaker, TranslatorGraph
+
+DEFORM_INPUTS = ["expression", "flame_pose", "head_translation", "camera_center"]
+DEFORM_OUTPUTS = ["means", "cov3d", "rgb", "opacity"]
+TRANSLATOR_OUTPUTS = ["expression", "jaw_pose"]
+
+
+@dataclass
+class ExportResult:
+    """What an export wrote: path, size, and per-graph / per-buffer byte counts."""
+
+    path: Path
+    bytes_written: int
+    graphs: dict = field(default_factory=dict)
+    buffer_bytes: dict = field(default_factory=dict)
+
+
+def _translator_example(speaker: Speaker, frames: int) -> tuple[tuple, dict]:
+    audio = torch.randn(1, frames * speaker.config.samples_per_frame) * 0.1
+    frame_dim = torch.export.Dim("frames", min=1, max=100_000)
+    return (audio,), {"audio": {1: speaker.config.samples_per_frame * frame_dim}}
+
+
+def _deform_example(speaker: Speaker) -> tuple[tuple, dict]:
+    batch = 2
+    args = (torch.zeros(batch, speaker.config.n_expr), torch.zeros(batch, POSE_DIM), torch.zeros(batch, 3),
+            torch.zeros(batch, 3))
+    dim = torch.export.Dim("batch", min=1, max=4096)
+    return args, {name: {0: dim} for name in DEFORM_INPUTS}
+
+
+def export_bundle(speaker: Speaker, path: str | os.PathLike, *, codec: str = "raw", progress: bool = True,
+                  example_frames: int = 8) -> ExportResult:
+    """Export `speaker` to one bundle file at `path` (written atomically)."""
+    speaker = speaker.eval()
+    writer = BundleWriter(metadata={
+        "speaker": speaker.config.to_dict(),
+        "camera": speaker.camera.to_dict(),
+        "background": list(speaker.background),
+        "precision": "fp32" if codec == "raw" else codec,
+        "gaussians": speaker.gaussians.count,
+        "exporter": {"sdk": sdk_version, "torch": torch.__version__, "python": platform.python_version()},
+    })
+    steps = tqdm(total=3, desc="gt-export", unit="step", disable=not progress)
+    result = ExportResult(Path(path), 0)
+
+    steps.set_postfix_str("translator graph")
+    args, dynamic = _translator_example(speaker, example_frames)
+    model = export_onnx(TranslatorGraph(speaker), args, ["audio"], TRANSLATOR_OUTPUTS, dynamic)
+    result.graphs["translator"] = add_graph(writer, "translator", model, codec)
+    steps.update()
+
+    steps.set_postfix_str("deformation graph")
+    args, dynamic = _deform_example(speaker)
+    model = export_onnx(DeformationGraph(speaker), args, DEFORM_INPUTS, DEFORM_OUTPUTS, dynamic)
+    result.graphs["deform"] = add_graph(writer, "deform", model, codec)
+    steps.update()
+
+    steps.set_postfix_str("writing bundle")
+    if speaker.pose_track is not None:
+        writer.add_buffer("pose_track", speaker.pose_track.numpy().astype(np.float32))
+    result.bytes_written = writer.write(path)
+    result.buffer_bytes = {name: entry["nbytes"] for name, entry in writer.manifest()["buffers"].items()}
+    steps.update()
+    steps.close()
+    return result

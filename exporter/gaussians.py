@@ -1,0 +1,93 @@
+"""Gaussians bound to FLAME triangles (paper §3.3.1) and the speaker-specific blendshapes (§3.3.2), in torch.
+
+World-space Gaussian of binding i on triangle T (vertices v0, v1, v2), with gamma = W_gamma(psi):
+    u = R (u_bar + BS(gamma; W_pos)) + P,   r = R r_bar BS(gamma; W_rot),   s = S s_bar,
+    kappa0' = kappa0 + BS(gamma; W_color),  colour = sh_to_rgb(kappa', centre - camera centre)
+where P = eta . (v0, v1, v2), R = [n0 n1 n2] (columns), S = mean edge length (`triangle_frame`).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from gaussiantalker.sdk.config import LATENT_POSE_INPUT_DIM
+from gaussiantalker.sdk.numerics import FRAME_EPS, sh_coeff_count
+
+from .splat_math import cov3d_from_rotation_scale, quat_to_rotmat, sh_to_rgb
+
+
+def _safe_normalize(v: torch.Tensor) -> torch.Tensor:
+    """v / max(|v|, FRAME_EPS): a zero vector stays zero instead of becoming NaN."""
+    return v / torch.clamp(torch.linalg.vector_norm(v, dim=-1, keepdim=True), min=FRAME_EPS)
+
+
+def triangle_frame(v0: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Local frame of triangles [..., 3] each: rotation [..., 3, 3] with columns n0, n1, n2 and scale S [...]."""
+    e01, e02, e12 = v1 - v0, v2 - v0, v2 - v1
+    n0 = _safe_normalize(e01)
+    n1 = _safe_normalize(torch.cross(e01, e02, dim=-1))
+    n2 = torch.cross(n0, n1, dim=-1)
+    rotation = torch.stack([n0, n1, n2], dim=-1)  # [..., 3, 3], columns are the axes
+    scale = (torch.linalg.vector_norm(e01, dim=-1) + torch.linalg.vector_norm(e02, dim=-1)
+             + torch.linalg.vector_norm(e12, dim=-1)) / 3.0
+    return rotation, scale
+
+
+class LatentPoseMLP(nn.Module):
+    """W_gamma: FLAME pose psi (neck, jaw, eyes; [B, 12]) -> latent pose gamma [B, latent_dim]."""
+
+    def __init__(self, latent_dim: int, hidden: int) -> None:
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(LATENT_POSE_INPUT_DIM, hidden), nn.SiLU(), nn.Linear(hidden, latent_dim))
+
+    def forward(self, psi: torch.Tensor) -> torch.Tensor:
+        return self.net(psi)
+
+
+class BoundGaussians(nn.Module):
+    """Gaussian attributes in triangle-local space plus the speaker-specific blendshape weights."""
+
+    def __init__(self, parent: torch.Tensor, faces: torch.Tensor, sh_degree: int, latent_dim: int) -> None:
+        super().__init__()
+        n = int(parent.shape[0])
+        k = sh_coeff_count(sh_degree)
+        self.sh_degree = sh_degree
+        self.register_buffer("parent", parent.long())  # [N] parent triangle index
+        self.register_buffer("vertex_ids", faces.long()[parent.long()])  # [N, 3] parent triangle's vertices
+        self.barycentric = nn.Parameter(torch.full((n, 3), 1.0 / 3.0))  # eta [N, 3]
+        self.local_position = nn.Parameter(torch.zeros(n, 3))  # u_bar [N, 3]
+        self.local_rotation = nn.Parameter(torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1))  # r_bar quat [N, 4]
+        self.log_scale = nn.Parameter(torch.zeros(n, 3))  # log s_bar [N, 3]
+        self.opacity_logit = nn.Parameter(torch.zeros(n))  # [N]
+        self.sh = nn.Parameter(torch.zeros(n, k, 3))  # kappa [N, K, 3]
+        self.w_pos = nn.Parameter(torch.zeros(n, 3, latent_dim))  # W_pos [N, 3, D]
+        self.w_rot = nn.Parameter(torch.zeros(n, 4, latent_dim))  # W_rot [N, 4, D] (quaternion offsets)
+        self.w_color = nn.Parameter(torch.zeros(n, 3, latent_dim))  # W_color [N, 3, D]
+
+    @property
+    def count(self) -> int:
+        return int(self.parent.shape[0])
+
+    def forward(self, vertices: torch.Tensor, gamma: torch.Tensor, camera_center: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """vertices [B, V, 3], gamma [B, D], camera_center [B, 3] -> means, cov3d [B,N,6], rgb, opacity [N]."""
+        batch = vertices.shape[0]
+        corners = vertices.index_select(1, self.vertex_ids.reshape(-1)).reshape(batch, -1, 3, 3)  # [B, N, 3, 3]
+        rotation, scale = triangle_frame(corners[:, :, 0], corners[:, :, 1], corners[:, :, 2])
+        origin = torch.einsum("nk,bnkc->bnc", self.barycentric, corners)  # P [B, N, 3]
+
+        local_position = self.local_position + torch.einsum("nkd,bd->bnk", self.w_pos, gamma)  # [B, N, 3]
+        means = torch.einsum("bnij,bnj->bni", rotation, local_position) + origin
+
+        identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=gamma.dtype)
+        delta_rotation = quat_to_rotmat(identity + torch.einsum("nkd,bd->bnk", self.w_rot, gamma))
+        world_rotation = rotation @ quat_to_rotmat(self.local_rotation) @ delta_rotation  # [B, N, 3, 3]
+        world_scale = scale.unsqueeze(-1) * torch.exp(self.log_scale)  # [B, N, 3]
+        cov3d = cov3d_from_rotation_scale(world_rotation, world_scale)
+
+        dc = self.sh[:, :1] + torch.einsum("nkd,bd->bnk", self.w_color, gamma).unsqueeze(2)  # [B, N, 1, 3]
+        sh = torch.cat([dc, self.sh[:, 1:].expand(batch, -1, -1, -1)], dim=2)  # [B, N, K, 3]
+        rgb = sh_to_rgb(sh, means - camera_center.unsqueeze(1), self.sh_degree)
+        opacity = torch.sigmoid(self.opacity_logit)
+        return means, cov3d, rgb, opacity

@@ -1,0 +1,71 @@
+"""torch module -> ONNX graph whose weights become bundle buffers (see runtime/graphs.py for the reverse)."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import re
+import warnings
+
+import numpy as np
+import onnx
+import torch
+from onnx import external_data_helper, numpy_helper
+
+from gaussiantalker.sdk.bundle import BundleWriter
+
+# Initializers at least this large move out of the graph into buffers; tiny ones (shape constants, which
+# ONNX shape inference must see) stay inline.
+EXTERNALIZE_MIN_BYTES = 1024
+_ONNX_DTYPES = {onnx.TensorProto.FLOAT: "float32", onnx.TensorProto.FLOAT16: "float16",
+                onnx.TensorProto.INT64: "int64", onnx.TensorProto.INT32: "int32", onnx.TensorProto.UINT8: "uint8"}
+
+
+def export_onnx(module: torch.nn.Module, args: tuple, input_names: list[str], output_names: list[str],
+                dynamic_shapes: dict | None = None) -> onnx.ModelProto:
+    """Export with torch.onnx's dynamo exporter, quietly, and return the model proto.
+
+    optimize=False on purpose: the exporter's graph optimizer rewrites `x + eps` to `x` for tiny eps (1e-16,
+    1e-12, even 1e-8 were dropped in torch 2.13), which silently strips the contract's epsilon guards and turns a
+    zero rotation into NaN. onnxruntime constant-folds and fuses the graph itself when it loads it.
+    """
+    module.eval()
+    logging.getLogger("torch.onnx").setLevel(logging.ERROR)
+    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), torch.no_grad():
+        warnings.simplefilter("ignore")
+        program = torch.onnx.export(module, args, dynamo=True, input_names=input_names,
+                                    output_names=output_names, dynamic_shapes=dynamic_shapes, verbose=False,
+                                    optimize=False)
+    model = program.model_proto
+    onnx.checker.check_model(model)
+    return model
+
+
+def _value_info(value: onnx.ValueInfoProto) -> dict:
+    tensor = value.type.tensor_type
+    shape = [d.dim_param if d.dim_param else int(d.dim_value) for d in tensor.shape.dim]
+    return {"name": value.name, "dtype": _ONNX_DTYPES.get(tensor.elem_type, str(tensor.elem_type)), "shape": shape}
+
+
+def add_graph(writer: BundleWriter, graph_name: str, model: onnx.ModelProto, codec: str = "raw") -> dict:
+    """Move the model's large initializers into bundle buffers named `graph_name/...` and store the graph."""
+    model = onnx.ModelProto.FromString(model.SerializeToString())  # never mutate the caller's proto
+    initializers: dict[str, str] = {}
+    for tensor in model.graph.initializer:
+        array = numpy_helper.to_array(tensor)
+        if array.nbytes < EXTERNALIZE_MIN_BYTES:
+            continue
+        buffer_name = f"{graph_name}/{re.sub(r'[^A-Za-z0-9_.]+', '_', tensor.name)}"
+        tensor_codec = codec if array.dtype == np.float32 else "raw"
+        writer.add_buffer(buffer_name, array, codec=tensor_codec)
+        external_data_helper.set_external_data(tensor, location="bundle", offset=0, length=array.nbytes)
+        tensor.ClearField("raw_data")
+        for field in ("float_data", "int64_data", "int32_data", "double_data"):
+            tensor.ClearField(field)
+        tensor.data_location = onnx.TensorProto.EXTERNAL
+        initializers[tensor.name] = buffer_name
+    inputs = [_value_info(v) for v in model.graph.input]
+    outputs = [_value_info(v) for v in model.graph.output]
+    writer.add_graph(graph_name, model.SerializeToString(), inputs, outputs, initializers)
+    return {"inputs": inputs, "outputs": outputs, "initializers": initializers}

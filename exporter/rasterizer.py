@@ -1,0 +1,274 @@
+"""Pure-torch reference Gaussian rasterizer: the numerics contract (ARCHITECTURE.md) made executable.
+
+It is the ground truth the OpenGL runtime is compared against, and differentiable so a speaker can be fitted
+through it. Per pixel it does exactly what the 3DGS forward loop does: walk the kept Gaussians front to back
+(stable sort on camera-space z), skip those whose box |dx|, |dy| <= r misses the pixel centre or whose alpha is
+below ALPHA_MIN, and stop before the first one whose blend would take transmittance below TRANSMITTANCE_MIN.
+
+Speed and memory come from tiles, which never change a result (each pixel still tests its own centre):
+Gaussians are binned to the tiles their [xy - r, xy + r] box overlaps, tiles with similar list lengths are
+batched into padded [tiles, pixels, K] tensors, and K is walked in chunks carrying transmittance, so no tensor
+grows past a fixed element budget whatever the scene. When gradients are needed and the whole frame's
+intermediates would exceed the memory budget, each batch is checkpointed (recomputed during backward).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+from torch.utils.checkpoint import checkpoint
+
+from gaussiantalker.sdk.camera import Camera
+from gaussiantalker.sdk.numerics import PIXEL_CENTER_OFFSET, TRANSMITTANCE_MIN
+
+from .splat_math import (
+    conic_from_cov2d,
+    covariance_2d,
+    extent_radius,
+    keep_mask,
+    project_mean,
+    splat_alpha_parts,
+)
+
+__all__ = ["render_reference", "DEFAULT_MEMORY_BUDGET_BYTES"]
+
+# Bound on what one render keeps alive (chunk temporaries, or everything autograd saves for one frame).
+DEFAULT_MEMORY_BUDGET_BYTES = 1 << 30
+# float32 temporaries alive per (pixel, Gaussian) element while one chunk is composited, autograd saves included
+# (measured as ~18 with headroom); sets the chunk size from the budget.
+_LIVE_BYTES_PER_ELEMENT = 4 * 24
+# An upper bound on chunk size regardless of budget: past a few million elements bigger chunks are not faster.
+_MAX_CHUNK_ELEMENTS = 1 << 18
+# A batch stops taking tiles whose list is shorter than this fraction of its longest (bounds padding waste).
+_MIN_FILL = 0.5
+
+
+@dataclass
+class _Splats:
+    """Kept Gaussians in compositing order (front to back); radius is detached (it only selects pixels)."""
+
+    xy: Tensor  # [M, 2]
+    conic: Tensor  # [M, 3]
+    radius: Tensor  # [M]
+    opacity: Tensor  # [M]
+    rgb: Tensor  # [M, 3]
+
+
+@dataclass
+class _Bins:
+    """Per-tile lists of splat indices, concatenated in tile order, each list in compositing order."""
+
+    splat: Tensor  # [pairs] index into _Splats
+    start: Tensor  # [tiles] offset of each tile's list
+    count: Tensor  # [tiles] length of each tile's list
+
+
+def render_reference(
+    means: Tensor,
+    cov3d: Tensor,
+    rgb: Tensor,
+    opacity: Tensor,
+    camera: Camera,
+    background: Tensor | Sequence[float],
+    *,
+    tile_size: int = 16,
+    memory_budget_bytes: int = DEFAULT_MEMORY_BUDGET_BYTES,
+) -> tuple[Tensor, Tensor]:
+    """Render one frame by the numerics contract: (image C + T * background [H, W, 3], transmittance T [H, W])."""
+    _check_inputs(means, cov3d, rgb, opacity, tile_size)
+    bg = torch.as_tensor(background, dtype=torch.float32, device=means.device).reshape(3)
+    splats = _prepare_splats(means, cov3d, rgb, opacity, camera)
+    tiles_x = -(-camera.width // tile_size)
+    tiles_y = -(-camera.height // tile_size)
+    bins = _bin_to_tiles(splats, camera.width, camera.height, tile_size, tiles_x, tiles_y)
+    color, trans = _render_tiles(splats, bins, tile_size, tiles_x, memory_budget_bytes)  # [tiles, P, 3], [tiles, P]
+    color = _untile(color, tiles_x, tiles_y, tile_size)[: camera.height, : camera.width]  # [H, W, 3]
+    trans = _untile(trans, tiles_x, tiles_y, tile_size)[: camera.height, : camera.width]  # [H, W]
+    return color + trans.unsqueeze(-1) * bg, trans
+
+
+def _check_inputs(means: Tensor, cov3d: Tensor, rgb: Tensor, opacity: Tensor, tile_size: int) -> None:
+    """Raise ValueError on mis-shaped or non-float32 inputs, naming the argument."""
+    n = means.shape[0] if means.dim() == 2 else -1
+    expected = {"means": (means, (n, 3)), "cov3d": (cov3d, (n, 6)), "rgb": (rgb, (n, 3)), "opacity": (opacity, (n,))}
+    for name, (value, shape) in expected.items():
+        if tuple(value.shape) != shape or n < 0:
+            raise ValueError(f"render_reference: {name} must have shape {shape} (N from means [N, 3]), "
+                             f"got {tuple(value.shape)}")
+        if value.dtype != torch.float32:
+            raise ValueError(f"render_reference: {name} must be float32, got {value.dtype}")
+    if int(tile_size) != tile_size or tile_size < 1:
+        raise ValueError(f"render_reference: tile_size must be a positive integer, got {tile_size!r}")
+
+
+def _prepare_splats(means: Tensor, cov3d: Tensor, rgb: Tensor, opacity: Tensor, camera: Camera) -> _Splats:
+    """Project, cull and depth-sort; recompute the kept ones with grad so culled extremes never touch autograd."""
+    device = means.device
+    R = torch.as_tensor(camera.R, dtype=torch.float32, device=device)  # [3, 3]
+    t = torch.as_tensor(camera.t, dtype=torch.float32, device=device)  # [3]
+    intrinsics = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
+    limits = camera.fov_clamp_limits()
+
+    def screen_space(m: Tensor, c3: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        xy, points = project_mean(m, R, t, *intrinsics)  # [N, 2], [N, 3]
+        cov2d = covariance_2d(points, c3, R, intrinsics[0], intrinsics[1], limits)  # [N, 3]
+        return xy, points, cov2d, conic_from_cov2d(cov2d)
+
+    with torch.no_grad():
+        xy, points, cov2d, conic = screen_space(means, cov3d)
+        radius = extent_radius(cov2d)  # [N]
+        keep = keep_mask(points, xy, cov2d, conic, radius, float(camera.near), rgb, opacity)
+        index = torch.nonzero(keep).squeeze(1)  # [M], ascending
+        index = index[torch.sort(points[index, 2], stable=True).indices]  # front to back, ties in index order
+    needs_grad = torch.is_grad_enabled() and any(x.requires_grad for x in (means, cov3d, rgb, opacity))
+    if needs_grad:
+        xy_kept, _, _, conic_kept = screen_space(means[index], cov3d[index])
+    else:
+        xy_kept, conic_kept = xy[index], conic[index]
+    return _Splats(xy_kept, conic_kept, radius[index], opacity[index], rgb[index])
+
+
+def _bin_to_tiles(splats: _Splats, width: int, height: int, tile_size: int, tiles_x: int, tiles_y: int) -> _Bins:
+    """List, per tile, the splats whose pixel box may touch it (a superset; pixels test themselves exactly)."""
+    device = splats.xy.device
+    xy = splats.xy.detach().double()  # [M, 2]; float64 so u +- r never overflows or rounds inwards
+    r = splats.radius.double()  # [M]
+    x_lo, x_hi, x_ok = _pixel_span(xy[:, 0], r, width)
+    y_lo, y_hi, y_ok = _pixel_span(xy[:, 1], r, height)
+    tx0, ty0 = x_lo // tile_size, y_lo // tile_size
+    nx, ny = x_hi // tile_size - tx0 + 1, y_hi // tile_size - ty0 + 1
+    per_splat = torch.where(x_ok & y_ok, nx * ny, torch.zeros_like(nx))  # [M] tiles each splat overlaps
+    splat = torch.repeat_interleave(torch.arange(len(r), device=device), per_splat)  # [pairs], ascending
+    first = torch.cumsum(per_splat, 0) - per_splat  # [M]
+    local = torch.arange(len(splat), device=device) - first[splat]  # [pairs] rank within its splat's rectangle
+    tile = (ty0[splat] + local // nx[splat]) * tiles_x + tx0[splat] + local % nx[splat]  # [pairs]
+    tile, order = torch.sort(tile, stable=True)  # stable: each tile's list stays front to back
+    count = torch.bincount(tile, minlength=tiles_x * tiles_y)  # [tiles]
+    return _Bins(splat[order], torch.cumsum(count, 0) - count, count)
+
+
+def _pixel_span(center: Tensor, radius: Tensor, size: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Pixel index range [lo, hi] (int64, clipped to the image) whose centres lie within radius, widened by 1."""
+    lo = torch.ceil(center - radius - PIXEL_CENTER_OFFSET) - 1  # widened: float32 rounding decides per pixel
+    hi = torch.floor(center + radius - PIXEL_CENTER_OFFSET) + 1
+    ok = (hi >= 0) & (lo <= size - 1)
+    return lo.clamp(0, size - 1).long(), hi.clamp(0, size - 1).long(), ok
+
+
+def _render_tiles(
+    splats: _Splats, bins: _Bins, tile_size: int, tiles_x: int, budget: int
+) -> tuple[Tensor, Tensor]:
+    """Composite every non-empty tile in padded batches; empty tiles stay colour 0, transmittance 1."""
+    device = splats.xy.device
+    n_tiles, pixels = len(bins.count), tile_size * tile_size
+    chunk_elements = max(1, min(_MAX_CHUNK_ELEMENTS, budget // _LIVE_BYTES_PER_ELEMENT))
+    batches = _plan_batches(bins.count, pixels, chunk_elements)
+    params, rgb = _pack_params(splats)
+    needs_grad = torch.is_grad_enabled() and (params.requires_grad or rgb.requires_grad)
+    padded = sum(len(ids) * pixels * k for ids, k in batches)
+    use_checkpoint = needs_grad and padded * _LIVE_BYTES_PER_ELEMENT > budget
+    sentinel = len(splats.radius)  # index of the padding entry (opacity 0)
+    colors, transmittances, done_tiles = [], [], []
+    for tile_ids, k in batches:
+        lists = bins.start[tile_ids].unsqueeze(1) + torch.arange(k, device=device)  # [B, K]
+        valid = torch.arange(k, device=device) < bins.count[tile_ids].unsqueeze(1)  # [B, K]
+        splat_ids = torch.where(valid, bins.splat[torch.where(valid, lists, 0)], sentinel)  # [B, K]
+        args = (tile_ids, splat_ids, params, rgb)
+        kwargs = {"tile_size": tile_size, "tiles_x": tiles_x, "chunk_elements": chunk_elements}
+        if use_checkpoint:
+            color, trans = checkpoint(_composite_batch, *args, use_reentrant=False, **kwargs)
+        else:
+            color, trans = _composite_batch(*args, **kwargs)
+        colors.append(color)
+        transmittances.append(trans)
+        done_tiles.append(tile_ids)
+    color_all = torch.zeros(n_tiles, pixels, 3, dtype=rgb.dtype, device=device)
+    trans_all = torch.ones(n_tiles, pixels, dtype=rgb.dtype, device=device)
+    if colors:
+        ids = torch.cat(done_tiles)
+        color_all = color_all.index_copy(0, ids, torch.cat(colors))
+        trans_all = trans_all.index_copy(0, ids, torch.cat(transmittances))
+    return color_all, trans_all
+
+
+def _pack_params(splats: _Splats) -> tuple[Tensor, Tensor]:
+    """Per-splat scalars as rows (u, v, A, B, C, opacity, r) [7, M+1] and rgb [M+1, 3]; entry M pads (opacity 0)."""
+    pad = torch.zeros(7, 1, dtype=splats.rgb.dtype, device=splats.rgb.device)
+    params = torch.cat(
+        [splats.xy.T, splats.conic.T, splats.opacity.unsqueeze(0), splats.radius.unsqueeze(0)], dim=0
+    )  # [7, M]
+    rgb = torch.cat([splats.rgb, pad[:3].T], dim=0)  # [M+1, 3]
+    return torch.cat([params, pad], dim=1), rgb
+
+
+def _plan_batches(count: Tensor, pixels: int, chunk_elements: int) -> list[tuple[Tensor, int]]:
+    """Group non-empty tiles, longest lists first, into batches of (tile ids, padded list length K)."""
+    order = torch.sort(count, descending=True, stable=True).indices
+    order = order[count[order] > 0]
+    sizes = count[order].tolist()
+    batches, i = [], 0
+    while i < len(sizes):
+        k = sizes[i]
+        max_tiles = max(1, chunk_elements // (pixels * min(k, max(1, chunk_elements // pixels))))
+        j = i + 1
+        while j < len(sizes) and j - i < max_tiles and sizes[j] >= _MIN_FILL * k:
+            j += 1
+        batches.append((order[i:j], k))
+        i = j
+    return batches
+
+
+def _composite_batch(
+    tile_ids: Tensor, splat_ids: Tensor, params: Tensor, rgb: Tensor, *, tile_size: int, tiles_x: int,
+    chunk_elements: int,
+) -> tuple[Tensor, Tensor]:
+    """Front-to-back compositing of B tiles' padded lists [B, K], walked in K chunks that carry T and `done`."""
+    local = torch.arange(tile_size * tile_size, device=rgb.device)  # [P]
+    px = ((tile_ids % tiles_x).unsqueeze(1) * tile_size + local % tile_size).float() + PIXEL_CENTER_OFFSET
+    py = ((tile_ids // tiles_x).unsqueeze(1) * tile_size + local // tile_size).float() + PIXEL_CENTER_OFFSET
+    px, py = px.unsqueeze(-1), py.unsqueeze(-1)  # [B, P, 1] pixel centres
+    n_tiles, k_total = splat_ids.shape
+    pixels = px.shape[1]
+    k_chunk = max(1, min(k_total, chunk_elements // (n_tiles * pixels)))
+    color = torch.zeros(n_tiles, pixels, 3, dtype=rgb.dtype, device=rgb.device)  # [B, P, 3]
+    trans = torch.ones(n_tiles, pixels, dtype=rgb.dtype, device=rgb.device)  # [B, P]
+    done = torch.zeros(n_tiles, pixels, dtype=torch.bool, device=rgb.device)  # [B, P] stopped by T_MIN
+    for k0 in range(0, k_total, k_chunk):
+        ids = splat_ids[:, k0 : k0 + k_chunk]  # [B, k]
+        u, v, a, b, c, opacity, r = params[:, ids].unsqueeze(2).unbind(0)  # each [B, 1, k]
+        dx = px - u  # [B, P, k] pixel centre - projected centre
+        dy = py - v
+        inside = torch.maximum(dx.abs(), dy.abs()) <= r  # [B, P, k] the contract's exact per-pixel extent
+        # Offsets clamped to the extent: unchanged inside, and keep_mask's bound keeps the power finite outside.
+        dx, dy = torch.clamp(dx, -r, r), torch.clamp(dy, -r, r)
+        alpha = splat_alpha_parts(opacity, a, b, c, dx, dy, inside)  # [B, P, k], 0 = skipped
+        color, trans, done = _blend_chunk(alpha, rgb[ids], color, trans, done)
+        if bool(done.all()):
+            break
+    return color, trans
+
+
+def _blend_chunk(
+    alpha: Tensor, rgb: Tensor, color: Tensor, trans: Tensor, done: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Blend one chunk [B, P, k] (alpha 0 = skipped) onto carried colour/T; the kept set is a prefix since T falls."""
+    start = torch.where(done, 0.0, trans)  # a stopped pixel takes nothing more
+    t_seq = torch.cumprod(torch.cat([start.unsqueeze(-1), 1.0 - alpha], dim=-1), dim=-1)  # [B, P, k+1]
+    with torch.no_grad():
+        # 3DGS: test_T = T * (1 - alpha); if test_T < T_MIN the pixel stops before this Gaussian.
+        include = t_seq[..., 1:] >= TRANSMITTANCE_MIN  # [B, P, k], a prefix since T never grows
+        n_included = torch.count_nonzero(include, dim=-1).unsqueeze(-1)  # [B, P, 1]
+    weight = alpha * t_seq[..., :-1] * include  # [B, P, k] alpha_i T_i on the included prefix
+    color = color + torch.bmm(rgb.transpose(1, 2), weight.transpose(1, 2)).transpose(1, 2)  # [B, P, 3]
+    trans = torch.where(done, trans, t_seq.gather(-1, n_included).squeeze(-1))  # [B, P] T after the prefix
+    return color, trans, done | (t_seq[..., -1] < TRANSMITTANCE_MIN)
+
+
+def _untile(values: Tensor, tiles_x: int, tiles_y: int, tile_size: int) -> Tensor:
+    """[tiles, P, ...] in row-major tile order -> [tiles_y * ts, tiles_x * ts, ...] image layout."""
+    rest = values.shape[2:]
+    grid = values.reshape(tiles_y, tiles_x, tile_size, tile_size, *rest)
+    return grid.transpose(1, 2).reshape(tiles_y * tile_size, tiles_x * tile_size, *rest)

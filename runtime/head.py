@@ -1,0 +1,161 @@
+"""The embedding API: load a bundle, turn audio or explicit FLAME parameters into frames, write an mp4.
+
+    head = TalkingHead("speaker.gtb", resolution=(512, 512))
+    for frame in head.frames("speech.wav"):      # uint8 [H, W, 3], one per video frame, streamed
+        ...
+    head.write_video("talk.mp4", "speech.wav")   # audio muxed in
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections import defaultdict
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+from gaussiantalker.sdk.audio import TARGET_SAMPLE_RATE, load_audio, prepare_audio
+from gaussiantalker.sdk.bundle import Bundle
+from gaussiantalker.sdk.camera import Camera
+from gaussiantalker.sdk.config import SpeakerConfig
+from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame
+from gaussiantalker.sdk.errors import AudioError, GaussianTalkerError
+from gaussiantalker.sdk.video import VideoWriter
+
+from .graphs import OnnxRuntimeBackend
+from .translate import translate_audio
+
+AudioSource = str | os.PathLike | np.ndarray
+HeadPoseSource = Callable[[int], HeadPose] | np.ndarray | HeadPose | None
+
+
+class TalkingHead:
+    """A loaded speaker bundle plus an OpenGL splatter: audio or FLAME parameters in, frames out."""
+
+    def __init__(self, bundle: str | os.PathLike | Bundle, *, resolution: tuple[int, int] | None = None,
+                 camera: Camera | None = None, background=None, threads: int | None = None,
+                 gl_context=None) -> None:
+        self.bundle = bundle if isinstance(bundle, Bundle) else Bundle(bundle)
+        manifest = self.bundle.manifest
+        try:
+            self.config = SpeakerConfig.from_dict(manifest["speaker"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise GaussianTalkerError(f"{self.bundle.path}: manifest has no valid speaker config: {exc}") from exc
+        self.graphs = OnnxRuntimeBackend(self.bundle, threads=threads)
+        self.pose_track = self.bundle.buffer("pose_track") if self.bundle.has_buffer("pose_track") else None
+        self.camera = camera or Camera.from_dict(manifest["camera"])
+        if resolution is not None:
+            self.camera = self.camera.resized(*resolution)
+        self.background = np.asarray(background if background is not None else manifest.get("background", (1, 1, 1)),
+                                     dtype=np.float32).reshape(3)
+        from .splatter import GLSplatter
+
+        self.splatter = GLSplatter(gl_context)
+        self.timings: dict[str, list[float]] = defaultdict(list)
+
+    # -- audio -> drive ------------------------------------------------------------------------------
+    def load_audio(self, audio: AudioSource, sample_rate: int | None = None) -> np.ndarray:
+        """Any file or array -> mono float32 at the speaker's sample rate."""
+        if isinstance(audio, (str, os.PathLike)):
+            return load_audio(audio, self.config.sample_rate)
+        if sample_rate is None:
+            raise AudioError("an audio array needs its sample_rate")
+        return prepare_audio(audio, sample_rate, self.config.sample_rate)
+
+    def translate(self, audio: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Audio (speaker rate, mono float32) -> expression [T, n_expr], jaw pose [T, 3] via the translator graph."""
+        start = time.perf_counter()
+        result = translate_audio(lambda chunk: self.graphs.run("translator", {"audio": chunk[None]}), audio,
+                                 self.config.samples_per_frame)
+        self.timings["translator"].append(time.perf_counter() - start)
+        return result
+
+    def head_pose(self, index: int, source: HeadPoseSource = None) -> HeadPose:
+        """Head pose of frame `index`: the app's (callable, [T, 6] array or fixed pose) or the pose track's."""
+        if isinstance(source, HeadPose):
+            return source
+        if callable(source):
+            return source(index)
+        track = source if source is not None else self.pose_track
+        if track is None:
+            return HeadPose.make()
+        return pose_track_frame(np.asarray(track, dtype=np.float32).reshape(-1, 6), index)
+
+    # -- drive -> frame ------------------------------------------------------------------------------
+    def gaussians(self, drive: FrameDrive) -> dict[str, np.ndarray]:
+        """Run the deformation graph: world-space means, cov3d, rgb, opacity for one frame."""
+        start = time.perf_counter()
+        inputs = drive.graph_inputs()
+        inputs["camera_center"] = self.camera.center.astype(np.float32)[None]
+        out = self.graphs.run("deform", inputs)
+        self.timings["deformation"].append(time.perf_counter() - start)
+        return {"means": out["means"][0], "cov3d": out["cov3d"][0], "rgb": out["rgb"][0], "opacity": out["opacity"]}
+
+    def render(self, drive: FrameDrive, output: str = "uint8") -> np.ndarray:
+        """One frame from validated drive parameters: uint8 [H, W, 3] (or float32 with output="float")."""
+        g = self.gaussians(drive)
+        frame = self.splatter.render(g["means"], g["cov3d"], g["rgb"], g["opacity"], self.camera, self.background,
+                                     output=output)
+        for stage, seconds in self.splatter.last_timings.items():
+            self.timings[stage].append(seconds)
+        return frame
+
+    def render_params(self, expression=None, jaw_pose=None, neck_pose=None, eye_pose=None,
+                      head_rotation=None, head_translation=None, output: str = "uint8") -> np.ndarray:
+        """One frame from explicit FLAME parameters and head pose (for apps driven by a face tracker)."""
+        drive = FrameDrive.make(self.config.n_expr, expression, jaw_pose, neck_pose, eye_pose,
+                                HeadPose.make(head_rotation, head_translation))
+        return self.render(drive, output)
+
+    def drives(self, audio: AudioSource, sample_rate: int | None = None,
+               head_pose: HeadPoseSource = None) -> Iterator[FrameDrive]:
+        """Per-frame drive parameters for an audio clip (translator output + head pose)."""
+        expression, jaw = self.translate(self.load_audio(audio, sample_rate))
+        for index in range(expression.shape[0]):
+            yield FrameDrive.make(self.config.n_expr, expression[index], jaw[index],
+                                  head_pose=self.head_pose(index, head_pose))
+
+    def frames(self, audio: AudioSource, sample_rate: int | None = None, head_pose: HeadPoseSource = None,
+               output: str = "uint8") -> Iterator[np.ndarray]:
+        """Frames for an audio clip at the speaker's fps, yielded one at a time (never all held in memory)."""
+        for drive in self.drives(audio, sample_rate, head_pose):
+            yield self.render(drive, output)
+
+    def frame_count(self, samples: int) -> int:
+        """Video frames for `samples` audio samples: the last partial frame counts (audio is zero-padded)."""
+        return -(-samples // self.config.samples_per_frame)
+
+    def write_video(self, path: str | os.PathLike, audio: AudioSource, sample_rate: int | None = None,
+                    head_pose: HeadPoseSource = None, progress: bool = True,
+                    on_frame: Callable[[np.ndarray], None] | None = None) -> Path:
+        """Render the clip and write an mp4 with the audio muxed in (`on_frame` sees each frame); returns the path."""
+        from tqdm import tqdm
+
+        samples = self.load_audio(audio, sample_rate)
+        total = self.frame_count(samples.shape[0])
+        size = (self.camera.width, self.camera.height)
+        with VideoWriter(path, self.config.fps, size, audio=samples, sample_rate=self.config.sample_rate) as out:
+            frames = self.frames(samples, self.config.sample_rate, head_pose)
+            for frame in tqdm(frames, total=total, unit="frame", disable=not progress, desc="rendering"):
+                out.write(frame)
+                if on_frame is not None:
+                    on_frame(frame)
+        return Path(path)
+
+    def stage_medians_ms(self) -> dict[str, float]:
+        """Median milliseconds per call of each stage recorded so far."""
+        return {stage: 1000.0 * float(np.median(values)) for stage, values in self.timings.items() if values}
+
+    def close(self) -> None:
+        self.splatter.release()
+
+    def __enter__(self) -> TalkingHead:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+__all__ = ["TalkingHead", "TARGET_SAMPLE_RATE"]

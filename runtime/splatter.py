@@ -1,0 +1,436 @@
+"""OpenGL EWA splatter of the torch-free runtime: depth-sorted Gaussians -> [H, W, 3] frame (numerics contract).
+
+The per-Gaussian maths lives in shaders/splat.vert and shaders/splat.frag, whose GLSL functions `project_mean`,
+`covariance_2d`, `extent_radius` and `splat_alpha` mirror the torch reference functions of the same names;
+the depth order (`view_depth`, `depth_order`) and the final 8-bit conversion (`to_uint8`) are numpy here.
+
+Primitives
+----------
+Each Gaussian is drawn as a box of whole pixels (shaders/splat.vert, `pixel_box`) that holds every pixel that
+can pass the exact per-pixel tests of the fragment shader; the rasteriser only decides which fragments are
+tried, never which pixels a Gaussian touches. On llvmpipe a point sprite costs far less than two triangles, so
+Gaussians whose box provably fits the largest point size are drawn as points, the others as instanced quads, in
+sorted runs (a frame with too many alternating runs falls back to quads only). Both give identical pixels.
+
+Compositing and the contract's early termination
+------------------------------------------------
+Gaussians are drawn front to back into an RGBA32F framebuffer cleared to 0 with the premultiplied "under"
+blend (src factor ONE_MINUS_DST_ALPHA, dst factor ONE, for colour and alpha alike), each fragment writing
+(rgb * alpha, alpha). The framebuffer then holds (C, 1 - T), and a last full-screen pass of (background, 1)
+under the same blend turns it into (C + T * background, 1), the contract's final colour.
+
+Fixed-function blending cannot read T, so it cannot stop a pixel "before a Gaussian that would take T below
+1e-4" as 3DGS does: every later Gaussian is still added, weighted by the (tiny) remaining T. The difference from
+the 3DGS rule at a pixel that would have stopped with transmittance T_stop is
+    sum_{later i} T_i * alpha_i * (c_i - background)  (the later weights sum to at most T_stop),
+so it is bounded by T_stop * max|c_i - background|. The stop happens before a Gaussian with
+T_stop * (1 - alpha) < 1e-4 and alpha <= 0.99, hence T_stop < 1e-4 / 0.01 = 0.01: the worst case is
+0.01 * max colour difference, and typically (T_stop ~ 1e-4..1e-3) it is ~1e-4..1e-3, below half an 8-bit
+level. tests/test_splatter.py measures it against a literal numpy implementation of the rule.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+
+import moderngl
+import numpy as np
+
+from gaussiantalker.sdk import numerics
+from gaussiantalker.sdk.camera import Camera
+from gaussiantalker.sdk.errors import RenderError
+from gaussiantalker.shaders import load_shader
+
+from .gl_context import create_context
+
+# A Gaussian's pixel box is widened by this much (pixels) so that float rounding in the vertex shader never
+# drops a pixel the fragment shader would accept. 1/64 px is several float32 ulps even at 16384 px and adds an
+# extra row/column with probability ~1/32 per side.
+QUAD_SLACK_PX = 1.0 / 64.0
+
+# Relative (and absolute) widening of the alpha >= ALPHA_MIN ellipse used to shrink the pixel box, far above
+# the float32 error of exp/log/the conic (~1e-6), so the shrink never removes a pixel that passes.
+BOX_SLACK_REL = 1e-3
+
+# Per-splat values whose magnitude reaches this (centre, radius, conic) are treated as non-finite and culled.
+FINITE_LIMIT = 1e30
+
+# Colours are clamped to +-COLOR_LIMIT in the fragment shader so float32 sums stay finite (no inf - inf = NaN).
+# Far above any real colour, so the contract's "no upper clamp before compositing" holds for every real input.
+COLOR_LIMIT = 1e30
+
+# Draw calls allowed per frame when mixing point and quad runs; beyond this, every Gaussian is drawn as a quad.
+MAX_DRAW_RUNS = 64
+
+# A Gaussian is drawn as a point when this factor times its conservative radius bound still fits (float margin).
+POINT_BOUND_SAFETY = 1.01
+
+# Framebuffers kept alive for this many recent resolutions.
+MAX_CACHED_TARGETS = 4
+
+STAGES = ("sort", "upload", "draw", "readback")
+
+_FLOATS_PER_SPLAT = 13  # mean 3, covariance 6, rgb 3, opacity 1
+_STRIDE = _FLOATS_PER_SPLAT * 4
+_ATTRIBUTES = (("in_mean", 3, 0), ("in_cov_a", 3, 3), ("in_cov_b", 3, 6), ("in_rgba", 4, 9))  # name, size, offset
+
+
+def _glsl_float(value: float) -> str:
+    """A GLSL float literal that parses to float32(value) (repr is the shortest round-tripping decimal)."""
+    text = repr(float(value))
+    return text if any(ch in text for ch in ".eE") else text + ".0"
+
+
+def shader_defines() -> dict[str, str]:
+    """The numerics constants injected into the splat shaders as #defines (never re-typed in GLSL)."""
+    values = {
+        "LOW_PASS_PX2": numerics.LOW_PASS_PX2,
+        "EXTENT_SIGMAS": numerics.EXTENT_SIGMAS,
+        "ALPHA_MAX": numerics.ALPHA_MAX,
+        "ALPHA_MIN": numerics.ALPHA_MIN,
+        "QUAD_SLACK_PX": QUAD_SLACK_PX,
+        "BOX_SLACK_REL": BOX_SLACK_REL,
+        "FINITE_LIMIT": FINITE_LIMIT,
+        "COLOR_LIMIT": COLOR_LIMIT,
+    }
+    return {name: _glsl_float(value) for name, value in values.items()}
+
+
+def with_defines(source: str, defines: dict[str, str]) -> str:
+    """Insert `#define NAME VALUE` lines right after the #version line (GLSL requires #version first)."""
+    first, newline, rest = source.partition("\n")
+    if not first.startswith("#version"):
+        raise RenderError("shader source must start with a #version line")
+    block = "".join(f"#define {name} {value}\n" for name, value in defines.items())
+    return first + newline + block + "#line 2\n" + rest
+
+
+# -- numpy side of the contract ------------------------------------------------------------------------------
+
+
+def view_depth(means: np.ndarray, camera: Camera) -> np.ndarray:
+    """Camera-space z = (R mean + t).z in float32, summed left to right, so the torch side can match it. # [N]"""
+    r = camera.R[2].astype(np.float32)
+    t = np.float32(camera.t[2])
+    with np.errstate(invalid="ignore", over="ignore"):
+        return means[:, 0] * r[0] + means[:, 1] * r[1] + means[:, 2] * r[2] + t
+
+
+def stable_argsort_positive(z: np.ndarray) -> np.ndarray:
+    """np.argsort(z, kind="stable") for finite z > 0 (float32), ~15x faster: one sort of unique uint64 keys.
+
+    A positive float32's bit pattern orders like its value, so key = bits << 32 | index sorts by z and then by
+    index, which is exactly the stable order; the keys are unique, so any sort algorithm gives that order.
+    """
+    key = z.astype(np.float32).view(np.uint32).astype(np.uint64) << np.uint64(32)
+    key |= np.arange(len(z), dtype=np.uint64)
+    key.sort()
+    return (key & np.uint64(0xFFFFFFFF)).astype(np.intp)
+
+
+def depth_order(packed: np.ndarray, camera: Camera) -> np.ndarray:
+    """Indices of the Gaussians to draw, front to back: stable sort on z, culling z < near and non-finite rows."""
+    z = view_depth(packed[:, 0:3], camera)  # [N]
+    with np.errstate(invalid="ignore"):
+        keep = (z >= np.float32(camera.near)) & np.isfinite(z) & np.isfinite(packed).all(axis=1)
+    kept = np.flatnonzero(keep)
+    return kept[stable_argsort_positive(z[kept])]  # near > 0, so every kept z is finite and positive
+
+
+def extent_radius_bound(packed: np.ndarray, camera: Camera) -> np.ndarray:
+    """An upper bound of each Gaussian's extent radius in px (cheap, float64), to pick point or quad. # [N]
+
+    lambda_max(J W S W^T J^T) <= |J|_F^2 * rho(S) and rho(S) <= |S|_F for any symmetric S, with J formed from
+    the clamped x/z, y/z exactly as in `covariance_2d`; the low-pass term adds LOW_PASS_PX2.
+    """
+    p = packed[:, 0:3].astype(np.float64) @ camera.R.T + camera.t  # [N, 3] camera space
+    x_lo, x_hi, y_lo, y_hi = camera.fov_clamp_limits()
+    with np.errstate(all="ignore"):
+        xz = np.clip(p[:, 0] / p[:, 2], x_lo, x_hi)
+        yz = np.clip(p[:, 1] / p[:, 2], y_lo, y_hi)
+        jac_sq = (camera.fx**2 * (1.0 + xz * xz) + camera.fy**2 * (1.0 + yz * yz)) / (p[:, 2] * p[:, 2])
+        cov = packed[:, 3:9].astype(np.float64)
+        cov_frobenius = np.sqrt((cov * cov) @ np.array([1.0, 2.0, 2.0, 1.0, 2.0, 1.0]))
+        bound = numerics.EXTENT_SIGMAS * np.sqrt(jac_sq * cov_frobenius + numerics.LOW_PASS_PX2)
+    return np.where(np.isfinite(bound), bound, np.inf)
+
+
+def draw_runs(needs_quad: np.ndarray) -> list[tuple[int, int, bool]]:
+    """Split the sorted Gaussians into maximal (start, stop, as_quads) runs of one primitive kind."""
+    n = len(needs_quad)
+    if n == 0:
+        return []
+    edges = np.concatenate(([0], np.flatnonzero(needs_quad[1:] != needs_quad[:-1]) + 1, [n]))
+    return [(int(a), int(b), bool(needs_quad[a])) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+
+def to_uint8(frame: np.ndarray) -> np.ndarray:
+    """floor(clamp(v, 0, 1) * 255 + 0.5) in float32, once, at the end (reproducible bit-exactly in torch)."""
+    work = np.clip(frame, 0.0, 1.0, dtype=np.float32)
+    work *= np.float32(255.0)
+    work += np.float32(0.5)
+    np.floor(work, out=work)
+    return work.astype(np.uint8)
+
+
+def pack_gaussians(means, cov3d, rgb, opacity) -> np.ndarray:
+    """Validate shapes and pack [N, 13] float32 rows: mean xyz, cov xx xy xz yy yz zz, rgb, opacity."""
+    means = np.asarray(means, dtype=np.float32)
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise RenderError(f"means must have shape [N, 3], got {list(means.shape)}")
+    n = means.shape[0]
+    arrays = {
+        "cov3d": (np.asarray(cov3d, dtype=np.float32), (n, 6)),
+        "rgb": (np.asarray(rgb, dtype=np.float32), (n, 3)),
+        "opacity": (np.asarray(opacity, dtype=np.float32), (n,)),
+    }
+    for name, (array, shape) in arrays.items():
+        if array.shape != shape and not (name == "opacity" and array.shape == (n, 1)):
+            raise RenderError(f"{name} must have shape {list(shape)} to match means {list(means.shape)}, "
+                              f"got {list(array.shape)}")
+    packed = np.empty((n, _FLOATS_PER_SPLAT), dtype=np.float32)
+    packed[:, 0:3] = means
+    packed[:, 3:9] = arrays["cov3d"][0]
+    packed[:, 9:12] = arrays["rgb"][0]
+    packed[:, 12] = arrays["opacity"][0].reshape(n)
+    return packed
+
+
+def _background_rgb(background) -> tuple[float, float, float]:
+    """Three finite floats, or RenderError."""
+    values = np.asarray(background, dtype=np.float64).reshape(-1)
+    if values.shape != (3,) or not np.all(np.isfinite(values)):
+        raise RenderError(f"background must be 3 finite floats, got {background!r}")
+    return tuple(float(v) for v in values)
+
+
+# -- GL side -------------------------------------------------------------------------------------------------
+
+
+class _Target:
+    """A float framebuffer of one resolution plus its read-back scratch array."""
+
+    def __init__(self, ctx: moderngl.Context, width: int, height: int) -> None:
+        self.texture = ctx.texture((width, height), 4, dtype="f4")
+        try:
+            self.fbo = ctx.framebuffer(color_attachments=[self.texture])
+        except Exception:
+            self.texture.release()
+            raise
+        self.scratch = np.empty((height, width, 3), dtype=np.float32)
+
+    def release(self) -> None:
+        """Free the GL objects."""
+        self.fbo.release()
+        self.texture.release()
+
+
+class GLSplatter:
+    """Renders Gaussians with OpenGL into an offscreen float framebuffer; reusable across frames and cameras.
+
+    `point_sprites=False` draws every Gaussian as an instanced quad (same pixels, slower on llvmpipe).
+    """
+
+    def __init__(self, ctx: moderngl.Context | None = None, *, point_sprites: bool = True) -> None:
+        self._owns_ctx = ctx is None
+        self.ctx = create_context() if ctx is None else ctx
+        self.last_timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
+        self._targets: OrderedDict[tuple[int, int], _Target] = OrderedDict()
+        self._buffer: moderngl.Buffer | None = None
+        self._point_vao: moderngl.VertexArray | None = None
+        self._capacity = 0
+        self._quad_start: int | None = None  # first instance the quad VAO is bound at
+        self._programs: dict[str, moderngl.Program] = {}
+        self._quad_vao: moderngl.VertexArray | None = None
+        self._background_vao: moderngl.VertexArray | None = None
+        try:
+            with self.ctx:
+                self._build_programs()
+                self.max_point_size = self._max_point_size() if point_sprites else 0.0
+        except Exception:
+            self.release()
+            raise
+
+    # -- set-up ---------------------------------------------------------------------------------------------
+
+    def _program(self, vertex: str, fragment: str, extra: dict[str, str] | None = None) -> moderngl.Program:
+        """Compile and link one program with the numerics #defines; RenderError with the driver log."""
+        defines = {**shader_defines(), **(extra or {})}
+        try:
+            return self.ctx.program(vertex_shader=with_defines(load_shader(vertex), defines),
+                                    fragment_shader=with_defines(load_shader(fragment), defines))
+        except moderngl.Error as exc:
+            raise RenderError(f"shader {vertex}/{fragment} failed to compile or link: {exc}") from exc
+
+    def _build_programs(self) -> None:
+        """Point and quad splat programs (same source), and the background pass (no vertex buffer)."""
+        self._programs["points"] = self._program("splat.vert", "splat.frag", {"SPLAT_POINTS": "1"})
+        self._programs["quads"] = self._program("splat.vert", "splat.frag", {"SPLAT_POINTS": "0"})
+        self._programs["background"] = self._program("background.vert", "background.frag")
+        self._quad_vao = self.ctx.vertex_array(self._programs["quads"], [])
+        self._background_vao = self.ctx.vertex_array(self._programs["background"], [])
+
+    def _max_point_size(self) -> float:
+        """Largest point sprite side the driver draws (GL_POINT_SIZE_RANGE; 0 where unknown)."""
+        sizes = self.ctx.info.get("GL_POINT_SIZE_RANGE") or (0.0, 0.0)
+        return float(sizes[1])
+
+    def _ensure_capacity(self, n: int) -> None:
+        """Grow the per-Gaussian buffer (and rebuild its VAOs) only when a frame has more Gaussians than before."""
+        if n <= self._capacity:
+            return
+        capacity = max(n, int(self._capacity * 1.5), 1024)
+        self._release_buffer()
+        self._buffer = self.ctx.buffer(reserve=capacity * _STRIDE)
+        names = [name for name, _, _ in _ATTRIBUTES]
+        self._point_vao = self.ctx.vertex_array(self._programs["points"], [(self._buffer, "3f 3f 3f 4f", *names)])
+        self._capacity = capacity
+
+    def _bind_quads_at(self, start: int) -> None:
+        """Point the quad VAO's per-instance attributes at Gaussian `start` (no base-instance in GL 3.3)."""
+        if self._quad_start == start:
+            return
+        program = self._programs["quads"]
+        for name, size, offset in _ATTRIBUTES:
+            self._quad_vao.bind(program[name].location, "f", self._buffer, f"{size}f",
+                                offset=(start * _FLOATS_PER_SPLAT + offset) * 4, stride=_STRIDE, divisor=1)
+        self._quad_start = start
+
+    def _target(self, width: int, height: int) -> _Target:
+        """The framebuffer for this resolution (a few recent ones are kept, least recently used dropped)."""
+        key = (width, height)
+        target = self._targets.pop(key, None)
+        if target is None:
+            target = _Target(self.ctx, width, height)
+            while len(self._targets) >= MAX_CACHED_TARGETS:
+                self._targets.popitem(last=False)[1].release()
+        self._targets[key] = target
+        return target
+
+    # -- per frame ------------------------------------------------------------------------------------------
+
+    def _plan_runs(self, rows: np.ndarray, camera: Camera) -> list[tuple[int, int, bool]]:
+        """Draw runs for the sorted rows: points where the box surely fits a point sprite, quads elsewhere."""
+        n = len(rows)
+        if n == 0:
+            return []
+        if self.max_point_size <= 0:
+            return [(0, n, True)]
+        side = 2.0 * POINT_BOUND_SAFETY * extent_radius_bound(rows, camera) + 2.0 + 2.0 * QUAD_SLACK_PX
+        runs = draw_runs(side > self.max_point_size)
+        return runs if len(runs) <= MAX_DRAW_RUNS else [(0, n, True)]
+
+    def _set_camera_uniforms(self, camera: Camera) -> None:
+        """Camera uniforms of both splat programs (GLSL mat3 is column-major, hence R^T's bytes)."""
+        rotation = np.ascontiguousarray(camera.R.T, dtype=np.float32).tobytes()
+        for key in ("points", "quads"):
+            program = self._programs[key]
+            program["u_R"].write(rotation)
+            program["u_t"].value = tuple(float(v) for v in camera.t)
+            program["u_intrinsics"].value = (camera.fx, camera.fy, camera.cx, camera.cy)
+            program["u_image_size"].value = (float(camera.width), float(camera.height))
+            program["u_fov_limits"].value = camera.fov_clamp_limits()
+
+    def _draw(self, target: _Target, runs: list[tuple[int, int, bool]],
+              background: tuple[float, float, float]) -> None:
+        """Clear to (0, 0, 0, 0), blend the sorted splats front to back, then the background under them."""
+        ctx = self.ctx
+        target.fbo.use()
+        target.fbo.clear(0.0, 0.0, 0.0, 0.0)
+        ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
+        ctx.enable(moderngl.BLEND | moderngl.PROGRAM_POINT_SIZE)
+        ctx.blend_equation = moderngl.FUNC_ADD
+        ctx.blend_func = moderngl.ONE_MINUS_DST_ALPHA, moderngl.ONE  # "under": dst += (1 - dst.a) * src
+        for start, stop, as_quads in runs:
+            if as_quads:
+                self._bind_quads_at(start)
+                self._quad_vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=stop - start)
+            else:
+                self._point_vao.render(moderngl.POINTS, vertices=stop - start, first=start)
+        self._programs["background"]["u_background"].value = background
+        self._background_vao.render(moderngl.TRIANGLES, vertices=3)
+        ctx.finish()  # so that "draw" and "readback" timings are separate
+
+    def render(self, means, cov3d, rgb, opacity, camera: Camera, background, *,
+               output: str = "uint8") -> np.ndarray:
+        """Splat N Gaussians (world means [N,3], covariances [N,6], rgb [N,3], opacity [N]) -> [H, W, 3] frame.
+
+        output="float": float32 C + T * background; output="uint8": floor(clamp(v, 0, 1) * 255 + 0.5).
+        Rows are top first (+y down). Non-finite Gaussians and those with camera z < near are culled.
+        """
+        if self.ctx is None:
+            raise RenderError("this GLSplatter has been released")
+        if output not in ("float", "uint8"):
+            raise RenderError(f'output must be "float" or "uint8", got {output!r}')
+        if not isinstance(camera, Camera):
+            raise RenderError(f"camera must be a gaussiantalker.sdk.camera.Camera, got {type(camera).__name__}")
+        background = _background_rgb(background)
+        timings = dict.fromkeys(STAGES, 0.0)
+        start = time.perf_counter()
+        packed = pack_gaussians(means, cov3d, rgb, opacity)
+        rows = packed[depth_order(packed, camera)]  # [n, 13] front to back
+        runs = self._plan_runs(rows, camera)
+        timings["sort"] = time.perf_counter() - start
+        try:
+            with self.ctx:  # make this context current (restored after): an app may hold several
+                frame = self._render_sorted(rows, runs, camera, background, timings, output)
+        except moderngl.Error as exc:
+            raise RenderError(f"OpenGL error while splatting {len(rows)} Gaussians: {exc}") from exc
+        self.last_timings = timings
+        return frame
+
+    def _render_sorted(self, rows: np.ndarray, runs: list[tuple[int, int, bool]], camera: Camera, background,
+                       timings: dict, output: str) -> np.ndarray:
+        """Upload, draw and read back one frame of already sorted rows."""
+        start = time.perf_counter()
+        if len(rows):
+            self._ensure_capacity(len(rows))
+            self._buffer.write(rows)
+        self._set_camera_uniforms(camera)
+        target = self._target(int(camera.width), int(camera.height))
+        timings["upload"] = time.perf_counter() - start
+
+        start = time.perf_counter()
+        self._draw(target, runs, background)
+        timings["draw"] = time.perf_counter() - start
+
+        start = time.perf_counter()
+        frame = target.scratch if output == "uint8" else np.empty_like(target.scratch)
+        target.fbo.read_into(frame, components=3, dtype="f4")
+        if output == "uint8":
+            frame = to_uint8(frame)
+        timings["readback"] = time.perf_counter() - start
+        return frame
+
+    # -- lifetime -------------------------------------------------------------------------------------------
+
+    def _release_buffer(self) -> None:
+        """Drop the per-Gaussian buffer and the point VAO reading it (the quad VAO is re-bound on use)."""
+        for obj in (self._point_vao, self._buffer):
+            if obj is not None:
+                obj.release()
+        self._point_vao, self._buffer, self._capacity, self._quad_start = None, None, 0, None
+
+    def release(self) -> None:
+        """Free every GL object (and the context if this splatter created it); safe to call twice."""
+        if self.ctx is None:
+            return
+        with self.ctx:  # GL names belong to this context, which need not be the current one
+            self._release_buffer()
+            while self._targets:
+                self._targets.popitem()[1].release()
+            for obj in (self._quad_vao, self._background_vao, *self._programs.values()):
+                if obj is not None:
+                    obj.release()
+        self._quad_vao = self._background_vao = None
+        self._programs = {}
+        if self._owns_ctx:
+            self.ctx.release()
+        self.ctx = None
+
+    def __enter__(self) -> GLSplatter:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.release()

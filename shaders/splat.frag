@@ -1,0 +1,38 @@
+#version 330 core
+// Per-pixel evaluation of one Gaussian, composited front-to-back by the fixed-function "under" blend
+// (src factor ONE_MINUS_DST_ALPHA, dst factor ONE): the framebuffer holds (C, 1 - T).
+// Injected by the runtime after the #version line (values from gaussiantalker.sdk.numerics):
+//   ALPHA_MAX, ALPHA_MIN, COLOR_LIMIT
+
+flat in vec2 v_center;
+flat in vec3 v_conic;
+flat in float v_radius;
+flat in vec4 v_rgba;
+
+out vec4 frag_color;
+
+// Contract "Alpha": min(ALPHA_MAX, opacity * exp(power)), power = -1/2 (A dx^2 + C dy^2) - B dx dy with
+// (A, B, C) the conic; a positive power is skipped (returned as alpha 0, which the caller discards).
+float splat_alpha(vec2 d, vec3 conic, float opacity) {
+    float power = -0.5 * (conic.x * d.x * d.x + conic.z * d.y * d.y) - conic.y * d.x * d.y;
+    if (power > 0.0) {
+        return 0.0;
+    }
+    return min(ALPHA_MAX, opacity * exp(power));
+}
+
+void main() {
+    // gl_FragCoord.xy is the pixel centre (x + 0.5, y + 0.5) in image coordinates (rows are not flipped).
+    vec2 d = gl_FragCoord.xy - v_center;
+    // Contract "Extent": only pixel centres with |dx| <= r and |dy| <= r, decided here, exactly, per pixel.
+    if (!(abs(d.x) <= v_radius && abs(d.y) <= v_radius)) {
+        discard;
+    }
+    float alpha = splat_alpha(d, v_conic, v_rgba.a);
+    // Contract "Alpha": contributions below ALPHA_MIN are skipped (NaN fails the test and is skipped too).
+    if (!(alpha >= ALPHA_MIN)) {
+        discard;
+    }
+    // COLOR_LIMIT keeps accumulated sums finite (no inf - inf = NaN); far above any real colour.
+    frag_color = vec4(clamp(v_rgba.rgb, -COLOR_LIMIT, COLOR_LIMIT) * alpha, alpha);
+}

@@ -1,0 +1,117 @@
+#version 330 core
+// Per-Gaussian set-up of the EWA splatter: one point sprite (SPLAT_POINTS 1) or one instanced quad (SPLAT_POINTS 0,
+// 4 vertices, triangle strip) per Gaussian; the fragment shader makes every per-pixel decision exactly.
+// Each function mirrors the torch reference function of the same name (ARCHITECTURE.md, "Numerics contract").
+// Injected by the runtime after the #version line (values from gaussiantalker.sdk.numerics, never re-typed here):
+//   LOW_PASS_PX2, EXTENT_SIGMAS, ALPHA_MIN, QUAD_SLACK_PX, BOX_SLACK_REL, FINITE_LIMIT, SPLAT_POINTS
+
+uniform mat3 u_R;           // world -> camera rotation (R * p applies the camera's R)
+uniform vec3 u_t;           // world -> camera translation
+uniform vec4 u_intrinsics;  // fx, fy, cx, cy in pixels
+uniform vec2 u_image_size;  // W, H in pixels
+uniform vec4 u_fov_limits;  // x/z min, x/z max, y/z min, y/z max (Camera.fov_clamp_limits)
+
+in vec3 in_mean;     // [N, 3] world position
+in vec3 in_cov_a;    // [N, 3] world covariance xx, xy, xz
+in vec3 in_cov_b;    // [N, 3] world covariance yy, yz, zz
+in vec4 in_rgba;     // [N, 4] colour rgb, opacity
+
+flat out vec2 v_center;   // projected centre, continuous pixel coordinates (+y down)
+flat out vec3 v_conic;    // inverse 2D covariance (A, B, C)
+flat out float v_radius;  // extent radius r in pixels
+flat out vec4 v_rgba;     // colour, opacity
+
+// Contract "Camera": u = fx * X / Z + cx, v = fy * Y / Z + cy (pixel (x, y) has its centre at (x+0.5, y+0.5)).
+vec2 project_mean(vec3 p_cam) {
+    return vec2(u_intrinsics.x * p_cam.x / p_cam.z + u_intrinsics.z,
+                u_intrinsics.y * p_cam.y / p_cam.z + u_intrinsics.w);
+}
+
+// Contract "2D covariance": J W Sigma W^T J^T with x/z, y/z clamped to the widened field of view before
+// forming J, plus LOW_PASS_PX2 on the diagonal. Returns the symmetric 2x2 matrix as (a, b, c) = [[a, b], [b, c]].
+vec3 covariance_2d(vec3 p_cam, vec3 cov_a, vec3 cov_b) {
+    float z = p_cam.z;
+    float xz = clamp(p_cam.x / z, u_fov_limits.x, u_fov_limits.y);
+    float yz = clamp(p_cam.y / z, u_fov_limits.z, u_fov_limits.w);
+    vec3 j0 = vec3(u_intrinsics.x / z, 0.0, -u_intrinsics.x * xz / z);  // row 0 of J
+    vec3 j1 = vec3(0.0, u_intrinsics.y / z, -u_intrinsics.y * yz / z);  // row 1 of J
+    vec3 m0 = j0 * u_R;  // row 0 of J W
+    vec3 m1 = j1 * u_R;  // row 1 of J W
+    mat3 sigma = mat3(cov_a.x, cov_a.y, cov_a.z,
+                      cov_a.y, cov_b.x, cov_b.y,
+                      cov_a.z, cov_b.y, cov_b.z);
+    vec3 s0 = sigma * m0;
+    vec3 s1 = sigma * m1;
+    return vec3(dot(m0, s0) + LOW_PASS_PX2, dot(m0, s1), dot(m1, s1) + LOW_PASS_PX2);
+}
+
+// Contract "Extent": r = EXTENT_SIGMAS * sqrt(lambda_max) of the dilated 2D covariance, exact (no rounding).
+float extent_radius(vec3 cov2d, float det) {
+    float mid = 0.5 * (cov2d.x + cov2d.z);
+    float lambda_max = mid + sqrt(max(mid * mid - det, 0.0));
+    return EXTENT_SIGMAS * sqrt(lambda_max);
+}
+
+// Not a contract step, only where to rasterise: the smallest box of whole pixels that can hold a pixel passing
+// the fragment shader's exact tests. Those are |dx| <= r, |dy| <= r (extent) and alpha >= ALPHA_MIN, which needs
+// d^T cov2d^-1 d <= q_max = 2 ln(opacity / ALPHA_MIN), an ellipse whose bounding box is |dx| <= sqrt(q_max a),
+// |dy| <= sqrt(q_max c). Both bounds are widened (BOX_SLACK_REL, QUAD_SLACK_PX) against float rounding, so no
+// passing pixel is ever left out. The box is clipped to the image and its edges are integer pixel coordinates,
+// half a pixel from every pixel centre, so the rasteriser's sub-pixel snapping cannot add or drop a pixel.
+// Returns (lo.x, lo.y, hi.x, hi.y); empty when hi <= lo on an axis.
+vec4 pixel_box(vec2 center, vec3 cov2d, float radius, float opacity) {
+    float q_max = 2.0 * log(max(opacity, ALPHA_MIN) / ALPHA_MIN) * (1.0 + BOX_SLACK_REL) + BOX_SLACK_REL;
+    vec2 half_size = min(vec2(radius), sqrt(q_max * cov2d.xz)) + (0.5 + QUAD_SLACK_PX);
+    vec2 lo = clamp(ceil(center - half_size), vec2(0.0), u_image_size);
+    vec2 hi = clamp(floor(center + half_size), vec2(0.0), u_image_size);
+    return vec4(lo, hi);
+}
+
+void cull() {
+    gl_Position = vec4(-2.0, -2.0, 0.0, 1.0);  // outside the view: a point is dropped, a quad has no area
+    gl_PointSize = 1.0;
+    v_center = vec2(0.0);
+    v_conic = vec3(0.0);
+    v_radius = -1.0;
+    v_rgba = vec4(0.0);
+}
+
+void main() {
+    vec3 p_cam = u_R * in_mean + u_t;
+    vec2 center = project_mean(p_cam);
+    vec3 cov2d = covariance_2d(p_cam, in_cov_a, in_cov_b);
+    float det = cov2d.x * cov2d.z - cov2d.y * cov2d.y;
+    if (!(det > 0.0)) {  // contract: skip a Gaussian whose 2D determinant is not positive (NaN fails too)
+        cull();
+        return;
+    }
+    float radius = extent_radius(cov2d, det);
+    vec3 conic = vec3(cov2d.z, -cov2d.y, cov2d.x) / det;
+    // Contract: anything non-finite is culled (comparisons with NaN are false).
+    vec4 check = abs(vec4(center, radius, max(max(abs(conic.x), abs(conic.y)), abs(conic.z))));
+    if (!all(lessThan(check, vec4(FINITE_LIMIT)))) {
+        cull();
+        return;
+    }
+    vec4 box = pixel_box(center, cov2d, radius, in_rgba.a);
+    if (!(box.z > box.x && box.w > box.y)) {  // off screen, or no pixel can reach ALPHA_MIN
+        cull();
+        return;
+    }
+    // Pixel coordinates map to NDC without a y flip: framebuffer row j holds image row j, and read-back
+    // returns the top image row first.
+#if SPLAT_POINTS
+    // One point sprite per Gaussian: a square of whole pixels centred on the box (inside the image, so the
+    // point is not clipped); the host only draws Gaussians whose box fits the largest point size this way.
+    gl_PointSize = max(box.z - box.x, box.w - box.y);
+    gl_Position = vec4((box.xy + box.zw) / u_image_size - 1.0, 0.0, 1.0);
+#else
+    // One instanced quad (triangle strip) per Gaussian: vertex 0..3 is corner (x: id & 1, y: id >> 1) of the box.
+    vec2 corner = vec2(float(gl_VertexID & 1), float(gl_VertexID >> 1));
+    gl_Position = vec4(mix(box.xy, box.zw, corner) / u_image_size * 2.0 - 1.0, 0.0, 1.0);
+#endif
+    v_center = center;
+    v_conic = conic;
+    v_radius = radius;
+    v_rgba = in_rgba;
+}

@@ -1,0 +1,159 @@
+"""Bundle format: round trip, and every kind of damage gives a BundleError that names the problem."""
+
+from __future__ import annotations
+
+import json
+import struct
+
+import numpy as np
+import pytest
+
+from gaussiantalker.sdk.bundle import HEADER_SIZE, MAGIC, Bundle, BundleWriter
+from gaussiantalker.sdk.errors import BundleError
+
+
+def _write(path, codec="raw"):
+    writer = BundleWriter({"speaker": {"n_expr": 3}})
+    writer.add_buffer("weights", np.arange(24, dtype=np.float32).reshape(4, 6) / 7, codec=codec)
+    writer.add_buffer("ids", np.arange(5, dtype=np.int64))
+    writer.add_graph("g", b"\x08\x01graph-bytes", [{"name": "x", "dtype": "float32", "shape": [1]}], [],
+                     {"w": "weights"})
+    writer.write(path)
+    return path
+
+
+def test_round_trip(tmp_path):
+    bundle = Bundle(_write(tmp_path / "a.gtb"))
+    np.testing.assert_array_equal(bundle.buffer("weights"), np.arange(24, dtype=np.float32).reshape(4, 6) / 7)
+    np.testing.assert_array_equal(bundle.buffer("ids"), np.arange(5))
+    assert bundle.graph_bytes("g") == b"\x08\x01graph-bytes"
+    assert bundle.graph_info("g")["initializers"] == {"w": "weights"}
+    assert bundle.version == (1, 0)
+    bundle.verify_all()
+
+
+def test_fp16_codec_round_trip_and_overflow(tmp_path):
+    bundle = Bundle(_write(tmp_path / "h.gtb", codec="fp16"))
+    expected = np.arange(24, dtype=np.float32).reshape(4, 6) / 7
+    np.testing.assert_allclose(bundle.buffer("weights"), expected, rtol=1e-3)
+    assert bundle.buffer("weights").dtype == np.float32
+    writer = BundleWriter()
+    with pytest.raises(BundleError, match="fp16 cannot hold"):
+        writer.add_buffer("big", np.array([1e6], np.float32), codec="fp16")
+
+
+def test_truncated_files_are_refused(tmp_path):
+    data = _write(tmp_path / "a.gtb").read_bytes()
+    for cut in (0, 10, HEADER_SIZE, HEADER_SIZE + 20, len(data) - 1):
+        (tmp_path / "t.gtb").write_bytes(data[:cut])
+        with pytest.raises(BundleError, match="truncated|not a GaussianTalker"):
+            Bundle(tmp_path / "t.gtb")
+
+
+def test_flipped_payload_byte_names_the_entry(tmp_path):
+    path = _write(tmp_path / "a.gtb")
+    data = bytearray(path.read_bytes())
+    bundle = Bundle(path)
+    entry = bundle.manifest["buffers"]["weights"]
+    data[bundle.payload_start + entry["offset"] + 3] ^= 0x40
+    path.write_bytes(bytes(data))
+    damaged = Bundle(path)
+    with pytest.raises(BundleError, match="checksum mismatch in buffer 'weights'"):
+        damaged.buffer("weights")
+    damaged.buffer("ids")  # the undamaged entry still reads
+
+
+def test_flipped_manifest_byte_is_refused(tmp_path):
+    path = _write(tmp_path / "a.gtb")
+    data = bytearray(path.read_bytes())
+    data[HEADER_SIZE + 5] ^= 0x01
+    path.write_bytes(bytes(data))
+    with pytest.raises(BundleError, match="manifest checksum"):
+        Bundle(path)
+
+
+def test_unknown_major_version_is_refused(tmp_path):
+    path = _write(tmp_path / "a.gtb")
+    data = bytearray(path.read_bytes())
+    data[8:10] = struct.pack("<H", 2)
+    path.write_bytes(bytes(data))
+    with pytest.raises(BundleError, match="version 2.0 is not supported"):
+        Bundle(path)
+
+
+def test_not_a_bundle(tmp_path):
+    (tmp_path / "x.gtb").write_bytes(b"PK\x03\x04" + b"\0" * 100)
+    with pytest.raises(BundleError, match="bad magic"):
+        Bundle(tmp_path / "x.gtb")
+    with pytest.raises(BundleError, match="does not exist"):
+        Bundle(tmp_path / "missing.gtb")
+
+
+def _rewrite_manifest(path, edit):
+    """Re-encode the manifest after `edit(manifest)` with a valid checksum: a well-formed file that lies."""
+    import hashlib
+
+    from gaussiantalker.sdk.bundle import _HEADER, _align
+
+    data = path.read_bytes()
+    magic, major, minor, reserved, length, _ = _HEADER.unpack_from(data)
+    old_start = HEADER_SIZE + _align(length)
+    manifest = json.loads(data[HEADER_SIZE: HEADER_SIZE + length])
+    edit(manifest)
+    raw = json.dumps(manifest).encode()
+    header = _HEADER.pack(MAGIC, major, minor, reserved, len(raw), hashlib.sha256(raw).digest())
+    header += b"\0" * (HEADER_SIZE - len(header))
+    padded = raw + b"\0" * (_align(len(raw)) - len(raw))
+    path.write_bytes(header + padded + data[old_start:])
+
+
+def test_manifest_lying_about_shape_or_dtype(tmp_path):
+    path = _write(tmp_path / "a.gtb")
+    _rewrite_manifest(path, lambda m: m["buffers"]["weights"].update(shape=[4, 7]))
+    with pytest.raises(BundleError, match="buffer 'weights' declares dtype float32 shape \\[4, 7\\]"):
+        Bundle(path)
+    path = _write(tmp_path / "b.gtb")
+    _rewrite_manifest(path, lambda m: m["buffers"]["weights"].update(dtype="float64"))
+    with pytest.raises(BundleError, match="unsupported buffer dtype 'float64'"):
+        Bundle(path)
+
+
+def test_huge_claimed_sizes_are_refused_before_reading(tmp_path):
+    path = _write(tmp_path / "a.gtb")
+    _rewrite_manifest(path, lambda m: m["buffers"]["weights"].update(shape=[1 << 40], nbytes=4 << 40))
+    with pytest.raises(BundleError, match="outside the payload"):
+        Bundle(path)
+    path = _write(tmp_path / "b.gtb")
+    data = bytearray(path.read_bytes())
+    data[16:24] = struct.pack("<Q", 1 << 50)
+    path.write_bytes(bytes(data))
+    with pytest.raises(BundleError, match="manifest claims"):
+        Bundle(path)
+
+
+def test_missing_graph_and_buffer_are_named(tmp_path):
+    bundle = Bundle(_write(tmp_path / "a.gtb"))
+    with pytest.raises(BundleError, match="no graph 'deform'"):
+        bundle.graph_bytes("deform")
+    with pytest.raises(BundleError, match="no buffer 'nope'"):
+        bundle.buffer("nope")
+    path = _write(tmp_path / "b.gtb")
+    _rewrite_manifest(path, lambda m: m["buffers"].pop("weights"))
+    with pytest.raises(BundleError, match="unknown buffer 'weights'"):
+        Bundle(path)
+
+
+def test_write_is_atomic(tmp_path, monkeypatch):
+    path = _write(tmp_path / "good.gtb")
+    before = path.read_bytes()
+    writer = BundleWriter()
+    writer.add_buffer("x", np.zeros(3, np.float32))
+
+    def broken_fsync(fd):
+        raise OSError("disk full")
+
+    monkeypatch.setattr("os.fsync", broken_fsync)
+    with pytest.raises(OSError, match="disk full"):
+        writer.write(path)
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["good.gtb"]
