@@ -8,11 +8,14 @@ intelligible; it only needs the rhythm and loudness structure that drives a talk
 
 from __future__ import annotations
 
-import wave
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
+
+from gaussiantalker.sdk.audio import pad_to_frames, write_wav
+
+__all__ = ["synth_speech", "loudness_envelope", "jaw_target_from_audio", "spectral_tilt", "normalize_audio",
+           "smooth_frames", "pad_to_frames", "write_wav"]
 
 SAMPLE_RATE = 16000
 FPS = 25
@@ -180,13 +183,6 @@ def _check_mono(audio: np.ndarray) -> np.ndarray:
     return a
 
 
-def pad_to_frames(audio: np.ndarray, samples_per_frame: int) -> np.ndarray:
-    """Zero-pad a mono clip to a whole number of video frames (frame t covers [spf*t, spf*(t+1)))."""
-    a = _check_mono(audio)
-    rem = a.size % samples_per_frame
-    return a if rem == 0 else np.concatenate([a, np.zeros(samples_per_frame - rem)])
-
-
 def normalize_audio(audio: np.ndarray) -> np.ndarray:
     """Per-utterance zero-mean unit-variance normalisation, the same as the translator's first step."""
     a = _check_mono(audio)
@@ -263,12 +259,3 @@ def spectral_tilt(
     return tilt.astype(np.float32)
 
 
-def write_wav(path: str | Path, audio: np.ndarray, sample_rate: int = SAMPLE_RATE) -> None:
-    """Write mono float audio in [-1, 1] as 16-bit PCM WAV with the stdlib `wave` module (for demo clips)."""
-    a = _check_mono(audio)
-    pcm = np.round(np.clip(np.nan_to_num(a), -1.0, 1.0) * 32767.0).astype("<i2")
-    with wave.open(str(path), "wb") as handle:
-        handle.setnchannels(1)
-        handle.setsampwidth(2)
-        handle.setframerate(int(sample_rate))
-        handle.writeframes(pcm.tobytes())

@@ -21,7 +21,11 @@ from .train_translator import train_demo_translator
 
 DEMO_BACKGROUND = (0.93, 0.93, 0.95)
 POSE_TRACK_FRAMES = 150
-TANGENT_COVERAGE = 0.8  # tangential sigma = this * sqrt(area per Gaussian): neighbouring splats overlap
+# tangential sigma = this * sqrt(area per Gaussian): neighbouring splats overlap enough to close the surface,
+# little enough to keep llvmpipe's fill rate (overdraw grows with its square) at real-time at 512x512.
+TANGENT_COVERAGE = 0.7
+OPACITY_LOGIT = 4.0  # sigmoid(4) = 0.982: the front surface hides the back of the head
+CAMERA_DISTANCE = 0.85  # metres from the head's centre
 NORMAL_FLATNESS = 0.2  # sigma along the triangle normal relative to the tangential sigma
 
 
@@ -44,11 +48,11 @@ def _allocate(area: np.ndarray, count: int, rng: np.random.Generator) -> np.ndar
 
 
 def demo_camera(head: FlameArrays, size: int = 512) -> Camera:
-    """Frontal camera framing the head (0.62 m away, 24 degree vertical field of view)."""
+    """Frontal portrait camera: the whole head and neck with a margin (0.85 m away, 24 degree vertical FOV)."""
     lo, hi = head.v_template.min(axis=0), head.v_template.max(axis=0)
     centre = (lo + hi) / 2
-    return Camera.looking_at(eye=centre + [0.0, 0.0, 0.62], target=centre, up=[0, 1, 0], width=size, height=size,
-                             fov_y_deg=24.0)
+    return Camera.looking_at(eye=centre + [0.0, 0.0, CAMERA_DISTANCE], target=centre, up=[0, 1, 0],
+                             width=size, height=size, fov_y_deg=24.0)
 
 
 def demo_pose_track(frames: int = POSE_TRACK_FRAMES) -> np.ndarray:
@@ -60,6 +64,23 @@ def demo_pose_track(frames: int = POSE_TRACK_FRAMES) -> np.ndarray:
     track[:, 2] = 0.03 * np.sin(2 * np.pi * 0.17 * t + 1.0)  # tilt (roll)
     track[:, 3] = 0.004 * np.sin(2 * np.pi * 0.09 * t)  # sway (x, metres)
     return track
+
+
+def _stratified_barycentric(parent: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Barycentrics [N, 3] spreading a triangle's Gaussians evenly (jittered Fibonacci lattice), not in clumps."""
+    order = np.argsort(parent, kind="stable")
+    counts = np.bincount(parent)
+    rank = np.empty_like(parent)
+    rank[order] = np.arange(parent.size) - np.repeat(np.cumsum(counts) - counts, counts)[np.arange(parent.size)]
+    k = counts[parent]
+    golden = (np.sqrt(5.0) - 1.0) / 2.0
+    u = np.where(k == 1, 1.0 / 3.0, (rank + 0.5) / k)
+    v = np.where(k == 1, 1.0 / 3.0, np.mod(rank * golden + rng.uniform(0, 1, parent.size), 1.0))
+    u, v = np.clip(u + rng.normal(0, 0.03, u.shape), 0.0, 1.0), np.clip(v, 0.0, 1.0)
+    # Fold the unit square onto the triangle (u + v <= 1) and jitter slightly inside it.
+    flip = u + v > 1.0
+    u, v = np.where(flip, 1.0 - u, u), np.where(flip, 1.0 - v, v)
+    return np.stack([1.0 - u - v, u, v], axis=1).astype(np.float32)
 
 
 @torch.no_grad()
@@ -77,12 +98,12 @@ def _init_gaussians(speaker: Speaker, head: FlameArrays, parent: np.ndarray, rng
     sh[:, 0] = (colours - 0.5) / SH_C0
     sh[:, 1:] = rng.normal(0.0, 0.015, sh[:, 1:].shape)
 
-    g.barycentric.copy_(torch.from_numpy(rng.dirichlet((2.0, 2.0, 2.0), n).astype(np.float32)))
+    g.barycentric.copy_(torch.from_numpy(_stratified_barycentric(parent, rng)))
     g.local_position.copy_(torch.from_numpy(rng.normal(0.0, 2e-4, (n, 3)).astype(np.float32)))
     g.local_rotation.copy_(torch.from_numpy(np.concatenate(
         [np.ones((n, 1)), rng.normal(0.0, 0.1, (n, 3))], axis=1).astype(np.float32)))
     g.log_scale.copy_(torch.from_numpy(np.log(scale_local).astype(np.float32)))
-    g.opacity_logit.copy_(torch.from_numpy(rng.normal(2.5, 0.4, n).astype(np.float32)))
+    g.opacity_logit.copy_(torch.from_numpy(rng.normal(OPACITY_LOGIT, 0.3, n).astype(np.float32)))
     g.sh.copy_(torch.from_numpy(sh))
     g.w_pos.copy_(torch.from_numpy(rng.normal(0.0, 1e-4, (n, 3, d)).astype(np.float32)))
     g.w_rot.copy_(torch.from_numpy(rng.normal(0.0, 0.02, (n, 4, d)).astype(np.float32)))

@@ -22,6 +22,16 @@ def _safe_normalize(v: torch.Tensor) -> torch.Tensor:
     return v / torch.clamp(torch.linalg.vector_norm(v, dim=-1, keepdim=True), min=FRAME_EPS)
 
 
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product a * b of (w, x, y, z) quaternions [..., 4]: the rotation of a applied after b's."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
+                        aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx,
+                        aw * bz + ax * by - ay * bx + az * bw], dim=-1)
+
+
 def triangle_frame(v0: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Local frame of triangles [..., 3] each: rotation [..., 3, 3] with columns n0, n1, n2 and scale S [...]."""
     e01, e02, e12 = v1 - v0, v2 - v0, v2 - v1
@@ -75,14 +85,16 @@ class BoundGaussians(nn.Module):
         batch = vertices.shape[0]
         corners = vertices.index_select(1, self.vertex_ids.reshape(-1)).reshape(batch, -1, 3, 3)  # [B, N, 3, 3]
         rotation, scale = triangle_frame(corners[:, :, 0], corners[:, :, 1], corners[:, :, 2])
-        origin = torch.einsum("nk,bnkc->bnc", self.barycentric, corners)  # P [B, N, 3]
+        origin = (self.barycentric.unsqueeze(-1) * corners).sum(2)  # P [B, N, 3]
 
         local_position = self.local_position + torch.einsum("nkd,bd->bnk", self.w_pos, gamma)  # [B, N, 3]
-        means = torch.einsum("bnij,bnj->bni", rotation, local_position) + origin
+        means = (rotation * local_position.unsqueeze(-2)).sum(-1) + origin  # R u_bar' + P
 
+        # r_bar' = r_bar * BS(gamma; W_rot): composed as quaternions (|q1 q2| = |q1||q2|, so normalising the
+        # product inside quat_to_rotmat equals multiplying the two normalised rotations), one 3x3 product less.
         identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=gamma.dtype)
-        delta_rotation = quat_to_rotmat(identity + torch.einsum("nkd,bd->bnk", self.w_rot, gamma))
-        world_rotation = rotation @ quat_to_rotmat(self.local_rotation) @ delta_rotation  # [B, N, 3, 3]
+        delta = identity + torch.einsum("nkd,bd->bnk", self.w_rot, gamma)  # [B, N, 4]
+        world_rotation = rotation @ quat_to_rotmat(quat_multiply(self.local_rotation, delta))  # [B, N, 3, 3]
         world_scale = scale.unsqueeze(-1) * torch.exp(self.log_scale)  # [B, N, 3]
         cov3d = cov3d_from_rotation_scale(world_rotation, world_scale)
 

@@ -6,10 +6,11 @@ through it. Per pixel it does exactly what the 3DGS forward loop does: walk the 
 below ALPHA_MIN, and stop before the first one whose blend would take transmittance below TRANSMITTANCE_MIN.
 
 Speed and memory come from tiles, which never change a result (each pixel still tests its own centre):
-Gaussians are binned to the tiles their [xy - r, xy + r] box overlaps, tiles with similar list lengths are
-batched into padded [tiles, pixels, K] tensors, and K is walked in chunks carrying transmittance, so no tensor
-grows past a fixed element budget whatever the scene. When gradients are needed and the whole frame's
-intermediates would exceed the memory budget, each batch is checkpointed (recomputed during backward).
+Gaussians are binned to the tiles their [xy - r, xy + r] box overlaps (band of tile rows by band, so the
+(splat, tile) lists stay under budget even when every splat covers the screen), tiles with similar list lengths
+are batched into padded [tiles, pixels, K] tensors, and K is walked in chunks carrying transmittance, so no
+per-pixel tensor grows past a fixed element count whatever the scene. When gradients are needed and the frame's
+saved intermediates would exceed the memory budget, each batch is checkpointed (recomputed during backward).
 """
 
 from __future__ import annotations
@@ -33,15 +34,21 @@ from .splat_math import (
     splat_alpha_parts,
 )
 
-__all__ = ["render_reference", "DEFAULT_MEMORY_BUDGET_BYTES"]
+__all__ = ["render_reference", "DEFAULT_MEMORY_BUDGET_BYTES", "DEFAULT_TILE_SIZE"]
 
-# Bound on what one render keeps alive (chunk temporaries, or everything autograd saves for one frame).
+# Bound on what one render keeps alive: chunk temporaries and tile lists, or what autograd saves for a frame.
 DEFAULT_MEMORY_BUDGET_BYTES = 1 << 30
-# float32 temporaries alive per (pixel, Gaussian) element while one chunk is composited, autograd saves included
-# (measured as ~18 with headroom); sets the chunk size from the budget.
-_LIVE_BYTES_PER_ELEMENT = 4 * 24
-# An upper bound on chunk size regardless of budget: past a few million elements bigger chunks are not faster.
+# Tile side in pixels. Results do not depend on it; 8 measured fastest on CPU (16: ~1.5x the per-pixel work
+# wasted on tile corners a splat's box misses; 4: binning and list overhead grow).
+DEFAULT_TILE_SIZE = 8
+# Bytes alive per (pixel, Gaussian) element of a chunk, autograd's saved tensors included (measured ~60).
+_LIVE_BYTES_PER_ELEMENT = 96
+# Chunk size cap (elements): 1 MiB float32 temporaries are recycled by the allocator and stay in cache, while
+# multi-MiB ones are fresh pages each time (measured several times slower on the 2-core CPU VM).
 _MAX_CHUNK_ELEMENTS = 1 << 18
+# Bytes per (splat, tile) pair while binning (a few int64 arrays and the sort); tile lists get a quarter of
+# the budget, which sets the row-band size.
+_PAIR_BYTES = 64
 # A batch stops taking tiles whose list is shorter than this fraction of its longest (bounds padding waste).
 _MIN_FILL = 0.5
 
@@ -55,6 +62,43 @@ class _Splats:
     radius: Tensor  # [M]
     opacity: Tensor  # [M]
     rgb: Tensor  # [M, 3]
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """The image cut into square tiles, row-major; edge tiles run past the image and are cropped at the end."""
+
+    width: int
+    height: int
+    tile_size: int
+
+    @property
+    def tiles_x(self) -> int:
+        return -(-self.width // self.tile_size)
+
+    @property
+    def tiles_y(self) -> int:
+        return -(-self.height // self.tile_size)
+
+    @property
+    def tiles(self) -> int:
+        return self.tiles_x * self.tiles_y
+
+    @property
+    def pixels(self) -> int:
+        """Pixels per tile."""
+        return self.tile_size * self.tile_size
+
+
+@dataclass
+class _Rects:
+    """Inclusive tile-index rectangle of each splat's pixel box, clipped to the image; ok False = off screen."""
+
+    tx0: Tensor  # [M] int64
+    tx1: Tensor  # [M]
+    ty0: Tensor  # [M]
+    ty1: Tensor  # [M]
+    ok: Tensor  # [M] bool
 
 
 @dataclass
@@ -74,24 +118,24 @@ def render_reference(
     camera: Camera,
     background: Tensor | Sequence[float],
     *,
-    tile_size: int = 16,
+    tile_size: int = DEFAULT_TILE_SIZE,
     memory_budget_bytes: int = DEFAULT_MEMORY_BUDGET_BYTES,
 ) -> tuple[Tensor, Tensor]:
     """Render one frame by the numerics contract: (image C + T * background [H, W, 3], transmittance T [H, W])."""
-    _check_inputs(means, cov3d, rgb, opacity, tile_size)
+    _check_inputs(means, cov3d, rgb, opacity, tile_size, memory_budget_bytes)
     bg = torch.as_tensor(background, dtype=torch.float32, device=means.device).reshape(3)
     splats = _prepare_splats(means, cov3d, rgb, opacity, camera)
-    tiles_x = -(-camera.width // tile_size)
-    tiles_y = -(-camera.height // tile_size)
-    bins = _bin_to_tiles(splats, camera.width, camera.height, tile_size, tiles_x, tiles_y)
-    color, trans = _render_tiles(splats, bins, tile_size, tiles_x, memory_budget_bytes)  # [tiles, P, 3], [tiles, P]
-    color = _untile(color, tiles_x, tiles_y, tile_size)[: camera.height, : camera.width]  # [H, W, 3]
-    trans = _untile(trans, tiles_x, tiles_y, tile_size)[: camera.height, : camera.width]  # [H, W]
+    grid = _Grid(camera.width, camera.height, tile_size)
+    color, trans = _render_tiles(splats, _tile_rects(splats, grid), grid, memory_budget_bytes)
+    color = _untile(color, grid)[: camera.height, : camera.width]  # [H, W, 3]
+    trans = _untile(trans, grid)[: camera.height, : camera.width]  # [H, W]
     return color + trans.unsqueeze(-1) * bg, trans
 
 
-def _check_inputs(means: Tensor, cov3d: Tensor, rgb: Tensor, opacity: Tensor, tile_size: int) -> None:
-    """Raise ValueError on mis-shaped or non-float32 inputs, naming the argument."""
+def _check_inputs(
+    means: Tensor, cov3d: Tensor, rgb: Tensor, opacity: Tensor, tile_size: int, memory_budget_bytes: int
+) -> None:
+    """Raise ValueError on mis-shaped or non-float32 inputs or bad settings, naming the argument."""
     n = means.shape[0] if means.dim() == 2 else -1
     expected = {"means": (means, (n, 3)), "cov3d": (cov3d, (n, 6)), "rgb": (rgb, (n, 3)), "opacity": (opacity, (n,))}
     for name, (value, shape) in expected.items():
@@ -102,6 +146,9 @@ def _check_inputs(means: Tensor, cov3d: Tensor, rgb: Tensor, opacity: Tensor, ti
             raise ValueError(f"render_reference: {name} must be float32, got {value.dtype}")
     if int(tile_size) != tile_size or tile_size < 1:
         raise ValueError(f"render_reference: tile_size must be a positive integer, got {tile_size!r}")
+    if int(memory_budget_bytes) != memory_budget_bytes or memory_budget_bytes < 1:
+        raise ValueError(f"render_reference: memory_budget_bytes must be a positive integer, "
+                         f"got {memory_budget_bytes!r}")
 
 
 def _prepare_splats(means: Tensor, cov3d: Tensor, rgb: Tensor, opacity: Tensor, camera: Camera) -> _Splats:
@@ -131,23 +178,14 @@ def _prepare_splats(means: Tensor, cov3d: Tensor, rgb: Tensor, opacity: Tensor, 
     return _Splats(xy_kept, conic_kept, radius[index], opacity[index], rgb[index])
 
 
-def _bin_to_tiles(splats: _Splats, width: int, height: int, tile_size: int, tiles_x: int, tiles_y: int) -> _Bins:
-    """List, per tile, the splats whose pixel box may touch it (a superset; pixels test themselves exactly)."""
-    device = splats.xy.device
+def _tile_rects(splats: _Splats, grid: _Grid) -> _Rects:
+    """Inclusive tile ranges of each splat's pixel box (a superset; pixels test themselves exactly)."""
     xy = splats.xy.detach().double()  # [M, 2]; float64 so u +- r never overflows or rounds inwards
     r = splats.radius.double()  # [M]
-    x_lo, x_hi, x_ok = _pixel_span(xy[:, 0], r, width)
-    y_lo, y_hi, y_ok = _pixel_span(xy[:, 1], r, height)
-    tx0, ty0 = x_lo // tile_size, y_lo // tile_size
-    nx, ny = x_hi // tile_size - tx0 + 1, y_hi // tile_size - ty0 + 1
-    per_splat = torch.where(x_ok & y_ok, nx * ny, torch.zeros_like(nx))  # [M] tiles each splat overlaps
-    splat = torch.repeat_interleave(torch.arange(len(r), device=device), per_splat)  # [pairs], ascending
-    first = torch.cumsum(per_splat, 0) - per_splat  # [M]
-    local = torch.arange(len(splat), device=device) - first[splat]  # [pairs] rank within its splat's rectangle
-    tile = (ty0[splat] + local // nx[splat]) * tiles_x + tx0[splat] + local % nx[splat]  # [pairs]
-    tile, order = torch.sort(tile, stable=True)  # stable: each tile's list stays front to back
-    count = torch.bincount(tile, minlength=tiles_x * tiles_y)  # [tiles]
-    return _Bins(splat[order], torch.cumsum(count, 0) - count, count)
+    x_lo, x_hi, x_ok = _pixel_span(xy[:, 0], r, grid.width)
+    y_lo, y_hi, y_ok = _pixel_span(xy[:, 1], r, grid.height)
+    ts = grid.tile_size
+    return _Rects(x_lo // ts, x_hi // ts, y_lo // ts, y_hi // ts, x_ok & y_ok)
 
 
 def _pixel_span(center: Tensor, radius: Tensor, size: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -158,40 +196,102 @@ def _pixel_span(center: Tensor, radius: Tensor, size: int) -> tuple[Tensor, Tens
     return lo.clamp(0, size - 1).long(), hi.clamp(0, size - 1).long(), ok
 
 
-def _render_tiles(
-    splats: _Splats, bins: _Bins, tile_size: int, tiles_x: int, budget: int
-) -> tuple[Tensor, Tensor]:
-    """Composite every non-empty tile in padded batches; empty tiles stay colour 0, transmittance 1."""
+def _row_bands(rects: _Rects, grid: _Grid, max_pairs: int) -> list[tuple[int, int]]:
+    """Split tile rows into bands [y0, y1] holding at most max_pairs (splat, tile) pairs each (one row at least)."""
+    width = torch.where(rects.ok, rects.tx1 - rects.tx0 + 1, 0)  # [M] tiles per covered row
+    per_row = torch.zeros(grid.tiles_y + 1, dtype=torch.long, device=width.device)
+    per_row = per_row.index_add(0, rects.ty0, width).index_add(0, rects.ty1 + 1, -width)
+    per_row = torch.cumsum(per_row, 0)[:-1].tolist()  # pairs in each tile row
+    bands, y0, total = [], 0, 0
+    for y, pairs in enumerate(per_row):
+        if total and total + pairs > max_pairs:
+            bands.append((y0, y - 1))
+            y0, total = y, 0
+        total += pairs
+    bands.append((y0, grid.tiles_y - 1))
+    return bands
+
+
+def _bin_band(rects: _Rects, y0: int, y1: int, grid: _Grid) -> _Bins:
+    """Per-tile splat lists for the tile rows y0..y1, each list front to back (stable sort on tile id)."""
+    device = rects.ok.device
+    splat = torch.nonzero(rects.ok & (rects.ty0 <= y1) & (rects.ty1 >= y0)).squeeze(1)  # [S], ascending
+    tx0, ty0 = rects.tx0[splat], rects.ty0[splat].clamp_min(y0)
+    nx, ny = rects.tx1[splat] - tx0 + 1, rects.ty1[splat].clamp_max(y1) - ty0 + 1
+    per_splat = nx * ny  # [S] tiles each splat overlaps in this band
+    owner = torch.repeat_interleave(torch.arange(len(splat), device=device), per_splat)  # [pairs], ascending
+    first = torch.cumsum(per_splat, 0) - per_splat  # [S]
+    local = torch.arange(len(owner), device=device) - first[owner]  # [pairs] rank within the splat's rectangle
+    tile = (ty0[owner] + local // nx[owner]) * grid.tiles_x + tx0[owner] + local % nx[owner]  # [pairs]
+    tile, order = torch.sort(tile, stable=True)  # stable: each tile's list stays front to back
+    count = torch.bincount(tile, minlength=grid.tiles)  # [tiles]
+    return _Bins(splat[owner[order]], torch.cumsum(count, 0) - count, count)
+
+
+def _render_tiles(splats: _Splats, rects: _Rects, grid: _Grid, budget: int) -> tuple[Tensor, Tensor]:
+    """Composite every non-empty tile, band by band, in padded batches; empty tiles stay colour 0, T 1."""
     device = splats.xy.device
-    n_tiles, pixels = len(bins.count), tile_size * tile_size
     chunk_elements = max(1, min(_MAX_CHUNK_ELEMENTS, budget // _LIVE_BYTES_PER_ELEMENT))
-    batches = _plan_batches(bins.count, pixels, chunk_elements)
     params, rgb = _pack_params(splats)
     needs_grad = torch.is_grad_enabled() and (params.requires_grad or rgb.requires_grad)
-    padded = sum(len(ids) * pixels * k for ids, k in batches)
-    use_checkpoint = needs_grad and padded * _LIVE_BYTES_PER_ELEMENT > budget
-    sentinel = len(splats.radius)  # index of the padding entry (opacity 0)
+    pairs = int(torch.where(rects.ok, (rects.tx1 - rects.tx0 + 1) * (rects.ty1 - rects.ty0 + 1), 0).sum())
+    use_checkpoint = needs_grad and pairs * grid.pixels * _LIVE_BYTES_PER_ELEMENT > budget
+    kwargs = {"params": params, "rgb": rgb, "grid": grid, "chunk_elements": chunk_elements}
     colors, transmittances, done_tiles = [], [], []
-    for tile_ids, k in batches:
-        lists = bins.start[tile_ids].unsqueeze(1) + torch.arange(k, device=device)  # [B, K]
-        valid = torch.arange(k, device=device) < bins.count[tile_ids].unsqueeze(1)  # [B, K]
-        splat_ids = torch.where(valid, bins.splat[torch.where(valid, lists, 0)], sentinel)  # [B, K]
-        args = (tile_ids, splat_ids, params, rgb)
-        kwargs = {"tile_size": tile_size, "tiles_x": tiles_x, "chunk_elements": chunk_elements}
-        if use_checkpoint:
-            color, trans = checkpoint(_composite_batch, *args, use_reentrant=False, **kwargs)
-        else:
-            color, trans = _composite_batch(*args, **kwargs)
-        colors.append(color)
-        transmittances.append(trans)
-        done_tiles.append(tile_ids)
-    color_all = torch.zeros(n_tiles, pixels, 3, dtype=rgb.dtype, device=device)
-    trans_all = torch.ones(n_tiles, pixels, dtype=rgb.dtype, device=device)
+    for y0, y1 in _row_bands(rects, grid, max(1, budget // (4 * _PAIR_BYTES))):
+        batches = _batch_lists(_bin_band(rects, y0, y1, grid), grid.pixels, chunk_elements, len(splats.radius))
+        # Checkpointing a group of batches (recomputed together in backward, within the budget) rather than
+        # each batch keeps the number of checkpoint regions, and the heap fragmentation they cause, small.
+        for group in _group_batches(batches, grid.pixels, max(1, budget // _LIVE_BYTES_PER_ELEMENT)):
+            if use_checkpoint:
+                color, trans = checkpoint(
+                    _composite_group, group, use_reentrant=False, preserve_rng_state=False, **kwargs
+                )
+            else:
+                color, trans = _composite_group(group, **kwargs)
+            colors.append(color)
+            transmittances.append(trans)
+            done_tiles.extend(tile_ids for tile_ids, _ in group)
+    color_all = torch.zeros(grid.tiles, grid.pixels, 3, dtype=rgb.dtype, device=device)
+    trans_all = torch.ones(grid.tiles, grid.pixels, dtype=rgb.dtype, device=device)
     if colors:
         ids = torch.cat(done_tiles)
         color_all = color_all.index_copy(0, ids, torch.cat(colors))
         trans_all = trans_all.index_copy(0, ids, torch.cat(transmittances))
     return color_all, trans_all
+
+
+def _batch_lists(bins: _Bins, pixels: int, chunk_elements: int, sentinel: int) -> list[tuple[Tensor, Tensor]]:
+    """(tile ids [B], padded splat lists [B, K]) per batch; padding points at the sentinel splat (opacity 0)."""
+    batches = []
+    for tile_ids, k in _plan_batches(bins.count, pixels, chunk_elements):
+        lists = bins.start[tile_ids].unsqueeze(1) + torch.arange(k, device=tile_ids.device)  # [B, K]
+        valid = torch.arange(k, device=tile_ids.device) < bins.count[tile_ids].unsqueeze(1)  # [B, K]
+        batches.append((tile_ids, torch.where(valid, bins.splat[torch.where(valid, lists, 0)], sentinel)))
+    return batches
+
+
+def _group_batches(
+    batches: list[tuple[Tensor, Tensor]], pixels: int, max_elements: int
+) -> list[list[tuple[Tensor, Tensor]]]:
+    """Consecutive batches grouped so that each group's padded elements stay within max_elements (one at least)."""
+    groups, current, size = [], [], 0
+    for tile_ids, splat_ids in batches:
+        elements = splat_ids.numel() * pixels
+        if current and size + elements > max_elements:
+            groups.append(current)
+            current, size = [], 0
+        current.append((tile_ids, splat_ids))
+        size += elements
+    return groups + [current] if current else groups
+
+
+def _composite_group(
+    group: list[tuple[Tensor, Tensor]], *, params: Tensor, rgb: Tensor, grid: _Grid, chunk_elements: int
+) -> tuple[Tensor, Tensor]:
+    """Composite each batch of a group; colours [sum B, P, 3] and transmittances [sum B, P] in group order."""
+    results = [_composite_batch(t, s, params, rgb, grid=grid, chunk_elements=chunk_elements) for t, s in group]
+    return torch.cat([color for color, _ in results]), torch.cat([trans for _, trans in results])
 
 
 def _pack_params(splats: _Splats) -> tuple[Tensor, Tensor]:
@@ -222,13 +322,13 @@ def _plan_batches(count: Tensor, pixels: int, chunk_elements: int) -> list[tuple
 
 
 def _composite_batch(
-    tile_ids: Tensor, splat_ids: Tensor, params: Tensor, rgb: Tensor, *, tile_size: int, tiles_x: int,
-    chunk_elements: int,
+    tile_ids: Tensor, splat_ids: Tensor, params: Tensor, rgb: Tensor, *, grid: _Grid, chunk_elements: int
 ) -> tuple[Tensor, Tensor]:
     """Front-to-back compositing of B tiles' padded lists [B, K], walked in K chunks that carry T and `done`."""
-    local = torch.arange(tile_size * tile_size, device=rgb.device)  # [P]
-    px = ((tile_ids % tiles_x).unsqueeze(1) * tile_size + local % tile_size).float() + PIXEL_CENTER_OFFSET
-    py = ((tile_ids // tiles_x).unsqueeze(1) * tile_size + local // tile_size).float() + PIXEL_CENTER_OFFSET
+    ts = grid.tile_size
+    local = torch.arange(grid.pixels, device=rgb.device)  # [P]
+    px = ((tile_ids % grid.tiles_x).unsqueeze(1) * ts + local % ts).float() + PIXEL_CENTER_OFFSET  # [B, P]
+    py = ((tile_ids // grid.tiles_x).unsqueeze(1) * ts + local // ts).float() + PIXEL_CENTER_OFFSET
     px, py = px.unsqueeze(-1), py.unsqueeze(-1)  # [B, P, 1] pixel centres
     n_tiles, k_total = splat_ids.shape
     pixels = px.shape[1]
@@ -267,8 +367,8 @@ def _blend_chunk(
     return color, trans, done | (t_seq[..., -1] < TRANSMITTANCE_MIN)
 
 
-def _untile(values: Tensor, tiles_x: int, tiles_y: int, tile_size: int) -> Tensor:
+def _untile(values: Tensor, grid: _Grid) -> Tensor:
     """[tiles, P, ...] in row-major tile order -> [tiles_y * ts, tiles_x * ts, ...] image layout."""
-    rest = values.shape[2:]
-    grid = values.reshape(tiles_y, tiles_x, tile_size, tile_size, *rest)
-    return grid.transpose(1, 2).reshape(tiles_y * tile_size, tiles_x * tile_size, *rest)
+    ts, rest = grid.tile_size, values.shape[2:]
+    tiled = values.reshape(grid.tiles_y, grid.tiles_x, ts, ts, *rest)
+    return tiled.transpose(1, 2).reshape(grid.tiles_y * ts, grid.tiles_x * ts, *rest)

@@ -14,8 +14,8 @@ the runtime zero-pads audio to that. The convolution paddings are chosen so that
 S / 320 features (wav2vec 2.0 itself has no padding and drops a partial feature), so frames and features align.
 `translate` checks the contract with a clear ValueError; the traced graph itself does not check.
 
-Only common ONNX ops are used (Conv, MatMul, Softmax, LayerNormalization, Gelu/Erf, Reshape, Transpose, Reduce*),
-so the graph also suits MNN.
+Only common ONNX ops are used (Conv, MatMul, Softmax, LayerNormalization, InstanceNormalization, Gelu, Reshape,
+Transpose, ReduceMean, Slice, ...; no fused attention), so the graph also suits MNN.
 """
 
 from __future__ import annotations
@@ -306,30 +306,28 @@ def translate(model: MotionTranslator, audio: np.ndarray | torch.Tensor) -> tupl
     return expression.numpy(), jaw_pose.numpy()
 
 
-def export_translator_onnx(
-    model: MotionTranslator, path: str | Path, example_frames: int = 8, opset_version: int = 18
-) -> None:
+def export_translator_onnx(model: MotionTranslator, path: str | Path, example_frames: int = 8) -> None:
     """Export to ONNX (dynamo) with a dynamic audio length of 640 * frames samples, inputs/outputs named.
 
     Input "audio" [1, 640 * frames] float32; outputs "expression" [1, frames, n_expr], "jaw_pose" [1, frames, 3].
-    The batch is fixed at 1 (one utterance per call, as the runtime drives it). Weights are stored inside
-    the .onnx file unless they exceed 1.5 GB (then next to it as external data, `<path>.data`).
+    The batch is fixed at 1 (one utterance per call, as the runtime drives it). Uses the project's quiet
+    exporter (onnx_export.export_onnx, optimize=False so the normalisation epsilon survives). Weights are stored
+    inside the .onnx file unless they exceed 1.5 GB (then next to it as external data, `<name>.data`).
     """
+    import onnx  # noqa: PLC0415 - only export needs onnx
+
+    from gaussiantalker.exporter.onnx_export import export_onnx  # noqa: PLC0415
+
     check_audio_length(example_frames * model.samples_per_frame, model.samples_per_frame)
-    model = model.eval()
     generator = torch.Generator().manual_seed(0)
     example = 0.1 * torch.randn(1, example_frames * model.samples_per_frame, generator=generator)
     frames = torch.export.Dim("frames", min=1, max=MAX_EXPORT_FRAMES)
-    large = count_parameters(model) * 4 > 1.5e9
-    torch.onnx.export(
-        model,
+    proto = export_onnx(
+        model.eval(),
         (example,),
-        str(path),
-        dynamo=True,
-        input_names=["audio"],
-        output_names=["expression", "jaw_pose"],
+        ["audio"],
+        ["expression", "jaw_pose"],
         dynamic_shapes={"audio": {1: model.samples_per_frame * frames}},
-        opset_version=opset_version,
-        external_data=large,
-        verbose=False,
     )
+    large = count_parameters(model) * 4 > 1.5e9
+    onnx.save_model(proto, str(path), save_as_external_data=large, location=Path(path).name + ".data")

@@ -39,6 +39,9 @@ class OnnxRuntimeBackend:
         info = bundle.graph_info(name)
         options = self._ort.SessionOptions()
         options.log_severity_level = 3
+        # Spinning worker threads cost ~35 ms per deformation call on 2 cores and starve llvmpipe's own
+        # rasterizer threads, so idle ORT threads sleep instead.
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         if self.threads:
             options.intra_op_num_threads = int(self.threads)
         initializers = info.get("initializers", {})

@@ -6,18 +6,12 @@ from collections.abc import Callable
 
 import numpy as np
 
+from gaussiantalker.sdk.audio import pad_to_frames
+
 # A window covers this many video frames of output (10 s at 25 fps); each side gets CONTEXT_FRAMES of extra
 # audio that the translator sees but whose frames are discarded, so window joins have full context on both sides.
 WINDOW_FRAMES = 250
 CONTEXT_FRAMES = 25
-
-
-def pad_to_frames(audio: np.ndarray, samples_per_frame: int) -> np.ndarray:
-    """Zero-pad audio to a whole number of video frames (the translator needs a multiple of samples_per_frame)."""
-    frames = -(-audio.shape[0] // samples_per_frame)
-    padded = np.zeros(frames * samples_per_frame, dtype=np.float32)
-    padded[: audio.shape[0]] = audio
-    return padded
 
 
 def translate_audio(run: Callable[[np.ndarray], dict], audio: np.ndarray, samples_per_frame: int,

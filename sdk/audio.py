@@ -72,6 +72,14 @@ def prepare_audio(samples: np.ndarray, sample_rate: int, target_rate: int = TARG
     return np.ascontiguousarray(resample(mono, int(sample_rate), target_rate), dtype=np.float32)
 
 
+def pad_to_frames(audio: np.ndarray, samples_per_frame: int) -> np.ndarray:
+    """Zero-pad mono audio to a whole number of video frames (frame t covers samples [spf*t, spf*(t+1)))."""
+    frames = -(-audio.shape[0] // samples_per_frame)
+    padded = np.zeros(frames * samples_per_frame, dtype=np.float32)
+    padded[: audio.shape[0]] = audio
+    return padded
+
+
 def _ffmpeg_exe() -> str:
     import imageio_ffmpeg
 

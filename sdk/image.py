@@ -6,9 +6,12 @@ import numpy as np
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
-    """Float frame -> 8 bit, once, at the end: floor(clamp(v, 0, 1) * 255 + 0.5). NaN maps to 0."""
-    scaled = np.floor(np.clip(np.nan_to_num(image, nan=0.0), 0.0, 1.0) * 255.0 + 0.5)
-    return scaled.astype(np.uint8)
+    """Float frame -> 8 bit, once, at the end: floor(clamp(v, 0, 1) * 255 + 0.5) in float32; NaN maps to 0."""
+    work = np.clip(np.nan_to_num(np.asarray(image, dtype=np.float32), nan=0.0), 0.0, 1.0, dtype=np.float32)
+    work *= np.float32(255.0)
+    work += np.float32(0.5)
+    np.floor(work, out=work)
+    return work.astype(np.uint8)
 
 
 def psnr_db(reference: np.ndarray, test: np.ndarray, peak: float = 1.0) -> float:
