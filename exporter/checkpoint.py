@@ -65,6 +65,16 @@ def save_checkpoint(speaker: Speaker, path: str | os.PathLike) -> Path:
     return path
 
 
+def _unpickler_reason(exc: Exception) -> str:
+    """The one informative line of torch's long weights-only error message."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    for index, line in enumerate(lines):
+        if line.startswith("WeightsUnpickler error:"):
+            detail = line.removeprefix("WeightsUnpickler error:").strip()
+            return detail or (lines[index + 1] if index + 1 < len(lines) else "unsupported content")
+    return lines[0] if lines else type(exc).__name__
+
+
 def read_checkpoint(path: str | os.PathLike) -> dict:
     """torch.load with weights_only=True; CheckpointError for unsafe, unreadable or incomplete files."""
     path = Path(path)
@@ -73,9 +83,9 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
-        raise CheckpointError(f"refusing to load {path}: it contains objects that would run code when "
-                              f"unpickled (only plain tensors/numbers/strings/lists/dicts are allowed): "
-                              f"{str(exc).splitlines()[0]}") from exc
+        raise CheckpointError(f"refusing to load {path}: the weights-only unpickler rejected it, so it is either "
+                              f"not a torch.save file of plain tensors/numbers/strings/lists/dicts or it would "
+                              f"run code when unpickled ({_unpickler_reason(exc)})") from exc
     except Exception as exc:  # zip/pickle corruption surfaces as several exception types
         raise CheckpointError(f"cannot read checkpoint {path}: {exc}") from exc
     if not isinstance(payload, dict):
@@ -98,8 +108,19 @@ def load_checkpoint(path: str | os.PathLike) -> Speaker:
     except (TypeError, ValueError, CameraError) as exc:
         raise CheckpointError(f"checkpoint {path}: invalid config or camera: {exc}") from exc
     flame = _flame_from_dict(payload["flame"])
-    speaker = Speaker(config, flame, payload["shape"], payload["parent"], camera, payload["background"],
-                      payload.get("pose_track"))
+    parent = payload["parent"]
+    if not isinstance(parent, torch.Tensor) or parent.ndim != 1 or parent.dtype.is_floating_point:
+        raise CheckpointError(f"checkpoint {path}: 'parent' must be a 1-D integer tensor of triangle indices")
+    if parent.numel() and (int(parent.min()) < 0 or int(parent.max()) >= flame.n_faces):
+        raise CheckpointError(f"checkpoint {path}: 'parent' indexes triangles outside [0, {flame.n_faces})")
+    if flame.n_expr != config.n_expr or flame.n_shape != config.n_shape:
+        raise CheckpointError(f"checkpoint {path}: FLAME model has {flame.n_shape} shape / {flame.n_expr} expression "
+                              f"bases but the config says {config.n_shape} / {config.n_expr}")
+    try:
+        speaker = Speaker(config, flame, payload["shape"], parent, camera, payload["background"],
+                          payload.get("pose_track"))
+    except (RuntimeError, ValueError, TypeError) as exc:
+        raise CheckpointError(f"checkpoint {path}: shape, background or pose track is malformed: {exc}") from exc
     for name, module, state in (("translator", speaker.translator, payload["translator"]),
                                 ("latent_pose", speaker.latent_pose, payload["latent_pose"])):
         try:

@@ -49,6 +49,8 @@ def export(
     report: Path = typer.Option(None, "--report", help="write the verification report as JSON (implies --verify)"),
     frames: int = typer.Option(25, "--frames", min=1, help="audio-driven frames to compare when verifying"),
     resolution: str = typer.Option("256", "--resolution", help="verification frame size, N or WxH"),
+    min_psnr: float = typer.Option(50.0, "--min-psnr", help="required 8-bit PSNR (dB) of every verified frame"),
+    min_float_psnr: float = typer.Option(60.0, "--min-float-psnr", help="required float-frame PSNR (dB)"),
     codec: str = typer.Option("raw", "--codec", help="buffer codec: raw (fp32) or fp16"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bars"),
 ) -> None:
@@ -59,18 +61,22 @@ def export(
     output = output or checkpoint.with_suffix(".gtb")
     verify = verify or report is not None
     size = _resolution(resolution)
+    # With --verify the bundle is written beside the output and moved there only once it has passed, so a
+    # failed or interrupted run never replaces a good bundle.
+    target = output.with_name(f".{output.name}.unverified") if verify else output
     try:
         speaker = load_checkpoint(checkpoint)
-        target = output.with_name(f".{output.name}.unverified") if verify else output
         result = export_bundle(speaker, target, codec=codec, progress=not quiet)
         typer.echo(f"wrote {result.bytes_written / 1e6:.2f} MB bundle "
                    f"({speaker.gaussians.count} Gaussians, graphs: {', '.join(result.graphs)})")
         if not verify:
             typer.echo(f"bundle: {output}")
             return
-        from .verify import format_report, verify_bundle
+        from .verify import Tolerances, format_report, verify_bundle
 
-        outcome = verify_bundle(speaker, target, frames=frames, resolution=size, progress=not quiet)
+        tolerances = Tolerances(min_psnr_float_db=min_float_psnr, min_psnr_uint8_db=min_psnr)
+        outcome = verify_bundle(speaker, target, frames=frames, resolution=size, tolerances=tolerances,
+                                progress=not quiet)
         typer.echo(format_report(outcome))
         outcome["bundle"] = str(output)
         if report is not None:
@@ -87,6 +93,9 @@ def export(
     except GaussianTalkerError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
+    finally:
+        if verify:
+            target.unlink(missing_ok=True)
 
 
 def main() -> None:
