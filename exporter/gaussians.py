@@ -98,8 +98,7 @@ class BoundGaussians(nn.Module):
         world_scale = scale.unsqueeze(-1) * torch.exp(self.log_scale)  # [B, N, 3]
         cov3d = cov3d_from_rotation_scale(world_rotation, world_scale)
 
-        dc = self.sh[:, :1] + torch.einsum("nkd,bd->bnk", self.w_color, gamma).unsqueeze(2)  # [B, N, 1, 3]
-        sh = torch.cat([dc, self.sh[:, 1:].expand(batch, -1, -1, -1)], dim=2)  # [B, N, K, 3]
-        rgb = sh_to_rgb(sh, means - camera_center.unsqueeze(1), self.sh_degree)
+        dc = self.sh[:, 0] + torch.einsum("nkd,bd->bnk", self.w_color, gamma)  # kappa0' [B, N, 3]
+        rgb = sh_to_rgb(self.sh, means - camera_center.unsqueeze(1), self.sh_degree, dc=dc)
         opacity = torch.sigmoid(self.opacity_logit)
         return means, cov3d, rgb, opacity

@@ -104,13 +104,22 @@ def sh_basis(dirs: Tensor, degree: int) -> Tensor:
     return torch.stack(basis, dim=-1)  # [..., K]
 
 
-def sh_to_rgb(sh: Tensor, dirs: Tensor, degree: int) -> Tensor:
-    """View-dependent colour: sum_k basis_k(dir) * sh_k, + 0.5, clamped at 0 (no upper clamp). sh [..., K, 3]."""
+def sh_to_rgb(sh: Tensor, dirs: Tensor, degree: int, dc: Tensor | None = None) -> Tensor:
+    """View-dependent colour: sum_k basis_k(dir) * sh_k, + 0.5, clamped at 0 (no upper clamp). sh [..., K, 3].
+
+    `dc` [..., 3], when given, replaces sh[..., 0, :] (the per-frame kappa0' = kappa0 + BS(gamma; W_color)) without
+    building a new [..., K, 3] tensor every frame.
+    """
     count = sh_coeff_count(degree)
     if sh.shape[-2] < count:
         raise ValueError(f"sh_to_rgb: degree {degree} needs {count} coefficients, got {sh.shape[-2]}")
-    # One [..., K, 3] product and sum instead of K broadcast products: ~6x faster in onnxruntime.
-    result = (sh_basis(dirs, degree).unsqueeze(-1) * sh[..., :count, :]).sum(dim=-2)  # [..., 3]
+    basis = sh_basis(dirs, degree)  # [..., K]
+    if dc is None:
+        dc = sh[..., 0, :]
+    result = basis[..., :1] * dc  # [..., 3]
+    if count > 1:
+        # One [..., K-1, 3] product and sum instead of K-1 broadcast products: ~6x faster in onnxruntime.
+        result = result + (basis[..., 1:].unsqueeze(-1) * sh[..., 1:count, :]).sum(dim=-2)
     return torch.clamp_min(result + 0.5, 0.0)
 
 

@@ -12,6 +12,7 @@ import os
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,7 @@ from gaussiantalker.sdk.errors import AudioError, GaussianTalkerError
 from gaussiantalker.sdk.video import VideoWriter
 
 from .graphs import OnnxRuntimeBackend
+from .splatter import GLSplatter, PreparedSplats
 from .translate import translate_audio
 
 AudioSource = str | os.PathLike | np.ndarray
@@ -50,8 +52,6 @@ class TalkingHead:
             self.camera = self.camera.resized(*resolution)
         self.background = np.asarray(background if background is not None else manifest.get("background", (1, 1, 1)),
                                      dtype=np.float32).reshape(3)
-        from .splatter import GLSplatter
-
         self.splatter = GLSplatter(gl_context)
         self.timings: dict[str, list[float]] = defaultdict(list)
 
@@ -93,14 +93,21 @@ class TalkingHead:
         self.timings["deformation"].append(time.perf_counter() - start)
         return {"means": out["means"][0], "cov3d": out["cov3d"][0], "rgb": out["rgb"][0], "opacity": out["opacity"]}
 
-    def render(self, drive: FrameDrive, output: str = "uint8") -> np.ndarray:
-        """One frame from validated drive parameters: uint8 [H, W, 3] (or float32 with output="float")."""
+    def prepare(self, drive: FrameDrive) -> PreparedSplats:
+        """Everything of a frame that needs no GL: deformation graph, packing, depth sort (thread-safe)."""
         g = self.gaussians(drive)
-        frame = self.splatter.render(g["means"], g["cov3d"], g["rgb"], g["opacity"], self.camera, self.background,
-                                     output=output)
+        return self.splatter.prepare(g["means"], g["cov3d"], g["rgb"], g["opacity"], self.camera)
+
+    def draw(self, prepared: PreparedSplats, output: str = "uint8") -> np.ndarray:
+        """The GL part of a frame: upload, splat, read back."""
+        frame = self.splatter.draw(prepared, self.background, output=output)
         for stage, seconds in self.splatter.last_timings.items():
             self.timings[stage].append(seconds)
         return frame
+
+    def render(self, drive: FrameDrive, output: str = "uint8") -> np.ndarray:
+        """One frame from validated drive parameters: uint8 [H, W, 3] (or float32 with output="float")."""
+        return self.draw(self.prepare(drive), output)
 
     def render_params(self, expression=None, jaw_pose=None, neck_pose=None, eye_pose=None,
                       head_rotation=None, head_translation=None, output: str = "uint8") -> np.ndarray:
@@ -119,9 +126,20 @@ class TalkingHead:
 
     def frames(self, audio: AudioSource, sample_rate: int | None = None, head_pose: HeadPoseSource = None,
                output: str = "uint8") -> Iterator[np.ndarray]:
-        """Frames for an audio clip at the speaker's fps, yielded one at a time (never all held in memory)."""
-        for drive in self.drives(audio, sample_rate, head_pose):
-            yield self.render(drive, output)
+        """Frames for an audio clip at the speaker's fps, yielded one at a time (never all held in memory).
+
+        Frame t+1 is prepared (deformation graph, depth sort) on a worker thread while the GL splatter draws
+        frame t (onnxruntime and numpy release the GIL), so the two stages overlap instead of adding up.
+        """
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-deform") as pool:
+            pending = None
+            for drive in self.drives(audio, sample_rate, head_pose):
+                upcoming = pool.submit(self.prepare, drive)
+                if pending is not None:
+                    yield self.draw(pending.result(), output)
+                pending = upcoming
+            if pending is not None:
+                yield self.draw(pending.result(), output)
 
     def frame_count(self, samples: int) -> int:
         """Video frames for `samples` audio samples: the last partial frame counts (audio is zero-padded)."""

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import moderngl
 import numpy as np
@@ -202,6 +203,16 @@ def _background_rgb(background) -> tuple[float, float, float]:
 # -- GL side -------------------------------------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class PreparedSplats:
+    """A frame's Gaussians packed and sorted front to back, with their draw runs: ready for `GLSplatter.draw`."""
+
+    rows: np.ndarray  # [n, 13] float32, culled and depth-sorted
+    runs: list[tuple[int, int, bool]]  # (start, stop, as_quads)
+    camera: Camera
+    seconds: float  # time spent preparing (reported as the "sort" stage)
+
+
 class _Target:
     """A float framebuffer of one resolution plus its read-back scratch array."""
 
@@ -349,6 +360,34 @@ class GLSplatter:
         self._background_vao.render(moderngl.TRIANGLES, vertices=3)
         ctx.finish()  # so that "draw" and "readback" timings are separate
 
+    def prepare(self, means, cov3d, rgb, opacity, camera: Camera) -> PreparedSplats:
+        """Validate, pack, depth-sort and plan draw runs (numpy only, no GL: safe on a worker thread)."""
+        if not isinstance(camera, Camera):
+            raise RenderError(f"camera must be a gaussiantalker.sdk.camera.Camera, got {type(camera).__name__}")
+        start = time.perf_counter()
+        packed = pack_gaussians(means, cov3d, rgb, opacity)
+        rows = packed[depth_order(packed, camera)]  # [n, 13] front to back
+        runs = self._plan_runs(rows, camera)
+        return PreparedSplats(rows, runs, camera, time.perf_counter() - start)
+
+    def draw(self, prepared: PreparedSplats, background, *, output: str = "uint8") -> np.ndarray:
+        """Upload, splat and read back a prepared frame -> [H, W, 3] (see `render`)."""
+        if self.ctx is None:
+            raise RenderError("this GLSplatter has been released")
+        if output not in ("float", "uint8"):
+            raise RenderError(f'output must be "float" or "uint8", got {output!r}')
+        background = _background_rgb(background)
+        timings = dict.fromkeys(STAGES, 0.0)
+        timings["sort"] = prepared.seconds
+        try:
+            with self.ctx:  # make this context current (restored after): an app may hold several
+                frame = self._render_sorted(prepared.rows, prepared.runs, prepared.camera, background, timings,
+                                            output)
+        except moderngl.Error as exc:
+            raise RenderError(f"OpenGL error while splatting {len(prepared.rows)} Gaussians: {exc}") from exc
+        self.last_timings = timings
+        return frame
+
     def render(self, means, cov3d, rgb, opacity, camera: Camera, background, *,
                output: str = "uint8") -> np.ndarray:
         """Splat N Gaussians (world means [N,3], covariances [N,6], rgb [N,3], opacity [N]) -> [H, W, 3] frame.
@@ -358,24 +397,7 @@ class GLSplatter:
         """
         if self.ctx is None:
             raise RenderError("this GLSplatter has been released")
-        if output not in ("float", "uint8"):
-            raise RenderError(f'output must be "float" or "uint8", got {output!r}')
-        if not isinstance(camera, Camera):
-            raise RenderError(f"camera must be a gaussiantalker.sdk.camera.Camera, got {type(camera).__name__}")
-        background = _background_rgb(background)
-        timings = dict.fromkeys(STAGES, 0.0)
-        start = time.perf_counter()
-        packed = pack_gaussians(means, cov3d, rgb, opacity)
-        rows = packed[depth_order(packed, camera)]  # [n, 13] front to back
-        runs = self._plan_runs(rows, camera)
-        timings["sort"] = time.perf_counter() - start
-        try:
-            with self.ctx:  # make this context current (restored after): an app may hold several
-                frame = self._render_sorted(rows, runs, camera, background, timings, output)
-        except moderngl.Error as exc:
-            raise RenderError(f"OpenGL error while splatting {len(rows)} Gaussians: {exc}") from exc
-        self.last_timings = timings
-        return frame
+        return self.draw(self.prepare(means, cov3d, rgb, opacity, camera), background, output=output)
 
     def _render_sorted(self, rows: np.ndarray, runs: list[tuple[int, int, bool]], camera: Camera, background,
                        timings: dict, output: str) -> np.ndarray:

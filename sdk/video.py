@@ -11,6 +11,10 @@ import numpy as np
 from .audio import write_wav
 from .errors import GaussianTalkerError
 
+# libx264 speed/size trade-off: "veryfast" encodes 512x512 at several hundred fps on one core, so encoding never
+# competes with rendering for the CPU; "medium" (x264's default) makes ~10% smaller files at ~3x the CPU time.
+DEFAULT_X264_PRESET = "veryfast"
+
 
 class VideoWriter:
     """Context manager: `with VideoWriter(path, fps, (w, h), audio=a) as out: out.write(frame_uint8)`.
@@ -19,10 +23,11 @@ class VideoWriter:
     """
 
     def __init__(self, path: str | os.PathLike, fps: float, size: tuple[int, int],
-                 audio: np.ndarray | None = None, sample_rate: int = 16000, quality: int = 8) -> None:
+                 audio: np.ndarray | None = None, sample_rate: int = 16000, quality: int = 8,
+                 preset: str = DEFAULT_X264_PRESET) -> None:
         self.path = Path(path)
         self.fps, self.size, self.quality = fps, (int(size[0]), int(size[1])), quality
-        self.audio, self.sample_rate = audio, sample_rate
+        self.audio, self.sample_rate, self.preset = audio, sample_rate, preset
         self.frames_written = 0
         self._writer = None
         self._tmp_dir: tempfile.TemporaryDirectory | None = None
@@ -40,7 +45,8 @@ class VideoWriter:
         self._writer = imageio_ffmpeg.write_frames(
             self._tmp_video, self.size, fps=self.fps, quality=self.quality, macro_block_size=1,
             audio_path=audio_path, audio_codec="aac" if audio_path else None,
-            output_params=["-shortest"] if audio_path else None, ffmpeg_log_level="error")
+            output_params=["-preset", self.preset] + (["-shortest"] if audio_path else []),
+            ffmpeg_log_level="error")
         self._writer.send(None)
         return self
 
