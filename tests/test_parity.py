@@ -47,11 +47,11 @@ def test_parity_clip_really_moves(demo_speaker, demo_bundle):
 def test_a_wrong_frame_fails_verification(demo_speaker, demo_bundle):
     """The same check fails when the runtime's Gaussians are off by 2 mm (a bug of that size is caught)."""
     with TalkingHead(demo_bundle, resolution=(96, 96)) as head:
-        splat = head.splatter.render
+        prepare = head.splatter.prepare
 
         def shifted(means, *args, **kwargs):
-            return splat(means + np.float32([0.002, 0.0, 0.0]), *args, **kwargs)
+            return prepare(means + np.float32([0.002, 0.0, 0.0]), *args, **kwargs)
 
-        head.splatter.render = shifted
+        head.splatter.prepare = shifted
         report = verify_frames(demo_speaker, head, frames=2)
     assert not report["passed"]
