@@ -49,8 +49,10 @@ def export(
     report: Path = typer.Option(None, "--report", help="write the verification report as JSON (implies --verify)"),
     frames: int = typer.Option(25, "--frames", min=1, help="audio-driven frames to compare when verifying"),
     resolution: str = typer.Option("256", "--resolution", help="verification frame size, N or WxH"),
-    min_psnr: float = typer.Option(50.0, "--min-psnr", help="required 8-bit PSNR (dB) of every verified frame"),
-    min_float_psnr: float = typer.Option(60.0, "--min-float-psnr", help="required float-frame PSNR (dB)"),
+    min_psnr: float = typer.Option(None, "--min-psnr",
+                                   help="required 8-bit PSNR (dB) of every frame [default: the codec's, 50]"),
+    min_float_psnr: float = typer.Option(None, "--min-float-psnr",
+                                         help="required float-frame PSNR (dB) [default: the codec's: raw 60, fp16 50]"),
     codec: str = typer.Option("raw", "--codec", help="buffer codec: raw (fp32) or fp16"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bars"),
 ) -> None:
@@ -74,7 +76,11 @@ def export(
             return
         from .verify import Tolerances, format_report, verify_bundle
 
-        tolerances = Tolerances(min_psnr_float_db=min_float_psnr, min_psnr_uint8_db=min_psnr)
+        defaults = Tolerances.for_codec(codec)
+        tolerances = Tolerances(
+            graph_rtol=defaults.graph_rtol,
+            min_psnr_float_db=defaults.min_psnr_float_db if min_float_psnr is None else min_float_psnr,
+            min_psnr_uint8_db=defaults.min_psnr_uint8_db if min_psnr is None else min_psnr)
         outcome = verify_bundle(speaker, target, frames=frames, resolution=size, tolerances=tolerances,
                                 progress=not quiet)
         typer.echo(format_report(outcome))

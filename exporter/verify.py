@@ -30,9 +30,23 @@ GRAPH_RTOL = 1e-4
 
 @dataclass(frozen=True)
 class Tolerances:
+    """Pass/fail bounds of a verification (see the module docstring for why)."""
+
     graph_rtol: float = GRAPH_RTOL
     min_psnr_float_db: float = 60.0
     min_psnr_uint8_db: float = 50.0
+
+    @classmethod
+    def for_codec(cls, codec: str) -> Tolerances:
+        """Default bounds of a precision tier, against the fp32 torch speaker.
+
+        fp16 buffers round every weight to 11 significant bits (relative 4.9e-4); through the blendshape and
+        LBS sums that gives graph errors of ~1e-4..1e-3 relative and frames at ~57 dB (measured on the demo
+        speaker, README), so the tier is held to 2e-3 relative and 50 dB on float and 8-bit frames.
+        """
+        if codec == "fp16":
+            return cls(graph_rtol=2e-3, min_psnr_float_db=50.0, min_psnr_uint8_db=50.0)
+        return cls()
 
 
 def _compare(reference: np.ndarray, test: np.ndarray) -> dict:

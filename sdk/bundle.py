@@ -43,6 +43,12 @@ def _align(n: int) -> int:
     return (n + ALIGN - 1) // ALIGN * ALIGN
 
 
+def _current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
@@ -111,6 +117,7 @@ class BundleWriter:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         try:
+            os.chmod(tmp_name, 0o666 & ~_current_umask())  # mkstemp makes 0600; a bundle is an ordinary file
             with os.fdopen(fd, "wb") as handle:
                 handle.write(header)
                 handle.write(manifest_padded)
