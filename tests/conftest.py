@@ -32,3 +32,42 @@ def small_speaker():
 
     speaker, _ = make_demo_speaker(n_gaussians=2000, seed=3, train_seconds=0, progress=False)
     return speaker
+
+
+# -- stability table --------------------------------------------------------------------------------------------
+# Stability tests call `stability.record(area, case, behaviour)` with what they observed (not what they expect):
+# `GT_STABILITY_TABLE=out/stability.md python -m pytest tests/test_stability_*.py` writes the README's table.
+
+_STABILITY_ROWS: list[tuple[str, str, str, str]] = []
+
+
+class StabilityRecorder:
+    """Collects (area, case, observed behaviour) rows for the stability table of one test."""
+
+    def __init__(self, test_id: str) -> None:
+        self.test_id = test_id
+
+    def record(self, area: str, case: str, behaviour: str) -> None:
+        _STABILITY_ROWS.append((area, case, behaviour, self.test_id))
+
+
+@pytest.fixture
+def stability(request) -> StabilityRecorder:
+    return StabilityRecorder(request.node.nodeid)
+
+
+def pytest_sessionfinish(session, exitstatus):
+    import os
+    from pathlib import Path
+
+    target = os.environ.get("GT_STABILITY_TABLE")
+    if not target or not _STABILITY_ROWS:
+        return
+    rows = sorted(set(_STABILITY_ROWS))
+    lines = [f"{len(rows)} cases, recorded by the tests ({'all passed' if exitstatus == 0 else 'NOT all passed'}).",
+             "", "| area | case | behaviour | test |", "|---|---|---|---|"]
+    for area, case, behaviour, test_id in rows:
+        cells = (c.replace("|", "\\|") for c in (area, case, behaviour, test_id.split("::")[0].split("/")[-1]))
+        lines.append("| " + " | ".join(cells) + " |")
+    Path(target).parent.mkdir(parents=True, exist_ok=True)
+    Path(target).write_text("\n".join(lines) + "\n")
