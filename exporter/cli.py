@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -65,7 +66,8 @@ def export(
     size = _resolution(resolution)
     # With --verify the bundle is written beside the output and moved there only once it has passed, so a
     # failed or interrupted run never replaces a good bundle.
-    target = output.with_name(f".{output.name}.unverified") if verify else output
+    # The name is a hidden *.tmp so that what a SIGKILL leaves behind is plainly a temporary file.
+    target = output.with_name(f".{output.name}.unverified.tmp") if verify else output
     try:
         speaker = load_checkpoint(checkpoint)
         result = export_bundle(speaker, target, codec=codec, progress=not quiet)
@@ -104,8 +106,14 @@ def export(
             target.unlink(missing_ok=True)
 
 
+def _exit_on_sigterm(signum, frame) -> None:
+    """SIGTERM unwinds like Ctrl-C, so temp files are removed (only SIGKILL can leave one behind)."""
+    raise SystemExit(128 + signum)
+
+
 def main() -> None:
     """Console-script entry point."""
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
     app(prog_name="gt-export")
 
 

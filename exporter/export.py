@@ -13,6 +13,7 @@ from tqdm import tqdm
 
 from gaussiantalker.sdk import __version__ as sdk_version
 from gaussiantalker.sdk.bundle import BundleWriter
+from gaussiantalker.sdk.codecs import get_codec
 from gaussiantalker.sdk.config import POSE_DIM
 
 from .onnx_export import add_graph, export_onnx
@@ -50,6 +51,7 @@ def _deform_example(speaker: Speaker) -> tuple[tuple, dict]:
 def export_bundle(speaker: Speaker, path: str | os.PathLike, *, codec: str = "raw", progress: bool = True,
                   example_frames: int = 8) -> ExportResult:
     """Export `speaker` to one bundle file at `path` (written atomically)."""
+    get_codec(codec)  # an unknown codec fails now, not after minutes of graph export
     speaker = speaker.eval()
     writer = BundleWriter(metadata={
         "speaker": speaker.config.to_dict(),
@@ -61,7 +63,16 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike, *, codec: str = "ra
     })
     steps = tqdm(total=3, desc="gt-export", unit="step", disable=not progress)
     result = ExportResult(Path(path), 0)
+    try:
+        _export_steps(speaker, writer, result, codec, example_frames, steps)
+    finally:
+        steps.close()
+    return result
 
+
+def _export_steps(speaker: Speaker, writer: BundleWriter, result: ExportResult, codec: str, example_frames: int,
+                  steps: tqdm) -> None:
+    """Both graphs into `writer`, then one atomic write: nothing reaches `result.path` until every step worked."""
     steps.set_postfix_str("translator graph")
     args, dynamic = _translator_example(speaker, example_frames)
     model = export_onnx(TranslatorGraph(speaker), args, ["audio"], TRANSLATOR_OUTPUTS, dynamic)
@@ -77,8 +88,6 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike, *, codec: str = "ra
     steps.set_postfix_str("writing bundle")
     if speaker.pose_track is not None:
         writer.add_buffer("pose_track", speaker.pose_track.numpy().astype(np.float32))
-    result.bytes_written = writer.write(path)
+    result.bytes_written = writer.write(result.path)
     result.buffer_bytes = {name: entry["nbytes"] for name, entry in writer.manifest()["buffers"].items()}
     steps.update()
-    steps.close()
-    return result

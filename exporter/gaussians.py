@@ -16,10 +16,27 @@ from gaussiantalker.sdk.numerics import FRAME_EPS, sh_coeff_count
 
 from .splat_math import cov3d_from_rotation_scale, quat_to_rotmat, sh_to_rgb
 
+# A triangle-frame axis is divided by max(|v|, tolerance) with a tolerance of this fraction of the triangle's
+# reference size (edge: fraction * L, cross product: fraction * L^2; L = rest mean edge length). Below it the axis
+# fades continuously to zero instead of pointing wherever float rounding sends it: a collapsed triangle's
+# direction is rounding noise, which torch and onnxruntime round differently. The demo head's thinnest rest
+# triangle sits at 0.06 L^2 and its shortest first edge at 0.13 L, so no triangle fades at rest.
+FRAME_DEGENERATE_FRACTION = 1e-2
 
-def _safe_normalize(v: torch.Tensor) -> torch.Tensor:
-    """v / max(|v|, FRAME_EPS): a zero vector stays zero instead of becoming NaN."""
-    return v / torch.clamp(torch.linalg.vector_norm(v, dim=-1, keepdim=True), min=FRAME_EPS)
+
+def _guarded_normalize(v: torch.Tensor, tolerance: torch.Tensor) -> torch.Tensor:
+    """v / max(|v|, tolerance) over the last axis; tolerance [...] > 0, so a zero vector stays zero, never NaN."""
+    return v / torch.maximum(torch.linalg.vector_norm(v, dim=-1, keepdim=True), tolerance.unsqueeze(-1))
+
+
+def frame_tolerances(reference_scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Guards of `triangle_frame` from reference edge lengths L [...]: (edge, cross product), never below FRAME_EPS.
+
+    Both scale with the triangle (L and L^2), so the frame of a head in millimetres or in kilometres is the same.
+    """
+    edge = torch.clamp(FRAME_DEGENERATE_FRACTION * reference_scale, min=FRAME_EPS)
+    area = torch.clamp(FRAME_DEGENERATE_FRACTION * reference_scale * reference_scale, min=FRAME_EPS * FRAME_EPS)
+    return edge, area
 
 
 def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -32,15 +49,22 @@ def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
                         aw * bz + ax * by - ay * bx + az * bw], dim=-1)
 
 
-def triangle_frame(v0: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Local frame of triangles [..., 3] each: rotation [..., 3, 3] with columns n0, n1, n2 and scale S [...]."""
+def triangle_frame(v0: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor,
+                   reference_scale: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Local frame of triangles [..., 3] each: rotation [..., 3, 3] with columns n0, n1, n2 and scale S [...].
+
+    n0 = e01 / max(|e01|, tol_edge), n1 = (e01 x e02) / max(|e01 x e02|, tol_cross), n2 = n0 x n1, with the
+    tolerances of `frame_tolerances(reference_scale)` (default: the current S). Finite for any input; a triangle
+    collapsed to a segment or a point gets shrunken (zero when exact) axes instead of noise-driven unit ones.
+    """
     e01, e02, e12 = v1 - v0, v2 - v0, v2 - v1
-    n0 = _safe_normalize(e01)
-    n1 = _safe_normalize(torch.cross(e01, e02, dim=-1))
+    scale = (torch.linalg.vector_norm(e01, dim=-1) + torch.linalg.vector_norm(e02, dim=-1)
+             + torch.linalg.vector_norm(e12, dim=-1)) / 3.0  # [...]
+    tol_edge, tol_cross = frame_tolerances(scale if reference_scale is None else reference_scale)
+    n0 = _guarded_normalize(e01, tol_edge)
+    n1 = _guarded_normalize(torch.cross(e01, e02, dim=-1), tol_cross)
     n2 = torch.cross(n0, n1, dim=-1)
     rotation = torch.stack([n0, n1, n2], dim=-1)  # [..., 3, 3], columns are the axes
-    scale = (torch.linalg.vector_norm(e01, dim=-1) + torch.linalg.vector_norm(e02, dim=-1)
-             + torch.linalg.vector_norm(e12, dim=-1)) / 3.0
     return rotation, scale
 
 
@@ -74,17 +98,26 @@ class BoundGaussians(nn.Module):
         self.w_pos = nn.Parameter(torch.zeros(n, 3, latent_dim))  # W_pos [N, 3, D]
         self.w_rot = nn.Parameter(torch.zeros(n, 4, latent_dim))  # W_rot [N, 4, D] (quaternion offsets)
         self.w_color = nn.Parameter(torch.zeros(n, 3, latent_dim))  # W_color [N, 3, D]
+        # Rest-pose mean edge length of each parent triangle [N]: the reference size of `triangle_frame`'s guards.
+        # Derived from the FLAME model and shape (`set_rest_vertices`), so not saved in checkpoints; 0 = unknown.
+        self.register_buffer("rest_scale", torch.zeros(n), persistent=False)
 
     @property
     def count(self) -> int:
         return int(self.parent.shape[0])
+
+    @torch.no_grad()
+    def set_rest_vertices(self, vertices: torch.Tensor) -> None:
+        """Record each parent triangle's mean edge length in the rest mesh [V, 3] (reference of the frame guards)."""
+        corners = vertices.index_select(0, self.vertex_ids.reshape(-1)).reshape(-1, 3, 3)  # [N, 3, 3]
+        self.rest_scale.copy_(triangle_frame(corners[:, 0], corners[:, 1], corners[:, 2])[1])
 
     def forward(self, vertices: torch.Tensor, gamma: torch.Tensor, camera_center: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """vertices [B, V, 3], gamma [B, D], camera_center [B, 3] -> means, cov3d [B,N,6], rgb, opacity [N]."""
         batch = vertices.shape[0]
         corners = vertices.index_select(1, self.vertex_ids.reshape(-1)).reshape(batch, -1, 3, 3)  # [B, N, 3, 3]
-        rotation, scale = triangle_frame(corners[:, :, 0], corners[:, :, 1], corners[:, :, 2])
+        rotation, scale = triangle_frame(corners[:, :, 0], corners[:, :, 1], corners[:, :, 2], self.rest_scale)
         origin = (self.barycentric.unsqueeze(-1) * corners).sum(2)  # P [B, N, 3]
 
         local_position = self.local_position + torch.einsum("nkd,bd->bnk", self.w_pos, gamma)  # [B, N, 3]

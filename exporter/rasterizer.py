@@ -26,12 +26,15 @@ from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.numerics import PIXEL_CENTER_OFFSET, TRANSMITTANCE_MIN
 
 from .splat_math import (
+    alpha_shape,
     conic_from_cov2d,
     covariance_2d,
+    covariance_2d_determinant,
     extent_radius,
     keep_mask,
     project_mean,
     splat_alpha_parts,
+    splat_color,
 )
 
 __all__ = ["render_reference", "DEFAULT_MEMORY_BUDGET_BYTES", "DEFAULT_TILE_SIZE"]
@@ -58,7 +61,7 @@ class _Splats:
     """Kept Gaussians in compositing order (front to back); radius is detached (it only selects pixels)."""
 
     xy: Tensor  # [M, 2]
-    conic: Tensor  # [M, 3]
+    shape: Tensor  # [M, 3] alpha_shape (A, k, q)
     radius: Tensor  # [M]
     opacity: Tensor  # [M]
     rgb: Tensor  # [M, 3]
@@ -159,23 +162,26 @@ def _prepare_splats(means: Tensor, cov3d: Tensor, rgb: Tensor, opacity: Tensor, 
     intrinsics = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
     limits = camera.fov_clamp_limits()
 
-    def screen_space(m: Tensor, c3: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def screen_space(m: Tensor, c3: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         xy, points = project_mean(m, R, t, *intrinsics)  # [N, 2], [N, 3]
         cov2d = covariance_2d(points, c3, R, intrinsics[0], intrinsics[1], limits)  # [N, 3]
-        return xy, points, cov2d, conic_from_cov2d(cov2d)
+        det = covariance_2d_determinant(points, c3, R, intrinsics[0], intrinsics[1], limits, cov2d)  # [N]
+        return xy, points, cov2d, det, alpha_shape(cov2d, det)
 
     with torch.no_grad():
-        xy, points, cov2d, conic = screen_space(means, cov3d)
+        xy, points, cov2d, det, shape = screen_space(means, cov3d)
         radius = extent_radius(cov2d)  # [N]
-        keep = keep_mask(points, xy, cov2d, conic, radius, float(camera.near), rgb, opacity)
+        conic = conic_from_cov2d(cov2d, det)  # [N, 3], for the culling bounds
+        keep = keep_mask(points, xy, cov2d, conic, radius, float(camera.near), rgb, opacity, cov3d, det=det,
+                         shape=shape)
         index = torch.nonzero(keep).squeeze(1)  # [M], ascending
         index = index[torch.sort(points[index, 2], stable=True).indices]  # front to back, ties in index order
     needs_grad = torch.is_grad_enabled() and any(x.requires_grad for x in (means, cov3d, rgb, opacity))
     if needs_grad:
-        xy_kept, _, _, conic_kept = screen_space(means[index], cov3d[index])
+        xy_kept, _, _, _, shape_kept = screen_space(means[index], cov3d[index])
     else:
-        xy_kept, conic_kept = xy[index], conic[index]
-    return _Splats(xy_kept, conic_kept, radius[index], opacity[index], rgb[index])
+        xy_kept, shape_kept = xy[index], shape[index]
+    return _Splats(xy_kept, shape_kept, radius[index], opacity[index], splat_color(rgb[index]))
 
 
 def _tile_rects(splats: _Splats, grid: _Grid) -> _Rects:
@@ -295,10 +301,10 @@ def _composite_group(
 
 
 def _pack_params(splats: _Splats) -> tuple[Tensor, Tensor]:
-    """Per-splat scalars as rows (u, v, A, B, C, opacity, r) [7, M+1] and rgb [M+1, 3]; entry M pads (opacity 0)."""
+    """Per-splat scalars as rows (u, v, A, k, q, opacity, r) [7, M+1] and rgb [M+1, 3]; entry M pads (opacity 0)."""
     pad = torch.zeros(7, 1, dtype=splats.rgb.dtype, device=splats.rgb.device)
     params = torch.cat(
-        [splats.xy.T, splats.conic.T, splats.opacity.unsqueeze(0), splats.radius.unsqueeze(0)], dim=0
+        [splats.xy.T, splats.shape.T, splats.opacity.unsqueeze(0), splats.radius.unsqueeze(0)], dim=0
     )  # [7, M]
     rgb = torch.cat([splats.rgb, pad[:3].T], dim=0)  # [M+1, 3]
     return torch.cat([params, pad], dim=1), rgb
@@ -338,13 +344,13 @@ def _composite_batch(
     done = torch.zeros(n_tiles, pixels, dtype=torch.bool, device=rgb.device)  # [B, P] stopped by T_MIN
     for k0 in range(0, k_total, k_chunk):
         ids = splat_ids[:, k0 : k0 + k_chunk]  # [B, k]
-        u, v, a, b, c, opacity, r = params[:, ids].unsqueeze(2).unbind(0)  # each [B, 1, k]
+        u, v, a, slope, q, opacity, r = params[:, ids].unsqueeze(2).unbind(0)  # each [B, 1, k]
         dx = px - u  # [B, P, k] pixel centre - projected centre
         dy = py - v
         inside = torch.maximum(dx.abs(), dy.abs()) <= r  # [B, P, k] the contract's exact per-pixel extent
         # Offsets clamped to the extent: unchanged inside, and keep_mask's bound keeps the power finite outside.
         dx, dy = torch.clamp(dx, -r, r), torch.clamp(dy, -r, r)
-        alpha = splat_alpha_parts(opacity, a, b, c, dx, dy, inside)  # [B, P, k], 0 = skipped
+        alpha = splat_alpha_parts(opacity, a, slope, q, dx, dy, inside)  # [B, P, k], 0 = skipped
         color, trans, done = _blend_chunk(alpha, rgb[ids], color, trans, done)
         if bool(done.all()):
             break

@@ -11,7 +11,7 @@ import torch
 from torch import nn
 
 from gaussiantalker.sdk.camera import Camera
-from gaussiantalker.sdk.config import SpeakerConfig
+from gaussiantalker.sdk.config import POSE_DIM, SpeakerConfig
 from gaussiantalker.sdk.drive import FrameDrive
 
 from .flame import FlameArrays, FlameLayer
@@ -37,6 +37,13 @@ class Speaker(nn.Module):
         self.camera = camera
         self.background = tuple(float(c) for c in background)
         self.pose_track = None if pose_track is None else torch.as_tensor(pose_track, dtype=torch.float32)
+        self.refresh_rest_geometry()
+
+    @torch.no_grad()
+    def refresh_rest_geometry(self) -> None:
+        """Recompute what the Gaussians derive from the rest mesh (call after editing FLAME buffers or shape)."""
+        zeros = torch.zeros(1, self.config.n_expr), torch.zeros(1, POSE_DIM), torch.zeros(1, 3)
+        self.gaussians.set_rest_vertices(self.vertices(*zeros)[0])
 
     def translate(self, audio: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """audio [B, S] (S a multiple of samples_per_frame) -> expression [B, T, n_expr], jaw_pose [B, T, 3]."""

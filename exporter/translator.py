@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from gaussiantalker.sdk.audio import MAX_SAMPLE_MAGNITUDE
 from gaussiantalker.sdk.config import FEATURES_PER_FRAME, TranslatorConfig
 
 # Per-utterance normalisation epsilon, added to the variance (demo_audio.AUDIO_NORM_EPS is the same number).
@@ -299,6 +300,8 @@ def translate(model: MotionTranslator, audio: np.ndarray | torch.Tensor) -> tupl
     check_audio_length(int(x.shape[-1]), model.samples_per_frame)
     if not torch.isfinite(x).all():
         raise ValueError("audio contains NaN or Inf samples")
+    if x.numel() and float(x.abs().max()) > MAX_SAMPLE_MAGNITUDE:  # the normalisation's variance would overflow
+        raise ValueError(f"audio samples exceed ±{MAX_SAMPLE_MAGNITUDE:.0f} (full scale is ±1)")
     with torch.no_grad():
         expression, jaw_pose = model(x.reshape(-1, x.shape[-1]))
     if x.ndim == 1:

@@ -27,9 +27,12 @@ from gaussiantalker.sdk.video import VideoWriter
 
 from .graphs import OnnxRuntimeBackend
 from .splatter import GLSplatter, PreparedSplats
-from .translate import translate_audio
+from .translate import SILENCE_GATE_DBFS, iter_translate
 
 AudioSource = str | os.PathLike | np.ndarray
+# Per-stage timings kept per TalkingHead: at most this many recent calls (then trimmed to the newest half), so a
+# long-running head's bookkeeping does not grow with the number of frames it has rendered.
+MAX_TIMINGS_PER_STAGE = 10_000
 HeadPoseSource = Callable[[int], HeadPose] | np.ndarray | HeadPose | None
 
 
@@ -38,7 +41,8 @@ class TalkingHead:
 
     def __init__(self, bundle: str | os.PathLike | Bundle, *, resolution: tuple[int, int] | None = None,
                  camera: Camera | None = None, background=None, threads: int | None = None,
-                 gl_context=None) -> None:
+                 gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS) -> None:
+        """`silence_gate_dbfs`: audio windows quieter than this (RMS, dBFS) fade to the neutral face (None: off)."""
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle(bundle)
         manifest = self.bundle.manifest
         try:
@@ -54,6 +58,14 @@ class TalkingHead:
                                      dtype=np.float32).reshape(3)
         self.splatter = GLSplatter(gl_context)
         self.timings: dict[str, list[float]] = defaultdict(list)
+        self.silence_gate_dbfs = silence_gate_dbfs
+
+    def _record(self, stage: str, seconds: float) -> None:
+        """Append a stage timing; past MAX_TIMINGS_PER_STAGE values only the newest half of that many are kept."""
+        values = self.timings[stage]
+        values.append(seconds)
+        if len(values) > MAX_TIMINGS_PER_STAGE:
+            del values[: len(values) - MAX_TIMINGS_PER_STAGE // 2]
 
     # -- audio -> drive ------------------------------------------------------------------------------
     def load_audio(self, audio: AudioSource, sample_rate: int | None = None) -> np.ndarray:
@@ -64,13 +76,22 @@ class TalkingHead:
             raise AudioError("an audio array needs its sample_rate")
         return prepare_audio(audio, sample_rate, self.config.sample_rate)
 
+    def _run_translator(self, chunk: np.ndarray) -> dict:
+        """One translator window through the graph (timed)."""
+        start = time.perf_counter()
+        out = self.graphs.run("translator", {"audio": chunk[None]})
+        self._record("translator", time.perf_counter() - start)
+        return out
+
+    def translate_blocks(self, audio: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Audio (speaker rate, mono float32) -> (expression, jaw pose) blocks in frame order, one window at a time."""
+        return iter_translate(self._run_translator, audio, self.config.samples_per_frame,
+                              silence_gate_dbfs=self.silence_gate_dbfs)
+
     def translate(self, audio: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Audio (speaker rate, mono float32) -> expression [T, n_expr], jaw pose [T, 3] via the translator graph."""
-        start = time.perf_counter()
-        result = translate_audio(lambda chunk: self.graphs.run("translator", {"audio": chunk[None]}), audio,
-                                 self.config.samples_per_frame)
-        self.timings["translator"].append(time.perf_counter() - start)
-        return result
+        blocks = list(self.translate_blocks(audio))
+        return np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks])
 
     def head_pose(self, index: int, source: HeadPoseSource = None) -> HeadPose:
         """Head pose of frame `index`: the app's (callable, [T, 6] array or fixed pose) or the pose track's."""
@@ -90,7 +111,7 @@ class TalkingHead:
         inputs = drive.graph_inputs()
         inputs["camera_center"] = self.camera.center.astype(np.float32)[None]
         out = self.graphs.run("deform", inputs)
-        self.timings["deformation"].append(time.perf_counter() - start)
+        self._record("deformation", time.perf_counter() - start)
         return {"means": out["means"][0], "cov3d": out["cov3d"][0], "rgb": out["rgb"][0], "opacity": out["opacity"]}
 
     def prepare(self, drive: FrameDrive) -> PreparedSplats:
@@ -102,7 +123,7 @@ class TalkingHead:
         """The GL part of a frame: upload, splat, read back."""
         frame = self.splatter.draw(prepared, self.background, output=output)
         for stage, seconds in self.splatter.last_timings.items():
-            self.timings[stage].append(seconds)
+            self._record(stage, seconds)
         return frame
 
     def render(self, drive: FrameDrive, output: str = "uint8") -> np.ndarray:
@@ -118,11 +139,13 @@ class TalkingHead:
 
     def drives(self, audio: AudioSource, sample_rate: int | None = None,
                head_pose: HeadPoseSource = None) -> Iterator[FrameDrive]:
-        """Per-frame drive parameters for an audio clip (translator output + head pose)."""
-        expression, jaw = self.translate(self.load_audio(audio, sample_rate))
-        for index in range(expression.shape[0]):
-            yield FrameDrive.make(self.config.n_expr, expression[index], jaw[index],
-                                  head_pose=self.head_pose(index, head_pose))
+        """Per-frame drive parameters for an audio clip (translator output + head pose), translated per window."""
+        index = 0
+        for expression, jaw in self.translate_blocks(self.load_audio(audio, sample_rate)):
+            for row in range(expression.shape[0]):
+                yield FrameDrive.make(self.config.n_expr, expression[row], jaw[row],
+                                      head_pose=self.head_pose(index, head_pose))
+                index += 1
 
     def frames(self, audio: AudioSource, sample_rate: int | None = None, head_pose: HeadPoseSource = None,
                output: str = "uint8") -> Iterator[np.ndarray]:

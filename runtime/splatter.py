@@ -1,7 +1,8 @@
 """OpenGL EWA splatter of the torch-free runtime: depth-sorted Gaussians -> [H, W, 3] frame (numerics contract).
 
 The per-Gaussian maths lives in shaders/splat.vert and shaders/splat.frag, whose GLSL functions `project_mean`,
-`covariance_2d`, `extent_radius` and `splat_alpha` mirror the torch reference functions of the same names;
+`covariance_2d`, `covariance_2d_determinant`, `conic_from_cov2d`, `alpha_shape`, `extent_radius`,
+`extent_power_bound`, `splat_color` and `splat_alpha` mirror the torch reference functions of the same names;
 the depth order (`view_depth`, `depth_order`) and the final 8-bit conversion (`to_uint8`) are numpy here.
 
 Primitives
@@ -55,13 +56,6 @@ QUAD_SLACK_PX = 1.0 / 64.0
 # the float32 error of exp/log/the conic (~1e-6), so the shrink never removes a pixel that passes.
 BOX_SLACK_REL = 1e-3
 
-# Per-splat values whose magnitude reaches this (centre, radius, conic) are treated as non-finite and culled.
-FINITE_LIMIT = 1e30
-
-# Colours are clamped to +-COLOR_LIMIT in the fragment shader so float32 sums stay finite (no inf - inf = NaN).
-# Far above any real colour, so the contract's "no upper clamp before compositing" holds for every real input.
-COLOR_LIMIT = 1e30
-
 # Point sprites and quads are drawn in sorted runs, one draw call each. Measured on llvmpipe (20k Gaussians,
 # 512x512), one extra run costs about as much as drawing this many Gaussians as quads instead of points, so a
 # frame is drawn in mixed runs only while runs * RUN_COST_IN_SPLATS < number of point Gaussians, else all quads.
@@ -95,8 +89,10 @@ def shader_defines() -> dict[str, str]:
         "ALPHA_MIN": numerics.ALPHA_MIN,
         "QUAD_SLACK_PX": QUAD_SLACK_PX,
         "BOX_SLACK_REL": BOX_SLACK_REL,
-        "FINITE_LIMIT": FINITE_LIMIT,
-        "COLOR_LIMIT": COLOR_LIMIT,
+        "FINITE_LIMIT": numerics.FINITE_LIMIT,
+        "COLOR_LIMIT": numerics.COLOR_LIMIT,
+        "DET_MIN_RELATIVE": numerics.DET_MIN_RELATIVE,
+        "COV2D_HUGE_PX2": numerics.COV2D_HUGE_PX2,
     }
     return {name: _glsl_float(value) for name, value in values.items()}
 

@@ -1,30 +1,131 @@
-"""Audio -> per-frame FLAME drive in bounded windows, so long audio never builds one huge attention matrix."""
+"""Audio -> per-frame FLAME drive in bounded windows, lazily, so long audio costs one window at a time.
+
+Windows: each covers WINDOW_FRAMES video frames (10 s at 25 fps); the translator also sees CONTEXT_FRAMES of
+audio on each side (1 s), so frames near a join have context on both sides.
+
+Joins: the translator normalises each window's audio on its own, so two neighbouring windows disagree slightly
+on the frames they share (up to ~0.025 rad of jaw and ~0.1 expression units on the demo speaker). Cut from one
+window to the next, that lands as a one-frame jump of up to ~0.015 rad / 0.06 (half the median frame-to-frame
+change of speech: a twitch where the face is still). Instead, the CROSSFADE_FRAMES frames around a join (0.8 s,
+each window's frames there still have >= 15 frames of context) are a linear cross-fade of the two windows'
+outputs, computed anyway from the context: the extra change per frame at a join is then <= ~0.005 rad / 0.02
+(measured against a one-shot translation of the whole clip, tests/test_stability_audio.py).
+
+Silence gate: per-utterance normalisation amplifies a window of pure low-level noise to full scale, and the jaw
+opens with no speech. A window whose audio (as the translator sees it, context included) has an RMS below
+SILENCE_GATE_DBFS is driven toward the neutral face: its outputs are scaled by a gain falling linearly in dB from
+1 at SILENCE_GATE_DBFS to 0 at SILENCE_GATE_DBFS - SILENCE_GATE_RAMP_DB (RMS after removing the mean, as the
+translator's normalisation does). Joins between gated and ungated windows are cross-faded like any other. The
+torch verification path calls this same function, so both sides gate alike. The gate knows loudness, not speech:
+noise above -60 dBFS still opens the jaw, and a whole 12 s window of speech below -66 dBFS RMS (peaks near
+-45 dBFS: a very quiet recording; normalise it first) stays neutral.
+
+Memory: `iter_translate` holds one window of audio (a view), and the outputs of two windows; nothing grows with
+the clip's duration beyond the decoded audio itself.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from gaussiantalker.sdk.audio import pad_to_frames
+from gaussiantalker.sdk.errors import AudioError
 
-# A window covers this many video frames of output (10 s at 25 fps); each side gets CONTEXT_FRAMES of extra
-# audio that the translator sees but whose frames are discarded, so window joins have full context on both sides.
 WINDOW_FRAMES = 250
 CONTEXT_FRAMES = 25
+# Frames around each join that are a linear cross-fade of the two windows (half on each side of the join).
+CROSSFADE_FRAMES = 20
+# Windows quieter than this (RMS, dB re. full scale 1.0) fade toward the neutral face; None disables the gate.
+SILENCE_GATE_DBFS = -60.0
+SILENCE_GATE_RAMP_DB = 6.0
+
+Run = Callable[[np.ndarray], dict]
 
 
-def translate_audio(run: Callable[[np.ndarray], dict], audio: np.ndarray, samples_per_frame: int,
-                    window_frames: int = WINDOW_FRAMES, context_frames: int = CONTEXT_FRAMES
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Run the translator (`run(audio_chunk) -> {"expression", "jaw_pose"}`) over windows and stitch them."""
-    audio = pad_to_frames(audio, samples_per_frame)
-    total = audio.shape[0] // samples_per_frame
-    expressions, jaws = [], []
+def window_plan(total: int, window_frames: int = WINDOW_FRAMES, context_frames: int = CONTEXT_FRAMES
+                ) -> Iterator[tuple[int, int, int, int]]:
+    """(start, stop, lo, hi) per window: frames [start, stop) are its own, [lo, hi) what the translator sees."""
     for start in range(0, total, window_frames):
-        stop = min(start + window_frames, total)
-        lo, hi = max(0, start - context_frames), min(total, stop + context_frames)
-        out = run(audio[lo * samples_per_frame: hi * samples_per_frame])
-        expressions.append(out["expression"][0, start - lo: stop - lo])
-        jaws.append(out["jaw_pose"][0, start - lo: stop - lo])
-    return np.concatenate(expressions), np.concatenate(jaws)
+        yield (start, min(start + window_frames, total), max(0, start - context_frames),
+               min(total, start + window_frames + context_frames))
+
+
+def silence_gain(chunk: np.ndarray, gate_dbfs: float | None = SILENCE_GATE_DBFS,
+                 ramp_db: float = SILENCE_GATE_RAMP_DB) -> float:
+    """Gain in [0, 1] of a window's outputs: 1 at or above gate_dbfs, 0 at gate_dbfs - ramp_db and below."""
+    if gate_dbfs is None:
+        return 1.0
+    centred = chunk.astype(np.float64) - float(np.mean(chunk, dtype=np.float64))  # the level the translator sees
+    level_db = 10.0 * np.log10(float(np.mean(centred * centred)) + 1e-30)
+    return float(np.clip((level_db - gate_dbfs) / ramp_db + 1.0, 0.0, 1.0))
+
+
+def _check_settings(window_frames: int, context_frames: int, crossfade_frames: int) -> None:
+    """ValueError for window settings whose cross-fade would need frames no window computed."""
+    if window_frames < 1 or context_frames < 0 or crossfade_frames < 0:
+        raise ValueError("window_frames must be >= 1 and context/cross-fade frames >= 0")
+    if crossfade_frames > 2 * context_frames or crossfade_frames > window_frames:
+        raise ValueError(f"crossfade_frames ({crossfade_frames}) must be <= 2 * context_frames "
+                         f"({2 * context_frames}) and <= window_frames ({window_frames})")
+
+
+def _run_window(run: Run, audio: np.ndarray, spf: int, lo: int, hi: int, gate_dbfs: float | None) -> np.ndarray:
+    """Translator outputs [hi - lo, n_expr + 3] (expression then jaw) of frames [lo, hi), silence-gated."""
+    chunk = audio[lo * spf: hi * spf]
+    if chunk.shape[0] < (hi - lo) * spf:  # the clip's last partial frame: zero-pad this window only
+        chunk = np.pad(chunk, (0, (hi - lo) * spf - chunk.shape[0]))
+    chunk = np.ascontiguousarray(chunk, dtype=np.float32)
+    out = run(chunk)
+    params = np.concatenate([out["expression"][0], out["jaw_pose"][0]], axis=-1)
+    return params * np.float32(silence_gain(chunk, gate_dbfs))
+
+
+def _join(left: np.ndarray, left_lo: int, right: np.ndarray, right_lo: int, join: int, half: int,
+          end: int) -> np.ndarray:
+    """Frames [join - half, min(join + half, end)) as a linear cross-fade from the left to the right window."""
+    frames = np.arange(join - half, min(join + half, end))
+    weight = ((frames - (join - half) + 0.5) / (2 * half)).astype(np.float32)[:, None]
+    return (1 - weight) * left[frames - left_lo] + weight * right[frames - right_lo]
+
+
+def iter_translate(run: Run, audio: np.ndarray, samples_per_frame: int, window_frames: int = WINDOW_FRAMES,
+                   context_frames: int = CONTEXT_FRAMES, crossfade_frames: int = CROSSFADE_FRAMES,
+                   silence_gate_dbfs: float | None = SILENCE_GATE_DBFS) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Yield (expression [n, n_expr], jaw_pose [n, 3]) blocks in frame order, running window k+1 only when window
+    k's last frames are due (it is needed for their cross-fade); `run(audio_chunk) -> {"expression", "jaw_pose"}`.
+    """
+    _check_settings(window_frames, context_frames, crossfade_frames)
+    total = -(-audio.shape[0] // samples_per_frame)
+    if total == 0:
+        raise AudioError("audio is empty (0 samples)")
+    half = crossfade_frames // 2
+    previous, emitted = None, 0
+    for start, stop, lo, hi in window_plan(total, window_frames, context_frames):
+        params = _run_window(run, audio, samples_per_frame, lo, hi, silence_gate_dbfs)
+        if previous is not None:
+            prev_params, prev_lo = previous
+            block = [prev_params[emitted - prev_lo: start - half - prev_lo]]
+            if half:
+                block.append(_join(prev_params, prev_lo, params, lo, start, half, total))
+            emitted = min(start + half, total)
+            yield _split(np.concatenate(block))
+        previous = (params, lo)
+        last_stop = stop
+    prev_params, prev_lo = previous
+    if emitted < last_stop:
+        yield _split(prev_params[emitted - prev_lo: last_stop - prev_lo])
+
+
+def _split(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """[n, n_expr + 3] -> (expression [n, n_expr], jaw_pose [n, 3])."""
+    return params[:, :-3], params[:, -3:]
+
+
+def translate_audio(run: Run, audio: np.ndarray, samples_per_frame: int, window_frames: int = WINDOW_FRAMES,
+                    context_frames: int = CONTEXT_FRAMES, crossfade_frames: int = CROSSFADE_FRAMES,
+                    silence_gate_dbfs: float | None = SILENCE_GATE_DBFS) -> tuple[np.ndarray, np.ndarray]:
+    """The whole clip at once: expression [T, n_expr], jaw_pose [T, 3] (T = ceil(S / samples_per_frame))."""
+    blocks = list(iter_translate(run, audio, samples_per_frame, window_frames, context_frames, crossfade_frames,
+                                 silence_gate_dbfs))
+    return np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks])

@@ -1,13 +1,15 @@
 """Audio input: any array layout/dtype/rate or any ffmpeg-readable file -> mono float32 at 16 kHz.
 
-Decoding files goes through the ffmpeg binary that imageio-ffmpeg ships (no system ffmpeg needed);
-resampling arrays uses scipy's polyphase filter.
+Decoding files goes through the ffmpeg binary that imageio-ffmpeg ships (no system ffmpeg needed), into a
+temporary file read back in one allocation, so a long file costs its decoded size (64 kB per second at 16 kHz)
+and no more; resampling arrays uses scipy's polyphase filter.
 """
 
 from __future__ import annotations
 
 import os
 import subprocess
+import tempfile
 import wave
 from fractions import Fraction
 from pathlib import Path
@@ -18,17 +20,61 @@ from .errors import AudioError
 
 TARGET_SAMPLE_RATE = 16000
 MAX_CHANNELS = 16
+MIN_SAMPLE_RATE, MAX_SAMPLE_RATE = 1000, 384000
+# Largest |sample| accepted for float audio. Full scale is 1.0; floats holding PCM values by mistake (up to int32
+# full scale) still work because the translator normalises each window. Beyond this a sample is not audio, and
+# the translator's float32 variance (sum of squares) would overflow (at ~1.8e19) and give NaN.
+MAX_SAMPLE_MAGNITUDE = 2.0**31
+# Largest up/down factor of the polyphase resampler: its filter has ~20 x max(up, down) taps, so an odd rate such
+# as 383999 Hz (factors 16000/383999) would design a 7.7 M-tap filter (~370 MB). Such a ratio is replaced by the
+# nearest fraction with factors <= this, and a linear interpolation at twice the target rate restores the exact
+# time grid (no pitch error, no drift against the video).
+MAX_RESAMPLE_FACTOR = 1000
+_STRETCH_BLOCK = 1 << 20  # samples per block of that interpolation (bounds its temporaries)
+
+
+def _check_rate(sample_rate) -> int:
+    """The sample rate as an int, or AudioError naming the accepted range."""
+    try:
+        as_float = float(sample_rate)
+        ok = not isinstance(sample_rate, bool) and np.isfinite(as_float) and as_float == int(as_float)
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok or not MIN_SAMPLE_RATE <= as_float <= MAX_SAMPLE_RATE:
+        raise AudioError(f"sample rate must be an integer in {MIN_SAMPLE_RATE}..{MAX_SAMPLE_RATE} Hz, "
+                         f"got {sample_rate!r}")
+    return int(as_float)
+
+
+def _check_float_values(samples: np.ndarray) -> None:
+    """AudioError for NaN/Inf or out-of-range float samples (checked before any cast, without big temporaries)."""
+    if samples.size == 0:
+        return
+    lo, hi = samples.min(), samples.max()
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        bad = ~np.isfinite(samples)
+        first = np.unravel_index(int(np.argmax(bad)), samples.shape)
+        where = int(first[0]) if samples.ndim == 1 else tuple(int(i) for i in first)
+        raise AudioError(f"audio has {int(bad.sum())} non-finite (NaN/Inf) samples; first at index {where}")
+    peak = max(abs(float(lo)), abs(float(hi)))
+    if peak > MAX_SAMPLE_MAGNITUDE:
+        raise AudioError(f"audio samples reach {peak:.3g}; float audio must stay within ±{MAX_SAMPLE_MAGNITUDE:.0f} "
+                         f"(full scale is ±1)")
 
 
 def _to_float(samples: np.ndarray) -> np.ndarray:
-    """Integer PCM -> [-1, 1) float32; float input kept (as float32)."""
+    """Integer PCM -> [-1, 1) float32; float input checked and kept (as float32)."""
     if samples.dtype.kind == "f":
+        _check_float_values(samples)
         return samples.astype(np.float32, copy=False)
     if samples.dtype.kind in "iu":
         info = np.iinfo(samples.dtype)
         scale = float(2 ** (info.bits - 1))
-        centred = samples.astype(np.float64) - (scale if samples.dtype.kind == "u" else 0.0)
-        return (centred / scale).astype(np.float32)
+        out = samples.astype(np.float32)
+        if samples.dtype.kind == "u":
+            out -= np.float32(scale)
+        out *= np.float32(1.0 / scale)
+        return out
     if samples.dtype == np.bool_:
         raise AudioError("audio must be numeric samples, got a boolean array")
     raise AudioError(f"audio dtype {samples.dtype} is not supported (use int16/int32/float32/float64)")
@@ -41,35 +87,64 @@ def _to_mono(samples: np.ndarray) -> np.ndarray:
     if samples.ndim != 2:
         raise AudioError(f"audio must be 1-D or 2-D (samples x channels), got shape {samples.shape}")
     if samples.shape[1] <= MAX_CHANNELS and samples.shape[1] <= samples.shape[0]:
-        return samples.mean(axis=1)
+        return samples.mean(axis=1, dtype=np.float32)
     if samples.shape[0] <= MAX_CHANNELS:
-        return samples.mean(axis=0)
-    raise AudioError(f"cannot tell channels from samples in audio of shape {samples.shape}")
+        return samples.mean(axis=0, dtype=np.float32)
+    raise AudioError(f"cannot tell channels from samples in audio of shape {samples.shape} "
+                     f"(at most {MAX_CHANNELS} channels)")
+
+
+def resample_ratio(source_rate: int, target_rate: int) -> Fraction:
+    """target/source as up/down factors of at most MAX_RESAMPLE_FACTOR (the nearest such fraction if needed)."""
+    ratio = Fraction(int(target_rate), int(source_rate))
+    if max(ratio.numerator, ratio.denominator) <= MAX_RESAMPLE_FACTOR:
+        return ratio
+    if ratio <= 1:
+        return ratio.limit_denominator(MAX_RESAMPLE_FACTOR)
+    return 1 / (1 / ratio).limit_denominator(MAX_RESAMPLE_FACTOR)
+
+
+def _stretch(samples: np.ndarray, step: float, length: int) -> np.ndarray:
+    """Linear interpolation of `samples` at positions step * n, n < length (blockwise, edge held)."""
+    out = np.empty(length, np.float32)
+    last = samples.shape[0] - 1
+    for start in range(0, length, _STRETCH_BLOCK):
+        pos = np.minimum(np.arange(start, min(length, start + _STRETCH_BLOCK)) * step, last)
+        left = np.minimum(pos.astype(np.int64), max(0, last - 1))
+        frac = (pos - left).astype(np.float32)
+        right = np.minimum(left + 1, last)
+        out[start: start + pos.shape[0]] = samples[left] * (1 - frac) + samples[right] * frac
+    return out
 
 
 def resample(samples: np.ndarray, source_rate: int, target_rate: int = TARGET_SAMPLE_RATE) -> np.ndarray:
-    """Band-limited polyphase resampling (scipy) from source_rate to target_rate."""
-    if source_rate == target_rate:
+    """Band-limited polyphase resampling (scipy) to round(S * target / source) samples."""
+    if source_rate == target_rate or samples.size == 0:
         return samples
     from scipy.signal import resample_poly
 
-    ratio = Fraction(int(target_rate), int(source_rate))
-    return resample_poly(samples, ratio.numerator, ratio.denominator).astype(np.float32)
+    ratio = resample_ratio(source_rate, target_rate)
+    if ratio == Fraction(int(target_rate), int(source_rate)):
+        return resample_poly(samples, ratio.numerator, ratio.denominator).astype(np.float32)
+    # odd ratio: polyphase to ~2x the target rate, interpolate onto the exact 2x grid (-0.4 dB at 4 kHz), halve
+    ratio = resample_ratio(source_rate, 2 * target_rate)
+    coarse = resample_poly(samples, ratio.numerator, ratio.denominator).astype(np.float32)
+    length = max(1, round(samples.shape[0] * target_rate / source_rate))
+    fine = _stretch(coarse, float(ratio) * source_rate / (2 * target_rate), 2 * length)
+    return resample_poly(fine, 1, 2).astype(np.float32)[:length]
 
 
 def prepare_audio(samples: np.ndarray, sample_rate: int, target_rate: int = TARGET_SAMPLE_RATE) -> np.ndarray:
     """Any in-memory audio -> mono float32 at target_rate; AudioError naming what is wrong with it."""
-    samples = np.asarray(samples)
-    if int(sample_rate) != sample_rate or sample_rate < 1000 or sample_rate > 384000:
-        raise AudioError(f"sample rate must be an integer in 1000..384000 Hz, got {sample_rate!r}")
+    rate = _check_rate(sample_rate)
+    try:
+        samples = np.asarray(samples)
+    except (TypeError, ValueError) as exc:
+        raise AudioError(f"audio is not a numeric array: {exc}") from exc
     mono = _to_mono(_to_float(samples))
     if mono.size == 0:
         raise AudioError("audio is empty (0 samples)")
-    bad = ~np.isfinite(mono)
-    if bad.any():
-        raise AudioError(f"audio has {int(bad.sum())} non-finite (NaN/Inf) samples; first at index "
-                         f"{int(np.argmax(bad))}")
-    return np.ascontiguousarray(resample(mono, int(sample_rate), target_rate), dtype=np.float32)
+    return np.ascontiguousarray(resample(mono, rate, target_rate), dtype=np.float32)
 
 
 def pad_to_frames(audio: np.ndarray, samples_per_frame: int) -> np.ndarray:
@@ -86,21 +161,37 @@ def _ffmpeg_exe() -> str:
     return imageio_ffmpeg.get_ffmpeg_exe()
 
 
+def _ffmpeg_problem(path: Path, stderr: bytes) -> str:
+    """ffmpeg's last error line, rephrased where it is cryptic (a file without an audio stream)."""
+    lines = stderr.decode("utf-8", "replace").strip().splitlines()
+    text = " ".join(lines)
+    if "matches no streams" in text or "does not contain any stream" in text:
+        return f"audio file {path} has no audio stream"
+    return f"cannot decode audio file {path}: {lines[-1] if lines else 'ffmpeg failed'}"
+
+
 def load_audio(path: str | os.PathLike, target_rate: int = TARGET_SAMPLE_RATE) -> np.ndarray:
     """Decode any ffmpeg-readable file (wav, mp3, m4a, a video's audio track...) to mono float32."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise AudioError(f"audio file {path} does not exist")
-    cmd = [_ffmpeg_exe(), "-nostdin", "-v", "error", "-i", str(path), "-vn", "-ac", "1", "-ar",
-           str(target_rate), "-f", "f32le", "-"]
-    result = subprocess.run(cmd, capture_output=True, check=False)
-    if result.returncode != 0:
-        message = result.stderr.decode("utf-8", "replace").strip().splitlines()
-        raise AudioError(f"cannot decode audio file {path}: {message[-1] if message else 'ffmpeg failed'}")
-    samples = np.frombuffer(result.stdout, dtype="<f4").astype(np.float32)
+    if not path.is_file():
+        raise AudioError(f"audio file {path} is not a file")
+    rate = _check_rate(target_rate)
+    with tempfile.TemporaryDirectory(prefix="gt-audio-") as tmp:
+        raw = Path(tmp) / "audio.f32"
+        cmd = [_ffmpeg_exe(), "-nostdin", "-v", "error", "-i", str(path), "-map", "0:a:0", "-ac", "1", "-ar",
+               str(rate), "-f", "f32le", "-y", str(raw)]
+        result = subprocess.run(cmd, capture_output=True, check=False)
+        if result.returncode != 0:
+            raise AudioError(_ffmpeg_problem(path, result.stderr))
+        samples = np.fromfile(raw, dtype="<f4") if raw.exists() else np.zeros(0, np.float32)
     if samples.size == 0:
         raise AudioError(f"audio file {path} holds no audio samples")
-    return prepare_audio(samples, target_rate, target_rate)
+    try:
+        return prepare_audio(samples, rate, rate)
+    except AudioError as exc:
+        raise AudioError(f"audio file {path}: {exc}") from None
 
 
 def write_wav(path: str | os.PathLike, samples: np.ndarray, sample_rate: int = TARGET_SAMPLE_RATE) -> None:

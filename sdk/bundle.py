@@ -49,6 +49,20 @@ def _current_umask() -> int:
     return mask
 
 
+def _fsync_directory(directory: Path) -> None:
+    """Make a rename durable (POSIX); a no-op where directories cannot be opened (Windows)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
 def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
@@ -129,7 +143,37 @@ class BundleWriter:
         except BaseException:
             Path(tmp_name).unlink(missing_ok=True)
             raise
+        _fsync_directory(path.parent)
         return HEADER_SIZE + len(manifest_padded) + self._size
+
+
+class _Manifest(dict):
+    """The parsed manifest: a dict whose missing top-level sections raise BundleError naming them, not KeyError."""
+
+    def __init__(self, path: Path, data: dict) -> None:
+        super().__init__(data)
+        self.path = path
+
+    def __missing__(self, key):
+        raise BundleError(f"{self.path}: manifest has no {key!r} section")
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_sha256(value) -> bool:
+    return isinstance(value, str) and len(value) == 64 and all(c in "0123456789abcdef" for c in value)
+
+
+def _check_tensor_list(label: str, values) -> None:
+    """A graph's declared inputs or outputs: a list of {name: str, dtype: str, shape: [int | str, ...]}."""
+    ok = isinstance(values, list) and all(
+        isinstance(v, dict) and isinstance(v.get("name"), str) and isinstance(v.get("dtype"), str)
+        and isinstance(v.get("shape"), list) and all(_is_int(d) or isinstance(d, str) for d in v["shape"])
+        for v in values)
+    if not ok:
+        raise BundleError(f"{label} is malformed (each needs a name, a dtype and a shape list)")
 
 
 class Bundle:
@@ -145,79 +189,131 @@ class Bundle:
             self.manifest, self.payload_start = self._read_manifest(handle)
         self._check_entries()
 
-    def _read_manifest(self, handle) -> tuple[dict, int]:
+    def _read_manifest(self, handle) -> tuple[_Manifest, int]:
+        major, minor, manifest_len, digest = self._read_header(handle)
+        manifest_bytes = handle.read(manifest_len)
+        if hashlib.sha256(manifest_bytes).digest() != digest:
+            raise BundleError(f"{self.path}: manifest checksum mismatch (corrupt manifest or header)")
+        try:
+            manifest = json.loads(manifest_bytes.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+            raise BundleError(f"{self.path}: manifest is not valid JSON: {str(exc)[:200]}") from None
+        if not isinstance(manifest, dict) or manifest.get("format") != "gaussiantalker-bundle":
+            raise BundleError(f"{self.path}: manifest does not describe a gaussiantalker-bundle")
+        if manifest.get("version") != [major, minor]:
+            raise BundleError(f"{self.path}: header says format version {major}.{minor} but the manifest says "
+                              f"{manifest.get('version')!r} (corrupt header)")
+        payload_start = HEADER_SIZE + _align(manifest_len)
+        padding = handle.read(payload_start - HEADER_SIZE - manifest_len)
+        if HEADER_SIZE + manifest_len + len(padding) < payload_start:
+            raise BundleError(f"{self.path}: truncated after the manifest (the payload starts at byte "
+                              f"{payload_start}, the file ends at {self.file_size})")
+        if padding.strip(b"\0"):
+            raise BundleError(f"{self.path}: padding after the manifest is not zero (corrupt file)")
+        return _Manifest(self.path, manifest), payload_start
+
+    def _read_header(self, handle) -> tuple[int, int, int, bytes]:
         raw = handle.read(HEADER_SIZE)
         if len(raw) < HEADER_SIZE:
-            raise BundleError(f"{self.path}: truncated header ({len(raw)} of {HEADER_SIZE} bytes)")
-        magic, major, minor, _reserved, manifest_len, digest = _HEADER.unpack_from(raw)
+            raise BundleError(f"{self.path}: truncated inside the header ({len(raw)} of {HEADER_SIZE} bytes)")
+        magic, major, minor, reserved, manifest_len, digest = _HEADER.unpack_from(raw)
         if magic != MAGIC:
             raise BundleError(f"{self.path}: not a GaussianTalker bundle (bad magic {magic!r})")
         if major != FORMAT_MAJOR:
             raise BundleError(f"{self.path}: bundle format version {major}.{minor} is not supported by this "
                               f"runtime (reads {FORMAT_MAJOR}.x); re-export with a matching gt-export")
-        if manifest_len > MAX_MANIFEST_BYTES or HEADER_SIZE + manifest_len > self.file_size:
-            raise BundleError(f"{self.path}: manifest claims {manifest_len} bytes but the file has "
-                              f"{self.file_size} (truncated or corrupt header)")
-        manifest_bytes = handle.read(manifest_len)
-        if hashlib.sha256(manifest_bytes).digest() != digest:
-            raise BundleError(f"{self.path}: manifest checksum mismatch (corrupt manifest)")
-        try:
-            manifest = json.loads(manifest_bytes.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise BundleError(f"{self.path}: manifest is not valid JSON: {exc}") from exc
-        if not isinstance(manifest, dict) or manifest.get("format") != "gaussiantalker-bundle":
-            raise BundleError(f"{self.path}: manifest does not describe a gaussiantalker-bundle")
-        return manifest, HEADER_SIZE + _align(manifest_len)
+        if reserved or raw[_HEADER.size:].strip(b"\0"):
+            raise BundleError(f"{self.path}: reserved header bytes are not zero (corrupt header)")
+        if manifest_len > MAX_MANIFEST_BYTES:
+            raise BundleError(f"{self.path}: manifest claims {manifest_len} bytes, over the {MAX_MANIFEST_BYTES} "
+                              f"limit (corrupt header)")
+        if HEADER_SIZE + manifest_len > self.file_size:
+            raise BundleError(f"{self.path}: truncated inside the manifest: it needs bytes {HEADER_SIZE}.."
+                              f"{HEADER_SIZE + manifest_len}, the file ends at {self.file_size} (or the header's "
+                              f"manifest length is corrupt)")
+        return major, minor, manifest_len, digest
 
     def _check_entries(self) -> None:
         payload_size = self.manifest.get("payload_size")
-        if not isinstance(payload_size, int) or payload_size < 0:
+        if not _is_int(payload_size) or payload_size < 0:
             raise BundleError(f"{self.path}: manifest has no valid payload_size")
-        available = self.file_size - self.payload_start
-        if available < payload_size:
-            raise BundleError(f"{self.path}: truncated: payload should be {payload_size} bytes, file holds "
-                              f"{max(available, 0)}")
         for kind in ("graphs", "buffers"):
             if not isinstance(self.manifest.get(kind), dict):
                 raise BundleError(f"{self.path}: manifest has no {kind!r} table")
-        for kind in ("buffers", "graphs"):
-            for name, entry in self.manifest[kind].items():
-                self._check_entry(f"{kind[:-1]} {name!r}", entry, payload_size)
-                if kind == "graphs":
-                    for buffer_name in entry.get("initializers", {}).values():
-                        if buffer_name not in self.manifest["buffers"]:
-                            raise BundleError(f"{self.path}: graph {name!r} needs unknown buffer {buffer_name!r}")
-                if kind == "buffers":
-                    shape = tuple(entry.get("shape", ()))
-                    codec = entry.get("codec", {}).get("name", "?")
-                    try:
-                        wanted = expected_nbytes(codec, entry.get("dtype", "?"), shape)
-                    except BundleError as exc:
-                        raise BundleError(f"{self.path}: buffer {name!r}: {exc}") from None
-                    if wanted != entry["nbytes"]:
-                        raise BundleError(f"{self.path}: buffer {name!r} declares dtype {entry['dtype']} shape "
-                                          f"{list(shape)} ({wanted} bytes) but stores {entry['nbytes']} bytes")
+        labelled = [(f"{kind[:-1]} {name!r}", entry) for kind in ("buffers", "graphs")
+                    for name, entry in self.manifest[kind].items()]
+        for label, entry in labelled:
+            self._check_entry(label, entry, payload_size)
+        self._check_truncation(labelled, payload_size)
+        for name, entry in self.manifest["buffers"].items():
+            self._check_buffer(name, entry)
+        for name, entry in self.manifest["graphs"].items():
+            self._check_graph(name, entry)
 
     def _check_entry(self, label: str, entry: dict, payload_size: int) -> None:
         if not isinstance(entry, dict):
             raise BundleError(f"{self.path}: {label} entry is malformed")
         offset, nbytes = entry.get("offset"), entry.get("nbytes")
-        if not (isinstance(offset, int) and isinstance(nbytes, int) and offset >= 0 and nbytes >= 0):
+        if not (_is_int(offset) and _is_int(nbytes) and offset >= 0 and nbytes >= 0):
             raise BundleError(f"{self.path}: {label} has an invalid offset/size")
         if offset + nbytes > payload_size:
             raise BundleError(f"{self.path}: {label} lies outside the payload (offset {offset}, {nbytes} bytes, "
                               f"payload {payload_size})")
+        if not _is_sha256(entry.get("sha256")):
+            raise BundleError(f"{self.path}: {label} has no valid sha256")
+
+    def _check_truncation(self, labelled: list[tuple[str, dict]], payload_size: int) -> None:
+        """Name the first entry the file cuts short, before anything is read."""
+        for label, entry in sorted(labelled, key=lambda item: item[1]["offset"]):
+            start = self.payload_start + entry["offset"]
+            if start + entry["nbytes"] > self.file_size:
+                raise BundleError(f"{self.path}: truncated inside {label}: it needs bytes {start}.."
+                                  f"{start + entry['nbytes']}, the file ends at {self.file_size}")
+        entries_end = max((entry["offset"] + entry["nbytes"] for _, entry in labelled), default=0)
+        if payload_size != _align(entries_end):
+            raise BundleError(f"{self.path}: manifest payload_size {payload_size} disagrees with its entries "
+                              f"(they end at {entries_end}; corrupt manifest)")
+        if self.payload_start + payload_size > self.file_size:
+            raise BundleError(f"{self.path}: truncated inside the padding after the last entry (the payload ends "
+                              f"at byte {self.payload_start + payload_size}, the file at {self.file_size})")
+
+    def _check_buffer(self, name: str, entry: dict) -> None:
+        """dtype, shape and codec must be well-formed and account for exactly the stored bytes."""
+        shape, dtype, codec = entry.get("shape"), entry.get("dtype"), entry.get("codec")
+        if not (isinstance(shape, list) and all(_is_int(d) for d in shape) and isinstance(dtype, str)
+                and isinstance(codec, dict) and isinstance(codec.get("name"), str)):
+            raise BundleError(f"{self.path}: buffer {name!r} has a malformed dtype, shape or codec "
+                              f"({dtype!r}, {shape!r}, {codec!r})")
+        try:
+            wanted = expected_nbytes(codec["name"], dtype, tuple(shape))
+        except BundleError as exc:
+            raise BundleError(f"{self.path}: buffer {name!r}: {exc}") from None
+        if wanted != entry["nbytes"]:
+            raise BundleError(f"{self.path}: buffer {name!r} declares dtype {dtype} shape {shape} ({wanted} bytes) "
+                              f"but stores {entry['nbytes']} bytes")
+
+    def _check_graph(self, name: str, entry: dict) -> None:
+        """Declared inputs/outputs are well-formed; every initializer maps to a buffer the bundle holds."""
+        initializers = entry.get("initializers", {})
+        if not (isinstance(initializers, dict) and all(isinstance(v, str) for v in initializers.values())):
+            raise BundleError(f"{self.path}: graph {name!r} has a malformed initializers table")
+        for buffer_name in initializers.values():
+            if buffer_name not in self.manifest["buffers"]:
+                raise BundleError(f"{self.path}: graph {name!r} needs unknown buffer {buffer_name!r}")
+        for kind in ("inputs", "outputs"):
+            _check_tensor_list(f"{self.path}: graph {name!r} {kind}", entry.get(kind))
 
     @property
     def version(self) -> tuple[int, int]:
+        """(major, minor) format version, the same in the header and the manifest."""
         return tuple(self.manifest["version"])
 
     def _read_entry(self, label: str, entry: dict) -> bytes:
         with open(self.path, "rb") as handle:
             handle.seek(self.payload_start + entry["offset"])
             data = handle.read(entry["nbytes"])
-        if len(data) != entry["nbytes"]:
-            raise BundleError(f"{self.path}: {label} is truncated")
+        if len(data) != entry["nbytes"]:  # the file shrank after it was opened
+            raise BundleError(f"{self.path}: truncated inside {label}")
         if self.verify_checksums and _sha256(data) != entry.get("sha256"):
             raise BundleError(f"{self.path}: checksum mismatch in {label} (the file is corrupt)")
         return data
@@ -244,7 +340,8 @@ class Bundle:
     def graph_info(self, name: str) -> dict:
         entry = self.manifest["graphs"].get(name)
         if entry is None:
-            raise BundleError(f"{self.path}: bundle has no graph {name!r}")
+            raise BundleError(f"{self.path}: bundle has no graph {name!r} (it holds: "
+                              f"{', '.join(self.graph_names()) or 'no graphs'})")
         return entry
 
     def graph_bytes(self, name: str) -> bytes:

@@ -15,6 +15,43 @@ from .numerics import DEFAULT_NEAR, FOV_CLAMP_MARGIN
 
 MAX_IMAGE_SIDE = 16384
 
+# Both renderers compute in float32, so every camera number must survive the conversion: finite in float32, and
+# focal lengths at least the smallest normal float32 (below it fx would become 0 or lose its precision on a GPU).
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+MIN_FOCAL_PX = float(np.finfo(np.float32).tiny)
+
+
+def _image_side(name: str, value) -> int:
+    """An image side as int, or CameraError naming it (NaN, inf, None, strings and fractions included)."""
+    try:
+        valid = float(value) == int(value) and 1 <= int(value) <= MAX_IMAGE_SIDE and not isinstance(value, str)
+    except (TypeError, ValueError, OverflowError):
+        valid = False
+    if not valid:
+        raise CameraError(f"camera {name} must be an integer in 1..{MAX_IMAGE_SIDE}, got {value!r}")
+    return int(value)
+
+
+def _real(name: str, value) -> float:
+    """A real number as float, or CameraError naming it (None, strings, complex)."""
+    if isinstance(value, str | bytes):
+        raise CameraError(f"camera {name} must be a real number, got {value!r}")
+    try:
+        return float(value)
+    except (TypeError, ValueError) as exc:
+        raise CameraError(f"camera {name} must be a real number, got {value!r}") from exc
+
+
+def _matrix(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    """A float64 array of exactly `shape`, or CameraError naming it."""
+    try:
+        array = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise CameraError(f"camera {name} must be a {shape} array of real numbers, got {value!r}") from exc
+    if array.size != int(np.prod(shape)):
+        raise CameraError(f"camera {name} must have shape {shape}, got {array.shape}")
+    return array.reshape(shape)
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -31,29 +68,37 @@ class Camera:
     near: float = DEFAULT_NEAR
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "R", np.asarray(self.R, dtype=np.float64).reshape(3, 3))
-        object.__setattr__(self, "t", np.asarray(self.t, dtype=np.float64).reshape(3))
+        for name in ("width", "height"):
+            object.__setattr__(self, name, _image_side(name, getattr(self, name)))
+        for name in ("fx", "fy", "cx", "cy", "near"):
+            object.__setattr__(self, name, _real(name, getattr(self, name)))
+        object.__setattr__(self, "R", _matrix("R", self.R, (3, 3)))
+        object.__setattr__(self, "t", _matrix("t", self.t, (3,)))
         self.validate()
 
     def validate(self) -> None:
-        """Raise CameraError naming the first unusable field."""
+        """Raise CameraError naming the first unusable field and its limit."""
         for name in ("width", "height"):
-            value = getattr(self, name)
-            if int(value) != value or not 1 <= value <= MAX_IMAGE_SIDE:
-                raise CameraError(f"camera {name} must be an integer in 1..{MAX_IMAGE_SIDE}, got {value!r}")
+            _image_side(name, getattr(self, name))
         for name in ("fx", "fy"):
             value = getattr(self, name)
-            if not np.isfinite(value) or value <= 0:
-                raise CameraError(f"camera focal length {name} must be finite and > 0, got {value!r}")
+            if not MIN_FOCAL_PX <= value <= FLOAT32_MAX:  # NaN fails too
+                raise CameraError(f"camera focal length {name} must be finite and > 0 (within float32: "
+                                  f"{MIN_FOCAL_PX:.3g}..{FLOAT32_MAX:.3g} px), got {value!r}")
         for name in ("cx", "cy"):
-            if not np.isfinite(getattr(self, name)):
-                raise CameraError(f"camera principal point {name} must be finite, got {getattr(self, name)!r}")
-        if not np.isfinite(self.near) or self.near <= 0:
-            raise CameraError(f"camera near plane must be finite and > 0, got {self.near!r}")
-        if not (np.all(np.isfinite(self.R)) and np.all(np.isfinite(self.t))):
-            raise CameraError("camera extrinsics R, t must be finite")
+            value = getattr(self, name)
+            if not abs(value) <= FLOAT32_MAX:
+                raise CameraError(f"camera principal point {name} must be finite (|{name}| <= "
+                                  f"{FLOAT32_MAX:.3g} px, float32), got {value!r}")
+        if not 0 < self.near <= FLOAT32_MAX:
+            raise CameraError(f"camera near plane must be finite and > 0 (float32), got {self.near!r}")
+        for name in ("R", "t"):
+            value = getattr(self, name)
+            if not np.all(np.abs(value) <= FLOAT32_MAX):
+                raise CameraError(f"camera extrinsics {name} must be finite (float32), got {value.tolist()}")
         if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-5) or np.linalg.det(self.R) < 0:
-            raise CameraError("camera R must be a proper rotation (orthonormal, det +1)")
+            raise CameraError("camera R must be a proper rotation (orthonormal to 1e-5, det +1), "
+                              f"got {self.R.tolist()!r}")
 
     @property
     def center(self) -> np.ndarray:
@@ -103,13 +148,22 @@ class Camera:
     def looking_at(cls, eye, target, up, width: int, height: int, fov_y_deg: float,
                    near: float = DEFAULT_NEAR) -> Camera:
         """A centred camera at `eye` looking at `target`, world `up` appearing up in the image (+y down)."""
-        eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+        eye, target, up = (_matrix(name, v, (3,)) for name, v in (("eye", eye), ("target", target), ("up", up)))
+        fov = _real("fov_y_deg", fov_y_deg)
+        if not 0.0 < fov < 180.0:
+            raise CameraError(f"camera fov_y_deg must be in (0, 180) degrees, got {fov_y_deg!r}")
         forward = target - eye
+        if not np.linalg.norm(forward) > 0:
+            raise CameraError(f"camera eye and target must differ (and be finite), got eye {eye.tolist()}, "
+                              f"target {target.tolist()}")
         forward /= np.linalg.norm(forward)
         right = np.cross(forward, up)
+        if not np.linalg.norm(right) > 1e-9 * np.linalg.norm(up):
+            raise CameraError(f"camera up {up.tolist()} must not be parallel to the view direction "
+                              f"{forward.tolist()} (nor zero or non-finite)")
         right /= np.linalg.norm(right)
         down = np.cross(forward, right)
         R = np.stack([right, down, forward])  # rows: camera x, y, z axes in world coordinates
         t = -R @ eye
-        fy = 0.5 * height / np.tan(np.radians(fov_y_deg) / 2.0)
+        fy = 0.5 * height / np.tan(np.radians(fov) / 2.0)
         return cls(width, height, fy, fy, width / 2.0, height / 2.0, R, t, near)

@@ -25,6 +25,7 @@ class Codec:
     encode: Callable[[np.ndarray], tuple[bytes, dict]]
     decode: Callable[[bytes, str, tuple[int, ...], dict], np.ndarray]
     stored_itemsize: Callable[[str], int]
+    float_only: bool = False  # decodes only to floating-point dtypes
 
 
 def _encode_raw(array: np.ndarray) -> tuple[bytes, dict]:
@@ -50,7 +51,7 @@ def _decode_fp16(payload: bytes, dtype: str, shape: tuple[int, ...], params: dic
 
 CODECS: dict[str, Codec] = {
     "raw": Codec(_encode_raw, _decode_raw, lambda dtype: np.dtype(dtype).itemsize),
-    "fp16": Codec(_encode_fp16, _decode_fp16, lambda dtype: 2),
+    "fp16": Codec(_encode_fp16, _decode_fp16, lambda dtype: 2, float_only=True),
 }
 
 
@@ -66,9 +67,12 @@ def expected_nbytes(codec_name: str, dtype: str, shape: tuple[int, ...]) -> int:
     """Stored size of a buffer, known from the manifest alone (checked before anything is allocated)."""
     if dtype not in SUPPORTED_DTYPES:
         raise BundleError(f"unsupported buffer dtype {dtype!r} (supported: {', '.join(SUPPORTED_DTYPES)})")
+    codec = get_codec(codec_name)
+    if codec.float_only and not dtype.startswith("float"):
+        raise BundleError(f"codec {codec_name!r} cannot decode to dtype {dtype!r} (floating-point only)")
     count = 1
     for dim in shape:
-        if int(dim) != dim or dim < 0:
+        if not isinstance(dim, int | np.integer) or isinstance(dim, bool) or dim < 0:
             raise BundleError(f"invalid buffer shape {list(shape)}")
-        count *= int(dim)
-    return count * get_codec(codec_name).stored_itemsize(dtype)
+        count *= int(dim)  # Python ints: a huge claimed shape is a big number, never an allocation
+    return count * codec.stored_itemsize(dtype)

@@ -18,15 +18,30 @@ from .errors import DriveError
 MAX_DRIVE_MAGNITUDE = 1e4
 
 
-def _vector(name: str, value, size: int) -> np.ndarray:
-    array = np.zeros(size, np.float32) if value is None else np.asarray(value, dtype=np.float32)
-    if array.shape != (size,):
-        raise DriveError(f"{name} must have shape ({size},), got {tuple(array.shape)}")
-    if not np.all(np.isfinite(array)):
-        raise DriveError(f"{name} has non-finite values: {array.tolist()}")
-    if np.abs(array).max(initial=0.0) > MAX_DRIVE_MAGNITUDE:
-        raise DriveError(f"{name} exceeds the supported magnitude {MAX_DRIVE_MAGNITUDE:g}")
-    return array
+def _vector(name: str, value, size: int | None) -> np.ndarray:
+    """Validated float32 copy of one drive field (`size` None: any length); DriveError naming field and limit."""
+    if value is None:
+        if size is None:
+            raise DriveError(f"{name} is missing")
+        return np.zeros(size, np.float32)
+    try:  # float64 first: a finite value too large for float32 must read as "too large", not as "inf"
+        array = np.asarray(value)
+        if np.iscomplexobj(array):
+            raise TypeError("complex values")
+        array = array.astype(np.float64)
+    except (TypeError, ValueError) as exc:
+        raise DriveError(f"{name} must be an array of real numbers, got {type(value).__name__}: {exc}") from exc
+    if array.ndim != 1 or (size is not None and array.shape != (size,)):
+        raise DriveError(f"{name} must have shape ({'N' if size is None else size},), got {tuple(array.shape)}")
+    bad = np.flatnonzero(~np.isfinite(array))
+    if bad.size:
+        raise DriveError(f"{name} has non-finite values: {name}[{bad[0]}] = {array[bad[0]]} "
+                         f"({bad.size} of {array.size} entries)")
+    over = np.flatnonzero(np.abs(array) > MAX_DRIVE_MAGNITUDE)
+    if over.size:
+        raise DriveError(f"{name} exceeds the supported magnitude {MAX_DRIVE_MAGNITUDE:g}: "
+                         f"{name}[{over[0]}] = {array[over[0]]:.6g}")
+    return array.astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -36,9 +51,15 @@ class HeadPose:
     rotation: np.ndarray
     translation: np.ndarray
 
+    def __post_init__(self) -> None:
+        """Validate even when built directly (not through `make`), so no NaN reaches a graph."""
+        object.__setattr__(self, "rotation", _vector("head rotation", self.rotation, 3))
+        object.__setattr__(self, "translation", _vector("head translation", self.translation, 3))
+
     @classmethod
     def make(cls, rotation=None, translation=None) -> HeadPose:
-        return cls(_vector("head rotation", rotation, 3), _vector("head translation", translation, 3))
+        """Validated head pose; omitted parts are zero (identity rotation, no translation)."""
+        return cls(rotation, translation)
 
 
 @dataclass(frozen=True)
@@ -48,6 +69,12 @@ class FrameDrive:
     expression: np.ndarray  # [n_expr]
     flame_pose: np.ndarray  # [15]
     head_translation: np.ndarray  # [3]
+
+    def __post_init__(self) -> None:
+        """Validate even when built directly (not through `make`), so no NaN reaches a graph."""
+        object.__setattr__(self, "expression", _vector("expression", self.expression, None))
+        object.__setattr__(self, "flame_pose", _vector("flame pose", self.flame_pose, POSE_DIM))
+        object.__setattr__(self, "head_translation", _vector("head translation", self.head_translation, 3))
 
     @classmethod
     def make(cls, n_expr: int, expression=None, jaw_pose=None, neck_pose=None, eye_pose=None,

@@ -23,6 +23,25 @@ EXTENT_SIGMAS = 3.0
 ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 
+# Colours are clamped to +-COLOR_LIMIT just before compositing, so float32 sums stay finite (no inf - inf = NaN).
+# Far above any real colour, so "no upper clamp before compositing" holds for every real input.
+COLOR_LIMIT = 1e30
+
+# A per-splat screen-space value (projected centre, extent radius, conic and its alpha_shape form, and the largest
+# |power| reachable inside the extent) whose magnitude reaches FINITE_LIMIT counts as non-finite: the Gaussian is
+# culled. Only values no pixel of a 16384-px image could use come near it; it keeps per-pixel float32 math finite.
+FINITE_LIMIT = 1e30
+
+# A 2D determinant is the difference of two products (a c - b^2). Where it is below DET_MIN_RELATIVE times their
+# sum it is float32 rounding noise (its sign included), so it counts as not positive: the Gaussian is culled on
+# both sides alike. That takes a diagonal 2D covariance with lambda_max / lambda_min above ~2e6 (a sub-pixel-thin
+# needle ~5000 px long, or a near-singular covariance from huge 3D scales); the noise is ~1e-7 of the products.
+DET_MIN_RELATIVE = 2.0**-20
+
+# Where 0.5 (a + c) > COV2D_HUGE_PX2, the extent radius is evaluated on the 2D covariance divided by max(|a|, |c|),
+# so a huge splat keeps a finite radius instead of mid^2 overflowing float32; below it the formula is unchanged.
+COV2D_HUGE_PX2 = 1e18
+
 # Front-to-back compositing stops before a Gaussian that would take transmittance below this.
 TRANSMITTANCE_MIN = 1e-4
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -14,6 +15,17 @@ from .errors import GaussianTalkerError
 # libx264 speed/size trade-off: "veryfast" encodes 512x512 at several hundred fps on one core, so encoding never
 # competes with rendering for the CPU; "medium" (x264's default) makes ~10% smaller files at ~3x the CPU time.
 DEFAULT_X264_PRESET = "veryfast"
+
+
+def pad_to_whole_frames(audio: np.ndarray, sample_rate: int, fps: float) -> np.ndarray:
+    """Zero-pad audio to cover whole video frames, so ffmpeg's -shortest keeps the last (partial) frame.
+
+    Without it a clip ending mid-frame loses its last frame, and one shorter than a frame gives no video at all.
+    """
+    audio = np.asarray(audio, dtype=np.float32).reshape(-1)
+    frames = math.ceil(audio.shape[0] * fps / sample_rate - 1e-9)
+    target = max(1, math.ceil(frames * sample_rate / fps - 1e-9))
+    return np.pad(audio, (0, max(0, target - audio.shape[0])))
 
 
 class VideoWriter:
@@ -40,7 +52,7 @@ class VideoWriter:
         audio_path = None
         if self.audio is not None:
             audio_path = os.path.join(self._tmp_dir.name, "audio.wav")
-            write_wav(audio_path, self.audio, self.sample_rate)
+            write_wav(audio_path, pad_to_whole_frames(self.audio, self.sample_rate, self.fps), self.sample_rate)
         self._tmp_video = os.path.join(self._tmp_dir.name, "video" + (self.path.suffix or ".mp4"))
         self._writer = imageio_ffmpeg.write_frames(
             self._tmp_video, self.size, fps=self.fps, quality=self.quality, macro_block_size=1,
@@ -62,6 +74,8 @@ class VideoWriter:
         try:
             if self._writer is not None:
                 self._writer.close()
+            if exc_type is None and self.frames_written == 0:
+                raise GaussianTalkerError(f"no frames were written to {self.path}; an mp4 needs at least one")
             if exc_type is None:
                 os.replace(self._tmp_video, self.path)
         finally:

@@ -5,16 +5,23 @@
 //   ALPHA_MAX, ALPHA_MIN, COLOR_LIMIT
 
 flat in vec2 v_center;
-flat in vec3 v_conic;
+flat in vec3 v_shape;
 flat in float v_radius;
 flat in vec4 v_rgba;
 
 out vec4 frag_color;
 
-// Contract "Alpha": min(ALPHA_MAX, opacity * exp(power)), power = -1/2 (A dx^2 + C dy^2) - B dx dy with
-// (A, B, C) the conic; a positive power is skipped (returned as alpha 0, which the caller discards).
-float splat_alpha(vec2 d, vec3 conic, float opacity) {
-    float power = -0.5 * (conic.x * d.x * d.x + conic.z * d.y * d.y) - conic.y * d.x * d.y;
+// Colour as composited: clamped to +-COLOR_LIMIT (far above any real colour) so float32 sums stay finite.
+vec3 splat_color(vec3 rgb) {
+    return clamp(rgb, -COLOR_LIMIT, COLOR_LIMIT);
+}
+
+// Contract "Alpha": min(ALPHA_MAX, opacity * exp(power)), power = -1/2 d^T cov2d^-1 d evaluated in the vertex
+// shader's alpha_shape form (A, k, q) as -1/2 (A (dx - k dy)^2 + q dy^2); a positive power (not positive
+// definite) is skipped (returned as alpha 0, which the caller discards).
+float splat_alpha(vec2 d, vec3 shape, float opacity) {
+    float t = d.x - shape.y * d.y;
+    float power = -0.5 * (shape.x * t * t + shape.z * d.y * d.y);
     if (power > 0.0) {
         return 0.0;
     }
@@ -28,11 +35,10 @@ void main() {
     if (!(abs(d.x) <= v_radius && abs(d.y) <= v_radius)) {
         discard;
     }
-    float alpha = splat_alpha(d, v_conic, v_rgba.a);
+    float alpha = splat_alpha(d, v_shape, v_rgba.a);
     // Contract "Alpha": contributions below ALPHA_MIN are skipped (NaN fails the test and is skipped too).
     if (!(alpha >= ALPHA_MIN)) {
         discard;
     }
-    // COLOR_LIMIT keeps accumulated sums finite (no inf - inf = NaN); far above any real colour.
-    frag_color = vec4(clamp(v_rgba.rgb, -COLOR_LIMIT, COLOR_LIMIT) * alpha, alpha);
+    frag_color = vec4(splat_color(v_rgba.rgb) * alpha, alpha);
 }

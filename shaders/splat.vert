@@ -3,7 +3,8 @@
 // 4 vertices, triangle strip) per Gaussian; the fragment shader makes every per-pixel decision exactly.
 // Each function mirrors the torch reference function of the same name (ARCHITECTURE.md, "Numerics contract").
 // Injected by the runtime after the #version line (values from gaussiantalker.sdk.numerics, never re-typed here):
-//   LOW_PASS_PX2, EXTENT_SIGMAS, ALPHA_MIN, QUAD_SLACK_PX, BOX_SLACK_REL, FINITE_LIMIT, SPLAT_POINTS
+//   LOW_PASS_PX2, EXTENT_SIGMAS, ALPHA_MIN, QUAD_SLACK_PX, BOX_SLACK_REL, FINITE_LIMIT, DET_MIN_RELATIVE,
+//   COV2D_HUGE_PX2, SPLAT_POINTS
 
 uniform mat3 u_R;           // world -> camera rotation (R * p applies the camera's R)
 uniform vec3 u_t;           // world -> camera translation
@@ -17,7 +18,7 @@ in vec3 in_cov_b;    // [N, 3] world covariance yy, yz, zz
 in vec4 in_rgba;     // [N, 4] colour rgb, opacity
 
 flat out vec2 v_center;   // projected centre, continuous pixel coordinates (+y down)
-flat out vec3 v_conic;    // inverse 2D covariance (A, B, C)
+flat out vec3 v_shape;    // inverse 2D covariance in completed-square form (A, k, q): see alpha_shape
 flat out float v_radius;  // extent radius r in pixels
 flat out vec4 v_rgba;     // colour, opacity
 
@@ -27,29 +28,105 @@ vec2 project_mean(vec3 p_cam) {
                 u_intrinsics.y * p_cam.y / p_cam.z + u_intrinsics.w);
 }
 
+// x/z and y/z clamped to the widened field of view (Camera.fov_clamp_limits), before forming J.
+vec2 clamped_ratios(vec3 p_cam) {
+    return vec2(clamp(p_cam.x / p_cam.z, u_fov_limits.x, u_fov_limits.y),
+                clamp(p_cam.y / p_cam.z, u_fov_limits.z, u_fov_limits.w));
+}
+
+// Packed world covariance (xx, xy, xz), (yy, yz, zz) -> symmetric 3x3.
+mat3 sigma_matrix(vec3 cov_a, vec3 cov_b) {
+    return mat3(cov_a.x, cov_a.y, cov_a.z,
+                cov_a.y, cov_b.x, cov_b.y,
+                cov_a.z, cov_b.y, cov_b.z);
+}
+
 // Contract "2D covariance": J W Sigma W^T J^T with x/z, y/z clamped to the widened field of view before
 // forming J, plus LOW_PASS_PX2 on the diagonal. Returns the symmetric 2x2 matrix as (a, b, c) = [[a, b], [b, c]].
 vec3 covariance_2d(vec3 p_cam, vec3 cov_a, vec3 cov_b) {
     float z = p_cam.z;
-    float xz = clamp(p_cam.x / z, u_fov_limits.x, u_fov_limits.y);
-    float yz = clamp(p_cam.y / z, u_fov_limits.z, u_fov_limits.w);
-    vec3 j0 = vec3(u_intrinsics.x / z, 0.0, -u_intrinsics.x * xz / z);  // row 0 of J
-    vec3 j1 = vec3(0.0, u_intrinsics.y / z, -u_intrinsics.y * yz / z);  // row 1 of J
+    vec2 ratios = clamped_ratios(p_cam);
+    vec3 j0 = vec3(u_intrinsics.x / z, 0.0, -u_intrinsics.x * ratios.x / z);  // row 0 of J
+    vec3 j1 = vec3(0.0, u_intrinsics.y / z, -u_intrinsics.y * ratios.y / z);  // row 1 of J
     vec3 m0 = j0 * u_R;  // row 0 of J W
     vec3 m1 = j1 * u_R;  // row 1 of J W
-    mat3 sigma = mat3(cov_a.x, cov_a.y, cov_a.z,
-                      cov_a.y, cov_b.x, cov_b.y,
-                      cov_a.z, cov_b.y, cov_b.z);
+    mat3 sigma = sigma_matrix(cov_a, cov_b);
     vec3 s0 = sigma * m0;
     vec3 s1 = sigma * m1;
     return vec3(dot(m0, s0) + LOW_PASS_PX2, dot(m0, s1), dot(m1, s1) + LOW_PASS_PX2);
 }
 
+// max(|a|, |c|) of a 2D covariance: dividing by it keeps every product of its entries below 1 (no float32
+// overflow); it is data, not a constant, so the compiler cannot fold or reassociate it away.
+float cov2d_scale(vec3 cov2d) {
+    return max(abs(cov2d.x), abs(cov2d.z));
+}
+
+// det where it exceeds DET_MIN_RELATIVE * products (the sum it is the difference of), else 0: noise is culled.
+float reliable(float det, float products) {
+    return det > DET_MIN_RELATIVE * products ? det : 0.0;
+}
+
+// det of covariance_2d (its (a, b, c) passed in) / cov2d_scale^2, in the least-cancelling of two forms.
+// a c - b^2 cancels badly where J's rows are nearly parallel (grazing view angles). Replacing J's second row by its
+// part orthogonal to the first (closed form; a shear of determinant 1) and adding the low-pass filter as
+// det(A + l I) = det A + l (tr A + l) avoids that; the form with the smaller second diagonal entry is used.
+float covariance_2d_determinant(vec3 p_cam, vec3 cov_a, vec3 cov_b, vec3 cov2d) {
+    float z = p_cam.z;
+    vec2 ratios = clamped_ratios(p_cam);
+    float g = 1.0 / (1.0 + ratios.x * ratios.x);
+    vec3 j0 = vec3(u_intrinsics.x / z, 0.0, -u_intrinsics.x * ratios.x / z);  // row 0 of J
+    vec3 j1 = (u_intrinsics.y / z) * vec3(-(ratios.x * g) * ratios.y, 1.0, -ratios.y * g);  // row 1, sheared
+    vec3 m0 = j0 * u_R;
+    vec3 m1 = j1 * u_R;
+    mat3 sigma = sigma_matrix(cov_a, cov_b);
+    vec3 s0 = sigma * m0;
+    vec3 s1 = sigma * m1;
+    vec3 sheared_cov = vec3(dot(m0, s0), dot(m0, s1), dot(m1, s1));  // A in the sheared basis, no low-pass
+    bool use_sheared = sheared_cov.z + LOW_PASS_PX2 < cov2d.z;
+    float s = cov2d_scale(cov2d);
+    vec3 abc = cov2d / s;  // low-pass included
+    vec3 n = sheared_cov / s;
+    float low_pass = LOW_PASS_PX2 / s;
+    float sheared = (n.x * n.z - n.y * n.y) + low_pass * (abc.x + abc.z - low_pass);  // det A + l (tr A + l)
+    sheared = reliable(sheared, abs(n.x * n.z) + n.y * n.y);
+    float plain = reliable(abc.x * abc.z - abc.y * abc.y, abs(abc.x * abc.z) + abc.y * abc.y);
+    return use_sheared ? sheared : plain;
+}
+
+// Inverse of the 2D covariance, packed (A, B, C), from covariance_2d_determinant (det / cov2d_scale^2).
+vec3 conic_from_cov2d(vec3 cov2d, float det) {
+    float s = cov2d_scale(cov2d);
+    vec3 abc = cov2d / s;
+    float det_over_s = det * s;  // det(cov2d) / s
+    return vec3(abc.z / det_over_s, -abc.y / det_over_s, abc.x / det_over_s);
+}
+
+// The conic in completed-square form (A, k, q): d^T cov2d^-1 d = A (dx - k dy)^2 + q dy^2, with A = c / det,
+// k = b / c, q = 1 / c. A sum of non-negative terms: on the ridge of a long, thin splat, A dx^2 + 2 B dx dy + C dy^2
+// cancels and float32 rounding can make it positive (skipping a pixel that should be fully drawn); this cannot.
+vec3 alpha_shape(vec3 cov2d, float det) {
+    float c = cov2d.z == 0.0 ? 1.0 : cov2d.z;  // c == 0 is not positive definite: culled (det <= 0)
+    return vec3(conic_from_cov2d(cov2d, det).x, cov2d.y / c, 1.0 / c);
+}
+
+// EXTENT_SIGMAS * sqrt(lambda_max) of a symmetric 2x2 (a, b, c): the contract's formula, as in torch.
+float radius_of(vec3 abc) {
+    float mid = 0.5 * (abc.x + abc.z);
+    float lambda_max = mid + sqrt(max(mid * mid - (abc.x * abc.z - abc.y * abc.y), 0.0));
+    return EXTENT_SIGMAS * sqrt(max(lambda_max, 0.0));
+}
+
 // Contract "Extent": r = EXTENT_SIGMAS * sqrt(lambda_max) of the dilated 2D covariance, exact (no rounding).
-float extent_radius(vec3 cov2d, float det) {
-    float mid = 0.5 * (cov2d.x + cov2d.z);
-    float lambda_max = mid + sqrt(max(mid * mid - det, 0.0));
-    return EXTENT_SIGMAS * sqrt(lambda_max);
+// Where 0.5 (a + c) > COV2D_HUGE_PX2 it is evaluated on cov2d / cov2d_scale and scaled back (no mid^2 overflow).
+float extent_radius(vec3 cov2d) {
+    float s = cov2d_scale(cov2d);
+    return 0.5 * (cov2d.x + cov2d.z) > COV2D_HUGE_PX2 ? radius_of(cov2d / s) * sqrt(s) : radius_of(cov2d);
+}
+
+// Largest |power| reachable with |dx|, |dy| <= radius (culled at FINITE_LIMIT, as in the torch keep_mask).
+float extent_power_bound(vec3 conic, float radius) {
+    return (abs(conic.x) + 2.0 * abs(conic.y) + abs(conic.z)) * radius * radius;
 }
 
 // Not a contract step, only where to rasterise: the smallest box of whole pixels that can hold a pixel passing
@@ -71,7 +148,7 @@ void cull() {
     gl_Position = vec4(-2.0, -2.0, 0.0, 1.0);  // outside the view: a point is dropped, a quad has no area
     gl_PointSize = 1.0;
     v_center = vec2(0.0);
-    v_conic = vec3(0.0);
+    v_shape = vec3(0.0);
     v_radius = -1.0;
     v_rgba = vec4(0.0);
 }
@@ -80,16 +157,19 @@ void main() {
     vec3 p_cam = u_R * in_mean + u_t;
     vec2 center = project_mean(p_cam);
     vec3 cov2d = covariance_2d(p_cam, in_cov_a, in_cov_b);
-    float det = cov2d.x * cov2d.z - cov2d.y * cov2d.y;
+    float det = covariance_2d_determinant(p_cam, in_cov_a, in_cov_b, cov2d);
     if (!(det > 0.0)) {  // contract: skip a Gaussian whose 2D determinant is not positive (NaN fails too)
         cull();
         return;
     }
-    float radius = extent_radius(cov2d, det);
-    vec3 conic = vec3(cov2d.z, -cov2d.y, cov2d.x) / det;
-    // Contract: anything non-finite is culled (comparisons with NaN are false).
-    vec4 check = abs(vec4(center, radius, max(max(abs(conic.x), abs(conic.y)), abs(conic.z))));
-    if (!all(lessThan(check, vec4(FINITE_LIMIT)))) {
+    float radius = extent_radius(cov2d);
+    vec3 conic = conic_from_cov2d(cov2d, det);
+    vec3 shape = alpha_shape(cov2d, det);
+    // Contract: anything non-finite is culled; FINITE_LIMIT as in keep_mask. Comparisons with NaN are false (max()
+    // and min() may drop a NaN, so none is used here).
+    bool bounded = all(lessThan(abs(vec4(center, radius, extent_power_bound(conic, radius))), vec4(FINITE_LIMIT)))
+                   && all(lessThan(abs(conic), vec3(FINITE_LIMIT))) && all(lessThan(abs(shape), vec3(FINITE_LIMIT)));
+    if (!bounded) {
         cull();
         return;
     }
@@ -111,7 +191,7 @@ void main() {
     gl_Position = vec4(mix(box.xy, box.zw, corner) / u_image_size * 2.0 - 1.0, 0.0, 1.0);
 #endif
     v_center = center;
-    v_conic = conic;
+    v_shape = shape;
     v_radius = radius;
     v_rgba = in_rgba;
 }
