@@ -453,9 +453,6 @@ def test_headless_linux_uses_egl(monkeypatch):
 def test_unreachable_display_falls_back_to_egl(monkeypatch):
     monkeypatch.setattr(gl_context, "_platform_key", lambda: "linux")
     monkeypatch.setenv("DISPLAY", ":987")  # no X server there: GLX fails, EGL must take over
-    try:
-        ctx = gl_context.create_context()
-    except RenderError as exc:
-        pytest.skip(f"no EGL here either: {exc}")
+    ctx = gl_context.create_context()  # the install provides EGL: a failure here is a real failure
     assert ctx.version_code >= 330
     ctx.release()
