@@ -48,9 +48,29 @@ def _value_info(value: onnx.ValueInfoProto) -> dict:
     return {"name": value.name, "dtype": _ONNX_DTYPES.get(tensor.elem_type, str(tensor.elem_type)), "shape": shape}
 
 
+def strip_debug_metadata(model: onnx.ModelProto) -> None:
+    """Drop the exporter's per-node debug annotations (source stack traces, torch names): ~86% of a graph's bytes
+    before this, never read by a runtime. Node names, shapes and semantics are untouched."""
+    graphs = [model.graph]
+    while graphs:
+        graph = graphs.pop()
+        graph.doc_string = ""
+        for node in graph.node:
+            del node.metadata_props[:]
+            node.doc_string = ""
+            for attr in node.attribute:  # control-flow subgraphs (If/Loop/Scan) carry annotations too
+                if attr.HasField("g"):
+                    graphs.append(attr.g)
+                graphs.extend(attr.graphs)
+        for value in (*graph.input, *graph.output, *graph.value_info):
+            del value.metadata_props[:]
+            value.doc_string = ""
+
+
 def add_graph(writer: BundleWriter, graph_name: str, model: onnx.ModelProto, codec: str = "raw") -> dict:
     """Move the model's large initializers into bundle buffers named `graph_name/...` and store the graph."""
     model = onnx.ModelProto.FromString(model.SerializeToString())  # never mutate the caller's proto
+    strip_debug_metadata(model)
     initializers: dict[str, str] = {}
     for tensor in model.graph.initializer:
         array = numpy_helper.to_array(tensor)

@@ -50,3 +50,16 @@ def test_deformation_graph_batches(demo_speaker, demo_bundle):
         reference = demo_speaker.deform(*(torch.from_numpy(inputs[k]) for k in
                                           ("expression", "flame_pose", "head_translation", "camera_center")))[0]
     np.testing.assert_allclose(batched, reference.numpy(), atol=1e-5)
+
+
+def test_bundle_graphs_carry_no_debug_metadata(demo_bundle):
+    """The exporter's per-node stack traces are stripped: graphs hold only what runs (they were ~10x larger)."""
+    import onnx
+
+    from gaussiantalker.sdk.bundle import Bundle
+
+    bundle = Bundle(demo_bundle)
+    for name in ("translator", "deform"):
+        model = onnx.ModelProto.FromString(bundle.graph_bytes(name))
+        assert not any(node.metadata_props or node.doc_string for node in model.graph.node), name
+        assert bundle.graph_info(name)["nbytes"] < 200_000, name
