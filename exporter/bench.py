@@ -83,18 +83,16 @@ def bench_paper_translator(seconds: float = 10.0) -> dict:
     """Export and run the paper-size translator (wav2vec 2.0 large class) once: parameters, export and run time."""
     from gaussiantalker.sdk.bundle import BundleWriter
 
-    from .onnx_export import add_graph, export_onnx
-    from .translator import MotionTranslator, count_parameters, paper_translator_config
+    from .onnx_export import add_graph
+    from .translator import MotionTranslator, count_parameters, paper_translator_config, translator_onnx
 
     torch.manual_seed(0)
     model = MotionTranslator(paper_translator_config(), n_expr=100, speaker_id=0).eval()
     # The output head starts at zero (neutral face); randomise it so the parity check compares real values.
     torch.nn.init.normal_(model.motion_decoder.head.weight, std=0.02)
     params = count_parameters(model)
-    frames = torch.export.Dim("frames", min=1, max=100_000)
     start = time.perf_counter()
-    proto = export_onnx(model, (torch.zeros(1, 640 * 8),), ["audio"], ["expression", "jaw_pose"],
-                        {"audio": {1: 640 * frames}})
+    proto = translator_onnx(model)
     export_s = time.perf_counter() - start
     with tempfile.TemporaryDirectory() as tmp:
         writer = BundleWriter({})

@@ -16,12 +16,13 @@ from gaussiantalker.sdk.bundle import BundleWriter
 from gaussiantalker.sdk.codecs import get_codec
 from gaussiantalker.sdk.config import POSE_DIM
 
-from .onnx_export import add_graph, export_onnx
-from .speaker import DeformationGraph, Speaker, TranslatorGraph
+from . import onnx_export
+from .onnx_export import add_graph
+from .speaker import DeformationGraph, Speaker
+from .translator import translator_onnx
 
 DEFORM_INPUTS = ["expression", "flame_pose", "head_translation", "camera_center"]
 DEFORM_OUTPUTS = ["means", "cov3d", "rgb", "opacity"]
-TRANSLATOR_OUTPUTS = ["expression", "jaw_pose"]
 
 
 @dataclass
@@ -32,12 +33,6 @@ class ExportResult:
     bytes_written: int
     graphs: dict = field(default_factory=dict)
     buffer_bytes: dict = field(default_factory=dict)
-
-
-def _translator_example(speaker: Speaker, frames: int) -> tuple[tuple, dict]:
-    audio = torch.randn(1, frames * speaker.config.samples_per_frame) * 0.1
-    frame_dim = torch.export.Dim("frames", min=1, max=100_000)
-    return (audio,), {"audio": {1: speaker.config.samples_per_frame * frame_dim}}
 
 
 def _deform_example(speaker: Speaker) -> tuple[tuple, dict]:
@@ -74,14 +69,13 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, result: ExportResult, 
                   steps: tqdm) -> None:
     """Both graphs into `writer`, then one atomic write: nothing reaches `result.path` until every step worked."""
     steps.set_postfix_str("translator graph")
-    args, dynamic = _translator_example(speaker, example_frames)
-    model = export_onnx(TranslatorGraph(speaker), args, ["audio"], TRANSLATOR_OUTPUTS, dynamic)
+    model = translator_onnx(speaker.translator, example_frames)
     result.graphs["translator"] = add_graph(writer, "translator", model, codec)
     steps.update()
 
     steps.set_postfix_str("deformation graph")
     args, dynamic = _deform_example(speaker)
-    model = export_onnx(DeformationGraph(speaker), args, DEFORM_INPUTS, DEFORM_OUTPUTS, dynamic)
+    model = onnx_export.export_onnx(DeformationGraph(speaker), args, DEFORM_INPUTS, DEFORM_OUTPUTS, dynamic)
     result.graphs["deform"] = add_graph(writer, "deform", model, codec)
     steps.update()
 

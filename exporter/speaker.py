@@ -84,14 +84,3 @@ class DeformationGraph(nn.Module):
 
     def forward(self, expression, flame_pose, head_translation, camera_center):
         return self.speaker.deform(expression, flame_pose, head_translation, camera_center)
-
-
-class TranslatorGraph(nn.Module):
-    """What the `translator` ONNX graph computes: audio [1, S] -> expression, jaw_pose."""
-
-    def __init__(self, speaker: Speaker) -> None:
-        super().__init__()
-        self.translator = speaker.translator
-
-    def forward(self, audio):
-        return self.translator(audio)

@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.runtime.translate import translate_audio
-from gaussiantalker.sdk.drive import FrameDrive, HeadPose
+from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame
 from gaussiantalker.sdk.image import max_abs_error, psnr_db, to_uint8
 
 from .demo_audio import synth_speech
@@ -120,15 +120,9 @@ def driven_clip(speaker: Speaker, frames: int, seed: int = 1) -> tuple[np.ndarra
     track = None if speaker.pose_track is None else speaker.pose_track.numpy()
     drives = []
     for index in range(frames):
-        pose = HeadPose.make() if track is None else _track_pose(track, index)
+        pose = HeadPose.make() if track is None else pose_track_frame(track, index)
         drives.append(FrameDrive.make(speaker.config.n_expr, expression[index], jaw[index], head_pose=pose))
     return audio, drives
-
-
-def _track_pose(track: np.ndarray, index: int) -> HeadPose:
-    from gaussiantalker.sdk.drive import pose_track_frame
-
-    return pose_track_frame(track, index)
 
 
 def verify_frames(speaker: Speaker, head: TalkingHead, frames: int = 25, seed: int = 1,

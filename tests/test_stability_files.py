@@ -28,7 +28,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-import gaussiantalker.exporter.export as export_module
+import gaussiantalker.exporter.onnx_export as onnx_export_module
 from gaussiantalker.exporter.checkpoint import load_checkpoint, save_checkpoint
 from gaussiantalker.exporter.export import export_bundle
 from gaussiantalker.runtime import TalkingHead
@@ -46,14 +46,14 @@ def real(small_speaker, tmp_path_factory) -> SimpleNamespace:
     """The small speaker exported once (its two ONNX protos kept, so later exports can skip torch.onnx)."""
     root = tmp_path_factory.mktemp("stability_files")
     protos = []
-    real_export_onnx = export_module.export_onnx
+    real_export_onnx = onnx_export_module.export_onnx
 
     def recording(*args, **kwargs):
         protos.append(real_export_onnx(*args, **kwargs))
         return protos[-1]
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(export_module, "export_onnx", recording)
+        patch.setattr(onnx_export_module, "export_onnx", recording)
         export_bundle(small_speaker, root / "good.gtb", progress=False)
     bundle = Bundle(root / "good.gtb")
     entries = sorted(((kind[:-1], name, entry) for kind in ("graphs", "buffers")
@@ -463,7 +463,7 @@ def test_legacy_format_pickle_that_would_run_code(tmp_path, stability):
 def _cached_export_onnx(monkeypatch, real) -> None:
     """Later exports reuse the module's two ONNX protos: the bundle-writing path runs for real, in ~1 s."""
     protos = iter(real.protos)
-    monkeypatch.setattr(export_module, "export_onnx", lambda *args, **kwargs: next(protos))
+    monkeypatch.setattr(onnx_export_module, "export_onnx", lambda *args, **kwargs: next(protos))
 
 
 class _ShortDisk:
@@ -528,7 +528,7 @@ def test_export_failing_between_graphs_writes_nothing(real, tmp_path, monkeypatc
             return proto
         raise RuntimeError("simulated torch.onnx failure on the deform graph")
 
-    monkeypatch.setattr(export_module, "export_onnx", translator_then_fail)
+    monkeypatch.setattr(onnx_export_module, "export_onnx", translator_then_fail)
     with pytest.raises(RuntimeError, match="simulated"):
         export_bundle(real.speaker, tmp_path / "speaker.gtb", progress=False)
     assert list(tmp_path.iterdir()) == []
@@ -541,12 +541,12 @@ _PAUSING_CLI = '''
 import os, runpy, sys, time
 from pathlib import Path
 import onnx
-import gaussiantalker.exporter.export as export
+import gaussiantalker.exporter.onnx_export as onnx_export
 import gaussiantalker.sdk.bundle as bundle
 
 translator, deform, marker, pause_after, *cli_args = sys.argv[1:]
 protos = iter([onnx.load_model_from_string(Path(p).read_bytes()) for p in (translator, deform)])
-export.export_onnx = lambda *args, **kwargs: next(protos)
+onnx_export.export_onnx = lambda *args, **kwargs: next(protos)
 
 
 class PausingFile:
