@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import json
+import os
 import platform
 import tempfile
 import time
@@ -30,12 +31,12 @@ RUNTIME_STAGES = ("translator", "deformation", "sort", "upload", "draw", "readba
 def _machine() -> dict:
     import moderngl
 
-    from gaussiantalker.runtime.gl_context import create_context
+    from gaussiantalker.runtime.gl_context import create_context, describe_context
 
     ctx = create_context()
-    info = {"cpu": platform.processor() or platform.machine(), "cores": __import__("os").cpu_count(),
+    info = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
             "python": platform.python_version(), "torch": torch.__version__,
-            "gl_renderer": ctx.info.get("GL_RENDERER", "?"), "moderngl": moderngl.__version__}
+            "gl": describe_context(ctx), "moderngl": moderngl.__version__}
     ctx.release()
     return info
 
@@ -71,7 +72,6 @@ def bench_torch(speaker, size: int, audio: np.ndarray, frames: int) -> dict:
     camera = speaker.camera.resized(size, size)
     _, drives = driven_clip(speaker, frames)
     times = []
-    torch.set_num_threads(max(1, torch.get_num_threads()))
     for drive in drives:
         start = time.perf_counter()
         speaker.render(drive, camera)
@@ -104,7 +104,7 @@ def bench_paper_translator(seconds: float = 10.0) -> dict:
 
         backend = OnnxRuntimeBackend(Bundle(path))
         audio = synth_speech(seconds, seed=3)
-        audio = audio[: len(audio) // 640 * 640]
+        audio = audio[: len(audio) // model.samples_per_frame * model.samples_per_frame]
         start = time.perf_counter()
         out = backend.run("translator", {"audio": audio[None]})
         run_s = time.perf_counter() - start

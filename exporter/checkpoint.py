@@ -18,6 +18,7 @@ import torch
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.errors import CameraError, CheckpointError
+from gaussiantalker.sdk.files import atomic_write
 
 from .flame import FlameArrays
 from .speaker import Speaker
@@ -87,6 +88,10 @@ def _check_config(path: Path, config: SpeakerConfig) -> None:
         low = 0 if key in ("speaker_id", "sh_degree") else 1
         if not isinstance(value, int) or isinstance(value, bool) or value < low:
             raise CheckpointError(f"checkpoint {path}: config {key} must be an int >= {low}, got {value!r}")
+    try:
+        config.check_timing()
+    except ValueError as exc:
+        raise CheckpointError(f"checkpoint {path}: {exc}") from None
 
 
 def _check_extras(path: Path, payload: dict) -> None:
@@ -121,16 +126,8 @@ def save_checkpoint(speaker: Speaker, path: str | os.PathLike) -> Path:
         "background": list(speaker.background),
         "pose_track": None if speaker.pose_track is None else speaker.pose_track.clone(),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        with open(tmp, "wb") as handle:
-            torch.save(payload, handle)
-            handle.flush()
-            os.fsync(handle.fileno())  # the data is on disk before the rename makes it the checkpoint
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_write(path) as handle:
+        torch.save(payload, handle)
     return path
 
 

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import signal
 import sys
 from pathlib import Path
 
 import typer
 
 from gaussiantalker.sdk.errors import GaussianTalkerError
+from gaussiantalker.sdk.files import StagedFile, atomic_path, atomic_write
 
 app = typer.Typer(add_completion=False, help=__doc__)
 
@@ -64,56 +63,48 @@ def export(
     output = output or checkpoint.with_suffix(".gtb")
     verify = verify or report is not None
     size = _resolution(resolution)
-    # With --verify the bundle is written beside the output and moved there only once it has passed, so a
-    # failed or interrupted run never replaces a good bundle.
-    # The name is a hidden *.tmp so that what a SIGKILL leaves behind is plainly a temporary file.
-    target = output.with_name(f".{output.name}.unverified.tmp") if verify else output
     try:
         speaker = load_checkpoint(checkpoint)
-        result = export_bundle(speaker, target, codec=codec, progress=not quiet)
-        typer.echo(f"wrote {result.bytes_written / 1e6:.2f} MB bundle "
-                   f"({speaker.gaussians.count} Gaussians, graphs: {', '.join(result.graphs)})")
-        if not verify:
-            typer.echo(f"bundle: {output}")
-            return
-        from .verify import Tolerances, format_report, verify_bundle
-
-        defaults = Tolerances.for_codec(codec)
-        tolerances = Tolerances(
-            graph_rtol=defaults.graph_rtol,
-            min_psnr_float_db=defaults.min_psnr_float_db if min_float_psnr is None else min_float_psnr,
-            min_psnr_uint8_db=defaults.min_psnr_uint8_db if min_psnr is None else min_psnr)
-        outcome = verify_bundle(speaker, target, frames=frames, resolution=size, tolerances=tolerances,
-                                progress=not quiet)
-        typer.echo(format_report(outcome))
-        outcome["bundle"] = str(output)
-        if report is not None:
-            report.parent.mkdir(parents=True, exist_ok=True)
-            report.write_text(json.dumps(_json_safe(outcome), indent=2))
-            typer.echo(f"report: {report}")
-        if not outcome["passed"]:
-            failed = output.with_name(output.stem + ".unverified.gtb")
-            os.replace(target, failed)
-            typer.echo(f"verification failed: bundle kept at {failed}, not at {output}", err=True)
-            raise typer.Exit(1)
-        os.replace(target, output)
-        typer.echo(f"bundle: {output} (verified)")
+        # The bundle is staged beside the output and placed there only once it is complete (and, with --verify,
+        # has passed), so a failed or interrupted run never replaces a good bundle.
+        with atomic_path(output) as staged:
+            result = export_bundle(speaker, staged, codec=codec, progress=not quiet)
+            typer.echo(f"wrote {result.bytes_written / 1e6:.2f} MB bundle "
+                       f"({speaker.gaussians.count} Gaussians, graphs: {', '.join(result.graphs)})")
+            if verify:
+                _verify(speaker, staged, output, codec, frames, size, min_psnr, min_float_psnr, report, quiet)
+        typer.echo(f"bundle: {output}" + (" (verified)" if verify else ""))
     except GaussianTalkerError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
-    finally:
-        if verify:
-            target.unlink(missing_ok=True)
 
 
-def _exit_on_sigterm(signum, frame) -> None:
-    """SIGTERM unwinds like Ctrl-C, so temp files are removed (only SIGKILL can leave one behind)."""
-    raise SystemExit(128 + signum)
+def _verify(speaker, staged: StagedFile, output: Path, codec: str, frames: int, size: tuple[int, int],
+            min_psnr: float | None, min_float_psnr: float | None, report: Path | None, quiet: bool) -> None:
+    """Verify the staged bundle; a failure keeps it as NAME.unverified.gtb (not at `output`) and exits 1."""
+    from .verify import Tolerances, format_report, verify_bundle
+
+    defaults = Tolerances.for_codec(codec)
+    tolerances = Tolerances(
+        graph_rtol=defaults.graph_rtol,
+        min_psnr_float_db=defaults.min_psnr_float_db if min_float_psnr is None else min_float_psnr,
+        min_psnr_uint8_db=defaults.min_psnr_uint8_db if min_psnr is None else min_psnr)
+    outcome = verify_bundle(speaker, staged.path, frames=frames, resolution=size, tolerances=tolerances,
+                            progress=not quiet)
+    typer.echo(format_report(outcome))
+    outcome["bundle"] = str(output)
+    if report is not None:
+        with atomic_write(report, "w") as handle:
+            handle.write(json.dumps(_json_safe(outcome), indent=2))
+        typer.echo(f"report: {report}")
+    if not outcome["passed"]:
+        failed = staged.commit(output.with_name(output.stem + ".unverified.gtb"))
+        typer.echo(f"verification failed: bundle kept at {failed}, not at {output}", err=True)
+        raise typer.Exit(1)
 
 
 def main() -> None:
     """Console-script entry point."""
-    signal.signal(signal.SIGTERM, _exit_on_sigterm)
     app(prog_name="gt-export")
 
 

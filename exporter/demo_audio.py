@@ -13,14 +13,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from gaussiantalker.sdk.audio import pad_to_frames, write_wav
+from gaussiantalker.sdk.config import AUDIO_NORM_EPS, DEFAULT_FPS, DEFAULT_SAMPLE_RATE
 
 __all__ = ["synth_speech", "loudness_envelope", "jaw_target_from_audio", "spectral_tilt", "normalize_audio",
            "smooth_frames", "pad_to_frames", "write_wav"]
 
-SAMPLE_RATE = 16000
-FPS = 25
-# Per-utterance normalisation epsilon (added to the variance); must equal translator.AUDIO_NORM_EPS.
-AUDIO_NORM_EPS = 1e-5
+SAMPLE_RATE = DEFAULT_SAMPLE_RATE
+FPS = DEFAULT_FPS
 # Floor of the per-frame RMS before taking dB, so digital silence gives a finite level (-100 dBFS).
 RMS_FLOOR = 1e-5
 

@@ -15,6 +15,7 @@ from gaussiantalker.sdk import __version__ as sdk_version
 from gaussiantalker.sdk.bundle import BundleWriter
 from gaussiantalker.sdk.codecs import get_codec
 from gaussiantalker.sdk.config import POSE_DIM
+from gaussiantalker.sdk.files import StagedFile
 
 from . import onnx_export
 from .onnx_export import add_graph
@@ -43,9 +44,9 @@ def _deform_example(speaker: Speaker) -> tuple[tuple, dict]:
     return args, {name: {0: dim} for name in DEFORM_INPUTS}
 
 
-def export_bundle(speaker: Speaker, path: str | os.PathLike, *, codec: str = "raw", progress: bool = True,
+def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, codec: str = "raw", progress: bool = True,
                   example_frames: int = 8) -> ExportResult:
-    """Export `speaker` to one bundle file at `path` (written atomically)."""
+    """Export `speaker` to one bundle file at `path` (written atomically), or into a file staged by `atomic_path`."""
     get_codec(codec)  # an unknown codec fails now, not after minutes of graph export
     speaker = speaker.eval()
     writer = BundleWriter(metadata={
@@ -57,16 +58,16 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike, *, codec: str = "ra
         "exporter": {"sdk": sdk_version, "torch": torch.__version__, "python": platform.python_version()},
     })
     steps = tqdm(total=3, desc="gt-export", unit="step", disable=not progress)
-    result = ExportResult(Path(path), 0)
+    result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0)
     try:
-        _export_steps(speaker, writer, result, codec, example_frames, steps)
+        _export_steps(speaker, writer, path, result, codec, example_frames, steps)
     finally:
         steps.close()
     return result
 
 
-def _export_steps(speaker: Speaker, writer: BundleWriter, result: ExportResult, codec: str, example_frames: int,
-                  steps: tqdm) -> None:
+def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLike | StagedFile, result: ExportResult,
+                  codec: str, example_frames: int, steps: tqdm) -> None:
     """Both graphs into `writer`, then one atomic write: nothing reaches `result.path` until every step worked."""
     steps.set_postfix_str("translator graph")
     model = translator_onnx(speaker.translator, example_frames)
@@ -82,6 +83,6 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, result: ExportResult, 
     steps.set_postfix_str("writing bundle")
     if speaker.pose_track is not None:
         writer.add_buffer("pose_track", speaker.pose_track.numpy().astype(np.float32))
-    result.bytes_written = writer.write(result.path)
+    result.bytes_written = writer.write(path)
     result.buffer_bytes = {name: entry["nbytes"] for name, entry in writer.manifest()["buffers"].items()}
     steps.update()

@@ -7,6 +7,7 @@ import io
 import logging
 import re
 import warnings
+from collections.abc import Iterator
 
 import numpy as np
 import onnx
@@ -14,12 +15,23 @@ import torch
 from onnx import external_data_helper, numpy_helper
 
 from gaussiantalker.sdk.bundle import BundleWriter
+from gaussiantalker.sdk.codecs import ONNX_DTYPES
 
 # Initializers at least this large move out of the graph into buffers; tiny ones (shape constants, which
 # ONNX shape inference must see) stay inline.
 EXTERNALIZE_MIN_BYTES = 1024
-_ONNX_DTYPES = {onnx.TensorProto.FLOAT: "float32", onnx.TensorProto.FLOAT16: "float16",
-                onnx.TensorProto.INT64: "int64", onnx.TensorProto.INT32: "int32", onnx.TensorProto.UINT8: "uint8"}
+
+
+@contextlib.contextmanager
+def _quiet_logger(name: str) -> Iterator[None]:
+    """Raise one logger's level to ERROR for the duration of a call, then restore it (global state untouched)."""
+    logger = logging.getLogger(name)
+    previous = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        logger.setLevel(previous)
 
 
 def export_onnx(module: torch.nn.Module, args: tuple, input_names: list[str], output_names: list[str],
@@ -31,8 +43,8 @@ def export_onnx(module: torch.nn.Module, args: tuple, input_names: list[str], ou
     zero rotation into NaN. onnxruntime constant-folds and fuses the graph itself when it loads it.
     """
     module.eval()
-    logging.getLogger("torch.onnx").setLevel(logging.ERROR)
-    with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), torch.no_grad():
+    with _quiet_logger("torch.onnx"), warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), \
+            torch.no_grad():
         warnings.simplefilter("ignore")
         program = torch.onnx.export(module, args, dynamo=True, input_names=input_names,
                                     output_names=output_names, dynamic_shapes=dynamic_shapes, verbose=False,
@@ -45,7 +57,7 @@ def export_onnx(module: torch.nn.Module, args: tuple, input_names: list[str], ou
 def _value_info(value: onnx.ValueInfoProto) -> dict:
     tensor = value.type.tensor_type
     shape = [d.dim_param if d.dim_param else int(d.dim_value) for d in tensor.shape.dim]
-    return {"name": value.name, "dtype": _ONNX_DTYPES.get(tensor.elem_type, str(tensor.elem_type)), "shape": shape}
+    return {"name": value.name, "dtype": ONNX_DTYPES.get(tensor.elem_type, str(tensor.elem_type)), "shape": shape}
 
 
 def strip_debug_metadata(model: onnx.ModelProto) -> None:

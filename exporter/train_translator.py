@@ -21,7 +21,13 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from gaussiantalker.exporter.demo_audio import jaw_target_from_audio, smooth_frames, spectral_tilt, synth_speech
+from gaussiantalker.exporter.demo_audio import (
+    SAMPLE_RATE,
+    jaw_target_from_audio,
+    smooth_frames,
+    spectral_tilt,
+    synth_speech,
+)
 from gaussiantalker.exporter.translator import MotionTranslator
 
 MOUTH_EXPR_GAIN = 4.0  # expression[..., 0] = MOUTH_EXPR_GAIN * jaw opening (rad): up to ~1.2 at full opening
@@ -46,9 +52,9 @@ class TrainSettings:
     heldout_seconds: float = 8.0
 
 
-def motion_targets(audio: np.ndarray, n_expr: int, samples_per_frame: int = 640) -> np.ndarray:
+def motion_targets(audio: np.ndarray, n_expr: int, samples_per_frame: int) -> np.ndarray:
     """Per-frame target parameters [T, n_expr + 3] (expression then jaw pose) derived from the audio alone."""
-    fps = 16000 // samples_per_frame
+    fps = SAMPLE_RATE // samples_per_frame
     jaw_open = jaw_target_from_audio(audio, fps=fps)
     target = np.zeros((jaw_open.size, n_expr + 3), dtype=np.float32)
     target[:, 0] = MOUTH_EXPR_GAIN * jaw_open
@@ -58,18 +64,18 @@ def motion_targets(audio: np.ndarray, n_expr: int, samples_per_frame: int = 640)
     return target
 
 
-def make_training_clips(n_clips: int, seconds: tuple[float, float], seed: int, spf: int = 640) -> list[np.ndarray]:
+def make_training_clips(n_clips: int, seconds: tuple[float, float], seed: int, spf: int) -> list[np.ndarray]:
     """Synthesise the training clips (lengths whole video frames), reproducibly from the seed."""
     rng = np.random.default_rng(seed)
     clips = []
     for i in range(n_clips):
-        frames = int(rng.uniform(*seconds) * 16000 / spf)
-        clips.append(synth_speech(frames * spf / 16000, seed=100_000 + 1000 * seed + i)[: frames * spf])
+        frames = int(rng.uniform(*seconds) * SAMPLE_RATE / spf)
+        clips.append(synth_speech(frames * spf / SAMPLE_RATE, seed=100_000 + 1000 * seed + i)[: frames * spf])
     return clips
 
 
 def sample_batch(
-    clips: list[np.ndarray], n_expr: int, settings: TrainSettings, rng: np.random.Generator, spf: int = 640
+    clips: list[np.ndarray], n_expr: int, settings: TrainSettings, rng: np.random.Generator, spf: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Random crops (audio [B, S], targets [B, T, n_expr + 3]); targets are computed on each crop itself."""
     audio, targets = [], []
@@ -113,9 +119,9 @@ def _evaluate(model: MotionTranslator, batch: tuple[torch.Tensor, torch.Tensor],
 def heldout_jaw_correlation(model: MotionTranslator, seed: int, seconds: float = 8.0) -> float:
     """Pearson r between predicted jaw opening and the loudness target on an unseen synthetic clip."""
     spf = model.samples_per_frame
-    frames = int(seconds * 16000 / spf)
-    audio = synth_speech(frames * spf / 16000, seed=HELDOUT_SEED_OFFSET + seed)[: frames * spf]
-    target = jaw_target_from_audio(audio, fps=16000 // spf).astype(np.float64)
+    frames = int(seconds * SAMPLE_RATE / spf)
+    audio = synth_speech(frames * spf / SAMPLE_RATE, seed=HELDOUT_SEED_OFFSET + seed)[: frames * spf]
+    target = jaw_target_from_audio(audio, fps=SAMPLE_RATE // spf).astype(np.float64)
     with torch.no_grad():
         _, jaw_pose = model(torch.from_numpy(audio)[None])
     predicted = jaw_pose[0, :, 0].double().numpy()

@@ -29,11 +29,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from gaussiantalker.sdk.audio import MAX_SAMPLE_MAGNITUDE
-from gaussiantalker.sdk.config import FEATURES_PER_FRAME, TranslatorConfig
+from gaussiantalker.sdk.config import AUDIO_NORM_EPS, FEATURES_PER_FRAME, TranslatorConfig
 
-# Per-utterance normalisation epsilon, added to the variance (demo_audio.AUDIO_NORM_EPS is the same number).
-# 1e-5 rather than wav2vec 2.0's 1e-7 so near-silent input (RMS << 3e-3) is not amplified to full scale.
-AUDIO_NORM_EPS = 1e-5
 # Largest audio length the exported graph accepts, in video frames (10 minutes at 25 fps).
 MAX_EXPORT_FRAMES = 15000
 # wav2vec 2.0 conv kernel per stride for its standard stride pattern; other patterns use kernel = 2 * stride.
@@ -60,11 +57,6 @@ def paper_translator_config() -> TranslatorConfig:
     )
 
 
-def demo_translator_config() -> TranslatorConfig:
-    """The small translator of the demo speaker (sdk.config defaults): trains in minutes on 2 CPU cores."""
-    return TranslatorConfig()
-
-
 def conv_kernels(strides: tuple[int, ...]) -> tuple[int, ...]:
     """Kernel size per conv layer: wav2vec 2.0's for its stride pattern, else 2 * stride."""
     if tuple(strides) == _WAV2VEC2_STRIDES:
@@ -83,12 +75,7 @@ def aligned_padding(kernel: int, stride: int) -> int:
     return p
 
 
-def samples_per_frame(cfg: TranslatorConfig) -> int:
-    """Audio samples per video frame the translator expects (640 for 320 samples/feature, 2 features/frame)."""
-    return cfg.samples_per_feature * FEATURES_PER_FRAME
-
-
-def check_audio_length(n_samples: int, spf: int = 640) -> int:
+def check_audio_length(n_samples: int, spf: int) -> int:
     """Return the number of video frames for n_samples, or raise ValueError unless it is a positive multiple of spf."""
     if n_samples <= 0 or n_samples % spf != 0:
         raise ValueError(
@@ -272,7 +259,7 @@ class MotionTranslator(nn.Module):
         super().__init__()
         _check_config(cfg, n_expr, speaker_id)
         self.cfg, self.n_expr, self.speaker_id = cfg, int(n_expr), int(speaker_id)
-        self.samples_per_frame = samples_per_frame(cfg)
+        self.samples_per_frame = cfg.samples_per_frame
         self.audio_encoder = UniversalAudioEncoder(cfg)
         self.identity = nn.Embedding(cfg.n_speakers, cfg.encoder_dim)
         self.motion_decoder = MotionDecoder(cfg, n_expr + 3)

@@ -1,5 +1,36 @@
-"""Torch-free GaussianTalker runtime: bundle -> onnxruntime graphs -> OpenGL splatting -> frames."""
+"""Torch-free GaussianTalker runtime: bundle -> onnxruntime graphs -> OpenGL splatting -> frames.
 
-from .head import TalkingHead
+Everything an app needs is importable from here:
 
-__all__ = ["TalkingHead"]
+    from gaussiantalker.runtime import TalkingHead, HeadPose, GaussianTalkerError
+"""
+
+from gaussiantalker.sdk import __version__
+from gaussiantalker.sdk.camera import Camera
+from gaussiantalker.sdk.drive import FrameDrive, HeadPose
+from gaussiantalker.sdk.errors import (
+    AudioError,
+    BundleError,
+    CameraError,
+    DriveError,
+    GaussianTalkerError,
+    RenderError,
+)
+
+from .head import FrameOutput, HeadPoseSource, TalkingHead
+
+__all__ = [
+    "TalkingHead",
+    "Camera",
+    "HeadPose",
+    "FrameDrive",
+    "FrameOutput",
+    "HeadPoseSource",
+    "GaussianTalkerError",
+    "AudioError",
+    "BundleError",
+    "CameraError",
+    "DriveError",
+    "RenderError",
+    "__version__",
+]

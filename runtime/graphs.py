@@ -19,13 +19,10 @@ import numpy as np
 
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
+from gaussiantalker.sdk.codecs import ONNX_DTYPES, ORT_DTYPES
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.errors import BundleError, CameraError
 
-_ORT_TYPES = {"tensor(float)": "float32", "tensor(float16)": "float16", "tensor(int64)": "int64",
-              "tensor(int32)": "int32", "tensor(uint8)": "uint8"}
-# ONNX TensorProto.DataType codes of the dtypes a bundle buffer may hold.
-_ONNX_DTYPES = {1: "float32", 2: "uint8", 4: "uint16", 6: "int32", 7: "int64", 10: "float16", 12: "uint32"}
 # What a speaker bundle (one whose manifest has a 'speaker' section) must hold for TalkingHead.
 SPEAKER_GRAPHS = ("translator", "deform")
 POSE_TRACK_WIDTH = 6
@@ -148,7 +145,7 @@ def _check_initializers(bundle: Bundle, name: str, onnx_bytes: bytes, feeds: dic
             raise BundleError(f"{bundle.path}: graph {name!r} has no initializer {init!r} (the manifest feeds it "
                               f"from buffer {buffer!r})")
         entry = bundle.manifest["buffers"][buffer]
-        dtype = _ONNX_DTYPES.get(tensor.data_type, f"ONNX type {tensor.data_type}")
+        dtype = ONNX_DTYPES.get(tensor.data_type, f"ONNX type {tensor.data_type}")
         if dtype != entry["dtype"] or tensor.dims != list(entry["shape"]):
             raise BundleError(f"{bundle.path}: graph {name!r} initializer {init!r} is {dtype} {tensor.dims} but "
                               f"buffer {buffer!r} is {entry['dtype']} {entry['shape']}")
@@ -166,7 +163,7 @@ def _check_signature(bundle: Bundle, name: str, info: dict, session) -> None:
             a = actual_by_name[d["name"]]
             fixed_differ = len(a.shape) == len(d["shape"]) and any(
                 isinstance(x, int) and isinstance(y, int) and x != y for x, y in zip(a.shape, d["shape"], strict=True))
-            if _ORT_TYPES.get(a.type) != d["dtype"] or len(a.shape) != len(d["shape"]) or fixed_differ:
+            if ORT_DTYPES.get(a.type) != d["dtype"] or len(a.shape) != len(d["shape"]) or fixed_differ:
                 raise BundleError(f"{bundle.path}: graph {name!r} {kind} {d['name']!r} is {a.type} {a.shape} but "
                                   f"the manifest declares {d['dtype']} {d['shape']}")
 

@@ -14,18 +14,19 @@ from collections import defaultdict
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
-from gaussiantalker.sdk.audio import TARGET_SAMPLE_RATE, load_audio, prepare_audio
+from gaussiantalker.sdk.audio import load_audio, prepare_audio
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame
-from gaussiantalker.sdk.errors import AudioError, GaussianTalkerError
+from gaussiantalker.sdk.errors import AudioError, BundleError
 from gaussiantalker.sdk.video import VideoWriter
 
-from .graphs import OnnxRuntimeBackend
+from .graphs import GraphBackend, OnnxRuntimeBackend
 from .splatter import GLSplatter, PreparedSplats
 from .translate import SILENCE_GATE_DBFS, iter_translate
 
@@ -34,6 +35,9 @@ AudioSource = str | os.PathLike | np.ndarray
 # long-running head's bookkeeping does not grow with the number of frames it has rendered.
 MAX_TIMINGS_PER_STAGE = 10_000
 HeadPoseSource = Callable[[int], HeadPose] | np.ndarray | HeadPose | None
+# What a frame is returned as: "uint8" [H, W, 3] (converted once, at the end), or "float" float32 [H, W, 3]
+# (C + T * background, unclamped).
+FrameOutput = Literal["uint8", "float"]
 
 
 class TalkingHead:
@@ -47,9 +51,10 @@ class TalkingHead:
         manifest = self.bundle.manifest
         try:
             self.config = SpeakerConfig.from_dict(manifest["speaker"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise GaussianTalkerError(f"{self.bundle.path}: manifest has no valid speaker config: {exc}") from exc
-        self.graphs = OnnxRuntimeBackend(self.bundle, threads=threads)
+            self.config.check_timing()
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise BundleError(f"{self.bundle.path}: manifest has no valid speaker config: {exc}") from exc
+        self.graphs: GraphBackend = OnnxRuntimeBackend(self.bundle, threads=threads)
         self.pose_track = self.bundle.buffer("pose_track") if self.bundle.has_buffer("pose_track") else None
         self.camera = camera or Camera.from_dict(manifest["camera"])
         if resolution is not None:
@@ -119,19 +124,19 @@ class TalkingHead:
         g = self.gaussians(drive)
         return self.splatter.prepare(g["means"], g["cov3d"], g["rgb"], g["opacity"], self.camera)
 
-    def draw(self, prepared: PreparedSplats, output: str = "uint8") -> np.ndarray:
+    def draw(self, prepared: PreparedSplats, output: FrameOutput = "uint8") -> np.ndarray:
         """The GL part of a frame: upload, splat, read back."""
         frame = self.splatter.draw(prepared, self.background, output=output)
         for stage, seconds in self.splatter.last_timings.items():
             self._record(stage, seconds)
         return frame
 
-    def render(self, drive: FrameDrive, output: str = "uint8") -> np.ndarray:
+    def render(self, drive: FrameDrive, output: FrameOutput = "uint8") -> np.ndarray:
         """One frame from validated drive parameters: uint8 [H, W, 3] (or float32 with output="float")."""
         return self.draw(self.prepare(drive), output)
 
     def render_params(self, expression=None, jaw_pose=None, neck_pose=None, eye_pose=None,
-                      head_rotation=None, head_translation=None, output: str = "uint8") -> np.ndarray:
+                      head_rotation=None, head_translation=None, output: FrameOutput = "uint8") -> np.ndarray:
         """One frame from explicit FLAME parameters and head pose (for apps driven by a face tracker)."""
         drive = FrameDrive.make(self.config.n_expr, expression, jaw_pose, neck_pose, eye_pose,
                                 HeadPose.make(head_rotation, head_translation))
@@ -148,7 +153,7 @@ class TalkingHead:
                 index += 1
 
     def frames(self, audio: AudioSource, sample_rate: int | None = None, head_pose: HeadPoseSource = None,
-               output: str = "uint8") -> Iterator[np.ndarray]:
+               output: FrameOutput = "uint8") -> Iterator[np.ndarray]:
         """Frames for an audio clip at the speaker's fps, yielded one at a time (never all held in memory).
 
         Frame t+1 is prepared (deformation graph, depth sort) on a worker thread while the GL splatter draws
@@ -169,7 +174,7 @@ class TalkingHead:
         return -(-samples // self.config.samples_per_frame)
 
     def write_video(self, path: str | os.PathLike, audio: AudioSource, sample_rate: int | None = None,
-                    head_pose: HeadPoseSource = None, progress: bool = True,
+                    head_pose: HeadPoseSource = None, progress: bool = False,
                     on_frame: Callable[[np.ndarray], None] | None = None) -> Path:
         """Render the clip and write an mp4 with the audio muxed in (`on_frame` sees each frame); returns the path."""
         from tqdm import tqdm
@@ -185,10 +190,6 @@ class TalkingHead:
                     on_frame(frame)
         return Path(path)
 
-    def stage_medians_ms(self) -> dict[str, float]:
-        """Median milliseconds per call of each stage recorded so far."""
-        return {stage: 1000.0 * float(np.median(values)) for stage, values in self.timings.items() if values}
-
     def close(self) -> None:
         self.splatter.release()
 
@@ -199,4 +200,4 @@ class TalkingHead:
         self.close()
 
 
-__all__ = ["TalkingHead", "TARGET_SAMPLE_RATE"]
+__all__ = ["TalkingHead", "FrameOutput", "HeadPoseSource"]

@@ -21,7 +21,6 @@ import hashlib
 import json
 import os
 import struct
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +28,7 @@ import numpy as np
 
 from .codecs import expected_nbytes, get_codec
 from .errors import BundleError
+from .files import StagedFile, atomic_write
 
 MAGIC = b"GTBUNDLE"
 FORMAT_MAJOR = 1
@@ -41,26 +41,6 @@ _HEADER = struct.Struct("<8sHHIQ32s")
 
 def _align(n: int) -> int:
     return (n + ALIGN - 1) // ALIGN * ALIGN
-
-
-def _current_umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _fsync_directory(directory: Path) -> None:
-    """Make a rename durable (POSIX); a no-op where directories cannot be opened (Windows)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def _sha256(data: bytes) -> str:
@@ -120,30 +100,20 @@ class BundleWriter:
             "payload_size": self._size,
         }
 
-    def write(self, path: str | os.PathLike) -> int:
-        """Write to `path` atomically: a failure never leaves a partial file there. Returns bytes written."""
-        path = Path(path)
+    def write(self, path: str | os.PathLike | StagedFile) -> int:
+        """Write the bundle to `path` atomically (a failure never leaves a partial file there), or into a file
+        the caller staged with `atomic_path` (written in place: it is a temporary file already). Returns bytes."""
         manifest_bytes = json.dumps(self.manifest(), sort_keys=True).encode("utf-8")
         header = _HEADER.pack(MAGIC, FORMAT_MAJOR, FORMAT_MINOR, 0, len(manifest_bytes),
                               hashlib.sha256(manifest_bytes).digest())
         header += b"\0" * (HEADER_SIZE - len(header))
         manifest_padded = manifest_bytes + b"\0" * (_align(len(manifest_bytes)) - len(manifest_bytes))
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            os.chmod(tmp_name, 0o666 & ~_current_umask())  # mkstemp makes 0600; a bundle is an ordinary file
-            with os.fdopen(fd, "wb") as handle:
-                handle.write(header)
-                handle.write(manifest_padded)
-                for chunk in self._payload:
-                    handle.write(chunk)
-                handle.flush()
-                os.fsync(handle.fileno())
-            os.replace(tmp_name, path)
-        except BaseException:
-            Path(tmp_name).unlink(missing_ok=True)
-            raise
-        _fsync_directory(path.parent)
+        staging = open(path.path, "wb") if isinstance(path, StagedFile) else atomic_write(path)
+        with staging as handle:
+            handle.write(header)
+            handle.write(manifest_padded)
+            for chunk in self._payload:
+                handle.write(chunk)
         return HEADER_SIZE + len(manifest_padded) + self._size
 
 
@@ -317,9 +287,6 @@ class Bundle:
         if self.verify_checksums and _sha256(data) != entry.get("sha256"):
             raise BundleError(f"{self.path}: checksum mismatch in {label} (the file is corrupt)")
         return data
-
-    def buffer_names(self) -> list[str]:
-        return sorted(self.manifest["buffers"])
 
     def graph_names(self) -> list[str]:
         return sorted(self.manifest["graphs"])

@@ -122,10 +122,6 @@ class Camera:
         return Camera(width, height, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, self.R, self.t,
                       self.near)
 
-    def with_pose(self, R: np.ndarray, t: np.ndarray) -> Camera:
-        """The same intrinsics with new extrinsics."""
-        return Camera(self.width, self.height, self.fx, self.fy, self.cx, self.cy, R, t, self.near)
-
     def to_dict(self) -> dict:
         """JSON-safe description (used by bundle manifests and checkpoints)."""
         return {

@@ -13,8 +13,23 @@ import numpy as np
 
 from .errors import BundleError
 
+# Every dtype a bundle buffer or graph tensor may have: (numpy name, ONNX TensorProto.DataType code, onnxruntime's
+# type string). The one table; the maps below are derived from it.
+_DTYPES = (
+    ("float32", 1, "tensor(float)"),
+    ("float16", 10, "tensor(float16)"),
+    ("int32", 6, "tensor(int32)"),
+    ("int64", 7, "tensor(int64)"),
+    ("uint8", 2, "tensor(uint8)"),
+    ("uint16", 4, "tensor(uint16)"),
+    ("uint32", 12, "tensor(uint32)"),
+)
 # dtypes a buffer may declare (the decoded array's dtype); anything else in a manifest is refused.
-SUPPORTED_DTYPES = ("float32", "float16", "int32", "int64", "uint8", "uint16", "uint32")
+SUPPORTED_DTYPES = tuple(name for name, _, _ in _DTYPES)
+# ONNX TensorProto.DataType code -> numpy dtype name.
+ONNX_DTYPES = {code: name for name, code, _ in _DTYPES}
+# onnxruntime's NodeArg.type string -> numpy dtype name.
+ORT_DTYPES = {ort_type: name for name, _, ort_type in _DTYPES}
 FP16_MAX = 65504.0
 
 

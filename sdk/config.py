@@ -16,6 +16,13 @@ POSE_DIM = 3 * len(FLAME_JOINTS)
 LATENT_POSE_INPUT_DIM = POSE_DIM - 3
 # Audio is framed so that one video frame is exactly this many encoder features (50 Hz features, 25 fps video).
 FEATURES_PER_FRAME = 2
+# The speaker's timing unless its config says otherwise: 16 kHz audio (what the translator's encoder is built
+# for), 25 video frames per second.
+DEFAULT_SAMPLE_RATE = 16000
+DEFAULT_FPS = 25
+# The translator normalises each utterance to zero mean, unit variance: x / sqrt(var + AUDIO_NORM_EPS). 1e-5
+# rather than wav2vec 2.0's 1e-7, so near-silent input (RMS << 3e-3) is not amplified to full scale.
+AUDIO_NORM_EPS = 1e-5
 
 
 @dataclass
@@ -38,10 +45,16 @@ class TranslatorConfig:
 
     @property
     def samples_per_feature(self) -> int:
+        """Audio samples per encoder feature: the product of the conv strides (320 by default)."""
         product = 1
         for stride in self.conv_strides:
             product *= stride
         return product
+
+    @property
+    def samples_per_frame(self) -> int:
+        """Audio samples the translator consumes per video frame: FEATURES_PER_FRAME features (640 by default)."""
+        return self.samples_per_feature * FEATURES_PER_FRAME
 
 
 @dataclass
@@ -51,8 +64,8 @@ class SpeakerConfig:
     n_shape: int = 20
     n_expr: int = 20
     sh_degree: int = 3
-    fps: int = 25
-    sample_rate: int = 16000
+    fps: int = DEFAULT_FPS
+    sample_rate: int = DEFAULT_SAMPLE_RATE
     speaker_id: int = 0
     latent_dim: int = 8  # dimension of gamma = W_gamma(psi), the rank of the speaker-specific blendshapes
     latent_hidden: int = 64
@@ -60,8 +73,24 @@ class SpeakerConfig:
 
     @property
     def samples_per_frame(self) -> int:
-        """Audio samples per video frame (640 at 16 kHz / 25 fps)."""
-        return self.sample_rate // self.fps
+        """Audio samples per video frame: the translator's (`TranslatorConfig.samples_per_frame`), the one
+        definition; `check_timing` proves it equals sample_rate / fps."""
+        return self.translator.samples_per_frame
+
+    def check_timing(self) -> None:
+        """ValueError unless sample_rate / fps is exactly the translator's samples per video frame.
+
+        The translator turns every `samples_per_frame` samples into one frame; if that is not 1 / fps seconds of
+        audio at `sample_rate`, video and audio drift apart (and onnxruntime fails on the length).
+        """
+        spf = self.translator.samples_per_frame
+        if self.fps < 1 or self.sample_rate != spf * self.fps:
+            strides = " x ".join(str(s) for s in self.translator.conv_strides)
+            raise ValueError(
+                f"config timing disagrees: sample_rate {self.sample_rate} / fps {self.fps} = "
+                f"{self.sample_rate / max(self.fps, 1):.4g} samples per video frame, but the translator consumes "
+                f"{spf} (conv strides {strides} = {self.translator.samples_per_feature} samples per feature, "
+                f"{FEATURES_PER_FRAME} features per frame); use fps {self.sample_rate / spf:.4g} or matching strides")
 
     def to_dict(self) -> dict:
         data = asdict(self)

@@ -28,6 +28,3 @@ class DriveError(GaussianTalkerError):
 class RenderError(GaussianTalkerError):
     """The OpenGL splatter cannot run: no context could be created, or a shader failed to compile."""
 
-
-class VerificationError(GaussianTalkerError):
-    """An exported bundle does not reproduce the torch speaker within the stated tolerances."""

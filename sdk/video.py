@@ -5,12 +5,14 @@ from __future__ import annotations
 import math
 import os
 import tempfile
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 
-from .audio import write_wav
+from .audio import TARGET_SAMPLE_RATE, write_wav
 from .errors import GaussianTalkerError
+from .files import atomic_path
 
 # libx264 speed/size trade-off: "veryfast" encodes 512x512 at several hundred fps on one core, so encoding never
 # competes with rendering for the CPU; "medium" (x264's default) makes ~10% smaller files at ~3x the CPU time.
@@ -31,35 +33,39 @@ def pad_to_whole_frames(audio: np.ndarray, sample_rate: int, fps: float) -> np.n
 class VideoWriter:
     """Context manager: `with VideoWriter(path, fps, (w, h), audio=a) as out: out.write(frame_uint8)`.
 
-    Writes to a temporary file beside `path` and renames on success, so a failed run leaves no half video.
+    ffmpeg writes a hidden temporary file in the target's own folder (`sdk.files.atomic_path`), renamed onto
+    `path` only when the video is complete, so a failed run leaves no half video and the rename never crosses a
+    file system. The audio to mux goes to a WAV in the system temp folder (read by ffmpeg, never renamed).
     """
 
     def __init__(self, path: str | os.PathLike, fps: float, size: tuple[int, int],
-                 audio: np.ndarray | None = None, sample_rate: int = 16000, quality: int = 8,
+                 audio: np.ndarray | None = None, sample_rate: int = TARGET_SAMPLE_RATE, quality: int = 8,
                  preset: str = DEFAULT_X264_PRESET) -> None:
         self.path = Path(path)
         self.fps, self.size, self.quality = fps, (int(size[0]), int(size[1])), quality
         self.audio, self.sample_rate, self.preset = audio, sample_rate, preset
         self.frames_written = 0
         self._writer = None
-        self._tmp_dir: tempfile.TemporaryDirectory | None = None
+        self._stack: ExitStack | None = None
 
     def __enter__(self) -> VideoWriter:
         import imageio_ffmpeg
 
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp_dir = tempfile.TemporaryDirectory(prefix="gt-video-")
-        audio_path = None
-        if self.audio is not None:
-            audio_path = os.path.join(self._tmp_dir.name, "audio.wav")
-            write_wav(audio_path, pad_to_whole_frames(self.audio, self.sample_rate, self.fps), self.sample_rate)
-        self._tmp_video = os.path.join(self._tmp_dir.name, "video" + (self.path.suffix or ".mp4"))
-        self._writer = imageio_ffmpeg.write_frames(
-            self._tmp_video, self.size, fps=self.fps, quality=self.quality, macro_block_size=1,
-            audio_path=audio_path, audio_codec="aac" if audio_path else None,
-            output_params=["-preset", self.preset] + (["-shortest"] if audio_path else []),
-            ffmpeg_log_level="error")
-        self._writer.send(None)
+        with ExitStack() as stack:
+            # ffmpeg picks the container from the extension, so the temporary name ends with the target's.
+            staged = stack.enter_context(atomic_path(self.path, suffix=".partial" + (self.path.suffix or ".mp4")))
+            audio_path = None
+            if self.audio is not None:
+                tmp_dir = stack.enter_context(tempfile.TemporaryDirectory(prefix="gt-video-"))
+                audio_path = os.path.join(tmp_dir, "audio.wav")
+                write_wav(audio_path, pad_to_whole_frames(self.audio, self.sample_rate, self.fps), self.sample_rate)
+            self._writer = imageio_ffmpeg.write_frames(
+                str(staged.path), self.size, fps=self.fps, quality=self.quality, macro_block_size=1,
+                audio_path=audio_path, audio_codec="aac" if audio_path else None,
+                output_params=["-preset", self.preset] + (["-shortest"] if audio_path else []),
+                ffmpeg_log_level="error")
+            self._writer.send(None)
+            self._stack = stack.pop_all()  # kept open until __exit__ commits or removes the staged file
         return self
 
     def write(self, frame: np.ndarray) -> None:
@@ -71,16 +77,15 @@ class VideoWriter:
         self.frames_written += 1
 
     def __exit__(self, exc_type, exc, tb) -> None:
+        stack, self._stack = self._stack, None
         try:
-            if self._writer is not None:
-                self._writer.close()
+            self._writer.close()  # ffmpeg finishes the file
             if exc_type is None and self.frames_written == 0:
                 raise GaussianTalkerError(f"no frames were written to {self.path}; an mp4 needs at least one")
-            if exc_type is None:
-                os.replace(self._tmp_video, self.path)
-        finally:
-            if self._tmp_dir is not None:
-                self._tmp_dir.cleanup()
+        except BaseException as error:
+            stack.__exit__(type(error), error, error.__traceback__)  # removes the staged file
+            raise
+        stack.__exit__(exc_type, exc, tb)  # commits it, or removes it if the body raised
 
 
 def probe_video(path: str | os.PathLike) -> dict:

@@ -31,7 +31,42 @@ def test_module_does_not_pull_forbidden_imports(module, forbidden):
 
 
 def test_the_check_itself_detects_torch():
-    """Guard against a check that cannot fail: importing the exporter does pull torch."""
+    """Guard against a check that cannot fail: importing the exporter does pull torch (where torch is installed;
+    .ci/runtime-only also runs this file in a virtualenv without it)."""
+    pytest.importorskip("torch")
     code = CHECK.format(module="gaussiantalker.exporter.speaker", forbidden="()")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert "torch" in result.stdout
+
+
+BLOCKED_EXPORT_EXTRA = """
+import sys
+sys.modules["torch"] = None  # `import torch` now raises ImportError, as in a runtime-only install
+from gaussiantalker.exporter.entry import {entry}
+sys.argv = ["{command}", "speaker.ckpt"]
+{entry}()
+"""
+
+
+@pytest.mark.parametrize("command, entry", [("gt-export", "gt_export"), ("gt-bench", "gt_bench")])
+def test_exporter_commands_without_torch_say_what_to_install(command, entry):
+    """Without the export extra, gt-export / gt-bench exit 2 with one line naming the extra (no traceback)."""
+    code = BLOCKED_EXPORT_EXTRA.format(entry=entry, command=command)
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 2, result.stderr
+    assert result.stdout == ""
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"{command}: needs the 'export' extra (torch not installed)")
+    assert 'gaussiantalker-sdk[export]' in lines[0]
+
+
+def test_runtime_reexports_what_an_app_needs():
+    """`gaussiantalker.runtime` alone gives an app the head, the drive types, the camera and every error type."""
+    import gaussiantalker.runtime as runtime
+    from gaussiantalker.sdk import errors
+
+    for name in ("TalkingHead", "Camera", "HeadPose", "FrameDrive", "__version__"):
+        assert hasattr(runtime, name), name
+    error_types = {n for n, v in vars(errors).items() if isinstance(v, type) and issubclass(v, Exception)}
+    assert error_types - {"CheckpointError"} <= set(runtime.__all__)  # checkpoints are the exporter's input
+    assert runtime.__version__ == __import__("importlib.metadata").metadata.version("gaussiantalker-sdk")

@@ -258,6 +258,10 @@ RUNTIME_LIES = {
     "'speaker' section not a table": (lambda m: m.update(speaker=[]), "'speaker' section is not a table"),
     "'camera' section invalid": (lambda m: m["camera"].pop("fx"), "'camera' section is invalid"),
     "speaker n_expr disagrees with graphs": (lambda m: m["speaker"].update(n_expr=30), "n_expr is 30"),
+    "speaker fps disagrees with the translator": (lambda m: m["speaker"].update(fps=30),
+                                                  "no valid speaker config: config timing disagrees"),
+    "speaker config has an unknown key": (lambda m: m["speaker"].update(colour="red"),
+                                          "unknown speaker config keys: ['colour']"),
     "pose_track shape [T*6]": (_buffer("pose_track", shape=[900]), "buffer 'pose_track' is float32 [900]"),
 }
 
@@ -401,6 +405,11 @@ CHECKPOINT_CASES = {
     "string for FLAME parents": (_set("flame", "parents", "abc"), "FLAME 'parents' must be a list of ints"),
     "NaN in gaussian sh": (_set("gaussians", "sh", lambda t: t.fill_(float("nan"))), "'sh' contains NaN"),
     "config fps 0": (_set("config", "fps", 0), "config fps must be an int >= 1, got 0"),
+    "config fps 30 (the translator makes 25 frames a second)": (
+        _set("config", "fps", 30), "sample_rate 16000 / fps 30 = 533.3 samples per video frame, but the translator "
+                                   "consumes 640"),
+    "config sample rate 8000 (the translator's strides need 16000 at 25 fps)": (
+        _set("config", "sample_rate", 8000), "sample_rate 8000 / fps 25 = 320 samples per video frame"),
     "format version 99": (_set("version", 99), "version 99"),
 }
 
@@ -490,17 +499,13 @@ class _ShortDisk:
         return self.handle.write(data)
 
 
-def _failing_os(budget: int, error: BaseException) -> SimpleNamespace:
-    """`os` for sdk/bundle.py whose fdopen hands out a _ShortDisk."""
+def _failing_open(budget: int, error: BaseException):
+    """`open` for sdk/files.py (the atomic writer) whose files are a _ShortDisk."""
 
-    class FailingOs:
-        def __getattr__(self, name):
-            return getattr(os, name)
+    def failing_open(*args, **kwargs):
+        return _ShortDisk(open(*args, **kwargs), budget, error)
 
-        def fdopen(self, fd, mode):
-            return _ShortDisk(os.fdopen(fd, mode), budget, error)
-
-    return FailingOs()
+    return failing_open
 
 
 @pytest.mark.parametrize("error", [OSError(28, "No space left on device"), KeyboardInterrupt()],
@@ -510,7 +515,7 @@ def test_export_failing_mid_write_keeps_the_good_bundle(real, tmp_path, monkeypa
     out = tmp_path / "speaker.gtb"
     shutil.copy(real.path, out)
     _cached_export_onnx(monkeypatch, real)
-    monkeypatch.setattr("gaussiantalker.sdk.bundle.os", _failing_os(len(real.data) // 2, error))
+    monkeypatch.setattr("gaussiantalker.sdk.files.open", _failing_open(len(real.data) // 2, error), raising=False)
     with pytest.raises(type(error)):
         export_bundle(real.speaker, out, progress=False)
     assert out.read_bytes() == real.data
@@ -543,6 +548,7 @@ from pathlib import Path
 import onnx
 import gaussiantalker.exporter.onnx_export as onnx_export
 import gaussiantalker.sdk.bundle as bundle
+import gaussiantalker.sdk.files as files
 
 translator, deform, marker, pause_after, *cli_args = sys.argv[1:]
 protos = iter([onnx.load_model_from_string(Path(p).read_bytes()) for p in (translator, deform)])
@@ -567,14 +573,11 @@ class PausingFile:
             time.sleep(300)
 
 
-class PausingOs:
-    def __getattr__(self, name):
-        return getattr(os, name)
-    def fdopen(self, fd, mode):
-        return PausingFile(os.fdopen(fd, mode))
+def pausing_open(*args, **kwargs):
+    return PausingFile(open(*args, **kwargs))
 
 
-bundle.os = PausingOs()
+bundle.open = files.open = pausing_open  # the bundle writer (staged by gt-export) and the atomic writer
 sys.argv = ["gt-export", *cli_args]
 runpy.run_module("gaussiantalker.exporter.cli", run_name="__main__", alter_sys=True)
 '''
