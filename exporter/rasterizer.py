@@ -1,4 +1,4 @@
-"""Pure-torch reference Gaussian rasterizer: the numerics contract (ARCHITECTURE.md) made executable.
+"""Pure-torch reference Gaussian rasterizer: the numerics contract (docs/numerics.md) made executable.
 
 It is the ground truth the OpenGL runtime is compared against, and differentiable so a speaker can be fitted
 through it. Per pixel it does exactly what the 3DGS forward loop does: walk the kept Gaussians front to back
@@ -26,15 +26,16 @@ from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.numerics import PIXEL_CENTER_OFFSET, TRANSMITTANCE_MIN
 
 from .splat_math import (
+    alpha_from_components,
     alpha_shape,
+    camera_to_pixel,
     conic_from_cov2d,
     covariance_2d,
     covariance_2d_determinant,
     extent_radius,
     keep_mask,
-    project_mean,
-    splat_alpha_parts,
     splat_color,
+    world_to_camera,
 )
 
 __all__ = ["render_reference", "DEFAULT_MEMORY_BUDGET_BYTES", "DEFAULT_TILE_SIZE"]
@@ -163,17 +164,17 @@ def _prepare_splats(means: Tensor, cov3d: Tensor, rgb: Tensor, opacity: Tensor, 
     limits = camera.fov_clamp_limits()
 
     def screen_space(m: Tensor, c3: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        xy, points = project_mean(m, R, t, *intrinsics)  # [N, 2], [N, 3]
+        points = world_to_camera(m, R, t)  # [N, 3]
+        xy = camera_to_pixel(points, *intrinsics)  # [N, 2]
         cov2d = covariance_2d(points, c3, R, intrinsics[0], intrinsics[1], limits)  # [N, 3]
-        det = covariance_2d_determinant(points, c3, R, intrinsics[0], intrinsics[1], limits, cov2d)  # [N]
+        det = covariance_2d_determinant(points, c3, cov2d, R, intrinsics[0], intrinsics[1], limits)  # [N]
         return xy, points, cov2d, det, alpha_shape(cov2d, det)
 
     with torch.no_grad():
         xy, points, cov2d, det, shape = screen_space(means, cov3d)
         radius = extent_radius(cov2d)  # [N]
         conic = conic_from_cov2d(cov2d, det)  # [N, 3], for the culling bounds
-        keep = keep_mask(points, xy, cov2d, conic, radius, float(camera.near), rgb, opacity, cov3d, det=det,
-                         shape=shape)
+        keep = keep_mask(points, xy, cov2d, det, conic, shape, radius, float(camera.near), rgb, opacity, cov3d)
         index = torch.nonzero(keep).squeeze(1)  # [M], ascending
         index = index[torch.sort(points[index, 2], stable=True).indices]  # front to back, ties in index order
     needs_grad = torch.is_grad_enabled() and any(x.requires_grad for x in (means, cov3d, rgb, opacity))
@@ -350,7 +351,7 @@ def _composite_batch(
         inside = torch.maximum(dx.abs(), dy.abs()) <= r  # [B, P, k] the contract's exact per-pixel extent
         # Offsets clamped to the extent: unchanged inside, and keep_mask's bound keeps the power finite outside.
         dx, dy = torch.clamp(dx, -r, r), torch.clamp(dy, -r, r)
-        alpha = splat_alpha_parts(opacity, a, slope, q, dx, dy, inside)  # [B, P, k], 0 = skipped
+        alpha = alpha_from_components(dx, dy, a, slope, q, opacity, inside)  # [B, P, k], 0 = skipped
         color, trans, done = _blend_chunk(alpha, rgb[ids], color, trans, done)
         if bool(done.all()):
             break

@@ -1,9 +1,29 @@
-"""Per-Gaussian splatting math of the numerics contract (ARCHITECTURE.md), in torch.
+"""Per-Gaussian splatting maths of the numerics contract (docs/numerics.md), in torch.
 
-Each function here has a GLSL twin of the same name in the OpenGL runtime's shaders, so the two can be read side
-by side line by line. Everything is differentiable (no in-place ops) and stays finite for extreme inputs: every
-division is guarded by a contract epsilon or a clamp, and whatever still comes out non-finite is culled by
-`keep_mask`. Shapes are noted as `# [N, 3]`; `...` means any leading batch shape.
+This is the reference that the OpenGL runtime's shaders (shaders/splat.vert, shaders/splat.frag) mirror. Every
+GLSL function that implements a contract step has a function here with the same name, the same arguments in the
+same order and the same meaning; its docstring names it ("GLSL twin: `name` in shaders/file"). A public function
+without a GLSL twin says why ("No GLSL twin: ..."). tests/test_mirror_names.py parses both sides and checks this.
+The GLSL functions that only decide where to rasterise (`pixel_box`, `cull`) are listed in
+`gaussiantalker.runtime.splatter.NON_CONTRACT_GLSL_FUNCTIONS` and have no twin here.
+
+How a torch twin maps its GLSL function:
+* Batched: GLSL handles one Gaussian (or one pixel); the twin takes the same arguments with a leading batch axis
+  ([N], or any `...` where noted), and a GLSL scalar becomes a tensor [N]. Argument names are the GLSL ones.
+* Uniforms become explicit trailing arguments: whatever the GLSL function reads from a uniform, itself or through
+  the functions it calls, follows its GLSL arguments, in the order R, t, fx, fy, cx, cy, limits (`u_R` -> R [3, 3],
+  `u_t` -> t [3], `u_intrinsics` -> fx, fy, cx, cy as floats, `u_fov_limits` -> limits, the four floats of
+  `Camera.fov_clamp_limits()`).
+* The packed world covariance (xx, xy, xz, yy, yz, zz) is one argument `cov3d` [N, 6] here and two vec3 in GLSL,
+  which has no 6-vector: `cov_a` = (xx, xy, xz), `cov_b` = (yy, yz, zz).
+* Where GLSL divides by a value whose Gaussian is culled anyway (camera z <= 0, 2D determinant <= 0), torch
+  divides by 1 instead (`_safe_divisor`), so culled Gaussians stay finite and out of autograd; kept Gaussians get
+  the same values.
+* Contract constants come from sdk/numerics.py on both sides (GLSL gets them as #defines).
+
+Everything is differentiable (no in-place ops) and stays finite for extreme inputs: every division is guarded by a
+contract epsilon or a clamp, and whatever still comes out non-finite is culled by `keep_mask`. Shapes are noted as
+`# [N, 3]`; `...` means any leading batch shape.
 """
 
 from __future__ import annotations
@@ -32,22 +52,31 @@ from gaussiantalker.sdk.numerics import (
 )
 
 __all__ = [
+    # No GLSL twin: the deformation graph (runs in the runtime as the ONNX export of this same code).
     "quat_to_rotmat",
     "cov3d_from_rotation_scale",
     "sh_basis",
     "sh_to_rgb",
-    "project_mean",
+    # GLSL twins in shaders/splat.vert, in the order the vertex shader's main uses them.
+    "world_to_camera",
+    "camera_to_pixel",
+    "clamped_ratios",
+    "sigma_matrix",
     "covariance_2d",
     "cov2d_scale",
+    "reliable",
     "covariance_2d_determinant",
-    "cov2d_determinant",
     "conic_from_cov2d",
     "alpha_shape",
+    "radius_of",
     "extent_radius",
     "extent_power_bound",
+    "screen_bounded",
+    # GLSL twins in shaders/splat.frag.
     "splat_color",
     "splat_alpha",
-    "splat_alpha_parts",
+    # No GLSL twin: torch-only vectorised forms used by the reference rasterizer.
+    "alpha_from_components",
     "keep_mask",
 ]
 
@@ -69,7 +98,10 @@ def _safe_divisor(x: Tensor) -> Tensor:
 
 
 def quat_to_rotmat(q: Tensor) -> Tensor:
-    """Rotation matrix of a (w, x, y, z) quaternion divided by max(|q|, QUAT_EPS); a zero quaternion gives I."""
+    """Rotation matrix of a (w, x, y, z) quaternion divided by max(|q|, QUAT_EPS); a zero quaternion gives I.
+
+    No GLSL twin: part of the deformation graph, which the runtime runs as the ONNX export of this code.
+    """
     q = q / _guarded_norm(q, QUAT_EPS)  # [..., 4]
     w, x, y, z = q.unbind(-1)
     rows = (
@@ -81,7 +113,10 @@ def quat_to_rotmat(q: Tensor) -> Tensor:
 
 
 def cov3d_from_rotation_scale(rotation: Tensor, scale: Tensor) -> Tensor:
-    """World covariance R diag(s^2) R^T, packed (xx, xy, xz, yy, yz, zz) like the GL buffers."""
+    """World covariance R diag(s^2) R^T, packed (xx, xy, xz, yy, yz, zz) like the GL buffers.
+
+    No GLSL twin: part of the deformation graph, which the runtime runs as the ONNX export of this code.
+    """
     m = rotation * scale.unsqueeze(-2)  # [..., 3, 3] = R diag(s)
     cov = m @ m.transpose(-1, -2)  # [..., 3, 3]
     return torch.stack(
@@ -90,7 +125,10 @@ def cov3d_from_rotation_scale(rotation: Tensor, scale: Tensor) -> Tensor:
 
 
 def sh_basis(dirs: Tensor, degree: int) -> Tensor:
-    """Real SH basis values (3DGS computeColorFromSH order and signs) along dirs [..., 3] -> [..., (degree+1)^2]."""
+    """Real SH basis values (3DGS computeColorFromSH order and signs) along dirs [..., 3] -> [..., (degree+1)^2].
+
+    No GLSL twin: part of the deformation graph, which the runtime runs as the ONNX export of this code.
+    """
     d = dirs / _guarded_norm(dirs, FRAME_EPS)  # [..., 3] camera centre -> Gaussian centre, unit
     x, y, z = d.unbind(-1)  # each [...]
     basis = [torch.full_like(x, SH_C0)]
@@ -118,6 +156,8 @@ def sh_to_rgb(sh: Tensor, dirs: Tensor, degree: int, dc: Tensor | None = None) -
 
     `dc` [..., 3], when given, replaces sh[..., 0, :] (the per-frame kappa0' = kappa0 + BS(gamma; W_color)) without
     building a new [..., K, 3] tensor every frame.
+
+    No GLSL twin: part of the deformation graph, which the runtime runs as the ONNX export of this code.
     """
     count = sh_coeff_count(degree)
     if sh.shape[-2] < count:
@@ -132,27 +172,40 @@ def sh_to_rgb(sh: Tensor, dirs: Tensor, degree: int, dc: Tensor | None = None) -
     return torch.clamp_min(result + 0.5, 0.0)
 
 
-def project_mean(
-    means: Tensor, R: Tensor, t: Tensor, fx: float, fy: float, cx: float, cy: float
-) -> tuple[Tensor, Tensor]:
-    """World means -> (pixel xy with u = fx X/Z + cx, v = fy Y/Z + cy; camera-space points p = R X + t)."""
-    points = (means.unsqueeze(-2) * R).sum(dim=-1) + t  # [N, 3], same summation order as GLSL mat3 * vec3
-    x, y, z = points.unbind(-1)  # each [N]
+def world_to_camera(mean: Tensor, R: Tensor, t: Tensor) -> Tensor:
+    """Camera-space points p = R mean + t of world positions mean [N, 3]. # [N, 3]
+
+    GLSL twin: `world_to_camera` in shaders/splat.vert.
+    """
+    return (mean.unsqueeze(-2) * R).sum(dim=-1) + t  # [N, 3], same summation order as GLSL mat3 * vec3
+
+
+def camera_to_pixel(p_cam: Tensor, fx: float, fy: float, cx: float, cy: float) -> Tensor:
+    """Projected centre in continuous pixel coordinates: u = fx x / z + cx, v = fy y / z + cy. # [N, 2]
+
+    GLSL twin: `camera_to_pixel` in shaders/splat.vert.
+    """
+    x, y, z = p_cam.unbind(-1)  # each [N]
     z_div = _safe_divisor(z)  # z <= 0 is behind the near plane: culled, only kept finite here
-    xy = torch.stack([fx * x / z_div + cx, fy * y / z_div + cy], dim=-1)  # [N, 2]
-    return xy, points
+    return torch.stack([fx * x / z_div + cx, fy * y / z_div + cy], dim=-1)  # [N, 2]
 
 
-def _clamped_ratios(points_cam: Tensor, limits: Sequence[float]) -> tuple[Tensor, Tensor, Tensor]:
-    """(z as a divisor, x/z and y/z clamped to the widened field of view `limits`), each [N]."""
+def clamped_ratios(p_cam: Tensor, limits: Sequence[float]) -> Tensor:
+    """(x / z, y / z) of camera-space points, each clamped to the widened field of view `limits`. # [N, 2]
+
+    GLSL twin: `clamped_ratios` in shaders/splat.vert.
+    """
     x_min, x_max, y_min, y_max = (float(v) for v in limits)
-    x, y, z = points_cam.unbind(-1)  # each [N]
+    x, y, z = p_cam.unbind(-1)  # each [N]
     z_div = _safe_divisor(z)
-    return z_div, torch.clamp(x / z_div, x_min, x_max), torch.clamp(y / z_div, y_min, y_max)
+    return torch.stack([torch.clamp(x / z_div, x_min, x_max), torch.clamp(y / z_div, y_min, y_max)], dim=-1)
 
 
-def _sigma_matrix(cov3d: Tensor) -> Tensor:
-    """Packed (xx, xy, xz, yy, yz, zz) [N, 6] -> symmetric [N, 3, 3]."""
+def sigma_matrix(cov3d: Tensor) -> Tensor:
+    """Packed world covariance (xx, xy, xz, yy, yz, zz) [N, 6] -> symmetric [N, 3, 3].
+
+    GLSL twin: `sigma_matrix` in shaders/splat.vert.
+    """
     s_xx, s_xy, s_xz, s_yy, s_yz, s_zz = cov3d.unbind(-1)
     return torch.stack(
         [
@@ -165,10 +218,16 @@ def _sigma_matrix(cov3d: Tensor) -> Tensor:
 
 
 def covariance_2d(
-    points_cam: Tensor, cov3d: Tensor, R: Tensor, fx: float, fy: float, limits: Sequence[float]
+    p_cam: Tensor, cov3d: Tensor, R: Tensor, fx: float, fy: float, limits: Sequence[float]
 ) -> Tensor:
-    """Screen covariance J W Sigma W^T J^T (x/z, y/z clamped to `limits` first) + LOW_PASS_PX2 on the diagonal."""
-    z_div, xz, yz = _clamped_ratios(points_cam, limits)  # each [N]
+    """Screen covariance J W Sigma W^T J^T (x/z, y/z clamped to `limits` first) + LOW_PASS_PX2 on the diagonal.
+
+    Packed (a, b, c) = [[a, b], [b, c]]. # [N, 3]
+
+    GLSL twin: `covariance_2d` in shaders/splat.vert.
+    """
+    z_div = _safe_divisor(p_cam[..., 2])  # [N]
+    xz, yz = clamped_ratios(p_cam, limits).unbind(-1)  # each [N]
     # 3DGS forms tx = clamp(x/z) z and uses -fx tx / z^2; -fx clamp(x/z) / z is the same value in fewer roundings.
     zero = torch.zeros_like(z_div)
     j = torch.stack(
@@ -179,7 +238,7 @@ def covariance_2d(
         dim=-2,
     )  # [N, 2, 3] projection Jacobian
     m = j @ R  # [N, 2, 3] = J W
-    cov = m @ _sigma_matrix(cov3d) @ m.transpose(-1, -2)  # [N, 2, 2]
+    cov = m @ sigma_matrix(cov3d) @ m.transpose(-1, -2)  # [N, 2, 2]
     return torch.stack(
         [cov[..., 0, 0] + LOW_PASS_PX2, cov[..., 0, 1], cov[..., 1, 1] + LOW_PASS_PX2], dim=-1
     )  # [N, 3] = (a, b, c)
@@ -191,18 +250,25 @@ def cov2d_scale(cov2d: Tensor) -> Tensor:
     cov2d / s has entries in [-1, 1] for a PSD matrix, so products of them never overflow float32; s is data, not
     a constant, so no shader compiler can fold or reassociate the division away. s = 0 only where a = c = 0, which
     is culled (det NaN).
+
+    GLSL twin: `cov2d_scale` in shaders/splat.vert.
     """
     a, _, c = cov2d.unbind(-1)
     return torch.maximum(a.abs(), c.abs())
 
 
-def _reliable(det: Tensor, products: Tensor) -> Tensor:
-    """det where it exceeds DET_MIN_RELATIVE * products (the sum it is the difference of), else 0: noise is culled."""
+def reliable(det: Tensor, products: Tensor) -> Tensor:
+    """det where it exceeds DET_MIN_RELATIVE * products (the sum it is the difference of), else 0. # [N]
+
+    A determinant lost in float32 rounding noise, its sign included, counts as not positive, so it is culled.
+
+    GLSL twin: `reliable` in shaders/splat.vert.
+    """
     return torch.where(det > DET_MIN_RELATIVE * products, det, torch.zeros_like(det))
 
 
 def covariance_2d_determinant(
-    points_cam: Tensor, cov3d: Tensor, R: Tensor, fx: float, fy: float, limits: Sequence[float], cov2d: Tensor
+    p_cam: Tensor, cov3d: Tensor, cov2d: Tensor, R: Tensor, fx: float, fy: float, limits: Sequence[float]
 ) -> Tensor:
     """det of `covariance_2d` (its (a, b, c) [N, 3] passed in) / `cov2d_scale`^2, least-cancelling form. # [N]
 
@@ -210,90 +276,141 @@ def covariance_2d_determinant(
     Replacing J's second row by its part orthogonal to the first (closed form; a shear of determinant 1, so the
     determinant is unchanged) and adding the low-pass filter as det(A + l I) = det A + l (tr A + l) avoids that.
     Both are exact maths; the form whose second diagonal entry is smaller has the smaller products (a c, b^2) and
-    so the smaller cancellation. A result lost in rounding noise (DET_MIN_RELATIVE) is returned as 0.
+    so the smaller cancellation. A result lost in rounding noise (`reliable`) is returned as 0. This is the only 2D
+    determinant of the contract: culling, the conic and `alpha_shape` all use it.
+
+    GLSL twin: `covariance_2d_determinant` in shaders/splat.vert.
     """
-    z_div, xz, yz = _clamped_ratios(points_cam, limits)  # each [N]
+    z_div = _safe_divisor(p_cam[..., 2])  # [N]
+    xz, yz = clamped_ratios(p_cam, limits).unbind(-1)  # each [N]
     g = 1.0 / (1.0 + xz * xz)  # [N]
     zero, one = torch.zeros_like(z_div), torch.ones_like(z_div)
     j0 = torch.stack([fx / z_div, zero, -fx * xz / z_div], dim=-1)  # [N, 3] row 0 of J
     j1 = (fy / z_div).unsqueeze(-1) * torch.stack([-(xz * g) * yz, one, -yz * g], dim=-1)  # [N, 3] row 1, sheared
     m = torch.stack([j0, j1], dim=-2) @ R  # [N, 2, 3]
-    cov = m @ _sigma_matrix(cov3d) @ m.transpose(-1, -2)  # [N, 2, 2] = A in the sheared basis, no low-pass
+    cov = m @ sigma_matrix(cov3d) @ m.transpose(-1, -2)  # [N, 2, 2] = A in the sheared basis, no low-pass
     use_sheared = cov[..., 1, 1] + LOW_PASS_PX2 < cov2d[..., 2]  # [N]
     s = cov2d_scale(cov2d)  # [N]
     a, b, c = (cov2d / s.unsqueeze(-1)).unbind(-1)  # each [N], low-pass included
     s00, s01, s11 = cov[..., 0, 0] / s, cov[..., 0, 1] / s, cov[..., 1, 1] / s
     low_pass = LOW_PASS_PX2 / s  # [N]
     sheared = (s00 * s11 - s01 * s01) + low_pass * (a + c - low_pass)  # det A + l (tr A + l)
-    sheared = _reliable(sheared, (s00 * s11).abs() + s01 * s01)
-    plain = _reliable(a * c - b * b, (a * c).abs() + b * b)
+    sheared = reliable(sheared, (s00 * s11).abs() + s01 * s01)
+    plain = reliable(a * c - b * b, (a * c).abs() + b * b)
     return torch.where(use_sheared, sheared, plain)
 
 
-def cov2d_determinant(cov2d: Tensor) -> Tensor:
-    """Plain det of a packed 2D covariance (a, b, c): a c - b^2. # [N] (culling uses `covariance_2d_determinant`)"""
-    a, b, c = cov2d.unbind(-1)
-    return a * c - b * b
+def conic_from_cov2d(cov2d: Tensor, det: Tensor) -> Tensor:
+    """Inverse of the packed 2D covariance, packed (A, B, C); det <= 0 (culled) divides by 1 instead. # [N, 3]
 
+    `det` is det(cov2d) / `cov2d_scale`^2, as `covariance_2d_determinant` returns it.
 
-def conic_from_cov2d(cov2d: Tensor, det: Tensor | None = None) -> Tensor:
-    """Inverse of the packed 2D covariance, packed (A, B, C); det <= 0 (culled) divides by 1 instead.
-
-    `det` is det(cov2d) / `cov2d_scale`^2 (as `covariance_2d_determinant` returns it); default: a c - b^2 of
-    cov2d / cov2d_scale.
+    GLSL twin: `conic_from_cov2d` in shaders/splat.vert.
     """
     s = cov2d_scale(cov2d)  # [N]
-    normalised = cov2d / s.unsqueeze(-1)  # [N, 3]
-    a, b, c = normalised.unbind(-1)
-    det = _safe_divisor(cov2d_determinant(normalised) if det is None else det) * s  # [N] det(cov2d) / s
+    a, b, c = (cov2d / s.unsqueeze(-1)).unbind(-1)
+    det = _safe_divisor(det) * s  # [N] det(cov2d) / s
     return torch.stack([c / det, -b / det, a / det], dim=-1)  # [N, 3]
 
 
-def extent_radius(cov2d: Tensor) -> Tensor:
-    """Exact screen radius EXTENT_SIGMAS * sqrt(lambda_max) of the packed 2D covariance (no ceil, no rounding).
-
-    Where 0.5 (a + c) > COV2D_HUGE_PX2 it is evaluated on cov2d / `cov2d_scale` and scaled back, so mid^2 cannot
-    overflow; below that the plain formula is used, bit for bit.
-    """
-    a, b, c = cov2d.unbind(-1)
-    mid = 0.5 * (a + c)  # [N]
-    plain = EXTENT_SIGMAS * _safe_sqrt(mid + _safe_sqrt(mid * mid - (a * c - b * b)))  # [N]
-    s = cov2d_scale(cov2d)  # [N]
-    a, b, c = (cov2d / s.unsqueeze(-1)).unbind(-1)
-    mid_n = 0.5 * (a + c)
-    huge = EXTENT_SIGMAS * _safe_sqrt(mid_n + _safe_sqrt(mid_n * mid_n - (a * c - b * b))) * _safe_sqrt(s)
-    return torch.where(mid > COV2D_HUGE_PX2, huge, plain)  # [N]
-
-
-def extent_power_bound(conic: Tensor, radius: Tensor) -> Tensor:
-    """Largest |power| reachable with |dx|, |dy| <= radius: (|A| + 2|B| + |C|) r r. # [N]"""
-    a, b, c = conic.abs().unbind(-1)
-    return (a + 2.0 * b + c) * radius * radius
-
-
-def splat_color(rgb: Tensor) -> Tensor:
-    """Colour as composited: clamped to +-COLOR_LIMIT (far above any real colour) so sums stay finite. # [..., 3]"""
-    return torch.clamp(rgb, -COLOR_LIMIT, COLOR_LIMIT)
-
-
-def alpha_shape(cov2d: Tensor, det: Tensor | None = None) -> Tensor:
+def alpha_shape(cov2d: Tensor, det: Tensor) -> Tensor:
     """The conic in completed-square form (A, k, q) [N, 3]: d^T cov2d^-1 d = A (dx - k dy)^2 + q dy^2.
 
     A = c / det, k = b / c, q = 1 / c (the same quadratic form as the conic (A, B, C), since B / A = -k and
     C - B^2 / A = 1 / c). A sum of non-negative terms: on the ridge of a long, thin splat, A dx^2 + 2 B dx dy +
     C dy^2 cancels and float32 rounding can make it positive (3DGS then skips a pixel that should be fully drawn);
     this form cannot. `det` as for `conic_from_cov2d`.
+
+    GLSL twin: `alpha_shape` in shaders/splat.vert.
     """
     _, b, c = cov2d.unbind(-1)
     c_div = torch.where(c == 0, torch.ones_like(c), c)  # c == 0 is not positive definite: culled (det <= 0)
     return torch.stack([conic_from_cov2d(cov2d, det)[..., 0], b / c_div, 1.0 / c_div], dim=-1)  # [N, 3]
 
 
-def splat_alpha_parts(
-    opacity: Tensor, a: Tensor, k: Tensor, q: Tensor, dx: Tensor, dy: Tensor, inside: Tensor | None = None
+def radius_of(cov2d: Tensor) -> Tensor:
+    """EXTENT_SIGMAS * sqrt(lambda_max) of a packed symmetric 2x2 (a, b, c), negative roots taken as 0. # [N]
+
+    GLSL twin: `radius_of` in shaders/splat.vert.
+    """
+    a, b, c = cov2d.unbind(-1)
+    mid = 0.5 * (a + c)  # [N]
+    return EXTENT_SIGMAS * _safe_sqrt(mid + _safe_sqrt(mid * mid - (a * c - b * b)))
+
+
+def extent_radius(cov2d: Tensor) -> Tensor:
+    """Exact screen radius EXTENT_SIGMAS * sqrt(lambda_max) of the packed 2D covariance (no ceil, no rounding).
+
+    Where 0.5 (a + c) > COV2D_HUGE_PX2 it is `radius_of` cov2d / `cov2d_scale`, scaled back by sqrt(scale), so
+    mid^2 cannot overflow; below that it is `radius_of` cov2d, bit for bit. # [N]
+
+    GLSL twin: `extent_radius` in shaders/splat.vert.
+    """
+    a, _, c = cov2d.unbind(-1)
+    s = cov2d_scale(cov2d)  # [N]
+    huge = radius_of(cov2d / s.unsqueeze(-1)) * _safe_sqrt(s)
+    return torch.where(0.5 * (a + c) > COV2D_HUGE_PX2, huge, radius_of(cov2d))  # [N]
+
+
+def extent_power_bound(conic: Tensor, radius: Tensor) -> Tensor:
+    """Largest |power| reachable with |dx|, |dy| <= radius: (|A| + 2|B| + |C|) r r. # [N]
+
+    GLSL twin: `extent_power_bound` in shaders/splat.vert.
+    """
+    a, b, c = conic.abs().unbind(-1)
+    return (a + 2.0 * b + c) * radius * radius
+
+
+def screen_bounded(center: Tensor, conic: Tensor, shape: Tensor, radius: Tensor) -> Tensor:
+    """Whether every screen-space value of a splat stays below FINITE_LIMIT in magnitude (NaN fails). # [N] bool
+
+    The values: projected centre [N, 2], conic [N, 3], `alpha_shape` [N, 3], extent radius [N] and the
+    `extent_power_bound`, which keeps the per-pixel float32 maths finite (no inf - inf = NaN).
+
+    GLSL twin: `screen_bounded` in shaders/splat.vert.
+    """
+
+    def bounded(value: Tensor) -> Tensor:
+        return value.abs() < FINITE_LIMIT  # NaN fails too
+
+    return (
+        bounded(center).all(dim=-1)
+        & bounded(conic).all(dim=-1)
+        & bounded(shape).all(dim=-1)
+        & bounded(radius)
+        & bounded(extent_power_bound(conic, radius))
+    )
+
+
+def splat_color(rgb: Tensor) -> Tensor:
+    """Colour as composited: clamped to +-COLOR_LIMIT (far above any real colour) so sums stay finite. # [..., 3]
+
+    GLSL twin: `splat_color` in shaders/splat.frag.
+    """
+    return torch.clamp(rgb, -COLOR_LIMIT, COLOR_LIMIT)
+
+
+def splat_alpha(d: Tensor, shape: Tensor, opacity: Tensor) -> Tensor:
+    """min(ALPHA_MAX, opacity exp(power)), 0 where skipped (power > 0 or alpha < ALPHA_MIN). # [...]
+
+    d [..., 2] is pixel centre - projected centre, shape [..., 3] the `alpha_shape` (A, k, q), and
+    power = -1/2 (A (dx - k dy)^2 + q dy^2) = -1/2 d^T cov2d^-1 d.
+
+    GLSL twin: `splat_alpha` in shaders/splat.frag.
+    """
+    dx, dy = d.unbind(-1)  # each [...]
+    a, k, q = shape.unbind(-1)  # each [...]
+    return alpha_from_components(dx, dy, a, k, q, opacity)
+
+
+def alpha_from_components(
+    dx: Tensor, dy: Tensor, a: Tensor, k: Tensor, q: Tensor, opacity: Tensor, inside: Tensor | None = None
 ) -> Tensor:
-    """`splat_alpha` on split, broadcastable `alpha_shape` components (A, k, q); `inside` (bool) also zeroes pixels
-    outside the extent."""
+    """`splat_alpha` on split, broadcastable components: d = (dx, dy), `alpha_shape` = (a, k, q). # [...]
+
+    No GLSL twin: the reference rasterizer's vectorised form of `splat_alpha` (its [tiles, pixels, splats] tensors
+    come split). `inside` (bool), when given, also zeroes pixels outside the extent.
+    """
     t = dx - k * dy
     power = -0.5 * (a * t * t + q * dy * dy)
     # exp of min(power, 0): a positive power is skipped below anyway, and this keeps exp (and its grad) finite.
@@ -304,42 +421,28 @@ def splat_alpha_parts(
     return alpha * (keep if inside is None else keep & inside)
 
 
-def splat_alpha(opacity: Tensor, conic: Tensor, d: Tensor) -> Tensor:
-    """min(ALPHA_MAX, opacity exp(-1/2 d^T conic d)), 0 where skipped (power > 0 or alpha < ALPHA_MIN).
-
-    Takes the conic (A, B, C) and evaluates it in `alpha_shape` form (A, -B/A, C - B^2/A), as the renderers do.
-    """
-    a, b, c = conic.unbind(-1)  # each [...]
-    a_div = torch.where(a == 0, torch.ones_like(a), a)
-    dx, dy = d.unbind(-1)  # each [...]: pixel centre - projected centre
-    return splat_alpha_parts(opacity, a, -b / a_div, c - b * b / a_div, dx, dy)  # [...]
-
-
 def keep_mask(
-    points_cam: Tensor,
-    xy: Tensor,
+    p_cam: Tensor,
+    center: Tensor,
     cov2d: Tensor,
+    det: Tensor,
     conic: Tensor,
+    shape: Tensor,
     radius: Tensor,
     near: float,
     *extra: Tensor,
-    det: Tensor | None = None,
-    shape: Tensor | None = None,
 ) -> Tensor:
     """Which Gaussians are rasterized: camera z >= near (z == near kept), 2D det > 0, every value finite. # [N]
 
-    `det` is the 2D determinant (`covariance_2d_determinant`; default a c - b^2). Screen-space values (xy, conic,
-    `shape` (`alpha_shape`), radius and the `extent_power_bound`, which keeps per-pixel float32 math finite: no
-    inf - inf = NaN) must stay below FINITE_LIMIT, as in the GL vertex shader; the others (camera-space points,
-    cov2d, `extra`) be finite.
+    `det` is `covariance_2d_determinant`'s. Screen-space values must pass `screen_bounded` (below FINITE_LIMIT);
+    the others (camera-space points, cov2d and the per-Gaussian inputs in `extra`) must be finite.
+
+    No GLSL twin: the runtime makes the same decisions in two places, the near-plane and finite-input tests in
+    numpy (`depth_order` in runtime/splatter.py) and the det > 0 and `screen_bounded` tests in the vertex
+    shader's main.
     """
-    det = cov2d_determinant(cov2d) if det is None else det
-    keep = (points_cam[..., 2] >= near) & (det > 0)
-    screen = (xy, conic, radius, extent_power_bound(conic, radius)) + (() if shape is None else (shape,))
-    for value in screen:
-        bounded = value.abs() < FINITE_LIMIT  # NaN fails too
-        keep = keep & (bounded.flatten(1).all(dim=-1) if bounded.dim() > 1 else bounded)
-    for value in (points_cam, cov2d, *extra):
+    keep = (p_cam[..., 2] >= near) & (det > 0) & screen_bounded(center, conic, shape, radius)
+    for value in (p_cam, cov2d, *extra):
         finite = torch.isfinite(value)
         keep = keep & (finite.flatten(1).all(dim=-1) if finite.dim() > 1 else finite)
     return keep  # [N] bool

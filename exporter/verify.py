@@ -3,7 +3,7 @@
 Tolerances (why these numbers):
 * graphs: max |onnx - torch| <= GRAPH_RTOL * max(1, max |torch|). Both sides compute in float32 with different
   kernels (MLAS vs. MKL/oneDNN), so a few ulps per op, accumulated over ~100 ops, stay well below 1e-4 relative.
-* frames: PSNR >= 60 dB on float frames and >= 50 dB on the final 8-bit frames (the issue's bounds). What remains
+* frames: PSNR >= 60 dB on float frames and >= 50 dB on the final 8-bit frames (the SDK's parity bounds). What remains
   is float reassociation, the GL path's missing early termination (< 1e-2 residual transmittance, usually < 1e-3)
   and rare depth-order flips of near-equal depths.
 """

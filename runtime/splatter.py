@@ -1,9 +1,13 @@
-"""OpenGL EWA splatter of the torch-free runtime: depth-sorted Gaussians -> [H, W, 3] frame (numerics contract).
+"""OpenGL EWA splatter of the torch-free runtime: depth-sorted Gaussians -> [H, W, 3] frame.
 
-The per-Gaussian maths lives in shaders/splat.vert and shaders/splat.frag, whose GLSL functions `project_mean`,
-`covariance_2d`, `covariance_2d_determinant`, `conic_from_cov2d`, `alpha_shape`, `extent_radius`,
-`extent_power_bound`, `splat_color` and `splat_alpha` mirror the torch reference functions of the same names;
-the depth order (`view_depth`, `depth_order`) and the final 8-bit conversion (`to_uint8`) are numpy here.
+It follows the numerics contract of docs/numerics.md. The per-Gaussian maths lives in shaders/splat.vert
+(`world_to_camera`, `camera_to_pixel`, `clamped_ratios`, `sigma_matrix`, `covariance_2d`, `cov2d_scale`,
+`reliable`, `covariance_2d_determinant`, `conic_from_cov2d`, `alpha_shape`, `radius_of`, `extent_radius`,
+`extent_power_bound`, `screen_bounded`) and shaders/splat.frag (`splat_color`, `splat_alpha`); each of these GLSL
+functions has a torch twin of the same name and arguments in exporter/splat_math.py. The shaders' other
+functions only decide where to rasterise (`NON_CONTRACT_GLSL_FUNCTIONS`). Numpy does the rest: the near-plane
+and non-finite-input culling with the depth order (`view_depth`, `depth_order`), and the final 8-bit conversion
+(`to_uint8`).
 
 Primitives
 ----------
@@ -47,6 +51,11 @@ from gaussiantalker.shaders import load_shader
 
 from .gl_context import create_context
 
+# GLSL functions in shaders/ that are rasterisation, not contract maths: they choose which fragments are tried
+# (the pixel box, the primitive of a culled Gaussian) and never what a pixel gets, so they have no torch twin in
+# exporter/splat_math.py. Every other GLSL function except main has one (tests/test_mirror_names.py).
+NON_CONTRACT_GLSL_FUNCTIONS = ("pixel_box", "cull")
+
 # A Gaussian's pixel box is widened by this much (pixels) so that float rounding in the vertex shader never
 # drops a pixel the fragment shader would accept. 1/64 px is several float32 ulps even at 16384 px and adds an
 # extra row/column with probability ~1/32 per side.
@@ -80,21 +89,34 @@ def _glsl_float(value: float) -> str:
     return text if any(ch in text for ch in ".eE") else text + ".0"
 
 
+# Contract constants the shaders get as #defines: read from gaussiantalker.sdk.numerics under the same names, so
+# GLSL and the torch reference use one value each (docs/numerics.md).
+CONTRACT_DEFINES = (
+    "LOW_PASS_PX2",
+    "EXTENT_SIGMAS",
+    "ALPHA_MAX",
+    "ALPHA_MIN",
+    "FINITE_LIMIT",
+    "COLOR_LIMIT",
+    "DET_MIN_RELATIVE",
+    "COV2D_HUGE_PX2",
+)
+
+
+def renderer_defines() -> dict[str, float]:
+    """The GL renderer's own rasterisation settings injected as #defines (not contract maths, no torch twin).
+
+    SPLAT_POINTS (1: point sprites, 0: instanced quads) is the renderer's too; it differs per program and is added
+    where each program is built.
+    """
+    return {"QUAD_SLACK_PX": QUAD_SLACK_PX, "BOX_SLACK_REL": BOX_SLACK_REL}
+
+
 def shader_defines() -> dict[str, str]:
-    """The numerics constants injected into the splat shaders as #defines (never re-typed in GLSL)."""
-    values = {
-        "LOW_PASS_PX2": numerics.LOW_PASS_PX2,
-        "EXTENT_SIGMAS": numerics.EXTENT_SIGMAS,
-        "ALPHA_MAX": numerics.ALPHA_MAX,
-        "ALPHA_MIN": numerics.ALPHA_MIN,
-        "QUAD_SLACK_PX": QUAD_SLACK_PX,
-        "BOX_SLACK_REL": BOX_SLACK_REL,
-        "FINITE_LIMIT": numerics.FINITE_LIMIT,
-        "COLOR_LIMIT": numerics.COLOR_LIMIT,
-        "DET_MIN_RELATIVE": numerics.DET_MIN_RELATIVE,
-        "COV2D_HUGE_PX2": numerics.COV2D_HUGE_PX2,
-    }
-    return {name: _glsl_float(value) for name, value in values.items()}
+    """Every #define injected into the shaders (never re-typed in GLSL): the contract constants from
+    sdk.numerics (`CONTRACT_DEFINES`), then the renderer's own settings (`renderer_defines`)."""
+    contract = {name: getattr(numerics, name) for name in CONTRACT_DEFINES}
+    return {name: _glsl_float(value) for name, value in {**contract, **renderer_defines()}.items()}
 
 
 def with_defines(source: str, defines: dict[str, str]) -> str:
@@ -257,7 +279,8 @@ class GLSplatter:
     # -- set-up ---------------------------------------------------------------------------------------------
 
     def _program(self, vertex: str, fragment: str, extra: dict[str, str] | None = None) -> moderngl.Program:
-        """Compile and link one program with the numerics #defines; RenderError with the driver log."""
+        """Compile and link one program with `shader_defines()` plus `extra` (the renderer's per-program
+        #defines); RenderError with the driver log."""
         defines = {**shader_defines(), **(extra or {})}
         try:
             return self.ctx.program(vertex_shader=with_defines(load_shader(vertex), defines),

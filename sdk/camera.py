@@ -106,7 +106,10 @@ class Camera:
         return -self.R.T @ self.t
 
     def fov_clamp_limits(self) -> tuple[float, float, float, float]:
-        """(x_min, x_max, y_min, y_max) for clamping x/z and y/z before the projection Jacobian (contract)."""
+        """(x_min, x_max, y_min, y_max) for clamping x/z and y/z before the projection Jacobian.
+
+        docs/numerics.md, "2D covariance and field-of-view clamp".
+        """
         mx = FOV_CLAMP_MARGIN * self.width / (2.0 * self.fx)
         my = FOV_CLAMP_MARGIN * self.height / (2.0 * self.fy)
         return (

@@ -1,4 +1,4 @@
-"""Numerics contract constants shared by the torch reference and the GL runtime (ARCHITECTURE.md).
+"""Numerics contract constants shared by the torch reference and the GL runtime (docs/numerics.md).
 
 Every renderer in the project reads these values from here; none hard-codes its own copy.
 """
@@ -48,7 +48,8 @@ TRANSMITTANCE_MIN = 1e-4
 # Quaternion (w, x, y, z) is divided by max(|q|, QUAT_EPS): a zero quaternion gives the identity rotation.
 QUAT_EPS = 1e-12
 
-# Every normalisation in the triangle frame divides by max(|v|, FRAME_EPS) so collapsed triangles stay finite.
+# Floor of every normalisation guard: the triangle frame's guards are relative to each triangle's rest size
+# (docs/numerics.md, "Triangle frame") and never below this; the SH view direction divides by max(|d|, FRAME_EPS).
 FRAME_EPS = 1e-12
 
 # Real spherical-harmonics constants (degree 0..3), as in the 3DGS rasterizer.

@@ -1,6 +1,7 @@
 #version 330 core
 // Background pass, drawn last with the same "under" blend as the splats: (C, 1 - T) becomes
-// (C + T * background, 1), i.e. the contract's final colour C + T * background.
+// (C + T * background, 1), the contract's final colour (docs/numerics.md, "Compositing order and early
+// termination"). Not a contract step of its own: only main, no torch twin.
 
 uniform vec3 u_background;
 

@@ -1,10 +1,14 @@
 #version 330 core
 // Per-Gaussian set-up of the EWA splatter: one point sprite (SPLAT_POINTS 1) or one instanced quad (SPLAT_POINTS 0,
 // 4 vertices, triangle strip) per Gaussian; the fragment shader makes every per-pixel decision exactly.
-// Each function mirrors the torch reference function of the same name (ARCHITECTURE.md, "Numerics contract").
-// Injected by the runtime after the #version line (values from gaussiantalker.sdk.numerics, never re-typed here):
-//   LOW_PASS_PX2, EXTENT_SIGMAS, ALPHA_MIN, QUAD_SLACK_PX, BOX_SLACK_REL, FINITE_LIMIT, DET_MIN_RELATIVE,
-//   COV2D_HUGE_PX2, SPLAT_POINTS
+// The maths is the numerics contract (docs/numerics.md). Each function names its torch twin in
+// exporter/splat_math.py (same name, same arguments; uniforms become trailing arguments there), or says that it is
+// not a contract step (runtime/splatter.py NON_CONTRACT_GLSL_FUNCTIONS); tests/test_mirror_names.py checks both.
+// #defines injected by the runtime after the #version line (runtime/splatter.py shader_defines), never re-typed:
+//   contract constants, from gaussiantalker.sdk.numerics (the values the torch reference imports), used here:
+//     LOW_PASS_PX2, EXTENT_SIGMAS, ALPHA_MIN, FINITE_LIMIT, DET_MIN_RELATIVE, COV2D_HUGE_PX2
+//   the GL renderer's own rasterisation settings, from runtime/splatter.py (no torch counterpart), used here:
+//     QUAD_SLACK_PX, BOX_SLACK_REL, SPLAT_POINTS (1: point sprites, 0: instanced quads; set per program)
 
 uniform mat3 u_R;           // world -> camera rotation (R * p applies the camera's R)
 uniform vec3 u_t;           // world -> camera translation
@@ -22,18 +26,28 @@ flat out vec3 v_shape;    // inverse 2D covariance in completed-square form (A, 
 flat out float v_radius;  // extent radius r in pixels
 flat out vec4 v_rgba;     // colour, opacity
 
-// Contract "Camera": u = fx * X / Z + cx, v = fy * Y / Z + cy (pixel (x, y) has its centre at (x+0.5, y+0.5)).
-vec2 project_mean(vec3 p_cam) {
+// Torch twin: `world_to_camera` (exporter/splat_math.py).
+// Camera-space position p = R * mean + t of a world position (docs/numerics.md, "Camera and pixel centres").
+vec3 world_to_camera(vec3 mean) {
+    return u_R * mean + u_t;
+}
+
+// Torch twin: `camera_to_pixel` (exporter/splat_math.py).
+// u = fx * X / Z + cx, v = fy * Y / Z + cy in continuous pixel coordinates: pixel (x, y) has its centre at
+// (x + 1/2, y + 1/2) (docs/numerics.md, "Camera and pixel centres").
+vec2 camera_to_pixel(vec3 p_cam) {
     return vec2(u_intrinsics.x * p_cam.x / p_cam.z + u_intrinsics.z,
                 u_intrinsics.y * p_cam.y / p_cam.z + u_intrinsics.w);
 }
 
+// Torch twin: `clamped_ratios` (exporter/splat_math.py).
 // x/z and y/z clamped to the widened field of view (Camera.fov_clamp_limits), before forming J.
 vec2 clamped_ratios(vec3 p_cam) {
     return vec2(clamp(p_cam.x / p_cam.z, u_fov_limits.x, u_fov_limits.y),
                 clamp(p_cam.y / p_cam.z, u_fov_limits.z, u_fov_limits.w));
 }
 
+// Torch twin: `sigma_matrix` (exporter/splat_math.py).
 // Packed world covariance (xx, xy, xz), (yy, yz, zz) -> symmetric 3x3.
 mat3 sigma_matrix(vec3 cov_a, vec3 cov_b) {
     return mat3(cov_a.x, cov_a.y, cov_a.z,
@@ -41,8 +55,9 @@ mat3 sigma_matrix(vec3 cov_a, vec3 cov_b) {
                 cov_a.z, cov_b.y, cov_b.z);
 }
 
-// Contract "2D covariance": J W Sigma W^T J^T with x/z, y/z clamped to the widened field of view before
-// forming J, plus LOW_PASS_PX2 on the diagonal. Returns the symmetric 2x2 matrix as (a, b, c) = [[a, b], [b, c]].
+// Torch twin: `covariance_2d` (exporter/splat_math.py).
+// J W Sigma W^T J^T with x/z, y/z clamped to the widened field of view before forming J, plus LOW_PASS_PX2 on the
+// diagonal (docs/numerics.md, "2D covariance and field-of-view clamp"). Returns (a, b, c) = [[a, b], [b, c]].
 vec3 covariance_2d(vec3 p_cam, vec3 cov_a, vec3 cov_b) {
     float z = p_cam.z;
     vec2 ratios = clamped_ratios(p_cam);
@@ -56,18 +71,22 @@ vec3 covariance_2d(vec3 p_cam, vec3 cov_a, vec3 cov_b) {
     return vec3(dot(m0, s0) + LOW_PASS_PX2, dot(m0, s1), dot(m1, s1) + LOW_PASS_PX2);
 }
 
+// Torch twin: `cov2d_scale` (exporter/splat_math.py).
 // max(|a|, |c|) of a 2D covariance: dividing by it keeps every product of its entries below 1 (no float32
 // overflow); it is data, not a constant, so the compiler cannot fold or reassociate it away.
 float cov2d_scale(vec3 cov2d) {
     return max(abs(cov2d.x), abs(cov2d.z));
 }
 
+// Torch twin: `reliable` (exporter/splat_math.py).
 // det where it exceeds DET_MIN_RELATIVE * products (the sum it is the difference of), else 0: noise is culled.
 float reliable(float det, float products) {
     return det > DET_MIN_RELATIVE * products ? det : 0.0;
 }
 
-// det of covariance_2d (its (a, b, c) passed in) / cov2d_scale^2, in the least-cancelling of two forms.
+// Torch twin: `covariance_2d_determinant` (exporter/splat_math.py).
+// det of covariance_2d (its (a, b, c) passed in) / cov2d_scale^2, in the least-cancelling of two forms
+// (docs/numerics.md, "2D determinant conditioning").
 // a c - b^2 cancels badly where J's rows are nearly parallel (grazing view angles). Replacing J's second row by its
 // part orthogonal to the first (closed form; a shear of determinant 1) and adding the low-pass filter as
 // det(A + l I) = det A + l (tr A + l) avoids that; the form with the smaller second diagonal entry is used.
@@ -94,6 +113,7 @@ float covariance_2d_determinant(vec3 p_cam, vec3 cov_a, vec3 cov_b, vec3 cov2d) 
     return use_sheared ? sheared : plain;
 }
 
+// Torch twin: `conic_from_cov2d` (exporter/splat_math.py).
 // Inverse of the 2D covariance, packed (A, B, C), from covariance_2d_determinant (det / cov2d_scale^2).
 vec3 conic_from_cov2d(vec3 cov2d, float det) {
     float s = cov2d_scale(cov2d);
@@ -102,6 +122,7 @@ vec3 conic_from_cov2d(vec3 cov2d, float det) {
     return vec3(abc.z / det_over_s, -abc.y / det_over_s, abc.x / det_over_s);
 }
 
+// Torch twin: `alpha_shape` (exporter/splat_math.py).
 // The conic in completed-square form (A, k, q): d^T cov2d^-1 d = A (dx - k dy)^2 + q dy^2, with A = c / det,
 // k = b / c, q = 1 / c. A sum of non-negative terms: on the ridge of a long, thin splat, A dx^2 + 2 B dx dy + C dy^2
 // cancels and float32 rounding can make it positive (skipping a pixel that should be fully drawn); this cannot.
@@ -110,27 +131,40 @@ vec3 alpha_shape(vec3 cov2d, float det) {
     return vec3(conic_from_cov2d(cov2d, det).x, cov2d.y / c, 1.0 / c);
 }
 
-// EXTENT_SIGMAS * sqrt(lambda_max) of a symmetric 2x2 (a, b, c): the contract's formula, as in torch.
-float radius_of(vec3 abc) {
-    float mid = 0.5 * (abc.x + abc.z);
-    float lambda_max = mid + sqrt(max(mid * mid - (abc.x * abc.z - abc.y * abc.y), 0.0));
+// Torch twin: `radius_of` (exporter/splat_math.py).
+// EXTENT_SIGMAS * sqrt(lambda_max) of a symmetric 2x2 (a, b, c), negative roots taken as 0.
+float radius_of(vec3 cov2d) {
+    float mid = 0.5 * (cov2d.x + cov2d.z);
+    float lambda_max = mid + sqrt(max(mid * mid - (cov2d.x * cov2d.z - cov2d.y * cov2d.y), 0.0));
     return EXTENT_SIGMAS * sqrt(max(lambda_max, 0.0));
 }
 
-// Contract "Extent": r = EXTENT_SIGMAS * sqrt(lambda_max) of the dilated 2D covariance, exact (no rounding).
-// Where 0.5 (a + c) > COV2D_HUGE_PX2 it is evaluated on cov2d / cov2d_scale and scaled back (no mid^2 overflow).
+// Torch twin: `extent_radius` (exporter/splat_math.py).
+// r = EXTENT_SIGMAS * sqrt(lambda_max) of the dilated 2D covariance, exact, no rounding. Where 0.5 (a + c) >
+// COV2D_HUGE_PX2 it is evaluated on cov2d / cov2d_scale and scaled back, so mid^2 cannot overflow
+// (docs/numerics.md, "Extent radius").
 float extent_radius(vec3 cov2d) {
     float s = cov2d_scale(cov2d);
     return 0.5 * (cov2d.x + cov2d.z) > COV2D_HUGE_PX2 ? radius_of(cov2d / s) * sqrt(s) : radius_of(cov2d);
 }
 
-// Largest |power| reachable with |dx|, |dy| <= radius (culled at FINITE_LIMIT, as in the torch keep_mask).
+// Torch twin: `extent_power_bound` (exporter/splat_math.py).
+// Largest |power| reachable with |dx|, |dy| <= radius (bounded by FINITE_LIMIT in screen_bounded).
 float extent_power_bound(vec3 conic, float radius) {
     return (abs(conic.x) + 2.0 * abs(conic.y) + abs(conic.z)) * radius * radius;
 }
 
-// Not a contract step, only where to rasterise: the smallest box of whole pixels that can hold a pixel passing
-// the fragment shader's exact tests. Those are |dx| <= r, |dy| <= r (extent) and alpha >= ALPHA_MIN, which needs
+// Torch twin: `screen_bounded` (exporter/splat_math.py).
+// Whether every screen-space value stays below FINITE_LIMIT in magnitude, so the per-pixel float32 maths stays
+// finite (docs/numerics.md, "Near plane and culling"). Comparisons with NaN are false, so NaN fails (max() and
+// min() may drop a NaN, so none is used here).
+bool screen_bounded(vec2 center, vec3 conic, vec3 shape, float radius) {
+    return all(lessThan(abs(vec4(center, radius, extent_power_bound(conic, radius))), vec4(FINITE_LIMIT)))
+           && all(lessThan(abs(conic), vec3(FINITE_LIMIT))) && all(lessThan(abs(shape), vec3(FINITE_LIMIT)));
+}
+
+// Not a contract step (rasterisation only): the smallest box of whole pixels that can hold a pixel passing the
+// fragment shader's exact tests. Those are |dx| <= r, |dy| <= r (extent) and alpha >= ALPHA_MIN, which needs
 // d^T cov2d^-1 d <= q_max = 2 ln(opacity / ALPHA_MIN), an ellipse whose bounding box is |dx| <= sqrt(q_max a),
 // |dy| <= sqrt(q_max c). Both bounds are widened (BOX_SLACK_REL, QUAD_SLACK_PX) against float rounding, so no
 // passing pixel is ever left out. The box is clipped to the image and its edges are integer pixel coordinates,
@@ -144,6 +178,7 @@ vec4 pixel_box(vec2 center, vec3 cov2d, float radius, float opacity) {
     return vec4(lo, hi);
 }
 
+// Not a contract step (rasterisation only): drops this Gaussian's primitive.
 void cull() {
     gl_Position = vec4(-2.0, -2.0, 0.0, 1.0);  // outside the view: a point is dropped, a quad has no area
     gl_PointSize = 1.0;
@@ -154,8 +189,8 @@ void cull() {
 }
 
 void main() {
-    vec3 p_cam = u_R * in_mean + u_t;
-    vec2 center = project_mean(p_cam);
+    vec3 p_cam = world_to_camera(in_mean);
+    vec2 center = camera_to_pixel(p_cam);
     vec3 cov2d = covariance_2d(p_cam, in_cov_a, in_cov_b);
     float det = covariance_2d_determinant(p_cam, in_cov_a, in_cov_b, cov2d);
     if (!(det > 0.0)) {  // contract: skip a Gaussian whose 2D determinant is not positive (NaN fails too)
@@ -165,11 +200,7 @@ void main() {
     float radius = extent_radius(cov2d);
     vec3 conic = conic_from_cov2d(cov2d, det);
     vec3 shape = alpha_shape(cov2d, det);
-    // Contract: anything non-finite is culled; FINITE_LIMIT as in keep_mask. Comparisons with NaN are false (max()
-    // and min() may drop a NaN, so none is used here).
-    bool bounded = all(lessThan(abs(vec4(center, radius, extent_power_bound(conic, radius))), vec4(FINITE_LIMIT)))
-                   && all(lessThan(abs(conic), vec3(FINITE_LIMIT))) && all(lessThan(abs(shape), vec3(FINITE_LIMIT)));
-    if (!bounded) {
+    if (!screen_bounded(center, conic, shape, radius)) {  // contract: anything non-finite is culled
         cull();
         return;
     }

@@ -11,15 +11,18 @@ import torch
 
 from gaussiantalker.exporter.rasterizer import render_reference
 from gaussiantalker.exporter.splat_math import (
+    alpha_shape,
+    camera_to_pixel,
     conic_from_cov2d,
     cov3d_from_rotation_scale,
     covariance_2d,
+    covariance_2d_determinant,
     extent_radius,
     keep_mask,
-    project_mean,
     quat_to_rotmat,
     sh_to_rgb,
     splat_alpha,
+    world_to_camera,
 )
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.numerics import (
@@ -168,7 +171,7 @@ def test_matches_brute_force_termination_and_ties():
     means, cov3d, rgb, opacity, camera = stacked_scene()
     image, trans = assert_matches_brute_force(means, cov3d, rgb, opacity, camera)
     t = trans.numpy()
-    assert t.min() < 1e-3 and t.min() >= TRANSMITTANCE_MIN  # the stop rule was exercised, never crossed
+    assert t.min() < 1e-3 and t.min() >= TRANSMITTANCE_MIN  # the stop rule is exercised, never crossed
     # The stop carried across one-Gaussian chunks gives the same frame.
     chunked, chunked_t = render_reference(means, cov3d, rgb, opacity, camera, BACKGROUND, memory_budget_bytes=1)
     torch.testing.assert_close(chunked, image, atol=1e-6, rtol=0)
@@ -264,9 +267,13 @@ def test_extreme_inputs_stay_finite_and_cull_by_the_rules():
     rgb = torch.rand(len(rows), 3, generator=torch.Generator().manual_seed(0))
 
     R, t = torch.eye(3), torch.zeros(3)
-    xy, points = project_mean(means, R, t, camera.fx, camera.fy, camera.cx, camera.cy)
-    cov2d = covariance_2d(points, cov3d, R, camera.fx, camera.fy, camera.fov_clamp_limits())
-    keep = keep_mask(points, xy, cov2d, conic_from_cov2d(cov2d), extent_radius(cov2d), near, rgb, opacity)
+    limits = camera.fov_clamp_limits()
+    points = world_to_camera(means, R, t)
+    xy = camera_to_pixel(points, camera.fx, camera.fy, camera.cx, camera.cy)
+    cov2d = covariance_2d(points, cov3d, R, camera.fx, camera.fy, limits)
+    det = covariance_2d_determinant(points, cov3d, cov2d, R, camera.fx, camera.fy, limits)
+    keep = keep_mask(points, xy, cov2d, det, conic_from_cov2d(cov2d, det), alpha_shape(cov2d, det),
+                     extent_radius(cov2d), near, rgb, opacity)
     assert keep.tolist() == [True, True, True, True, False, True, False, False, False, False, True]
 
     params = [x.clone().requires_grad_(True) for x in (means, cov3d, rgb, opacity)]
@@ -377,9 +384,11 @@ def test_cov3d_packing():
 def test_projection_covariance_extent_against_float64():
     means, cov3d, _, _, camera = random_scene(7, n=30)
     R, t = torch.tensor(camera.R, dtype=torch.float32), torch.tensor(camera.t, dtype=torch.float32)
-    xy, points = project_mean(means, R, t, camera.fx, camera.fy, camera.cx, camera.cy)
-    cov2d = covariance_2d(points, cov3d, R, camera.fx, camera.fy, camera.fov_clamp_limits())
     lim = camera.fov_clamp_limits()
+    points = world_to_camera(means, R, t)
+    xy = camera_to_pixel(points, camera.fx, camera.fy, camera.cx, camera.cy)
+    cov2d = covariance_2d(points, cov3d, R, camera.fx, camera.fy, lim)
+    det = covariance_2d_determinant(points, cov3d, cov2d, R, camera.fx, camera.fy, lim)
     for i in range(len(means)):
         p = camera.R @ means[i].double().numpy() + camera.t
         if p[2] < camera.near:
@@ -397,20 +406,26 @@ def test_projection_covariance_extent_against_float64():
         lam = np.linalg.eigvalsh(cov).max()
         assert float(extent_radius(cov2d[i : i + 1])[0]) == pytest.approx(EXTENT_SIGMAS * math.sqrt(lam), rel=1e-4)
         inv = np.linalg.inv(cov)
-        np.testing.assert_allclose(conic_from_cov2d(cov2d[i : i + 1])[0], [inv[0, 0], inv[0, 1], inv[1, 1]],
-                                   rtol=1e-3, atol=1e-6)
+        np.testing.assert_allclose(conic_from_cov2d(cov2d[i : i + 1], det[i : i + 1])[0],
+                                   [inv[0, 0], inv[0, 1], inv[1, 1]], rtol=1e-3, atol=1e-6)
+
+
+def _shape_of_conic(conic: torch.Tensor) -> torch.Tensor:
+    """The `alpha_shape` form (A, k, q) = (A, -B/A, C - B^2/A) of a conic (A, B, C): the same quadratic form."""
+    a, b, c = conic.unbind(-1)
+    return torch.stack([a, -b / a, c - b * b / a], dim=-1)
 
 
 def test_splat_alpha_rules():
     conic = torch.tensor([[0.5, 0.1, 0.3]]).expand(4, 3)
     d = torch.tensor([[0.0, 0.0], [1.0, -2.0], [30.0, 30.0], [0.5, 0.5]])
     opacity = torch.tensor([1.0, 0.8, 1.0, 0.001])
-    alpha = splat_alpha(opacity, conic, d)
+    alpha = splat_alpha(d, _shape_of_conic(conic), opacity)
     assert alpha[0] == pytest.approx(ALPHA_MAX)  # capped
     power = -0.5 * (0.5 * 1 + 0.3 * 4) - 0.1 * 1 * -2
     assert float(alpha[1]) == pytest.approx(0.8 * math.exp(power), rel=1e-6)
     assert alpha[2] == 0 and alpha[3] == 0  # below ALPHA_MIN: skipped
-    bad = splat_alpha(torch.ones(1), torch.tensor([[-1.0, 0.0, -1.0]]), torch.tensor([[1.0, 1.0]]))
+    bad = splat_alpha(torch.tensor([[1.0, 1.0]]), _shape_of_conic(torch.tensor([[-1.0, 0.0, -1.0]])), torch.ones(1))
     assert bad[0] == 0  # power > 0 is skipped, as in 3DGS
 
 

@@ -33,9 +33,9 @@ from gaussiantalker.exporter.rasterizer import render_reference
 from gaussiantalker.exporter.splat_math import (
     cov3d_from_rotation_scale,
     covariance_2d,
-    project_mean,
     quat_to_rotmat,
     sh_to_rgb,
+    world_to_camera,
 )
 from gaussiantalker.runtime.splatter import GLSplatter
 from gaussiantalker.sdk.camera import Camera
@@ -155,7 +155,7 @@ def conditioning(scene: Scene, camera: Camera) -> float:
     R = torch.tensor(camera.R, dtype=torch.float32)
     t = torch.tensor(camera.t, dtype=torch.float32)
     means, cov3d = torch.from_numpy(scene[0]), torch.from_numpy(scene[1])
-    _, points = project_mean(means, R, t, camera.fx, camera.fy, camera.cx, camera.cy)
+    points = world_to_camera(means, R, t)
     cov2d = covariance_2d(points, cov3d, R, camera.fx, camera.fy, camera.fov_clamp_limits()).double()
     a, b, c = cov2d.unbind(-1)
     ratio = a * c / (a * c - b * b)
