@@ -84,12 +84,6 @@ class FlameArrays:
         """Vertices of the head proper (everything before the teeth extension)."""
         return self.n_vertices - int(self.teeth_anchors.shape[0])
 
-    def region_index(self, name: str) -> int:
-        """Label of a named face region; CheckpointError if the model has no such region."""
-        if name not in self.region_names:
-            raise CheckpointError(f"FLAME model has no face region {name!r} (has {list(self.region_names)})")
-        return self.region_names.index(name)
-
     def validate(self) -> FlameArrays:
         """Check dtypes, shapes, finiteness and index ranges; raise CheckpointError naming the bad key."""
         n_v = _check_array("v_template", self.v_template, np.float32, (None, 3))[0]

@@ -1,6 +1,9 @@
-"""Shared fixtures: the default demo speaker (built once per session, deterministic) and its fp32 bundle."""
+"""Shared fixtures, each built once per session (deterministic): the demo speaker and its fp32 bundle, a small
+untrained speaker and its bundle (with the ONNX protos torch.onnx made for it, so tests can re-export in ~1 s)."""
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import pytest
 
@@ -32,6 +35,27 @@ def small_speaker():
 
     speaker, _ = make_demo_speaker(n_gaussians=2000, seed=3, train_seconds=0, progress=False)
     return speaker
+
+
+@pytest.fixture(scope="session")
+def small_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
+    """`small_speaker` exported once: `.path` the fp32 bundle, `.protos` its two ONNX graphs as torch.onnx made
+    them (translator, deform) for tests that export again without paying for torch.onnx."""
+    import gaussiantalker.exporter.onnx_export as onnx_export_module
+    from gaussiantalker.exporter.export import export_bundle
+
+    path = tmp_path_factory.mktemp("small") / "small.gtb"
+    protos = []
+    real_export_onnx = onnx_export_module.export_onnx
+
+    def recording(*args, **kwargs):
+        protos.append(real_export_onnx(*args, **kwargs))
+        return protos[-1]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(onnx_export_module, "export_onnx", recording)
+        export_bundle(small_speaker, path, progress=False)
+    return SimpleNamespace(path=path, protos=protos)
 
 
 # -- stability table --------------------------------------------------------------------------------------------

@@ -36,7 +36,6 @@ import torch
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from gaussiantalker.exporter.demo_speaker import make_demo_speaker
 from gaussiantalker.exporter.export import DEFORM_INPUTS, DEFORM_OUTPUTS, export_bundle
 from gaussiantalker.exporter.flame import FlameArrays
 from gaussiantalker.exporter.speaker import Speaker
@@ -63,10 +62,9 @@ FEW = settings(derandomize=True, max_examples=4, deadline=None)
 
 
 @pytest.fixture(scope="module")
-def base_speaker() -> Speaker:
-    """The small untrained demo speaker (2k Gaussians)."""
-    speaker, _ = make_demo_speaker(n_gaussians=2000, seed=3, train_seconds=0, progress=False)
-    return speaker
+def base_speaker(small_speaker) -> Speaker:
+    """The small untrained demo speaker (2k Gaussians; the session's, never modified here)."""
+    return small_speaker
 
 
 def _open_head(speaker: Speaker, path) -> TalkingHead:
@@ -75,9 +73,9 @@ def _open_head(speaker: Speaker, path) -> TalkingHead:
 
 
 @pytest.fixture(scope="module")
-def base_head(base_speaker, tmp_path_factory):
-    """The base speaker exported and loaded by the runtime."""
-    with _open_head(base_speaker, tmp_path_factory.mktemp("drive") / "base.gtb") as head:
+def base_head(small_export):
+    """The base speaker's session bundle, loaded by the runtime."""
+    with TalkingHead(small_export.path, resolution=SIZE) as head:
         yield head
 
 

@@ -42,19 +42,11 @@ HEAD_SIZE = (32, 32)
 
 
 @pytest.fixture(scope="module")
-def real(small_speaker, tmp_path_factory) -> SimpleNamespace:
-    """The small speaker exported once (its two ONNX protos kept, so later exports can skip torch.onnx)."""
+def real(small_speaker, small_export, tmp_path_factory) -> SimpleNamespace:
+    """The small speaker's session bundle, copied here, with its two ONNX protos (later exports skip torch.onnx)."""
     root = tmp_path_factory.mktemp("stability_files")
-    protos = []
-    real_export_onnx = onnx_export_module.export_onnx
-
-    def recording(*args, **kwargs):
-        protos.append(real_export_onnx(*args, **kwargs))
-        return protos[-1]
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(onnx_export_module, "export_onnx", recording)
-        export_bundle(small_speaker, root / "good.gtb", progress=False)
+    shutil.copy(small_export.path, root / "good.gtb")
+    protos = small_export.protos
     bundle = Bundle(root / "good.gtb")
     entries = sorted(((kind[:-1], name, entry) for kind in ("graphs", "buffers")
                       for name, entry in bundle.manifest[kind].items()), key=lambda item: item[2]["offset"])
@@ -602,6 +594,7 @@ def _cli_paused_mid_write(real, checkpoint, work: Path, out: Path) -> subprocess
     return process
 
 
+@pytest.mark.slow  # a gt-export subprocess paused mid-write, then killed
 def test_sigkill_mid_write_leaves_only_a_hidden_tmp_file(real, checkpoint, tmp_path, monkeypatch, stability):
     """SIGKILL half-way through the write: the good bundle is untouched; the one leftover is a hidden *.tmp
     that is not a loadable bundle, and a later export to the same name succeeds."""
@@ -626,6 +619,7 @@ def test_sigkill_mid_write_leaves_only_a_hidden_tmp_file(real, checkpoint, tmp_p
                      f"({leftovers[0].stat().st_size} bytes, {_observed(exc, leftovers[0], 40)}); re-export OK")
 
 
+@pytest.mark.slow  # a gt-export subprocess paused mid-write, then killed
 def test_sigterm_mid_write_cleans_up(real, checkpoint, tmp_path, stability):
     """SIGTERM (what `kill` and CI timeouts send) unwinds: the temp file is removed, the good bundle kept."""
     work, out_dir = tmp_path / "work", tmp_path / "out"
