@@ -18,14 +18,34 @@ def demo_speaker():
     return speaker
 
 
-@pytest.fixture(scope="session")
-def demo_bundle(demo_speaker, tmp_path_factory):
-    """The demo speaker exported as an fp32 bundle."""
+def _export_recording(speaker, path) -> SimpleNamespace:
+    """Export `speaker` to `path`, keeping the two ONNX protos torch.onnx made (translator, deform)."""
+    import gaussiantalker.exporter.onnx_export as onnx_export_module
     from gaussiantalker.exporter.export import export_bundle
 
-    path = tmp_path_factory.mktemp("bundle") / "demo.gtb"
-    export_bundle(demo_speaker, path, progress=False)
-    return path
+    protos = []
+    real_export_onnx = onnx_export_module.export_onnx
+
+    def recording(*args, **kwargs):
+        protos.append(real_export_onnx(*args, **kwargs))
+        return protos[-1]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(onnx_export_module, "export_onnx", recording)
+        export_bundle(speaker, path, progress=False)
+    return SimpleNamespace(path=path, protos=protos)
+
+
+@pytest.fixture(scope="session")
+def demo_export(demo_speaker, tmp_path_factory) -> SimpleNamespace:
+    """The demo speaker exported as an fp32 bundle (`.path`) and its ONNX protos (`.protos`)."""
+    return _export_recording(demo_speaker, tmp_path_factory.mktemp("bundle") / "demo.gtb")
+
+
+@pytest.fixture(scope="session")
+def demo_bundle(demo_export):
+    """The demo speaker exported as an fp32 bundle."""
+    return demo_export.path
 
 
 @pytest.fixture(scope="session")
@@ -41,21 +61,20 @@ def small_speaker():
 def small_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
     """`small_speaker` exported once: `.path` the fp32 bundle, `.protos` its two ONNX graphs as torch.onnx made
     them (translator, deform) for tests that export again without paying for torch.onnx."""
+    return _export_recording(small_speaker, tmp_path_factory.mktemp("small") / "small.gtb")
+
+
+@pytest.fixture
+def replay_onnx_exports(monkeypatch):
+    """`replay_onnx_exports(protos)`: the next exports reuse `protos` (in export order) instead of running
+    torch.onnx again; the rest of the export (codecs, bundle writing) runs for real."""
     import gaussiantalker.exporter.onnx_export as onnx_export_module
-    from gaussiantalker.exporter.export import export_bundle
 
-    path = tmp_path_factory.mktemp("small") / "small.gtb"
-    protos = []
-    real_export_onnx = onnx_export_module.export_onnx
+    def replay(protos) -> None:
+        queue = iter(protos)
+        monkeypatch.setattr(onnx_export_module, "export_onnx", lambda *args, **kwargs: next(queue))
 
-    def recording(*args, **kwargs):
-        protos.append(real_export_onnx(*args, **kwargs))
-        return protos[-1]
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(onnx_export_module, "export_onnx", recording)
-        export_bundle(small_speaker, path, progress=False)
-    return SimpleNamespace(path=path, protos=protos)
+    return replay
 
 
 # -- stability table --------------------------------------------------------------------------------------------

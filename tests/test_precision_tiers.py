@@ -10,7 +10,9 @@ from gaussiantalker.exporter.verify import Tolerances, verify_bundle
 from gaussiantalker.sdk.bundle import Bundle
 
 
-def test_fp16_buffers_halve_the_bundle_within_their_tolerance(demo_speaker, demo_bundle, tmp_path):
+def test_fp16_buffers_halve_the_bundle_within_their_tolerance(demo_speaker, demo_export, tmp_path, replay_onnx_exports):
+    demo_bundle = demo_export.path
+    replay_onnx_exports(demo_export.protos)  # same graphs; only the buffer codec differs
     path = tmp_path / "fp16.gtb"
     export_bundle(demo_speaker, path, codec="fp16", progress=False)
     assert os.path.getsize(path) < 0.6 * os.path.getsize(demo_bundle)

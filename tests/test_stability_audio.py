@@ -44,7 +44,8 @@ SPEECH = synth_speech(1.0, seed=21)  # 25 frames of speech-like audio at 16 kHz,
 
 @pytest.fixture(scope="module")
 def speaker():
-    """A small trained demo speaker (2k Gaussians; the translator is trained so its jaw follows loudness)."""
+    """A small trained demo speaker (2k Gaussians, so long clips render fast; the translator is trained so its
+    jaw follows loudness)."""
     from gaussiantalker.exporter.demo_speaker import make_demo_speaker
 
     built, _ = make_demo_speaker(n_gaussians=2000, seed=3, progress=False)

@@ -461,12 +461,6 @@ def test_legacy_format_pickle_that_would_run_code(tmp_path, stability):
 # -- atomic export ----------------------------------------------------------------------------------------------
 
 
-def _cached_export_onnx(monkeypatch, real) -> None:
-    """Later exports reuse the module's two ONNX protos: the bundle-writing path runs for real, in ~1 s."""
-    protos = iter(real.protos)
-    monkeypatch.setattr(onnx_export_module, "export_onnx", lambda *args, **kwargs: next(protos))
-
-
 class _ShortDisk:
     """A file whose writes fail with `error` once `budget` bytes have gone through."""
 
@@ -502,11 +496,12 @@ def _failing_open(budget: int, error: BaseException):
 
 @pytest.mark.parametrize("error", [OSError(28, "No space left on device"), KeyboardInterrupt()],
                          ids=["disk full", "Ctrl-C"])
-def test_export_failing_mid_write_keeps_the_good_bundle(real, tmp_path, monkeypatch, stability, error):
+def test_export_failing_mid_write_keeps_the_good_bundle(real, tmp_path, monkeypatch, stability, error,
+                                                         replay_onnx_exports):
     """Half the bundle written, then failure: the good bundle is byte-identical and no temp file is left."""
     out = tmp_path / "speaker.gtb"
     shutil.copy(real.path, out)
-    _cached_export_onnx(monkeypatch, real)
+    replay_onnx_exports(real.protos)
     monkeypatch.setattr("gaussiantalker.sdk.files.open", _failing_open(len(real.data) // 2, error), raising=False)
     with pytest.raises(type(error)):
         export_bundle(real.speaker, out, progress=False)
@@ -595,7 +590,7 @@ def _cli_paused_mid_write(real, checkpoint, work: Path, out: Path) -> subprocess
 
 
 @pytest.mark.slow  # a gt-export subprocess paused mid-write, then killed
-def test_sigkill_mid_write_leaves_only_a_hidden_tmp_file(real, checkpoint, tmp_path, monkeypatch, stability):
+def test_sigkill_mid_write_leaves_only_a_hidden_tmp_file(real, checkpoint, tmp_path, stability, replay_onnx_exports):
     """SIGKILL half-way through the write: the good bundle is untouched; the one leftover is a hidden *.tmp
     that is not a loadable bundle, and a later export to the same name succeeds."""
     work, out_dir = tmp_path / "work", tmp_path / "out"
@@ -611,7 +606,7 @@ def test_sigkill_mid_write_leaves_only_a_hidden_tmp_file(real, checkpoint, tmp_p
     assert len(leftovers) == 1 and leftovers[0].name.startswith(".speaker.gtb.") and leftovers[0].suffix == ".tmp"
     assert leftovers[0].stat().st_size < len(real.data)
     exc = _bundle_refuses(leftovers[0])
-    _cached_export_onnx(monkeypatch, real)
+    replay_onnx_exports(real.protos)
     export_bundle(real.speaker, out, progress=False)
     _open_head(out)
     stability.record("export", "gt-export SIGKILLed half-way through writing, over a good bundle",
@@ -637,7 +632,7 @@ def test_sigterm_mid_write_cleans_up(real, checkpoint, tmp_path, stability):
                      f"exit {process.returncode}; good bundle untouched; temp file removed")
 
 
-def test_failed_verify_keeps_the_real_good_bundle(real, checkpoint, tmp_path, monkeypatch, stability):
+def test_failed_verify_keeps_the_real_good_bundle(real, checkpoint, tmp_path, stability, replay_onnx_exports):
     """gt-export --verify that fails: NAME.unverified.gtb holds the new bundle, the good one is untouched."""
     from typer.testing import CliRunner
 
@@ -645,7 +640,7 @@ def test_failed_verify_keeps_the_real_good_bundle(real, checkpoint, tmp_path, mo
 
     out = tmp_path / "speaker.gtb"
     shutil.copy(real.path, out)
-    _cached_export_onnx(monkeypatch, real)
+    replay_onnx_exports(real.protos)
     result = CliRunner().invoke(app, [str(checkpoint.path), "-o", str(out), "--verify", "--frames", "1",
                                       "--resolution", "32", "--min-psnr", "999", "-q"])
     assert result.exit_code == 1, result.output
