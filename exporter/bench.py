@@ -25,9 +25,6 @@ from .demo_audio import synth_speech
 
 app = typer.Typer(add_completion=False, help=__doc__)
 
-RUNTIME_STAGES = ("translator", "deformation", "sort", "upload", "draw", "readback")
-
-
 def _machine() -> dict:
     import moderngl
 
@@ -45,24 +42,10 @@ def bench_runtime(bundle: Path, size: int, audio: np.ndarray, sample_rate: int, 
     """Pipelined wall time per frame over the clip, then clean sequential per-stage medians."""
     from gaussiantalker.runtime.head import TalkingHead
 
+    from .bench_worker import measure_frames
+
     with TalkingHead(bundle, resolution=(size, size)) as head:
-        walls = []
-        clip_start = start = time.perf_counter()
-        for _ in head.frames(audio, sample_rate):
-            now = time.perf_counter()
-            walls.append(now - start)
-            start = now
-        clip_seconds = time.perf_counter() - clip_start
-        frames = len(walls)
-        head.timings.clear()
-        for drive in head.drives(audio, sample_rate):
-            head.render(drive)
-        stages = {"translator": 1000.0 * sum(head.timings["translator"]) / frames}
-        for stage in RUNTIME_STAGES[1:]:
-            stages[stage] = 1000.0 * float(np.median(head.timings[stage][warmup:]))
-    frame_ms = 1000.0 * float(np.median(walls[warmup:]))
-    return {"frames": frames, "stages_ms": stages, "sequential_frame_ms": sum(stages.values()),
-            "frame_ms": frame_ms, "fps": 1000.0 / frame_ms, "clip_fps": frames / clip_seconds}
+        return measure_frames(head, audio, sample_rate, warmup)
 
 
 def bench_torch(speaker, size: int, audio: np.ndarray, frames: int) -> dict:
@@ -124,8 +107,18 @@ def main(
     torch_frames: int = typer.Option(3, "--torch-frames", help="frames rendered by the torch reference"),
     paper_translator: bool = typer.Option(False, "--paper-translator", help="also export/run the ~300M translator"),
     json_path: Path = typer.Option(None, "--json", help="write results as JSON"),
+    baseline: Path = typer.Option(None, "--baseline", help="another checkout of the SDK: measure both side by side "
+                                  "(alternating rounds) and print the per-stage table with speed-ups"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="with --baseline: rounds per version and case"),
+    scaling: str = typer.Option(None, "--scaling", help="with --baseline: Gaussian counts to compare at the largest "
+                                "size, e.g. 20000,50000,100000,200000 [default: --gaussians only]"),
+    play_seconds: float = typer.Option(10.0, "--play-seconds", help="with --baseline: audio length for timing "
+                                       "each version's samples/play.py at 512x512 (0: skip)"),
 ) -> None:
-    """Benchmark the demo speaker through the runtime and the torch reference."""
+    """Benchmark the demo speaker through the runtime and the torch reference (or against --baseline)."""
+    if baseline is not None:
+        _compare_with_baseline(baseline, gaussians, sizes, seconds, rounds, scaling, play_seconds, json_path)
+        return
     from .checkpoint import load_checkpoint
     from .demo_speaker import make_demo_speaker
     from .export import export_bundle
@@ -154,6 +147,32 @@ def main(
         typer.echo(f"paper-size translator: {json.dumps(results['paper_translator'])}")
     if json_path is not None:
         json_path.write_text(json.dumps(results, indent=2))
+        typer.echo(f"wrote {json_path}")
+
+
+def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: float, rounds: int,
+                           scaling: str | None, play_seconds: float, json_path: Path | None) -> None:
+    """`--baseline`: the side-by-side table of bench_compare, printed (and written as JSON)."""
+    from dataclasses import asdict
+
+    from .bench_compare import checkout_root, compare, format_table
+
+    try:
+        checkout_root(baseline)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--baseline") from None
+    size_list = [int(s) for s in sizes.split(",")]
+    result = compare(baseline, gaussians=[gaussians], sizes=size_list, seconds=seconds, rounds=rounds,
+                     play_seconds=play_seconds)
+    if scaling:
+        counts = [int(c) for c in scaling.split(",") if int(c) != gaussians]
+        scaled = compare(baseline, gaussians=counts, sizes=[max(size_list)], seconds=seconds, rounds=rounds,
+                         play_seconds=0)
+        result.cases.update(scaled.cases)
+    result_text = format_table(result)
+    typer.echo(f"machine: {json.dumps(_machine())}\n{result_text}")
+    if json_path is not None:
+        json_path.write_text(json.dumps({"machine": _machine(), **asdict(result)}, indent=2))
         typer.echo(f"wrote {json_path}")
 
 

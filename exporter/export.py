@@ -18,8 +18,9 @@ from gaussiantalker.sdk.config import POSE_DIM
 from gaussiantalker.sdk.files import StagedFile
 
 from . import onnx_export
+from .deform_graph import DeformationGraph
 from .onnx_export import add_graph
-from .speaker import DeformationGraph, Speaker
+from .speaker import Speaker
 from .translator import translator_onnx
 
 DEFORM_INPUTS = ["expression", "flame_pose", "head_translation", "camera_center"]

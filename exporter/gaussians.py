@@ -24,9 +24,11 @@ from .splat_math import cov3d_from_rotation_scale, quat_to_rotmat, sh_to_rgb
 FRAME_DEGENERATE_FRACTION = 1e-2
 
 
-def _guarded_normalize(v: torch.Tensor, tolerance: torch.Tensor) -> torch.Tensor:
-    """v / max(|v|, tolerance) over the last axis; tolerance [...] > 0, so a zero vector stays zero, never NaN."""
-    return v / torch.maximum(torch.linalg.vector_norm(v, dim=-1, keepdim=True), tolerance.unsqueeze(-1))
+def _guarded_divide(v: torch.Tensor, norm: torch.Tensor, tolerance: torch.Tensor, dim: int) -> torch.Tensor:
+    """v / max(norm, tolerance), norm = |v| over axis `dim` (keepdim); tolerance > 0, so a zero vector stays zero.
+
+    tolerance is [...] for v [..., 3] (dim=-1), and [N] for the component-major v [B, 3, N] (dim=1)."""
+    return v / torch.maximum(norm, tolerance.unsqueeze(-1) if dim < 0 else tolerance)
 
 
 def frame_tolerances(reference_scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -50,21 +52,27 @@ def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 
 def triangle_frame(v0: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor,
-                   reference_scale: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                   reference_scale: torch.Tensor | None = None, dim: int = -1) -> tuple[torch.Tensor, torch.Tensor]:
     """Local frame of triangles [..., 3] each: rotation [..., 3, 3] with columns n0, n1, n2 and scale S [...].
+
+    With `dim` >= 0 the vertices' components lie on that axis ([B, 3, N] with dim=1) and the rotation is
+    [B, 3, 3, N] (row, column at dim, dim + 1): the deformation graph's component-major layout.
 
     n0 = e01 / max(|e01|, tol_edge), n1 = (e01 x e02) / max(|e01 x e02|, tol_cross), n2 = n0 x n1, with the
     tolerances of `frame_tolerances(reference_scale)` (default: the current S). Finite for any input; a triangle
     collapsed to a segment or a point gets shrunken (zero when exact) axes instead of noise-driven unit ones.
     """
     e01, e02, e12 = v1 - v0, v2 - v0, v2 - v1
-    scale = (torch.linalg.vector_norm(e01, dim=-1) + torch.linalg.vector_norm(e02, dim=-1)
-             + torch.linalg.vector_norm(e12, dim=-1)) / 3.0  # [...]
+    l01 = torch.linalg.vector_norm(e01, dim=dim, keepdim=True)
+    lengths = l01 + torch.linalg.vector_norm(e02, dim=dim, keepdim=True) + torch.linalg.vector_norm(e12, dim=dim,
+                                                                                                   keepdim=True)
+    scale = lengths.squeeze(dim) / 3.0  # [...]
     tol_edge, tol_cross = frame_tolerances(scale if reference_scale is None else reference_scale)
-    n0 = _guarded_normalize(e01, tol_edge)
-    n1 = _guarded_normalize(torch.cross(e01, e02, dim=-1), tol_cross)
-    n2 = torch.cross(n0, n1, dim=-1)
-    rotation = torch.stack([n0, n1, n2], dim=-1)  # [..., 3, 3], columns are the axes
+    n0 = _guarded_divide(e01, l01, tol_edge, dim)
+    cross = torch.cross(e01, e02, dim=dim)
+    n1 = _guarded_divide(cross, torch.linalg.vector_norm(cross, dim=dim, keepdim=True), tol_cross, dim)
+    n2 = torch.cross(n0, n1, dim=dim)
+    rotation = torch.stack([n0, n1, n2], dim=-1 if dim < 0 else dim + 1)  # [..., 3, 3], columns are the axes
     return rotation, scale
 
 

@@ -1,7 +1,8 @@
 """The torch GaussianTalker speaker: translator + FLAME layer + latent-pose MLP + bound Gaussians.
 
-This is the reference the exported bundle is verified against; `deform` is exactly what the deformation graph
-computes and `render` draws with the pure-torch reference rasterizer.
+This is the reference the exported bundle is verified against: `deform` is what the deformation graph computes
+(exporter/deform_graph.py exports it with its constants folded) and `render` draws with the pure-torch reference
+rasterizer.
 """
 
 from __future__ import annotations
@@ -74,13 +75,3 @@ class Speaker(nn.Module):
         image, _ = render_reference(means[0], cov3d[0], rgb[0], opacity, camera, bg)
         return image
 
-
-class DeformationGraph(nn.Module):
-    """What the `deform` ONNX graph computes: named per-frame inputs -> the splatter's per-Gaussian arrays."""
-
-    def __init__(self, speaker: Speaker) -> None:
-        super().__init__()
-        self.speaker = speaker
-
-    def forward(self, expression, flame_pose, head_translation, camera_center):
-        return self.speaker.deform(expression, flame_pose, head_translation, camera_center)

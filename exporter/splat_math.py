@@ -81,9 +81,9 @@ __all__ = [
 ]
 
 
-def _guarded_norm(v: Tensor, eps: float) -> Tensor:
-    """max(|v|, eps) over the last axis, keepdim; written as sqrt(max(|v|^2, eps^2)) so the gradient at 0 is 0."""
-    return torch.sqrt(torch.clamp_min((v * v).sum(dim=-1, keepdim=True), eps * eps))
+def _guarded_norm(v: Tensor, eps: float, dim: int = -1) -> Tensor:
+    """max(|v|, eps) over axis `dim`, keepdim; written as sqrt(max(|v|^2, eps^2)) so the gradient at 0 is 0."""
+    return torch.sqrt(torch.clamp_min((v * v).sum(dim=dim, keepdim=True), eps * eps))
 
 
 def _safe_sqrt(x: Tensor) -> Tensor:
@@ -97,19 +97,24 @@ def _safe_divisor(x: Tensor) -> Tensor:
     return torch.where(x > 0, x, torch.ones_like(x))
 
 
-def quat_to_rotmat(q: Tensor) -> Tensor:
+def quat_to_rotmat(q: Tensor, dim: int = -1) -> Tensor:
     """Rotation matrix of a (w, x, y, z) quaternion divided by max(|q|, QUAT_EPS); a zero quaternion gives I.
+
+    q [..., 4] -> [..., 3, 3]. With `dim` >= 0 the components lie on that axis instead and so do the matrix's
+    (row, column) axes: [B, 4, N] with dim=1 -> [B, 3, 3, N] (the deformation graph's component-major layout).
 
     No GLSL twin: part of the deformation graph, which the runtime runs as the ONNX export of this code.
     """
-    q = q / _guarded_norm(q, QUAT_EPS)  # [..., 4]
-    w, x, y, z = q.unbind(-1)
+    q = q / _guarded_norm(q, QUAT_EPS, dim)  # [..., 4]
+    w, x, y, z = q.unbind(dim)
     rows = (
         (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
         (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
         (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
     )
-    return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)  # [..., 3, 3]
+    if dim < 0:
+        return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)  # [..., 3, 3]
+    return torch.stack([torch.stack(row, dim=dim) for row in rows], dim=dim)  # [..., 3, 3, ...] at `dim`
 
 
 def cov3d_from_rotation_scale(rotation: Tensor, scale: Tensor) -> Tensor:
@@ -124,13 +129,16 @@ def cov3d_from_rotation_scale(rotation: Tensor, scale: Tensor) -> Tensor:
     )  # [..., 6]
 
 
-def sh_basis(dirs: Tensor, degree: int) -> Tensor:
+def sh_basis(dirs: Tensor, degree: int, dim: int = -1, skip_dc: bool = False) -> Tensor:
     """Real SH basis values (3DGS computeColorFromSH order and signs) along dirs [..., 3] -> [..., (degree+1)^2].
+
+    `dim` is the axis holding the direction's components and, in the result, the basis index ([B, 3, N] with
+    dim=1 -> [B, K, N]). `skip_dc` leaves out the constant degree-0 value SH_C0 ([..., K - 1]).
 
     No GLSL twin: part of the deformation graph, which the runtime runs as the ONNX export of this code.
     """
-    d = dirs / _guarded_norm(dirs, FRAME_EPS)  # [..., 3] camera centre -> Gaussian centre, unit
-    x, y, z = d.unbind(-1)  # each [...]
+    d = dirs / _guarded_norm(dirs, FRAME_EPS, dim)  # [..., 3] camera centre -> Gaussian centre, unit
+    x, y, z = d.unbind(dim)  # each [...]
     basis = [torch.full_like(x, SH_C0)]
     if degree > 0:
         basis += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
@@ -148,7 +156,7 @@ def sh_basis(dirs: Tensor, degree: int) -> Tensor:
             SH_C3[5] * z * (xx - yy),
             SH_C3[6] * x * (xx - 3.0 * yy),
         ]
-    return torch.stack(basis, dim=-1)  # [..., K]
+    return torch.stack(basis[1:] if skip_dc else basis, dim=dim)  # [..., K]
 
 
 def sh_to_rgb(sh: Tensor, dirs: Tensor, degree: int, dc: Tensor | None = None) -> Tensor:

@@ -226,12 +226,12 @@ def _io(graph: str, kind: str, index: int, **fields):
 
 
 RUNTIME_LIES = {
-    "buffer shape transposed (same bytes)": (_buffer("deform/speaker.gaussians.log_scale", shape=[3, 2000]),
-                                             "initializer 'speaker.gaussians.log_scale' is float32 [2000, 3]"),
-    "buffer shape flattened (same bytes)": (_buffer("deform/speaker.gaussians.sh", shape=[96000]),
-                                            "initializer 'speaker.gaussians.sh'"),
-    "buffer dtype float32 -> int32 (same bytes)": (_buffer("deform/speaker.flame.v_template", dtype="int32"),
-                                                   "buffer 'deform/speaker.flame.v_template' is int32"),
+    "buffer shape transposed (same bytes)": (_buffer("deform/scale_bar", shape=[2000, 3]),
+                                             "initializer 'scale_bar' is float32 [3, 2000]"),
+    "buffer shape flattened (same bytes)": (_buffer("deform/sh_rest", shape=[90000]),
+                                            "initializer 'sh_rest'"),
+    "buffer dtype float32 -> int32 (same bytes)": (_buffer("deform/rest_points", dtype="int32"),
+                                                   "buffer 'deform/rest_points' is int32"),
     "graph input renamed": (_io("deform", "inputs", 0, name="expr"), "graph 'deform' inputs are"),
     "graph input dtype": (_io("deform", "inputs", 1, dtype="float16"), "input 'flame_pose' is tensor(float)"),
     "graph input rank": (_io("deform", "inputs", 2, shape=["batch", 3, 1]), "input 'head_translation'"),
@@ -241,8 +241,8 @@ RUNTIME_LIES = {
     "initializer the graph does not have": (
         lambda m: m["graphs"]["deform"]["initializers"].update(bogus="pose_track"), "has no initializer 'bogus'"),
     "initializer left out (graph would read external file 'bundle')": (
-        lambda m: m["graphs"]["deform"]["initializers"].pop("speaker.flame.v_template"),
-        "tensor 'speaker.flame.v_template' wants external data"),
+        lambda m: m["graphs"]["deform"]["initializers"].pop("rest_points"),
+        "tensor 'rest_points' wants external data"),
     "missing graph 'translator'": (lambda m: m["graphs"].pop("translator"), "lacks the 'translator' graph"),
     "missing graph 'deform'": (lambda m: m["graphs"].pop("deform"), "lacks the 'deform' graph"),
     "missing 'speaker' section": (lambda m: m.pop("speaker"), "manifest has no 'speaker' section"),
@@ -271,13 +271,13 @@ def test_manifest_lie_caught_when_the_runtime_opens_the_graphs(real, tmp_path, m
 
 
 BUNDLE_LIES = {
-    "graph needs a buffer the bundle lacks": (lambda m: m["buffers"].pop("deform/speaker.flame.posedirs"),
-                                              "needs unknown buffer 'deform/speaker.flame.posedirs'"),
+    "graph needs a buffer the bundle lacks": (lambda m: m["buffers"].pop("deform/blend_basis"),
+                                              "needs unknown buffer 'deform/blend_basis'"),
     "buffer shape [null]": (_buffer("pose_track", shape=[None]), "buffer 'pose_track' has a malformed"),
     "buffer shape [150.0, 6]": (_buffer("pose_track", shape=[150.0, 6]), "buffer 'pose_track' has a malformed"),
     "buffer codec a string": (_buffer("pose_track", codec="raw"), "buffer 'pose_track' has a malformed"),
     "fp16 codec on an int64 buffer": (
-        _buffer("deform/speaker.gaussians.vertex_ids", codec={"name": "fp16"}, shape=[2000, 3, 4]),
+        _buffer("deform/corner_ids", codec={"name": "fp16"}, shape=[6000, 4]),
         "codec 'fp16' cannot decode to dtype 'int64'"),
     "buffer nbytes true": (_buffer("pose_track", nbytes=True), "buffer 'pose_track' has an invalid offset/size"),
     "buffer sha256 missing": (lambda m: m["buffers"]["pose_track"].pop("sha256"), "has no valid sha256"),

@@ -1,0 +1,159 @@
+"""The `deform` ONNX graph: `Speaker.deform` rewritten as a few large ops over constants folded at export.
+
+`Speaker.deform` (FLAME layer + latent-pose MLP + `BoundGaussians`) is the readable reference, written as the
+paper states it. Run per frame as exported, it re-applies the fixed shape β, forms per-Gaussian 3×3 products
+with small broadcast reductions and spends ~380 onnxruntime nodes on ~5 M multiply-adds. `DeformationGraph`
+computes the same function (equal up to float32 rounding, verified against the reference by the graph parity
+tests and `gt-export --verify`) with everything that does not change per frame folded in once, at export:
+
+* the shape blendshapes into the rest template; the joint regressor into a [5, 3] rest position plus a linear
+  map of the expression; the expression and pose-corrective bases into one matrix, so a frame's posed mesh and
+  joints are one matrix product;
+* the quaternion composition r̄ ⊗ (1 + W_rot γ) into the blendshape weights (the Hamilton product is linear in
+  its second factor), and the three speaker blendshapes (W_pos, W_rot, W_color) into one [D, 10 N] matrix;
+* exp(log-scale), sigmoid(opacity logit) and the triangle-frame guards, which do not depend on the frame.
+
+Per-Gaussian values are laid out component-major ([B, 3, N] rather than [B, N, 3]), so every elementwise step
+runs over long contiguous rows and every 3-vector reduction sums three rows. docs/deformation.md lists each
+folding with the reason it is exact (up to rounding); the numerics rules are those of docs/numerics.md.
+
+Every tensor this module derives from the speaker is a buffer or a parameter (a named initializer of the
+exported graph), so the graph holds no speaker-specific inline constant.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from gaussiantalker.sdk.numerics import SH_C0, sh_coeff_count
+
+from .flame import N_JOINTS, POSE_FEATURE_DIM, forward_kinematics, rodrigues
+from .gaussians import triangle_frame
+from .speaker import Speaker
+from .splat_math import quat_to_rotmat, sh_basis
+
+# Rows of the latent blendshape product per Gaussian: local position (3), quaternion (4), SH DC colour (3).
+LATENT_ROWS = (3, 4, 3)
+# Packed covariance entries (xx, xy, xz, yy, yz, zz) as indices into a row-major 3x3.
+_COV_ENTRIES = (0, 1, 2, 4, 5, 8)
+
+
+def hamilton_left_matrix(a: torch.Tensor) -> torch.Tensor:
+    """L(a) [..., 4, 4] with L(a) b = a ⊗ b for (w, x, y, z) quaternions a [..., 4] (`gaussians.quat_multiply`)."""
+    w, x, y, z = a.unbind(-1)
+    rows = ((w, -x, -y, -z), (x, w, -z, y), (y, z, w, -x), (z, -y, x, w))
+    return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)
+
+
+class DeformationGraph(nn.Module):
+    """Per-frame drive -> world-space Gaussians (means [B,N,3], cov3d [B,N,6], rgb [B,N,3], opacity [N]), as the
+    runtime runs it; same inputs, outputs and meaning as `Speaker.deform`."""
+
+    def __init__(self, speaker: Speaker) -> None:
+        super().__init__()
+        speaker = speaker.eval()
+        flame, gaussians = speaker.flame_arrays, speaker.gaussians
+        self.n_vertices, self.n_gaussians = flame.n_vertices, gaussians.count
+        self.sh_degree = gaussians.sh_degree
+        self.parents = tuple(int(p) for p in flame.parents)
+        self.latent_pose = speaker.latent_pose
+        with torch.no_grad():
+            self._fold_flame(speaker)
+            self._fold_gaussians(speaker)
+
+    def _fold_flame(self, speaker: Speaker) -> None:
+        """Rest mesh and joints with β applied, and one basis [E + 36, 3V + 15] for expression and pose correctives.
+
+        Vertex columns are component-major (x of every vertex, then y, then z), so the product reshapes to
+        [B, 3, V] without a transpose; the last 15 columns are the joints' expression offsets (zero for the pose
+        rows: FLAME regresses joints from the shaped, unposed mesh).
+        """
+        flame = speaker.flame
+        n_v = self.n_vertices
+        shape = speaker.shape.double()
+        rest = flame.v_template.double() + torch.einsum("vcl,l->vc", flame.shapedirs.double(), shape)  # [V, 3]
+        regressor = flame.J_regressor.double()  # [5, V]
+        rest_joints = regressor @ rest  # [5, 3]
+        exprdirs = flame.exprdirs.double()  # [V, 3, E]
+        joint_dirs = torch.einsum("jv,vce->ejc", regressor, exprdirs).reshape(-1, 3 * N_JOINTS)  # [E, 15]
+        expr_rows = exprdirs.permute(2, 1, 0).reshape(-1, 3 * n_v)  # [E, 3V] component-major
+        pose_rows = flame.posedirs.double().reshape(POSE_FEATURE_DIM, n_v, 3).permute(0, 2, 1).reshape(
+            POSE_FEATURE_DIM, 3 * n_v)  # [36, 3V]
+        basis = torch.cat([torch.cat([expr_rows, joint_dirs], 1),
+                           torch.cat([pose_rows, pose_rows.new_zeros(POSE_FEATURE_DIM, 3 * N_JOINTS)], 1)], 0)
+        self.register_buffer("rest_points", torch.cat([rest.T.reshape(-1), rest_joints.reshape(-1)]).float())
+        self.register_buffer("blend_basis", basis.float())  # [E + 36, 3V + 15]
+        self.register_buffer("lbs_weights", flame.lbs_weights.T.reshape(N_JOINTS, 1, n_v).contiguous())  # [5,1,V]
+
+    def _fold_gaussians(self, speaker: Speaker) -> None:
+        """Per-Gaussian constants, component-major, and the three speaker blendshapes as one [D, 10 N] matrix."""
+        g = speaker.gaussians
+        n = self.n_gaussians
+        self.register_buffer("corner_ids", g.vertex_ids.T.reshape(-1).contiguous())  # [3N]: all v0, all v1, all v2
+        self.register_buffer("barycentric", g.barycentric.T.contiguous())  # [3 corners, N]
+        self.register_buffer("rest_scale", g.rest_scale.clone())  # [N] reference size of the frame guards
+        self.register_buffer("scale_bar", torch.exp(g.log_scale).T.contiguous())  # [3, N]
+        self.register_buffer("opacity", torch.sigmoid(g.opacity_logit).clone())  # [N]
+        k = sh_coeff_count(self.sh_degree)
+        self.register_buffer("sh_rest", g.sh[:, 1:k].permute(2, 1, 0).contiguous())  # [3, K-1, N]
+
+        # r̄ ⊗ (1 + W_rot γ) = r̄ + L(r̄) W_rot γ (the identity is (1, 0, 0, 0) and L(r̄)(1, 0, 0, 0) = r̄).
+        w_quat = hamilton_left_matrix(g.local_rotation.double()) @ g.w_rot.double()  # [N, 4, D]
+        weights = torch.cat([g.w_pos.double(), w_quat, g.w_color.double()], 1)  # [N, 10, D]
+        bias = torch.cat([g.local_position, g.local_rotation, g.sh[:, 0]], 1)  # [N, 10]
+        self.register_buffer("latent_weight", weights.permute(2, 1, 0).reshape(-1, 10 * n).float())  # [D, 10N]
+        self.register_buffer("latent_bias", bias.T.reshape(-1).contiguous())  # [10N]
+
+    def forward(self, expression: torch.Tensor, flame_pose: torch.Tensor, head_translation: torch.Tensor,
+                camera_center: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        vertices = self.posed_vertices(expression, flame_pose, head_translation)  # [B, 3, V]
+        batch, n = vertices.shape[0], self.n_gaussians
+        # Gathered as [B, 3N, 3] and then transposed: onnxruntime copies a gathered row of 3 floats at the cost
+        # of one float, so this is ~2.5x faster than gathering along the last axis of [B, 3, V].
+        corners = vertices.transpose(1, 2).index_select(1, self.corner_ids)  # [B, 3N, 3]
+        corners = corners.transpose(1, 2).reshape(batch, 3, 3, n)  # [B, xyz, corner, N]
+        rotation, scale = triangle_frame(corners[:, :, 0], corners[:, :, 1], corners[:, :, 2], self.rest_scale,
+                                         dim=1)  # [B, 3, 3, N], [B, N]
+        origin = (corners * self.barycentric).sum(2)  # P [B, 3, N]
+
+        gamma = self.latent_pose(flame_pose[:, 3:])  # [B, D]
+        latent = (gamma @ self.latent_weight + self.latent_bias).reshape(batch, sum(LATENT_ROWS), n)
+        local_position, quaternion, dc = latent.split(LATENT_ROWS, dim=1)  # [B, 3|4|3, N]
+
+        means = (rotation * local_position.unsqueeze(1)).sum(2) + origin  # R u_bar' + P  [B, 3, N]
+        local_rotation = quat_to_rotmat(quaternion, dim=1)  # [B, 3, 3, N]
+        world_rotation = (rotation.unsqueeze(3) * local_rotation.unsqueeze(1)).sum(2)  # R R_local [B, 3, 3, N]
+        m = world_rotation * (scale.unsqueeze(1) * self.scale_bar).unsqueeze(1)  # R R_local diag(s) [B, 3, 3, N]
+        cov = (m.unsqueeze(2) * m.unsqueeze(1)).sum(3).reshape(batch, 9, n)  # m m^T, row-major [B, 9, N]
+        cov3d = cov[:, _COV_ENTRIES]  # [B, 6, N]
+
+        rgb = SH_C0 * dc  # [B, 3, N]
+        if self.sh_degree > 0:
+            basis = sh_basis(means - camera_center.unsqueeze(2), self.sh_degree, dim=1, skip_dc=True)  # [B, K-1, N]
+            # Channel-major coefficients: onnxruntime reduces over the middle axis of [B, 3, K-1, N] ~1.6x faster
+            # than over the leading axis of [B, K-1, 3, N].
+            rgb = rgb + (basis.unsqueeze(1) * self.sh_rest).sum(2)
+        rgb = torch.clamp_min(rgb + 0.5, 0.0)
+        return means.transpose(1, 2), cov3d.transpose(1, 2), rgb.transpose(1, 2), self.opacity
+
+    def posed_vertices(self, expression: torch.Tensor, flame_pose: torch.Tensor, head_translation: torch.Tensor
+                       ) -> torch.Tensor:
+        """FLAME blendshapes + linear blend skinning with the folded constants -> vertices [B, 3, V]."""
+        batch, n_v = expression.shape[0], self.n_vertices
+        rot = rodrigues(flame_pose.reshape(-1, 3)).reshape(batch, N_JOINTS, 3, 3)  # [B, 5, 3, 3]
+        eye = torch.eye(3, dtype=flame_pose.dtype)
+        pose_feature = (rot[:, 1:] - eye).reshape(batch, POSE_FEATURE_DIM)  # [B, 36]
+        points = self.rest_points + torch.cat([expression, pose_feature], 1) @ self.blend_basis  # [B, 3V + 15]
+        v_posed = points[:, : 3 * n_v].reshape(batch, 3, n_v)
+        joints = points[:, 3 * n_v:].reshape(batch, N_JOINTS, 3)
+        world_rot, world_pos = forward_kinematics(rot, joints, self.parents)  # [B, 5, 3, 3], [B, 5, 3]
+        # Joint k moves a rest point v to world_rot_k (v - J_k) + world_pos_k; blended by the skinning weights.
+        skin_t = world_pos - torch.matmul(world_rot, joints.unsqueeze(3)).squeeze(3)  # [B, 5, 3]
+        transform = torch.cat([world_rot, skin_t.unsqueeze(3)], 3).reshape(batch, 3 * N_JOINTS, 4)  # [B, 15, 4]
+        homogeneous = torch.cat([v_posed, torch.ones_like(v_posed[:, :1])], 1)  # [B, 4, V]
+        per_joint = torch.matmul(transform, homogeneous).reshape(batch, N_JOINTS, 3, n_v)  # [B, 5, 3, V]
+        return (per_joint * self.lbs_weights).sum(1) + head_translation.unsqueeze(2)  # [B, 3, V]
+
+
+__all__ = ["DeformationGraph", "hamilton_left_matrix"]

@@ -1,0 +1,43 @@
+"""`gt-bench --baseline`: each version's worker imports that version, and a folder that is no checkout is refused.
+
+Timings are not tested here (they belong in the benchmark); what is tested is that the two interpreters really
+run two different copies of the SDK, which is what makes the side-by-side table mean anything.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from gaussiantalker.exporter.bench_compare import PACKAGES, Version, _alternating, checkout_root, this_version_root
+
+
+def test_a_folder_without_the_packages_is_refused(tmp_path):
+    (tmp_path / "sdk").mkdir()
+    with pytest.raises(ValueError, match=r"is not a checkout of the SDK \(it has no runtime/, exporter/, shaders/\)"):
+        checkout_root(tmp_path)
+
+
+def test_each_version_imports_its_own_copy(tmp_path):
+    """A copy of this SDK is what the baseline interpreter imports, and this SDK what the other one imports."""
+    copy = tmp_path / "copy"
+    for name in PACKAGES:
+        shutil.copytree(this_version_root() / name, copy / name, ignore=shutil.ignore_patterns("__pycache__"))
+    versions = {label: Version.make(label, root, tmp_path) for label, root in (("this", this_version_root()),
+                                                                                ("baseline", checkout_root(copy)))}
+    probe = ("import gaussiantalker.sdk, gaussiantalker.runtime.head as h, pathlib; "
+             "print(pathlib.Path(gaussiantalker.sdk.__file__).resolve().parent.parent, "
+             "pathlib.Path(h.__file__).resolve().parent.parent)")
+    for label, version in versions.items():
+        out = subprocess.run([sys.executable, "-c", probe], env=version.env(), cwd=tmp_path, capture_output=True,
+                             text=True, check=True).stdout.split()
+        assert [Path(p) for p in out] == [version.root, version.root], (label, out)
+    assert versions["baseline"].root != versions["this"].root
+
+
+def test_rounds_alternate_which_version_goes_first():
+    assert list(_alternating(["a", "b"], 3)) == [(0, "a"), (0, "b"), (1, "b"), (1, "a"), (2, "a"), (2, "b")]
