@@ -17,6 +17,12 @@ tried, never which pixels a Gaussian touches. On llvmpipe a point sprite costs f
 Gaussians whose box provably fits the largest point size are drawn as points, the others as instanced quads, in
 sorted runs (a frame whose runs would cost more than points save is drawn as quads only). Both give identical pixels.
 
+A point is a square whose side is the box's longer side. llvmpipe shades 4x4 pixel blocks (and runs the shader
+on the 4x2 halves of a block that have a covered pixel), so along the box's shorter side the square is placed to
+touch the fewest blocks (`point_start`), usually starting on a multiple of 4 pixels, instead of being centred.
+Measured on llvmpipe (2 cores, demo speaker, 20k Gaussians): the oriented quads, axis-aligned quads and tighter
+fragment-shader early-outs tried instead were all slower; see docs/numerics.md, "Rasterisation".
+
 Compositing and the contract's early termination
 ------------------------------------------------
 Gaussians are drawn front to back into an RGBA32F framebuffer cleared to 0 with the premultiplied "under"
@@ -52,9 +58,10 @@ from gaussiantalker.shaders import load_shader
 from .gl_context import create_context
 
 # GLSL functions in shaders/ that are rasterisation, not contract maths: they choose which fragments are tried
-# (the pixel box, the primitive of a culled Gaussian) and never what a pixel gets, so they have no torch twin in
-# exporter/splat_math.py. Every other GLSL function except main has one (tests/test_mirror_names.py).
-NON_CONTRACT_GLSL_FUNCTIONS = ("pixel_box", "cull")
+# (the pixel box, where a point sprite goes, the primitive of a culled Gaussian) and never what a pixel gets, so
+# they have no torch twin in exporter/splat_math.py. Every other GLSL function except main has one
+# (tests/test_mirror_names.py).
+NON_CONTRACT_GLSL_FUNCTIONS = ("pixel_box", "block_cost", "point_start", "cull")
 
 # A Gaussian's pixel box is widened by this much (pixels) so that float rounding in the vertex shader never
 # drops a pixel the fragment shader would accept. 1/64 px is several float32 ulps even at 16384 px and adds an

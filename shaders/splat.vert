@@ -178,6 +178,45 @@ vec4 pixel_box(vec2 center, vec3 cov2d, float radius, float opacity) {
     return vec4(lo, hi);
 }
 
+// Not a contract step (rasterisation only): in-image 4x4 pixel blocks plus 4x2 half-blocks touched by the pixel
+// range [start, start + side) of an axis of length size; a cost to minimise (llvmpipe shades 4x4 blocks, and runs
+// the shader on 4x2 halves that have a covered pixel). Pixels outside the image are never shaded.
+float block_cost(float start, float side, float size) {
+    float a = max(start, 0.0);
+    float b = min(start + side, size);
+    if (!(b > a)) {
+        return 0.0;
+    }
+    float blocks = floor((b - 1.0) * 0.25) - floor(a * 0.25) + 1.0;
+    float halves = floor((b - 1.0) * 0.5) - floor(a * 0.5) + 1.0;
+    return 8.0 * blocks + halves;
+}
+
+// Not a contract step (rasterisation only): the start of a point sprite of `side` pixels along one axis, for the
+// box edges [lo, hi) on that axis (hi - lo <= side) and an image of `size` pixels. Any start in
+// [max(hi - side, -side / 2), min(lo, size - side / 2)] holds the box and keeps the point's centre inside the
+// image (GL drops a point whose centre is outside the view volume); that range is never empty. Of three
+// candidates in it (a multiple of 4 at or below lo, the smallest multiple of 4 that still reaches hi, the old
+// centred start) the one touching the fewest blocks (block_cost) is taken, the first on a tie. All of them are
+// whole or half pixels, so the square's edges never pass through a pixel centre inside the box.
+float point_start(float lo, float hi, float side, float size) {
+    float lowest = max(hi - side, -0.5 * side);
+    float highest = min(lo, size - 0.5 * side);
+    float below = clamp(4.0 * floor(lo * 0.25), lowest, highest);
+    float above = clamp(4.0 * ceil((hi - side) * 0.25), lowest, highest);
+    float centred = 0.5 * (lo + hi - side);
+    float best = below;
+    float cost = block_cost(below, side, size);
+    if (block_cost(above, side, size) < cost) {
+        best = above;
+        cost = block_cost(above, side, size);
+    }
+    if (block_cost(centred, side, size) < cost) {
+        best = centred;
+    }
+    return best;
+}
+
 // Not a contract step (rasterisation only): drops this Gaussian's primitive.
 void cull() {
     gl_Position = vec4(-2.0, -2.0, 0.0, 1.0);  // outside the view: a point is dropped, a quad has no area
@@ -212,10 +251,13 @@ void main() {
     // Pixel coordinates map to NDC without a y flip: framebuffer row j holds image row j, and read-back
     // returns the top image row first.
 #if SPLAT_POINTS
-    // One point sprite per Gaussian: a square of whole pixels centred on the box (inside the image, so the
-    // point is not clipped); the host only draws Gaussians whose box fits the largest point size this way.
-    gl_PointSize = max(box.z - box.x, box.w - box.y);
-    gl_Position = vec4((box.xy + box.zw) / u_image_size - 1.0, 0.0, 1.0);
+    // One point sprite per Gaussian: a square holding the box, its side the box's longer side; along the shorter
+    // side it is placed to touch the fewest pixel blocks (point_start). The host only draws Gaussians whose box
+    // surely fits the largest point size this way.
+    float side = max(box.z - box.x, box.w - box.y);
+    vec2 start = vec2(point_start(box.x, box.z, side, u_image_size.x), point_start(box.y, box.w, side, u_image_size.y));
+    gl_PointSize = side;
+    gl_Position = vec4((start + 0.5 * side) / u_image_size * 2.0 - 1.0, 0.0, 1.0);
 #else
     // One instanced quad (triangle strip) per Gaussian: vertex 0..3 is corner (x: id & 1, y: id >> 1) of the box.
     vec2 corner = vec2(float(gl_VertexID & 1), float(gl_VertexID >> 1));

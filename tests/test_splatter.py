@@ -11,6 +11,7 @@ contract's early termination, which fixed-function blending cannot do; `test_ear
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import sys
 
@@ -262,6 +263,134 @@ def test_fast_stable_argsort_equals_numpy_stable():
     for z in (rng.uniform(0.2, 5.0, 1000), np.round(rng.uniform(0.2, 5.0, 1000), 1), np.full(7, 0.5)):
         z = z.astype(np.float32)
         np.testing.assert_array_equal(stable_argsort_positive(z), np.argsort(z, kind="stable"))
+
+
+# -- primitives: a point sprite never drops a pixel the box draws -----------------------------------------------
+#
+# The GL renderer only chooses which fragments are tried; the fragment shader decides every pixel exactly. Point
+# sprites are squares placed to touch the fewest 4x4 pixel blocks (splat.vert, `point_start`); instanced quads are
+# the conservative pixel box itself (`pixel_box`). Both run the same fragment shader in the same order, so a frame
+# drawn with points must equal the quads-only frame bit for bit (tolerance 0): any pixel the square failed to
+# cover would be missing its contribution, which changes the composited float value.
+
+COVERAGE_CAMERA = Camera(61, 47, fx=50.0, fy=45.0, cx=30.2, cy=23.9)  # odd sizes: no side is a multiple of 4
+COVERAGE_Z = 2.0
+# Centre pixel positions: inside, on and beyond every edge, a corner, exact half-integer and integer centres.
+COVERAGE_CENTRES = ((30.3, 23.7), (1.2, 20.5), (59.9, 10.1), (33.3, 0.4), (12.6, 46.2), (-3.7, 30.2),
+                    (64.1, -2.9), (20.5, 30.5), (41.0, 12.0), (57.6, 44.8), (6.0, 3.5))
+
+
+def adversarial_gaussians():
+    """Gaussians whose screen ellipses cover the hard cases of a point square: rotated by 0..180 degrees in 15
+    degree steps, aspect ratios 1..1000, sub-pixel to larger than the image, opacity just above ALPHA_MIN up to 1,
+    centred inside, on the edges of and outside the image (camera space = world space, identity camera)."""
+    camera = COVERAGE_CAMERA
+    means, cov3d, opacity = [], [], []
+    k = 0
+    for angle in np.radians(np.arange(0.0, 180.0, 15.0)):
+        for aspect in (1.0, 3.0, 30.0, 1000.0):
+            for sigma_px in (0.05, 1.3, 5.0, 40.0):
+                for alpha in (numerics.ALPHA_MIN * (1.0 + 1e-3), 0.03, 0.7, 1.0):
+                    u, v = COVERAGE_CENTRES[k % len(COVERAGE_CENTRES)]
+                    k += 1
+                    means.append(((u - camera.cx) * COVERAGE_Z / camera.fx, (v - camera.cy) * COVERAGE_Z / camera.fy,
+                                  COVERAGE_Z))
+                    major = sigma_px * np.sqrt(aspect) * COVERAGE_Z / camera.fx
+                    minor = sigma_px / np.sqrt(aspect) * COVERAGE_Z / camera.fx
+                    c, s = np.cos(angle), np.sin(angle)
+                    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+                    cov = rot @ np.diag([major**2, minor**2, (0.3 * minor) ** 2]) @ rot.T
+                    cov3d.append(cov[[0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]])
+                    opacity.append(alpha)
+    n = len(means)
+    rgb = np.random.default_rng(20).uniform(0.2, 1.5, (n, 3))
+    return (np.array(means, np.float32), np.array(cov3d, np.float32), rgb.astype(np.float32),
+            np.array(opacity, np.float32))
+
+
+def coverage_mismatches(points: GLSplatter, quads: GLSplatter, scene, limit: int | None = None) -> list[int]:
+    """Indices of the Gaussians whose frame drawn alone as a point differs from the quads-only frame."""
+    means, cov3d, rgb, opacity = scene
+    mismatches = []
+    for i in range(len(means) if limit is None else limit):
+        one = (means[i : i + 1], cov3d[i : i + 1], rgb[i : i + 1], opacity[i : i + 1])
+        prepared = points.prepare(*one, COVERAGE_CAMERA)
+        # As a point even where the host's radius bound would pick a quad: the box is clipped to the image,
+        # so the square is never wider than the image, which fits the largest point size.
+        prepared = dataclasses.replace(prepared, runs=[(0, len(prepared.rows), False)] if len(prepared.rows) else [])
+        as_point = points.draw(prepared, BACKGROUND, output="float")
+        if not np.array_equal(as_point, quads.render(*one, COVERAGE_CAMERA, BACKGROUND, output="float")):
+            mismatches.append(i)
+    return mismatches
+
+
+@pytest.fixture(scope="module")
+def quads_only(splatter):
+    instance = GLSplatter(splatter.ctx, point_sprites=False)
+    yield instance
+    instance.release()
+
+
+def test_point_squares_cover_every_pixel_the_box_draws(splatter, quads_only):
+    assert splatter.max_point_size >= max(COVERAGE_CAMERA.width, COVERAGE_CAMERA.height)
+    scene = adversarial_gaussians()
+    assert coverage_mismatches(splatter, quads_only, scene) == []
+    # Not vacuous: most of them draw something, and the whole set composited together matches as well.
+    drawn = [np.abs(quads_only.render(*(a[i : i + 1] for a in scene), COVERAGE_CAMERA, BACKGROUND, output="float")
+                    - np.asarray(BACKGROUND, np.float32)).max() > 0 for i in range(0, len(scene[0]), 7)]
+    assert np.mean(drawn) > 0.6
+    together = splatter.prepare(*scene, COVERAGE_CAMERA)
+    together = dataclasses.replace(together, runs=[(0, len(together.rows), False)])
+    np.testing.assert_array_equal(splatter.draw(together, BACKGROUND, output="float"),
+                                  quads_only.render(*scene, COVERAGE_CAMERA, BACKGROUND, output="float"))
+
+
+@pytest.mark.parametrize(("old", "new"), [
+    ("    gl_PointSize = side;\n", "    gl_PointSize = side - 1.0;\n"),  # one pixel short on the high sides
+    ("    float best = below;\n", "    float best = below + 1.0;\n"),  # one pixel too far where aligned
+    ("    float lowest = max(hi - side, -0.5 * side);\n", "    float lowest = hi - side;\n"),  # centre may leave
+    ("    float highest = min(lo, size - 0.5 * side);\n", "    float highest = lo;\n"),  # the image: point dropped
+])
+def test_the_coverage_check_can_fail(splatter, quads_only, monkeypatch, old, new):
+    """A square one pixel too small or shifted by one pixel, or a point whose centre may leave the image (GL then
+    drops the whole point), loses pixels, and the check above sees it."""
+    source = load_shader("splat.vert")
+    assert source.count(old) == 1
+    monkeypatch.setattr(splatter_module, "load_shader",
+                        lambda name: source.replace(old, new) if name == "splat.vert" else load_shader(name))
+    broken = GLSplatter(splatter.ctx)
+    try:
+        assert coverage_mismatches(broken, quads_only, adversarial_gaussians(), limit=200)
+    finally:
+        broken.release()
+
+
+def test_point_squares_start_on_pixel_blocks(splatter, monkeypatch):
+    """Along its shorter side a box's square starts on a multiple of 4 pixels (fewest 4x4 blocks), not centred,
+    and still holds every pixel the Gaussian draws."""
+    source = load_shader("splat.frag")
+    main = source[source.index("void main() {"):]
+    covered = source.replace(main, "void main() {\n    frag_color = vec4(1.0);\n}\n")  # every tried fragment
+    monkeypatch.setattr(splatter_module, "load_shader",
+                        lambda name: covered if name == "splat.frag" else load_shader(name))
+    probe = GLSplatter(splatter.ctx)
+    camera = Camera(64, 96, fx=50.0, fy=50.0, cx=30.0, cy=48.0)
+    scale = COVERAGE_Z / camera.fx  # world units per pixel at z = 2
+    try:
+        for v in (45.0, 46.3, 47.5, 48.9):  # the short (vertical) side's position against the 4-pixel grid
+            means = np.array([[0.3 * scale, (v - camera.cy) * scale, COVERAGE_Z]], np.float32)
+            cov = np.array([[(6.0 * scale) ** 2, 0, 0, (1.0 * scale) ** 2, 0, 1e-6]], np.float32)
+            scene = (means, cov, np.ones((1, 3), np.float32), np.array([0.9], np.float32))
+            as_point = dataclasses.replace(probe.prepare(*scene, camera), runs=[(0, 1, False)])  # one point
+            tried = probe.draw(as_point, (0, 0, 0), output="float")[..., 0] > 0
+            drawn = splatter.render(*scene, camera, (0, 0, 0), output="float")[..., 0] > 0
+            rows, cols = np.nonzero(tried)
+            side = cols.max() + 1 - cols.min()
+            assert rows.max() + 1 - rows.min() == side > 3 * (np.ptp(np.nonzero(drawn)[0]) + 1)  # a wide box's square
+            assert rows.min() % 4 == 0, (v, rows.min())
+            assert tried[drawn].all() and drawn[:, cols.min()].any() and drawn[:, cols.max()].any()
+    finally:
+        probe.release()
 
 
 # -- edge cases ------------------------------------------------------------------------------------------------
