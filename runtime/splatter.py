@@ -21,7 +21,7 @@ A point is a square whose side is the box's longer side. llvmpipe shades 4x4 pix
 on the 4x2 halves of a block that have a covered pixel), so along the box's shorter side the square is placed to
 touch the fewest blocks (`point_start`), usually starting on a multiple of 4 pixels, instead of being centred.
 Measured on llvmpipe (2 cores, demo speaker, 20k Gaussians): the oriented quads, axis-aligned quads and tighter
-fragment-shader early-outs tried instead were all slower; see docs/numerics.md, "Rasterisation".
+fragment-shader early-outs tried instead were all slower; see docs/numerics.md, "Rasterisation in the GL renderer".
 
 Compositing and the contract's early termination
 ------------------------------------------------
