@@ -1,8 +1,13 @@
 """Shared fixtures, each built once per session (deterministic): the demo speaker and its fp32 bundle, a small
-untrained speaker and its bundle (with the ONNX protos torch.onnx made for it, so tests can re-export in ~1 s)."""
+untrained speaker and its bundle (with the ONNX protos of both, so tests can re-export in ~1 s), and the helpers
+that re-export without torch.onnx: `replay_onnx_exports` (the same speaker again) and `export_rebound` (another
+speaker of the same architecture: the recorded graphs with that speaker's weights)."""
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+from collections.abc import Iterator, Sequence
 from types import SimpleNamespace
 
 import pytest
@@ -18,22 +23,153 @@ def demo_speaker():
     return speaker
 
 
-def _export_recording(speaker, path) -> SimpleNamespace:
-    """Export `speaker` to `path`, keeping the two ONNX protos torch.onnx made (translator, deform)."""
+@contextlib.contextmanager
+def replaying_onnx_exports(protos: Sequence) -> Iterator[list]:
+    """Within the block, export_onnx returns `protos` in order instead of running torch.onnx (the rest of an
+    export runs for real). Yields the list of protos not handed out yet."""
+    import gaussiantalker.exporter.onnx_export as onnx_export_module
+
+    queue = list(protos)
+
+    def replay(*args, **kwargs):
+        if not queue:
+            raise AssertionError("export_onnx called more often than there are recorded protos")
+        return queue.pop(0)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(onnx_export_module, "export_onnx", replay)
+        yield queue
+
+
+def _export_recording(speaker, path, replay: Sequence = ()) -> SimpleNamespace:
+    """Export `speaker` to `path`, keeping the two ONNX protos (translator, deform): torch.onnx's, except that the
+    first graphs come from `replay` when given."""
     import gaussiantalker.exporter.onnx_export as onnx_export_module
     from gaussiantalker.exporter.export import export_bundle
 
     protos = []
+    queue = list(replay)
     real_export_onnx = onnx_export_module.export_onnx
 
     def recording(*args, **kwargs):
-        protos.append(real_export_onnx(*args, **kwargs))
+        protos.append(queue.pop(0) if queue else real_export_onnx(*args, **kwargs))
         return protos[-1]
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(onnx_export_module, "export_onnx", recording)
         export_bundle(speaker, path, progress=False)
-    return SimpleNamespace(path=path, protos=protos)
+    assert not queue, "export_bundle exported fewer graphs than were given to replay"
+    return SimpleNamespace(path=path, protos=protos, speaker=speaker)
+
+
+# -- rebinding recorded graphs to another speaker's weights ------------------------------------------------------
+# torch.onnx makes the same graph for two speakers of one architecture (config, sizes, every non-tensor setting
+# of the modules); only the initializers hold their weights, each named after the module's parameter or buffer
+# (non-persistent buffers included). So a recorded graph whose initializers are replaced, by name, with another
+# speaker's tensors is that speaker's export, in ~0.1 s instead of ~5 s. Anything that would make it not so is
+# refused loudly. tests/test_rebinding.py (slow) proves the equality against a real torch.onnx export.
+
+
+class RebindError(AssertionError):
+    """A recorded graph cannot stand for this module (another architecture, or a weight without a name)."""
+
+
+def graph_modules(speaker) -> list:
+    """The modules export_bundle turns into ONNX graphs, in export order: translator, deform."""
+    from gaussiantalker.exporter.speaker import DeformationGraph
+
+    return [speaker.translator, DeformationGraph(speaker)]
+
+
+def _plain(value) -> bool:
+    """Numbers, strings, None, and tuples/lists/dataclasses made only of them (the settings torch.onnx bakes in)."""
+    if value is None or isinstance(value, bool | int | float | str):
+        return True
+    if isinstance(value, tuple | list):
+        return all(_plain(v) for v in value)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return all(_plain(getattr(value, f.name)) for f in dataclasses.fields(value))
+    return False
+
+
+def module_settings(module) -> dict:
+    """Every plain non-tensor attribute of `module` and its submodules (config, sizes, ids, the FLAME tree...):
+    torch.onnx bakes these into the graph's structure and constants, so they must match for a rebind."""
+    return {f"{name}.{attr}": value for name, sub in module.named_modules() for attr, value in vars(sub).items()
+            if not attr.startswith("_") and attr != "training" and _plain(value)}
+
+
+def _rebind_onnx(proto, module, recorded_module):
+    """A copy of `proto` (torch.onnx's export of `recorded_module`) with every initializer replaced by the tensor
+    of the same name in `module` (parameters and buffers, non-persistent ones included).
+
+    Raises RebindError when the two modules' settings differ, when an initializer of at least
+    EXTERNALIZE_MIN_BYTES (a weight: it becomes a bundle buffer) has no tensor of that name in `module`, or when a
+    name matches with another shape or dtype. Small unmatched initializers are architecture constants (e.g. the
+    identity quaternion torch.onnx lifts out of the code) and are kept."""
+    import numpy as np
+    import onnx
+    from onnx import numpy_helper
+
+    from gaussiantalker.exporter.onnx_export import EXTERNALIZE_MIN_BYTES
+
+    settings, recorded_settings = module_settings(module), module_settings(recorded_module)
+    if settings != recorded_settings:
+        differ = [f"{key} {recorded_settings.get(key, '<missing>')!r} -> {settings.get(key, '<missing>')!r}"
+                  for key in sorted(settings.keys() | recorded_settings.keys())
+                  if settings.get(key, "<missing>") != recorded_settings.get(key, "<missing>")]
+        raise RebindError(f"cannot rebind {type(module).__name__}: settings differ from the recorded module's: "
+                          + ", ".join(differ[:8]))
+    tensors = dict(module.named_parameters()) | dict(module.named_buffers())
+    model = onnx.ModelProto()
+    model.CopyFrom(proto)
+    for initializer in model.graph.initializer:
+        old = numpy_helper.to_array(initializer)
+        tensor = tensors.get(initializer.name)
+        if tensor is None:
+            if old.nbytes >= EXTERNALIZE_MIN_BYTES:
+                raise RebindError(f"initializer {initializer.name!r} ({old.dtype}{list(old.shape)}, {old.nbytes} "
+                                  f"bytes) has no parameter or buffer of that name in {type(module).__name__}")
+            continue
+        new = np.ascontiguousarray(tensor.detach().cpu().numpy())
+        if new.shape != old.shape or new.dtype != old.dtype:
+            raise RebindError(f"initializer {initializer.name!r}: recorded {old.dtype}{list(old.shape)}, "
+                              f"{type(module).__name__} has {new.dtype}{list(new.shape)}")
+        initializer.CopyFrom(numpy_helper.from_array(new, initializer.name))
+    return model
+
+
+def _export_rebound(speaker, path, recorded: SimpleNamespace, **export_kwargs) -> SimpleNamespace:
+    """Export `speaker` to `path` with `recorded`'s graphs (a `demo_export`/`small_export`-like namespace of a
+    speaker of the same architecture) rebound to its weights; buffers, codecs and writing run for real.
+    Returns the same kind of namespace (path, protos, speaker)."""
+    from gaussiantalker.exporter.export import export_bundle
+
+    protos = [_rebind_onnx(proto, module, recorded_module) for proto, module, recorded_module
+              in zip(recorded.protos, graph_modules(speaker), graph_modules(recorded.speaker), strict=True)]
+    with replaying_onnx_exports(protos) as left:
+        export_bundle(speaker, path, progress=export_kwargs.pop("progress", False), **export_kwargs)
+    assert not left, f"export_bundle exported {len(protos) - len(left)} graphs, {len(protos)} were recorded"
+    return SimpleNamespace(path=path, protos=protos, speaker=speaker)
+
+
+@pytest.fixture(scope="session")
+def export_recording():
+    """`export_recording(speaker, path)`: a real export (torch.onnx) that keeps its protos, as the session's."""
+    return _export_recording
+
+
+@pytest.fixture(scope="session")
+def rebind_onnx():
+    """`rebind_onnx(proto, module, recorded_module)`: a recorded graph with `module`'s weights (see above)."""
+    return _rebind_onnx
+
+
+@pytest.fixture(scope="session")
+def export_rebound():
+    """`export_rebound(speaker, path, recorded)`: `speaker` exported with `recorded`'s graphs (a `demo_export` or
+    `small_export` of a speaker of the same architecture) rebound to its weights; no torch.onnx."""
+    return _export_rebound
 
 
 @pytest.fixture(scope="session")
@@ -65,16 +201,11 @@ def small_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
 
 
 @pytest.fixture
-def replay_onnx_exports(monkeypatch):
-    """`replay_onnx_exports(protos)`: the next exports reuse `protos` (in export order) instead of running
-    torch.onnx again; the rest of the export (codecs, bundle writing) runs for real."""
-    import gaussiantalker.exporter.onnx_export as onnx_export_module
-
-    def replay(protos) -> None:
-        queue = iter(protos)
-        monkeypatch.setattr(onnx_export_module, "export_onnx", lambda *args, **kwargs: next(queue))
-
-    return replay
+def replay_onnx_exports():
+    """`replay_onnx_exports(protos)`: the next exports (until the test ends) reuse `protos` (in export order)
+    instead of running torch.onnx again; the rest of the export (codecs, bundle writing) runs for real."""
+    with contextlib.ExitStack() as stack:
+        yield lambda protos: stack.enter_context(replaying_onnx_exports(protos))
 
 
 # -- stability table --------------------------------------------------------------------------------------------
