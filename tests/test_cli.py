@@ -1,11 +1,16 @@
 """Command line end to end in a temp dir: make a (small) demo speaker -> gt-export --verify -> play -> mp4.
 
+In-process (typer's CliRunner on the gt-export app and the sample scripts' apps, the ONNX export replayed from the
+session's small speaker) for the quick run; the same flow in subprocesses, as a user runs it, is marked slow. One
+quick subprocess check runs the installed `gt-export` console script.
+
 A failing --verify (exit 1, the good bundle kept, the new one as NAME.unverified.gtb) is tested in-process, with
 the ONNX export replayed, by tests/test_stability_files.py::test_failed_verify_keeps_the_real_good_bundle.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import shutil
 import subprocess
@@ -13,17 +18,108 @@ import sys
 from pathlib import Path
 
 import pytest
+from typer.testing import CliRunner
 
 from gaussiantalker.sdk.video import probe_video
 
 ROOT = Path(__file__).resolve().parents[1]
 GT_EXPORT = [sys.executable, "-m", "gaussiantalker.exporter.cli"]
+SAMPLE_SPEAKER_ARGS = ["--gaussians", "2000", "--seed", "3", "--train-seconds", "0"]  # = conftest's small_speaker
 
 
 def _run(args, cwd, expect=0):
     result = subprocess.run(args, cwd=cwd, capture_output=True, text=True, check=False)
     assert result.returncode == expect, f"{args} -> {result.returncode}\n{result.stdout}\n{result.stderr}"
     return result
+
+
+def _sample_app(name: str):
+    """The typer app of samples/NAME.py (a script, not a package module)."""
+    spec = importlib.util.spec_from_file_location(f"sample_{name}", ROOT / "samples" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.app
+
+
+def _invoke(app, args, expect=0):
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    assert result.exit_code == expect, (f"{args} -> {result.exit_code}\n{result.stdout}\n{result.stderr}\n"
+                                        f"{result.exception!r}")
+    return result
+
+
+def _check_verified_export(out: str, work: Path) -> None:
+    """What `gt-export speaker.ckpt -o speaker.gtb --verify --report report.json` must leave and say."""
+    assert "verification PASSED" in out
+    report = json.loads((work / "report.json").read_text())
+    assert report["passed"] is True
+    assert len(report["frames"]) == 25 and all("psnr_db" in f for f in report["frames"])
+    assert report["min_psnr_db"] >= 50.0
+    assert set(report["graphs"]) == {"translator", "deform"}
+    assert all("max_abs_err" in g for g in report["graphs"].values())
+    assert (work / "speaker.gtb").is_file()
+    assert not list(work.glob("*unverified*")) and not list(work.glob(".*"))
+
+
+def _check_video(path: Path) -> None:
+    info = probe_video(path)
+    assert info["frames"] == 250  # demo_speech.wav: 10.0 s at 16 kHz -> 250 frames at 25 fps
+    assert info["has_audio"]
+
+
+# -- in-process ---------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def in_process_dir(tmp_path, monkeypatch, small_export, replay_onnx_exports):
+    """A temp dir (the cwd) holding speaker.ckpt from samples/make_demo_speaker.py (the session's small speaker,
+    so gt-export can replay its recorded ONNX graphs; --verify fails if the two were not the same speaker)."""
+    monkeypatch.chdir(tmp_path)
+    _invoke(_sample_app("make_demo_speaker"), ["-o", "speaker.ckpt", *SAMPLE_SPEAKER_ARGS, "-q"])
+    replay_onnx_exports(small_export.protos)
+    return tmp_path
+
+
+def test_export_verify_play_in_process(in_process_dir):
+    from gaussiantalker.exporter.cli import app
+
+    work = in_process_dir
+    result = _invoke(app, ["speaker.ckpt", "-o", "speaker.gtb", "--verify", "--report", "report.json",
+                           "--resolution", "96", "-q"])
+    assert "2000 Gaussians, graphs: translator, deform" in result.stdout
+    assert "bundle: speaker.gtb (verified)" in result.stdout
+    _check_verified_export(result.stdout, work)
+
+    shutil.copy(ROOT / "samples" / "demo_speech.wav", work / "speech.wav")
+    result = _invoke(_sample_app("play"), ["speaker.gtb", "--audio", "speech.wav", "-o", "talk.mp4",
+                                           "--resolution", "128", "-q"])
+    assert "wrote talk.mp4 (250 frames, 10.0 s of audio)" in result.stdout
+    _check_video(work / "talk.mp4")
+
+
+def test_bad_input_gives_clear_errors_in_process(in_process_dir):
+    from gaussiantalker.exporter.cli import app
+
+    result = _invoke(app, ["missing.ckpt"], expect=2)
+    assert "error: checkpoint missing.ckpt does not exist" in result.stderr
+    result = _invoke(app, ["speaker.ckpt", "-o", "x.gtb", "--codec", "zip9"], expect=2)
+    assert "unknown buffer codec 'zip9'" in result.stderr
+    assert not (in_process_dir / "x.gtb").exists()
+    (in_process_dir / "broken.gtb").write_bytes(b"GTBUNDLE" + b"\0" * 10)
+    result = _invoke(_sample_app("play"), ["broken.gtb", "--audio", "nothing.wav", "-o", "x.mp4"], expect=2)
+    assert "error:" in result.stderr and "truncated" in result.stderr
+
+
+def test_console_script_runs(tmp_path):
+    """The installed `gt-export` starts and reports a bad argument with exit 2 and one clear line."""
+    script = shutil.which("gt-export", path=str(Path(sys.executable).parent)) or shutil.which("gt-export")
+    if script is None:
+        pytest.skip("the gt-export console script is not installed (pip install -e .)")
+    result = _run([script, "missing.ckpt"], tmp_path, expect=2)
+    assert result.stderr.strip() == "error: checkpoint missing.ckpt does not exist"
+
+
+# -- subprocesses, as a user runs them (slow: each one imports torch) ---------------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -34,28 +130,20 @@ def workdir(tmp_path_factory):
     return work
 
 
+@pytest.mark.slow  # runs torch.onnx and the player in subprocesses (~20 s); test_export_verify_play_in_process
 def test_export_verify_play(workdir):
     out = _run(GT_EXPORT + ["speaker.ckpt", "-o", "speaker.gtb", "--verify", "--report", "report.json",
                             "--resolution", "96", "-q"], workdir)
-    assert "verification PASSED" in out.stdout
-    report = json.loads((workdir / "report.json").read_text())
-    assert report["passed"] is True
-    assert len(report["frames"]) == 25 and all("psnr_db" in f for f in report["frames"])
-    assert report["min_psnr_db"] >= 50.0
-    assert set(report["graphs"]) == {"translator", "deform"}
-    assert all("max_abs_err" in g for g in report["graphs"].values())
-    assert (workdir / "speaker.gtb").is_file()
-    assert not list(workdir.glob(".*unverified*"))
+    _check_verified_export(out.stdout, workdir)
 
     audio = workdir / "speech.wav"
-    shutil.copy(ROOT / "samples" / "demo_speech.wav", audio)  # 10.0 s at 16 kHz -> 250 frames at 25 fps
+    shutil.copy(ROOT / "samples" / "demo_speech.wav", audio)
     _run([sys.executable, str(ROOT / "samples" / "play.py"), "speaker.gtb", "--audio", str(audio), "-o", "talk.mp4",
           "--resolution", "128", "-q"], workdir)
-    info = probe_video(workdir / "talk.mp4")
-    assert info["frames"] == 250
-    assert info["has_audio"]
+    _check_video(workdir / "talk.mp4")
 
 
+@pytest.mark.slow  # three subprocesses; test_bad_input_gives_clear_errors_in_process checks the same in-process
 def test_bad_input_gives_clear_errors(workdir):
     out = _run(GT_EXPORT + ["missing.ckpt"], workdir, expect=2)
     assert "error: checkpoint missing.ckpt does not exist" in out.stderr
