@@ -18,7 +18,7 @@ from gaussiantalker.runtime import TalkingHead
 FRAMES = 25
 
 
-@pytest.mark.parametrize("size", [256, 512])
+@pytest.mark.parametrize("size", [256, pytest.param(512, marks=pytest.mark.slow)])  # 512: ~5 s of torch frames
 def test_audio_driven_frames_match_torch(demo_speaker, demo_bundle, size):
     with TalkingHead(demo_bundle, resolution=(size, size)) as head:
         report = verify_frames(demo_speaker, head, frames=FRAMES)
