@@ -1,8 +1,8 @@
 """Command line end to end in a temp dir: make a (small) demo speaker -> gt-export --verify -> play -> mp4.
 
 In-process (typer's CliRunner on the gt-export app and the sample scripts' apps, the ONNX export replayed from the
-session's small speaker) for the quick run; the same flow in subprocesses, as a user runs it, is marked slow. One
-quick subprocess check runs the installed `gt-export` console script.
+session's small speaker) for the quick run, with a quick start of the installed `gt-export` console script; the
+same flow in subprocesses, as a user runs it, is marked slow.
 
 A failing --verify (exit 1, the good bundle kept, the new one as NAME.unverified.gtb) is tested in-process, with
 the ONNX export replayed, by tests/test_stability_files.py::test_failed_verify_keeps_the_real_good_bundle.
@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import shutil
 import subprocess
 import sys
+import wave
 from pathlib import Path
 
 import pytest
@@ -27,8 +29,8 @@ GT_EXPORT = [sys.executable, "-m", "gaussiantalker.exporter.cli"]
 SAMPLE_SPEAKER_ARGS = ["--gaussians", "2000", "--seed", "3", "--train-seconds", "0"]  # = conftest's small_speaker
 
 
-def _run(args, cwd, expect=0):
-    result = subprocess.run(args, cwd=cwd, capture_output=True, text=True, check=False)
+def _run(args, cwd, expect=0, env=None):
+    result = subprocess.run(args, cwd=cwd, capture_output=True, text=True, check=False, env=env)
     assert result.returncode == expect, f"{args} -> {result.returncode}\n{result.stdout}\n{result.stderr}"
     return result
 
@@ -61,10 +63,20 @@ def _check_verified_export(out: str, work: Path) -> None:
     assert not list(work.glob("*unverified*")) and not list(work.glob(".*"))
 
 
-def _check_video(path: Path) -> None:
+def _check_video(path: Path, frames: int = 250) -> None:
     info = probe_video(path)
-    assert info["frames"] == 250  # demo_speech.wav: 10.0 s at 16 kHz -> 250 frames at 25 fps
+    assert info["frames"] == frames  # demo_speech.wav: 10.0 s at 16 kHz -> 250 frames at 25 fps
     assert info["has_audio"]
+
+
+def _speech_clip(path: Path, seconds: float) -> Path:
+    """The first `seconds` of samples/demo_speech.wav, as the same kind of wav file."""
+    with wave.open(str(ROOT / "samples" / "demo_speech.wav"), "rb") as source:
+        params, data = source.getparams(), source.readframes(int(seconds * source.getframerate()))
+    with wave.open(str(path), "wb") as clip:
+        clip.setparams(params)
+        clip.writeframes(data)
+    return path
 
 
 # -- in-process ---------------------------------------------------------------------------------------------------
@@ -90,11 +102,11 @@ def test_export_verify_play_in_process(in_process_dir):
     assert "bundle: speaker.gtb (verified)" in result.stdout
     _check_verified_export(result.stdout, work)
 
-    shutil.copy(ROOT / "samples" / "demo_speech.wav", work / "speech.wav")
+    _speech_clip(work / "speech.wav", 2.0)  # 50 frames (the slow subprocess test plays all 10 s)
     result = _invoke(_sample_app("play"), ["speaker.gtb", "--audio", "speech.wav", "-o", "talk.mp4",
                                            "--resolution", "128", "-q"])
-    assert "wrote talk.mp4 (250 frames, 10.0 s of audio)" in result.stdout
-    _check_video(work / "talk.mp4")
+    assert "wrote talk.mp4 (50 frames, 2.0 s of audio)" in result.stdout
+    _check_video(work / "talk.mp4", frames=50)
 
 
 def test_bad_input_gives_clear_errors_in_process(in_process_dir):
@@ -110,12 +122,33 @@ def test_bad_input_gives_clear_errors_in_process(in_process_dir):
     assert "error:" in result.stderr and "truncated" in result.stderr
 
 
-def test_console_script_runs(tmp_path):
-    """The installed `gt-export` starts and reports a bad argument with exit 2 and one clear line."""
+def _console_script() -> str:
     script = shutil.which("gt-export", path=str(Path(sys.executable).parent)) or shutil.which("gt-export")
     if script is None:
         pytest.skip("the gt-export console script is not installed (pip install -e .)")
-    result = _run([script, "missing.ckpt"], tmp_path, expect=2)
+    return script
+
+
+def test_console_script_starts(tmp_path):
+    """The installed `gt-export` runs its entry point; here as in a runtime-only install (the export extra's modules
+    made unimportable, so nothing heavy loads): exit 2 and one line naming them."""
+    from gaussiantalker.exporter.entry import EXPORT_EXTRA_MODULES
+
+    blocked = tmp_path / "blocked"
+    for name in EXPORT_EXTRA_MODULES:
+        (blocked / name).mkdir(parents=True)
+        (blocked / name / "__init__.py").write_text(f"raise ImportError('{name} hidden by the test')\n")
+    env = os.environ | {"PYTHONPATH": os.pathsep.join(filter(None, [str(blocked), os.environ.get("PYTHONPATH")]))}
+    result = _run([_console_script(), "speaker.ckpt"], tmp_path, expect=2, env=env)
+    assert result.stdout == ""
+    assert result.stderr.startswith(f"gt-export: needs the 'export' extra ({', '.join(EXPORT_EXTRA_MODULES)} not "
+                                    "installed)") and len(result.stderr.splitlines()) == 1
+
+
+@pytest.mark.slow  # ~2.5 s: the real script imports torch; test_console_script_starts is the quick check
+def test_console_script_runs(tmp_path):
+    """The installed `gt-export` reports a bad argument with exit 2 and one clear line."""
+    result = _run([_console_script(), "missing.ckpt"], tmp_path, expect=2)
     assert result.stderr.strip() == "error: checkpoint missing.ckpt does not exist"
 
 
