@@ -43,6 +43,12 @@ RNG = np.random.default_rng(12)
 SPEECH = synth_speech(1.0, seed=21)  # 25 frames of speech-like audio at 16 kHz, peak ~0.6
 
 
+def _slow(*cases) -> list:
+    """Parametrized cases that only the full run takes (~0.15 s each): the quick run keeps one or more cases of
+    the same kind (another integer width, common rate, float wav...)."""
+    return [pytest.param(*(case if isinstance(case, tuple) else (case,)), marks=pytest.mark.slow) for case in cases]
+
+
 @pytest.fixture(scope="module")
 def speaker(small_speaker, demo_speaker):
     """A small speaker (2k Gaussians, so long clips render fast) with the demo speaker's trained translator (its
@@ -186,7 +192,7 @@ def test_full_scale_clipped_noise(head, stability):
     stability.record("audio", "speech clipped by +32 dB gain", summary)
 
 
-@pytest.mark.parametrize("dtype", ["int16", "int32", "int64", "uint8", "float16", "float64"])
+@pytest.mark.parametrize("dtype", ["int16", *_slow("int32", "int64"), "uint8", *_slow("float16"), "float64"])
 def test_sample_dtypes_give_the_float32_motion(head, stability, dtype):
     kind = np.dtype(dtype)
     if kind.kind == "f":
@@ -228,7 +234,7 @@ def _tone_accuracy(freq: float, rate: int) -> tuple[float, float, float]:
     return _peak_hz(out) - freq, level_db, error_db
 
 
-@pytest.mark.parametrize("rate", [1000, 8000, 11025, 22050, 44100, 47999, 48000, 383999])
+@pytest.mark.parametrize("rate", [1000, *_slow(8000, 11025, 22050), 44100, 47999, *_slow(48000), 383999])
 def test_rates_are_resampled_to_16k(head, stability, rate):
     """Length round(S * 16k / rate), 1 and 4 kHz tones (250 Hz at 1000 Hz) keep frequency and level, and the
     speech-driven motion survives.
@@ -283,7 +289,7 @@ print(clip.nbytes, out.nbytes, out.shape[0], (kb("VmHWM:") - before) * 1e3, time
 """
 
 
-@pytest.mark.parametrize("rate, seconds", [(48000, 600), (383999, 60)])
+@pytest.mark.parametrize("rate, seconds", [*_slow((48000, 600)), (383999, 60)])
 def test_long_array_resamples_in_bounded_memory(stability, rate, seconds):
     """10 minutes at 48 kHz (115 MB of float32) and 1 minute at 383999 Hz: the resampler needs its output
     (38.4 / 3.8 MB) and a few MB of blocks, measured as peak resident memory in a fresh interpreter (libsoxr
@@ -333,9 +339,9 @@ def files(tmp_path_factory) -> dict[str, Path]:
     return {p.name: p for p in d.iterdir()} | {"missing.wav": d / "missing.wav"}
 
 
-@pytest.mark.parametrize("name, seconds", [("int16.wav", 2.0), ("float32_44k.wav", 2.0),
+@pytest.mark.parametrize("name, seconds", [("int16.wav", 2.0), *_slow(("float32_44k.wav", 2.0)),
                                            ("stereo_float64_48k.wav", 2.0), ("speech.mp3", 2.0),
-                                           ("speech.m4a", 2.0), ("truncated_half.wav", 1.0)])
+                                           *_slow(("speech.m4a", 2.0)), ("truncated_half.wav", 1.0)])
 def test_readable_files(head, stability, files, name, seconds):
     """Decoded to 16 kHz mono of the right duration; a truncated wav plays what is there (as players do)."""
     decoded = load_audio(files[name])
