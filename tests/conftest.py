@@ -1,7 +1,8 @@
-"""Shared fixtures, each built once per session (deterministic): the demo speaker and its fp32 bundle, a small
-untrained speaker and its bundle (with the ONNX protos of both, so tests can re-export in ~1 s), and the helpers
-that re-export without torch.onnx: `replay_onnx_exports` (the same speaker again) and `export_rebound` (another
-speaker of the same architecture: the recorded graphs with that speaker's weights)."""
+"""Shared fixtures, each built once per session (deterministic): a small trained speaker and its fp32 bundle (the
+quick run's speaker), the 20k-Gaussian demo speaker and its bundle (the full run's; `speaker_export` gives tests
+both), with the ONNX protos torch.onnx made for each, and the helpers that export again without torch.onnx:
+`replay_onnx_exports` (the same speaker) and `export_rebound` / `rebind_onnx_exports` (another speaker of the same
+architecture: the recorded graphs with that speaker's weights)."""
 
 from __future__ import annotations
 
@@ -41,24 +42,21 @@ def replaying_onnx_exports(protos: Sequence) -> Iterator[list]:
         yield queue
 
 
-def _export_recording(speaker, path, replay: Sequence = ()) -> SimpleNamespace:
-    """Export `speaker` to `path`, keeping the two ONNX protos (translator, deform): torch.onnx's, except that the
-    first graphs come from `replay` when given."""
+def _export_recording(speaker, path) -> SimpleNamespace:
+    """Export `speaker` to `path`, keeping the two ONNX protos torch.onnx made (translator, deform)."""
     import gaussiantalker.exporter.onnx_export as onnx_export_module
     from gaussiantalker.exporter.export import export_bundle
 
     protos = []
-    queue = list(replay)
     real_export_onnx = onnx_export_module.export_onnx
 
     def recording(*args, **kwargs):
-        protos.append(queue.pop(0) if queue else real_export_onnx(*args, **kwargs))
+        protos.append(real_export_onnx(*args, **kwargs))
         return protos[-1]
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(onnx_export_module, "export_onnx", recording)
         export_bundle(speaker, path, progress=False)
-    assert not queue, "export_bundle exported fewer graphs than were given to replay"
     return SimpleNamespace(path=path, protos=protos, speaker=speaker)
 
 
@@ -139,17 +137,37 @@ def _rebind_onnx(proto, module, recorded_module):
     return model
 
 
+@contextlib.contextmanager
+def rebinding_onnx_exports(recorded: SimpleNamespace) -> Iterator[list]:
+    """Within the block, export_onnx(module, ...) returns the next recorded graph of `recorded` (a `small_export`-
+    like namespace) rebound to `module`'s weights instead of running torch.onnx; so any speaker of the recorded
+    speaker's architecture exports (gt-export included). Yields the list of rebound protos handed out so far."""
+    import gaussiantalker.exporter.onnx_export as onnx_export_module
+
+    queue = list(zip(recorded.protos, graph_modules(recorded.speaker), strict=True))
+    handed_out = []
+
+    def rebinding(module, *args, **kwargs):
+        if not queue:
+            raise AssertionError("export_onnx called more often than there are recorded protos")
+        proto, recorded_module = queue.pop(0)
+        handed_out.append(_rebind_onnx(proto, module, recorded_module))
+        return handed_out[-1]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(onnx_export_module, "export_onnx", rebinding)
+        yield handed_out
+
+
 def _export_rebound(speaker, path, recorded: SimpleNamespace, **export_kwargs) -> SimpleNamespace:
-    """Export `speaker` to `path` with `recorded`'s graphs (a `demo_export`/`small_export`-like namespace of a
-    speaker of the same architecture) rebound to its weights; buffers, codecs and writing run for real.
+    """Export `speaker` to `path` with `recorded`'s graphs (a `small_export`-like namespace of a speaker of the
+    same architecture) rebound to its weights; buffers, codecs and writing run for real.
     Returns the same kind of namespace (path, protos, speaker)."""
     from gaussiantalker.exporter.export import export_bundle
 
-    protos = [_rebind_onnx(proto, module, recorded_module) for proto, module, recorded_module
-              in zip(recorded.protos, graph_modules(speaker), graph_modules(recorded.speaker), strict=True)]
-    with replaying_onnx_exports(protos) as left:
+    with rebinding_onnx_exports(recorded) as protos:
         export_bundle(speaker, path, progress=export_kwargs.pop("progress", False), **export_kwargs)
-    assert not left, f"export_bundle exported {len(protos) - len(left)} graphs, {len(protos)} were recorded"
+    assert len(protos) == len(recorded.protos), f"exported {len(protos)} graphs, not {len(recorded.protos)}"
     return SimpleNamespace(path=path, protos=protos, speaker=speaker)
 
 
@@ -167,8 +185,8 @@ def rebind_onnx():
 
 @pytest.fixture(scope="session")
 def export_rebound():
-    """`export_rebound(speaker, path, recorded)`: `speaker` exported with `recorded`'s graphs (a `demo_export` or
-    `small_export` of a speaker of the same architecture) rebound to its weights; no torch.onnx."""
+    """`export_rebound(speaker, path, recorded)`: `speaker` exported with `recorded`'s graphs (e.g. `small_export`,
+    for a speaker of the same architecture) rebound to its weights; no torch.onnx."""
     return _export_rebound
 
 
@@ -186,10 +204,12 @@ def demo_bundle(demo_export):
 
 @pytest.fixture(scope="session")
 def small_speaker():
-    """A 2k-Gaussian untrained speaker for tests that exercise plumbing, not quality."""
+    """A 2k-Gaussian demo speaker (seed 3), its translator trained as `make_demo_speaker.py` does (the jaw follows
+    loudness): the quick run's speaker (its torch frames are ~4x cheaper than the 20k demo speaker's)."""
     from gaussiantalker.exporter.demo_speaker import make_demo_speaker
 
-    speaker, _ = make_demo_speaker(n_gaussians=2000, seed=3, train_seconds=0, progress=False)
+    speaker, metrics = make_demo_speaker(n_gaussians=2000, seed=3, progress=False)
+    speaker.metrics = metrics
     return speaker
 
 
@@ -200,12 +220,27 @@ def small_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
     return _export_recording(small_speaker, tmp_path_factory.mktemp("small") / "small.gtb")
 
 
+@pytest.fixture(scope="session", params=["small", pytest.param("demo", marks=pytest.mark.slow)])
+def speaker_export(request) -> SimpleNamespace:
+    """Each speaker with its bundle and protos (`.speaker`, `.path`, `.protos`): the small one in the quick run,
+    also the 20k-Gaussian demo speaker (the default `make_demo_speaker.py` builds) in the full run."""
+    return request.getfixturevalue(f"{request.param}_export")
+
+
 @pytest.fixture
 def replay_onnx_exports():
     """`replay_onnx_exports(protos)`: the next exports (until the test ends) reuse `protos` (in export order)
     instead of running torch.onnx again; the rest of the export (codecs, bundle writing) runs for real."""
     with contextlib.ExitStack() as stack:
         yield lambda protos: stack.enter_context(replaying_onnx_exports(protos))
+
+
+@pytest.fixture
+def rebind_onnx_exports():
+    """`rebind_onnx_exports(recorded)`: the next exports (until the test ends) rebind `recorded`'s graphs to the
+    modules they are given (`rebinding_onnx_exports`), e.g. for gt-export on another speaker of that architecture."""
+    with contextlib.ExitStack() as stack:
+        yield lambda recorded: stack.enter_context(rebinding_onnx_exports(recorded))
 
 
 # -- stability table --------------------------------------------------------------------------------------------

@@ -1,8 +1,8 @@
 """Command line end to end in a temp dir: make a (small) demo speaker -> gt-export --verify -> play -> mp4.
 
-In-process (typer's CliRunner on the gt-export app and the sample scripts' apps, the ONNX export replayed from the
-session's small speaker) for the quick run, with a quick start of the installed `gt-export` console script; the
-same flow in subprocesses, as a user runs it, is marked slow.
+In-process (typer's CliRunner on the gt-export app and the sample scripts' apps, the session's recorded ONNX graphs
+rebound to the exported speaker instead of torch.onnx) for the quick run, with a quick start of the installed
+`gt-export` console script; the same flow in subprocesses, as a user runs it, is marked slow.
 
 A failing --verify (exit 1, the good bundle kept, the new one as NAME.unverified.gtb) is tested in-process, with
 the ONNX export replayed, by tests/test_stability_files.py::test_failed_verify_keeps_the_real_good_bundle.
@@ -26,7 +26,8 @@ from gaussiantalker.sdk.video import probe_video
 
 ROOT = Path(__file__).resolve().parents[1]
 GT_EXPORT = [sys.executable, "-m", "gaussiantalker.exporter.cli"]
-SAMPLE_SPEAKER_ARGS = ["--gaussians", "2000", "--seed", "3", "--train-seconds", "0"]  # = conftest's small_speaker
+# An untrained 2k-Gaussian demo speaker: another speaker of the session's small speaker's architecture.
+SAMPLE_SPEAKER_ARGS = ["--gaussians", "2000", "--seed", "5", "--train-seconds", "0"]
 
 
 def _run(args, cwd, expect=0, env=None):
@@ -83,12 +84,13 @@ def _speech_clip(path: Path, seconds: float) -> Path:
 
 
 @pytest.fixture
-def in_process_dir(tmp_path, monkeypatch, small_export, replay_onnx_exports):
-    """A temp dir (the cwd) holding speaker.ckpt from samples/make_demo_speaker.py (the session's small speaker,
-    so gt-export can replay its recorded ONNX graphs; --verify fails if the two were not the same speaker)."""
+def in_process_dir(tmp_path, monkeypatch, small_export, rebind_onnx_exports):
+    """A temp dir (the cwd) holding speaker.ckpt from samples/make_demo_speaker.py; gt-export rebinds the session's
+    recorded ONNX graphs to the speaker it loads instead of running torch.onnx (--verify would catch a bundle
+    that is not that speaker's)."""
     monkeypatch.chdir(tmp_path)
     _invoke(_sample_app("make_demo_speaker"), ["-o", "speaker.ckpt", *SAMPLE_SPEAKER_ARGS, "-q"])
-    replay_onnx_exports(small_export.protos)
+    rebind_onnx_exports(small_export)
     return tmp_path
 
 

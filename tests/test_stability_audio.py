@@ -6,7 +6,6 @@ afterwards. Each case is recorded in the stability table with what was observed.
 
 from __future__ import annotations
 
-import copy
 import itertools
 import struct
 import subprocess
@@ -50,20 +49,14 @@ def _slow(*cases) -> list:
 
 
 @pytest.fixture(scope="module")
-def speaker(small_speaker, demo_speaker):
-    """A small speaker (2k Gaussians, so long clips render fast) with the demo speaker's trained translator (its
-    jaw follows loudness): the small speaker's architecture, so its bundle needs no torch.onnx (`head`)."""
-    assert small_speaker.config == demo_speaker.config  # same translator architecture
-    built = copy.deepcopy(small_speaker)
-    built.translator.load_state_dict(demo_speaker.translator.state_dict())
-    return built.eval()
+def speaker(small_speaker):
+    """The session's small trained speaker (2k Gaussians, so long clips render fast; its jaw follows loudness)."""
+    return small_speaker
 
 
 @pytest.fixture(scope="module")
-def head(speaker, small_export, export_rebound, tmp_path_factory):
-    """The speaker's bundle: the small speaker's recorded graphs with this speaker's weights (conftest)."""
-    path = export_rebound(speaker, tmp_path_factory.mktemp("audio-bundle") / "small.gtb", small_export).path
-    with TalkingHead(path, resolution=(32, 32)) as talking_head:
+def head(small_export):
+    with TalkingHead(small_export.path, resolution=(32, 32)) as talking_head:
         yield talking_head
 
 

@@ -63,7 +63,7 @@ FEW = settings(derandomize=True, max_examples=4, deadline=None)
 
 @pytest.fixture(scope="module")
 def base_speaker(small_speaker) -> Speaker:
-    """The small untrained demo speaker (2k Gaussians; the session's, never modified here)."""
+    """The session's small demo speaker (2k Gaussians; never modified here)."""
     return small_speaker
 
 

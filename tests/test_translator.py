@@ -173,14 +173,13 @@ def test_onnx_dynamic_length_parity(model: MotionTranslator, tmp_path) -> None:
     _check_translator_file(path, model)
 
 
-def test_onnx_dynamic_length_parity_of_the_recorded_export(demo_speaker, demo_export, tmp_path,
-                                                           replay_onnx_exports) -> None:
-    """The demo speaker's translator as torch.onnx exported it for the session's bundle (replayed), written by
-    export_translator_onnx."""
-    replay_onnx_exports(demo_export.protos[:1])
+def test_onnx_dynamic_length_parity_of_the_recorded_export(small_export, tmp_path, replay_onnx_exports) -> None:
+    """The small speaker's (trained) translator as torch.onnx exported it for the session's bundle (replayed),
+    written by export_translator_onnx."""
+    replay_onnx_exports(small_export.protos[:1])
     path = tmp_path / "translator.onnx"
-    export_translator_onnx(demo_speaker.translator, path, example_frames=8)
-    _check_translator_file(path, demo_speaker.translator)
+    export_translator_onnx(small_export.speaker.translator, path, example_frames=8)
+    _check_translator_file(path, small_export.speaker.translator)
 
 
 def test_paper_config_is_wav2vec2_large_sized() -> None:
