@@ -57,7 +57,8 @@ sys.argv = ["{command}", "speaker.ckpt"]
 """
 
 
-@pytest.mark.parametrize("command, entry", [("gt-export", "gt_export"), ("gt-bench", "gt_bench")])
+@pytest.mark.parametrize("command, entry", [("gt-export", "gt_export"),
+                                            pytest.param("gt-bench", "gt_bench", marks=pytest.mark.slow)])  # same check
 def test_exporter_commands_without_torch_say_what_to_install(command, entry):
     """Without the export extra, gt-export / gt-bench exit 2 with one line naming the extra (no traceback)."""
     code = BLOCKED_EXPORT_EXTRA.format(entry=entry, command=command)

@@ -78,8 +78,8 @@ def _render(head: TalkingHead, audio, sample_rate: int | None = None) -> tuple[l
 
 def _still_renders(head: TalkingHead) -> None:
     """After an error the same head renders a normal clip: right frame count, finite, the mouth moves."""
-    frames, jaw, _ = _render(head, SPEECH, SR)
-    assert len(frames) == 25 and jaw.max() > 0.1
+    frames, jaw, _ = _render(head, SPEECH[: 10 * SPF], SR)  # 0.4 s, a syllable and a half
+    assert len(frames) == 10 and jaw.max() > 0.1
 
 
 def _expect_error(head: TalkingHead, stability, case: str, match: str, audio, sample_rate=None) -> str:
@@ -346,7 +346,8 @@ def test_readable_files(head, stability, files, name, seconds):
 
 @pytest.mark.parametrize("name, match", [
     ("video_only.mp4", "has no audio stream"), ("truncated_header.wav", "cannot decode"),
-    ("truncated_tiny.mp3", "cannot decode"), ("garbage.mp3", "cannot decode"), ("empty.wav", "cannot decode"),
+    *_slow(("truncated_tiny.mp3", "cannot decode")), ("garbage.mp3", "cannot decode"),
+    *_slow(("empty.wav", "cannot decode")),
     ("nan_float.wav", "non-finite"), ("huge_float.wav", "float audio must stay within"),
     ("folder.wav", "is not a file"), ("missing.wav", "does not exist")])
 def test_unusable_files_are_named(head, stability, files, name, match):
