@@ -1,8 +1,14 @@
-"""Shared fixtures, each built once per session (deterministic): the demo speaker and its fp32 bundle, a small
-untrained speaker and its bundle (with the ONNX protos torch.onnx made for it, so tests can re-export in ~1 s)."""
+"""Shared fixtures, each built once per session (deterministic): a small trained speaker and its fp32 bundle (the
+quick run's speaker), the 20k-Gaussian demo speaker and its bundle (the full run's; `speaker_export` gives tests
+both), with the ONNX protos torch.onnx made for each, and the helpers that export again without torch.onnx:
+`replay_onnx_exports` (the same speaker) and `export_rebound` / `rebind_onnx_exports` (another speaker of the same
+architecture: the recorded graphs with that speaker's weights)."""
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+from collections.abc import Iterator, Sequence
 from types import SimpleNamespace
 
 import pytest
@@ -16,6 +22,24 @@ def demo_speaker():
     speaker, metrics = make_demo_speaker(progress=False)
     speaker.metrics = metrics
     return speaker
+
+
+@contextlib.contextmanager
+def replaying_onnx_exports(protos: Sequence) -> Iterator[list]:
+    """Within the block, export_onnx returns `protos` in order instead of running torch.onnx (the rest of an
+    export runs for real). Yields the list of protos not handed out yet."""
+    import gaussiantalker.exporter.onnx_export as onnx_export_module
+
+    queue = list(protos)
+
+    def replay(*args, **kwargs):
+        if not queue:
+            raise AssertionError("export_onnx called more often than there are recorded protos")
+        return queue.pop(0)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(onnx_export_module, "export_onnx", replay)
+        yield queue
 
 
 def _export_recording(speaker, path) -> SimpleNamespace:
@@ -33,13 +57,162 @@ def _export_recording(speaker, path) -> SimpleNamespace:
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(onnx_export_module, "export_onnx", recording)
         export_bundle(speaker, path, progress=False)
-    return SimpleNamespace(path=path, protos=protos)
+    return SimpleNamespace(path=path, protos=protos, speaker=speaker)
+
+
+def _settle_heap() -> None:
+    """Collect garbage now, then move every surviving object out of later garbage collections (gc.freeze).
+
+    Called after the collection phase and after each session export: importing torch and running torch.onnx leave
+    ~500k long-lived objects (modules, op registries, dynamo caches), and every full collection rescans all of them
+    (~0.15 s each: ~2 s per session during the tests, as much again in pytest's final collections). Objects that
+    tests create stay in the normal generations, so their garbage (and unraisable exceptions) is seen as before."""
+    import gc
+
+    gc.collect()
+    gc.freeze()
+
+
+def pytest_collection_finish(session):
+    _settle_heap()
+
+
+# -- rebinding recorded graphs to another speaker's weights ------------------------------------------------------
+# torch.onnx makes the same graph for two speakers of one architecture (config, sizes, every non-tensor setting
+# of the modules); only the initializers hold their weights, each named after the module's parameter or buffer
+# (non-persistent buffers included). So a recorded graph whose initializers are replaced, by name, with another
+# speaker's tensors is that speaker's export, in ~0.1 s instead of ~5 s. Anything that would make it not so is
+# refused loudly. tests/test_rebinding.py (slow) proves the equality against a real torch.onnx export.
+
+
+class RebindError(AssertionError):
+    """A recorded graph cannot stand for this module (another architecture, or a weight without a name)."""
+
+
+def graph_modules(speaker) -> list:
+    """The modules export_bundle turns into ONNX graphs, in export order: translator, deform."""
+    from gaussiantalker.exporter.deform_graph import DeformationGraph
+
+    return [speaker.translator, DeformationGraph(speaker)]
+
+
+def _plain(value) -> bool:
+    """Numbers, strings, None, and tuples/lists/dataclasses made only of them (the settings torch.onnx bakes in)."""
+    if value is None or isinstance(value, bool | int | float | str):
+        return True
+    if isinstance(value, tuple | list):
+        return all(_plain(v) for v in value)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return all(_plain(getattr(value, f.name)) for f in dataclasses.fields(value))
+    return False
+
+
+def module_settings(module) -> dict:
+    """Every plain non-tensor attribute of `module` and its submodules (config, sizes, ids, the FLAME tree...):
+    torch.onnx bakes these into the graph's structure and constants, so they must match for a rebind."""
+    return {f"{name}.{attr}": value for name, sub in module.named_modules() for attr, value in vars(sub).items()
+            if not attr.startswith("_") and attr != "training" and _plain(value)}
+
+
+def _rebind_onnx(proto, module, recorded_module):
+    """A copy of `proto` (torch.onnx's export of `recorded_module`) with every initializer replaced by the tensor
+    of the same name in `module` (parameters and buffers, non-persistent ones included).
+
+    Raises RebindError when the two modules' settings differ, when an initializer of at least
+    EXTERNALIZE_MIN_BYTES (a weight: it becomes a bundle buffer) has no tensor of that name in `module`, or when a
+    name matches with another shape or dtype. Small unmatched initializers are architecture constants (e.g. the
+    identity quaternion torch.onnx lifts out of the code) and are kept."""
+    import numpy as np
+    import onnx
+    from onnx import numpy_helper
+
+    from gaussiantalker.exporter.onnx_export import EXTERNALIZE_MIN_BYTES
+
+    settings, recorded_settings = module_settings(module), module_settings(recorded_module)
+    if settings != recorded_settings:
+        differ = [f"{key} {recorded_settings.get(key, '<missing>')!r} -> {settings.get(key, '<missing>')!r}"
+                  for key in sorted(settings.keys() | recorded_settings.keys())
+                  if settings.get(key, "<missing>") != recorded_settings.get(key, "<missing>")]
+        raise RebindError(f"cannot rebind {type(module).__name__}: settings differ from the recorded module's: "
+                          + ", ".join(differ[:8]))
+    tensors = dict(module.named_parameters()) | dict(module.named_buffers())
+    model = onnx.ModelProto()
+    model.CopyFrom(proto)
+    for initializer in model.graph.initializer:
+        old = numpy_helper.to_array(initializer)
+        tensor = tensors.get(initializer.name)
+        if tensor is None:
+            if old.nbytes >= EXTERNALIZE_MIN_BYTES:
+                raise RebindError(f"initializer {initializer.name!r} ({old.dtype}{list(old.shape)}, {old.nbytes} "
+                                  f"bytes) has no parameter or buffer of that name in {type(module).__name__}")
+            continue
+        new = np.ascontiguousarray(tensor.detach().cpu().numpy())
+        if new.shape != old.shape or new.dtype != old.dtype:
+            raise RebindError(f"initializer {initializer.name!r}: recorded {old.dtype}{list(old.shape)}, "
+                              f"{type(module).__name__} has {new.dtype}{list(new.shape)}")
+        initializer.CopyFrom(numpy_helper.from_array(new, initializer.name))
+    return model
+
+
+@contextlib.contextmanager
+def rebinding_onnx_exports(recorded: SimpleNamespace) -> Iterator[list]:
+    """Within the block, export_onnx(module, ...) returns the next recorded graph of `recorded` (a `small_export`-
+    like namespace) rebound to `module`'s weights instead of running torch.onnx; so any speaker of the recorded
+    speaker's architecture exports (gt-export included). Yields the list of rebound protos handed out so far."""
+    import gaussiantalker.exporter.onnx_export as onnx_export_module
+
+    queue = list(zip(recorded.protos, graph_modules(recorded.speaker), strict=True))
+    handed_out = []
+
+    def rebinding(module, *args, **kwargs):
+        if not queue:
+            raise AssertionError("export_onnx called more often than there are recorded protos")
+        proto, recorded_module = queue.pop(0)
+        handed_out.append(_rebind_onnx(proto, module, recorded_module))
+        return handed_out[-1]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(onnx_export_module, "export_onnx", rebinding)
+        yield handed_out
+
+
+def _export_rebound(speaker, path, recorded: SimpleNamespace, **export_kwargs) -> SimpleNamespace:
+    """Export `speaker` to `path` with `recorded`'s graphs (a `small_export`-like namespace of a speaker of the
+    same architecture) rebound to its weights; buffers, codecs and writing run for real.
+    Returns the same kind of namespace (path, protos, speaker)."""
+    from gaussiantalker.exporter.export import export_bundle
+
+    with rebinding_onnx_exports(recorded) as protos:
+        export_bundle(speaker, path, progress=export_kwargs.pop("progress", False), **export_kwargs)
+    assert len(protos) == len(recorded.protos), f"exported {len(protos)} graphs, not {len(recorded.protos)}"
+    return SimpleNamespace(path=path, protos=protos, speaker=speaker)
+
+
+@pytest.fixture(scope="session")
+def export_recording():
+    """`export_recording(speaker, path)`: a real export (torch.onnx) that keeps its protos, as the session's."""
+    return _export_recording
+
+
+@pytest.fixture(scope="session")
+def rebind_onnx():
+    """`rebind_onnx(proto, module, recorded_module)`: a recorded graph with `module`'s weights (see above)."""
+    return _rebind_onnx
+
+
+@pytest.fixture(scope="session")
+def export_rebound():
+    """`export_rebound(speaker, path, recorded)`: `speaker` exported with `recorded`'s graphs (e.g. `small_export`,
+    for a speaker of the same architecture) rebound to its weights; no torch.onnx."""
+    return _export_rebound
 
 
 @pytest.fixture(scope="session")
 def demo_export(demo_speaker, tmp_path_factory) -> SimpleNamespace:
     """The demo speaker exported as an fp32 bundle (`.path`) and its ONNX protos (`.protos`)."""
-    return _export_recording(demo_speaker, tmp_path_factory.mktemp("bundle") / "demo.gtb")
+    export = _export_recording(demo_speaker, tmp_path_factory.mktemp("bundle") / "demo.gtb")
+    _settle_heap()
+    return export
 
 
 @pytest.fixture(scope="session")
@@ -50,10 +223,12 @@ def demo_bundle(demo_export):
 
 @pytest.fixture(scope="session")
 def small_speaker():
-    """A 2k-Gaussian untrained speaker for tests that exercise plumbing, not quality."""
+    """A 2k-Gaussian demo speaker (seed 3), its translator trained as `make_demo_speaker.py` does (the jaw follows
+    loudness): the quick run's speaker (its torch frames are ~4x cheaper than the 20k demo speaker's)."""
     from gaussiantalker.exporter.demo_speaker import make_demo_speaker
 
-    speaker, _ = make_demo_speaker(n_gaussians=2000, seed=3, train_seconds=0, progress=False)
+    speaker, metrics = make_demo_speaker(n_gaussians=2000, seed=3, progress=False)
+    speaker.metrics = metrics
     return speaker
 
 
@@ -61,20 +236,32 @@ def small_speaker():
 def small_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
     """`small_speaker` exported once: `.path` the fp32 bundle, `.protos` its two ONNX graphs as torch.onnx made
     them (translator, deform) for tests that export again without paying for torch.onnx."""
-    return _export_recording(small_speaker, tmp_path_factory.mktemp("small") / "small.gtb")
+    export = _export_recording(small_speaker, tmp_path_factory.mktemp("small") / "small.gtb")
+    _settle_heap()
+    return export
+
+
+@pytest.fixture(scope="session", params=["small", pytest.param("demo", marks=pytest.mark.slow)])
+def speaker_export(request) -> SimpleNamespace:
+    """Each speaker with its bundle and protos (`.speaker`, `.path`, `.protos`): the small one in the quick run,
+    also the 20k-Gaussian demo speaker (the default `make_demo_speaker.py` builds) in the full run."""
+    return request.getfixturevalue(f"{request.param}_export")
 
 
 @pytest.fixture
-def replay_onnx_exports(monkeypatch):
-    """`replay_onnx_exports(protos)`: the next exports reuse `protos` (in export order) instead of running
-    torch.onnx again; the rest of the export (codecs, bundle writing) runs for real."""
-    import gaussiantalker.exporter.onnx_export as onnx_export_module
+def replay_onnx_exports():
+    """`replay_onnx_exports(protos)`: the next exports (until the test ends) reuse `protos` (in export order)
+    instead of running torch.onnx again; the rest of the export (codecs, bundle writing) runs for real."""
+    with contextlib.ExitStack() as stack:
+        yield lambda protos: stack.enter_context(replaying_onnx_exports(protos))
 
-    def replay(protos) -> None:
-        queue = iter(protos)
-        monkeypatch.setattr(onnx_export_module, "export_onnx", lambda *args, **kwargs: next(queue))
 
-    return replay
+@pytest.fixture
+def rebind_onnx_exports():
+    """`rebind_onnx_exports(recorded)`: the next exports (until the test ends) rebind `recorded`'s graphs to the
+    modules they are given (`rebinding_onnx_exports`), e.g. for gt-export on another speaker of that architecture."""
+    with contextlib.ExitStack() as stack:
+        yield lambda recorded: stack.enter_context(rebinding_onnx_exports(recorded))
 
 
 # -- stability table --------------------------------------------------------------------------------------------

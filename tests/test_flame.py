@@ -372,6 +372,7 @@ class _LbsModule(torch.nn.Module):
         return verts
 
 
+@pytest.mark.slow  # a torch.onnx export (~4 s); the quick run exports lbs inside the deform graph (test_graph_parity)
 @pytest.mark.filterwarnings("ignore::UserWarning", "ignore::FutureWarning")
 def test_lbs_exports_to_onnx_with_dynamic_batch(tmp_path):
     ort = pytest.importorskip("onnxruntime")

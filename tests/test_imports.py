@@ -30,6 +30,15 @@ def test_module_does_not_pull_forbidden_imports(module, forbidden):
     assert result.stdout.strip() == "", f"{module} imported {result.stdout.strip()}"
 
 
+def test_the_check_itself_detects_a_forbidden_import():
+    """Guard against a check that cannot fail, without importing torch (~1.5 s): the sdk's bundle reader does
+    import numpy, so a check forbidding numpy reports it."""
+    code = CHECK.format(module="gaussiantalker.sdk.bundle", forbidden=repr({"numpy"}))
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert result.stdout.strip() == "numpy"
+
+
+@pytest.mark.slow  # imports torch in a fresh interpreter (~1.5 s); the quick guard is the numpy one above
 def test_the_check_itself_detects_torch():
     """Guard against a check that cannot fail: importing the exporter does pull torch (where torch is installed;
     .ci/runtime-only also runs this file in a virtualenv without it)."""
@@ -48,7 +57,8 @@ sys.argv = ["{command}", "speaker.ckpt"]
 """
 
 
-@pytest.mark.parametrize("command, entry", [("gt-export", "gt_export"), ("gt-bench", "gt_bench")])
+@pytest.mark.parametrize("command, entry", [("gt-export", "gt_export"),
+                                            pytest.param("gt-bench", "gt_bench", marks=pytest.mark.slow)])  # same check
 def test_exporter_commands_without_torch_say_what_to_install(command, entry):
     """Without the export extra, gt-export / gt-bench exit 2 with one line naming the extra (no traceback)."""
     code = BLOCKED_EXPORT_EXTRA.format(entry=entry, command=command)

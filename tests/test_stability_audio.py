@@ -42,23 +42,21 @@ RNG = np.random.default_rng(12)
 SPEECH = synth_speech(1.0, seed=21)  # 25 frames of speech-like audio at 16 kHz, peak ~0.6
 
 
-@pytest.fixture(scope="module")
-def speaker():
-    """A small trained demo speaker (2k Gaussians, so long clips render fast; the translator is trained so its
-    jaw follows loudness)."""
-    from gaussiantalker.exporter.demo_speaker import make_demo_speaker
-
-    built, _ = make_demo_speaker(n_gaussians=2000, seed=3, progress=False)
-    return built
+def _slow(*cases) -> list:
+    """Parametrized cases that only the full run takes (~0.15 s each): the quick run keeps one or more cases of
+    the same kind (another integer width, common rate, float wav...)."""
+    return [pytest.param(*(case if isinstance(case, tuple) else (case,)), marks=pytest.mark.slow) for case in cases]
 
 
 @pytest.fixture(scope="module")
-def head(speaker, tmp_path_factory):
-    from gaussiantalker.exporter.export import export_bundle
+def speaker(small_speaker):
+    """The session's small trained speaker (2k Gaussians, so long clips render fast; its jaw follows loudness)."""
+    return small_speaker
 
-    path = tmp_path_factory.mktemp("audio-bundle") / "small.gtb"
-    export_bundle(speaker, path, progress=False)
-    with TalkingHead(path, resolution=(32, 32)) as talking_head:
+
+@pytest.fixture(scope="module")
+def head(small_export):
+    with TalkingHead(small_export.path, resolution=(32, 32)) as talking_head:
         yield talking_head
 
 
@@ -80,8 +78,8 @@ def _render(head: TalkingHead, audio, sample_rate: int | None = None) -> tuple[l
 
 def _still_renders(head: TalkingHead) -> None:
     """After an error the same head renders a normal clip: right frame count, finite, the mouth moves."""
-    frames, jaw, _ = _render(head, SPEECH, SR)
-    assert len(frames) == 25 and jaw.max() > 0.1
+    frames, jaw, _ = _render(head, SPEECH[: 10 * SPF], SR)  # 0.4 s, a syllable and a half
+    assert len(frames) == 10 and jaw.max() > 0.1
 
 
 def _expect_error(head: TalkingHead, stability, case: str, match: str, audio, sample_rate=None) -> str:
@@ -187,7 +185,7 @@ def test_full_scale_clipped_noise(head, stability):
     stability.record("audio", "speech clipped by +32 dB gain", summary)
 
 
-@pytest.mark.parametrize("dtype", ["int16", "int32", "int64", "uint8", "float16", "float64"])
+@pytest.mark.parametrize("dtype", ["int16", *_slow("int32", "int64"), "uint8", *_slow("float16"), "float64"])
 def test_sample_dtypes_give_the_float32_motion(head, stability, dtype):
     kind = np.dtype(dtype)
     if kind.kind == "f":
@@ -229,7 +227,7 @@ def _tone_accuracy(freq: float, rate: int) -> tuple[float, float, float]:
     return _peak_hz(out) - freq, level_db, error_db
 
 
-@pytest.mark.parametrize("rate", [1000, 8000, 11025, 22050, 44100, 47999, 48000, 383999])
+@pytest.mark.parametrize("rate", [1000, *_slow(8000, 11025, 22050), 44100, 47999, *_slow(48000), 383999])
 def test_rates_are_resampled_to_16k(head, stability, rate):
     """Length round(S * 16k / rate), 1 and 4 kHz tones (250 Hz at 1000 Hz) keep frequency and level, and the
     speech-driven motion survives.
@@ -284,7 +282,7 @@ print(clip.nbytes, out.nbytes, out.shape[0], (kb("VmHWM:") - before) * 1e3, time
 """
 
 
-@pytest.mark.parametrize("rate, seconds", [(48000, 600), (383999, 60)])
+@pytest.mark.parametrize("rate, seconds", [*_slow((48000, 600)), (383999, 60)])
 def test_long_array_resamples_in_bounded_memory(stability, rate, seconds):
     """10 minutes at 48 kHz (115 MB of float32) and 1 minute at 383999 Hz: the resampler needs its output
     (38.4 / 3.8 MB) and a few MB of blocks, measured as peak resident memory in a fresh interpreter (libsoxr
@@ -334,9 +332,9 @@ def files(tmp_path_factory) -> dict[str, Path]:
     return {p.name: p for p in d.iterdir()} | {"missing.wav": d / "missing.wav"}
 
 
-@pytest.mark.parametrize("name, seconds", [("int16.wav", 2.0), ("float32_44k.wav", 2.0),
+@pytest.mark.parametrize("name, seconds", [("int16.wav", 2.0), *_slow(("float32_44k.wav", 2.0)),
                                            ("stereo_float64_48k.wav", 2.0), ("speech.mp3", 2.0),
-                                           ("speech.m4a", 2.0), ("truncated_half.wav", 1.0)])
+                                           *_slow(("speech.m4a", 2.0)), ("truncated_half.wav", 1.0)])
 def test_readable_files(head, stability, files, name, seconds):
     """Decoded to 16 kHz mono of the right duration; a truncated wav plays what is there (as players do)."""
     decoded = load_audio(files[name])
@@ -348,7 +346,8 @@ def test_readable_files(head, stability, files, name, seconds):
 
 @pytest.mark.parametrize("name, match", [
     ("video_only.mp4", "has no audio stream"), ("truncated_header.wav", "cannot decode"),
-    ("truncated_tiny.mp3", "cannot decode"), ("garbage.mp3", "cannot decode"), ("empty.wav", "cannot decode"),
+    *_slow(("truncated_tiny.mp3", "cannot decode")), ("garbage.mp3", "cannot decode"),
+    *_slow(("empty.wav", "cannot decode")),
     ("nan_float.wav", "non-finite"), ("huge_float.wav", "float audio must stay within"),
     ("folder.wav", "is not a file"), ("missing.wav", "does not exist")])
 def test_unusable_files_are_named(head, stability, files, name, match):
@@ -525,11 +524,15 @@ def test_silence_gate_closes_the_mouth_on_low_level_noise(head, speaker, stabili
                          f"{gated[:, -3].max():.3f} rad")
 
 
-def test_speech_then_long_quiet_noise_closes_the_mouth(head, stability):
-    audio = np.concatenate([synth_speech(5.0, seed=5), 1e-4 * RNG.standard_normal(30 * SR).astype(np.float32)])
+@pytest.mark.parametrize("noise_seconds", [7, pytest.param(30, marks=pytest.mark.slow)])  # 30 s: 875 frames, ~4 s
+def test_speech_then_long_quiet_noise_closes_the_mouth(head, stability, noise_seconds):
+    """7 s of noise reach into the first all-noise window (frame 250); 30 s span three of them."""
+    audio = np.concatenate([synth_speech(5.0, seed=5),
+                            1e-4 * RNG.standard_normal(noise_seconds * SR).astype(np.float32)])
     _, jaw, summary = _render(head, audio, SR)
     settled = WINDOW_FRAMES + CROSSFADE_FRAMES // 2  # past the cross-fade into the first all-noise window
+    assert len(jaw) > settled + 25
     assert jaw[:125].max() > 0.2 and np.abs(jaw[150:]).max() < 0.02 and np.abs(jaw[settled:]).max() < 1e-6
-    stability.record("audio", "5 s speech then 30 s noise at -80 dBFS",
+    stability.record("audio", f"5 s speech then {noise_seconds} s noise at -80 dBFS",
                      f"{summary}; jaw 1-10 s after the speech {np.abs(jaw[150:settled]).max():.3f} rad, "
                      f"after {np.abs(jaw[settled:]).max():.1e} rad")

@@ -36,7 +36,7 @@ import torch
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from gaussiantalker.exporter.export import DEFORM_INPUTS, DEFORM_OUTPUTS, export_bundle
+from gaussiantalker.exporter.export import DEFORM_INPUTS, DEFORM_OUTPUTS
 from gaussiantalker.exporter.flame import FlameArrays
 from gaussiantalker.exporter.speaker import Speaker
 from gaussiantalker.exporter.verify import GRAPH_RTOL
@@ -63,13 +63,8 @@ FEW = settings(derandomize=True, max_examples=4, deadline=None)
 
 @pytest.fixture(scope="module")
 def base_speaker(small_speaker) -> Speaker:
-    """The small untrained demo speaker (2k Gaussians; the session's, never modified here)."""
+    """The session's small demo speaker (2k Gaussians; never modified here)."""
     return small_speaker
-
-
-def _open_head(speaker: Speaker, path) -> TalkingHead:
-    export_bundle(speaker, path, progress=False)
-    return TalkingHead(path, resolution=SIZE)
 
 
 @pytest.fixture(scope="module")
@@ -147,10 +142,12 @@ def unit_geometry(base_speaker, degenerate_setup) -> Speaker:
 
 
 @pytest.fixture(scope="module", params=[1e-3, 1e3], ids=["scale1e-3", "scale1e3"])
-def geometry(request, base_speaker, degenerate_setup, tmp_path_factory):
-    """(scale, degenerate-geometry speaker at that scale, its runtime head)."""
+def geometry(request, base_speaker, degenerate_setup, small_export, export_rebound, tmp_path_factory):
+    """(scale, degenerate-geometry speaker at that scale, its runtime head). Same architecture as the base speaker,
+    so its bundle is the base speaker's recorded graphs with this speaker's weights (conftest `export_rebound`)."""
     speaker = _scaled_speaker(base_speaker, degenerate_setup[0], request.param)
-    with _open_head(speaker, tmp_path_factory.mktemp("geometry") / "geometry.gtb") as head:
+    path = export_rebound(speaker, tmp_path_factory.mktemp("geometry") / "geometry.gtb", small_export).path
+    with TalkingHead(path, resolution=SIZE) as head:
         yield request.param, speaker, head
 
 
