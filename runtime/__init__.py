@@ -15,7 +15,9 @@ from gaussiantalker.sdk.errors import (
     DriveError,
     GaussianTalkerError,
     RenderError,
+    VideoError,
 )
+from gaussiantalker.sdk.video_formats import VideoPlan, plan_video
 
 from .head import FrameOutput, HeadPoseSource, TalkingHead
 
@@ -26,11 +28,14 @@ __all__ = [
     "FrameDrive",
     "FrameOutput",
     "HeadPoseSource",
+    "VideoPlan",
+    "plan_video",
     "GaussianTalkerError",
     "AudioError",
     "BundleError",
     "CameraError",
     "DriveError",
     "RenderError",
+    "VideoError",
     "__version__",
 ]

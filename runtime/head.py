@@ -1,9 +1,10 @@
-"""The embedding API: load a bundle, turn audio or explicit FLAME parameters into frames, write an mp4.
+"""The embedding API: load a bundle, turn audio or explicit FLAME parameters into frames, write a video.
 
     head = TalkingHead("speaker.gtb", resolution=(512, 512))
     for frame in head.frames("speech.wav"):      # uint8 [H, W, 3], one per video frame, streamed
         ...
     head.write_video("talk.mp4", "speech.wav")   # audio muxed in
+    head.write_video("talk.webm", "speech.wav", alpha=True)   # with an alpha channel, for overlays
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame
 from gaussiantalker.sdk.errors import AudioError, BundleError
 from gaussiantalker.sdk.video import VideoWriter
+from gaussiantalker.sdk.video_formats import plan_video
 
 from .graphs import GraphBackend, OnnxRuntimeBackend
 from .splatter import GLSplatter, PreparedSplats
@@ -35,9 +37,10 @@ AudioSource = str | os.PathLike | np.ndarray
 # long-running head's bookkeeping does not grow with the number of frames it has rendered.
 MAX_TIMINGS_PER_STAGE = 10_000
 HeadPoseSource = Callable[[int], HeadPose] | np.ndarray | HeadPose | None
-# What a frame is returned as: "uint8" [H, W, 3] (converted once, at the end), or "float" float32 [H, W, 3]
-# (C + T * background, unclamped).
-FrameOutput = Literal["uint8", "float"]
+# What a frame is returned as: "uint8" [H, W, 3] (converted once, at the end), "float" float32 [H, W, 3]
+# (C + T * background, unclamped), or "rgba" uint8 [H, W, 4]: straight colour and coverage 1 - T, from the same
+# draw without the background (for overlays and videos with alpha; `sdk.image.straight_rgba`).
+FrameOutput = Literal["uint8", "float", "rgba"]
 
 
 class TalkingHead:
@@ -132,7 +135,8 @@ class TalkingHead:
         return frame
 
     def render(self, drive: FrameDrive, output: FrameOutput = "uint8") -> np.ndarray:
-        """One frame from validated drive parameters: uint8 [H, W, 3] (or float32 with output="float")."""
+        """One frame from validated drive parameters: uint8 [H, W, 3] (float32 with output="float", uint8
+        [H, W, 4] with output="rgba")."""
         return self.draw(self.prepare(drive), output)
 
     def render_params(self, expression=None, jaw_pose=None, neck_pose=None, eye_pose=None,
@@ -175,20 +179,30 @@ class TalkingHead:
 
     def write_video(self, path: str | os.PathLike, audio: AudioSource, sample_rate: int | None = None,
                     head_pose: HeadPoseSource = None, progress: bool = False,
-                    on_frame: Callable[[np.ndarray], None] | None = None) -> Path:
-        """Render the clip and write an mp4 with the audio muxed in (`on_frame` sees each frame); returns the path."""
+                    on_frame: Callable[[np.ndarray], None] | None = None, *, alpha: bool = False,
+                    codec: str | None = None, crf: int | None = None, preset: str | None = None,
+                    container: str | None = None) -> Path:
+        """Render the clip and write a video with the audio muxed in (`on_frame` sees each frame); returns the path.
+
+        The container comes from the extension (or `container`): mp4, mov, webm, mkv, gif, or an image sequence
+        such as "frames/%05d.png"; `alpha=True` writes coverage as an alpha channel (webm, mov with
+        codec="prores", mkv, png). Everything about the output is checked before the first frame is rendered
+        (`sdk.video_formats.plan_video`, VideoError); docs/video.md lists the formats.
+        """
         from tqdm import tqdm
 
+        plan = plan_video(path, (self.camera.width, self.camera.height), alpha=alpha, codec=codec, crf=crf,
+                          preset=preset, container=container)
         samples = self.load_audio(audio, sample_rate)
         total = self.frame_count(samples.shape[0])
-        size = (self.camera.width, self.camera.height)
-        with VideoWriter(path, self.config.fps, size, audio=samples, sample_rate=self.config.sample_rate) as out:
-            frames = self.frames(samples, self.config.sample_rate, head_pose)
+        with VideoWriter(path, self.config.fps, plan.size, audio=samples, sample_rate=self.config.sample_rate,
+                         plan=plan) as out:
+            frames = self.frames(samples, self.config.sample_rate, head_pose, output="rgba" if alpha else "uint8")
             for frame in tqdm(frames, total=total, unit="frame", disable=not progress, desc="rendering"):
                 out.write(frame)
                 if on_frame is not None:
                     on_frame(frame)
-        return Path(path)
+        return plan.path
 
     def close(self) -> None:
         self.splatter.release()

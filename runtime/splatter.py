@@ -52,7 +52,7 @@ import numpy as np
 from gaussiantalker.sdk import numerics
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import RenderError
-from gaussiantalker.sdk.image import to_uint8
+from gaussiantalker.sdk.image import straight_rgba, to_uint8
 from gaussiantalker.shaders import load_shader
 
 from .gl_context import create_context
@@ -84,6 +84,9 @@ POINT_BOUND_SAFETY = 1.01
 MAX_CACHED_TARGETS = 4
 
 STAGES = ("sort", "upload", "draw", "readback")
+
+# What `draw`/`render` return: "uint8" or "float" [H, W, 3] over the background, "rgba" uint8 [H, W, 4] with alpha.
+FRAME_OUTPUTS = ("uint8", "float", "rgba")
 
 _FLOATS_PER_SPLAT = 13  # mean 3, covariance 6, rgb 3, opacity 1
 _STRIDE = _FLOATS_PER_SPLAT * 4
@@ -367,8 +370,9 @@ class GLSplatter:
             program["u_fov_limits"].value = camera.fov_clamp_limits()
 
     def _draw(self, target: _Target, runs: list[tuple[int, int, bool]],
-              background: tuple[float, float, float]) -> None:
-        """Clear to (0, 0, 0, 0), blend the sorted splats front to back, then the background under them."""
+              background: tuple[float, float, float] | None) -> None:
+        """Clear to (0, 0, 0, 0), blend the sorted splats front to back, then the background under them (None:
+        no background pass, the framebuffer keeps (C, 1 - T))."""
         ctx = self.ctx
         target.fbo.use()
         target.fbo.clear(0.0, 0.0, 0.0, 0.0)
@@ -382,8 +386,9 @@ class GLSplatter:
                 self._quad_vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=stop - start)
             else:
                 self._point_vao.render(moderngl.POINTS, vertices=stop - start, first=start)
-        self._programs["background"]["u_background"].value = background
-        self._background_vao.render(moderngl.TRIANGLES, vertices=3)
+        if background is not None:
+            self._programs["background"]["u_background"].value = background
+            self._background_vao.render(moderngl.TRIANGLES, vertices=3)
         ctx.finish()  # so that "draw" and "readback" timings are separate
 
     def prepare(self, means, cov3d, rgb, opacity, camera: Camera) -> PreparedSplats:
@@ -400,8 +405,8 @@ class GLSplatter:
         """Upload, splat and read back a prepared frame -> [H, W, 3] (see `render`)."""
         if self.ctx is None:
             raise RenderError("this GLSplatter has been released")
-        if output not in ("float", "uint8"):
-            raise RenderError(f'output must be "float" or "uint8", got {output!r}')
+        if output not in FRAME_OUTPUTS:
+            raise RenderError(f"output must be one of {', '.join(map(repr, FRAME_OUTPUTS))}, got {output!r}")
         background = _background_rgb(background)
         timings = dict.fromkeys(STAGES, 0.0)
         timings["sort"] = prepared.seconds
@@ -418,7 +423,9 @@ class GLSplatter:
                output: str = "uint8") -> np.ndarray:
         """Splat N Gaussians (world means [N,3], covariances [N,6], rgb [N,3], opacity [N]) -> [H, W, 3] frame.
 
-        output="float": float32 C + T * background; output="uint8": floor(clamp(v, 0, 1) * 255 + 0.5).
+        output="float": float32 C + T * background; output="uint8": floor(clamp(v, 0, 1) * 255 + 0.5);
+        output="rgba": uint8 [H, W, 4], straight colour C / (1 - T) and coverage 1 - T from the same draw (no
+        background pass; `sdk.image.straight_rgba`), for overlays and videos with alpha.
         Rows are top first (+y down). Non-finite Gaussians and those with camera z < near are culled.
         """
         if self.ctx is None:
@@ -437,14 +444,19 @@ class GLSplatter:
         timings["upload"] = time.perf_counter() - start
 
         start = time.perf_counter()
-        self._draw(target, runs, background)
+        self._draw(target, runs, None if output == "rgba" else background)
         timings["draw"] = time.perf_counter() - start
 
         start = time.perf_counter()
-        frame = target.scratch if output == "uint8" else np.empty_like(target.scratch)
-        target.fbo.read_into(frame, components=3, dtype="f4")
-        if output == "uint8":
-            frame = to_uint8(frame)
+        if output == "rgba":
+            premultiplied = np.empty((*target.scratch.shape[:2], 4), dtype=np.float32)
+            target.fbo.read_into(premultiplied, components=4, dtype="f4")
+            frame = straight_rgba(premultiplied, background)
+        else:
+            frame = target.scratch if output == "uint8" else np.empty_like(target.scratch)
+            target.fbo.read_into(frame, components=3, dtype="f4")
+            if output == "uint8":
+                frame = to_uint8(frame)
         timings["readback"] = time.perf_counter() - start
         return frame
 

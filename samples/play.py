@@ -1,7 +1,9 @@
 """Sample player: `python samples/play.py speaker.gtb --audio speech.wav -o talk.mp4 [--show]`.
 
 Renders the bundle's speaker talking to the audio (25 fps, the speaker's camera at 512x512 unless told
-otherwise) and writes an mp4 with the audio muxed in; --show also displays the frames in a window.
+otherwise) and writes a video with the audio muxed in (the format from the extension: mp4, mov, webm, mkv, gif,
+or a png sequence such as frames/%05d.png; --alpha for an alpha channel); --show also displays the frames in a
+window. The output is checked before anything is rendered.
 """
 
 from __future__ import annotations
@@ -14,7 +16,10 @@ from pathlib import Path
 import typer
 
 from gaussiantalker.runtime import TalkingHead
+from gaussiantalker.sdk.bundle import Bundle
+from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import GaussianTalkerError
+from gaussiantalker.sdk.video_formats import plan_video
 
 app = typer.Typer(add_completion=False)
 
@@ -36,6 +41,7 @@ class FrameWindow:
     def show(self, frame) -> None:
         if not self.open:
             return
+        frame = frame[..., :3]  # an alpha channel is not shown
         height, width = frame.shape[:2]
         ppm = f"P6 {width} {height} 255 ".encode() + frame.tobytes()
         self.image = self._tk.PhotoImage(data=ppm, format="PPM")
@@ -49,7 +55,13 @@ class FrameWindow:
 
 
 def _parse_size(text: str) -> tuple[int, int]:
-    parts = [int(p) for p in text.lower().split("x")]
+    """'N' or 'WxH' -> (width, height); GaussianTalkerError naming the text otherwise."""
+    try:
+        parts = [int(p) for p in text.lower().split("x")]
+    except ValueError:
+        parts = []
+    if len(parts) not in (1, 2) or min(parts) < 1:
+        raise GaussianTalkerError(f"resolution must be N or WxH with positive whole numbers, got {text!r}")
     return (parts[0], parts[0]) if len(parts) == 1 else (parts[0], parts[1])
 
 
@@ -57,29 +69,44 @@ def _parse_size(text: str) -> tuple[int, int]:
 def play(
     bundle: Path = typer.Argument(..., help="speaker bundle (.gtb) written by gt-export"),
     audio: Path = typer.Option(..., "--audio", "-a", help="speech: wav, mp3 or anything ffmpeg reads"),
-    output: Path = typer.Option(Path("talk.mp4"), "-o", "--output", help="mp4 to write"),
+    output: Path = typer.Option(Path("talk.mp4"), "-o", "--output",
+                                help="video to write: .mp4 .mov .webm .mkv .gif, or frames/%05d.png"),
     resolution: str = typer.Option("512", "--resolution", "-r", help="frame size, N or WxH"),
     background: str = typer.Option(None, "--background", help="background colour r,g,b in 0..1"),
+    alpha: bool = typer.Option(False, "--alpha", help="write coverage as an alpha channel (webm, mov with "
+                                                      "--codec prores, mkv, png sequence)"),
+    codec: str = typer.Option(None, "--codec", help="h264, vp9, prores, ffv1 [default: the container's]"),
+    crf: int = typer.Option(None, "--crf", help="constant-rate factor (h264 0-51, vp9 0-63; lower: better)"),
+    preset: str = typer.Option(None, "--preset", help="encoder speed preset (x264 names; vp9: realtime, good, "
+                                                      "best)"),
+    video_format: str = typer.Option(None, "--format", help="container when the extension does not say: mp4, "
+                                                            "mov, webm, mkv, gif, png"),
     show: bool = typer.Option(False, "--show", help="also show the frames in a window (needs a display)"),
     threads: int = typer.Option(None, "--threads", help="onnxruntime threads [default: all cores]"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
 ) -> None:
-    """Render BUNDLE talking to AUDIO and write an mp4 with the audio muxed in."""
+    """Render BUNDLE talking to AUDIO and write a video with the audio muxed in."""
     start = time.perf_counter()
     try:
+        # Everything about the output is checked before anything heavy is loaded or rendered.
+        speaker = Bundle(bundle)
+        camera = Camera.from_dict(speaker.manifest.get("camera", {})).resized(*_parse_size(resolution))
+        plan = plan_video(output, (camera.width, camera.height), alpha=alpha, codec=codec, crf=crf, preset=preset,
+                          container=video_format)
         bg = None if background is None else [float(c) for c in background.split(",")]
-        head = TalkingHead(bundle, resolution=_parse_size(resolution), background=bg, threads=threads)
+        head = TalkingHead(speaker, camera=camera, background=bg, threads=threads)
         window = None
         if show:
             headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
             if sys.platform.startswith("linux") and headless:
-                raise GaussianTalkerError("--show needs a display (DISPLAY is not set); the mp4 is still written "
+                raise GaussianTalkerError("--show needs a display (DISPLAY is not set); the video is still written "
                                           "without --show")
-            window = FrameWindow(head.camera.width, head.camera.height, f"GaussianTalker - {bundle.name}")
+            window = FrameWindow(camera.width, camera.height, f"GaussianTalker - {bundle.name}")
         samples = head.load_audio(audio)
         total = head.frame_count(samples.shape[0])
-        head.write_video(output, samples, head.config.sample_rate, progress=not quiet,
-                         on_frame=window.show if window is not None else None)
+        head.write_video(plan.path, samples, head.config.sample_rate, progress=not quiet,
+                         on_frame=window.show if window is not None else None, alpha=alpha, codec=plan.codec.name,
+                         crf=plan.crf, preset=plan.preset, container=plan.container.name)
         if window is not None:
             window.close()
         head.close()
@@ -87,8 +114,9 @@ def play(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     seconds = time.perf_counter() - start
-    typer.echo(f"wrote {output} ({total} frames, {samples.shape[0] / head.config.sample_rate:.1f} s of audio) "
-               f"in {seconds:.1f} s")
+    audio_note = "" if plan.with_audio else f"; {plan.container.name} holds no audio"
+    typer.echo(f"wrote {output} ({total} frames, {samples.shape[0] / head.config.sample_rate:.1f} s of audio"
+               f"{audio_note}) in {seconds:.1f} s: {plan.describe()}")
 
 
 if __name__ == "__main__":

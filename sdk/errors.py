@@ -28,3 +28,7 @@ class DriveError(GaussianTalkerError):
 class RenderError(GaussianTalkerError):
     """The OpenGL splatter cannot run: no context could be created, or a shader failed to compile."""
 
+
+
+class VideoError(GaussianTalkerError):
+    """A video cannot be written: bad output path or folder, unknown format, codec or setting, encoder failure."""

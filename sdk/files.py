@@ -5,11 +5,15 @@ crosses a file system), and on success fsyncs it and renames it onto the target;
 SIGTERM the temporary file is removed and the target is left as it was. Only SIGKILL (or a power cut) can leave
 a temporary file behind: a hidden `.NAME.XXXXXXXX.tmp` (with the target's suffix after it when asked for one,
 for writers such as ffmpeg that choose a format from the extension).
+
+`atomic_files(folder)` does the same for a set of files (an image sequence): they are written in a hidden staging
+folder inside `folder` and moved into it only when all are written.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import tempfile
 import threading
@@ -72,6 +76,29 @@ def atomic_write(target: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
     """`with atomic_write(path) as handle: handle.write(...)`: the file appears at `path` only when complete."""
     with atomic_path(target) as staged, open(staged.path, mode) as handle:
         yield handle
+
+
+@contextmanager
+def atomic_files(folder: str | os.PathLike) -> Iterator[Path]:
+    """Stage a set of new files for `folder`: yields a hidden temporary folder inside it to write them in.
+
+    On normal exit each staged file is fsynced and renamed into `folder` (replacing a file of the same name); on
+    any exception or signal the staged folder is removed and `folder` keeps only what it had. (Used for image
+    sequences: no frame file appears under its final name before the whole sequence is written.)
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".gt-staged-", dir=folder))
+    try:
+        with _signals_unwind():
+            yield staging
+            for staged in sorted(staging.iterdir()):
+                _fsync_file(staged)
+                os.chmod(staged, 0o666 & ~_current_umask())
+                os.replace(staged, folder / staged.name)
+            _fsync_directory(folder)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
 
 
 @contextmanager

@@ -14,6 +14,23 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     return work.astype(np.uint8)
 
 
+def straight_rgba(premultiplied: np.ndarray, background) -> np.ndarray:
+    """(C, 1 - T) float [H, W, 4] as splatted -> uint8 [H, W, 4] straight (not premultiplied) RGBA.
+
+    Colour C / (1 - T) is a weighted mean of the Gaussians' colours (the weights sum to 1 - T), so dividing keeps
+    it in their range; an uncovered pixel (1 - T = 0) gets the background colour, so players that ignore alpha
+    show the plain frame there. Compositing the result over the background gives the opaque frame to within
+    the two 8-bit roundings (docs/video.md).
+    """
+    premultiplied = np.asarray(premultiplied, dtype=np.float32)
+    coverage = premultiplied[..., 3:4]
+    covered = coverage > 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        colour = np.where(covered, premultiplied[..., :3] / np.where(covered, coverage, 1.0),
+                          np.asarray(background, dtype=np.float32).reshape(1, 1, 3))
+    return to_uint8(np.concatenate([colour, coverage], axis=-1))
+
+
 def psnr_db(reference: np.ndarray, test: np.ndarray, peak: float = 1.0) -> float:
     """Peak signal-to-noise ratio in dB; identical frames give +inf. uint8 frames use peak 255."""
     if reference.shape != test.shape:

@@ -1,28 +1,30 @@
-"""Writing frames to an mp4 with the audio muxed in, through imageio-ffmpeg (libx264 + AAC)."""
+"""Writing frames to a video (or an image sequence) with the audio muxed in, through PyAV (libav in process).
+
+PyAV rather than piping raw frames to an ffmpeg process (imageio-ffmpeg): an encoder or muxer failure comes back
+as an exception carrying libav's own message (disk full, file too large) instead of a broken pipe, the encoder is
+opened, and so checked, before the first frame is rendered, and the audio is encoded from the samples in memory
+with no temporary WAV. The formats and the checks are in `sdk/video_formats.py`; docs/video.md lists them.
+"""
 
 from __future__ import annotations
 
 import math
 import os
-import tempfile
 from contextlib import ExitStack
-from pathlib import Path
+from fractions import Fraction
 
 import numpy as np
 
-from .audio import TARGET_SAMPLE_RATE, write_wav
-from .errors import GaussianTalkerError
-from .files import atomic_path
-
-# libx264 speed/size trade-off: "veryfast" encodes 512x512 at several hundred fps on one core, so encoding never
-# competes with rendering for the CPU; "medium" (x264's default) makes ~10% smaller files at ~3x the CPU time.
-DEFAULT_X264_PRESET = "veryfast"
+from .audio import TARGET_SAMPLE_RATE
+from .errors import VideoError
+from .files import atomic_files, atomic_path
+from .video_formats import VideoPlan, plan_video
 
 
 def pad_to_whole_frames(audio: np.ndarray, sample_rate: int, fps: float) -> np.ndarray:
-    """Zero-pad audio to cover whole video frames, so ffmpeg's -shortest keeps the last (partial) frame.
+    """Zero-pad audio to cover whole video frames, so the audio stream lasts as long as the last (partial) frame.
 
-    Without it a clip ending mid-frame loses its last frame, and one shorter than a frame gives no video at all.
+    Without it a clip ending mid-frame would have a shorter audio than video stream.
     """
     audio = np.asarray(audio, dtype=np.float32).reshape(-1)
     frames = math.ceil(audio.shape[0] * fps / sample_rate - 1e-9)
@@ -30,72 +32,189 @@ def pad_to_whole_frames(audio: np.ndarray, sample_rate: int, fps: float) -> np.n
     return np.pad(audio, (0, max(0, target - audio.shape[0])))
 
 
+class _PaletteFilter:
+    """rgb24 frames -> pal8 frames with a palette chosen per frame (libav's palettegen + paletteuse), for GIF."""
+
+    def __init__(self, width: int, height: int, rate: Fraction) -> None:
+        import av.filter
+
+        self.graph = av.filter.Graph()
+        source = self.graph.add_buffer(width=width, height=height, format="rgb24", time_base=1 / rate)
+        split = self.graph.add("split")
+        palette = self.graph.add("palettegen", "stats_mode=single")
+        use = self.graph.add("paletteuse", "new=1")
+        sink = self.graph.add("buffersink")
+        source.link_to(split)
+        split.link_to(use, 0, 0)
+        split.link_to(palette, 1, 0)
+        palette.link_to(use, 0, 1)
+        use.link_to(sink)
+        self.graph.configure()
+
+    def __call__(self, frame):
+        """Push one frame, return the paletted frames that are ready (zero or one)."""
+        import av
+
+        self.graph.push(frame)
+        ready = []
+        while True:
+            try:
+                ready.append(self.graph.pull())
+            except (av.BlockingIOError, av.error.EOFError):
+                return ready
+
+
 class VideoWriter:
     """Context manager: `with VideoWriter(path, fps, (w, h), audio=a) as out: out.write(frame_uint8)`.
 
-    ffmpeg writes a hidden temporary file in the target's own folder (`sdk.files.atomic_path`), renamed onto
-    `path` only when the video is complete, so a failed run leaves no half video and the rename never crosses a
-    file system. The audio to mux goes to a WAV in the system temp folder (read by ffmpeg, never renamed).
+    The output is checked when the writer is made (`plan_video`; or pass a `plan`), before any frame exists.
+    Frames are uint8 [H, W, 3], or [H, W, 4] straight (not premultiplied) RGBA with `alpha=True`. The file is
+    staged beside the target (`sdk.files.atomic_path`; an image sequence in a staging folder, `atomic_files`) and
+    appears under its name only when complete: a failure leaves no partial video. The audio (mono float samples)
+    is muxed where the container holds audio, cut to the frames written.
     """
 
-    def __init__(self, path: str | os.PathLike, fps: float, size: tuple[int, int],
-                 audio: np.ndarray | None = None, sample_rate: int = TARGET_SAMPLE_RATE, quality: int = 8,
-                 preset: str = DEFAULT_X264_PRESET) -> None:
-        self.path = Path(path)
-        self.fps, self.size, self.quality = fps, (int(size[0]), int(size[1])), quality
-        self.audio, self.sample_rate, self.preset = audio, sample_rate, preset
+    def __init__(self, path: str | os.PathLike, fps: float, size: tuple[int, int], *,
+                 audio: np.ndarray | None = None, sample_rate: int = TARGET_SAMPLE_RATE, alpha: bool = False,
+                 codec: str | None = None, crf: int | None = None, preset: str | None = None,
+                 container: str | None = None, plan: VideoPlan | None = None) -> None:
+        self.plan = plan or plan_video(path, size, alpha=alpha, codec=codec, crf=crf, preset=preset,
+                                       container=container)
+        self.path = self.plan.path
+        self.rate = Fraction(fps).limit_denominator(1001)
+        self.audio = None if audio is None or not self.plan.with_audio else pad_to_whole_frames(audio, sample_rate, fps)
+        self.sample_rate = sample_rate
         self.frames_written = 0
-        self._writer = None
+        self._audio_written = 0
         self._stack: ExitStack | None = None
+        self._output = self._video = self._audio_stream = self._palette = None
 
     def __enter__(self) -> VideoWriter:
-        import imageio_ffmpeg
+        import av
 
+        plan = self.plan
         with ExitStack() as stack:
-            # ffmpeg picks the container from the extension, so the temporary name ends with the target's.
-            staged = stack.enter_context(atomic_path(self.path, suffix=".partial" + (self.path.suffix or ".mp4")))
-            audio_path = None
-            if self.audio is not None:
-                tmp_dir = stack.enter_context(tempfile.TemporaryDirectory(prefix="gt-video-"))
-                audio_path = os.path.join(tmp_dir, "audio.wav")
-                write_wav(audio_path, pad_to_whole_frames(self.audio, self.sample_rate, self.fps), self.sample_rate)
-            self._writer = imageio_ffmpeg.write_frames(
-                str(staged.path), self.size, fps=self.fps, quality=self.quality, macro_block_size=1,
-                audio_path=audio_path, audio_codec="aac" if audio_path else None,
-                output_params=["-preset", self.preset] + (["-shortest"] if audio_path else []),
-                ffmpeg_log_level="error")
-            self._writer.send(None)
-            self._stack = stack.pop_all()  # kept open until __exit__ commits or removes the staged file
+            if plan.container.sequence:
+                target = stack.enter_context(atomic_files(self.path.parent)) / self.path.name
+            else:  # the staged name keeps the target's extension, as some muxers look at it
+                target = stack.enter_context(atomic_path(self.path, suffix=".partial" + self.path.suffix)).path
+            try:
+                self._output = av.open(str(target), "w", format=plan.container.muxer)
+                stack.callback(self._abandon)
+                self._video = self._output.add_stream(plan.codec.encoder, rate=self.rate,
+                                                      options=plan.encoder_options())
+                self._video.width, self._video.height = plan.encoded_size
+                self._video.pix_fmt = plan.pix_fmt
+                self._video.codec_context.open()
+                if self.audio is not None:
+                    self._audio_stream = self._output.add_stream(plan.container.audio_codec, rate=self.sample_rate,
+                                                                 layout="mono")
+            except av.error.FFmpegError as exc:
+                raise VideoError(f"cannot start writing {self.path} ({plan.describe()}): {exc.strerror}") from None
+            if plan.codec.name == "gif":
+                self._palette = _PaletteFilter(*plan.encoded_size, self.rate)
+            self._stack = stack.pop_all()  # kept open until __exit__ commits or removes the staged output
         return self
 
     def write(self, frame: np.ndarray) -> None:
-        """Append one [H, W, 3] uint8 frame."""
-        if frame.dtype != np.uint8 or frame.shape != (self.size[1], self.size[0], 3):
-            raise GaussianTalkerError(f"video frames must be uint8 [{self.size[1]}, {self.size[0]}, 3], got "
-                                      f"{frame.dtype} {list(frame.shape)}")
-        self._writer.send(np.ascontiguousarray(frame))
-        self.frames_written += 1
+        """Append one uint8 frame: [H, W, 3], or [H, W, 4] with alpha."""
+        import av
+
+        width, height = self.plan.size
+        channels = 4 if self.plan.alpha else 3
+        if frame.dtype != np.uint8 or frame.shape != (height, width, channels):
+            raise VideoError(f"video frames must be uint8 [{height}, {width}, {channels}], got {frame.dtype} "
+                             f"{list(frame.shape)}")
+        pad_w, pad_h = self.plan.encoded_size[0] - width, self.plan.encoded_size[1] - height
+        if pad_w or pad_h:  # 4:2:0 codecs need even sides: repeat the last column/row, every pixel is kept
+            frame = np.pad(frame, ((0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+        picture = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgba" if self.plan.alpha else "rgb24")
+        picture.pts = self.frames_written
+        picture.time_base = 1 / self.rate
+        try:
+            for paletted in self._palette(picture) if self._palette is not None else [picture]:
+                self._mux(self._video.encode(paletted))
+            self.frames_written += 1
+            self._write_audio_until(self._audio_end(self.frames_written))
+        except av.error.FFmpegError as exc:
+            raise VideoError(f"writing {self.path} failed at frame {self.frames_written}: {exc.strerror}") from None
+
+    def _audio_end(self, frames: int) -> int:
+        """Audio samples that belong to the first `frames` video frames (all of them for the last frame)."""
+        if self.audio is None:
+            return 0
+        return min(self.audio.shape[0], math.ceil(frames * self.sample_rate / self.rate - 1e-9))
+
+    def _write_audio_until(self, end: int) -> None:
+        """Encode the audio up to sample `end`, so audio and video packets interleave as the frames go."""
+        import av
+
+        if self._audio_stream is None or end <= self._audio_written:
+            return
+        chunk = self.audio[self._audio_written:end]
+        samples = av.AudioFrame.from_ndarray(chunk[None, :], format="flt", layout="mono")
+        samples.sample_rate = self.sample_rate
+        samples.pts = self._audio_written
+        samples.time_base = Fraction(1, self.sample_rate)
+        self._mux(self._audio_stream.encode(samples))
+        self._audio_written = end
+
+    def _mux(self, packets) -> None:
+        for packet in packets:
+            self._output.mux(packet)
+
+    def _finish(self) -> None:
+        """Flush the encoders and write the container's trailer."""
+        import av
+
+        try:
+            if self._palette is not None:
+                self._palette.graph.push(None)
+            for stream in (self._video, self._audio_stream):
+                if stream is not None:
+                    self._mux(stream.encode(None))
+            self._output.close()
+        except av.error.FFmpegError as exc:
+            raise VideoError(f"finishing {self.path} failed: {exc.strerror}") from None
+        self._output = None
+
+    def _abandon(self) -> None:
+        """Close the container without caring about errors (the staged output is about to be removed)."""
+        if self._output is not None:
+            output, self._output = self._output, None
+            try:
+                output.close()
+            except Exception:  # noqa: BLE001 - already failing; the original error is the one to report
+                pass
 
     def __exit__(self, exc_type, exc, tb) -> None:
         stack, self._stack = self._stack, None
         try:
-            self._writer.close()  # ffmpeg finishes the file
-            if exc_type is None and self.frames_written == 0:
-                raise GaussianTalkerError(f"no frames were written to {self.path}; an mp4 needs at least one")
+            if exc_type is None:
+                if self.frames_written == 0:
+                    raise VideoError(f"no frames were written to {self.path}; a video needs at least one")
+                self._finish()
         except BaseException as error:
-            stack.__exit__(type(error), error, error.__traceback__)  # removes the staged file
+            stack.__exit__(type(error), error, error.__traceback__)  # removes the staged output
             raise
         stack.__exit__(exc_type, exc, tb)  # commits it, or removes it if the body raised
 
 
 def probe_video(path: str | os.PathLike) -> dict:
-    """Frame count and whether an audio stream exists (via the bundled ffmpeg), for tests and reports."""
-    import subprocess
+    """What a written video holds (for tests and reports): frames, seconds, size, pixel format, alpha, audio."""
+    import av
 
-    import imageio_ffmpeg
-
-    frames, seconds = imageio_ffmpeg.count_frames_and_secs(str(path))
-    result = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-i", str(path)],
-                            capture_output=True, check=False)
-    has_audio = "Audio:" in result.stderr.decode("utf-8", "replace")
-    return {"frames": int(frames), "seconds": float(seconds), "has_audio": has_audio}
+    with av.open(str(path)) as container:
+        video = container.streams.video[0]
+        codec = video.codec_context.name
+        # VP9 keeps alpha in side data that only libvpx decodes; the container marks it with alpha_mode.
+        pix_fmt = video.codec_context.pix_fmt
+        # GIF decodes to bgra whatever the file holds; the SDK never writes GIF transparency.
+        has_alpha = codec != "gif" and (video.metadata.get("alpha_mode") == "1" or any(
+            component.is_alpha for component in av.VideoFormat(pix_fmt).components))
+        frames = sum(1 for packet in container.demux(video) if packet.size)
+        audio = [stream for stream in container.streams.audio]
+        seconds = float(container.duration / av.time_base) if container.duration else 0.0
+        return {"frames": frames, "seconds": seconds, "width": video.width, "height": video.height,
+                "pix_fmt": pix_fmt, "codec": codec, "has_alpha": has_alpha,
+                "has_audio": bool(audio), "audio_codec": audio[0].codec_context.name if audio else None}
