@@ -65,6 +65,17 @@ def _parse_size(text: str) -> tuple[int, int]:
     return (parts[0], parts[0]) if len(parts) == 1 else (parts[0], parts[1])
 
 
+def _parse_background(text: str) -> list[float]:
+    """'r,g,b' -> three floats; GaussianTalkerError naming the text otherwise (the range is TalkingHead's check)."""
+    try:
+        values = [float(c) for c in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise GaussianTalkerError(f"background must be r,g,b (three numbers in 0..1), got {text!r}")
+    return values
+
+
 @app.command()
 def play(
     bundle: Path = typer.Argument(..., help="speaker bundle (.gtb) written by gt-export"),
@@ -93,7 +104,7 @@ def play(
         camera = Camera.from_dict(speaker.manifest.get("camera", {})).resized(*_parse_size(resolution))
         plan = plan_video(output, (camera.width, camera.height), alpha=alpha, codec=codec, crf=crf, preset=preset,
                           container=video_format)
-        bg = None if background is None else [float(c) for c in background.split(",")]
+        bg = None if background is None else _parse_background(background)
         head = TalkingHead(speaker, camera=camera, background=bg, threads=threads)
         window = None
         if show:

@@ -52,7 +52,7 @@ class _PaletteFilter:
         self.graph.configure()
 
     def __call__(self, frame):
-        """Push one frame, return the paletted frames that are ready (zero or one)."""
+        """Push one frame (None: end of stream), return the paletted frames that are ready."""
         import av
 
         self.graph.push(frame)
@@ -168,8 +168,9 @@ class VideoWriter:
         import av
 
         try:
-            if self._palette is not None:
-                self._palette.graph.push(None)
+            if self._palette is not None:  # frames the palette filter still holds, if any
+                for paletted in self._palette(None):
+                    self._mux(self._video.encode(paletted))
             for stream in (self._video, self._audio_stream):
                 if stream is not None:
                     self._mux(stream.encode(None))

@@ -214,6 +214,7 @@ def test_player_refuses_before_loading_the_speaker(small_export, tmp_path, monke
         ("talk.mp4", ["--alpha"], "mp4 cannot hold an alpha channel"),
         (str(tmp_path), [], "is a folder"),
         ("talk.mp4", ["-r", "333x"], "resolution must be N or WxH"),
+        ("talk.mp4", ["--background", "red"], "background must be r,g,b"),
     ]:
         speech = str(ROOT / "samples" / "demo_speech.wav")
         result = CliRunner().invoke(play.app, [str(small_export.path), "--audio", speech, "-o", str(tmp_path / output),
