@@ -208,13 +208,13 @@ def probe_video(path: str | os.PathLike) -> dict:
     with av.open(str(path)) as container:
         video = container.streams.video[0]
         codec = video.codec_context.name
-        # VP9 keeps alpha in side data that only libvpx decodes; the container marks it with alpha_mode.
         pix_fmt = video.codec_context.pix_fmt
-        # GIF decodes to bgra whatever the file holds; the SDK never writes GIF transparency.
+        # VP9 keeps alpha in side data that only libvpx decodes; the container marks it with alpha_mode. GIF
+        # decodes to bgra whatever the file holds; the SDK never writes GIF transparency.
         has_alpha = codec != "gif" and (video.metadata.get("alpha_mode") == "1" or any(
             component.is_alpha for component in av.VideoFormat(pix_fmt).components))
         frames = sum(1 for packet in container.demux(video) if packet.size)
-        audio = [stream for stream in container.streams.audio]
+        audio = list(container.streams.audio)
         seconds = float(container.duration / av.time_base) if container.duration else 0.0
         return {"frames": frames, "seconds": seconds, "width": video.width, "height": video.height,
                 "pix_fmt": pix_fmt, "codec": codec, "has_alpha": has_alpha,

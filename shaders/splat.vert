@@ -207,9 +207,10 @@ float point_start(float lo, float hi, float side, float size) {
     float centred = 0.5 * (lo + hi - side);
     float best = below;
     float cost = block_cost(below, side, size);
-    if (block_cost(above, side, size) < cost) {
+    float above_cost = block_cost(above, side, size);
+    if (above_cost < cost) {
         best = above;
-        cost = block_cost(above, side, size);
+        cost = above_cost;
     }
     if (block_cost(centred, side, size) < cost) {
         best = centred;
