@@ -46,18 +46,35 @@ def hamilton_left_matrix(a: torch.Tensor) -> torch.Tensor:
     return torch.stack([torch.stack(row, dim=-1) for row in rows], dim=-2)
 
 
+def low_rank_factors(weight: torch.Tensor, rank: int, groups: tuple[int, ...], n: int
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """weight [D, sum(groups) * n] ~ basis [D, rank] @ factor [rank, sum(groups) * n], the rank-`rank` truncated SVD
+    after scaling each row group (position, quaternion, colour: different units) to unit RMS, so that no group's
+    error is traded for another's merely because its numbers are smaller (docs/precision.md)."""
+    sizes = [g * n for g in groups]
+    rms = torch.stack([block.pow(2).mean().sqrt() for block in weight.split(sizes, dim=1)])
+    rms = torch.where(rms > 0, rms, torch.ones_like(rms))
+    column_scale = torch.cat([r.expand(size) for r, size in zip(rms, sizes, strict=True)])  # [10 n]
+    u, s, vh = torch.linalg.svd(weight / column_scale, full_matrices=False)
+    return u[:, :rank] * s[:rank], vh[:rank] * column_scale
+
+
 class DeformationGraph(nn.Module):
     """Per-frame drive -> world-space Gaussians (means [B,N,3], cov3d [B,N,6], rgb [B,N,3], opacity [N]), as the
-    runtime runs it; same inputs, outputs and meaning as `Speaker.deform`."""
+    runtime runs it; same inputs, outputs and meaning as `Speaker.deform`.
 
-    def __init__(self, speaker: Speaker) -> None:
+    Two model-size knobs (docs/precision.md), both off by default: `sh_degree` keeps only the SH bands up to that
+    degree; `blendshape_rank` replaces the [D, 10 N] speaker blendshape matrix by a rank-r product."""
+
+    def __init__(self, speaker: Speaker, *, sh_degree: int | None = None, blendshape_rank: int | None = None) -> None:
         super().__init__()
         speaker = speaker.eval()
         flame, gaussians = speaker.flame_arrays, speaker.gaussians
         self.n_vertices, self.n_gaussians = flame.n_vertices, gaussians.count
-        self.sh_degree = gaussians.sh_degree
+        self.sh_degree = gaussians.sh_degree if sh_degree is None else min(int(sh_degree), gaussians.sh_degree)
         self.parents = tuple(int(p) for p in flame.parents)
         self.latent_pose = speaker.latent_pose
+        self.blendshape_rank = blendshape_rank
         with torch.no_grad():
             self._fold_flame(speaker)
             self._fold_gaussians(speaker)
@@ -82,27 +99,43 @@ class DeformationGraph(nn.Module):
             POSE_FEATURE_DIM, 3 * n_v)  # [36, 3V]
         basis = torch.cat([torch.cat([expr_rows, joint_dirs], 1),
                            torch.cat([pose_rows, pose_rows.new_zeros(POSE_FEATURE_DIM, 3 * N_JOINTS)], 1)], 0)
+        # Rows that are exactly zero (e.g. pose correctives of joints the head model never corrects) add nothing:
+        # they are left out, and the drive's matching entries are not gathered (exact, docs/deformation.md).
+        keep = basis.abs().amax(1) > 0
+        keep[0] |= not bool(keep.any())  # an all-zero basis keeps one row, so no tensor has a zero-size axis
+        self.register_buffer("drive_rows", None if bool(keep.all()) else torch.nonzero(keep).reshape(-1))  # [kept]
+        basis = basis[keep]
         self.register_buffer("rest_points", torch.cat([rest.T.reshape(-1), rest_joints.reshape(-1)]).float())
-        self.register_buffer("blend_basis", basis.float())  # [E + 36, 3V + 15]
+        self.register_buffer("blend_basis", basis.float())  # [rows kept of E + 36, 3V + 15]
         self.register_buffer("lbs_weights", flame.lbs_weights.T.reshape(N_JOINTS, 1, n_v).contiguous())  # [5,1,V]
 
     def _fold_gaussians(self, speaker: Speaker) -> None:
         """Per-Gaussian constants, component-major, and the three speaker blendshapes as one [D, 10 N] matrix."""
         g = speaker.gaussians
         n = self.n_gaussians
-        self.register_buffer("corner_ids", g.vertex_ids.T.reshape(-1).contiguous())  # [3N]: all v0, all v1, all v2
+        # Triangle ids and the face table (stored with the `index` codec); onnxruntime folds the gather at load.
+        self.register_buffer("parent_triangle", g.parent.clone())  # [N]
+        self.register_buffer("faces", torch.as_tensor(speaker.flame_arrays.faces).long().contiguous())  # [F, 3]
         self.register_buffer("barycentric", g.barycentric.T.contiguous())  # [3 corners, N]
         self.register_buffer("rest_scale", g.rest_scale.clone())  # [N] reference size of the frame guards
-        self.register_buffer("scale_bar", torch.exp(g.log_scale).T.contiguous())  # [3, N]
+        # Stored as logs (uniform relative error when quantised); exp is folded by onnxruntime at load.
+        self.register_buffer("log_scale", g.log_scale.T.contiguous())  # [3, N]
         self.register_buffer("opacity", torch.sigmoid(g.opacity_logit).clone())  # [N]
         k = sh_coeff_count(self.sh_degree)
-        self.register_buffer("sh_rest", g.sh[:, 1:k].permute(2, 1, 0).contiguous())  # [3, K-1, N]
+        if self.sh_degree > 0:
+            self.register_buffer("sh_rest", g.sh[:, 1:k].permute(2, 1, 0).contiguous())  # [3, K-1, N]
 
         # r̄ ⊗ (1 + W_rot γ) = r̄ + L(r̄) W_rot γ (the identity is (1, 0, 0, 0) and L(r̄)(1, 0, 0, 0) = r̄).
         w_quat = hamilton_left_matrix(g.local_rotation.double()) @ g.w_rot.double()  # [N, 4, D]
         weights = torch.cat([g.w_pos.double(), w_quat, g.w_color.double()], 1)  # [N, 10, D]
         bias = torch.cat([g.local_position, g.local_rotation, g.sh[:, 0]], 1)  # [N, 10]
-        self.register_buffer("latent_weight", weights.permute(2, 1, 0).reshape(-1, 10 * n).float())  # [D, 10N]
+        weight = weights.permute(2, 1, 0).reshape(-1, 10 * n)  # [D, 10N]
+        if self.blendshape_rank is not None and self.blendshape_rank < weight.shape[0]:
+            basis, weight = low_rank_factors(weight, int(self.blendshape_rank), LATENT_ROWS, n)
+            self.register_buffer("latent_basis", basis.float())  # [D, r]
+        else:
+            self.blendshape_rank = None
+        self.register_buffer("latent_weight", weight.float())  # [D or r, 10N]
         self.register_buffer("latent_bias", bias.T.reshape(-1).contiguous())  # [10N]
 
     def forward(self, expression: torch.Tensor, flame_pose: torch.Tensor, head_translation: torch.Tensor,
@@ -111,20 +144,24 @@ class DeformationGraph(nn.Module):
         batch, n = vertices.shape[0], self.n_gaussians
         # Gathered as [B, 3N, 3] and then transposed: onnxruntime copies a gathered row of 3 floats at the cost
         # of one float, so this is ~2.5x faster than gathering along the last axis of [B, 3, V].
-        corners = vertices.transpose(1, 2).index_select(1, self.corner_ids)  # [B, 3N, 3]
+        corner_ids = self.faces.index_select(0, self.parent_triangle).T.reshape(-1)  # [3N]: all v0, v1, v2
+        corners = vertices.transpose(1, 2).index_select(1, corner_ids)  # [B, 3N, 3]
         corners = corners.transpose(1, 2).reshape(batch, 3, 3, n)  # [B, xyz, corner, N]
         rotation, scale = triangle_frame(corners[:, :, 0], corners[:, :, 1], corners[:, :, 2], self.rest_scale,
                                          dim=1)  # [B, 3, 3, N], [B, N]
         origin = (corners * self.barycentric).sum(2)  # P [B, 3, N]
 
         gamma = self.latent_pose(flame_pose[:, 3:])  # [B, D]
+        if self.blendshape_rank is not None:
+            gamma = gamma @ self.latent_basis  # [B, r]
         latent = (gamma @ self.latent_weight + self.latent_bias).reshape(batch, sum(LATENT_ROWS), n)
         local_position, quaternion, dc = latent.split(LATENT_ROWS, dim=1)  # [B, 3|4|3, N]
 
         means = (rotation * local_position.unsqueeze(1)).sum(2) + origin  # R u_bar' + P  [B, 3, N]
         local_rotation = quat_to_rotmat(quaternion, dim=1)  # [B, 3, 3, N]
         world_rotation = (rotation.unsqueeze(3) * local_rotation.unsqueeze(1)).sum(2)  # R R_local [B, 3, 3, N]
-        m = world_rotation * (scale.unsqueeze(1) * self.scale_bar).unsqueeze(1)  # R R_local diag(s) [B, 3, 3, N]
+        scale_bar = torch.exp(self.log_scale)  # [3, N]
+        m = world_rotation * (scale.unsqueeze(1) * scale_bar).unsqueeze(1)  # R R_local diag(s) [B, 3, 3, N]
         cov = (m.unsqueeze(2) * m.unsqueeze(1)).sum(3).reshape(batch, 9, n)  # m m^T, row-major [B, 9, N]
         cov3d = cov[:, _COV_ENTRIES]  # [B, 6, N]
 
@@ -144,7 +181,10 @@ class DeformationGraph(nn.Module):
         rot = rodrigues(flame_pose.reshape(-1, 3)).reshape(batch, N_JOINTS, 3, 3)  # [B, 5, 3, 3]
         eye = torch.eye(3, dtype=flame_pose.dtype)
         pose_feature = (rot[:, 1:] - eye).reshape(batch, POSE_FEATURE_DIM)  # [B, 36]
-        points = self.rest_points + torch.cat([expression, pose_feature], 1) @ self.blend_basis  # [B, 3V + 15]
+        drive = torch.cat([expression, pose_feature], 1)  # [B, E + 36]
+        if self.drive_rows is not None:
+            drive = drive.index_select(1, self.drive_rows)
+        points = self.rest_points + drive @ self.blend_basis  # [B, 3V + 15]
         v_posed = points[:, : 3 * n_v].reshape(batch, 3, n_v)
         joints = points[:, 3 * n_v:].reshape(batch, N_JOINTS, 3)
         world_rot, world_pos = forward_kinematics(rot, joints, self.parents)  # [B, 5, 3, 3], [B, 5, 3]

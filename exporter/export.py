@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 import platform
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -15,12 +15,15 @@ from gaussiantalker.sdk import __version__ as sdk_version
 from gaussiantalker.sdk.bundle import BundleWriter
 from gaussiantalker.sdk.codecs import get_codec
 from gaussiantalker.sdk.config import POSE_DIM
+from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.files import StagedFile
 
 from . import onnx_export
 from .deform_graph import DeformationGraph
+from .graph_precision import convert_precision
 from .onnx_export import add_graph
 from .speaker import Speaker
+from .tiers import ExportSettings, Preset, get_preset, group_of
 from .translator import translator_onnx
 
 DEFORM_INPUTS = ["expression", "flame_pose", "head_translation", "camera_center"]
@@ -35,6 +38,15 @@ class ExportResult:
     bytes_written: int
     graphs: dict = field(default_factory=dict)
     buffer_bytes: dict = field(default_factory=dict)
+    settings: ExportSettings | None = None
+
+    def group_bytes(self) -> dict[str, int]:
+        """Stored bytes per codec group (exporter/tiers.py) plus 'other' (pose track, index buffers, ...)."""
+        totals: dict[str, int] = {}
+        for name, nbytes in self.buffer_bytes.items():
+            group = group_of(name)
+            totals[group] = totals.get(group, 0) + nbytes
+        return totals
 
 
 def _deform_example(speaker: Speaker) -> tuple[tuple, dict]:
@@ -45,40 +57,63 @@ def _deform_example(speaker: Speaker) -> tuple[tuple, dict]:
     return args, {name: {0: dim} for name in DEFORM_INPUTS}
 
 
-def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, codec: str = "raw", progress: bool = True,
+def resolve_settings(codec: str | None = None, settings: ExportSettings | None = None,
+                     preset: str | None = None) -> tuple[ExportSettings, Preset | None]:
+    """The export settings asked for: a preset's, every buffer with one codec, or explicit settings (one only)."""
+    choices = (("codec", codec), ("settings", settings), ("preset", preset))
+    given = [name for name, value in choices if value is not None]
+    if len(given) > 1:
+        raise BundleError(f"give one of codec, settings and preset, not {' and '.join(given)}")
+    if preset is not None:
+        chosen = get_preset(preset)
+        return chosen.export, chosen
+    if codec is not None:
+        get_codec(codec)  # an unknown codec fails now, not after minutes of graph export
+        return ExportSettings.all_buffers(codec), None
+    return settings or ExportSettings(), None
+
+
+def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, codec: str | None = None,
+                  settings: ExportSettings | None = None, preset: str | None = None, progress: bool = True,
                   example_frames: int = 8) -> ExportResult:
-    """Export `speaker` to one bundle file at `path` (written atomically), or into a file staged by `atomic_path`."""
-    get_codec(codec)  # an unknown codec fails now, not after minutes of graph export
+    """Export `speaker` to one bundle file at `path` (written atomically), or into a file staged by `atomic_path`.
+
+    The speed/accuracy knobs (exporter/tiers.py, docs/precision.md): `preset` names a tier (its runtime defaults
+    are stored in the bundle), `codec` stores every buffer with one codec, `settings` sets each knob."""
+    settings, chosen = resolve_settings(codec, settings, preset)
     speaker = speaker.eval()
     writer = BundleWriter(metadata={
         "speaker": speaker.config.to_dict(),
         "camera": speaker.camera.to_dict(),
         "background": list(speaker.background),
-        "precision": "fp32" if codec == "raw" else codec,
+        "precision": chosen.name if chosen is not None else settings.label(),
+        "export_settings": asdict(settings),
+        "runtime_defaults": chosen.runtime.to_dict() if chosen is not None else {},
         "gaussians": speaker.gaussians.count,
         "exporter": {"sdk": sdk_version, "torch": torch.__version__, "python": platform.python_version()},
     })
     steps = tqdm(total=3, desc="gt-export", unit="step", disable=not progress)
-    result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0)
+    result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings)
     try:
-        _export_steps(speaker, writer, path, result, codec, example_frames, steps)
+        _export_steps(speaker, writer, path, result, settings, example_frames, steps)
     finally:
         steps.close()
     return result
 
 
 def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLike | StagedFile, result: ExportResult,
-                  codec: str, example_frames: int, steps: tqdm) -> None:
+                  settings: ExportSettings, example_frames: int, steps: tqdm) -> None:
     """Both graphs into `writer`, then one atomic write: nothing reaches `result.path` until every step worked."""
     steps.set_postfix_str("translator graph")
-    model = translator_onnx(speaker.translator, example_frames)
-    result.graphs["translator"] = add_graph(writer, "translator", model, codec)
+    model = convert_precision(translator_onnx(speaker.translator, example_frames), settings.translator_precision)
+    result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
     steps.update()
 
     steps.set_postfix_str("deformation graph")
     args, dynamic = _deform_example(speaker)
-    model = onnx_export.export_onnx(DeformationGraph(speaker), args, DEFORM_INPUTS, DEFORM_OUTPUTS, dynamic)
-    result.graphs["deform"] = add_graph(writer, "deform", model, codec)
+    graph = DeformationGraph(speaker, sh_degree=settings.sh_degree, blendshape_rank=settings.blendshape_rank)
+    model = onnx_export.export_onnx(graph, args, DEFORM_INPUTS, DEFORM_OUTPUTS, dynamic)
+    result.graphs["deform"] = add_graph(writer, "deform", model, settings.codec_for)
     steps.update()
 
     steps.set_postfix_str("writing bundle")

@@ -7,7 +7,7 @@ import io
 import logging
 import re
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import onnx
@@ -79,8 +79,11 @@ def strip_debug_metadata(model: onnx.ModelProto) -> None:
             value.doc_string = ""
 
 
-def add_graph(writer: BundleWriter, graph_name: str, model: onnx.ModelProto, codec: str = "raw") -> dict:
-    """Move the model's large initializers into bundle buffers named `graph_name/...` and store the graph."""
+def add_graph(writer: BundleWriter, graph_name: str, model: onnx.ModelProto,
+              codec_for: Callable[[str, np.ndarray], tuple[str, int | None]] = lambda buffer, array: ("raw", None)
+              ) -> dict:
+    """Move the model's large initializers into bundle buffers named `graph_name/...` (each stored with the
+    (codec, chunk) `codec_for(buffer name, array)` picks) and store the graph."""
     model = onnx.ModelProto.FromString(model.SerializeToString())  # never mutate the caller's proto
     strip_debug_metadata(model)
     initializers: dict[str, str] = {}
@@ -89,8 +92,8 @@ def add_graph(writer: BundleWriter, graph_name: str, model: onnx.ModelProto, cod
         if array.nbytes < EXTERNALIZE_MIN_BYTES:
             continue
         buffer_name = f"{graph_name}/{re.sub(r'[^A-Za-z0-9_.]+', '_', tensor.name)}"
-        tensor_codec = codec if array.dtype == np.float32 else "raw"
-        writer.add_buffer(buffer_name, array, codec=tensor_codec)
+        codec, chunk = codec_for(buffer_name, array)
+        writer.add_buffer(buffer_name, array, codec=codec, chunk=chunk)
         external_data_helper.set_external_data(tensor, location="bundle", offset=0, length=array.nbytes)
         tensor.ClearField("raw_data")
         for field in ("float_data", "int64_data", "int32_data", "double_data"):

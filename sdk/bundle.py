@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .codecs import expected_nbytes, get_codec
+from .codecs import encode_buffer, expected_nbytes, get_codec
 from .errors import BundleError
 from .files import StagedFile, atomic_write
 
@@ -66,15 +66,19 @@ class BundleWriter:
         self._size += padded
         return {"offset": offset, "nbytes": len(data), "sha256": _sha256(data)}
 
-    def add_buffer(self, name: str, array: np.ndarray, codec: str = "raw") -> None:
-        """Store `array` under `name`, encoded with `codec` (decoded back to the array's dtype)."""
+    def add_buffer(self, name: str, array: np.ndarray, codec: str = "raw", chunk: int | None = None) -> None:
+        """Store `array` under `name`, encoded with `codec` (decoded back to the array's dtype; quantised codecs
+        use `chunk` values per chunk, sdk/codecs.py)."""
         if name in self._buffers:
             raise BundleError(f"buffer {name!r} added twice")
         array = np.asarray(array)
-        payload, params = get_codec(codec).encode(array)
+        try:
+            payload, params = encode_buffer(array, codec, chunk)
+        except BundleError as exc:
+            raise BundleError(f"buffer {name!r}: {exc}") from None
         entry = self._append(payload)
         entry.update(dtype=str(array.dtype), shape=list(array.shape), codec={"name": codec, **params})
-        if expected_nbytes(codec, entry["dtype"], tuple(array.shape)) != len(payload):
+        if expected_nbytes(codec, entry["dtype"], tuple(array.shape), params) != len(payload):
             raise BundleError(f"codec {codec!r} produced {len(payload)} bytes for buffer {name!r}")
         self._buffers[name] = entry
 
@@ -126,6 +130,11 @@ class _Manifest(dict):
 
     def __missing__(self, key):
         raise BundleError(f"{self.path}: manifest has no {key!r} section")
+
+
+def _codec_params(codec: dict) -> dict:
+    """A manifest codec entry's parameters (everything but its name)."""
+    return {k: v for k, v in codec.items() if k != "name"}
 
 
 def _is_int(value) -> bool:
@@ -255,7 +264,7 @@ class Bundle:
             raise BundleError(f"{self.path}: buffer {name!r} has a malformed dtype, shape or codec "
                               f"({dtype!r}, {shape!r}, {codec!r})")
         try:
-            wanted = expected_nbytes(codec["name"], dtype, tuple(shape))
+            wanted = expected_nbytes(codec["name"], dtype, tuple(shape), _codec_params(codec))
         except BundleError as exc:
             raise BundleError(f"{self.path}: buffer {name!r}: {exc}") from None
         if wanted != entry["nbytes"]:
@@ -301,8 +310,10 @@ class Bundle:
             raise BundleError(f"{self.path}: bundle has no buffer {name!r}")
         data = self._read_entry(f"buffer {name!r}", entry)
         codec = entry["codec"]
-        return get_codec(codec["name"]).decode(data, entry["dtype"], tuple(entry["shape"]),
-                                               {k: v for k, v in codec.items() if k != "name"})
+        try:
+            return get_codec(codec["name"]).decode(data, entry["dtype"], tuple(entry["shape"]), _codec_params(codec))
+        except BundleError as exc:
+            raise BundleError(f"{self.path}: buffer {name!r}: {exc}") from None
 
     def graph_info(self, name: str) -> dict:
         entry = self.manifest["graphs"].get(name)

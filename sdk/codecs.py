@@ -1,7 +1,17 @@
 """Buffer codecs: how a named array is stored in a bundle and decoded back. Decoding lives only here.
 
-Each codec is a name plus JSON parameters recorded in the manifest, so reduced-precision tiers (fp16,
-chunked quantisation, ...) slot in as new entries of CODECS without touching the bundle reader.
+Each codec is a name plus JSON parameters recorded in the manifest; a bundle reader needs nothing else. Decoding
+happens once, when a bundle is loaded (graph weights become float32 initializers), never per frame. The codecs
+(docs/precision.md says what each costs and buys on the demo speaker):
+
+* `raw`: the array's own bytes (fp32 for floats). Lossless.
+* `fp16`: IEEE half floats; relative error <= 2^-11.
+* `q16`, `q8`, `q4`: chunked min/max quantisation, the scheme of compressed splat formats. The array (C order)
+  is cut into chunks of `chunk` consecutive values (256 by default); a chunk stores its minimum and step as float32
+  and each value as a `bits`-bit code, value = minimum + code * step (error <= step / 2 = chunk range /
+  (2^(bits+1) - 2)). The exporter lays per-Gaussian buffers out component-major ([3, N], ...), so a chunk holds one
+  quantity of neighbouring Gaussians.
+* `index`: non-negative integers in the smallest unsigned type that holds the largest (uint8/16/32). Lossless.
 """
 
 from __future__ import annotations
@@ -20,6 +30,7 @@ _DTYPES = (
     ("float16", 10, "tensor(float16)"),
     ("int32", 6, "tensor(int32)"),
     ("int64", 7, "tensor(int64)"),
+    ("int8", 3, "tensor(int8)"),
     ("uint8", 2, "tensor(uint8)"),
     ("uint16", 4, "tensor(uint16)"),
     ("uint32", 12, "tensor(uint32)"),
@@ -31,16 +42,33 @@ ONNX_DTYPES = {code: name for name, code, _ in _DTYPES}
 # onnxruntime's NodeArg.type string -> numpy dtype name.
 ORT_DTYPES = {ort_type: name for name, _, ort_type in _DTYPES}
 FP16_MAX = 65504.0
+# Values per quantisation chunk unless the encoder is told otherwise; the largest a manifest may declare.
+DEFAULT_CHUNK = 256
+MAX_CHUNK = 1 << 20
+# Unsigned types the `index` codec may store, smallest first.
+INDEX_TYPES = ("uint8", "uint16", "uint32")
+# What a decoded float32 value may reach: a quantised chunk whose minimum + step * max code exceeds it is damaged.
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass(frozen=True)
 class Codec:
-    """encode(array) -> (payload bytes, params); decode(payload, dtype, shape, params) -> array."""
+    """encode(array) -> (payload bytes, params); decode(payload, dtype, shape, params) -> array;
+    stored_nbytes(dtype, shape, params) -> the payload size the manifest implies (BundleError for bad params)."""
 
     encode: Callable[[np.ndarray], tuple[bytes, dict]]
     decode: Callable[[bytes, str, tuple[int, ...], dict], np.ndarray]
-    stored_itemsize: Callable[[str], int]
+    stored_nbytes: Callable[[str, tuple[int, ...], dict], int]
     float_only: bool = False  # decodes only to floating-point dtypes
+    int_only: bool = False  # decodes only to integer dtypes
+    lossless: bool = True
+
+
+def _count(shape: tuple[int, ...]) -> int:
+    count = 1
+    for dim in shape:
+        count *= int(dim)  # Python ints: a huge claimed shape is a big number, never an allocation
+    return count
 
 
 def _encode_raw(array: np.ndarray) -> tuple[bytes, dict]:
@@ -64,9 +92,133 @@ def _decode_fp16(payload: bytes, dtype: str, shape: tuple[int, ...], params: dic
     return np.frombuffer(payload, dtype="<f2").astype(dtype).reshape(shape)
 
 
+# -- chunked min/max quantisation --------------------------------------------------------------------------------
+
+
+def _chunk_param(params: dict, codec: str) -> int:
+    chunk = params.get("chunk")
+    if not isinstance(chunk, int) or isinstance(chunk, bool) or not 1 <= chunk <= MAX_CHUNK:
+        raise BundleError(f"codec {codec!r} needs an integer chunk in 1..{MAX_CHUNK}, got {chunk!r}")
+    return chunk
+
+
+def _chunk_count(count: int, chunk: int) -> int:
+    return -(-count // chunk)
+
+
+def _code_nbytes(count: int, bits: int) -> int:
+    return -(-count * bits // 8)
+
+
+def _quant_nbytes(bits: int) -> Callable[[str, tuple[int, ...], dict], int]:
+    def nbytes(dtype: str, shape: tuple[int, ...], params: dict) -> int:
+        count = _count(shape)
+        return 8 * _chunk_count(count, _chunk_param(params, f"q{bits}")) + _code_nbytes(count, bits)
+    return nbytes
+
+
+def _quant_encoder(bits: int, chunk: int = DEFAULT_CHUNK) -> Callable[[np.ndarray], tuple[bytes, dict]]:
+    levels = (1 << bits) - 1
+
+    def encode(array: np.ndarray) -> tuple[bytes, dict]:
+        if array.dtype.kind != "f":
+            raise BundleError(f"codec q{bits} stores floating-point arrays only, got {array.dtype}")
+        if not np.all(np.isfinite(array)):
+            raise BundleError(f"codec q{bits} stores finite arrays only")
+        values = np.asarray(array, dtype=np.float64).reshape(-1)
+        count, n_chunks = values.size, _chunk_count(values.size, chunk)
+        if count == 0:
+            return b"", {"chunk": chunk}
+        blocks = np.pad(values, (0, n_chunks * chunk - count), mode="edge").reshape(n_chunks, chunk)
+        low, high = blocks.min(axis=1), blocks.max(axis=1)
+        low = low.astype(np.float32).astype(np.float64)  # what the decoder will read
+        exact = (high - low) / levels
+        step = exact.astype(np.float32)
+        # float32 steps are rounded up, so the chunk's top value never needs a code past `levels` (a step rounded
+        # down, or to zero below float32's subnormals, would clip it); unless that would take the top code past
+        # float32's largest value, where it is rounded down instead.
+        short = step.astype(np.float64) < exact
+        step[short] = np.nextafter(step[short], np.float32(np.inf))
+        over = low + step.astype(np.float64) * levels > _FLOAT32_MAX
+        step[over] = np.nextafter(step[over], np.float32(0))
+        step = step.astype(np.float64)
+        safe = np.where(step > 0, step, 1.0)
+        codes = np.clip(np.rint((blocks - low[:, None]) / safe[:, None]), 0, levels)
+        codes = codes.reshape(-1)[:count].astype(np.uint16 if bits > 8 else np.uint8)
+        if bits == 4:
+            codes = np.pad(codes, (0, codes.size % 2))
+            codes = codes[0::2] | (codes[1::2] << 4)  # two codes per byte, the first in the low nibble
+        packed = codes.astype("<u2" if bits > 8 else np.uint8).tobytes()
+        return low.astype("<f4").tobytes() + step.astype("<f4").tobytes() + packed, {"chunk": chunk}
+    return encode
+
+
+def _quant_decoder(bits: int) -> Callable[[bytes, str, tuple[int, ...], dict], np.ndarray]:
+    levels = (1 << bits) - 1
+
+    def decode(payload: bytes, dtype: str, shape: tuple[int, ...], params: dict) -> np.ndarray:
+        chunk = _chunk_param(params, f"q{bits}")
+        count = _count(shape)
+        n_chunks = _chunk_count(count, chunk)
+        low = np.frombuffer(payload, "<f4", n_chunks, 0).astype(np.float64)
+        step = np.frombuffer(payload, "<f4", n_chunks, 4 * n_chunks).astype(np.float64)
+        if not (np.all(np.isfinite(low)) and np.all(np.isfinite(step)) and np.all(step >= 0)
+                and np.all(np.abs(low) <= _FLOAT32_MAX) and np.all(low + step * levels <= _FLOAT32_MAX)):
+            raise BundleError(f"codec q{bits}: damaged chunk parameters (a minimum or step is not finite, a step "
+                              f"is negative, or a chunk's range exceeds float32)")
+        raw = np.frombuffer(payload, "<u2" if bits > 8 else np.uint8, offset=8 * n_chunks)
+        if bits == 4:
+            codes = np.empty(raw.size * 2, np.uint8)
+            codes[0::2], codes[1::2] = raw & 0x0F, raw >> 4
+            codes = codes[:count]
+        else:
+            codes = raw
+        chunk_of = np.arange(count) // chunk  # [count]
+        values = low[chunk_of] + codes.astype(np.float64) * step[chunk_of]
+        return values.astype(dtype).reshape(shape)
+    return decode
+
+
+# -- narrow integer indices --------------------------------------------------------------------------------------
+
+
+def _index_type(params: dict) -> str:
+    stored = params.get("stored")
+    if stored not in INDEX_TYPES:
+        raise BundleError(f"codec 'index' needs stored in {', '.join(INDEX_TYPES)}, got {stored!r}")
+    return stored
+
+
+def _encode_index(array: np.ndarray) -> tuple[bytes, dict]:
+    if array.dtype.kind not in "iu":
+        raise BundleError(f"codec index stores integer arrays only, got {array.dtype}")
+    low = int(array.min()) if array.size else 0
+    high = int(array.max()) if array.size else 0
+    if low < 0:
+        raise BundleError(f"codec index stores non-negative integers only (minimum {low})")
+    stored = next((t for t in INDEX_TYPES if high <= np.iinfo(t).max), None)
+    if stored is None:
+        raise BundleError(f"codec index cannot hold {high} (largest uint32 {np.iinfo(np.uint32).max})")
+    return array.astype(np.dtype(stored).newbyteorder("<")).tobytes(), {"stored": stored}
+
+
+def _decode_index(payload: bytes, dtype: str, shape: tuple[int, ...], params: dict) -> np.ndarray:
+    stored = np.dtype(_index_type(params)).newbyteorder("<")
+    values = np.frombuffer(payload, dtype=stored)
+    if values.size and int(values.max()) > np.iinfo(dtype).max:
+        raise BundleError(f"codec index: stored value {int(values.max())} does not fit dtype {dtype}")
+    return values.astype(dtype).reshape(shape)
+
+
 CODECS: dict[str, Codec] = {
-    "raw": Codec(_encode_raw, _decode_raw, lambda dtype: np.dtype(dtype).itemsize),
-    "fp16": Codec(_encode_fp16, _decode_fp16, lambda dtype: 2, float_only=True),
+    "raw": Codec(_encode_raw, _decode_raw, lambda dtype, shape, params: _count(shape) * np.dtype(dtype).itemsize),
+    "fp16": Codec(_encode_fp16, _decode_fp16, lambda dtype, shape, params: 2 * _count(shape), float_only=True,
+                  lossless=False),
+    **{f"q{bits}": Codec(_quant_encoder(bits), _quant_decoder(bits), _quant_nbytes(bits), float_only=True,
+                         lossless=False) for bits in (16, 8, 4)},
+    "index": Codec(_encode_index, _decode_index,
+                   lambda dtype, shape, params: _count(shape) * np.dtype(_index_type(params)).itemsize,
+                   int_only=True),
 }
 
 
@@ -75,19 +227,28 @@ def get_codec(name: str) -> Codec:
     try:
         return CODECS[name]
     except KeyError:
-        raise BundleError(f"unknown buffer codec {name!r} (known: {', '.join(sorted(CODECS))})") from None
+        raise BundleError(f"unknown buffer codec {name!r} (known: {', '.join(CODECS)})") from None
 
 
-def expected_nbytes(codec_name: str, dtype: str, shape: tuple[int, ...]) -> int:
+def expected_nbytes(codec_name: str, dtype: str, shape: tuple[int, ...], params: dict | None = None) -> int:
     """Stored size of a buffer, known from the manifest alone (checked before anything is allocated)."""
     if dtype not in SUPPORTED_DTYPES:
         raise BundleError(f"unsupported buffer dtype {dtype!r} (supported: {', '.join(SUPPORTED_DTYPES)})")
     codec = get_codec(codec_name)
     if codec.float_only and not dtype.startswith("float"):
         raise BundleError(f"codec {codec_name!r} cannot decode to dtype {dtype!r} (floating-point only)")
-    count = 1
+    if codec.int_only and dtype.startswith("float"):
+        raise BundleError(f"codec {codec_name!r} cannot decode to dtype {dtype!r} (integers only)")
     for dim in shape:
         if not isinstance(dim, int | np.integer) or isinstance(dim, bool) or dim < 0:
             raise BundleError(f"invalid buffer shape {list(shape)}")
-        count *= int(dim)  # Python ints: a huge claimed shape is a big number, never an allocation
-    return count * codec.stored_itemsize(dtype)
+    return codec.stored_nbytes(dtype, tuple(int(d) for d in shape), params or {})
+
+
+def encode_buffer(array: np.ndarray, codec_name: str, chunk: int | None = None) -> tuple[bytes, dict]:
+    """Encode `array` with codec `codec_name` (quantised codecs: `chunk` values per chunk, default 256)."""
+    codec = get_codec(codec_name)
+    if chunk is not None and codec_name.startswith("q"):
+        _chunk_param({"chunk": chunk}, codec_name)
+        return _quant_encoder(int(codec_name[1:]), chunk)(array)
+    return codec.encode(array)

@@ -226,8 +226,8 @@ def _io(graph: str, kind: str, index: int, **fields):
 
 
 RUNTIME_LIES = {
-    "buffer shape transposed (same bytes)": (_buffer("deform/scale_bar", shape=[2000, 3]),
-                                             "initializer 'scale_bar' is float32 [3, 2000]"),
+    "buffer shape transposed (same bytes)": (_buffer("deform/log_scale", shape=[2000, 3]),
+                                             "initializer 'log_scale' is float32 [3, 2000]"),
     "buffer shape flattened (same bytes)": (_buffer("deform/sh_rest", shape=[90000]),
                                             "initializer 'sh_rest'"),
     "buffer dtype float32 -> int32 (same bytes)": (_buffer("deform/rest_points", dtype="int32"),
@@ -277,7 +277,7 @@ BUNDLE_LIES = {
     "buffer shape [150.0, 6]": (_buffer("pose_track", shape=[150.0, 6]), "buffer 'pose_track' has a malformed"),
     "buffer codec a string": (_buffer("pose_track", codec="raw"), "buffer 'pose_track' has a malformed"),
     "fp16 codec on an int64 buffer": (
-        _buffer("deform/corner_ids", codec={"name": "fp16"}, shape=[6000, 4]),
+        _buffer("deform/parent_triangle", codec={"name": "fp16"}, shape=[2000]),
         "codec 'fp16' cannot decode to dtype 'int64'"),
     "buffer nbytes true": (_buffer("pose_track", nbytes=True), "buffer 'pose_track' has an invalid offset/size"),
     "buffer sha256 missing": (lambda m: m["buffers"]["pose_track"].pop("sha256"), "has no valid sha256"),
