@@ -12,6 +12,7 @@ import typer
 from gaussiantalker.sdk.errors import GaussianTalkerError
 from gaussiantalker.sdk.files import StagedFile, atomic_path, atomic_write
 
+PRESET_NAMES = ("quality", "balanced", "compact", "fast")
 app = typer.Typer(add_completion=False, help=__doc__)
 
 # JSON has no infinity: identical frames (PSNR = +inf) are written as this many dB.
@@ -50,13 +51,28 @@ def export(
     frames: int = typer.Option(25, "--frames", min=1, help="audio-driven frames to compare when verifying"),
     resolution: str = typer.Option("256", "--resolution", help="verification frame size, N or WxH"),
     min_psnr: float = typer.Option(None, "--min-psnr",
-                                   help="required 8-bit PSNR (dB) of every frame [default: the codec's, 50]"),
+                                   help="required 8-bit PSNR (dB) of every frame [default: the tier's]"),
     min_float_psnr: float = typer.Option(None, "--min-float-psnr",
-                                         help="required float-frame PSNR (dB) [default: the codec's: raw 60, fp16 50]"),
-    codec: str = typer.Option("raw", "--codec", help="buffer codec: raw (fp32) or fp16"),
+                                         help="required float-frame PSNR (dB) [default: the tier's]"),
+    preset: str = typer.Option(None, "--preset", help=f"speed/accuracy tier: {', '.join(PRESET_NAMES)} "
+                                                      "(docs/precision.md); the knobs below override its settings"),
+    codec: str = typer.Option(None, "--codec", help="one codec for every buffer: raw (fp32), fp16, q16, q8, q4"),
+    gaussians: str = typer.Option(None, "--gaussian-codec", help="codec of the per-Gaussian attributes"),
+    sh: str = typer.Option(None, "--sh-codec", help="codec of the SH bands 1-3"),
+    blendshapes: str = typer.Option(None, "--blendshape-codec", help="codec of the speaker blendshape weights"),
+    flame: str = typer.Option(None, "--flame-codec", help="codec of the FLAME bases"),
+    translator: str = typer.Option(None, "--translator-codec", help="codec of the translator weights"),
+    translator_precision: str = typer.Option(None, "--translator-precision", help="translator graph: fp32, fp16, "
+                                             "int8 (onnxruntime dynamic quantisation)"),
+    sh_degree: int = typer.Option(None, "--sh-degree", min=0, max=3, help="keep SH bands up to this degree"),
+    blendshape_rank: int = typer.Option(None, "--blendshape-rank", min=1, help="rank of the blendshape matrix"),
+    gaussian_budget: str = typer.Option(None, "--gaussian-budget", help="keep N Gaussians (or P%), the largest "
+                                        "contributors over a driven clip and a head-pose sweep"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bars"),
 ) -> None:
-    """Export a speaker checkpoint to a bundle; with --verify, place it only if it reproduces the torch frames."""
+    """Export a speaker checkpoint to a bundle; with --verify, place it only if it reproduces the torch frames.
+
+    Codec values: raw, fp16, q16, q8, q4; a quantised codec may name its chunk size (q4/64)."""
     from .checkpoint import load_checkpoint
     from .export import export_bundle
 
@@ -64,30 +80,59 @@ def export(
     verify = verify or report is not None
     size = _resolution(resolution)
     try:
+        knobs = {"gaussians": gaussians, "sh": sh, "blendshapes": blendshapes, "flame": flame,
+                 "translator": translator, "translator_precision": translator_precision, "sh_degree": sh_degree,
+                 "blendshape_rank": blendshape_rank, "gaussian_budget": _budget(gaussian_budget)}
+        settings, chosen = _settings(preset, codec, knobs)
         speaker = load_checkpoint(checkpoint)
         # The bundle is staged beside the output and placed there only once it is complete (and, with --verify,
         # has passed), so a failed or interrupted run never replaces a good bundle.
         with atomic_path(output) as staged:
-            result = export_bundle(speaker, staged, codec=codec, progress=not quiet)
-            typer.echo(f"wrote {result.bytes_written / 1e6:.2f} MB bundle "
-                       f"({speaker.gaussians.count} Gaussians, graphs: {', '.join(result.graphs)})")
+            result = export_bundle(speaker, staged, settings=settings, preset=chosen, progress=not quiet)
+            typer.echo(f"wrote {result.bytes_written / 1e6:.2f} MB bundle ({result.gaussians} Gaussians, "
+                       f"tier {result.tier}, graphs: {', '.join(result.graphs)})")
             if verify:
-                _verify(speaker, staged, output, codec, frames, size, min_psnr, min_float_psnr, report, quiet)
+                from .verify import Tolerances
+
+                tolerances = Tolerances.for_settings(settings, chosen)
+                _verify(speaker, staged, output, tolerances, frames, size, min_psnr, min_float_psnr, report, quiet)
         typer.echo(f"bundle: {output}" + (" (verified)" if verify else ""))
     except GaussianTalkerError as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
 
 
-def _verify(speaker, staged: StagedFile, output: Path, codec: str, frames: int, size: tuple[int, int],
+def _budget(text: str | None) -> float | None:
+    """--gaussian-budget: a number of Gaussians or a percentage ("60%")."""
+    if text is None:
+        return None
+    try:
+        return float(text[:-1]) / 100 if text.endswith("%") else float(int(text))
+    except ValueError:
+        raise typer.BadParameter(f"--gaussian-budget must be a whole number or a percentage, got {text!r}") from None
+
+
+def _settings(preset: str | None, codec: str | None, knobs: dict):
+    """The export settings: a preset's (or every buffer with --codec, or fp32) with the given knobs replacing
+    its values (the bundle then records the preset's runtime defaults and "NAME+custom" as its tier)."""
+    from .tiers import ExportSettings, get_preset, settings_with
+
+    if preset is not None and codec is not None:
+        raise typer.BadParameter("give --preset or --codec, not both (--codec sets every buffer's codec)")
+    chosen = get_preset(preset) if preset is not None else None
+    base = chosen.export if chosen else ExportSettings.all_buffers(codec) if codec else ExportSettings()
+    return settings_with(base, **knobs), chosen
+
+
+def _verify(speaker, staged: StagedFile, output: Path, defaults, frames: int, size: tuple[int, int],
             min_psnr: float | None, min_float_psnr: float | None, report: Path | None, quiet: bool) -> None:
     """Verify the staged bundle; a failure keeps it as NAME.unverified.gtb (not at `output`) and exits 1."""
-    from .verify import Tolerances, format_report, verify_bundle
+    from dataclasses import replace
 
-    defaults = Tolerances.for_codec(codec)
-    tolerances = Tolerances(
-        graph_rtol=defaults.graph_rtol,
-        min_psnr_float_db=defaults.min_psnr_float_db if min_float_psnr is None else min_float_psnr,
+    from .verify import format_report, verify_bundle
+
+    tolerances = replace(
+        defaults, min_psnr_float_db=defaults.min_psnr_float_db if min_float_psnr is None else min_float_psnr,
         min_psnr_uint8_db=defaults.min_psnr_uint8_db if min_psnr is None else min_psnr)
     outcome = verify_bundle(speaker, staged.path, frames=frames, resolution=size, tolerances=tolerances,
                             progress=not quiet)

@@ -22,6 +22,7 @@ from . import onnx_export
 from .deform_graph import DeformationGraph
 from .graph_precision import convert_precision
 from .onnx_export import add_graph
+from .prune import apply_budget
 from .speaker import Speaker
 from .tiers import ExportSettings, Preset, get_preset, group_of
 from .translator import translator_onnx
@@ -39,6 +40,8 @@ class ExportResult:
     graphs: dict = field(default_factory=dict)
     buffer_bytes: dict = field(default_factory=dict)
     settings: ExportSettings | None = None
+    tier: str = "fp32"  # the manifest's "precision": fp32, fp16, a preset's name, NAME+custom or custom
+    gaussians: int = 0  # Gaussians in the bundle (after a Gaussian budget)
 
     def group_bytes(self) -> dict[str, int]:
         """Stored bytes per codec group (exporter/tiers.py) plus 'other' (pose track, index buffers, ...)."""
@@ -58,42 +61,45 @@ def _deform_example(speaker: Speaker) -> tuple[tuple, dict]:
 
 
 def resolve_settings(codec: str | None = None, settings: ExportSettings | None = None,
-                     preset: str | None = None) -> tuple[ExportSettings, Preset | None]:
-    """The export settings asked for: a preset's, every buffer with one codec, or explicit settings (one only)."""
-    choices = (("codec", codec), ("settings", settings), ("preset", preset))
-    given = [name for name, value in choices if value is not None]
-    if len(given) > 1:
-        raise BundleError(f"give one of codec, settings and preset, not {' and '.join(given)}")
-    if preset is not None:
-        chosen = get_preset(preset)
-        return chosen.export, chosen
+                     preset: str | Preset | None = None) -> tuple[ExportSettings, Preset | None, str]:
+    """(settings, preset, tier label) of an export: explicit `settings` (over a preset's, whose name and runtime
+    defaults are kept), a preset's own, every buffer with one `codec`, or fp32."""
+    if codec is not None and (settings is not None or preset is not None):
+        raise BundleError("give codec (every buffer's codec) or settings/preset, not both")
+    chosen = get_preset(preset) if isinstance(preset, str) else preset
     if codec is not None:
         get_codec(codec)  # an unknown codec fails now, not after minutes of graph export
-        return ExportSettings.all_buffers(codec), None
-    return settings or ExportSettings(), None
+        settings = ExportSettings.all_buffers(codec)
+    settings = settings or (chosen.export if chosen is not None else ExportSettings())
+    if chosen is None:
+        return settings, None, settings.label()
+    return settings, chosen, chosen.name if settings == chosen.export else f"{chosen.name}+custom"
 
 
 def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, codec: str | None = None,
-                  settings: ExportSettings | None = None, preset: str | None = None, progress: bool = True,
+                  settings: ExportSettings | None = None, preset: str | Preset | None = None, progress: bool = True,
                   example_frames: int = 8) -> ExportResult:
     """Export `speaker` to one bundle file at `path` (written atomically), or into a file staged by `atomic_path`.
 
     The speed/accuracy knobs (exporter/tiers.py, docs/precision.md): `preset` names a tier (its runtime defaults
     are stored in the bundle), `codec` stores every buffer with one codec, `settings` sets each knob."""
-    settings, chosen = resolve_settings(codec, settings, preset)
+    settings, chosen, tier = resolve_settings(codec, settings, preset)
     speaker = speaker.eval()
+    if settings.gaussian_budget is not None:
+        speaker = apply_budget(speaker, settings.gaussian_budget, progress=progress)
     writer = BundleWriter(metadata={
         "speaker": speaker.config.to_dict(),
         "camera": speaker.camera.to_dict(),
         "background": list(speaker.background),
-        "precision": chosen.name if chosen is not None else settings.label(),
+        "precision": tier,
         "export_settings": asdict(settings),
         "runtime_defaults": chosen.runtime.to_dict() if chosen is not None else {},
         "gaussians": speaker.gaussians.count,
         "exporter": {"sdk": sdk_version, "torch": torch.__version__, "python": platform.python_version()},
     })
     steps = tqdm(total=3, desc="gt-export", unit="step", disable=not progress)
-    result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings)
+    result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings, tier=tier,
+                          gaussians=speaker.gaussians.count)
     try:
         _export_steps(speaker, writer, path, result, settings, example_frames, steps)
     finally:

@@ -64,14 +64,16 @@ class Speaker(nn.Module):
         return self.gaussians(vertices, gamma, camera_center)
 
     @torch.no_grad()
-    def render(self, drive: FrameDrive, camera: Camera | None = None, background=None) -> torch.Tensor:
-        """Reference frame [H, W, 3] float32 (C + T * background) for one validated drive."""
+    def render(self, drive: FrameDrive, camera: Camera | None = None, background=None, *,
+               transmittance: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+        """Reference frame [H, W, 3] float32 (C + T * background) for one validated drive (and its transmittance
+        T [H, W] with `transmittance=True`)."""
         camera = camera or self.camera
         inputs = {k: torch.from_numpy(v) for k, v in drive.graph_inputs().items()}
         center = torch.from_numpy(camera.center.astype(np.float32))[None]
         means, cov3d, rgb, opacity = self.deform(inputs["expression"], inputs["flame_pose"],
                                                  inputs["head_translation"], center)
         bg = torch.tensor(self.background if background is None else background, dtype=torch.float32)
-        image, _ = render_reference(means[0], cov3d[0], rgb[0], opacity, camera, bg)
-        return image
+        image, trans = render_reference(means[0], cov3d[0], rgb[0], opacity, camera, bg)
+        return (image, trans) if transmittance else image
 

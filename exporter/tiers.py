@@ -9,12 +9,13 @@ and every preset on the same frames; the presets below were chosen from its tabl
 from __future__ import annotations
 
 import fnmatch
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
 from gaussiantalker.sdk.codecs import CODECS
 from gaussiantalker.sdk.errors import BundleError
+from gaussiantalker.sdk.render_settings import RenderSettings
 
 from .graph_precision import PRECISIONS as TRANSLATOR_PRECISIONS
 
@@ -33,7 +34,6 @@ CODEC_GROUPS: dict[str, tuple[str, ...]] = {
 KEEP_16_BITS = ("deform/rest_points", "deform/rest_scale", "deform/barycentric", "deform/lbs_weights")
 # Quantised codecs spend 8 bytes of chunk parameters per chunk: below this many values a buffer gets fp16 instead.
 QUANT_MIN_VALUES = 4096
-RENDER_TARGETS = ("float32", "float16", "uint8")
 
 
 def parse_codec(spec: str) -> tuple[str, int | None]:
@@ -68,6 +68,7 @@ class ExportSettings:
     translator_precision: str = "fp32"
     sh_degree: int | None = None  # keep SH bands up to this degree (None: all)
     blendshape_rank: int | None = None  # rank of the speaker blendshape matrix (None: full)
+    gaussian_budget: float | None = None  # keep this fraction (<= 1) or number (> 1) of Gaussians (None: all)
 
     def __post_init__(self) -> None:
         for group in CODEC_GROUPS:
@@ -82,6 +83,10 @@ class ExportSettings:
             raise BundleError(f"sh_degree must be 0..3, got {self.sh_degree}")
         if self.blendshape_rank is not None and self.blendshape_rank < 1:
             raise BundleError(f"blendshape_rank must be >= 1, got {self.blendshape_rank}")
+        budget = self.gaussian_budget
+        if budget is not None and not (budget > 0 and (budget <= 1 or float(budget).is_integer())):
+            raise BundleError(f"gaussian_budget must be a fraction in (0, 1] or a whole number of Gaussians, "
+                              f"got {budget}")
 
     @classmethod
     def all_buffers(cls, codec: str) -> ExportSettings:
@@ -92,7 +97,7 @@ class ExportSettings:
     def lossless(self) -> bool:
         codecs_lossless = all(CODECS[parse_codec(getattr(self, g))[0]].lossless for g in CODEC_GROUPS)
         return (codecs_lossless and self.translator_precision == "fp32" and self.sh_degree is None
-                and self.blendshape_rank is None)
+                and self.blendshape_rank is None and self.gaussian_budget is None)
 
     def label(self) -> str:
         """fp32, fp16 (every buffer fp16, nothing else changed) or custom."""
@@ -120,35 +125,35 @@ class ExportSettings:
 
 
 @dataclass(frozen=True)
-class RuntimeDefaults:
-    """Runtime knobs a preset stores in the bundle; `TalkingHead` arguments override them."""
-
-    render_scale: float = 1.0  # draw at this fraction of the output size, then upscale
-    render_target: str = "float32"  # framebuffer precision: float32, float16 or uint8
-
-    def __post_init__(self) -> None:
-        if not 0.1 <= self.render_scale <= 1.0:
-            raise BundleError(f"render_scale must be in 0.1..1, got {self.render_scale}")
-        if self.render_target not in RENDER_TARGETS:
-            raise BundleError(f"render_target must be one of {', '.join(RENDER_TARGETS)}, got {self.render_target!r}")
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-
-@dataclass(frozen=True)
 class Preset:
     """A named tier: export settings, runtime defaults, and the bounds `--verify` holds it to."""
 
     name: str
     summary: str
     export: ExportSettings
-    runtime: RuntimeDefaults = field(default_factory=RuntimeDefaults)
+    runtime: RenderSettings = field(default_factory=RenderSettings)
     min_head_psnr_db: float | None = None  # 8-bit PSNR over the head region vs the fp32 speaker's frames
 
 
+# Buffer codecs of the reduced tiers: per-Gaussian values 8-bit (barycentrics, rest sizes 16-bit), SH bands and
+# speaker blendshapes 4-bit, FLAME bases 4-bit in chunks of 128, the translator 8-bit.
+_REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4", "flame": "q4/128", "translator": "q8"}
+
+# The tiers, chosen from measurements on the demo speaker (docs/precision.md has the table and the command).
+# `min_head_psnr_db` is what `gt-export --verify` holds a tier to; each sits below what the tier measured, by the
+# spread seen between clips and resolutions.
 PRESETS: dict[str, Preset] = {
-    "quality": Preset("quality", "fp32 everything: parity with the torch speaker", ExportSettings()),
+    "quality": Preset("quality", "fp32 everything: parity with the torch speaker (>= 50 dB)", ExportSettings()),
+    "balanced": Preset("balanced", "quantised buffers, nothing dropped: ~5.6x smaller at ~49 dB",
+                       ExportSettings(**_REDUCED_CODECS), min_head_psnr_db=47.0),
+    "compact": Preset("compact", "smallest bundle: 65% of the Gaussians, SH degree 0, rank-2 blendshapes, 4-bit "
+                      "translator: ~14x smaller at ~36 dB",
+                      ExportSettings(**{**_REDUCED_CODECS, "translator": "q4"}, sh_degree=0, blendshape_rank=2,
+                                     gaussian_budget=0.65), min_head_psnr_db=35.0),
+    "fast": Preset("fast", "fastest frames: 60% of the Gaussians, drawn at 3/4 size into an 8-bit framebuffer: "
+                   "~2.2x the frame rate at ~35 dB",
+                   ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6),
+                   RenderSettings(render_scale=0.75, render_target="uint8"), min_head_psnr_db=33.0),
 }
 
 
@@ -169,4 +174,5 @@ def settings_with(base: ExportSettings, **overrides) -> ExportSettings:
     return replace(base, **{k: v for k, v in overrides.items() if v is not None})
 
 
-__all__ = ["CODEC_GROUPS", "PRESETS", "ExportSettings", "Preset", "RuntimeDefaults", "get_preset", "settings_with"]
+__all__ = ["CODEC_GROUPS", "PRESETS", "ExportSettings", "Preset", "get_preset", "group_of", "parse_codec",
+           "settings_with"]

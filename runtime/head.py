@@ -24,7 +24,8 @@ from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame
-from gaussiantalker.sdk.errors import AudioError, BundleError
+from gaussiantalker.sdk.errors import AudioError, BundleError, RenderError
+from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.sdk.video import VideoWriter
 from gaussiantalker.sdk.video_formats import plan_video
 
@@ -43,15 +44,32 @@ HeadPoseSource = Callable[[int], HeadPose] | np.ndarray | HeadPose | None
 FrameOutput = Literal["uint8", "float", "rgba"]
 
 
+def _render_settings(bundle: Bundle, render_scale: float | None, render_target: str | None) -> RenderSettings:
+    """The bundle's stored runtime defaults (BundleError if damaged) with the app's overrides (RenderError if bad)."""
+    try:
+        defaults = RenderSettings.from_dict(bundle.manifest.get("runtime_defaults", {}))
+    except (TypeError, ValueError) as exc:
+        raise BundleError(f"{bundle.path}: manifest 'runtime_defaults' is invalid: {exc}") from None
+    try:
+        return defaults.with_overrides(render_scale=render_scale, render_target=render_target)
+    except (TypeError, ValueError) as exc:
+        raise RenderError(str(exc)) from None
+
+
 class TalkingHead:
     """A loaded speaker bundle plus an OpenGL splatter: audio or FLAME parameters in, frames out."""
 
     def __init__(self, bundle: str | os.PathLike | Bundle, *, resolution: tuple[int, int] | None = None,
                  camera: Camera | None = None, background=None, threads: int | None = None,
-                 gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS) -> None:
-        """`silence_gate_dbfs`: audio windows quieter than this (RMS, dBFS) fade to the neutral face (None: off)."""
+                 gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS,
+                 render_scale: float | None = None, render_target: str | None = None) -> None:
+        """`silence_gate_dbfs`: audio windows quieter than this (RMS, dBFS) fade to the neutral face (None: off).
+        `render_scale` (draw at this fraction of the size, then upscale) and `render_target` ("float32",
+        "float16", "uint8" framebuffer) trade accuracy for speed (docs/precision.md); None takes the bundle's
+        preset defaults (full size, float32 for bundles without a preset)."""
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle(bundle)
         manifest = self.bundle.manifest
+        self.render_settings = _render_settings(self.bundle, render_scale, render_target)
         try:
             self.config = SpeakerConfig.from_dict(manifest["speaker"])
             self.config.check_timing()
@@ -64,7 +82,7 @@ class TalkingHead:
             self.camera = self.camera.resized(*resolution)
         self.background = np.asarray(background if background is not None else manifest.get("background", (1, 1, 1)),
                                      dtype=np.float32).reshape(3)
-        self.splatter = GLSplatter(gl_context)
+        self.splatter = GLSplatter(gl_context, settings=self.render_settings)
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.silence_gate_dbfs = silence_gate_dbfs
 

@@ -53,6 +53,7 @@ from gaussiantalker.sdk import numerics
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import straight_rgba, to_uint8
+from gaussiantalker.sdk.render_settings import RENDER_TARGETS, RenderSettings
 from gaussiantalker.shaders import load_shader
 
 from .gl_context import create_context
@@ -237,15 +238,19 @@ class PreparedSplats:
 
     rows: np.ndarray  # [n, 13] float32, culled and depth-sorted
     runs: list[tuple[int, int, bool]]  # (start, stop, as_quads)
-    camera: Camera
+    camera: Camera  # the camera drawn with (at the render scale's size)
     seconds: float  # time spent preparing (reported as the "sort" stage)
+    output_size: tuple[int, int] | None = None  # (width, height) returned, when it differs from the drawn size
 
 
 class _Target:
-    """A float framebuffer of one resolution plus its read-back scratch array."""
+    """A framebuffer of one resolution and precision (moderngl dtype f4, f2 or f1) plus its read-back scratch."""
 
-    def __init__(self, ctx: moderngl.Context, width: int, height: int) -> None:
-        self.texture = ctx.texture((width, height), 4, dtype="f4")
+    def __init__(self, ctx: moderngl.Context, width: int, height: int, dtype: str = "f4") -> None:
+        self.texture = ctx.texture((width, height), 4, dtype=dtype)
+        self.texture.filter = (moderngl.LINEAR, moderngl.LINEAR)  # sampled by the render-scale pass
+        self.texture.repeat_x = self.texture.repeat_y = False
+        self.dtype = dtype
         try:
             self.fbo = ctx.framebuffer(color_attachments=[self.texture])
         except Exception:
@@ -263,10 +268,16 @@ class GLSplatter:
     """Renders Gaussians with OpenGL into an offscreen float framebuffer; reusable across frames and cameras.
 
     `point_sprites=False` draws every Gaussian as an instanced quad (same pixels, slower on llvmpipe).
+    `settings` are the speed/accuracy knobs (render scale, framebuffer precision; docs/precision.md); the default
+    is the contract's full-size float32 frame.
     On a shared context, render() leaves BLEND and PROGRAM_POINT_SIZE enabled, DEPTH_TEST and CULL_FACE disabled.
     """
 
-    def __init__(self, ctx: moderngl.Context | None = None, *, point_sprites: bool = True) -> None:
+    def __init__(self, ctx: moderngl.Context | None = None, *, point_sprites: bool = True,
+                 settings: RenderSettings | None = None) -> None:
+        if settings is not None and not isinstance(settings, RenderSettings):
+            raise RenderError(f"settings must be a RenderSettings, got {type(settings).__name__}")
+        self.settings = settings or RenderSettings()
         self._owns_ctx = ctx is None
         self.ctx = create_context() if ctx is None else ctx
         self.last_timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
@@ -278,6 +289,7 @@ class GLSplatter:
         self._programs: dict[str, moderngl.Program] = {}
         self._quad_vao: moderngl.VertexArray | None = None
         self._background_vao: moderngl.VertexArray | None = None
+        self._upscale_vao: moderngl.VertexArray | None = None
         try:
             with self.ctx:
                 self._build_programs()
@@ -303,8 +315,10 @@ class GLSplatter:
         self._programs["points"] = self._program("splat.vert", "splat.frag", {"SPLAT_POINTS": "1"})
         self._programs["quads"] = self._program("splat.vert", "splat.frag", {"SPLAT_POINTS": "0"})
         self._programs["background"] = self._program("background.vert", "background.frag")
+        self._programs["upscale"] = self._program("background.vert", "upscale.frag")
         self._quad_vao = self.ctx.vertex_array(self._programs["quads"], [])
         self._background_vao = self.ctx.vertex_array(self._programs["background"], [])
+        self._upscale_vao = self.ctx.vertex_array(self._programs["upscale"], [])
 
     def _max_point_size(self) -> float:
         """Largest point sprite side the driver draws (GL_POINT_SIZE_RANGE; 0 where unknown)."""
@@ -333,11 +347,12 @@ class GLSplatter:
         self._quad_start = start
 
     def _target(self, width: int, height: int) -> _Target:
-        """The framebuffer for this resolution (a few recent ones are kept, least recently used dropped)."""
-        key = (width, height)
+        """The framebuffer for this resolution in the settings' precision (a few recent ones are kept, least
+        recently used dropped)."""
+        key = (width, height, RENDER_TARGETS[self.settings.render_target])
         target = self._targets.pop(key, None)
         if target is None:
-            target = _Target(self.ctx, width, height)
+            target = _Target(self.ctx, *key)
             while len(self._targets) >= MAX_CACHED_TARGETS:
                 self._targets.popitem(last=False)[1].release()
         self._targets[key] = target
@@ -389,17 +404,32 @@ class GLSplatter:
         if background is not None:
             self._programs["background"]["u_background"].value = background
             self._background_vao.render(moderngl.TRIANGLES, vertices=3)
-        ctx.finish()  # so that "draw" and "readback" timings are separate
+
+    def _upscale(self, source: _Target, target: _Target) -> None:
+        """Sample `source` bilinearly at every pixel centre of the larger `target` (the render-scale pass)."""
+        target.fbo.use()
+        self.ctx.disable(moderngl.BLEND)
+        source.texture.use(location=0)
+        program = self._programs["upscale"]
+        program["u_source"].value = 0
+        program["u_output_size"].value = (float(target.texture.width), float(target.texture.height))
+        self._upscale_vao.render(moderngl.TRIANGLES, vertices=3)
+        self.ctx.enable(moderngl.BLEND)
 
     def prepare(self, means, cov3d, rgb, opacity, camera: Camera) -> PreparedSplats:
         """Validate, pack, depth-sort and plan draw runs (numpy only, no GL: safe on a worker thread)."""
         if not isinstance(camera, Camera):
             raise RenderError(f"camera must be a gaussiantalker.sdk.camera.Camera, got {type(camera).__name__}")
         start = time.perf_counter()
+        output_size = (int(camera.width), int(camera.height))
+        draw_size = self.settings.draw_size(*output_size)
+        if draw_size != output_size:
+            camera = camera.resized(*draw_size)  # the same view, fewer pixels: upscaled after drawing
         packed = pack_gaussians(means, cov3d, rgb, opacity)
         rows = packed[depth_order(packed, camera)]  # [n, 13] front to back
         runs = self._plan_runs(rows, camera)
-        return PreparedSplats(rows, runs, camera, time.perf_counter() - start)
+        return PreparedSplats(rows, runs, camera, time.perf_counter() - start,
+                              output_size if draw_size != output_size else None)
 
     def draw(self, prepared: PreparedSplats, background, *, output: str = "uint8") -> np.ndarray:
         """Upload, splat and read back a prepared frame -> [H, W, 3] (see `render`)."""
@@ -412,8 +442,7 @@ class GLSplatter:
         timings["sort"] = prepared.seconds
         try:
             with self.ctx:  # make this context current (restored after): an app may hold several
-                frame = self._render_sorted(prepared.rows, prepared.runs, prepared.camera, background, timings,
-                                            output)
+                frame = self._render_sorted(prepared, background, timings, output)
         except moderngl.Error as exc:
             raise RenderError(f"OpenGL error while splatting {len(prepared.rows)} Gaussians: {exc}") from exc
         self.last_timings = timings
@@ -432,9 +461,9 @@ class GLSplatter:
             raise RenderError("this GLSplatter has been released")
         return self.draw(self.prepare(means, cov3d, rgb, opacity, camera), background, output=output)
 
-    def _render_sorted(self, rows: np.ndarray, runs: list[tuple[int, int, bool]], camera: Camera, background,
-                       timings: dict, output: str) -> np.ndarray:
-        """Upload, draw and read back one frame of already sorted rows."""
+    def _render_sorted(self, prepared: PreparedSplats, background, timings: dict, output: str) -> np.ndarray:
+        """Upload, draw (and upscale, at a render scale below 1) and read back one prepared frame."""
+        rows, camera = prepared.rows, prepared.camera
         start = time.perf_counter()
         if len(rows):
             self._ensure_capacity(len(rows))
@@ -444,7 +473,11 @@ class GLSplatter:
         timings["upload"] = time.perf_counter() - start
 
         start = time.perf_counter()
-        self._draw(target, runs, None if output == "rgba" else background)
+        self._draw(target, prepared.runs, None if output == "rgba" else background)
+        if prepared.output_size is not None:
+            source, target = target, self._target(*prepared.output_size)
+            self._upscale(source, target)
+        self.ctx.finish()  # so that "draw" and "readback" timings are separate
         timings["draw"] = time.perf_counter() - start
 
         start = time.perf_counter()
@@ -452,6 +485,9 @@ class GLSplatter:
             premultiplied = np.empty((*target.scratch.shape[:2], 4), dtype=np.float32)
             target.fbo.read_into(premultiplied, components=4, dtype="f4")
             frame = straight_rgba(premultiplied, background)
+        elif output == "uint8" and target.dtype == "f1":  # already 8-bit: GL rounds to nearest, as to_uint8 does
+            frame = np.empty(target.scratch.shape, dtype=np.uint8)
+            target.fbo.read_into(frame, components=3, dtype="f1")
         else:
             frame = target.scratch if output == "uint8" else np.empty_like(target.scratch)
             target.fbo.read_into(frame, components=3, dtype="f4")
@@ -477,10 +513,10 @@ class GLSplatter:
             self._release_buffer()
             while self._targets:
                 self._targets.popitem()[1].release()
-            for obj in (self._quad_vao, self._background_vao, *self._programs.values()):
+            for obj in (self._quad_vao, self._background_vao, self._upscale_vao, *self._programs.values()):
                 if obj is not None:
                     obj.release()
-        self._quad_vao = self._background_vao = None
+        self._quad_vao = self._background_vao = self._upscale_vao = None
         self._programs = {}
         if self._owns_ctx:
             self.ctx.release()

@@ -94,6 +94,10 @@ def play(
                                                             "mov, webm, mkv, gif, png"),
     show: bool = typer.Option(False, "--show", help="also show the frames in a window (needs a display)"),
     threads: int = typer.Option(None, "--threads", help="onnxruntime threads [default: all cores]"),
+    render_scale: float = typer.Option(None, "--render-scale", help="draw at this fraction of the size, then "
+                                       "upscale (0.1-1) [default: the bundle's preset, else 1]"),
+    render_target: str = typer.Option(None, "--render-target", help="framebuffer: float32, float16, uint8 "
+                                      "[default: the bundle's preset, else float32]"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
 ) -> None:
     """Render BUNDLE talking to AUDIO and write a video with the audio muxed in."""
@@ -105,7 +109,8 @@ def play(
         plan = plan_video(output, (camera.width, camera.height), alpha=alpha, codec=codec, crf=crf, preset=preset,
                           container=video_format)
         bg = None if background is None else _parse_background(background)
-        head = TalkingHead(speaker, camera=camera, background=bg, threads=threads)
+        head = TalkingHead(speaker, camera=camera, background=bg, threads=threads, render_scale=render_scale,
+                           render_target=render_target)
         window = None
         if show:
             headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))

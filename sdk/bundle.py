@@ -21,6 +21,7 @@ import hashlib
 import json
 import os
 import struct
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,10 +33,13 @@ from .files import StagedFile, atomic_write
 
 MAGIC = b"GTBUNDLE"
 FORMAT_MAJOR = 1
-FORMAT_MINOR = 0
+FORMAT_MINOR = 1  # 1.1: graphs may be stored zlib-compressed ("compression": "zlib", "raw_nbytes")
 HEADER_SIZE = 64
 ALIGN = 64
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024
+# Largest graph a compressed entry may inflate to (protobuf's own 2 GiB limit): checked before inflating.
+MAX_GRAPH_BYTES = 2**31 - 1
+GRAPH_COMPRESSIONS = ("zlib",)
 _HEADER = struct.Struct("<8sHHIQ32s")
 
 
@@ -83,14 +87,17 @@ class BundleWriter:
         self._buffers[name] = entry
 
     def add_graph(self, name: str, onnx_bytes: bytes, inputs: list[dict], outputs: list[dict],
-                  initializers: dict[str, str] | None = None) -> None:
-        """Store an ONNX graph; `initializers` maps its external initializer names to the buffers holding them."""
+                  initializers: dict[str, str] | None = None, compress: bool = True) -> None:
+        """Store an ONNX graph; `initializers` maps its external initializer names to the buffers holding them.
+        `compress`: stored zlib-compressed (lossless; a weightless graph's protobuf shrinks ~4x)."""
         if name in self._graphs:
             raise BundleError(f"graph {name!r} added twice")
         for buffer_name in (initializers or {}).values():
             if buffer_name not in self._buffers:
                 raise BundleError(f"graph {name!r} refers to unknown buffer {buffer_name!r}")
-        entry = self._append(onnx_bytes)
+        entry = self._append(zlib.compress(onnx_bytes, 9) if compress else onnx_bytes)
+        if compress:
+            entry.update(compression="zlib", raw_nbytes=len(onnx_bytes))
         entry.update(inputs=inputs, outputs=outputs, initializers=dict(initializers or {}))
         self._graphs[name] = entry
 
@@ -281,6 +288,14 @@ class Bundle:
                 raise BundleError(f"{self.path}: graph {name!r} needs unknown buffer {buffer_name!r}")
         for kind in ("inputs", "outputs"):
             _check_tensor_list(f"{self.path}: graph {name!r} {kind}", entry.get(kind))
+        compression = entry.get("compression")
+        if compression is not None:
+            raw = entry.get("raw_nbytes")
+            if compression not in GRAPH_COMPRESSIONS:
+                raise BundleError(f"{self.path}: graph {name!r} has unknown compression {compression!r} (this "
+                                  f"runtime reads: {', '.join(GRAPH_COMPRESSIONS)})")
+            if not (_is_int(raw) and 0 <= raw <= MAX_GRAPH_BYTES):
+                raise BundleError(f"{self.path}: graph {name!r} has an invalid raw_nbytes {raw!r}")
 
     @property
     def version(self) -> tuple[int, int]:
@@ -323,7 +338,20 @@ class Bundle:
         return entry
 
     def graph_bytes(self, name: str) -> bytes:
-        return self._read_entry(f"graph {name!r}", self.graph_info(name))
+        """The graph's ONNX bytes (checksummed, inflated if stored compressed)."""
+        entry = self.graph_info(name)
+        data = self._read_entry(f"graph {name!r}", entry)
+        if entry.get("compression") is None:
+            return data
+        raw = entry["raw_nbytes"]
+        inflater = zlib.decompressobj()
+        try:
+            onnx_bytes = inflater.decompress(data, raw)  # never more than the declared size
+        except zlib.error as exc:
+            raise BundleError(f"{self.path}: graph {name!r} does not inflate ({exc})") from None
+        if len(onnx_bytes) != raw or not inflater.eof or inflater.unconsumed_tail:
+            raise BundleError(f"{self.path}: graph {name!r} does not inflate to its declared {raw} bytes")
+        return onnx_bytes
 
     def verify_all(self) -> None:
         """Read every entry and check its checksum (what `gt-export --verify` and loaders call)."""

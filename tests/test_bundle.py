@@ -28,7 +28,7 @@ def test_round_trip(tmp_path):
     np.testing.assert_array_equal(bundle.buffer("ids"), np.arange(5))
     assert bundle.graph_bytes("g") == b"\x08\x01graph-bytes"
     assert bundle.graph_info("g")["initializers"] == {"w": "weights"}
-    assert bundle.version == (1, 0)
+    assert bundle.version == (1, 1)
     bundle.verify_all()
 
 
@@ -77,7 +77,7 @@ def test_unknown_major_version_is_refused(tmp_path):
     data = bytearray(path.read_bytes())
     data[8:10] = struct.pack("<H", 2)
     path.write_bytes(bytes(data))
-    with pytest.raises(BundleError, match="version 2.0 is not supported"):
+    with pytest.raises(BundleError, match="version 2.1 is not supported"):
         Bundle(path)
 
 
@@ -157,3 +157,21 @@ def test_write_is_atomic(tmp_path, monkeypatch):
         writer.write(path)
     assert path.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["good.gtb"]
+
+
+def test_graphs_are_stored_compressed_and_damage_is_named(tmp_path):
+    path = _write(tmp_path / "a.gtb")
+    entry = Bundle(path).manifest["graphs"]["g"]
+    assert entry["compression"] == "zlib" and entry["raw_nbytes"] == len(b"\x08\x01graph-bytes")
+    for edit, message in (({"raw_nbytes": 5}, "does not inflate to its declared 5 bytes"),
+                          ({"raw_nbytes": 2**40}, "invalid raw_nbytes"),
+                          ({"compression": "lzma"}, "unknown compression 'lzma'")):
+        writer = BundleWriter({"speaker": {"n_expr": 3}})
+        writer.add_buffer("weights", np.zeros(3, np.float32))
+        writer.add_graph("g", b"\x08\x01graph-bytes", [], [], {"w": "weights"})
+        manifest = writer.manifest()
+        manifest["graphs"]["g"].update(edit)
+        writer.manifest = lambda manifest=manifest: manifest
+        writer.write(tmp_path / "d.gtb")
+        with pytest.raises(BundleError, match=message):
+            Bundle(tmp_path / "d.gtb").graph_bytes("g")

@@ -100,7 +100,7 @@ def test_export_verify_play_in_process(in_process_dir):
     work = in_process_dir
     result = _invoke(app, ["speaker.ckpt", "-o", "speaker.gtb", "--verify", "--report", "report.json",
                            "--resolution", "96", "-q"])
-    assert "2000 Gaussians, graphs: translator, deform" in result.stdout
+    assert "2000 Gaussians, tier fp32, graphs: translator, deform" in result.stdout
     assert "bundle: speaker.gtb (verified)" in result.stdout
     _check_verified_export(result.stdout, work)
 
@@ -117,7 +117,13 @@ def test_bad_input_gives_clear_errors_in_process(in_process_dir):
     result = _invoke(app, ["missing.ckpt"], expect=2)
     assert "error: checkpoint missing.ckpt does not exist" in result.stderr
     result = _invoke(app, ["speaker.ckpt", "-o", "x.gtb", "--codec", "zip9"], expect=2)
-    assert "unknown buffer codec 'zip9'" in result.stderr
+    assert "unknown codec 'zip9'" in result.stderr
+    for args, message in ((["--preset", "tiny"], "unknown preset 'tiny' (known: quality, balanced, compact, fast)"),
+                          (["--preset", "fast", "--codec", "fp16"], "give --preset or --codec, not both"),
+                          (["--flame-codec", "q4/x"], "only q16/q8/q4 take a chunk size"),
+                          (["--gaussian-budget", "lots"], "--gaussian-budget must be a whole number or a percentage")):
+        result = _invoke(app, ["speaker.ckpt", "-o", "x.gtb", *args], expect=2)
+        assert message in result.stderr + result.stdout, args
     assert not (in_process_dir / "x.gtb").exists()
     (in_process_dir / "broken.gtb").write_bytes(b"GTBUNDLE" + b"\0" * 10)
     result = _invoke(_sample_app("play"), ["broken.gtb", "--audio", "nothing.wav", "-o", "x.mp4"], expect=2)
@@ -183,7 +189,7 @@ def test_bad_input_gives_clear_errors(workdir):
     out = _run(GT_EXPORT + ["missing.ckpt"], workdir, expect=2)
     assert "error: checkpoint missing.ckpt does not exist" in out.stderr
     out = _run(GT_EXPORT + ["speaker.ckpt", "-o", "x.gtb", "--codec", "zip9"], workdir, expect=2)
-    assert "unknown buffer codec 'zip9'" in out.stderr
+    assert "unknown codec 'zip9'" in out.stderr
     assert not (workdir / "x.gtb").exists()
     (workdir / "broken.gtb").write_bytes(b"GTBUNDLE" + b"\0" * 10)
     out = _run([sys.executable, str(ROOT / "samples" / "play.py"), "broken.gtb", "--audio", "nothing.wav",

@@ -1,0 +1,51 @@
+"""Runtime speed/accuracy knobs of the renderer, shared by the exporter (a preset stores them in the bundle as
+its defaults) and the runtime (`TalkingHead` arguments override them). docs/precision.md measures each."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+# Framebuffer precision: the format the splats are blended into (moderngl texture dtypes).
+RENDER_TARGETS = {"float32": "f4", "float16": "f2", "uint8": "f1"}
+MIN_RENDER_SCALE = 0.1
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """`render_scale`: draw at this fraction of the output size, then upscale bilinearly (1: full size);
+    `render_target`: framebuffer precision, float32 (the contract's), float16 or uint8."""
+
+    render_scale: float = 1.0
+    render_target: str = "float32"
+
+    def __post_init__(self) -> None:
+        scale = self.render_scale
+        if isinstance(scale, bool) or not isinstance(scale, int | float) or not MIN_RENDER_SCALE <= scale <= 1.0:
+            raise ValueError(f"render_scale must be a number in {MIN_RENDER_SCALE}..1, got {scale!r}")
+        if self.render_target not in RENDER_TARGETS:
+            raise ValueError(f"render_target must be one of {', '.join(RENDER_TARGETS)}, got {self.render_target!r}")
+
+    def draw_size(self, width: int, height: int) -> tuple[int, int]:
+        """The framebuffer size a (width, height) frame is drawn at."""
+        return max(1, round(width * self.render_scale)), max(1, round(height * self.render_scale))
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> RenderSettings:
+        """From a manifest's `runtime_defaults` (missing keys keep their defaults); ValueError names a bad one."""
+        if not isinstance(data, dict):
+            raise ValueError(f"runtime defaults must be a table, got {type(data).__name__}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown runtime defaults {unknown} (known: {sorted(known)})")
+        return cls(**data)
+
+    def with_overrides(self, **overrides) -> RenderSettings:
+        """These settings with every non-None override applied."""
+        return RenderSettings(**{**self.to_dict(), **{k: v for k, v in overrides.items() if v is not None}})
+
+
+__all__ = ["MIN_RENDER_SCALE", "RENDER_TARGETS", "RenderSettings"]
