@@ -13,7 +13,7 @@ import torch
 from gaussiantalker.exporter.export import export_bundle
 from gaussiantalker.exporter.prune import budget_count, gaussian_contributions, prune_speaker
 from gaussiantalker.exporter.tiers import PRESETS, ExportSettings, get_preset, parse_codec
-from gaussiantalker.exporter.verify import HEAD_PSNR_FLOOR_DB, Tolerances, verify_bundle
+from gaussiantalker.exporter.verify import HEAD_PSNR_FLOOR_DB, Tolerances, verify_bundle, verify_translator
 from gaussiantalker.runtime.head import TalkingHead, _render_settings
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose
@@ -187,3 +187,18 @@ def test_presets_and_labels():
         bound = Tolerances.for_settings(preset.export, preset).min_head_psnr_db
         assert bound == preset.min_head_psnr_db
     assert Tolerances.for_settings(ExportSettings(sh="q8")).min_head_psnr_db == HEAD_PSNR_FLOOR_DB
+
+
+@pytest.mark.parametrize("precision, rtol", [("int8", 0.05), ("fp16", 0.01)])
+def test_translator_precision_uses_onnxruntime_tools(small_export, tmp_path, replay_onnx_exports, precision, rtol):
+    """int8: MatMul weights quantised (MatMulInteger), convolutions kept float; fp16: half weights, float32 I/O.
+    Bounds: the demo translator measured 0.005 (int8) and 4e-4 (fp16) max abs error on a ~1.2 output range."""
+    replay_onnx_exports(small_export.protos)
+    path = tmp_path / f"{precision}.gtb"
+    export_bundle(small_export.speaker, path, settings=ExportSettings(translator_precision=precision), progress=False)
+    bundle = Bundle(path)
+    dtypes = {e["dtype"] for name, e in bundle.manifest["buffers"].items() if name.startswith("translator/")}
+    assert ("int8" in dtypes) if precision == "int8" else ("float16" in dtypes and "float32" not in dtypes)
+    with TalkingHead(path, resolution=(64, 64)) as head:
+        report = verify_translator(small_export.speaker, head, tolerance=rtol)
+    assert report["passed"] and report["max_rel_err"] > 1e-5, report  # close, and really reduced
