@@ -12,7 +12,8 @@ import typer
 from gaussiantalker.sdk.errors import GaussianTalkerError
 from gaussiantalker.sdk.files import StagedFile, atomic_path, atomic_write
 
-PRESET_NAMES = ("quality", "balanced", "compact", "fast")
+from .tiers import PRESETS, settings_with
+
 app = typer.Typer(add_completion=False, help=__doc__)
 
 # JSON has no infinity: identical frames (PSNR = +inf) are written as this many dB.
@@ -54,7 +55,7 @@ def export(
                                    help="required 8-bit PSNR (dB) of every frame [default: the tier's]"),
     min_float_psnr: float = typer.Option(None, "--min-float-psnr",
                                          help="required float-frame PSNR (dB) [default: the tier's]"),
-    preset: str = typer.Option(None, "--preset", help=f"speed/accuracy tier: {', '.join(PRESET_NAMES)} "
+    preset: str = typer.Option(None, "--preset", help=f"speed/accuracy tier: {', '.join(PRESETS)} "
                                                       "(docs/precision.md); the knobs below override its settings"),
     codec: str = typer.Option(None, "--codec", help="one codec for every buffer: raw (fp32), fp16, q16, q8, q4"),
     gaussians: str = typer.Option(None, "--gaussian-codec", help="codec of the per-Gaussian attributes"),
@@ -115,12 +116,11 @@ def _budget(text: str | None) -> float | None:
 def _settings(preset: str | None, codec: str | None, knobs: dict):
     """The export settings: a preset's (or every buffer with --codec, or fp32) with the given knobs replacing
     its values (the bundle then records the preset's runtime defaults and "NAME+custom" as its tier)."""
-    from .tiers import ExportSettings, get_preset, settings_with
+    from .export import resolve_settings
 
     if preset is not None and codec is not None:
         raise typer.BadParameter("give --preset or --codec, not both (--codec sets every buffer's codec)")
-    chosen = get_preset(preset) if preset is not None else None
-    base = chosen.export if chosen else ExportSettings.all_buffers(codec) if codec else ExportSettings()
+    base, chosen, _ = resolve_settings(codec=codec, preset=preset)
     return settings_with(base, **knobs), chosen
 
 

@@ -13,7 +13,6 @@ from tqdm import tqdm
 
 from gaussiantalker.sdk import __version__ as sdk_version
 from gaussiantalker.sdk.bundle import BundleWriter
-from gaussiantalker.sdk.codecs import get_codec
 from gaussiantalker.sdk.config import POSE_DIM
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.files import StagedFile
@@ -68,8 +67,7 @@ def resolve_settings(codec: str | None = None, settings: ExportSettings | None =
         raise BundleError("give codec (every buffer's codec) or settings/preset, not both")
     chosen = get_preset(preset) if isinstance(preset, str) else preset
     if codec is not None:
-        get_codec(codec)  # an unknown codec fails now, not after minutes of graph export
-        settings = ExportSettings.all_buffers(codec)
+        settings = ExportSettings.all_buffers(codec)  # an unknown codec fails here, before any graph export
     settings = settings or (chosen.export if chosen is not None else ExportSettings())
     if chosen is None:
         return settings, None, settings.label()

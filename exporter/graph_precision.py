@@ -20,8 +20,7 @@ from pathlib import Path
 import onnx
 
 from .onnx_export import _quiet_logger
-
-PRECISIONS = ("fp32", "fp16", "int8")
+from .tiers import TRANSLATOR_PRECISIONS
 
 
 def convert_precision(model: onnx.ModelProto, precision: str) -> onnx.ModelProto:
@@ -36,7 +35,7 @@ def convert_precision(model: onnx.ModelProto, precision: str) -> onnx.ModelProto
             return convert_float_to_float16(onnx.ModelProto.FromString(model.SerializeToString()), keep_io_types=True)
     if precision == "int8":
         return _quantize_int8(model)
-    raise ValueError(f"unknown graph precision {precision!r} (allowed: {', '.join(PRECISIONS)})")
+    raise ValueError(f"unknown graph precision {precision!r} (allowed: {', '.join(TRANSLATOR_PRECISIONS)})")
 
 
 def _quantize_int8(model: onnx.ModelProto) -> onnx.ModelProto:
@@ -55,4 +54,4 @@ def _quantize_int8(model: onnx.ModelProto) -> onnx.ModelProto:
         return onnx.load(str(quantised))
 
 
-__all__ = ["PRECISIONS", "convert_precision"]
+__all__ = ["convert_precision"]

@@ -13,11 +13,9 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from gaussiantalker.sdk.codecs import CODECS
+from gaussiantalker.sdk.codecs import CODECS, MAX_CHUNK
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.render_settings import RenderSettings
-
-from .graph_precision import PRECISIONS as TRANSLATOR_PRECISIONS
 
 # Buffer groups a codec is chosen for, and which bundle buffers (by glob on the buffer name) belong to each.
 CODEC_GROUPS: dict[str, tuple[str, ...]] = {
@@ -34,6 +32,8 @@ CODEC_GROUPS: dict[str, tuple[str, ...]] = {
 KEEP_16_BITS = ("deform/rest_points", "deform/rest_scale", "deform/barycentric", "deform/lbs_weights")
 # Quantised codecs spend 8 bytes of chunk parameters per chunk: below this many values a buffer gets fp16 instead.
 QUANT_MIN_VALUES = 4096
+# Translator graph precisions (exporter/graph_precision.py converts to them).
+TRANSLATOR_PRECISIONS = ("fp32", "fp16", "int8")
 
 
 def parse_codec(spec: str) -> tuple[str, int | None]:
@@ -45,8 +45,8 @@ def parse_codec(spec: str) -> tuple[str, int | None]:
                           f"size, e.g. q4/64)")
     if not chunk_text:
         return name, None
-    if not name.startswith("q") or not chunk_text.isdigit() or not 1 <= int(chunk_text) <= 1 << 20:
-        raise BundleError(f"codec {spec!r}: only q16/q8/q4 take a chunk size, an integer 1..{1 << 20}")
+    if not name.startswith("q") or not chunk_text.isdigit() or not 1 <= int(chunk_text) <= MAX_CHUNK:
+        raise BundleError(f"codec {spec!r}: only q16/q8/q4 take a chunk size, an integer 1..{MAX_CHUNK}")
     return name, int(chunk_text)
 
 
