@@ -114,8 +114,19 @@ def main(
                                 "size, e.g. 20000,50000,100000,200000 [default: --gaussians only]"),
     play_seconds: float = typer.Option(10.0, "--play-seconds", help="with --baseline: audio length for timing "
                                        "each version's samples/play.py at 512x512 (0: skip)"),
+    sweep: bool = typer.Option(False, "--sweep", help="measure every speed/accuracy knob alone and every preset "
+                               "side by side (alternating rounds) on the demo speaker and a larger synthetic one; "
+                               "writes sweep.md, sweep.json and sweep.png to --out"),
+    sweep_gaussians: int = typer.Option(100_000, "--sweep-gaussians", min=0, help="with --sweep: size of the "
+                                        "synthetic speaker (0: demo speaker only)"),
+    cases: str = typer.Option(None, "--cases", help="with --sweep: only the cases whose name or knob contains one "
+                              "of these comma-separated words, e.g. 'preset,sort' [default: all]"),
+    out: Path = typer.Option(Path("bench-sweep"), "--out", help="with --sweep: folder for the report files"),
 ) -> None:
-    """Benchmark the demo speaker through the runtime and the torch reference (or against --baseline)."""
+    """Benchmark the demo speaker through the runtime and the torch reference (or against --baseline, or --sweep)."""
+    if sweep:
+        _sweep(checkpoint, gaussians, sweep_gaussians, sizes, seconds, rounds, cases, out)
+        return
     if baseline is not None:
         _compare_with_baseline(baseline, gaussians, sizes, seconds, rounds, scaling, play_seconds, json_path)
         return
@@ -174,6 +185,51 @@ def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: 
     if json_path is not None:
         json_path.write_text(json.dumps({"machine": _machine(), **asdict(result)}, indent=2))
         typer.echo(f"wrote {json_path}")
+
+
+def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seconds: float, rounds: int,
+           cases: str | None, out: Path) -> None:
+    """`--sweep`: see bench_sweep.py; writes the markdown report, the JSON and (with matplotlib) the plot."""
+    import sys
+    from dataclasses import asdict
+
+    from .bench_report import format_report, plot_sweep
+    from .bench_sweep import select_cases, sweep_cases, sweep_speaker
+    from .checkpoint import load_checkpoint
+    from .demo_speaker import make_demo_speaker
+
+    try:
+        chosen = select_cases(sweep_cases(), cases)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--cases") from None
+    size_list = [int(s) for s in sizes.split(",")]
+    if checkpoint is not None:
+        demo = load_checkpoint(checkpoint)
+    else:
+        typer.echo("building the demo speaker (its translator trains for a few minutes; --checkpoint skips this)")
+        demo, _ = make_demo_speaker(gaussians)
+    speakers = [("demo speaker", demo)]
+    if large > 0:
+        synthetic, _ = make_demo_speaker(large, seed=1, train_seconds=0, progress=False, config=demo.config)
+        synthetic.translator.load_state_dict(demo.translator.state_dict())  # the same speech, more Gaussians
+        speakers.append(("synthetic speaker", synthetic))
+    out.mkdir(parents=True, exist_ok=True)
+    sweeps = [sweep_speaker(name, speaker, chosen, sizes=size_list, seconds=seconds, rounds=rounds)
+              for name, speaker in speakers]
+    machine = _machine()
+    command = "gt-bench " + " ".join(sys.argv[1:])
+    report = format_report(sweeps, machine, command)
+    (out / "sweep.md").write_text(report + "\n")
+    (out / "sweep.json").write_text(json.dumps({"machine": machine, "command": command, "seconds": seconds,
+                                                "rounds": rounds, "speakers": [asdict(s) for s in sweeps]}, indent=2))
+    written = ["sweep.md", "sweep.json"]
+    try:
+        plot_sweep(sweeps, out / "sweep.png")
+        written.append("sweep.png")
+    except ImportError:
+        typer.echo("matplotlib is not installed (pip install 'gaussiantalker-sdk[bench]'): no plot", err=True)
+    typer.echo(report)
+    typer.echo(f"wrote {', '.join(str(out / name) for name in written)}")
 
 
 def main_entry() -> None:

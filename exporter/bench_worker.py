@@ -1,8 +1,10 @@
-"""One SDK version's side of `gt-bench --baseline`: export and render on request, report timings as JSON lines.
+"""One SDK version's side of `gt-bench --baseline` (and one case's side of `gt-bench --sweep`): export and render
+on request, report timings as JSON lines.
 
 Run as a script by whichever interpreter has the version under test on its path (`bench_compare.py` starts one
-per version). It uses only API that every version of the SDK has (`load_checkpoint`, `export_bundle`,
-`TalkingHead.frames/drives/render/timings`), so it can measure an older checkout as well as this one.
+per version, `bench_sweep.py` one per case). The `export` and `frames` requests use only API that every version of
+the SDK has (`load_checkpoint`, `export_bundle`, `TalkingHead.frames/drives/render/timings`), so they can measure
+an older checkout as well as this one; `frames` with settings, `translate`, `memory` and `release` are the sweep's.
 Requests arrive one JSON object per line on stdin; each answer is one JSON line on the original stdout (anything
 the libraries print goes to stderr).
 """
@@ -12,19 +14,23 @@ from __future__ import annotations
 import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 STAGES = ("translator", "deformation", "sort", "upload", "draw", "readback")
 
 
-def measure_frames(head, audio, sample_rate: int | None, warmup: int) -> dict:
-    """Pipelined wall time per frame through `head.frames`, then clean sequential per-stage medians (ms)."""
+def measure_frames(head, audio, sample_rate: int | None, warmup: int, keep: list | None = None) -> dict:
+    """Pipelined wall time per frame through `head.frames`, then clean sequential per-stage medians (ms).
+    `keep`: a list that receives the pipelined frames."""
     walls = []
     clip_start = start = time.perf_counter()
-    for _ in head.frames(audio, sample_rate):
+    for frame in head.frames(audio, sample_rate):
         now = time.perf_counter()
         walls.append(now - start)
+        if keep is not None:
+            keep.append(frame)
         start = now
     clip_seconds = time.perf_counter() - clip_start
     frames = len(walls)
@@ -40,10 +46,11 @@ def measure_frames(head, audio, sample_rate: int | None, warmup: int) -> dict:
 
 
 class Worker:
-    """Answers `export` and `frames` requests; keeps one TalkingHead per (bundle, size) between rounds."""
+    """Answers `export`, `frames`, `translate` and `memory` requests; keeps one TalkingHead per (bundle, size,
+    settings) between rounds unless asked to reopen it."""
 
     def __init__(self) -> None:
-        self.heads: dict[tuple[str, int], object] = {}
+        self.heads: dict[tuple[str, int, str], object] = {}
 
     def export(self, checkpoint: str, bundle: str) -> dict:
         from gaussiantalker.exporter.checkpoint import load_checkpoint
@@ -53,13 +60,52 @@ class Worker:
         export_bundle(load_checkpoint(checkpoint), bundle, progress=False)
         return {"export_s": time.perf_counter() - start}
 
-    def frames(self, bundle: str, size: int, audio: str, warmup: int) -> dict:
+    def frames(self, bundle: str, size: int, audio: str, warmup: int, settings: dict | None = None,
+               save: str | None = None, reopen: bool = False) -> dict:
+        """Time the clip (see `measure_frames`). `settings`: TalkingHead keyword arguments (runtime knobs); `save`:
+        write the pipelined frames there (.npy); `reopen`: load the bundle afresh and report the load time."""
         from gaussiantalker.runtime.head import TalkingHead
 
-        key = (bundle, size)
+        key = (bundle, size, json.dumps(settings or {}, sort_keys=True))
+        if reopen and key in self.heads:
+            self.heads.pop(key).close()
+        load_s = None
         if key not in self.heads:
-            self.heads[key] = TalkingHead(bundle, resolution=(size, size))
-        return measure_frames(self.heads[key], audio, None, warmup)
+            start = time.perf_counter()
+            self.heads[key] = TalkingHead(bundle, resolution=(size, size), **(settings or {}))
+            load_s = time.perf_counter() - start
+        kept = [] if save else None
+        result = measure_frames(self.heads[key], audio, None, warmup, kept)
+        if save:
+            np.save(save, np.stack(kept))
+        return {**result, "load_s": load_s}
+
+    def translate(self, bundle: str, audio: str, save: str) -> dict:
+        """The translator's expression and jaw pose for the clip, written to `save` (.npz)."""
+        from gaussiantalker.runtime.head import TalkingHead
+
+        with TalkingHead(bundle) as head:
+            expression, jaw = head.translate(head.load_audio(audio))
+        np.savez(save, expression=expression, jaw=jaw)
+        return {}
+
+    def memory(self) -> dict:
+        """Peak resident memory of this process so far (MB): what playing its bundles took."""
+        try:  # Linux: the high-water mark of this process's own memory (ru_maxrss would also count the parent's
+            # memory at fork time, which exec leaves in the rusage maximum)
+            status = Path("/proc/self/status").read_text()
+            return {"peak_rss_mb": int(status.split("VmHWM:")[1].split()[0]) / 1e3}
+        except (OSError, IndexError, ValueError):
+            import resource
+
+            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # bytes on macOS, kB elsewhere
+            return {"peak_rss_mb": peak / (1e6 if sys.platform == "darwin" else 1e3)}
+
+    def release(self) -> dict:
+        """Close every open TalkingHead."""
+        self.close()
+        self.heads.clear()
+        return {}
 
     def close(self) -> None:
         for head in self.heads.values():
@@ -75,7 +121,7 @@ def main() -> None:
             request = json.loads(line)
             op = request.pop("op")
             try:
-                if op not in ("export", "frames"):
+                if op not in ("export", "frames", "translate", "memory", "release"):
                     raise ValueError(f"unknown request {op!r}")
                 answer = {"ok": True, **getattr(worker, op)(**request)}
             except Exception as exc:  # reported to the parent, which names the version that failed

@@ -446,7 +446,7 @@ def keep_mask(
     the others (camera-space points, cov2d and the per-Gaussian inputs in `extra`) must be finite.
 
     No GLSL twin: the runtime makes the same decisions in two places, the near-plane and finite-input tests in
-    numpy (`depth_order` in runtime/splatter.py) and the det > 0 and `screen_bounded` tests in the vertex
+    numpy (`depth_order` in runtime/depth_sort.py) and the det > 0 and `screen_bounded` tests in the vertex
     shader's main.
     """
     keep = (p_cam[..., 2] >= near) & (det > 0) & screen_bounded(center, conic, shape, radius)

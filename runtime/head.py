@@ -44,14 +44,15 @@ HeadPoseSource = Callable[[int], HeadPose] | np.ndarray | HeadPose | None
 FrameOutput = Literal["uint8", "float", "rgba"]
 
 
-def _render_settings(bundle: Bundle, render_scale: float | None, render_target: str | None) -> RenderSettings:
-    """The bundle's stored runtime defaults (BundleError if damaged) with the app's overrides (RenderError if bad)."""
+def _render_settings(bundle: Bundle, **overrides) -> RenderSettings:
+    """The bundle's stored runtime defaults (BundleError if damaged) with the app's overrides (None: keep the
+    default; RenderError if bad)."""
     try:
         defaults = RenderSettings.from_dict(bundle.manifest.get("runtime_defaults", {}))
     except (TypeError, ValueError) as exc:
         raise BundleError(f"{bundle.path}: manifest 'runtime_defaults' is invalid: {exc}") from None
     try:
-        return defaults.with_overrides(render_scale=render_scale, render_target=render_target)
+        return defaults.with_overrides(**overrides)
     except (TypeError, ValueError) as exc:
         raise RenderError(str(exc)) from None
 
@@ -62,14 +63,17 @@ class TalkingHead:
     def __init__(self, bundle: str | os.PathLike | Bundle, *, resolution: tuple[int, int] | None = None,
                  camera: Camera | None = None, background=None, threads: int | None = None,
                  gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS,
-                 render_scale: float | None = None, render_target: str | None = None) -> None:
+                 render_scale: float | None = None, render_target: str | None = None,
+                 sort_interval: int | None = None, sort_key_bits: int | None = None) -> None:
         """`silence_gate_dbfs`: audio windows quieter than this (RMS, dBFS) fade to the neutral face (None: off).
-        `render_scale` (draw at this fraction of the size, then upscale) and `render_target` ("float32",
-        "float16", "uint8" framebuffer) trade accuracy for speed (docs/precision.md); None takes the bundle's
-        preset defaults (full size, float32 for bundles without a preset)."""
+        `render_scale` (draw at this fraction of the size, then upscale), `render_target` ("float32", "float16",
+        "uint8" framebuffer), `sort_interval` (depth-sort every k-th frame) and `sort_key_bits` (32 or 16) trade
+        accuracy for speed (`RenderSettings`, docs/precision.md); None takes the bundle's preset defaults (the
+        contract's full-size float32 frame, sorted every frame on exact depth, for bundles without a preset)."""
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle(bundle)
         manifest = self.bundle.manifest
-        self.render_settings = _render_settings(self.bundle, render_scale, render_target)
+        self.render_settings = _render_settings(self.bundle, render_scale=render_scale, render_target=render_target,
+                                                sort_interval=sort_interval, sort_key_bits=sort_key_bits)
         try:
             self.config = SpeakerConfig.from_dict(manifest["speaker"])
             self.config.check_timing()

@@ -6,8 +6,8 @@ It follows the numerics contract of docs/numerics.md. The per-Gaussian maths liv
 `extent_power_bound`, `screen_bounded`) and shaders/splat.frag (`splat_color`, `splat_alpha`); each of these GLSL
 functions has a torch twin of the same name and arguments in exporter/splat_math.py. The shaders' other
 functions only decide where to rasterise (`NON_CONTRACT_GLSL_FUNCTIONS`). Numpy does the rest: the near-plane
-and non-finite-input culling with the depth order (`view_depth`, `depth_order`), and the final 8-bit conversion
-(`to_uint8`).
+and non-finite-input culling with the depth order (runtime/depth_sort.py: `view_depth`, `depth_order`), and the
+final 8-bit conversion (`to_uint8`).
 
 Primitives
 ----------
@@ -56,6 +56,7 @@ from gaussiantalker.sdk.image import straight_rgba, to_uint8
 from gaussiantalker.sdk.render_settings import RENDER_TARGETS, RenderSettings
 from gaussiantalker.shaders import load_shader
 
+from .depth_sort import DepthSorter
 from .gl_context import create_context
 
 # GLSL functions in shaders/ that are rasterisation, not contract maths: they choose which fragments are tried
@@ -140,35 +141,6 @@ def with_defines(source: str, defines: dict[str, str]) -> str:
 
 
 # -- numpy side of the contract ------------------------------------------------------------------------------
-
-
-def view_depth(means: np.ndarray, camera: Camera) -> np.ndarray:
-    """Camera-space z = (R mean + t).z in float32, summed left to right, so the torch side can match it. # [N]"""
-    r = camera.R[2].astype(np.float32)
-    t = np.float32(camera.t[2])
-    with np.errstate(invalid="ignore", over="ignore"):
-        return means[:, 0] * r[0] + means[:, 1] * r[1] + means[:, 2] * r[2] + t
-
-
-def stable_argsort_positive(z: np.ndarray) -> np.ndarray:
-    """np.argsort(z, kind="stable") for finite z > 0 (float32), ~15x faster: one sort of unique uint64 keys.
-
-    A positive float32's bit pattern orders like its value, so key = bits << 32 | index sorts by z and then by
-    index, which is exactly the stable order; the keys are unique, so any sort algorithm gives that order.
-    """
-    key = z.astype(np.float32).view(np.uint32).astype(np.uint64) << np.uint64(32)
-    key |= np.arange(len(z), dtype=np.uint64)
-    key.sort()
-    return (key & np.uint64(0xFFFFFFFF)).astype(np.intp)
-
-
-def depth_order(packed: np.ndarray, camera: Camera) -> np.ndarray:
-    """Indices of the Gaussians to draw, front to back: stable sort on z, culling z < near and non-finite rows."""
-    z = view_depth(packed[:, 0:3], camera)  # [N]
-    with np.errstate(invalid="ignore"):
-        keep = (z >= np.float32(camera.near)) & np.isfinite(z) & np.isfinite(packed).all(axis=1)
-    kept = np.flatnonzero(keep)
-    return kept[stable_argsort_positive(z[kept])]  # near > 0, so every kept z is finite and positive
 
 
 def extent_radius_bound(packed: np.ndarray, camera: Camera) -> np.ndarray:
@@ -278,6 +250,7 @@ class GLSplatter:
         if settings is not None and not isinstance(settings, RenderSettings):
             raise RenderError(f"settings must be a RenderSettings, got {type(settings).__name__}")
         self.settings = settings or RenderSettings()
+        self._sorter = DepthSorter(self.settings.sort_interval, self.settings.sort_key_bits)
         self._owns_ctx = ctx is None
         self.ctx = create_context() if ctx is None else ctx
         self.last_timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
@@ -426,7 +399,7 @@ class GLSplatter:
         if draw_size != output_size:
             camera = camera.resized(*draw_size)  # the same view, fewer pixels: upscaled after drawing
         packed = pack_gaussians(means, cov3d, rgb, opacity)
-        rows = packed[depth_order(packed, camera)]  # [n, 13] front to back
+        rows = packed[self._sorter.order(packed, camera)]  # [n, 13] front to back
         runs = self._plan_runs(rows, camera)
         return PreparedSplats(rows, runs, camera, time.perf_counter() - start,
                               output_size if draw_size != output_size else None)

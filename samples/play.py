@@ -98,6 +98,10 @@ def play(
                                        "upscale (0.1-1) [default: the bundle's preset, else 1]"),
     render_target: str = typer.Option(None, "--render-target", help="framebuffer: float32, float16, uint8 "
                                       "[default: the bundle's preset, else float32]"),
+    sort_interval: int = typer.Option(None, "--sort-interval", help="depth-sort every k-th frame and reuse that "
+                                      "order in between (1-60) [default: the bundle's preset, else 1]"),
+    sort_key_bits: int = typer.Option(None, "--sort-key-bits", help="32: exact depth; 16: depth quantised to "
+                                      "65536 levels, faster [default: the bundle's preset, else 32]"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
 ) -> None:
     """Render BUNDLE talking to AUDIO and write a video with the audio muxed in."""
@@ -110,7 +114,7 @@ def play(
                           container=video_format)
         bg = None if background is None else _parse_background(background)
         head = TalkingHead(speaker, camera=camera, background=bg, threads=threads, render_scale=render_scale,
-                           render_target=render_target)
+                           render_target=render_target, sort_interval=sort_interval, sort_key_bits=sort_key_bits)
         window = None
         if show:
             headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))

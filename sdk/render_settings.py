@@ -8,15 +8,21 @@ from dataclasses import asdict, dataclass, fields
 # Framebuffer precision: the format the splats are blended into (moderngl texture dtypes).
 RENDER_TARGETS = {"float32": "f4", "float16": "f2", "uint8": "f1"}
 MIN_RENDER_SCALE = 0.1
+MAX_SORT_INTERVAL = 60  # frames; a longer-lived depth order is wrong for any moving head
+SORT_KEY_BITS = (32, 16)
 
 
 @dataclass(frozen=True)
 class RenderSettings:
     """`render_scale`: draw at this fraction of the output size, then upscale bilinearly (1: full size);
-    `render_target`: framebuffer precision, float32 (the contract's), float16 or uint8."""
+    `render_target`: framebuffer precision, float32 (the contract's), float16 or uint8;
+    `sort_interval`: depth-sort every k-th frame, reusing that order in between (1: every frame);
+    `sort_key_bits`: 32 sorts exact float32 depth (the contract's), 16 sorts depth quantised to 65536 levels."""
 
     render_scale: float = 1.0
     render_target: str = "float32"
+    sort_interval: int = 1
+    sort_key_bits: int = 32
 
     def __post_init__(self) -> None:
         scale = self.render_scale
@@ -24,6 +30,12 @@ class RenderSettings:
             raise ValueError(f"render_scale must be a number in {MIN_RENDER_SCALE}..1, got {scale!r}")
         if self.render_target not in RENDER_TARGETS:
             raise ValueError(f"render_target must be one of {', '.join(RENDER_TARGETS)}, got {self.render_target!r}")
+        interval = self.sort_interval
+        if isinstance(interval, bool) or not isinstance(interval, int) or not 1 <= interval <= MAX_SORT_INTERVAL:
+            raise ValueError(f"sort_interval must be a whole number of frames in 1..{MAX_SORT_INTERVAL}, "
+                             f"got {interval!r}")
+        if isinstance(self.sort_key_bits, bool) or self.sort_key_bits not in SORT_KEY_BITS:
+            raise ValueError(f"sort_key_bits must be 32 or 16, got {self.sort_key_bits!r}")
 
     def draw_size(self, width: int, height: int) -> tuple[int, int]:
         """The framebuffer size a (width, height) frame is drawn at."""
@@ -48,4 +60,4 @@ class RenderSettings:
         return RenderSettings(**{**self.to_dict(), **{k: v for k, v in overrides.items() if v is not None}})
 
 
-__all__ = ["MIN_RENDER_SCALE", "RENDER_TARGETS", "RenderSettings"]
+__all__ = ["MAX_SORT_INTERVAL", "MIN_RENDER_SCALE", "RENDER_TARGETS", "SORT_KEY_BITS", "RenderSettings"]

@@ -20,14 +20,13 @@ import pytest
 
 from gaussiantalker.runtime import gl_context
 from gaussiantalker.runtime import splatter as splatter_module
+from gaussiantalker.runtime.depth_sort import depth_order, stable_argsort_positive
 from gaussiantalker.runtime.splatter import (
     STAGES,
     GLSplatter,
-    depth_order,
     draw_runs,
     extent_radius_bound,
     pack_gaussians,
-    stable_argsort_positive,
 )
 from gaussiantalker.sdk import numerics
 from gaussiantalker.sdk.camera import Camera

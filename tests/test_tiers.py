@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.export import export_bundle
 from gaussiantalker.exporter.prune import budget_count, gaussian_contributions, prune_speaker
 from gaussiantalker.exporter.tiers import PRESETS, ExportSettings, get_preset, parse_codec
 from gaussiantalker.exporter.verify import HEAD_PSNR_FLOOR_DB, Tolerances, verify_bundle, verify_translator
 from gaussiantalker.runtime.head import TalkingHead, _render_settings
 from gaussiantalker.sdk.bundle import Bundle
+from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose
 from gaussiantalker.sdk.errors import BundleError, RenderError
 from gaussiantalker.sdk.image import psnr_db
@@ -38,10 +38,8 @@ def _verify(speaker, path, preset):
     return report
 
 
-def test_balanced_preset_is_smaller_and_within_its_bound(small_export, tmp_path, replay_onnx_exports):
-    replay_onnx_exports(small_export.protos)  # the same graphs: balanced changes only the buffer codecs
-    path = tmp_path / "balanced.gtb"
-    export_bundle(small_export.speaker, path, preset="balanced", progress=False)
+def test_balanced_preset_is_smaller_and_within_its_bound(small_export, tier_export):
+    path = tier_export("balanced")
     manifest = Bundle(path).manifest
     assert manifest["precision"] == "balanced"
     assert manifest["runtime_defaults"] == RenderSettings().to_dict()
@@ -52,11 +50,10 @@ def test_balanced_preset_is_smaller_and_within_its_bound(small_export, tmp_path,
     assert report["graphs"]["deform"]["max_rel_err"] > 1e-4  # a real reduction, not the fp32 tier renamed
 
 
-def test_compact_preset_prunes_truncates_and_stays_within_its_bound(small_speaker, tmp_path):
-    path = tmp_path / "compact.gtb"
-    result = export_bundle(small_speaker, path, preset="compact", progress=False)
+def test_compact_preset_prunes_truncates_and_stays_within_its_bound(small_speaker, tier_export):
+    path = tier_export("compact")
     manifest = Bundle(path).manifest
-    assert manifest["gaussians"] == result.gaussians == round(0.65 * small_speaker.gaussians.count)
+    assert manifest["gaussians"] == round(0.65 * small_speaker.gaussians.count)
     assert "deform/sh_rest" not in manifest["buffers"]  # SH degree 0
     assert manifest["buffers"]["deform/latent_weight"]["shape"][0] == 2  # rank 2 (the [8, 2] basis stays inline)
     report = _verify(small_speaker, path, "compact")
@@ -64,14 +61,14 @@ def test_compact_preset_prunes_truncates_and_stays_within_its_bound(small_speake
     assert report["min_head_psnr_db"] < 60  # a real reduction, not the fp32 tier under another name
 
 
-@pytest.mark.slow
-def test_fast_preset_plays_with_its_stored_runtime_defaults(small_speaker, tmp_path):
-    path = tmp_path / "fast.gtb"
-    export_bundle(small_speaker, path, preset="fast", progress=False)
+def test_fast_preset_plays_with_its_stored_runtime_defaults(small_speaker, tier_export):
+    path = tier_export("fast")
     with TalkingHead(path) as head:
         assert head.render_settings == get_preset("fast").runtime
-    with TalkingHead(path, render_scale=1.0, render_target="float32") as head:  # an app overrides them
+    with TalkingHead(path, render_scale=1.0, render_target="float32", sort_key_bits=32) as head:  # an app's own
         assert head.render_settings == RenderSettings()
+    with TalkingHead(path, sort_key_bits=32) as head:  # an override keeps the other stored defaults
+        assert head.render_settings == RenderSettings(render_scale=0.75, render_target="uint8")
     _verify(small_speaker, path, "fast")
 
 
@@ -121,11 +118,14 @@ def test_render_scale_is_the_small_frame_upscaled_bilinearly(small_export, scale
     ({"render_scale": 0.05}, "render_scale must be a number in 0.1..1"),
     ({"render_scale": True}, "render_scale must be a number"),
     ({"render_target": "float64"}, "render_target must be one of float32, float16, uint8"),
+    ({"sort_interval": 0}, "sort_interval must be a whole number of frames in 1..60"),
+    ({"sort_interval": 2.5}, "sort_interval must be a whole number"),
+    ({"sort_key_bits": 8}, "sort_key_bits must be 32 or 16"),
 ])
 def test_bad_runtime_knobs_are_named(kwargs, message):
     bundle = SimpleNamespace(path="b.gtb", manifest={})
     with pytest.raises(RenderError, match=message):
-        _render_settings(bundle, **{"render_scale": None, "render_target": None, **kwargs})
+        _render_settings(bundle, **kwargs)
 
 
 @pytest.mark.parametrize("defaults, message", [
@@ -136,7 +136,7 @@ def test_bad_runtime_knobs_are_named(kwargs, message):
 def test_damaged_runtime_defaults_are_a_bundle_error(defaults, message):
     bundle = SimpleNamespace(path="b.gtb", manifest={"runtime_defaults": defaults})
     with pytest.raises(BundleError, match=message):
-        _render_settings(bundle, None, None)
+        _render_settings(bundle)
 
 
 def test_contributions_sum_to_each_frames_coverage(small_speaker):
@@ -190,15 +190,84 @@ def test_presets_and_labels():
 
 
 @pytest.mark.parametrize("precision, rtol", [("int8", 0.05), ("fp16", 0.01)])
-def test_translator_precision_uses_onnxruntime_tools(small_export, tmp_path, replay_onnx_exports, precision, rtol):
+def test_translator_precision_uses_onnxruntime_tools(small_export, tier_export, precision, rtol):
     """int8: MatMul weights quantised (MatMulInteger), convolutions kept float; fp16: half weights, float32 I/O.
     Bounds: the demo translator measured 0.005 (int8) and 4e-4 (fp16) max abs error on a ~1.2 output range."""
-    replay_onnx_exports(small_export.protos)
-    path = tmp_path / f"{precision}.gtb"
-    export_bundle(small_export.speaker, path, settings=ExportSettings(translator_precision=precision), progress=False)
+    path = tier_export(f"translator-{precision}")
     bundle = Bundle(path)
     dtypes = {e["dtype"] for name, e in bundle.manifest["buffers"].items() if name.startswith("translator/")}
     assert ("int8" in dtypes) if precision == "int8" else ("float16" in dtypes and "float32" not in dtypes)
     with TalkingHead(path, resolution=(64, 64)) as head:
         report = verify_translator(small_export.speaker, head, tolerance=rtol)
     assert report["passed"] and report["max_rel_err"] > 1e-5, report  # close, and really reduced
+
+
+def _moving_scene(frames: int, n: int = 400, seed: int = 5) -> tuple[list[np.ndarray], Camera]:
+    """Packed rows of `n` Gaussians drifting in depth over `frames` frames (some crossing each other)."""
+    from gaussiantalker.runtime.splatter import pack_gaussians
+
+    rng = np.random.default_rng(seed)
+    means = rng.normal(0, 0.05, (n, 3)).astype(np.float32)
+    velocity = rng.normal(0, 0.002, (n, 3)).astype(np.float32)
+    cov = np.tile(np.array([1e-5, 0, 0, 1e-5, 0, 1e-5], np.float32), (n, 1))
+    rgb, opacity = rng.random((n, 3), dtype=np.float32), np.full(n, 0.5, np.float32)
+    camera = Camera(64, 64, 80.0, 80.0, 32.0, 32.0, np.eye(3), np.array([0.0, 0.0, 0.5]), 0.01)
+    return [pack_gaussians(means + t * velocity, cov, rgb, opacity) for t in range(frames)], camera
+
+
+def test_sort_interval_reuses_the_last_full_sort_between_sorts():
+    from gaussiantalker.runtime.depth_sort import DepthSorter, depth_order
+
+    scene, camera = _moving_scene(7)
+    sorter = DepthSorter(interval=3)
+    orders = [sorter.order(rows, camera) for rows in scene]
+    for t, order in enumerate(orders):
+        sorted_at = t - t % 3  # frames 0, 3, 6 sort; the others reuse that frame's order
+        np.testing.assert_array_equal(order, depth_order(scene[sorted_at], camera))
+    assert not np.array_equal(orders[2], depth_order(scene[2], camera))  # the drift really reorders rows
+
+
+def test_sort_interval_sorts_anew_for_a_newly_visible_row_or_another_camera():
+    from gaussiantalker.runtime.depth_sort import DepthSorter, depth_order
+
+    scene, camera = _moving_scene(3)
+    sorter = DepthSorter(interval=10)
+    first = scene[0].copy()
+    first[7, 2] = -1.0  # behind the camera (camera z < near): culled in the sorted frame
+    assert 7 not in sorter.order(first, camera)
+    hidden = scene[1].copy()
+    hidden[7, 2] = -1.0
+    hidden[3, 0] = np.nan  # a reused order still culls a row that turns non-finite
+    reused = sorter.order(hidden, camera)
+    assert 3 not in reused and 7 not in reused
+    np.testing.assert_array_equal(reused, [i for i in depth_order(first, camera) if i != 3])
+    np.testing.assert_array_equal(sorter.order(scene[2], camera), depth_order(scene[2], camera))  # row 7 is back
+    moved = Camera(64, 64, 80.0, 80.0, 32.0, 32.0, np.eye(3), np.array([0.0, 0.01, 0.5]), 0.01)
+    np.testing.assert_array_equal(sorter.order(scene[2], moved), depth_order(scene[2], moved))
+
+
+def test_16_bit_sort_keys_order_by_quantised_depth():
+    """Rows further apart in depth than one key level keep the exact order; closer ones may tie (index order)."""
+    from gaussiantalker.runtime.depth_sort import depth_order, view_depth
+
+    scene, camera = _moving_scene(1, n=5000)
+    rows = scene[0]
+    order16, exact = depth_order(rows, camera, key_bits=16), depth_order(rows, camera)
+    assert sorted(order16) == sorted(exact)
+    z = view_depth(rows[:, 0:3], camera)[order16]
+    level = (z.max() - z.min()) / 65535
+    assert np.all(np.diff(z) >= -level)  # never out of order by more than one quantisation level
+    assert np.mean(order16 == exact) > 0.9
+
+
+def test_sort_knobs_through_talking_head(small_export):
+    """The sort knobs change the order only: a still frame renders the same with them (within swaps of splats a
+    few um apart in depth, which 16-bit keys may tie), and the settings reach the splatter."""
+    drive = FrameDrive.make(small_export.speaker.config.n_expr, jaw_pose=[0.2, 0, 0])
+    with TalkingHead(small_export.path, resolution=(96, 96)) as head:
+        reference = head.render(drive, output="float")
+    with TalkingHead(small_export.path, resolution=(96, 96), sort_interval=4, sort_key_bits=16) as head:
+        assert head.render_settings.sort_interval == 4 and head.splatter._sorter.key_bits == 16
+        frames = [head.render(drive, output="float") for _ in range(3)]
+    for frame in frames:
+        assert psnr_db(reference, frame) > 60.0

@@ -1,0 +1,126 @@
+"""`gt-bench --sweep`: the cases cover every knob, the quality metrics measure what they claim, and a tiny sweep runs
+end to end (speed figures are not judged here: they belong to the benchmark's own report)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import fields
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from gaussiantalker.exporter.bench import app
+from gaussiantalker.exporter.bench_quality import mouth_box, region_scores, ssim_map
+from gaussiantalker.exporter.bench_report import format_report, goal_rows, pareto_front
+from gaussiantalker.exporter.bench_sweep import REFERENCE, select_cases, sweep_cases, sweep_speaker
+from gaussiantalker.exporter.tiers import CODEC_GROUPS, PRESETS, ExportSettings
+from gaussiantalker.sdk.camera import Camera
+from gaussiantalker.sdk.render_settings import RenderSettings
+
+
+def test_every_knob_and_preset_is_swept():
+    cases = sweep_cases()
+    names = [c.name for c in cases]
+    assert len(names) == len(set(names)) and names[0] == REFERENCE
+    assert {c.preset for c in cases if c.preset} == set(PRESETS)
+    swept_export = {f.name for c in cases if not c.preset for f in fields(ExportSettings)
+                    if getattr(c.export, f.name) != getattr(ExportSettings(), f.name)}
+    assert swept_export == {f.name for f in fields(ExportSettings)}
+    assert set(CODEC_GROUPS) <= swept_export
+    swept_runtime = {key for c in cases for key in c.runtime}
+    assert swept_runtime == {f.name for f in fields(RenderSettings)} | {"threads"}
+    for case in cases:  # one knob at a time: a knob case changes exactly one setting
+        if not case.preset:
+            changed = [f.name for f in fields(ExportSettings)
+                       if getattr(case.export, f.name) != getattr(ExportSettings(), f.name)]
+            assert len(changed) + len(case.runtime) == 1, case
+
+
+def test_case_selection():
+    chosen = select_cases(sweep_cases(), "preset, sort")
+    assert [c.name for c in chosen if c.preset] == list(PRESETS)
+    assert {c.group for c in chosen if not c.preset} == {"sort interval", "sort key bits"}
+    with pytest.raises(ValueError, match="no sweep case matches 'zoom'"):
+        select_cases(sweep_cases(), "zoom")
+
+
+def test_unknown_cases_are_a_cli_error():
+    result = CliRunner().invoke(app, ["--sweep", "--cases", "zoom"])
+    assert result.exit_code == 2 and "no sweep case matches 'zoom'" in result.output
+
+
+def test_ssim_of_constant_frames_is_the_luminance_term():
+    """Flat frames have no variance, so SSIM = (2ab + C1) / (a^2 + b^2 + C1) exactly; equal frames give 1."""
+    a, b = 100, 140
+    x, y = np.full((20, 24, 3), a, np.uint8), np.full((20, 24, 3), b, np.uint8)
+    c1 = 0.01**2
+    expected = (2 * a * b / 255**2 + c1) / ((a**2 + b**2) / 255**2 + c1)
+    np.testing.assert_allclose(ssim_map(x, y), expected, rtol=1e-5)
+    noisy = np.random.default_rng(0).integers(0, 256, (20, 24, 3), dtype=np.uint8)
+    np.testing.assert_allclose(ssim_map(noisy, noisy), 1.0, rtol=1e-5)
+    assert ssim_map(noisy, 255 - noisy).mean() < 0
+
+
+def test_region_scores_only_see_their_region():
+    rng = np.random.default_rng(1)
+    reference = rng.integers(0, 256, (40, 50, 3), dtype=np.uint8)
+    test = reference.copy()
+    test[:, :10] = 0  # damage outside the region
+    region = np.zeros((40, 50), bool)
+    region[10:30, 25:45] = True
+    (psnr, ssim), (empty_psnr, empty_ssim) = region_scores(reference, test, [region, np.zeros_like(region)])
+    assert math.isinf(psnr) and ssim == pytest.approx(1.0)
+    assert math.isinf(empty_psnr) and empty_ssim == 1.0
+    test[20, 30] = reference[20, 30] ^ 0xFF
+    (psnr, ssim), = region_scores(reference, test, [region])
+    assert 20 < psnr < 60 and ssim < 1.0
+
+
+def test_mouth_box_surrounds_the_projected_points():
+    camera = Camera(100, 80, 50.0, 50.0, 50.0, 40.0, np.eye(3), np.zeros(3), 0.01)
+    points = np.array([[0.0, 0.0, 1.0], [0.2, 0.1, 1.0]])  # pixels (50, 40) and (60, 45)
+    row0, row1, col0, col1 = mouth_box(points, camera)
+    pad = 3  # MOUTH_BOX_PAD * 100 px
+    assert (row0, row1, col0, col1) == (40 - pad, 45 + pad, 50 - pad, 60 + pad)
+    assert mouth_box(np.array([[0.0, 0.0, -1.0]]), camera) == (0, 0, 0, 0)  # behind the camera
+
+
+def test_pareto_front():
+    points = {"a": (1.0, 30.0), "b": (2.0, 40.0), "c": (2.0, 35.0), "d": (3.0, 40.0), "e": (0.5, 20.0)}
+    assert pareto_front(points) == {"a", "b", "e"}
+
+
+def test_tiny_sweep_end_to_end(small_export, replay_onnx_exports, tmp_path):
+    """Two bundles (fp32, gaussians q8: the same graphs, replayed instead of exported again) and two runtime
+    knobs, 64x64, two rounds: every column is filled, the reference is identical to itself, a lossy knob is
+    measured as lossy, and the report and plot are written."""
+    replay_onnx_exports(small_export.protos * 2)
+    cases = select_cases(sweep_cases(), "gaussians q8,framebuffer uint8,sort keys")
+    sweep = sweep_speaker("small speaker", small_export.speaker, cases, sizes=[64], seconds=0.5, rounds=2,
+                          warmup=2, progress=False)
+    assert list(sweep.cases) == [c.name for c in cases]
+    reference, quantised = sweep.cases[REFERENCE], sweep.cases["gaussians q8"]
+    uint8 = sweep.cases["framebuffer uint8"]
+    assert quantised["bundle_bytes"] < reference["bundle_bytes"] == uint8["bundle_bytes"]
+    ref_quality = reference["sizes"]["64"]["quality"]
+    assert math.isinf(ref_quality["head_psnr_db"]) and ref_quality["head_ssim"] == pytest.approx(1.0)
+    assert ref_quality["flame_max_abs"] == 0.0
+    for name in ("gaussians q8", "framebuffer uint8"):
+        quality = sweep.cases[name]["sizes"]["64"]["quality"]
+        assert 15.0 < quality["head_psnr_db"] < 80.0 and quality["head_ssim"] < 1.0, name
+    for case in sweep.cases.values():
+        at = case["sizes"]["64"]
+        assert at["rounds"] == 2 and len(at["fps_vs_reference_rounds"]) == 2
+        assert at["frame_ms"] > 0 and at["fps"] > 0 and at["load_s"] > 0 and case["peak_rss_mb"] > 50
+        assert set(at["stages_ms"]) == {"translator", "deformation", "sort", "upload", "draw", "readback"}
+    assert reference["sizes"]["64"]["fps_vs_reference"] == 1.0
+    report = format_report([sweep], {"cores": 2}, "gt-bench --sweep")
+    for name in sweep.cases:
+        assert f"| {name} |" in report or f"| **{name}** |" in report
+    assert goal_rows(sweep) == []  # no preset but the reference was swept
+    pytest.importorskip("matplotlib")
+    from gaussiantalker.exporter.bench_report import plot_sweep
+
+    png = plot_sweep([sweep], tmp_path / "sweep.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
