@@ -119,13 +119,18 @@ def main(
                                "writes sweep.md, sweep.json and sweep.png to --out"),
     sweep_gaussians: int = typer.Option(100_000, "--sweep-gaussians", min=0, help="with --sweep: size of the "
                                         "synthetic speaker (0: demo speaker only)"),
+    skip_demo: bool = typer.Option(False, "--skip-demo", help="with --sweep: the synthetic speaker only (each "
+                                   "speaker can then get its own --seconds and --rounds)"),
     cases: str = typer.Option(None, "--cases", help="with --sweep: only the cases whose name or knob contains one "
                               "of these comma-separated words, e.g. 'preset,sort' [default: all]"),
     out: Path = typer.Option(Path("bench-sweep"), "--out", help="with --sweep: folder for the report files"),
 ) -> None:
     """Benchmark the demo speaker through the runtime and the torch reference (or against --baseline, or --sweep)."""
     if sweep:
-        _sweep(checkpoint, gaussians, sweep_gaussians, sizes, seconds, rounds, cases, out)
+        if skip_demo and sweep_gaussians == 0:
+            raise typer.BadParameter("--skip-demo needs a synthetic speaker (--sweep-gaussians > 0)",
+                                     param_hint="--skip-demo")
+        _sweep(checkpoint, gaussians, sweep_gaussians, sizes, seconds, rounds, cases, out, skip_demo)
         return
     if baseline is not None:
         _compare_with_baseline(baseline, gaussians, sizes, seconds, rounds, scaling, play_seconds, json_path)
@@ -188,7 +193,7 @@ def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: 
 
 
 def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seconds: float, rounds: int,
-           cases: str | None, out: Path) -> None:
+           cases: str | None, out: Path, skip_demo: bool = False) -> None:
     """`--sweep`: see bench_sweep.py; writes the markdown report, the JSON and (with matplotlib) the plot."""
     import sys
     from dataclasses import asdict
@@ -208,7 +213,7 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
     else:
         typer.echo("building the demo speaker (its translator trains for a few minutes; --checkpoint skips this)")
         demo, _ = make_demo_speaker(gaussians)
-    speakers = [("demo speaker", demo)]
+    speakers = [] if skip_demo else [("demo speaker", demo)]
     if large > 0:
         synthetic, _ = make_demo_speaker(large, seed=1, train_seconds=0, progress=False, config=demo.config)
         synthetic.translator.load_state_dict(demo.translator.state_dict())  # the same speech, more Gaussians

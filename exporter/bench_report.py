@@ -102,6 +102,7 @@ def plot_sweep(sweeps: list[SpeakerSweep], path: Path) -> Path:
     """PNG: per speaker, frame time vs head PSNR and bundle size vs head PSNR at the largest size, the Pareto
     front joined, presets labelled. Needs matplotlib (`pip install gaussiantalker-sdk[bench]`)."""
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -111,19 +112,30 @@ def plot_sweep(sweeps: list[SpeakerSweep], path: Path) -> Path:
         big = _largest(sweep)
         psnr = {n: min(c["sizes"][big]["quality"]["head_psnr_db"], PLOT_PSNR_CAP_DB) for n, c in sweep.cases.items()}
         cases = sweep.cases.items()
+        exported = {n: c for n, c in cases if c["preset"] or not c["runtime"]}  # runtime knobs: the fp32 bundle
         costs = {f"frame ms at {big}² (pipelined)": {n: c["sizes"][big]["frame_ms"] for n, c in cases},
-                 "bundle MB": {n: c["bundle_bytes"] / 1e6 for n, c in cases}}
+                 "bundle MB (log scale; runtime knobs left out)": {n: c["bundle_bytes"] / 1e6
+                                                                    for n, c in exported.items()}}
         for axis, (xlabel, cost) in zip(row, costs.items(), strict=True):
-            points = {n: (cost[n], psnr[n]) for n in sweep.cases}
+            points = {n: (cost[n], psnr[n]) for n in cost}
             front = sorted(pareto_front(points), key=lambda n: points[n][0])
             axis.scatter([p[0] for p in points.values()], [p[1] for p in points.values()], s=14, color="0.55",
                          label="knob alone")
             axis.plot([points[n][0] for n in front], [points[n][1] for n in front], "-o", color="tab:blue", ms=4,
                       label="Pareto front")
-            for name, case in sweep.cases.items():
-                if case["preset"]:
+            for name in points:
+                if sweep.cases[name]["preset"]:
                     axis.scatter(*points[name], s=50, color="tab:red", zorder=3)
-                    axis.annotate(name, points[name], textcoords="offset points", xytext=(5, 4), fontsize=9)
+                    axis.annotate(name, points[name], textcoords="offset points", xytext=(5, 4), fontsize=9,
+                                  color="tab:red")
+                elif name in front:
+                    axis.annotate(name, points[name], textcoords="offset points", xytext=(4, -9), fontsize=7,
+                                  color="tab:blue")
+            if cost is costs[list(costs)[1]]:
+                axis.set_xscale("log")
+                plain = matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}")
+                axis.xaxis.set_major_formatter(plain)
+                axis.xaxis.set_minor_formatter(plain)
             axis.set_xlabel(xlabel)
             axis.set_ylabel(f"head PSNR vs fp32, dB (min over clip; ∞ drawn at {PLOT_PSNR_CAP_DB:g})")
             axis.set_title(f"{sweep.speaker}, {sweep.gaussians:,} Gaussians")
