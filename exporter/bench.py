@@ -198,6 +198,8 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
     import sys
     from dataclasses import asdict
 
+    from gaussiantalker.sdk.files import atomic_write
+
     from .bench_report import format_report, plot_sweep
     from .bench_sweep import select_cases, sweep_cases, sweep_speaker
     from .checkpoint import load_checkpoint
@@ -224,9 +226,11 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
     machine = _machine()
     command = "gt-bench " + " ".join(sys.argv[1:])
     report = format_report(sweeps, machine, command)
-    (out / "sweep.md").write_text(report + "\n")
-    (out / "sweep.json").write_text(json.dumps({"machine": machine, "command": command, "seconds": seconds,
-                                                "rounds": rounds, "speakers": [asdict(s) for s in sweeps]}, indent=2))
+    with atomic_write(out / "sweep.md", "w") as handle:
+        handle.write(report + "\n")
+    with atomic_write(out / "sweep.json", "w") as handle:
+        json.dump({"machine": machine, "command": command, "seconds": seconds, "rounds": rounds,
+                   "speakers": [asdict(s) for s in sweeps]}, handle, indent=2)
     written = ["sweep.md", "sweep.json"]
     try:
         plot_sweep(sweeps, out / "sweep.png")

@@ -142,6 +142,9 @@ def plot_sweep(sweeps: list[SpeakerSweep], path: Path) -> Path:
             axis.grid(alpha=0.3)
             axis.legend(fontsize=8, loc="lower right")
     figure.tight_layout()
-    figure.savefig(path, dpi=110)
+    from gaussiantalker.sdk.files import atomic_path
+
+    with atomic_path(path) as staged:
+        figure.savefig(staged.path, dpi=110, format="png")
     plt.close(figure)
     return path

@@ -144,14 +144,14 @@ _REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4", "flame": 
 # spread seen between clips and resolutions.
 PRESETS: dict[str, Preset] = {
     "quality": Preset("quality", "fp32 everything: parity with the torch speaker (>= 50 dB)", ExportSettings()),
-    "balanced": Preset("balanced", "quantised buffers, nothing dropped: ~5.6x smaller at ~49 dB",
+    "balanced": Preset("balanced", "quantised buffers, nothing dropped: ~5.8x smaller at ~49 dB",
                        ExportSettings(**_REDUCED_CODECS), min_head_psnr_db=47.0),
     "compact": Preset("compact", "smallest bundle: 65% of the Gaussians, SH degree 0, rank-2 blendshapes, 4-bit "
-                      "translator, FLAME bases in chunks of 256: ~14x smaller at ~36 dB",
+                      "translator, FLAME bases in chunks of 256: ~14x smaller at ~36 dB on the demo speaker",
                       ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "flame": "q4"}, sh_degree=0,
                                      blendshape_rank=2, gaussian_budget=0.65), min_head_psnr_db=35.0),
     "fast": Preset("fast", "fastest frames: 60% of the Gaussians, drawn at 3/4 size into an 8-bit framebuffer, "
-                   "16-bit depth-sort keys: ~2.2x the frame rate at ~35 dB",
+                   "16-bit depth-sort keys: ~2x the frame rate at ~35 dB",
                    ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6),
                    RenderSettings(render_scale=0.75, render_target="uint8", sort_key_bits=16), min_head_psnr_db=33.0),
 }
