@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import statistics
 import tempfile
+import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -98,8 +99,6 @@ class SpeakerSweep:
 
 def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar) -> dict[str, dict]:
     """Export each distinct bundle once: key -> {path, bytes, gaussians, export_s}."""
-    import time
-
     from .export import export_bundle
 
     bundles: dict[str, dict] = {}
