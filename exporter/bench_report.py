@@ -113,10 +113,10 @@ def plot_sweep(sweeps: list[SpeakerSweep], path: Path) -> Path:
         psnr = {n: min(c["sizes"][big]["quality"]["head_psnr_db"], PLOT_PSNR_CAP_DB) for n, c in sweep.cases.items()}
         cases = sweep.cases.items()
         exported = {n: c for n, c in cases if c["preset"] or not c["runtime"]}  # runtime knobs: the fp32 bundle
-        costs = {f"frame ms at {big}² (pipelined)": {n: c["sizes"][big]["frame_ms"] for n, c in cases},
-                 "bundle MB (log scale; runtime knobs left out)": {n: c["bundle_bytes"] / 1e6
-                                                                    for n, c in exported.items()}}
-        for axis, (xlabel, cost) in zip(row, costs.items(), strict=True):
+        panels = [(f"frame ms at {big}² (pipelined)", {n: c["sizes"][big]["frame_ms"] for n, c in cases}, False),
+                  ("bundle MB (log scale; runtime knobs left out)",
+                   {n: c["bundle_bytes"] / 1e6 for n, c in exported.items()}, True)]
+        for axis, (xlabel, cost, log_scale) in zip(row, panels, strict=True):
             points = {n: (cost[n], psnr[n]) for n in cost}
             front = sorted(pareto_front(points), key=lambda n: points[n][0])
             axis.scatter([p[0] for p in points.values()], [p[1] for p in points.values()], s=14, color="0.55",
@@ -131,7 +131,7 @@ def plot_sweep(sweeps: list[SpeakerSweep], path: Path) -> Path:
                 elif name in front:
                     axis.annotate(name, points[name], textcoords="offset points", xytext=(4, -9), fontsize=7,
                                   color="tab:blue")
-            if cost is costs[list(costs)[1]]:
+            if log_scale:
                 axis.set_xscale("log")
                 plain = matplotlib.ticker.FuncFormatter(lambda value, _: f"{value:g}")
                 axis.xaxis.set_major_formatter(plain)

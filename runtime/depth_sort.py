@@ -84,6 +84,8 @@ class DepthSorter:
 
     def order(self, packed: np.ndarray, camera: Camera) -> np.ndarray:
         """Indices of the rows to draw, front to back (see the class docstring)."""
+        if self.interval == 1:
+            return depth_order(packed, camera, self.key_bits)
         view = (len(packed), camera.R.tobytes(), camera.t.tobytes(), camera.width, camera.height, camera.near)
         if self._order is not None and self._age < self.interval - 1 and view == self._view:
             _, keep = visible(packed, camera)

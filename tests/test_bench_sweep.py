@@ -119,8 +119,7 @@ def test_tiny_sweep_end_to_end(small_export, replay_onnx_exports, tmp_path):
     for name in sweep.cases:
         assert f"| {name} |" in report or f"| **{name}** |" in report
     assert goal_rows(sweep) == []  # no preset but the reference was swept
-    pytest.importorskip("matplotlib")
-    from gaussiantalker.exporter.bench_report import plot_sweep
+    from gaussiantalker.exporter.bench_report import plot_sweep  # matplotlib: in the dev extra, so always tested
 
     png = plot_sweep([sweep], tmp_path / "sweep.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
