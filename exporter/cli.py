@@ -50,7 +50,8 @@ def export(
     verify: bool = typer.Option(False, "--verify", help="prove the bundle against the torch speaker"),
     report: Path = typer.Option(None, "--report", help="write the verification report as JSON (implies --verify)"),
     frames: int = typer.Option(25, "--frames", min=1, help="audio-driven frames to compare when verifying"),
-    resolution: str = typer.Option("256", "--resolution", help="verification frame size, N or WxH"),
+    resolution: str = typer.Option(None, "--resolution", help="verification frame size, N or WxH [default: 256, "
+                                   "or the scene's]"),
     min_psnr: float = typer.Option(None, "--min-psnr",
                                    help="required 8-bit PSNR (dB) of every frame [default: the tier's]"),
     min_float_psnr: float = typer.Option(None, "--min-float-psnr",
@@ -69,6 +70,8 @@ def export(
     blendshape_rank: int = typer.Option(None, "--blendshape-rank", min=1, help="rank of the blendshape matrix"),
     gaussian_budget: str = typer.Option(None, "--gaussian-budget", help="keep N Gaussians (or P%), the largest "
                                         "contributors over a driven clip and a head-pose sweep"),
+    scene: Path = typer.Option(None, "--scene", help="compile the bundle for a scene (TOML/JSON, docs/scene.md): "
+                               "leave out what it never uses, record it in the bundle"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bars"),
 ) -> None:
     """Export a speaker checkpoint to a bundle; with --verify, place it only if it reproduces the torch frames.
@@ -79,8 +82,11 @@ def export(
 
     output = output or checkpoint.with_suffix(".gtb")
     verify = verify or report is not None
-    size = _resolution(resolution)
+    size = None if resolution is None and scene is not None else _resolution(resolution or "256")
     try:
+        from gaussiantalker.sdk.scene import load_scene
+
+        scene_spec = None if scene is None else load_scene(scene)  # a bad scene fails before the checkpoint loads
         knobs = {"gaussians": gaussians, "sh": sh, "blendshapes": blendshapes, "flame": flame,
                  "translator": translator, "translator_precision": translator_precision, "sh_degree": sh_degree,
                  "blendshape_rank": blendshape_rank, "gaussian_budget": _budget(gaussian_budget)}
@@ -89,13 +95,19 @@ def export(
         # The bundle is staged beside the output and placed there only once it is complete (and, with --verify,
         # has passed), so a failed or interrupted run never replaces a good bundle.
         with atomic_path(output) as staged:
-            result = export_bundle(speaker, staged, settings=settings, preset=chosen, progress=not quiet)
+            result = export_bundle(speaker, staged, settings=settings, preset=chosen, progress=not quiet,
+                                   scene=scene_spec)
+            if result.specialisation is not None:
+                from .specialise import format_removals
+
+                typer.echo(format_removals(result.specialisation.removals))
             typer.echo(f"wrote {result.bytes_written / 1e6:.2f} MB bundle ({result.gaussians} Gaussians, "
                        f"tier {result.tier}, graphs: {', '.join(result.graphs)})")
             if verify:
                 from .verify import Tolerances
 
                 tolerances = Tolerances.for_settings(settings, chosen)
+                tolerances = tolerances if scene_spec is None else tolerances.for_scene()
                 _verify(speaker, staged, output, tolerances, frames, size, min_psnr, min_float_psnr, report, quiet)
         typer.echo(f"bundle: {output}" + (" (verified)" if verify else ""))
     except GaussianTalkerError as exc:
@@ -124,7 +136,7 @@ def _settings(preset: str | None, codec: str | None, knobs: dict):
     return settings_with(base, **knobs), chosen
 
 
-def _verify(speaker, staged: StagedFile, output: Path, defaults, frames: int, size: tuple[int, int],
+def _verify(speaker, staged: StagedFile, output: Path, defaults, frames: int, size: tuple[int, int] | None,
             min_psnr: float | None, min_float_psnr: float | None, report: Path | None, quiet: bool) -> None:
     """Verify the staged bundle; a failure keeps it as NAME.unverified.gtb (not at `output`) and exits 1."""
     from dataclasses import replace

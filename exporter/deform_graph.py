@@ -23,6 +23,7 @@ exported graph), so the graph holds no speaker-specific inline constant.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -66,7 +67,13 @@ class DeformationGraph(nn.Module):
     Two model-size knobs (docs/precision.md), both off by default: `sh_degree` keeps only the SH bands up to that
     degree; `blendshape_rank` replaces the [D, 10 N] speaker blendshape matrix by a rank-r product."""
 
-    def __init__(self, speaker: Speaker, *, sh_degree: int | None = None, blendshape_rank: int | None = None) -> None:
+    def __init__(self, speaker: Speaker, *, sh_degree: int | None = None, blendshape_rank: int | None = None,
+                 drive_allowed: np.ndarray | None = None, latent_subspace: tuple | None = None,
+                 vertex_subset: bool = False) -> None:
+        """Scene options (exporter/specialise.py, docs/scene.md): `drive_allowed` [E + 36] bool leaves out the FLAME
+        basis rows of drive entries the scene keeps at 0; `latent_subspace` (mean [D], orthonormal basis [D, r])
+        stores the speaker blendshapes projected onto the affine subspace γ stays in; `vertex_subset` computes only
+        the vertices the Gaussians' triangles use."""
         super().__init__()
         speaker = speaker.eval()
         flame, gaussians = speaker.flame_arrays, speaker.gaussians
@@ -76,10 +83,10 @@ class DeformationGraph(nn.Module):
         self.latent_pose = speaker.latent_pose
         self.blendshape_rank = blendshape_rank
         with torch.no_grad():
-            self._fold_flame(speaker)
-            self._fold_gaussians(speaker)
+            self._fold_flame(speaker, drive_allowed, vertex_subset)
+            self._fold_gaussians(speaker, latent_subspace)
 
-    def _fold_flame(self, speaker: Speaker) -> None:
+    def _fold_flame(self, speaker: Speaker, drive_allowed: np.ndarray | None, vertex_subset: bool) -> None:
         """Rest mesh and joints with β applied, and one basis [E + 36, 3V + 15] for expression and pose correctives.
 
         Vertex columns are component-major (x of every vertex, then y, then z), so the product reshapes to
@@ -102,20 +109,35 @@ class DeformationGraph(nn.Module):
         # Rows that are exactly zero (e.g. pose correctives of joints the head model never corrects) add nothing:
         # they are left out, and the drive's matching entries are not gathered (exact, docs/deformation.md).
         keep = basis.abs().amax(1) > 0
+        if drive_allowed is not None:  # drive entries the scene keeps at 0 add nothing either (docs/scene.md)
+            keep &= torch.as_tensor(drive_allowed, dtype=torch.bool)
         keep[0] |= not bool(keep.any())  # an all-zero basis keeps one row, so no tensor has a zero-size axis
         self.register_buffer("drive_rows", None if bool(keep.all()) else torch.nonzero(keep).reshape(-1))  # [kept]
         basis = basis[keep]
-        self.register_buffer("rest_points", torch.cat([rest.T.reshape(-1), rest_joints.reshape(-1)]).float())
+        rest_points = torch.cat([rest.T.reshape(-1), rest_joints.reshape(-1)])  # [3V + 15]
+        lbs_weights = flame.lbs_weights.T  # [5, V]
+        # The triangles the Gaussians are bound to, and (with vertex_subset) only the vertices those use: columns
+        # of the basis, rest points and skinning weights of other vertices never reach a Gaussian.
+        triangles, parent = torch.unique(speaker.gaussians.parent, return_inverse=True)
+        faces = torch.as_tensor(speaker.flame_arrays.faces).long()[triangles]  # [F used, 3]
+        if vertex_subset:
+            vertices, faces = torch.unique(faces, return_inverse=True)  # [V used], faces renumbered
+            columns = torch.cat([vertices + c * n_v for c in range(3)] +
+                                [torch.arange(3 * n_v, 3 * n_v + 3 * N_JOINTS)])
+            basis, rest_points, lbs_weights = basis[:, columns], rest_points[columns], lbs_weights[:, vertices]
+            self.n_vertices = n_v = int(vertices.numel())
+        self.register_buffer("rest_points", rest_points.float())
         self.register_buffer("blend_basis", basis.float())  # [rows kept of E + 36, 3V + 15]
-        self.register_buffer("lbs_weights", flame.lbs_weights.T.reshape(N_JOINTS, 1, n_v).contiguous())  # [5,1,V]
+        self.register_buffer("lbs_weights", lbs_weights.reshape(N_JOINTS, 1, n_v).contiguous())  # [5, 1, V]
+        # Triangle ids and the face table (stored with the `index` codec); onnxruntime folds the gather at load.
+        self.register_buffer("parent_triangle", parent.reshape(-1).clone())  # [N] into `faces`
+        self.register_buffer("faces", faces.contiguous())  # [F used, 3]
 
-    def _fold_gaussians(self, speaker: Speaker) -> None:
-        """Per-Gaussian constants, component-major, and the three speaker blendshapes as one [D, 10 N] matrix."""
+    def _fold_gaussians(self, speaker: Speaker, latent_subspace: tuple | None) -> None:
+        """Per-Gaussian constants, component-major, and the three speaker blendshapes as one [D, 10 N] matrix
+        (projected onto the scene's latent subspace, and/or a low-rank product, when asked)."""
         g = speaker.gaussians
         n = self.n_gaussians
-        # Triangle ids and the face table (stored with the `index` codec); onnxruntime folds the gather at load.
-        self.register_buffer("parent_triangle", g.parent.clone())  # [N]
-        self.register_buffer("faces", torch.as_tensor(speaker.flame_arrays.faces).long().contiguous())  # [F, 3]
         self.register_buffer("barycentric", g.barycentric.T.contiguous())  # [3 corners, N]
         self.register_buffer("rest_scale", g.rest_scale.clone())  # [N] reference size of the frame guards
         # Stored as logs (uniform relative error when quantised); exp is folded by onnxruntime at load.
@@ -130,13 +152,23 @@ class DeformationGraph(nn.Module):
         weights = torch.cat([g.w_pos.double(), w_quat, g.w_color.double()], 1)  # [N, 10, D]
         bias = torch.cat([g.local_position, g.local_rotation, g.sh[:, 0]], 1)  # [N, 10]
         weight = weights.permute(2, 1, 0).reshape(-1, 10 * n)  # [D, 10N]
+        bias = bias.T.reshape(-1).double()  # [10N]
+        basis = None
+        if latent_subspace is not None:
+            # γ = m + U Uᵀ(γ - m) on the subspace, so γ W = (γ U)(Uᵀ W) + (m - m U Uᵀ) W (docs/scene.md).
+            mean, basis = (t.double() for t in latent_subspace)  # [D], [D, r]
+            bias = bias + (mean - (mean @ basis) @ basis.T) @ weight
+            weight = basis.T @ weight  # [r, 10N]
         if self.blendshape_rank is not None and self.blendshape_rank < weight.shape[0]:
-            basis, weight = low_rank_factors(weight, int(self.blendshape_rank), LATENT_ROWS, n)
-            self.register_buffer("latent_basis", basis.float())  # [D, r]
+            factor, weight = low_rank_factors(weight, int(self.blendshape_rank), LATENT_ROWS, n)
+            basis = factor if basis is None else basis @ factor
         else:
             self.blendshape_rank = None
+        self.has_latent_basis = basis is not None
+        if basis is not None:
+            self.register_buffer("latent_basis", basis.float())  # [D, r]
         self.register_buffer("latent_weight", weight.float())  # [D or r, 10N]
-        self.register_buffer("latent_bias", bias.T.reshape(-1).contiguous())  # [10N]
+        self.register_buffer("latent_bias", bias.float().contiguous())  # [10N]
 
     def forward(self, expression: torch.Tensor, flame_pose: torch.Tensor, head_translation: torch.Tensor,
                 camera_center: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -152,7 +184,7 @@ class DeformationGraph(nn.Module):
         origin = (corners * self.barycentric).sum(2)  # P [B, 3, N]
 
         gamma = self.latent_pose(flame_pose[:, 3:])  # [B, D]
-        if self.blendshape_rank is not None:
+        if self.has_latent_basis:
             gamma = gamma @ self.latent_basis  # [B, r]
         latent = (gamma @ self.latent_weight + self.latent_bias).reshape(batch, sum(LATENT_ROWS), n)
         local_position, quaternion, dc = latent.split(LATENT_ROWS, dim=1)  # [B, 3|4|3, N]

@@ -16,6 +16,7 @@ from gaussiantalker.sdk.bundle import BundleWriter
 from gaussiantalker.sdk.config import POSE_DIM
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.files import StagedFile
+from gaussiantalker.sdk.scene import Scene
 
 from . import onnx_export
 from .deform_graph import DeformationGraph
@@ -23,6 +24,7 @@ from .graph_precision import convert_precision
 from .onnx_export import add_graph
 from .prune import apply_budget
 from .speaker import Speaker
+from .specialise import Specialisation, specialise
 from .tiers import ExportSettings, Preset, get_preset, group_of
 from .translator import translator_onnx
 
@@ -40,7 +42,8 @@ class ExportResult:
     buffer_bytes: dict = field(default_factory=dict)
     settings: ExportSettings | None = None
     tier: str = "fp32"  # the manifest's "precision": fp32, fp16, a preset's name, NAME+custom or custom
-    gaussians: int = 0  # Gaussians in the bundle (after a Gaussian budget)
+    gaussians: int = 0  # Gaussians in the bundle (after scene pruning and a Gaussian budget)
+    specialisation: Specialisation | None = None  # what a scene let the export leave out (exporter/specialise.py)
 
     def group_bytes(self) -> dict[str, int]:
         """Stored bytes per codec group (exporter/tiers.py) plus 'other' (pose track, index buffers, ...)."""
@@ -76,46 +79,63 @@ def resolve_settings(codec: str | None = None, settings: ExportSettings | None =
 
 def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, codec: str | None = None,
                   settings: ExportSettings | None = None, preset: str | Preset | None = None, progress: bool = True,
-                  example_frames: int = 8) -> ExportResult:
+                  example_frames: int = 8, scene: Scene | Specialisation | None = None) -> ExportResult:
     """Export `speaker` to one bundle file at `path` (written atomically), or into a file staged by `atomic_path`.
 
     The speed/accuracy knobs (exporter/tiers.py, docs/precision.md): `preset` names a tier (its runtime defaults
-    are stored in the bundle), `codec` stores every buffer with one codec, `settings` sets each knob."""
+    are stored in the bundle), `codec` stores every buffer with one codec, `settings` sets each knob. `scene`
+    (docs/scene.md) compiles the bundle for one scene, leaving out what it never uses (or an already measured
+    `specialise` result for it); the bundle records the scene and its camera."""
     settings, chosen, tier = resolve_settings(codec, settings, preset)
     speaker = speaker.eval()
+    spec = specialise(speaker, scene, progress=progress) if isinstance(scene, Scene) else scene
+    camera, background = speaker.camera, list(speaker.background)
+    if spec is not None:
+        speaker, camera = spec.speaker, spec.camera
+        background = list(spec.scene.background_color or background)
     if settings.gaussian_budget is not None:
         speaker = apply_budget(speaker, settings.gaussian_budget, progress=progress)
     writer = BundleWriter(metadata={
         "speaker": speaker.config.to_dict(),
-        "camera": speaker.camera.to_dict(),
-        "background": list(speaker.background),
+        "camera": camera.to_dict(),
+        "background": background,
         "precision": tier,
         "export_settings": asdict(settings),
         "runtime_defaults": chosen.runtime.to_dict() if chosen is not None else {},
         "gaussians": speaker.gaussians.count,
         "exporter": {"sdk": sdk_version, "torch": torch.__version__, "python": platform.python_version()},
+        **({} if spec is None else {"scene": spec.scene.to_dict(),
+                                    "specialisation": [asdict(r) for r in spec.removals]}),
     })
     steps = tqdm(total=3, desc="gt-export", unit="step", disable=not progress)
     result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings, tier=tier,
-                          gaussians=speaker.gaussians.count)
+                          gaussians=speaker.gaussians.count, specialisation=spec)
     try:
-        _export_steps(speaker, writer, path, result, settings, example_frames, steps)
+        _export_steps(speaker, writer, path, result, settings, example_frames, steps, spec)
     finally:
         steps.close()
     return result
 
 
 def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLike | StagedFile, result: ExportResult,
-                  settings: ExportSettings, example_frames: int, steps: tqdm) -> None:
-    """Both graphs into `writer`, then one atomic write: nothing reaches `result.path` until every step worked."""
+                  settings: ExportSettings, example_frames: int, steps: tqdm, spec: Specialisation | None) -> None:
+    """Both graphs into `writer`, then one atomic write: nothing reaches `result.path` until every step worked.
+    A flame-driven scene has no translator graph."""
     steps.set_postfix_str("translator graph")
-    model = convert_precision(translator_onnx(speaker.translator, example_frames), settings.translator_precision)
-    result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
+    if spec is None or spec.has_translator:
+        model = convert_precision(translator_onnx(speaker.translator, example_frames), settings.translator_precision)
+        result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
     steps.update()
 
     steps.set_postfix_str("deformation graph")
     args, dynamic = _deform_example(speaker)
-    graph = DeformationGraph(speaker, sh_degree=settings.sh_degree, blendshape_rank=settings.blendshape_rank)
+    scene_options = {} if spec is None else {
+        "drive_allowed": spec.drive_allowed, "vertex_subset": True,
+        "latent_subspace": None if spec.latent_basis is None else (spec.latent_mean, spec.latent_basis)}
+    sh_degree = settings.sh_degree if spec is None else min(spec.sh_degree, 3 if settings.sh_degree is None
+                                                            else settings.sh_degree)
+    graph = DeformationGraph(speaker, sh_degree=sh_degree, blendshape_rank=settings.blendshape_rank,
+                             **scene_options)
     model = onnx_export.export_onnx(graph, args, DEFORM_INPUTS, DEFORM_OUTPUTS, dynamic)
     result.graphs["deform"] = add_graph(writer, "deform", model, settings.codec_for)
     steps.update()

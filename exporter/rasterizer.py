@@ -66,6 +66,7 @@ class _Splats:
     radius: Tensor  # [M]
     opacity: Tensor  # [M]
     rgb: Tensor  # [M, 3]
+    index: Tensor  # [M] each kept splat's index among the input Gaussians
 
 
 @dataclass(frozen=True)
@@ -124,13 +125,20 @@ def render_reference(
     *,
     tile_size: int = DEFAULT_TILE_SIZE,
     memory_budget_bytes: int = DEFAULT_MEMORY_BUDGET_BYTES,
+    max_weight: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """Render one frame by the numerics contract: (image C + T * background [H, W, 3], transmittance T [H, W])."""
+    """Render one frame by the numerics contract: (image C + T * background [H, W, 3], transmittance T [H, W]).
+
+    `max_weight` [N] float32, if given, is raised in place to each Gaussian's largest blend weight alpha_i T_i
+    over this frame's pixels (what scene pruning measures, docs/scene.md)."""
     _check_inputs(means, cov3d, rgb, opacity, tile_size, memory_budget_bytes)
     bg = torch.as_tensor(background, dtype=torch.float32, device=means.device).reshape(3)
     splats = _prepare_splats(means, cov3d, rgb, opacity, camera)
     grid = _Grid(camera.width, camera.height, tile_size)
-    color, trans = _render_tiles(splats, _tile_rects(splats, grid), grid, memory_budget_bytes)
+    weights = None if max_weight is None else torch.zeros(len(splats.radius) + 1, dtype=torch.float32)
+    color, trans = _render_tiles(splats, _tile_rects(splats, grid), grid, memory_budget_bytes, weights)
+    if max_weight is not None:
+        max_weight.scatter_reduce_(0, splats.index, weights[:-1].to(max_weight.dtype), "amax")
     color = _untile(color, grid)[: camera.height, : camera.width]  # [H, W, 3]
     trans = _untile(trans, grid)[: camera.height, : camera.width]  # [H, W]
     return color + trans.unsqueeze(-1) * bg, trans
@@ -182,7 +190,7 @@ def _prepare_splats(means: Tensor, cov3d: Tensor, rgb: Tensor, opacity: Tensor, 
         xy_kept, _, _, _, shape_kept = screen_space(means[index], cov3d[index])
     else:
         xy_kept, shape_kept = xy[index], shape[index]
-    return _Splats(xy_kept, shape_kept, radius[index], opacity[index], splat_color(rgb[index]))
+    return _Splats(xy_kept, shape_kept, radius[index], opacity[index], splat_color(rgb[index]), index)
 
 
 def _tile_rects(splats: _Splats, grid: _Grid) -> _Rects:
@@ -235,15 +243,17 @@ def _bin_band(rects: _Rects, y0: int, y1: int, grid: _Grid) -> _Bins:
     return _Bins(splat[owner[order]], torch.cumsum(count, 0) - count, count)
 
 
-def _render_tiles(splats: _Splats, rects: _Rects, grid: _Grid, budget: int) -> tuple[Tensor, Tensor]:
-    """Composite every non-empty tile, band by band, in padded batches; empty tiles stay colour 0, T 1."""
+def _render_tiles(splats: _Splats, rects: _Rects, grid: _Grid, budget: int, max_weight: Tensor | None = None
+                  ) -> tuple[Tensor, Tensor]:
+    """Composite every non-empty tile, band by band, in padded batches; empty tiles stay colour 0, T 1.
+    `max_weight` [M + 1] (the pad last), if given, is raised to each splat's largest blend weight."""
     device = splats.xy.device
     chunk_elements = max(1, min(_MAX_CHUNK_ELEMENTS, budget // _LIVE_BYTES_PER_ELEMENT))
     params, rgb = _pack_params(splats)
     needs_grad = torch.is_grad_enabled() and (params.requires_grad or rgb.requires_grad)
     pairs = int(torch.where(rects.ok, (rects.tx1 - rects.tx0 + 1) * (rects.ty1 - rects.ty0 + 1), 0).sum())
     use_checkpoint = needs_grad and pairs * grid.pixels * _LIVE_BYTES_PER_ELEMENT > budget
-    kwargs = {"params": params, "rgb": rgb, "grid": grid, "chunk_elements": chunk_elements}
+    kwargs = {"params": params, "rgb": rgb, "grid": grid, "chunk_elements": chunk_elements, "max_weight": max_weight}
     colors, transmittances, done_tiles = [], [], []
     for y0, y1 in _row_bands(rects, grid, max(1, budget // (4 * _PAIR_BYTES))):
         batches = _batch_lists(_bin_band(rects, y0, y1, grid), grid.pixels, chunk_elements, len(splats.radius))
@@ -294,10 +304,12 @@ def _group_batches(
 
 
 def _composite_group(
-    group: list[tuple[Tensor, Tensor]], *, params: Tensor, rgb: Tensor, grid: _Grid, chunk_elements: int
+    group: list[tuple[Tensor, Tensor]], *, params: Tensor, rgb: Tensor, grid: _Grid, chunk_elements: int,
+    max_weight: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Composite each batch of a group; colours [sum B, P, 3] and transmittances [sum B, P] in group order."""
-    results = [_composite_batch(t, s, params, rgb, grid=grid, chunk_elements=chunk_elements) for t, s in group]
+    results = [_composite_batch(t, s, params, rgb, grid=grid, chunk_elements=chunk_elements, max_weight=max_weight)
+               for t, s in group]
     return torch.cat([color for color, _ in results]), torch.cat([trans for _, trans in results])
 
 
@@ -329,7 +341,8 @@ def _plan_batches(count: Tensor, pixels: int, chunk_elements: int) -> list[tuple
 
 
 def _composite_batch(
-    tile_ids: Tensor, splat_ids: Tensor, params: Tensor, rgb: Tensor, *, grid: _Grid, chunk_elements: int
+    tile_ids: Tensor, splat_ids: Tensor, params: Tensor, rgb: Tensor, *, grid: _Grid, chunk_elements: int,
+    max_weight: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Front-to-back compositing of B tiles' padded lists [B, K], walked in K chunks that carry T and `done`."""
     ts = grid.tile_size
@@ -352,7 +365,10 @@ def _composite_batch(
         # Offsets clamped to the extent: unchanged inside, and keep_mask's bound keeps the power finite outside.
         dx, dy = torch.clamp(dx, -r, r), torch.clamp(dy, -r, r)
         alpha = alpha_from_components(dx, dy, a, slope, q, opacity, inside)  # [B, P, k], 0 = skipped
-        color, trans, done = _blend_chunk(alpha, rgb[ids], color, trans, done)
+        color, trans, done, weight = _blend_chunk(alpha, rgb[ids], color, trans, done)
+        if max_weight is not None:
+            with torch.no_grad():
+                max_weight.scatter_reduce_(0, ids.reshape(-1), weight.amax(1).reshape(-1), "amax")
         if bool(done.all()):
             break
     return color, trans
@@ -360,8 +376,9 @@ def _composite_batch(
 
 def _blend_chunk(
     alpha: Tensor, rgb: Tensor, color: Tensor, trans: Tensor, done: Tensor
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Blend one chunk [B, P, k] (alpha 0 = skipped) onto carried colour/T; the kept set is a prefix since T falls."""
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Blend one chunk [B, P, k] (alpha 0 = skipped) onto carried colour/T; the kept set is a prefix since T falls.
+    Returns colour, T, done and the blend weights alpha_i T_i [B, P, k]."""
     start = torch.where(done, 0.0, trans)  # a stopped pixel takes nothing more
     t_seq = torch.cumprod(torch.cat([start.unsqueeze(-1), 1.0 - alpha], dim=-1), dim=-1)  # [B, P, k+1]
     with torch.no_grad():
@@ -371,7 +388,7 @@ def _blend_chunk(
     weight = alpha * t_seq[..., :-1] * include  # [B, P, k] alpha_i T_i on the included prefix
     color = color + torch.bmm(rgb.transpose(1, 2), weight.transpose(1, 2)).transpose(1, 2)  # [B, P, 3]
     trans = torch.where(done, trans, t_seq.gather(-1, n_included).squeeze(-1))  # [B, P] T after the prefix
-    return color, trans, done | (t_seq[..., -1] < TRANSMITTANCE_MIN)
+    return color, trans, done | (t_seq[..., -1] < TRANSMITTANCE_MIN), weight
 
 
 def _untile(values: Tensor, grid: _Grid) -> Tensor:

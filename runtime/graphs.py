@@ -88,8 +88,13 @@ class OnnxRuntimeBackend:
 
 
 def check_speaker_bundle(bundle: Bundle) -> None:
-    """A speaker bundle must hold both graphs, a valid camera, and (if any) a float32 [T, 6] pose track."""
-    missing = [name for name in SPEAKER_GRAPHS if name not in bundle.manifest["graphs"]]
+    """A speaker bundle must hold both graphs (a flame-driven scene's only `deform`), a valid camera, and (if any)
+    a float32 [T, 6] pose track."""
+    scene = bundle.manifest.get("scene")
+    flame_driven = isinstance(scene, dict) and isinstance(scene.get("drive"), dict) and \
+        scene["drive"].get("driver") == "flame"
+    required = [name for name in SPEAKER_GRAPHS if not (flame_driven and name == "translator")]
+    missing = [name for name in required if name not in bundle.manifest["graphs"]]
     if missing:
         raise BundleError(f"{bundle.path}: speaker bundle lacks the {' and '.join(map(repr, missing))} graph"
                           f"{'s' if len(missing) > 1 else ''} (it holds: {', '.join(bundle.graph_names()) or 'none'})")
@@ -112,6 +117,8 @@ def _check_expression_width(bundle: Bundle) -> None:
     """The speaker config's n_expr must be the graphs' expression width (drives are built from it)."""
     n_expr = bundle.manifest["speaker"].get("n_expr", SpeakerConfig.n_expr)
     for graph, kind in (("deform", "inputs"), ("translator", "outputs")):
+        if graph not in bundle.manifest["graphs"]:
+            continue
         for value in bundle.graph_info(graph)[kind]:
             width = value["shape"][-1] if value["shape"] else None
             if value["name"] == "expression" and isinstance(width, int) and width != n_expr:

@@ -26,6 +26,7 @@ from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame
 from gaussiantalker.sdk.errors import AudioError, BundleError, RenderError
 from gaussiantalker.sdk.render_settings import RenderSettings
+from gaussiantalker.sdk.scene import Scene, SceneError, SceneGuard
 from gaussiantalker.sdk.video import VideoWriter
 from gaussiantalker.sdk.video_formats import plan_video
 
@@ -86,9 +87,23 @@ class TalkingHead:
             self.camera = self.camera.resized(*resolution)
         self.background = np.asarray(background if background is not None else manifest.get("background", (1, 1, 1)),
                                      dtype=np.float32).reshape(3)
+        self.scene, self.scene_guard = self._scene()
+        if self.scene_guard is not None:
+            self.scene_guard.check_camera(self.camera)
         self.splatter = GLSplatter(gl_context, settings=self.render_settings)
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.silence_gate_dbfs = silence_gate_dbfs
+
+    def _scene(self) -> tuple[Scene | None, SceneGuard | None]:
+        """The scene the bundle was specialised for (docs/scene.md) and its range checks; (None, None) if none."""
+        data = self.bundle.manifest.get("scene")
+        if data is None:
+            return None, None
+        try:
+            scene = Scene.from_dict(data)
+            return scene, SceneGuard(scene, self.config.n_expr)
+        except (SceneError, TypeError, ValueError, AttributeError) as exc:
+            raise BundleError(f"{self.bundle.path}: manifest 'scene' is invalid: {exc}") from None
 
     def _record(self, stage: str, seconds: float) -> None:
         """Append a stage timing; past MAX_TIMINGS_PER_STAGE values only the newest half of that many are kept."""
@@ -108,6 +123,10 @@ class TalkingHead:
 
     def _run_translator(self, chunk: np.ndarray) -> dict:
         """One translator window through the graph (timed)."""
+        if "translator" not in self.bundle.manifest["graphs"]:
+            raise BundleError(f"{self.bundle.path}: this bundle was specialised for a flame-driven scene and has no "
+                              "translator graph, so it cannot turn audio into frames: drive it with render_params() "
+                              "or render(), or re-export it with an audio-driven scene (or without --scene)")
         start = time.perf_counter()
         out = self.graphs.run("translator", {"audio": chunk[None]})
         self._record("translator", time.perf_counter() - start)
@@ -139,6 +158,8 @@ class TalkingHead:
         """Run the deformation graph: world-space means, cov3d, rgb, opacity for one frame."""
         start = time.perf_counter()
         inputs = drive.graph_inputs()
+        if self.scene_guard is not None:
+            self.scene_guard.check_drive(drive.expression, drive.flame_pose, drive.head_translation)
         inputs["camera_center"] = self.camera.center.astype(np.float32)[None]
         out = self.graphs.run("deform", inputs)
         self._record("deformation", time.perf_counter() - start)
