@@ -124,13 +124,15 @@ def main(
     cases: str = typer.Option(None, "--cases", help="with --sweep: only the cases whose name or knob contains one "
                               "of these comma-separated words, e.g. 'preset,sort' [default: all]"),
     out: Path = typer.Option(Path("bench-sweep"), "--out", help="with --sweep: folder for the report files"),
+    scene: Path = typer.Option(None, "--scene", help="with --sweep: each preset plain and specialised for this scene "
+                               "file (docs/scene.md), side by side (use --sizes at the scene's resolution)"),
 ) -> None:
     """Benchmark the demo speaker through the runtime and the torch reference (or against --baseline, or --sweep)."""
     if sweep:
         if skip_demo and sweep_gaussians == 0:
             raise typer.BadParameter("--skip-demo needs a synthetic speaker (--sweep-gaussians > 0)",
                                      param_hint="--skip-demo")
-        _sweep(checkpoint, gaussians, sweep_gaussians, sizes, seconds, rounds, cases, out, skip_demo)
+        _sweep(checkpoint, gaussians, sweep_gaussians, sizes, seconds, rounds, cases, out, skip_demo, scene)
         return
     if baseline is not None:
         _compare_with_baseline(baseline, gaussians, sizes, seconds, rounds, scaling, play_seconds, json_path)
@@ -193,20 +195,28 @@ def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: 
 
 
 def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seconds: float, rounds: int,
-           cases: str | None, out: Path, skip_demo: bool = False) -> None:
+           cases: str | None, out: Path, skip_demo: bool = False, scene: Path | None = None) -> None:
     """`--sweep`: see bench_sweep.py; writes the markdown report, the JSON and (with matplotlib) the plot."""
     import sys
     from dataclasses import asdict
 
+    from gaussiantalker.sdk.errors import GaussianTalkerError
     from gaussiantalker.sdk.files import atomic_write
 
     from .bench_report import format_report, plot_sweep
-    from .bench_sweep import select_cases, sweep_cases, sweep_speaker
+    from .bench_sweep import scene_cases, select_cases, sweep_cases, sweep_speaker
     from .checkpoint import load_checkpoint
     from .demo_speaker import make_demo_speaker
 
     try:
-        chosen = select_cases(sweep_cases(), cases)
+        if scene is not None:
+            from gaussiantalker.sdk.scene import load_scene
+
+            try:
+                load_scene(scene)  # a bad scene file fails here, before any speaker is built
+            except GaussianTalkerError as exc:
+                raise typer.BadParameter(str(exc), param_hint="--scene") from None
+        chosen = select_cases(sweep_cases() if scene is None else scene_cases(str(scene)), cases)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--cases") from None
     size_list = [int(s) for s in sizes.split(",")]

@@ -42,7 +42,8 @@ def format_sweep(sweep: SpeakerSweep) -> str:
     sizes = sorted(next(iter(sweep.cases.values()))["sizes"], key=int)
     big = sizes[-1]
     reference_bytes = sweep.cases[REFERENCE]["bundle_bytes"]
-    head = ["case", "bundle MB", "× smaller", "load s", "peak MB", f"ms/stage {big}² (" + " / ".join(STAGES) + ")",
+    head = ["case", "bundle MB", "× smaller", "Gaussians", "load s", "peak MB",
+            f"ms/stage {big}² (" + " / ".join(STAGES) + ")",
             *[f"FPS {s}²" for s in sizes], f"× FPS {big}²", f"head PSNR / SSIM {big}²",
             f"mouth PSNR / SSIM {big}²", "FLAME max err"]
     lines = [f"### {sweep.speaker} ({sweep.gaussians:,} Gaussians)", "",
@@ -52,7 +53,7 @@ def format_sweep(sweep: SpeakerSweep) -> str:
         quality = at["quality"]
         label = f"**{name}**" if case["preset"] else name
         cells = [label, f"{case['bundle_bytes'] / 1e6:.2f}", f"{reference_bytes / case['bundle_bytes']:.1f}",
-                 f"{at['load_s']:.2f}", f"{case['peak_rss_mb']:.0f}",
+                 f"{case['gaussians']:,}", f"{at['load_s']:.2f}", f"{case['peak_rss_mb']:.0f}",
                  " / ".join(f"{at['stages_ms'][s]:.1f}" for s in STAGES),
                  *[f"{case['sizes'][s]['fps']:.1f}" for s in sizes], f"{at['fps_vs_reference']:.2f}",
                  f"{_db(quality['head_psnr_db'])} / {quality['head_ssim']:.4f}",

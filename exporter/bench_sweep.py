@@ -41,12 +41,14 @@ class SweepCase:
     export: ExportSettings = field(default_factory=ExportSettings)
     runtime: dict = field(default_factory=dict)
     preset: str | None = None
+    scene: str | None = None  # a scene file the bundle is specialised for (docs/scene.md)
 
     @property
     def bundle_key(self) -> str:
-        """Cases with the same key play the same bundle: the same export settings and stored runtime defaults."""
+        """Cases with the same key play the same bundle: the same export settings, stored runtime defaults and
+        scene."""
         defaults = PRESETS[self.preset].runtime if self.preset else RenderSettings()
-        return json.dumps([asdict(self.export), defaults.to_dict()], sort_keys=True)
+        return json.dumps([asdict(self.export), defaults.to_dict(), self.scene], sort_keys=True)
 
 
 def sweep_cases() -> list[SweepCase]:
@@ -76,6 +78,16 @@ def sweep_cases() -> list[SweepCase]:
     return cases
 
 
+def scene_cases(scene: str, presets: tuple[str, ...] = tuple(PRESETS)) -> list[SweepCase]:
+    """Each preset plain and specialised for the scene file `scene`, side by side (the reference first)."""
+    cases = []
+    for name in presets:
+        preset = PRESETS[name]
+        cases += [SweepCase(name, "preset", preset.export, preset=name),
+                  SweepCase(f"{name} + scene", "scene", preset.export, preset=name, scene=scene)]
+    return cases
+
+
 def select_cases(cases: list[SweepCase], only: str | None) -> list[SweepCase]:
     """The cases whose name or group contains one of the comma-separated words of `only` (the reference always)."""
     if not only:
@@ -99,6 +111,8 @@ class SpeakerSweep:
 
 def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar) -> dict[str, dict]:
     """Export each distinct bundle once: key -> {path, bytes, gaussians, export_s}."""
+    from gaussiantalker.sdk.scene import load_scene
+
     from .export import export_bundle
 
     bundles: dict[str, dict] = {}
@@ -108,10 +122,11 @@ def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar) -> dict[str
         bar.set_postfix_str(f"export {case.name}")
         path = tmp / f"bundle-{len(bundles)}.gtb"
         start = time.perf_counter()
+        scene = None if case.scene is None else load_scene(case.scene)
         if case.preset:
-            result = export_bundle(speaker, path, preset=case.preset, progress=False)
+            result = export_bundle(speaker, path, preset=case.preset, progress=False, scene=scene)
         else:
-            result = export_bundle(speaker, path, settings=case.export, progress=False)
+            result = export_bundle(speaker, path, settings=case.export, progress=False, scene=scene)
         bundles[case.bundle_key] = {"path": str(path), "bytes": path.stat().st_size, "gaussians": result.gaussians,
                                     "export_s": time.perf_counter() - start}
         bar.update()
@@ -142,6 +157,7 @@ def sweep_speaker(name: str, speaker, cases: list[SweepCase], *, sizes: list[int
         for label in labels:
             bundle = bundles[by_name[label].bundle_key]
             result.cases[label] = {"group": by_name[label].group, "preset": by_name[label].preset,
+                                   "scene": by_name[label].scene,
                                    "export": asdict(by_name[label].export), "runtime": by_name[label].runtime,
                                    "bundle_bytes": bundle["bytes"], "gaussians": bundle["gaussians"],
                                    "export_s": bundle["export_s"], "sizes": {}}
@@ -205,4 +221,4 @@ def _record_size(result: SpeakerSweep, runs: dict[str, list[dict]], size: int) -
         }
 
 
-__all__ = ["REFERENCE", "SpeakerSweep", "SweepCase", "select_cases", "sweep_cases", "sweep_speaker"]
+__all__ = ["REFERENCE", "SpeakerSweep", "SweepCase", "scene_cases", "select_cases", "sweep_cases", "sweep_speaker"]

@@ -88,7 +88,8 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     `specialise` result for it); the bundle records the scene and its camera."""
     settings, chosen, tier = resolve_settings(codec, settings, preset)
     speaker = speaker.eval()
-    spec = specialise(speaker, scene, progress=progress) if isinstance(scene, Scene) else scene
+    spec = (specialise(speaker, scene, progress=progress, sh_degree_cap=settings.sh_degree)
+            if isinstance(scene, Scene) else scene)
     camera, background = speaker.camera, list(speaker.background)
     if spec is not None:
         speaker, camera = spec.speaker, spec.camera
@@ -132,8 +133,7 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
     scene_options = {} if spec is None else {
         "drive_allowed": spec.drive_allowed, "vertex_subset": True,
         "latent_subspace": None if spec.latent_basis is None else (spec.latent_mean, spec.latent_basis)}
-    sh_degree = settings.sh_degree if spec is None else min(spec.sh_degree, 3 if settings.sh_degree is None
-                                                            else settings.sh_degree)
+    sh_degree = settings.sh_degree if spec is None else spec.sh_degree  # the scene's refit honours the settings
     graph = DeformationGraph(speaker, sh_degree=sh_degree, blendshape_rank=settings.blendshape_rank,
                              **scene_options)
     model = onnx_export.export_onnx(graph, args, DEFORM_INPUTS, DEFORM_OUTPUTS, dynamic)

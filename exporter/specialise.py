@@ -34,12 +34,16 @@ from .speaker import Speaker
 from .splat_math import sh_basis
 
 # Largest change of any Gaussian's colour (0..1 units, per channel, over the sweep's view directions) an SH refit
-# may make: half an 8-bit level, so no pixel moves by more than that either.
-SH_REFIT_BOUND = 0.5 / 255
+# may make: one 8-bit level, so no pixel moves by more than that either (before rounding).
+SH_REFIT_BOUND = 1.0 / 255
 # The latent subspace keeps the fewest directions whose residual, on poses sampled between the fitting ones, is
 # at most this fraction of γ's own spread over the scene (float32 rounding of γ is ~1e-7 of it).
 LATENT_RESIDUAL_REL = 1e-5
 LATENT_SAMPLES = 4096
+# SH refit conditioning (`_sh_refit`): ridge weights tried in order (per sweep frame, relative to the unit-scale
+# SH basis), and how far a refitted coefficient may exceed the speaker's largest in bands 1-3.
+RIDGE_WEIGHTS = (0.0, 1e-6, 1e-5, 1e-4, 1e-3, 1e-2, 1e-1, 1.0)
+REFIT_RANGE = 2.0
 FLOAT_BYTES = 4
 
 
@@ -176,23 +180,39 @@ def _latent_subspace(speaker: Speaker, ranges: np.ndarray) -> tuple[torch.Tensor
 
 
 def _sh_refit(sh: torch.Tensor, directions: torch.Tensor, degree: int) -> tuple[torch.Tensor, float]:
-    """sh [N, K, 3] refitted to bands up to `degree` over each Gaussian's view directions [F, N, 3] (least squares,
-    per Gaussian): (new sh [N, K, 3], the largest colour change over those directions)."""
+    """sh [N, K, 3] refitted to bands up to `degree` over each Gaussian's view directions [F, N, 3]: (new sh
+    [N, K, 3], the largest colour change over those directions).
+
+    Per Gaussian, the colour the dropped bands add is fitted by the kept bands in least squares. Over the narrow
+    cone of directions a scene gives a Gaussian, the kept bands are nearly collinear, and a plain fit cancels huge
+    coefficients against each other: exact in float64, but a quantised codec or fp16 destroys it. So the fit is
+    ridge-regularised (bands 1+; the constant band is free), with the smallest weight from RIDGE_WEIGHTS that keeps
+    every refitted coefficient within REFIT_RANGE times the largest the speaker has in those bands. With no
+    regularisation the fit is never worse than dropping the bands (x = 0 is a candidate) in least squares."""
     full = sh.shape[1]
     kept = sh_coeff_count(degree)
     basis = sh_basis(directions.double(), int(round(full ** 0.5)) - 1).permute(1, 0, 2)  # [N, F, K]
     target = basis[..., kept:] @ sh[:, kept:].double()  # [N, F, 3] what the dropped bands add
     low = basis[..., :kept]  # [N, F, kept]
-    solution = torch.linalg.lstsq(low, target).solution  # [N, kept, 3]
-    residual = float((low @ solution - target).abs().max())
-    refit = sh.double().clone()
-    refit[:, :kept] += solution
+    gram, rhs = low.transpose(1, 2) @ low, low.transpose(1, 2) @ target  # [N, kept, kept], [N, kept, 3]
+    limit = REFIT_RANGE * float(sh[:, 1:].abs().max())
+    for weight in RIDGE_WEIGHTS:
+        ridge = torch.eye(kept, dtype=torch.float64) * weight * low.shape[1]
+        ridge[0, 0] = 0.0
+        solution = torch.linalg.solve(gram + ridge, rhs)  # [N, kept, 3]
+        refit = sh.double().clone()
+        refit[:, :kept] += solution
+        if kept == 1 or float(refit[:, 1:kept].abs().max()) <= limit:
+            break
     refit[:, kept:] = 0.0
-    return refit.float(), residual
+    change = float((low @ solution - target).abs().max())
+    return refit.float(), change
 
 
-def specialise(speaker: Speaker, scene: Scene, progress: bool = False) -> Specialisation:
-    """Measure what `scene` lets `speaker` leave out (see the module docstring); the speaker is not modified."""
+def specialise(speaker: Speaker, scene: Scene, progress: bool = False, sh_degree_cap: int | None = None
+               ) -> Specialisation:
+    """Measure what `scene` lets `speaker` leave out (see the module docstring); the speaker is not modified.
+    `sh_degree_cap`: the SH degree the export settings keep (the refit then goes at least that far down)."""
     speaker = speaker.eval()
     scene, camera, removals = _effective_scene(speaker, scene)
     n_expr, count = speaker.config.n_expr, speaker.gaussians.count
@@ -233,6 +253,9 @@ def specialise(speaker: Speaker, scene: Scene, progress: bool = False) -> Specia
     max_weight, directions = measure_sweep(speaker, drives, camera, progress=progress)
     keep = max_weight >= ALPHA_MIN
     kept = int(keep.sum())
+    if kept == 0:
+        raise SceneError(f"no Gaussian reaches a pixel anywhere in the scene ({len(drives)} frames swept): check "
+                         "the scene's camera (it must look at the head) and its ranges")
     if 0 < kept < count:
         specialised = prune_speaker(specialised, kept, max_weight)
         directions = directions[:, keep]
@@ -246,22 +269,28 @@ def specialise(speaker: Speaker, scene: Scene, progress: bool = False) -> Specia
             (count - kept) * per_gaussian * FLOAT_BYTES, f"{100 * (count - kept) / count:.1f}% of the per-Gaussian "
             "deformation, sort and draw"))
 
-    degree = speaker.gaussians.sh_degree
-    for lower in range(speaker.gaussians.sh_degree):
-        refit, change = _sh_refit(specialised.gaussians.sh.detach(), directions, lower)
-        if change <= SH_REFIT_BOUND:
-            with torch.no_grad():
-                specialised.gaussians.sh.copy_(refit)
-            dropped_k = sh_coeff_count(degree) - sh_coeff_count(lower)
-            removals.append(Removal(
-                "SH degree", f"SH band{'s' if lower + 1 < degree else ''} "
-                f"{lower + 1}{f'-{degree}' if lower + 1 < degree else ''} ({dropped_k} coefficients x 3 per "
-                f"Gaussian), refitted into bands 0-{lower}",
-                f"over the view directions of the sweep no Gaussian's colour moves by more than "
-                f"{change * 255:.3f}/255 (bound {SH_REFIT_BOUND * 255:.1f}/255)",
-                dropped_k * 3 * kept * FLOAT_BYTES, f"{dropped_k * 3 * kept / 1e6:.2f} M multiply-adds"))
-            degree = lower
+    degree = full = speaker.gaussians.sh_degree
+    cap = full if sh_degree_cap is None else min(int(sh_degree_cap), full)
+    for lower in range(cap + 1):
+        if lower == full:
             break
+        refit, change = _sh_refit(specialised.gaussians.sh.detach(), directions, lower)
+        bounded = change <= SH_REFIT_BOUND
+        if not (bounded or lower == cap):
+            continue
+        with torch.no_grad():
+            specialised.gaussians.sh.copy_(refit)
+        dropped_k = sh_coeff_count(full) - sh_coeff_count(lower)
+        why = (f"over the view directions of the sweep no Gaussian's colour moves by more than {change * 255:.2f}/255 "
+               f"(bound {SH_REFIT_BOUND * 255:.0f}/255)" if bounded else
+               f"the export settings keep SH degree {cap}: refitted over the scene's view directions instead of "
+               f"truncated (never worse in least squares; largest colour change {change * 255:.1f}/255)")
+        removals.append(Removal(
+            "SH degree", f"SH band{'s' if lower + 1 < full else ''} {lower + 1}{f'-{full}' if lower + 1 < full else ''}"
+            f" ({dropped_k} coefficients x 3 per Gaussian), refitted into bands 0-{lower}", why,
+            dropped_k * 3 * kept * FLOAT_BYTES, f"{dropped_k * 3 * kept / 1e6:.2f} M multiply-adds"))
+        degree = lower
+        break
 
     faces = torch.as_tensor(speaker.flame_arrays.faces).long()
     used = torch.unique(faces[specialised.gaussians.parent])
