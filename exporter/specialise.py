@@ -6,9 +6,9 @@
 * the latent pose code γ = W_γ(ψ) of the poses the scene reaches: it spans a low-dimensional affine subspace when
   few joint axes move, so the speaker blendshapes are stored projected onto it (exact up to a measured residual);
 * Gaussians whose blend weight is below ALPHA_MIN at every pixel of a dense sweep of the scene (scene_sweep.py);
-* SH bands: each Gaussian's higher bands refitted by the lower ones over the view directions the scene gives it,
-  when no Gaussian's colour moves by more than SH_REFIT_BOUND (a pixel is a convex blend of Gaussian colours, so no
-  pixel moves by more);
+* SH bands: each Gaussian's higher bands refitted by the lower ones over the view directions the scene gives it
+  (ridge-conditioned, `_sh_refit`), when no Gaussian's colour moves by more than SH_REFIT_BOUND (a pixel is a
+  convex blend of Gaussian colours, so no pixel moves by more), or down to the export settings' SH degree;
 * the vertices no kept Gaussian's triangle needs (DeformationGraph(vertex_subset=True)), and, for a flame-driven
   scene, the translator graph (export.py).
 Each removal is reported with its reason, the bytes it saves (stored as float32) and the per-frame work it saves.
@@ -187,8 +187,8 @@ def _sh_refit(sh: torch.Tensor, directions: torch.Tensor, degree: int) -> tuple[
     cone of directions a scene gives a Gaussian, the kept bands are nearly collinear, and a plain fit cancels huge
     coefficients against each other: exact in float64, but a quantised codec or fp16 destroys it. So the fit is
     ridge-regularised (bands 1+; the constant band is free), with the smallest weight from RIDGE_WEIGHTS that keeps
-    every refitted coefficient within REFIT_RANGE times the largest the speaker has in those bands. With no
-    regularisation the fit is never worse than dropping the bands (x = 0 is a candidate) in least squares."""
+    every refitted coefficient within REFIT_RANGE times the largest the speaker has in those bands. At any weight the
+    fit is never worse than dropping the bands, in least squares over the directions (x = 0 is a candidate)."""
     full = sh.shape[1]
     kept = sh_coeff_count(degree)
     basis = sh_basis(directions.double(), int(round(full ** 0.5)) - 1).permute(1, 0, 2)  # [N, F, K]
