@@ -134,8 +134,9 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
         "drive_allowed": spec.drive_allowed, "vertex_subset": True,
         "latent_subspace": None if spec.latent_basis is None else (spec.latent_mean, spec.latent_basis)}
     # A scene's refit already went down to the settings' degree when `specialise` was told it (export_bundle does).
-    sh_degree = settings.sh_degree if spec is None else min(spec.sh_degree, 3 if settings.sh_degree is None
-                                                            else settings.sh_degree)
+    sh_degree = settings.sh_degree
+    if spec is not None:
+        sh_degree = spec.sh_degree if sh_degree is None else min(spec.sh_degree, sh_degree)
     graph = DeformationGraph(speaker, sh_degree=sh_degree, blendshape_rank=settings.blendshape_rank,
                              **scene_options)
     model = onnx_export.export_onnx(graph, args, DEFORM_INPUTS, DEFORM_OUTPUTS, dynamic)

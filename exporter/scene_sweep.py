@@ -48,7 +48,8 @@ def sweep_drives(speaker: Speaker, ranges: np.ndarray, translation: np.ndarray, 
         return FrameDrive(np.zeros(n_expr, np.float32) if expression is None else expression.astype(np.float32),
                           pose.reshape(-1).astype(np.float32), shift.astype(np.float32))
 
-    for i, rotation in enumerate(_box_points(ranges[0])):
+    rotations = _box_points(ranges[0])  # corners first
+    for i, rotation in enumerate(rotations):
         for jaw_end in (0, 1):
             pose = rest.copy()
             pose[0] = rotation
@@ -67,10 +68,9 @@ def sweep_drives(speaker: Speaker, ranges: np.ndarray, translation: np.ndarray, 
             expression[index] = sign * expression_sigma
             drives.append(drive(rest, translation.mean(1), expression))
     _, clip = driven_clip(speaker, CLIP_FRAMES, seed=11)
-    rotations = _box_points(ranges[0])[:8]
     for i, frame in enumerate(clip):
         pose = rest.copy()
-        pose[0] = rotations[i % len(rotations)]
+        pose[0] = rotations[i % min(8, len(rotations))]  # cycling through the first 8 points (the corners)
         pose[jaw] = np.clip(frame.flame_pose[3 * jaw: 3 * jaw + 3], ranges[jaw, :, 0], ranges[jaw, :, 1])
         drives.append(drive(pose, corners[i % len(corners)], np.clip(frame.expression, -expression_sigma,
                                                                      expression_sigma) * expression_allowed))

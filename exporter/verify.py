@@ -98,7 +98,7 @@ def _merge(stats: list[dict], tolerance: float | None) -> dict:
 def verify_translator(speaker: Speaker, head: TalkingHead, frame_counts=(25, 33), seed: int = 0,
                       tolerance: float | None = GRAPH_RTOL) -> dict:
     """Translator graph vs torch on speech-like clips of several lengths (not only the exported one)."""
-    if "translator" not in head.bundle.manifest["graphs"]:
+    if not head.has_translator:
         return {"compared": False, "passed": True, "note": "a flame-driven scene's bundle has no translator graph"}
     stats = []
     spf = speaker.config.samples_per_frame
@@ -172,7 +172,7 @@ def verify_frames(speaker: Speaker, head: TalkingHead, frames: int = 25, seed: i
     audio, torch_drives = driven_clip(speaker, frames, seed)
     # A flame-driven scene's bundle has no translator: it is driven with the torch translator's FLAME parameters.
     runtime_drives = (list(head.drives(audio, speaker.config.sample_rate))
-                      if "translator" in head.bundle.manifest["graphs"] else torch_drives)
+                      if head.has_translator else torch_drives)
     results = []
     for index in tqdm(range(frames), desc="verify frames", unit="frame", disable=not progress):
         reference, trans = speaker.render(torch_drives[index], head.camera, head.background, transmittance=True)

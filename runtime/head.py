@@ -105,6 +105,11 @@ class TalkingHead:
         except (SceneError, TypeError, ValueError, AttributeError) as exc:
             raise BundleError(f"{self.bundle.path}: manifest 'scene' is invalid: {exc}") from None
 
+    @property
+    def has_translator(self) -> bool:
+        """Whether the bundle can turn audio into frames (a flame-driven scene's bundle has no translator graph)."""
+        return "translator" in self.bundle.manifest["graphs"]
+
     def _record(self, stage: str, seconds: float) -> None:
         """Append a stage timing; past MAX_TIMINGS_PER_STAGE values only the newest half of that many are kept."""
         values = self.timings[stage]
@@ -123,7 +128,7 @@ class TalkingHead:
 
     def _run_translator(self, chunk: np.ndarray) -> dict:
         """One translator window through the graph (timed)."""
-        if "translator" not in self.bundle.manifest["graphs"]:
+        if not self.has_translator:
             raise BundleError(f"{self.bundle.path}: this bundle was specialised for a flame-driven scene and has no "
                               "translator graph, so it cannot turn audio into frames: drive it with render_params() "
                               "or render(), or re-export it with an audio-driven scene (or without --scene)")

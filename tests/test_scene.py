@@ -34,7 +34,7 @@ FRONT_SCENE = ROOT / "samples" / "front_scene.toml"
 MIN_PSNR_DB = 50.0  # specialised vs unspecialised frames inside the scene, 8-bit (docs/scene.md)
 
 
-def _corner_drives(scene: Scene, n_expr: int, expression: np.ndarray) -> list[dict]:
+def _corner_drives(scene: Scene, expression: np.ndarray) -> list[dict]:
     """render_params keyword sets at every corner of the scene's rotation box, each at two translation corners and
     both ends of the jaw's opening range."""
     rotation = np.radians(scene.rotation_deg)
@@ -57,7 +57,7 @@ def _compare_in_scene(plain_path, scene_path, scene: Scene, n_expr: int, audio: 
         expression[np.flatnonzero(allowed)[:2]] = [1.5, -1.0][: int(allowed.sum())]
         with warnings.catch_warnings():
             warnings.simplefilter("error", SceneRangeWarning)  # every drive here is inside the scene
-            for kwargs in _corner_drives(scene, n_expr, expression):
+            for kwargs in _corner_drives(scene, expression):
                 psnrs.append(psnr_db(plain.render_params(**kwargs), spec.render_params(**kwargs)))
             for a, b in zip(plain.frames(audio, rate), spec.frames(audio, rate), strict=True):
                 psnrs.append(psnr_db(a, b))
