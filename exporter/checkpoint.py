@@ -20,6 +20,7 @@ from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.errors import CameraError, CheckpointError
 from gaussiantalker.sdk.files import atomic_write
 
+from .compositing import inpaint_from_payload, inpaint_payload, reference_from_payload, reference_payload
 from .flame import FlameArrays
 from .speaker import Speaker
 
@@ -125,6 +126,8 @@ def save_checkpoint(speaker: Speaker, path: str | os.PathLike) -> Path:
         "camera": speaker.camera.to_dict(),
         "background": list(speaker.background),
         "pose_track": None if speaker.pose_track is None else speaker.pose_track.clone(),
+        "reference": reference_payload(speaker.reference),
+        "inpaint": inpaint_payload(speaker.inpaint),
     }
     with atomic_write(path) as handle:
         torch.save(payload, handle)
@@ -194,6 +197,10 @@ def load_checkpoint(path: str | os.PathLike) -> Speaker:
     except (RuntimeError, ValueError, TypeError) as exc:
         raise CheckpointError(f"checkpoint {path}: config, shape or pose track do not fit together: {exc}") from exc
     _load_states(path, speaker, payload)
+    track = payload.get("pose_track")
+    speaker.reference = reference_from_payload(path, payload.get("reference"),
+                                               None if track is None else int(track.shape[0]))
+    speaker.inpaint = inpaint_from_payload(path, payload.get("inpaint"))
     return speaker.eval()
 
 

@@ -11,16 +11,19 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from gaussiantalker.runtime.composite import CROP_MARGIN_PX, CROP_MULTIPLE
 from gaussiantalker.sdk import __version__ as sdk_version
 from gaussiantalker.sdk.bundle import BundleWriter
 from gaussiantalker.sdk.config import POSE_DIM
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.files import StagedFile
+from gaussiantalker.sdk.reference_clip import ReferenceClipError, frame_entry, mask_entry
 from gaussiantalker.sdk.scene import Scene
 
 from . import onnx_export
 from .deform_graph import DeformationGraph
 from .graph_precision import convert_precision
+from .inpaint import export_inpaint
 from .onnx_export import add_graph
 from .prune import apply_budget
 from .speaker import Speaker
@@ -108,7 +111,11 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         **({} if spec is None else {"scene": spec.scene.to_dict(),
                                     "specialisation": [asdict(r) for r in spec.removals]}),
     })
-    steps = tqdm(total=3, desc="gt-export", unit="step", disable=not progress)
+    if speaker.reference is not None:
+        writer.metadata["reference"] = speaker.reference.layout.to_dict()
+        writer.metadata["inpaint"] = {"generator": "learned" if speaker.inpaint is not None else "opencv_fallback",
+                                      "crop_margin": CROP_MARGIN_PX, "crop_multiple": CROP_MULTIPLE}
+    steps = tqdm(total=4, desc="gt-export", unit="step", disable=not progress)
     result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings, tier=tier,
                           gaussians=speaker.gaussians.count, specialisation=spec)
     try:
@@ -143,9 +150,31 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
     result.graphs["deform"] = add_graph(writer, "deform", model, settings.codec_for)
     steps.update()
 
+    steps.set_postfix_str("reference clip")
+    _add_reference(speaker, writer, result, settings)
+    steps.update()
+
     steps.set_postfix_str("writing bundle")
     if speaker.pose_track is not None:
         writer.add_buffer("pose_track", speaker.pose_track.numpy().astype(np.float32))
     result.bytes_written = writer.write(path)
     result.buffer_bytes = {name: entry["nbytes"] for name, entry in writer.manifest()["buffers"].items()}
     steps.update()
+
+
+def _add_reference(speaker: Speaker, writer: BundleWriter, result: ExportResult, settings: ExportSettings) -> None:
+    """The reference clip's encoded frames and masks (one entry each, decoded once here so a bundle never holds
+    a clip that fails mid-video) and the inpainting generator's graph, if the speaker has them."""
+    clip = speaker.reference
+    if clip is None:
+        return
+    try:
+        clip.check(None if speaker.pose_track is None else int(speaker.pose_track.shape[0]))
+    except ReferenceClipError as exc:
+        raise BundleError(f"cannot export the reference clip: {exc}") from None
+    for index, (frame, mask) in enumerate(zip(clip.frames, clip.masks, strict=True)):
+        writer.add_buffer(frame_entry(index), np.frombuffer(frame, dtype=np.uint8))
+        writer.add_buffer(mask_entry(index), np.frombuffer(mask, dtype=np.uint8))
+    if speaker.inpaint is not None:
+        result.graphs["inpaint"] = add_graph(writer, "inpaint", export_inpaint(speaker.inpaint.eval()),
+                                             settings.codec_for)

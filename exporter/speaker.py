@@ -14,15 +14,21 @@ from torch import nn
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import POSE_DIM, SpeakerConfig
 from gaussiantalker.sdk.drive import FrameDrive
+from gaussiantalker.sdk.reference_clip import EncodedClip
 
 from .flame import FlameArrays, FlameLayer
 from .gaussians import BoundGaussians, LatentPoseMLP
+from .inpaint import InpaintGenerator
 from .rasterizer import render_reference
 from .translator import MotionTranslator
 
 
 class Speaker(nn.Module):
-    """One trained speaker. Non-tensor state (camera, background, FLAME arrays) travels in the checkpoint too."""
+    """One trained speaker. Non-tensor state (camera, background, FLAME arrays) travels in the checkpoint too.
+
+    Optional: `reference` (the original video clip the face is composited into, aligned with `pose_track`) and
+    `inpaint` (the trained inpainting generator F; None: the runtime's non-learned fallback), docs/compositing.md.
+    """
 
     def __init__(self, config: SpeakerConfig, flame: FlameArrays, shape: torch.Tensor, parent: torch.Tensor,
                  camera: Camera, background=(1.0, 1.0, 1.0), pose_track: torch.Tensor | None = None) -> None:
@@ -38,6 +44,8 @@ class Speaker(nn.Module):
         self.camera = camera
         self.background = tuple(float(c) for c in background)
         self.pose_track = None if pose_track is None else torch.as_tensor(pose_track, dtype=torch.float32)
+        self.reference: EncodedClip | None = None
+        self.inpaint: InpaintGenerator | None = None
         self.refresh_rest_geometry()
 
     @torch.no_grad()

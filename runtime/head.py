@@ -5,6 +5,10 @@
         ...
     head.write_video("talk.mp4", "speech.wav")   # audio muxed in
     head.write_video("talk.webm", "speech.wav", alpha=True)   # with an alpha channel, for overlays
+
+A bundle with a reference clip composites every frame into the speaker's own video (docs/compositing.md):
+the output has the clip's size and camera, and the head follows the clip's pose track; `composite=False` gives
+the bare head.
 """
 
 from __future__ import annotations
@@ -25,11 +29,13 @@ from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame
 from gaussiantalker.sdk.errors import AudioError, BundleError, RenderError
+from gaussiantalker.sdk.reference_clip import ReferenceClip, clip_row
 from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.sdk.scene import Scene, SceneError, SceneGuard
 from gaussiantalker.sdk.video import VideoWriter
 from gaussiantalker.sdk.video_formats import plan_video
 
+from .composite import Inpainter, composite, graph_inpainter, opencv_fallback
 from .graphs import GraphBackend, OnnxRuntimeBackend
 from .splatter import GLSplatter, PreparedSplats
 from .translate import SILENCE_GATE_DBFS, iter_translate
@@ -39,10 +45,11 @@ AudioSource = str | os.PathLike | np.ndarray
 # long-running head's bookkeeping does not grow with the number of frames it has rendered.
 MAX_TIMINGS_PER_STAGE = 10_000
 HeadPoseSource = Callable[[int], HeadPose] | np.ndarray | HeadPose | None
-# What a frame is returned as: "uint8" [H, W, 3] (converted once, at the end), "float" float32 [H, W, 3]
-# (C + T * background, unclamped), or "rgba" uint8 [H, W, 4]: straight colour and coverage 1 - T, from the same
-# draw without the background (for overlays and videos with alpha; `sdk.image.straight_rgba`).
-FrameOutput = Literal["uint8", "float", "rgba"]
+# What a frame is returned as: "uint8" [H, W, 3] (converted once, at the end; the composited frame when
+# compositing), "float" float32 [H, W, 3] (C + T * background, unclamped), "rgba" uint8 [H, W, 4]: straight colour
+# and coverage 1 - T, from the same draw without the background (for overlays and videos with alpha;
+# `sdk.image.straight_rgba`), or "rgba_float" float32 [H, W, 4]: premultiplied (C, 1 - T) as splatted.
+FrameOutput = Literal["uint8", "float", "rgba", "rgba_float"]
 
 
 def _render_settings(bundle: Bundle, **overrides) -> RenderSettings:
@@ -65,12 +72,15 @@ class TalkingHead:
                  camera: Camera | None = None, background=None, threads: int | None = None,
                  gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS,
                  render_scale: float | None = None, render_target: str | None = None,
-                 sort_interval: int | None = None, sort_key_bits: int | None = None) -> None:
+                 sort_interval: int | None = None, sort_key_bits: int | None = None,
+                 composite: bool | None = None) -> None:
         """`silence_gate_dbfs`: audio windows quieter than this (RMS, dBFS) fade to the neutral face (None: off).
         `render_scale` (draw at this fraction of the size, then upscale), `render_target` ("float32", "float16",
         "uint8" framebuffer), `sort_interval` (depth-sort every k-th frame) and `sort_key_bits` (32 or 16) trade
         accuracy for speed (`RenderSettings`, docs/precision.md); None takes the bundle's preset defaults (the
-        contract's full-size float32 frame, sorted every frame on exact depth, for bundles without a preset)."""
+        contract's full-size float32 frame, sorted every frame on exact depth, for bundles without a preset).
+        `composite` (default: whether the bundle has a reference clip) composites frames into the clip, at its
+        camera (resized to `resolution` if given), following its pose track."""
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle(bundle)
         manifest = self.bundle.manifest
         self.render_settings = _render_settings(self.bundle, render_scale=render_scale, render_target=render_target,
@@ -87,6 +97,9 @@ class TalkingHead:
             self.camera = self.camera.resized(*resolution)
         self.background = np.asarray(background if background is not None else manifest.get("background", (1, 1, 1)),
                                      dtype=np.float32).reshape(3)
+        self.reference, self.composite, self._inpaint = self._reference(composite, resolution, camera)
+        if self.composite:
+            self.camera = self.reference.camera
         self.scene, self.scene_guard = self._scene()
         if self.scene_guard is not None:
             self.scene_guard.check_camera(self.camera)
@@ -104,6 +117,25 @@ class TalkingHead:
             return scene, SceneGuard(scene, self.config.n_expr)
         except (SceneError, TypeError, ValueError, AttributeError) as exc:
             raise BundleError(f"{self.bundle.path}: manifest 'scene' is invalid: {exc}") from None
+
+    def _reference(self, composite: bool | None, resolution, camera: Camera | None
+                   ) -> tuple[ReferenceClip | None, bool, Inpainter | None]:
+        """The bundle's reference clip (None if it has none), whether frames are composited, and F."""
+        reference = ReferenceClip(self.bundle, resolution) if "reference" in self.bundle.manifest else None
+        composite = reference is not None if composite is None else bool(composite)
+        if not composite:
+            return reference, False, None
+        if reference is None:
+            raise RenderError(f"{self.bundle.path}: composite=True needs a bundle with a reference clip (export a "
+                              "speaker that carries one, docs/compositing.md)")
+        if camera is not None:
+            raise RenderError("a composited frame is seen through the reference clip's camera; pass "
+                              "composite=False to render the bare head with your own camera")
+        if self.pose_track is None or len(self.pose_track) != len(reference):
+            raise BundleError(f"{self.bundle.path}: the reference clip has {len(reference)} frames but the pose "
+                              f"track has {0 if self.pose_track is None else len(self.pose_track)} rows")
+        inpaint = graph_inpainter(self.graphs.run) if "inpaint" in self.bundle.manifest["graphs"] else opencv_fallback
+        return reference, True, inpaint
 
     @property
     def has_translator(self) -> bool:
@@ -182,10 +214,34 @@ class TalkingHead:
             self._record(stage, seconds)
         return frame
 
-    def render(self, drive: FrameDrive, output: FrameOutput = "uint8") -> np.ndarray:
+    def render(self, drive: FrameDrive, output: FrameOutput = "uint8", reference_frame: int | None = None
+               ) -> np.ndarray:
         """One frame from validated drive parameters: uint8 [H, W, 3] (float32 with output="float", uint8
-        [H, W, 4] with output="rgba")."""
-        return self.draw(self.prepare(drive), output)
+        [H, W, 4] with output="rgba", float32 [H, W, 4] with output="rgba_float"); with `reference_frame`, the
+        frame composited into that video frame's reference picture (uint8 only)."""
+        if reference_frame is None:
+            return self.draw(self.prepare(drive), output)
+        self._check_composite_output(output)
+        return self.composite_frame(self.draw(self.prepare(drive), "rgba_float"), reference_frame)
+
+    def _check_composite_output(self, output: str) -> None:
+        if not self.composite:
+            raise RenderError("compositing is off for this head (no reference clip, or composite=False)")
+        if output != "uint8":
+            raise RenderError(f"composited frames are uint8 RGB; output={output!r} needs the bare head: "
+                              "TalkingHead(..., composite=False)")
+
+    def composite_frame(self, head: np.ndarray, index: int) -> np.ndarray:
+        """Video frame `index` composited: the premultiplied render `head` [H, W, 4] (output="rgba_float") into
+        the reference picture the clip shows at that frame (forth and back), uint8 [H, W, 3]."""
+        start = time.perf_counter()
+        row = clip_row(len(self.reference), int(index))
+        picture, mask = self.reference.frame(row), self.reference.mask(row)
+        self._record("reference", time.perf_counter() - start)
+        start = time.perf_counter()
+        frame = composite(head, picture, mask, self._inpaint)
+        self._record("composite", time.perf_counter() - start)
+        return frame
 
     def render_params(self, expression=None, jaw_pose=None, neck_pose=None, eye_pose=None,
                       head_rotation=None, head_translation=None, output: FrameOutput = "uint8") -> np.ndarray:
@@ -210,16 +266,29 @@ class TalkingHead:
 
         Frame t+1 is prepared (deformation graph, depth sort) on a worker thread while the GL splatter draws
         frame t (onnxruntime and numpy release the GIL), so the two stages overlap instead of adding up.
+        When compositing, each frame goes into the reference clip's picture at the same index as its pose.
         """
+        if self.composite:
+            self._check_composite_output(output)
+            if head_pose is not None:
+                raise RenderError("a composited head follows the reference clip's pose track (any other pose "
+                                  "would misalign it with the clip); pass composite=False to set head_pose")
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-deform") as pool:
-            pending = None
+            pending, index = None, 0
             for drive in self.drives(audio, sample_rate, head_pose):
                 upcoming = pool.submit(self.prepare, drive)
                 if pending is not None:
-                    yield self.draw(pending.result(), output)
+                    yield self._finish(pending.result(), output, index)
+                    index += 1
                 pending = upcoming
             if pending is not None:
-                yield self.draw(pending.result(), output)
+                yield self._finish(pending.result(), output, index)
+
+    def _finish(self, prepared: PreparedSplats, output: FrameOutput, index: int) -> np.ndarray:
+        """Draw a prepared frame, composited into reference picture `index` when compositing."""
+        if not self.composite:
+            return self.draw(prepared, output)
+        return self.composite_frame(self.draw(prepared, "rgba_float"), index)
 
     def frame_count(self, samples: int) -> int:
         """Video frames for `samples` audio samples: the last partial frame counts (audio is zero-padded)."""
@@ -239,6 +308,9 @@ class TalkingHead:
         """
         from tqdm import tqdm
 
+        if self.composite and alpha:
+            raise RenderError("a composited frame is opaque (the reference clip fills it); alpha=True needs the bare "
+                              "head: TalkingHead(..., composite=False)")
         plan = plan_video(path, (self.camera.width, self.camera.height), alpha=alpha, codec=codec, crf=crf,
                           preset=preset, container=container)
         samples = self.load_audio(audio, sample_rate)

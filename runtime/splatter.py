@@ -87,8 +87,10 @@ MAX_CACHED_TARGETS = 4
 
 STAGES = ("sort", "upload", "draw", "readback")
 
-# What `draw`/`render` return: "uint8" or "float" [H, W, 3] over the background, "rgba" uint8 [H, W, 4] with alpha.
-FRAME_OUTPUTS = ("uint8", "float", "rgba")
+# What `draw`/`render` return: "uint8" or "float" [H, W, 3] over the background; "rgba" uint8 [H, W, 4] straight
+# colour and alpha; "rgba_float" float32 [H, W, 4] premultiplied (C, 1 - T), no background.
+FRAME_OUTPUTS = ("uint8", "float", "rgba", "rgba_float")
+_ALPHA_OUTPUTS = ("rgba", "rgba_float")
 
 _FLOATS_PER_SPLAT = 13  # mean 3, covariance 6, rgb 3, opacity 1
 _STRIDE = _FLOATS_PER_SPLAT * 4
@@ -427,7 +429,8 @@ class GLSplatter:
 
         output="float": float32 C + T * background; output="uint8": floor(clamp(v, 0, 1) * 255 + 0.5);
         output="rgba": uint8 [H, W, 4], straight colour C / (1 - T) and coverage 1 - T from the same draw (no
-        background pass; `sdk.image.straight_rgba`), for overlays and videos with alpha.
+        background pass; `sdk.image.straight_rgba`), for overlays and videos with alpha; output="rgba_float":
+        float32 [H, W, 4] premultiplied (C, 1 - T) as splatted, for compositing over any image (C + T * image).
         Rows are top first (+y down). Non-finite Gaussians and those with camera z < near are culled.
         """
         if self.ctx is None:
@@ -446,7 +449,7 @@ class GLSplatter:
         timings["upload"] = time.perf_counter() - start
 
         start = time.perf_counter()
-        self._draw(target, prepared.runs, None if output == "rgba" else background)
+        self._draw(target, prepared.runs, None if output in _ALPHA_OUTPUTS else background)
         if prepared.output_size is not None:
             source, target = target, self._target(*prepared.output_size)
             self._upscale(source, target)
@@ -454,10 +457,10 @@ class GLSplatter:
         timings["draw"] = time.perf_counter() - start
 
         start = time.perf_counter()
-        if output == "rgba":
+        if output in _ALPHA_OUTPUTS:
             premultiplied = np.empty((*target.scratch.shape[:2], 4), dtype=np.float32)
             target.fbo.read_into(premultiplied, components=4, dtype="f4")
-            frame = straight_rgba(premultiplied, background)
+            frame = premultiplied if output == "rgba_float" else straight_rgba(premultiplied, background)
         elif output == "uint8" and target.dtype == "f1":  # already 8-bit: GL rounds to nearest, as to_uint8 does
             frame = np.empty(target.scratch.shape, dtype=np.uint8)
             target.fbo.read_into(frame, components=3, dtype="f1")

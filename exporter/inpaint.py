@@ -1,0 +1,185 @@
+"""The inpainting generator F: fills holes the rendered face leaves inside the facial mask and smooths its contour.
+
+The runtime composites I = (1 - M)·I_ori + M·F(x) with x = I_gau + (1 - M)·I_ori, on a crop around the mask's
+bounding box. F works at half resolution (the five input channels average-pooled by 2) with a small U-Net, predicts
+a fill colour and a blend weight w, upsamples both bilinearly and returns clamp(x + w·(fill - x), 0, 1): where
+w ≈ 0 the rendered face keeps its full-resolution detail. The w logit starts at -3, so an untrained F moves no
+pixel by more than sigmoid(-3) ≈ 0.047.
+
+Crop sides must be multiples of CROP_MULTIPLE (the pool and up to three stride-2 levels halve them four times);
+the torch module raises ValueError otherwise, and the ONNX graph fails in onnxruntime on most other sizes.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, fields
+
+import numpy as np
+import torch
+import torch.nn.functional as nnf
+from torch import nn
+from tqdm.auto import tqdm
+
+CROP_MULTIPLE = 16  # 2 (input pool) * 2**MAX_LEVELS (stride-2 levels)
+MAX_LEVELS = 3
+W_LOGIT_BIAS = -3.0  # initial blend-weight logit: sigmoid(-3) ≈ 0.047, so an untrained F is nearly the identity
+INPUT_RANGE = (-1.0, 2.0)  # inputs are clamped into this range first: no overflow for any finite input
+OUTSIDE_MASK_WEIGHT = 0.1  # loss weight of pixels outside the mask (F's output there is discarded by the composite)
+EXPORT_SIDE = 64  # example crop side of the ONNX export
+MAX_EXPORT_SIDE = 4096
+
+
+@dataclass(frozen=True)
+class InpaintConfig:
+    """Widths of the generator: `channels` at half resolution (doubling once per level, at most 4x), `levels`
+    stride-2 steps below it (1..3)."""
+
+    channels: int = 16
+    levels: int = 3
+
+    def to_dict(self) -> dict:
+        """Plain dict for bundle metadata."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> InpaintConfig:
+        """Inverse of to_dict; ValueError naming the field on unknown keys, non-integers or out-of-range values."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown inpaint config keys: {unknown}")
+        for name, value in data.items():
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ValueError(f"inpaint config field {name!r} must be an integer, got {value!r}")
+            if value < 1:
+                raise ValueError(f"inpaint config field {name!r} must be positive, got {value}")
+        if int(data.get("levels", cls.levels)) > MAX_LEVELS:
+            raise ValueError(f"inpaint config field 'levels' must be at most {MAX_LEVELS} (crops are multiples of "
+                             f"{CROP_MULTIPLE}), got {data['levels']}")
+        return cls(**{name: int(value) for name, value in data.items()})
+
+
+def crop_multiple_ok(height: int, width: int) -> bool:
+    """Whether a crop of this size can go through F (both sides positive multiples of CROP_MULTIPLE)."""
+    return height > 0 and width > 0 and height % CROP_MULTIPLE == 0 and width % CROP_MULTIPLE == 0
+
+
+def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
+    """3x3 convolution + LeakyReLU (padding 1: stride 1 keeps the size, stride 2 halves an even one)."""
+    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1), nn.LeakyReLU(0.1))
+
+
+def _sanitize(x: torch.Tensor) -> torch.Tensor:
+    """NaN -> 0, then clamp into INPUT_RANGE (which also takes ±inf); 3x cheaper in onnxruntime than nan_to_num."""
+    return torch.where(torch.isnan(x), 0.0, x).clamp(*INPUT_RANGE)
+
+
+def _half(x: torch.Tensor) -> torch.Tensor:
+    """2x2 average pool, written as a bilinear 0.5x resize (identical values; 3x faster in onnxruntime)."""
+    return nnf.interpolate(x, scale_factor=0.5, mode="bilinear", align_corners=False)
+
+
+def _double(x: torch.Tensor) -> torch.Tensor:
+    """Bilinear 2x upsampling (half-pixel centres)."""
+    return nnf.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False)
+
+
+class InpaintGenerator(nn.Module):
+    """F(image, mask, coverage) -> inpainted image, all [B, ·, H, W] float32 with H and W multiples of 16."""
+
+    def __init__(self, config: InpaintConfig = InpaintConfig()):
+        super().__init__()
+        if not 1 <= config.levels <= MAX_LEVELS or config.channels < 1:
+            raise ValueError(f"bad inpaint config {config}: channels >= 1 and 1 <= levels <= {MAX_LEVELS}")
+        self.config = config
+        widths = [config.channels * min(2 ** i, 2) for i in range(config.levels + 1)]
+        self.stem = _conv(5, widths[0])
+        self.down = nn.ModuleList(_conv(widths[i], widths[i + 1], stride=2) for i in range(config.levels))
+        # Level i + 1 back to level i: 1x1 conv to level i's width (at the low resolution, where it is cheap),
+        # nearest x2, add level i's skip, 3x3 conv.
+        self.lateral = nn.ModuleList(nn.Conv2d(widths[i + 1], widths[i], 1) for i in range(config.levels))
+        self.up = nn.ModuleList(_conv(widths[i], widths[i]) for i in range(config.levels))
+        self.head = nn.Conv2d(widths[0], 4, 1)  # fill colour logits (3) and blend-weight logit (1)
+        with torch.no_grad():
+            self.head.weight[3].zero_()  # w starts exactly sigmoid(W_LOGIT_BIAS) everywhere; gradients still flow
+            self.head.bias[3].fill_(W_LOGIT_BIAS)
+
+    def forward(self, image: torch.Tensor, mask: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
+        height, width = image.shape[-2:]
+        if height % CROP_MULTIPLE != 0 or width % CROP_MULTIPLE != 0:
+            raise ValueError(f"inpaint crop {height}x{width} is not a multiple of {CROP_MULTIPLE} on both sides; "
+                             f"pad or grow the crop")
+        image = _sanitize(image)
+        features = [self.stem(_sanitize(_half(torch.cat([image, mask, coverage], dim=1))))]
+        for down in self.down:
+            features.append(down(features[-1]))
+        y = features[-1]
+        for i in reversed(range(len(self.up))):
+            y = self.up[i](nnf.interpolate(self.lateral[i](y), scale_factor=2.0, mode="nearest") + features[i])
+        logits = self.head(y)
+        fill = _double(torch.sigmoid(logits[:, :3]))
+        weight = _double(torch.sigmoid(logits[:, 3:]))
+        return (image + weight * (fill - image)).clamp(0.0, 1.0)
+
+
+def count_parameters(model: nn.Module) -> int:
+    """Number of trainable scalars."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def masked_l1(output: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean |output - target| weighted by the mask, OUTSIDE_MASK_WEIGHT outside it (bounded, never 0/0)."""
+    weight = mask.clamp(0.0, 1.0) * (1.0 - OUTSIDE_MASK_WEIGHT) + OUTSIDE_MASK_WEIGHT
+    return (weight * (output - target).abs()).sum() / (weight.sum() * output.shape[1])
+
+
+def train_inpaint(model: InpaintGenerator,
+                  batch: Callable[[np.random.Generator],
+                                  tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]],
+                  *, seconds: float = 60.0, max_steps: int | None = None, seed: int = 0, lr: float = 3e-3,
+                  progress: bool = False) -> list[float]:
+    """Adam on the mask-weighted L1 to `batch(rng)`'s targets until `seconds` pass or `max_steps` are done.
+
+    `batch` returns (image, mask, coverage, target); its rng is seeded with `seed`, as is torch. Returns the loss of
+    every step; the model is left in eval mode.
+    """
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    losses: list[float] = []
+    model.train()
+    start = time.perf_counter()
+    with tqdm(total=max_steps, disable=not progress, desc="inpaint", unit="step") as bar:
+        while (max_steps is None or len(losses) < max_steps) and time.perf_counter() - start < seconds:
+            image, mask, coverage, target = batch(rng)
+            loss = masked_l1(model(image, mask, coverage), target, mask)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            optimizer.step()
+            losses.append(float(loss))
+            if not math.isfinite(losses[-1]):
+                raise FloatingPointError(f"inpaint training loss became {losses[-1]} at step {len(losses)}")
+            bar.update(1)
+            bar.set_postfix(loss=f"{losses[-1]:.4f}")
+    model.eval()
+    return losses
+
+
+def export_inpaint(model: InpaintGenerator):
+    """F as an ONNX model proto: inputs "image" [1, 3, H, W], "mask" and "coverage" [1, 1, H, W], output
+    "inpainted" [1, 3, H, W], with H and W dynamic multiples of CROP_MULTIPLE (batch fixed at 1)."""
+    from gaussiantalker.exporter.onnx_export import export_onnx  # noqa: PLC0415 - only export needs onnx
+
+    generator = torch.Generator().manual_seed(0)
+    side = EXPORT_SIDE
+    example = (torch.rand(1, 3, side, side, generator=generator), torch.ones(1, 1, side, side),
+               torch.rand(1, 1, side, side, generator=generator))
+    rows = torch.export.Dim("crop_rows", min=1, max=MAX_EXPORT_SIDE // CROP_MULTIPLE)
+    cols = torch.export.Dim("crop_cols", min=1, max=MAX_EXPORT_SIDE // CROP_MULTIPLE)
+    spatial = {2: CROP_MULTIPLE * rows, 3: CROP_MULTIPLE * cols}
+    return export_onnx(model.eval(), example, ["image", "mask", "coverage"], ["inpainted"],
+                       dynamic_shapes={"image": spatial, "mask": spatial, "coverage": spatial})
