@@ -41,9 +41,9 @@ class ClipFrame:
     shoulders: np.ndarray
 
 
-def clip_camera(speaker_camera: Camera) -> Camera:
+def clip_camera(speaker_camera: Camera, size: tuple[int, int] = CLIP_SIZE) -> Camera:
     """The clip's camera: the speaker camera's position and orientation, a wider portrait view, head above centre."""
-    width, height = CLIP_SIZE
+    width, height = size
     focal = 0.5 * height / np.tan(np.radians(CLIP_FOV_Y_DEG) / 2.0)
     return Camera(width, height, focal, focal, width / 2.0, HEAD_ROW * height, speaker_camera.R, speaker_camera.t,
                   speaker_camera.near)
@@ -112,11 +112,12 @@ def _grow_and_feather(silhouette: np.ndarray) -> np.ndarray:
 class ClipComposer:
     """Renders the demo speaker at clip poses and composes clip frames (used for the clip and for F's data)."""
 
-    def __init__(self, speaker: Speaker, splatter: GLSplatter | None = None) -> None:
+    def __init__(self, speaker: Speaker, splatter: GLSplatter | None = None, size: tuple[int, int] = CLIP_SIZE
+                 ) -> None:
         if speaker.pose_track is None:
             raise ValueError("the demo clip follows the speaker's pose track; this speaker has none")
         self.speaker = speaker
-        self.camera = clip_camera(speaker.camera)
+        self.camera = clip_camera(speaker.camera, size)
         self.splatter = splatter or GLSplatter()
         self.track = speaker.pose_track.numpy()
         self.jaw = clip_jaw_track(len(self.track))

@@ -155,6 +155,12 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
     steps.update()
 
     steps.set_postfix_str("writing bundle")
+    regions = speaker.flame_arrays.regions
+    if regions is not None:  # the semantic pass: each Gaussian's parent-triangle region (docs/compositing.md)
+        ids = regions[speaker.gaussians.parent.numpy()]
+        names = list(speaker.flame_arrays.region_names)
+        writer.metadata["regions"] = names + [f"region_{i}" for i in range(len(names), int(regions.max()) + 1)]
+        writer.add_buffer("gaussian_regions", ids.astype(np.uint8 if regions.max() < 256 else np.uint16))
     if speaker.pose_track is not None:
         writer.add_buffer("pose_track", speaker.pose_track.numpy().astype(np.float32))
     result.bytes_written = writer.write(path)

@@ -20,10 +20,10 @@ from gaussiantalker.sdk.image import to_uint8
 CROP_MARGIN_PX = 16
 # Crop sides are multiples of this (the generator pools by 2 and has up to 3 stride-2 levels).
 CROP_MULTIPLE = 16
-# The fallback's cv2.inpaint radius (pixels): the holes it fills are the mask's grown rim, a few pixels wide.
-FALLBACK_RADIUS_PX = 5
-# Coverage below which the fallback treats a pixel inside the mask as background to be filled.
-FALLBACK_FULL_COVERAGE = 1.0 - 1.0 / 255.0
+# The fallback fills what lies behind the face at this fraction of the crop's size (cv2.inpaint's cost grows with
+# the hole's area; the fill is smooth anyway), with this neighbourhood radius (pixels at that size).
+FALLBACK_SCALE = 0.25
+FALLBACK_RADIUS_PX = 3
 
 # F on a crop: (x [h, w, 3], mask [h, w], render [h, w, 4] premultiplied (C, 1 - T)) float32 -> F(x) [h, w, 3].
 # The generator sees x, M and the render's coverage 1 - T; the fallback also uses C.
@@ -83,19 +83,26 @@ def _padded(array: np.ndarray, box: CropBox) -> np.ndarray:
 
 
 def opencv_fallback(x: np.ndarray, mask: np.ndarray, render: np.ndarray) -> np.ndarray:
-    """The non-learned F for speakers without a trained generator (named so in reports): the mask's pixels
-    that the render does not fully cover are filled by cv2.inpaint (Telea) from their surroundings, and the
-    render is composited over that fill by its own coverage, F = C + (1 - A) fill; elsewhere F(x) = x."""
+    """The non-learned F for speakers without a trained generator (named so in reports): what lies behind the
+    face is filled by cv2.inpaint (Telea) from the frame outside the mask, at FALLBACK_SCALE of the crop's size
+    (only its smooth colours matter), and the render is composited over that fill by its own coverage:
+    F = C + (1 - A) fill. Covered pixels keep the render; the mask's rim, where the render is absent, takes the
+    surrounding frame's colours."""
     try:
         import cv2  # optional: only bundles without an inpainting generator need it
     except ImportError:
         raise RenderError("this bundle has no inpainting generator, and its fallback needs OpenCV: pip install "
                           "'gaussiantalker-sdk[opencv]' (or composite=False for the bare head)") from None
+    height, width = mask.shape
+    small = (max(1, round(width * FALLBACK_SCALE)), max(1, round(height * FALLBACK_SCALE)))
+    image = cv2.resize(to_uint8(x), small, interpolation=cv2.INTER_AREA)
+    holes = (cv2.resize(mask, small, interpolation=cv2.INTER_LINEAR) > 0.0).astype(np.uint8)
+    holes = cv2.dilate(holes, np.ones((3, 3), np.uint8))  # downsampling blends mask pixels into the edge
+    fill = cv2.inpaint(image, holes, FALLBACK_RADIUS_PX, cv2.INPAINT_TELEA)
+    fill = cv2.resize(fill, (width, height), interpolation=cv2.INTER_LINEAR).astype(np.float32) / np.float32(255.0)
     coverage = render[..., 3:4]
-    holes = (mask[..., None] > 0.0) & (coverage < FALLBACK_FULL_COVERAGE)
-    fill = cv2.inpaint(to_uint8(x), holes[..., 0].astype(np.uint8), FALLBACK_RADIUS_PX, cv2.INPAINT_TELEA)
-    over_fill = render[..., :3] + (1.0 - coverage) * (fill.astype(np.float32) / np.float32(255.0))
-    return np.where(holes, over_fill, x).astype(np.float32)
+    inside = mask[..., None] > 0.0
+    return np.where(inside, render[..., :3] + (1.0 - coverage) * fill, x).astype(np.float32)
 
 
 def composite(head: np.ndarray, reference: np.ndarray, mask: np.ndarray, inpaint: Inpainter,

@@ -37,6 +37,7 @@ from gaussiantalker.sdk.video_formats import plan_video
 
 from .composite import Inpainter, composite, graph_inpainter, opencv_fallback
 from .graphs import GraphBackend, OnnxRuntimeBackend
+from .semantic import Regions
 from .splatter import GLSplatter, PreparedSplats
 from .translate import SILENCE_GATE_DBFS, iter_translate
 
@@ -48,8 +49,9 @@ HeadPoseSource = Callable[[int], HeadPose] | np.ndarray | HeadPose | None
 # What a frame is returned as: "uint8" [H, W, 3] (converted once, at the end; the composited frame when
 # compositing), "float" float32 [H, W, 3] (C + T * background, unclamped), "rgba" uint8 [H, W, 4]: straight colour
 # and coverage 1 - T, from the same draw without the background (for overlays and videos with alpha;
-# `sdk.image.straight_rgba`), or "rgba_float" float32 [H, W, 4]: premultiplied (C, 1 - T) as splatted.
-FrameOutput = Literal["uint8", "float", "rgba", "rgba_float"]
+# `sdk.image.straight_rgba`), "rgba_float" float32 [H, W, 4]: premultiplied (C, 1 - T) as splatted, or (render
+# only) "semantic" uint8 [H, W, 3]: each Gaussian in its region's colour over black (`TalkingHead.regions`).
+FrameOutput = Literal["uint8", "float", "rgba", "rgba_float", "semantic"]
 
 
 def _render_settings(bundle: Bundle, **overrides) -> RenderSettings:
@@ -106,6 +108,8 @@ class TalkingHead:
         self.splatter = GLSplatter(gl_context, settings=self.render_settings)
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.silence_gate_dbfs = silence_gate_dbfs
+        # Read at load like every entry a frame may need, so a damaged one fails here, not mid-video.
+        self._regions = Regions(self.bundle) if "regions" in manifest else None
 
     def _scene(self) -> tuple[Scene | None, SceneGuard | None]:
         """The scene the bundle was specialised for (docs/scene.md) and its range checks; (None, None) if none."""
@@ -219,10 +223,37 @@ class TalkingHead:
         """One frame from validated drive parameters: uint8 [H, W, 3] (float32 with output="float", uint8
         [H, W, 4] with output="rgba", float32 [H, W, 4] with output="rgba_float"); with `reference_frame`, the
         frame composited into that video frame's reference picture (uint8 only)."""
+        if output == "semantic":
+            if reference_frame is not None:
+                raise RenderError("the semantic pass is the bare head's; it takes no reference_frame")
+            g = self.gaussians(drive)
+            colors = self.regions.gaussian_colors(g["opacity"].shape[0])
+            prepared = self.splatter.prepare(g["means"], g["cov3d"], colors, g["opacity"], self.camera)
+            return self.splatter.draw(prepared, (0.0, 0.0, 0.0), output="uint8")
         if reference_frame is None:
             return self.draw(self.prepare(drive), output)
         self._check_composite_output(output)
         return self.composite_frame(self.draw(self.prepare(drive), "rgba_float"), reference_frame)
+
+    @property
+    def regions(self) -> Regions:
+        """The bundle's semantic regions: `names`, `colors` [R, 3] (the semantic pass's), per-Gaussian `ids`."""
+        if self._regions is None:
+            raise BundleError(f"{self.bundle.path}: bundle has no semantic regions (manifest 'regions'); re-export "
+                              "a speaker whose FLAME model labels its triangles")
+        return self._regions
+
+    def region_weights(self, drive: FrameDrive) -> np.ndarray:
+        """Per-region coverage float32 [H, W, R]: the summed blend weight of each region's Gaussians at every
+        pixel (the regions sum to the frame's coverage 1 - T), a soft mask per region. Costs ceil(R / 3) draws."""
+        g = self.gaussians(drive)
+        count, names = g["opacity"].shape[0], self.regions.names
+        passes = []
+        for first in range(0, len(names), 3):
+            colors = self.regions.one_hot(count, first)
+            prepared = self.splatter.prepare(g["means"], g["cov3d"], colors, g["opacity"], self.camera)
+            passes.append(self.splatter.draw(prepared, (0.0, 0.0, 0.0), output="float"))
+        return np.concatenate(passes, axis=-1)[..., : len(names)]
 
     def _check_composite_output(self, output: str) -> None:
         if not self.composite:

@@ -1,9 +1,10 @@
 """Sample player: `python samples/play.py speaker.gtb --audio speech.wav -o talk.mp4 [--show]`.
 
-Renders the bundle's speaker talking to the audio (25 fps, the speaker's camera at 512x512 unless told
-otherwise) and writes a video with the audio muxed in (the format from the extension: mp4, mov, webm, mkv, gif,
-or a png sequence such as frames/%05d.png; --alpha for an alpha channel); --show also displays the frames in a
-window. The output is checked before anything is rendered.
+Renders the bundle's speaker talking to the audio (25 fps) and writes a video with the audio muxed in (the format
+from the extension: mp4, mov, webm, mkv, gif, or a png sequence such as frames/%05d.png); --show also displays the
+frames in a window. A bundle with a reference clip is composited into the speaker's own video at the clip's size
+(docs/compositing.md); --no-composite gives the bare head, at the speaker's camera (512x512 unless told
+otherwise), and --alpha an alpha channel for it. The output is checked before anything is rendered.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import GaussianTalkerError
+from gaussiantalker.sdk.reference_clip import ClipLayout
 from gaussiantalker.sdk.video_formats import plan_video
 
 app = typer.Typer(add_completion=False)
@@ -82,7 +84,10 @@ def play(
     audio: Path = typer.Option(..., "--audio", "-a", help="speech: wav, mp3 or anything ffmpeg reads"),
     output: Path = typer.Option(Path("talk.mp4"), "-o", "--output",
                                 help="video to write: .mp4 .mov .webm .mkv .gif, or frames/%05d.png"),
-    resolution: str = typer.Option("512", "--resolution", "-r", help="frame size, N or WxH"),
+    resolution: str = typer.Option(None, "--resolution", "-r", help="frame size, N or WxH [default: the reference "
+                                   "clip's when compositing, else 512]"),
+    no_composite: bool = typer.Option(False, "--no-composite", help="the bare head, not composited into the "
+                                      "bundle's reference clip"),
     background: str = typer.Option(None, "--background", help="background colour r,g,b in 0..1"),
     alpha: bool = typer.Option(False, "--alpha", help="write coverage as an alpha channel (webm, mov with "
                                                       "--codec prores, mkv, png sequence)"),
@@ -109,12 +114,22 @@ def play(
     try:
         # Everything about the output is checked before anything heavy is loaded or rendered.
         speaker = Bundle(bundle)
-        camera = Camera.from_dict(speaker.manifest.get("camera", {})).resized(*_parse_size(resolution))
+        composite = "reference" in speaker.manifest and not no_composite
+        if composite and alpha:
+            raise GaussianTalkerError("a composited frame is opaque (the reference clip fills it): --alpha needs "
+                                      "--no-composite")
+        size = None if resolution is None else _parse_size(resolution)
+        if composite:
+            clip = ClipLayout.from_dict(speaker.manifest["reference"])
+            camera = clip.camera.resized(*(size or clip.size))
+        else:
+            camera = Camera.from_dict(speaker.manifest.get("camera", {})).resized(*(size or (512, 512)))
         plan = plan_video(output, (camera.width, camera.height), alpha=alpha, codec=codec, crf=crf, preset=preset,
                           container=video_format)
         bg = None if background is None else _parse_background(background)
-        head = TalkingHead(speaker, camera=camera, background=bg, threads=threads, render_scale=render_scale,
-                           render_target=render_target, sort_interval=sort_interval, sort_key_bits=sort_key_bits)
+        head = TalkingHead(speaker, camera=None if composite else camera, resolution=size if composite else None,
+                           background=bg, threads=threads, render_scale=render_scale, render_target=render_target,
+                           sort_interval=sort_interval, sort_key_bits=sort_key_bits, composite=composite)
         window = None
         if show:
             headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))

@@ -45,3 +45,24 @@ def psnr_db(reference: np.ndarray, test: np.ndarray, peak: float = 1.0) -> float
 def max_abs_error(reference: np.ndarray, test: np.ndarray) -> float:
     """Largest absolute per-element difference (in the frames' own units)."""
     return float(np.max(np.abs(reference.astype(np.float64) - test.astype(np.float64)), initial=0.0))
+
+
+def seam_step(image: np.ndarray, mask: np.ndarray, distance: int = 2) -> float:
+    """Mean absolute colour step across a mask's 0.5 contour: over every pixel pair `distance` apart along a row
+    or column with M >= 0.5 on one side and M < 0.5 on the other, the mean over pairs and channels of
+    |I(p) - I(q)| (in the image's units). A paste whose colours do not continue across the boundary scores high."""
+    image = np.asarray(image, dtype=np.float64)
+    inside = np.asarray(mask) >= 0.5
+    steps = []
+    for axis in (0, 1):
+        count = inside.shape[axis] - distance
+        a = np.take(inside, range(count), axis=axis)
+        b = np.take(inside, range(distance, distance + count), axis=axis)
+        crossing = a != b
+        if crossing.any():
+            diff = np.abs(np.take(image, range(count), axis=axis) - np.take(image, range(distance, distance + count),
+                                                                           axis=axis))
+            steps.append(diff[crossing])
+    if not steps:
+        raise ValueError("the mask has no 0.5 contour inside the image: no seam to measure")
+    return float(np.concatenate(steps).mean())

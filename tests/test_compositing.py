@@ -1,0 +1,289 @@
+"""Compositing into the reference clip (docs/compositing.md): the clip's storage and its bad input, the crop F
+runs on, the composite formula (outside M the reference frame bit for bit), the premultiplied and semantic
+outputs, and TalkingHead's composited frames, on the small speaker with a small procedural clip."""
+
+from __future__ import annotations
+
+import copy
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from gaussiantalker.runtime.composite import CROP_MARGIN_PX, CROP_MULTIPLE, composite, crop_box, opencv_fallback
+from gaussiantalker.sdk.camera import Camera
+from gaussiantalker.sdk.drive import FrameDrive
+from gaussiantalker.sdk.errors import BundleError, CheckpointError, RenderError
+from gaussiantalker.sdk.image import psnr_db, seam_step, to_uint8
+from gaussiantalker.sdk.reference_clip import (
+    ClipLayout,
+    EncodedClip,
+    ReferenceClipError,
+    clip_row,
+    decode_frame,
+    decode_mask,
+    frame_entry,
+)
+
+CLIP_FRAMES = 4
+CLIP_SIZE = (96, 112)  # width, height
+
+
+def _identity(x, mask, render):
+    return x
+
+
+@pytest.fixture(scope="module")
+def clip_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
+    """The small speaker with a 4-frame 96x112 demo clip and an untrained F, saved and exported."""
+    from gaussiantalker.exporter.checkpoint import save_checkpoint
+    from gaussiantalker.exporter.demo_clip import ClipComposer, make_demo_clip
+    from gaussiantalker.exporter.export import export_bundle
+    from gaussiantalker.exporter.inpaint import InpaintGenerator
+
+    speaker = copy.deepcopy(small_speaker)
+    speaker.pose_track = speaker.pose_track[:CLIP_FRAMES].clone()
+    composer = ClipComposer(speaker, size=CLIP_SIZE)
+    speaker.reference = make_demo_clip(speaker, composer)
+    torch.manual_seed(0)
+    speaker.inpaint = InpaintGenerator().eval()
+    folder = tmp_path_factory.mktemp("clip")
+    save_checkpoint(speaker, folder / "clip.ckpt")
+    export_bundle(speaker, folder / "clip.gtb", progress=False)
+    return SimpleNamespace(speaker=speaker, composer=composer, checkpoint=folder / "clip.ckpt",
+                           path=folder / "clip.gtb", folder=folder)
+
+
+# -- the clip's storage ------------------------------------------------------------------------------------------
+
+def test_clip_entries_round_trip_and_play_forth_and_back():
+    camera = Camera(32, 24, 30.0, 30.0, 16.0, 12.0)
+    ramp = np.linspace(0, 120, 32)[None, :, None] + np.linspace(0, 60, 24)[:, None, None] + [0, 30, 60]
+    frames = [np.clip(ramp + 20 * k, 0, 255).astype(np.uint8) for k in range(3)]
+    masks = [np.pad(np.full((8, 8), 0.5 + 0.25 * k, np.float32), ((8, 8), (12, 12))) for k in range(3)]
+    clip = EncodedClip.from_arrays(frames, masks, camera)
+    clip.check(3)
+    for k in range(3):
+        # H.264 at CRF 18 (4:2:0) on smooth frames: PSNR well above the demo clip's measured ~39 dB.
+        decoded = decode_frame(clip.frames[k], clip.layout, "f")
+        assert psnr_db(frames[k], decoded) > 40.0
+        # Masks are stored as their 8-bit levels, losslessly: exactly round(M * 255) / 255.
+        np.testing.assert_array_equal(decode_mask(clip.masks[k], clip.layout, "m"),
+                                      np.round(masks[k] * 255).astype(np.float32) / 255)
+    assert [clip_row(3, i) for i in range(8)] == [0, 1, 2, 1, 0, 1, 2, 1]
+    assert ClipLayout.from_dict(clip.layout.to_dict()).to_dict() == clip.layout.to_dict()
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda f, m: (f, m[:2]), "zip"),
+    (lambda f, m: (f, [m[0][:-1]] + m[1:]), "reference mask 0 has shape"),
+    (lambda f, m: (f, [m[0] * 2.0] + m[1:]), r"must lie in \[0, 1\]"),
+    (lambda f, m: (f, [np.where(m[0] > 0, np.nan, 0.0).astype(np.float32)] + m[1:]), r"must lie in \[0, 1\]"),
+    (lambda f, m: (f, [np.zeros_like(m[0])] + m[1:]), "has no face in it"),
+    (lambda f, m: (f, [m[0].astype(np.uint8)] + m[1:]), "must hold floats"),
+    (lambda f, m: ([f[0][:, :-1]] + f[1:], m), "reference frame 0 must be uint8"),
+])
+def test_bad_clip_arrays_are_refused_naming_the_problem(change, message):
+    camera = Camera(32, 24, 30.0, 30.0, 16.0, 12.0)
+    frames = [np.zeros((24, 32, 3), np.uint8)] * 3
+    masks = [np.pad(np.ones((8, 8), np.float32), ((8, 8), (12, 12)))] * 3
+    frames, masks = change(list(frames), list(masks))
+    with pytest.raises((ReferenceClipError, ValueError), match=message if message != "zip" else None):
+        EncodedClip.from_arrays(frames, masks, camera)
+
+
+def test_layout_refuses_odd_sides_and_unknown_fields():
+    with pytest.raises(ReferenceClipError, match="even sides"):
+        ClipLayout(2, Camera(33, 24, 30.0, 30.0, 16.0, 12.0))
+    data = ClipLayout(2, Camera(32, 24, 30.0, 30.0, 16.0, 12.0)).to_dict()
+    with pytest.raises(ReferenceClipError, match="unknown field"):
+        ClipLayout.from_dict({**data, "fps": 25})
+    with pytest.raises(ReferenceClipError, match="'count'"):
+        ClipLayout.from_dict({**data, "count": 0})
+    with pytest.raises(ReferenceClipError, match="'frame_codec'"):
+        ClipLayout.from_dict({**data, "frame_codec": "gif"})
+
+
+def test_checkpoint_clip_that_disagrees_with_the_pose_track_is_refused(clip_export, tmp_path):
+    from gaussiantalker.exporter.checkpoint import load_checkpoint
+
+    loaded = load_checkpoint(clip_export.checkpoint)
+    assert loaded.reference.layout.to_dict() == clip_export.speaker.reference.layout.to_dict()
+    assert loaded.reference.frames == clip_export.speaker.reference.frames
+    payload = torch.load(clip_export.checkpoint, weights_only=True)
+    for edit, message in (
+        (lambda p: p["reference"]["masks"].pop(), "3 masks"),
+        (lambda p: p.__setitem__("pose_track", p["pose_track"][:3]), "pose track has 3 rows"),
+        (lambda p: p["reference"]["frames"].__setitem__(1, torch.zeros(40, dtype=torch.uint8)), "frame 1 is not"),
+        (lambda p: p["reference"].__setitem__("frames", "not a list"), "list of 1-D uint8 tensors"),
+    ):
+        broken = copy.deepcopy(payload)
+        edit(broken)
+        torch.save(broken, tmp_path / "broken.ckpt")
+        with pytest.raises(CheckpointError, match=message):
+            load_checkpoint(tmp_path / "broken.ckpt")
+
+
+def test_damaged_clip_entry_fails_at_load_not_mid_video(clip_export, tmp_path):
+    from gaussiantalker.runtime import TalkingHead
+    from gaussiantalker.sdk.bundle import Bundle
+
+    bundle = Bundle(clip_export.path)
+    entry = bundle.manifest["buffers"][frame_entry(2)]
+    data = bytearray(clip_export.path.read_bytes())
+    data[bundle.payload_start + entry["offset"] + entry["nbytes"] // 2] ^= 0xFF
+    damaged = tmp_path / "damaged.gtb"
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(BundleError, match=r"checksum mismatch in buffer 'reference/frame/00002'"):
+        TalkingHead(damaged)
+
+
+# -- the crop and the formula ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("shape, box", [((200, 150), (40, 60, 90, 100)), ((20, 30), (5, 8, 12, 20)),
+                                        ((200, 150), (0, 0, 200, 150)), ((64, 64), (60, 60, 64, 64))])
+def test_crop_box_holds_the_mask_and_margin_in_multiples(shape, box):
+    mask = np.zeros(shape, np.float32)
+    top, left, bottom, right = box
+    mask[top:bottom, left:right] = 0.3
+    crop = crop_box(mask)
+    assert (crop.height + crop.pad_bottom) % CROP_MULTIPLE == 0
+    assert (crop.width + crop.pad_right) % CROP_MULTIPLE == 0
+    assert 0 <= crop.top and crop.top + crop.height <= shape[0] and 0 <= crop.left
+    assert crop.left + crop.width <= shape[1]
+    assert crop.top <= max(top - CROP_MARGIN_PX, 0) and crop.top + crop.height >= min(bottom + CROP_MARGIN_PX, shape[0])
+    assert crop.left <= max(left - CROP_MARGIN_PX, 0)
+    assert crop.left + crop.width >= min(right + CROP_MARGIN_PX, shape[1])
+    assert crop_box(np.zeros(shape, np.float32)) is None
+
+
+def test_composite_applies_the_formula_and_keeps_the_reference_outside_the_mask():
+    rng = np.random.default_rng(1)
+    height, width = 70, 90
+    reference = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    head = np.zeros((height, width, 4), np.float32)
+    head[20:50, 30:60] = rng.uniform(0.0, 1.0, (30, 30, 4)).astype(np.float32)
+    head[..., :3] *= head[..., 3:]  # premultiplied
+    mask = np.zeros((height, width), np.float32)
+    mask[18:52, 28:62] = rng.uniform(0.0, 1.0, (34, 34)).astype(np.float32)
+    mask[25:45, 35:55] = 1.0
+    out = composite(head, reference, mask, _identity)
+    outside = mask == 0.0
+    np.testing.assert_array_equal(out[outside], reference[outside])  # bit for bit
+    original = reference.astype(np.float32) / 255
+    x = head[..., :3] + (1 - mask[..., None]) * original
+    expected = to_uint8((1 - mask[..., None]) * original + mask[..., None] * x)
+    np.testing.assert_array_equal(out[~outside], expected[~outside])
+
+
+def test_opencv_fallback_fills_the_uncovered_rim_from_its_surroundings():
+    height, width = 48, 64
+    background = np.zeros((height, width, 3), np.float32) + np.array([0.2, 0.5, 0.8], np.float32)
+    reference = to_uint8(background)
+    head = np.zeros((height, width, 4), np.float32)
+    head[16:32, 20:44] = (0.9, 0.6, 0.5, 1.0)  # a fully covered face
+    mask = np.zeros((height, width), np.float32)
+    mask[12:36, 16:48] = 1.0  # the mask reaches 4 px past it: a rim the render leaves empty
+    plain = to_uint8((1 - mask[..., None]) * background + mask[..., None] * head[..., :3])
+    filled = composite(head, reference, mask, opencv_fallback)
+    np.testing.assert_array_equal(filled[16:32, 20:44], to_uint8(head[16:32, 20:44, :3]))  # the face is kept
+    rim = (mask > 0) & (head[..., 3] == 0)
+    # The rim takes the background's colour: within 2 levels (Telea averages in 8 bits, between two roundings).
+    assert np.abs(filled[rim].astype(int) - reference[rim]).max() <= 2
+    assert seam_step(filled / 255.0, mask) < 0.01 < seam_step(plain / 255.0, mask)
+
+
+def test_fallback_without_opencv_says_what_to_install(monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_cv2(name, *args, **kwargs):
+        if name == "cv2":
+            raise ImportError("no cv2")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_cv2)
+    with pytest.raises(RenderError, match=r"gaussiantalker-sdk\[opencv\].*composite=False"):
+        opencv_fallback(np.zeros((16, 16, 3), np.float32), np.ones((16, 16), np.float32),
+                        np.zeros((16, 16, 4), np.float32))
+
+
+# -- the runtime -------------------------------------------------------------------------------------------------
+
+def test_head_composites_into_the_clip_following_its_track(clip_export, tmp_path):
+    from gaussiantalker.exporter.compositing import composite_reference
+    from gaussiantalker.runtime import TalkingHead
+
+    with TalkingHead(clip_export.path) as head:
+        assert head.composite and len(head.reference) == CLIP_FRAMES
+        assert (head.camera.width, head.camera.height) == CLIP_SIZE
+        audio = np.zeros(head.config.samples_per_frame * 6, np.float32)
+        frames = list(head.frames(audio, head.config.sample_rate))
+        drives = list(head.drives(audio, head.config.sample_rate))
+        assert len(frames) == 6 and frames[0].shape == (CLIP_SIZE[1], CLIP_SIZE[0], 3)
+        for index in (0, 5):  # frame 5 shows clip frame 1 (forth and back through 4 frames)
+            row = clip_row(CLIP_FRAMES, index)
+            picture, mask = head.reference.frame(row), head.reference.mask(row)
+            outside = mask == 0
+            np.testing.assert_array_equal(frames[index][outside], picture[outside])
+            bare = head.render(drives[index], output="rgba_float")
+            expected = composite_reference(bare, picture, mask, clip_export.speaker.inpaint)
+            # The same render through the torch F instead of the inpaint graph: fp32 graph parity, so at most
+            # one 8-bit level apart (rounding of values within ~1e-6 of a level boundary).
+            assert np.abs(frames[index].astype(int) - expected).max() <= 1
+        with pytest.raises(RenderError, match="follows the reference clip's pose track"):
+            next(head.frames(audio, head.config.sample_rate, head_pose=np.zeros((1, 6), np.float32)))
+        with pytest.raises(RenderError, match="composited frames are uint8"):
+            next(head.frames(audio, head.config.sample_rate, output="float"))
+        with pytest.raises(RenderError, match="alpha=True needs the bare head"):
+            head.write_video(tmp_path / "talk.webm", audio, head.config.sample_rate, alpha=True)
+    with TalkingHead(clip_export.path, composite=False) as bare:
+        assert not bare.composite and bare.camera.width == clip_export.speaker.camera.width
+    with TalkingHead(clip_export.path, resolution=(48, 56)) as small:
+        assert small.reference.frame(0).shape == (56, 48, 3) and small.reference.mask(0).shape == (56, 48)
+        assert next(small.frames(audio, small.config.sample_rate)).shape == (56, 48, 3)
+
+
+def test_composite_true_without_a_clip_and_a_custom_camera_are_refused(clip_export, small_export):
+    from gaussiantalker.runtime import TalkingHead
+
+    with pytest.raises(RenderError, match="needs a bundle with a reference clip"):
+        TalkingHead(small_export.path, composite=True)
+    with pytest.raises(RenderError, match="reference clip's camera"):
+        TalkingHead(clip_export.path, camera=clip_export.speaker.camera)
+
+
+def test_rgba_float_is_the_premultiplied_frame_of_the_same_draw(small_export):
+    from gaussiantalker.runtime import TalkingHead
+
+    with TalkingHead(small_export.path, resolution=(64, 64), background=(0.2, 0.4, 0.6)) as head:
+        drive = FrameDrive.make(head.config.n_expr, jaw_pose=[0.2, 0.0, 0.0])
+        premultiplied = head.render(drive, output="rgba_float")
+        opaque = head.render(drive, output="float")
+        assert premultiplied.shape == (64, 64, 4) and premultiplied.dtype == np.float32
+        over = premultiplied[..., :3] + (1 - premultiplied[..., 3:]) * np.array([0.2, 0.4, 0.6], np.float32)
+        # The background pass adds T * background in the same float32 framebuffer: equal to float rounding.
+        np.testing.assert_allclose(over, opaque, atol=1e-6)
+
+
+def test_semantic_pass_and_region_weights(clip_export):
+    from gaussiantalker.runtime import TalkingHead
+
+    with TalkingHead(clip_export.path, composite=False, resolution=(64, 64)) as head:
+        regions = head.regions
+        assert regions.names == clip_export.speaker.flame_arrays.region_names
+        faces = clip_export.speaker.flame_arrays.regions[clip_export.speaker.gaussians.parent.numpy()]
+        np.testing.assert_array_equal(regions.ids, faces)
+        drive = FrameDrive.make(head.config.n_expr, jaw_pose=[0.25, 0.0, 0.0])
+        weights = head.region_weights(drive)
+        coverage = head.render(drive, output="rgba_float")[..., 3]
+        assert weights.shape == (64, 64, len(regions.names))
+        # Each region's weight is the blend weight of its Gaussians; together they are the frame's coverage.
+        np.testing.assert_allclose(weights.sum(axis=-1), coverage, atol=1e-5)
+        semantic = head.render(drive, output="semantic")
+        expected = to_uint8(weights @ regions.colors)
+        assert np.abs(semantic.astype(int) - expected).max() <= 1
+        lips = weights[..., regions.names.index("lips")]
+        assert lips.max() > 0.5 and (weights.argmax(-1) == regions.names.index("skin")).sum() > 100
