@@ -1,13 +1,18 @@
 """The inpainting generator F: fills holes the rendered face leaves inside the facial mask and smooths its contour.
 
 The runtime composites I = (1 - M)·I_ori + M·F(x) with x = I_gau + (1 - M)·I_ori, on a crop around the mask's
-bounding box. F works at half resolution (the five input channels average-pooled by 2) with a small U-Net, predicts
-a fill colour and a blend weight w, upsamples both bilinearly and returns clamp(x + w·(fill - x), 0, 1): where
-w ≈ 0 the rendered face keeps its full-resolution detail. The w logit starts at -3, so an untrained F moves no
-pixel by more than sigmoid(-3) ≈ 0.047.
+bounding box. F works at half resolution (its five input channels average-pooled by 2): a small U-Net predicts a
+fill colour and a blend weight w, both are upsampled bilinearly, and F(x) = clamp(x + w·(fill - x), 0, 1), so where
+w ≈ 0 the rendered face keeps its full-resolution detail.
 
-Crop sides must be multiples of CROP_MULTIPLE (the pool and up to three stride-2 levels halve them four times);
-the torch module raises ValueError otherwise, and the ONNX graph fails in onnxruntime on most other sizes.
+Both predictions are residuals on parameter-free priors, so an untrained F is already a sensible inpainter and
+training only refines it: the w logit is W_LOGIT_BIAS (w ≈ 0.007) plus HOLE_LOGIT inside holes (the part of the
+mask the render does not cover, w ≈ 0.99 there), and the fill is a push-pull interpolation of the visible colours
+around each hole (covered pixels and everything outside the mask). The network's head starts at zero.
+
+Crop sides must be multiples of CROP_MULTIPLE (the pool and up to three stride-2 levels halve them four times):
+the torch module raises ValueError otherwise; the ONNX graph has no such check and onnxruntime fails on most other
+sizes (mismatched skip shapes), so callers check with `crop_multiple_ok` first.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -23,22 +29,40 @@ import torch.nn.functional as nnf
 from torch import nn
 from tqdm.auto import tqdm
 
+if TYPE_CHECKING:
+    import onnx
+
 CROP_MULTIPLE = 16  # 2 (input pool) * 2**MAX_LEVELS (stride-2 levels)
 MAX_LEVELS = 3
-W_LOGIT_BIAS = -3.0  # initial blend-weight logit: sigmoid(-3) ≈ 0.047, so an untrained F is nearly the identity
-INPUT_RANGE = (-1.0, 2.0)  # inputs are clamped into this range first: no overflow for any finite input
-OUTSIDE_MASK_WEIGHT = 0.1  # loss weight of pixels outside the mask (F's output there is discarded by the composite)
+W_LOGIT_BIAS = -5.0  # w logit on covered pixels at init: sigmoid(-5) ≈ 0.0067, so F starts as nearly the identity
+HOLE_LOGIT = 10.0  # added inside holes: sigmoid(-5 + 10) ≈ 0.993, so the fill prior shows there from the start
+INPUT_RANGE = (-1.0, 2.0)  # inputs are clamped into this range first: nothing overflows for any finite input
+PRIOR_MIN_WEIGHT = 1e-3  # push-pull guard: a crop with no visible pixel gets a black prior, not 0/0
+PRIOR_CLAMP = 1e-3  # the fill prior is clamped to [this, 1 - this] before its logit (finite at 0 and 1)
+LEAKY_SLOPE = 0.1
+OUTSIDE_MASK_WEIGHT = 0.1  # loss weight of pixels outside the mask (the composite discards F's output there)
 EXPORT_SIDE = 64  # example crop side of the ONNX export
 MAX_EXPORT_SIDE = 4096
 
 
 @dataclass(frozen=True)
 class InpaintConfig:
-    """Widths of the generator: `channels` at half resolution (doubling once per level, at most 4x), `levels`
-    stride-2 steps below it (1..3)."""
+    """Widths of the generator: `channels` at half resolution and twice that at each of the `levels` (1..3)
+    stride-2 steps below it."""
 
     channels: int = 16
     levels: int = 3
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise ValueError(f"inpaint config field {f.name!r} must be an integer, got {value!r}")
+            if value < 1:
+                raise ValueError(f"inpaint config field {f.name!r} must be positive, got {value}")
+        if self.levels > MAX_LEVELS:
+            raise ValueError(f"inpaint config field 'levels' must be at most {MAX_LEVELS} (crops are multiples of "
+                             f"{CROP_MULTIPLE}), got {self.levels}")
 
     def to_dict(self) -> dict:
         """Plain dict for bundle metadata."""
@@ -47,29 +71,16 @@ class InpaintConfig:
     @classmethod
     def from_dict(cls, data: dict) -> InpaintConfig:
         """Inverse of to_dict; ValueError naming the field on unknown keys, non-integers or out-of-range values."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
+        unknown = sorted(set(data) - {f.name for f in fields(cls)})
         if unknown:
             raise ValueError(f"unknown inpaint config keys: {unknown}")
-        for name, value in data.items():
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-                raise ValueError(f"inpaint config field {name!r} must be an integer, got {value!r}")
-            if value < 1:
-                raise ValueError(f"inpaint config field {name!r} must be positive, got {value}")
-        if int(data.get("levels", cls.levels)) > MAX_LEVELS:
-            raise ValueError(f"inpaint config field 'levels' must be at most {MAX_LEVELS} (crops are multiples of "
-                             f"{CROP_MULTIPLE}), got {data['levels']}")
-        return cls(**{name: int(value) for name, value in data.items()})
+        config = cls(**data)
+        return cls(**{name: int(value) for name, value in asdict(config).items()})  # numpy integers -> int
 
 
 def crop_multiple_ok(height: int, width: int) -> bool:
     """Whether a crop of this size can go through F (both sides positive multiples of CROP_MULTIPLE)."""
     return height > 0 and width > 0 and height % CROP_MULTIPLE == 0 and width % CROP_MULTIPLE == 0
-
-
-def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
-    """3x3 convolution + LeakyReLU (padding 1: stride 1 keeps the size, stride 2 halves an even one)."""
-    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1), nn.LeakyReLU(0.1))
 
 
 def _sanitize(x: torch.Tensor) -> torch.Tensor:
@@ -78,13 +89,40 @@ def _sanitize(x: torch.Tensor) -> torch.Tensor:
 
 
 def _half(x: torch.Tensor) -> torch.Tensor:
-    """2x2 average pool, written as a bilinear 0.5x resize (identical values; 3x faster in onnxruntime)."""
-    return nnf.interpolate(x, scale_factor=0.5, mode="bilinear", align_corners=False)
+    """2x2 average pool of an even-sized map, written as a bilinear 0.5x resize (identical values; 3x faster in
+    onnxruntime). Sizes rather than scale factors: the same graph, exported twice as fast."""
+    return nnf.interpolate(x, size=(x.shape[2] // 2, x.shape[3] // 2), mode="bilinear", align_corners=False)
 
 
 def _double(x: torch.Tensor) -> torch.Tensor:
     """Bilinear 2x upsampling (half-pixel centres)."""
-    return nnf.interpolate(x, scale_factor=2.0, mode="bilinear", align_corners=False)
+    return nnf.interpolate(x, size=(x.shape[2] * 2, x.shape[3] * 2), mode="bilinear", align_corners=False)
+
+
+def push_pull(colour: torch.Tensor, valid: torch.Tensor, levels: int) -> torch.Tensor:
+    """Fill each pixel's colour from valid pixels nearby: weighted pyramid down `levels` times plus a global mean,
+    then back up, each level keeping its own valid colour and taking the coarser one where it lacks weight.
+
+    colour [B, 3, h, w] premultiplied by valid [B, 1, h, w] (both in [0, 1]); returns the unpremultiplied filled
+    colour [B, 3, h, w] (0 where no pixel of the crop is valid).
+    """
+    pyramid = [torch.cat([colour, valid], dim=1)]
+    for _ in range(levels):
+        pyramid.append(_half(pyramid[-1]))
+    pulled = pyramid[-1].mean(dim=(2, 3), keepdim=True)
+    for i in reversed(range(len(pyramid))):
+        coarse = pulled if i == len(pyramid) - 1 else _double(pulled)
+        pulled = pyramid[i] + (1.0 - pyramid[i][:, 3:]) * coarse
+    return pulled[:, :3] / pulled[:, 3:].clamp_min(PRIOR_MIN_WEIGHT)
+
+
+def _conv(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
+    """3x3 convolution + LeakyReLU (padding 1: stride 1 keeps the size, stride 2 halves an even one)."""
+    conv = nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1)
+    # He init for the LeakyReLU: trains faster here than torch's default (which shrinks activations per layer).
+    nn.init.kaiming_normal_(conv.weight, a=LEAKY_SLOPE, nonlinearity="leaky_relu")
+    nn.init.zeros_(conv.bias)
+    return nn.Sequential(conv, nn.LeakyReLU(LEAKY_SLOPE))
 
 
 class InpaintGenerator(nn.Module):
@@ -92,8 +130,6 @@ class InpaintGenerator(nn.Module):
 
     def __init__(self, config: InpaintConfig = InpaintConfig()):
         super().__init__()
-        if not 1 <= config.levels <= MAX_LEVELS or config.channels < 1:
-            raise ValueError(f"bad inpaint config {config}: channels >= 1 and 1 <= levels <= {MAX_LEVELS}")
         self.config = config
         widths = [config.channels * min(2 ** i, 2) for i in range(config.levels + 1)]
         self.stem = _conv(5, widths[0])
@@ -102,26 +138,36 @@ class InpaintGenerator(nn.Module):
         # nearest x2, add level i's skip, 3x3 conv.
         self.lateral = nn.ModuleList(nn.Conv2d(widths[i + 1], widths[i], 1) for i in range(config.levels))
         self.up = nn.ModuleList(_conv(widths[i], widths[i]) for i in range(config.levels))
-        self.head = nn.Conv2d(widths[0], 4, 1)  # fill colour logits (3) and blend-weight logit (1)
-        with torch.no_grad():
-            self.head.weight[3].zero_()  # w starts exactly sigmoid(W_LOGIT_BIAS) everywhere; gradients still flow
-            self.head.bias[3].fill_(W_LOGIT_BIAS)
+        self.head = nn.Conv2d(widths[0], 4, 1)  # residual logits: fill colour (3) and blend weight w (1)
+        nn.init.zeros_(self.head.weight)  # F starts as exactly its priors; gradients reach the weights at once
+        nn.init.zeros_(self.head.bias)
 
     def forward(self, image: torch.Tensor, mask: torch.Tensor, coverage: torch.Tensor) -> torch.Tensor:
         height, width = image.shape[-2:]
         if height % CROP_MULTIPLE != 0 or width % CROP_MULTIPLE != 0:
             raise ValueError(f"inpaint crop {height}x{width} is not a multiple of {CROP_MULTIPLE} on both sides; "
                              f"pad or grow the crop")
-        image = _sanitize(image)
-        features = [self.stem(_sanitize(_half(torch.cat([image, mask, coverage], dim=1))))]
+        full = _sanitize(torch.cat([image, mask, coverage], dim=1))
+        image = full[:, :3]
+        hole = full[:, 3:4].clamp(0.0, 1.0) * (1.0 - full[:, 4:5].clamp(0.0, 1.0))  # mask the render leaves bare
+        x = _half(full)
+        # x is already premultiplied by validity: black in holes, the render's premultiplied colour where it
+        # partly covers, the original frame outside the mask. Pooling it directly keeps hole edges from darkening.
+        hole_half = x[:, 3:4].clamp(0.0, 1.0) * (1.0 - x[:, 4:5].clamp(0.0, 1.0))
+        prior = push_pull(x[:, :3].clamp(0.0, 1.0), 1.0 - hole_half, self.config.levels)
+        prior = prior.clamp(PRIOR_CLAMP, 1.0 - PRIOR_CLAMP)
+
+        features = [self.stem(x)]
         for down in self.down:
             features.append(down(features[-1]))
         y = features[-1]
         for i in reversed(range(len(self.up))):
             y = self.up[i](nnf.interpolate(self.lateral[i](y), scale_factor=2.0, mode="nearest") + features[i])
         logits = self.head(y)
-        fill = _double(torch.sigmoid(logits[:, :3]))
-        weight = _double(torch.sigmoid(logits[:, 3:]))
+
+        fill = _double(torch.sigmoid(logits[:, :3] + torch.log(prior / (1.0 - prior))))
+        # The hole term is added at full resolution, so holes are filled right up to their edges.
+        weight = torch.sigmoid(_double(logits[:, 3:]) + (W_LOGIT_BIAS + HOLE_LOGIT * hole))
         return (image + weight * (fill - image)).clamp(0.0, 1.0)
 
 
@@ -143,8 +189,8 @@ def train_inpaint(model: InpaintGenerator,
                   progress: bool = False) -> list[float]:
     """Adam on the mask-weighted L1 to `batch(rng)`'s targets until `seconds` pass or `max_steps` are done.
 
-    `batch` returns (image, mask, coverage, target); its rng is seeded with `seed`, as is torch. Returns the loss of
-    every step; the model is left in eval mode.
+    `batch` returns (image, mask, coverage, target); its rng is seeded with `seed`, as is torch (the initial
+    weights are the caller's). Returns the loss of every step; the model is left in eval mode.
     """
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -160,7 +206,7 @@ def train_inpaint(model: InpaintGenerator,
             loss.backward()
             nn.utils.clip_grad_norm_(model.parameters(), 1.0)
             optimizer.step()
-            losses.append(float(loss))
+            losses.append(float(loss.detach()))
             if not math.isfinite(losses[-1]):
                 raise FloatingPointError(f"inpaint training loss became {losses[-1]} at step {len(losses)}")
             bar.update(1)
@@ -169,7 +215,7 @@ def train_inpaint(model: InpaintGenerator,
     return losses
 
 
-def export_inpaint(model: InpaintGenerator):
+def export_inpaint(model: InpaintGenerator) -> onnx.ModelProto:
     """F as an ONNX model proto: inputs "image" [1, 3, H, W], "mask" and "coverage" [1, 1, H, W], output
     "inpainted" [1, 3, H, W], with H and W dynamic multiples of CROP_MULTIPLE (batch fixed at 1)."""
     from gaussiantalker.exporter.onnx_export import export_onnx  # noqa: PLC0415 - only export needs onnx
