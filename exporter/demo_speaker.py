@@ -111,8 +111,11 @@ def _init_gaussians(speaker: Speaker, head: FlameArrays, parent: np.ndarray, rng
 
 
 def make_demo_speaker(n_gaussians: int = 20_000, seed: int = 0, train_seconds: float = 150.0,
-                      progress: bool = True, config: SpeakerConfig | None = None) -> tuple[Speaker, dict]:
-    """Build the demo speaker; returns it with the translator's training metrics."""
+                      progress: bool = True, config: SpeakerConfig | None = None,
+                      reference_clip: bool = False, inpaint_seconds: float = 60.0) -> tuple[Speaker, dict]:
+    """Build the demo speaker; returns it with the translator's training metrics. `reference_clip`: also its
+    procedural reference video and masks (exporter/demo_clip.py), and an inpainting generator F trained on it for
+    at most `inpaint_seconds` (0: none, so the runtime uses the OpenCV fallback); needs OpenGL."""
     if n_gaussians < 1:
         raise ValueError(f"a speaker needs at least one Gaussian, got {n_gaussians}")
     config = config or SpeakerConfig()
@@ -129,4 +132,22 @@ def make_demo_speaker(n_gaussians: int = 20_000, seed: int = 0, train_seconds: f
     if train_seconds > 0:
         metrics.update(train_demo_translator(speaker.translator, config.n_expr, seconds_budget=train_seconds,
                                              seed=seed, progress=progress))
+    if reference_clip:
+        metrics.update(_add_reference(speaker.eval(), inpaint_seconds, seed, progress))
     return speaker.eval(), metrics
+
+
+def _add_reference(speaker: Speaker, inpaint_seconds: float, seed: int, progress: bool) -> dict:
+    """Attach the procedural reference clip and (if `inpaint_seconds` > 0) a trained F; returns their metrics."""
+    from .demo_clip import ClipComposer, make_demo_clip
+    from .demo_inpaint import train_demo_inpaint
+
+    composer = ClipComposer(speaker)
+    speaker.reference = make_demo_clip(speaker, composer)
+    metrics = {"reference_frames": speaker.reference.layout.count, "reference_mb": speaker.reference.nbytes / 1e6}
+    if inpaint_seconds > 0:
+        speaker.inpaint, inpaint_metrics = train_demo_inpaint(composer, seconds=inpaint_seconds, seed=seed,
+                                                              progress=progress)
+        metrics.update(inpaint_metrics)
+    composer.splatter.release()
+    return metrics

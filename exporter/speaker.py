@@ -81,7 +81,7 @@ class Speaker(nn.Module):
         center = torch.from_numpy(camera.center.astype(np.float32))[None]
         means, cov3d, rgb, opacity = self.deform(inputs["expression"], inputs["flame_pose"],
                                                  inputs["head_translation"], center)
-        bg = torch.tensor(self.background if background is None else background, dtype=torch.float32)
+        bg = torch.as_tensor(self.background if background is None else background, dtype=torch.float32)
         image, trans = render_reference(means[0], cov3d[0], rgb[0], opacity, camera, bg)
         return (image, trans) if transmittance else image
 

@@ -10,6 +10,10 @@ Tolerances (why these numbers):
   so graph errors are reported but the frames decide: every frame's 8-bit PSNR over the head region (pixels the
   torch frame covers with alpha > 1/255) must reach the tier's bound, the bound its preset was measured to keep
   (docs/precision.md), or HEAD_PSNR_FLOOR_DB for a custom combination of knobs.
+* composited frames (a speaker with a reference clip, docs/compositing.md): the runtime's composite of a driven
+  clip against the torch render composited with the torch F, into the same decoded reference pictures, at the
+  frame bounds above (outside the mask both are the reference picture exactly); the `inpaint` graph against the
+  torch F on random crops and the clip's own crops, to GRAPH_RTOL.
 * a scene's bundle (docs/scene.md): its deformation graph leaves out drives outside the scene by design, so it
   is judged by its frames of a driven clip inside the scene, at the scene's camera: SCENE_MIN_PSNR_DB on float and
   8-bit frames (or the tier's bound, if lower).
@@ -24,11 +28,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from gaussiantalker.runtime.composite import crop_box
 from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.runtime.translate import translate_audio
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame
 from gaussiantalker.sdk.image import max_abs_error, psnr_db, to_uint8
+from gaussiantalker.sdk.reference_clip import clip_row
 
+from .compositing import composite_reference
 from .demo_audio import synth_speech
 from .speaker import Speaker
 
@@ -147,6 +154,56 @@ def verify_deformation(speaker: Speaker, head: TalkingHead, count: int = 6, seed
     return _merge(stats, tolerance)
 
 
+def verify_inpaint(speaker: Speaker, head: TalkingHead, seed: int = 0, tolerance: float | None = GRAPH_RTOL) -> dict:
+    """The `inpaint` graph vs the torch F: random crops of three sizes, then the clip's first frame's own crop."""
+    if "inpaint" not in head.bundle.manifest["graphs"]:
+        note = ("no inpainting generator: the OpenCV fallback composites" if head.reference is not None
+                else "no reference clip")
+        return {"compared": False, "passed": True, "note": note}
+    rng = np.random.default_rng(seed)
+    crops = [(rng.random((1, 3, h, w), np.float32), rng.random((1, 1, h, w), np.float32),
+              rng.random((1, 1, h, w), np.float32)) for h, w in ((64, 64), (96, 160), (208, 128))]
+    mask = head.reference.mask(0)
+    box = crop_box(mask)
+    picture = head.reference.frame(0)[box.rows, box.columns].astype(np.float32) / 255
+    inside = mask[box.rows, box.columns]
+    crops.append((np.ascontiguousarray(((1 - inside[..., None]) * picture).transpose(2, 0, 1)[None]),
+                  inside[None, None], np.zeros_like(inside)[None, None]))
+    stats = []
+    for image, m, coverage in crops:
+        if image.shape[2] % 16 or image.shape[3] % 16:  # a crop at the image border (padded at run time)
+            continue
+        with torch.no_grad():
+            reference = speaker.inpaint(*(torch.from_numpy(np.ascontiguousarray(a)) for a in (image, m, coverage)))
+        out = head.graphs.run("inpaint", {"image": image, "mask": m, "coverage": coverage})
+        stats.append(_compare(reference.numpy(), out["inpainted"]))
+    return _merge(stats, tolerance)
+
+
+def verify_composited(speaker: Speaker, head: TalkingHead, frames: int = 12, seed: int = 1,
+                      tolerances: Tolerances = Tolerances(), progress: bool = False) -> dict:
+    """Composited frames of a driven clip: the runtime's vs the torch render composited with the torch F (or the
+    same OpenCV fallback) into the same reference pictures."""
+    audio, torch_drives = driven_clip(speaker, frames, seed)
+    runtime_frames = head.frames(audio, speaker.config.sample_rate)
+    background = torch.zeros(3)
+    results = []
+    for index, test in enumerate(tqdm(runtime_frames, total=frames, desc="verify composited", unit="frame",
+                                      disable=not progress)):
+        image, trans = speaker.render(torch_drives[index], head.camera, background, transmittance=True)
+        premultiplied = np.dstack([image.numpy(), 1.0 - trans.numpy()]).astype(np.float32)
+        row = clip_row(len(head.reference), index)
+        reference = composite_reference(premultiplied, head.reference.frame(row), head.reference.mask(row),
+                                        speaker.inpaint)
+        results.append({"index": index, "psnr_db": psnr_db(reference, test),
+                        "max_pixel_error": int(np.abs(reference.astype(np.int16) - test.astype(np.int16)).max())})
+    min8 = min(r["psnr_db"] for r in results)
+    return {"frames": results, "min_psnr_db": min8, "max_pixel_error": max(r["max_pixel_error"] for r in results),
+            "resolution": [head.camera.width, head.camera.height],
+            "generator": head.bundle.manifest.get("inpaint", {}).get("generator"),
+            "passed": min8 >= tolerances.min_psnr_uint8_db}
+
+
 def driven_clip(speaker: Speaker, frames: int, seed: int = 1) -> tuple[np.ndarray, list[FrameDrive]]:
     """A speech-like clip of `frames` video frames and the torch speaker's drives for it (pose track applied)."""
     spf = speaker.config.samples_per_frame
@@ -202,12 +259,19 @@ def verify_bundle(speaker: Speaker, bundle_path, *, frames: int = 25, resolution
                   tolerances: Tolerances = Tolerances(), progress: bool = True) -> dict:
     """The full report `gt-export --verify` prints and `--report` writes as JSON (`resolution` None: the bundle's
     camera, which for a scene's bundle is the scene's)."""
-    with TalkingHead(bundle_path, resolution=resolution) as head:
+    with TalkingHead(bundle_path, resolution=resolution, composite=False) as head:
         resolution = (head.camera.width, head.camera.height)
         head.bundle.verify_all()
         graphs = {"translator": verify_translator(speaker, head, tolerance=tolerances.graph_rtol),
                   "deform": verify_deformation(speaker, head, tolerance=tolerances.graph_rtol)}
         frame_report = verify_frames(speaker, head, frames, tolerances=tolerances, progress=progress)
+        composited = None
+        if head.reference is not None:
+            width, height = head.reference.layout.size
+            # Half the clip's size, rounded to even sides: the torch rasterizer's cost, not the contract, sets it.
+            with TalkingHead(bundle_path, resolution=(width // 4 * 2, height // 4 * 2)) as clip_head:
+                graphs["inpaint"] = verify_inpaint(speaker, clip_head, tolerance=tolerances.graph_rtol)
+                composited = verify_composited(speaker, clip_head, tolerances=tolerances, progress=progress)
     report = {
         "bundle": str(bundle_path),
         "resolution": list(resolution),
@@ -216,7 +280,10 @@ def verify_bundle(speaker: Speaker, bundle_path, *, frames: int = 25, resolution
         "graphs": graphs,
         **frame_report,
     }
-    report["passed"] = frame_report["passed"] and all(g["passed"] for g in graphs.values())
+    if composited is not None:
+        report["composited"] = composited
+    report["passed"] = (frame_report["passed"] and all(g["passed"] for g in graphs.values())
+                        and (composited is None or composited["passed"]))
     return report
 
 
@@ -237,6 +304,12 @@ def format_report(report: dict) -> str:
                  f" (median {np.median(finite) if finite else float('inf'):.2f}), float PSNR min "
                  f"{report['min_psnr_float_db']:.2f} dB, head-region 8-bit PSNR min {report['min_head_psnr_db']:.2f}"
                  f" dB, max pixel error {report['max_pixel_error']} levels")
+    composited = report.get("composited")
+    if composited is not None:
+        w, h = composited["resolution"]
+        lines.append(f"composited: {len(composited['frames'])} frames at {w}x{h} ({composited['generator']} F); "
+                     f"8-bit PSNR min {composited['min_psnr_db']:.2f} dB, max pixel error "
+                     f"{composited['max_pixel_error']} levels {'ok' if composited['passed'] else 'NO'}")
     bounds = report["tolerances"]
     head_bound = "" if bounds["min_head_psnr_db"] is None else f", head region >= {bounds['min_head_psnr_db']} dB"
     lines.append(f"verification {'PASSED' if report['passed'] else 'FAILED'} for tier {report.get('tier')} (8-bit >= "

@@ -117,14 +117,23 @@ def composite(head: np.ndarray, reference: np.ndarray, mask: np.ndarray, inpaint
     if box is None:
         return out
     m = _padded(mask[box.rows, box.columns], box)
-    original = _padded(reference[box.rows, box.columns], box).astype(np.float32) / np.float32(255.0)
+    keep = 1.0 - m[..., None]  # [h, w, 1]
+    original = _padded(reference[box.rows, box.columns], box).astype(np.float32)
+    original *= np.float32(1.0 / 255.0)
     render = _padded(head[box.rows, box.columns], box)
-    keep = 1.0 - m[..., None]
-    x = render[..., :3] + keep * original  # F's input: the render plus the frame outside the mask
-    filled = inpaint(np.ascontiguousarray(x, dtype=np.float32), m, np.ascontiguousarray(render))
-    blended = to_uint8(keep * original + m[..., None] * filled)[: box.height, : box.width]
+    original *= keep  # (1 - M) I_ori, both in F's input and in the output
+    x = render[..., :3] + original  # F's input: the render plus the frame outside the mask
+    filled = inpaint(x, m, np.ascontiguousarray(render))
+    # (1 - M) I_ori + M F, rounded to 8 bits as to_uint8 does (both terms are finite: F's output is sanitised and
+    # clamped), in place: this runs on every composited frame.
+    filled *= m[..., None]
+    filled += original
+    np.clip(filled, 0.0, 1.0, out=filled)
+    filled *= np.float32(255.0)
+    filled += np.float32(0.5)
+    blended = filled.astype(np.uint8)[: box.height, : box.width]
     inside = mask[box.rows, box.columns] > 0.0
-    out[box.rows, box.columns] = np.where(inside[..., None], blended, reference[box.rows, box.columns])
+    np.copyto(out[box.rows, box.columns], blended, where=inside[..., None])
     return out
 
 

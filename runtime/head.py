@@ -265,14 +265,7 @@ class TalkingHead:
     def composite_frame(self, head: np.ndarray, index: int) -> np.ndarray:
         """Video frame `index` composited: the premultiplied render `head` [H, W, 4] (output="rgba_float") into
         the reference picture the clip shows at that frame (forth and back), uint8 [H, W, 3]."""
-        start = time.perf_counter()
-        row = clip_row(len(self.reference), int(index))
-        picture, mask = self.reference.frame(row), self.reference.mask(row)
-        self._record("reference", time.perf_counter() - start)
-        start = time.perf_counter()
-        frame = composite(head, picture, mask, self._inpaint)
-        self._record("composite", time.perf_counter() - start)
-        return frame
+        return self._composite(head, *self._reference_picture(index))
 
     def render_params(self, expression=None, jaw_pose=None, neck_pose=None, eye_pose=None,
                       head_rotation=None, head_translation=None, output: FrameOutput = "uint8") -> np.ndarray:
@@ -304,22 +297,61 @@ class TalkingHead:
             if head_pose is not None:
                 raise RenderError("a composited head follows the reference clip's pose track (any other pose "
                                   "would misalign it with the clip); pass composite=False to set head_pose")
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-deform") as pool:
-            pending, index = None, 0
-            for drive in self.drives(audio, sample_rate, head_pose):
-                upcoming = pool.submit(self.prepare, drive)
-                if pending is not None:
-                    yield self._finish(pending.result(), output, index)
-                    index += 1
-                pending = upcoming
-            if pending is not None:
-                yield self._finish(pending.result(), output, index)
-
-    def _finish(self, prepared: PreparedSplats, output: FrameOutput, index: int) -> np.ndarray:
-        """Draw a prepared frame, composited into reference picture `index` when compositing."""
         if not self.composite:
-            return self.draw(prepared, output)
-        return self.composite_frame(self.draw(prepared, "rgba_float"), index)
+            with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-deform") as pool:
+                pending = None
+                for drive in self.drives(audio, sample_rate, head_pose):
+                    upcoming = pool.submit(self.prepare, drive)
+                    if pending is not None:
+                        yield self.draw(pending.result(), output)
+                    pending = upcoming
+                if pending is not None:
+                    yield self.draw(pending.result(), output)
+            return
+        yield from self._composited_frames(self.drives(audio, sample_rate))
+
+    def _composited_frames(self, drives: Iterator[FrameDrive]) -> Iterator[np.ndarray]:
+        """Three overlapping stages: frame t+1 prepared with its reference picture decoded, frame t drawn, frame
+        t-1 composited (F and the blend), each on its own thread, so the composite costs no frame time when the
+        machine has cores to spare."""
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-deform") as prepare_pool, \
+                ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-composite") as composite_pool:
+            prepared = composited = None
+            for index, drive in enumerate(drives):
+                upcoming = prepare_pool.submit(self._prepare_composited, drive, index)
+                if prepared is not None:
+                    drawn = composite_pool.submit(self._composite, self.draw(prepared.result()[0], "rgba_float"),
+                                                  *prepared.result()[1:])
+                    if composited is not None:
+                        yield composited.result()
+                    composited = drawn
+                prepared = upcoming
+            if prepared is not None:
+                drawn = composite_pool.submit(self._composite, self.draw(prepared.result()[0], "rgba_float"),
+                                              *prepared.result()[1:])
+                if composited is not None:
+                    yield composited.result()
+                composited = drawn
+            if composited is not None:
+                yield composited.result()
+
+    def _reference_picture(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """The reference frame and mask video frame `index` is composited into (the clip forth and back), timed."""
+        start = time.perf_counter()
+        row = clip_row(len(self.reference), int(index))
+        picture, mask = self.reference.frame(row), self.reference.mask(row)
+        self._record("reference", time.perf_counter() - start)
+        return picture, mask
+
+    def _prepare_composited(self, drive: FrameDrive, index: int) -> tuple[PreparedSplats, np.ndarray, np.ndarray]:
+        return (self.prepare(drive), *self._reference_picture(index))
+
+    def _composite(self, head: np.ndarray, picture: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """The formula on the mask's crop (F and the blend), timed."""
+        start = time.perf_counter()
+        frame = composite(head, picture, mask, self._inpaint)
+        self._record("composite", time.perf_counter() - start)
+        return frame
 
     def frame_count(self, samples: int) -> int:
         """Video frames for `samples` audio samples: the last partial frame counts (audio is zero-padded)."""

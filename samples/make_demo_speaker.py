@@ -1,7 +1,9 @@
 """Build the deterministic demo speaker: `python samples/make_demo_speaker.py -o speaker.ckpt`.
 
 Generates the procedural FLAME-structured head, binds ~20k region-coloured Gaussians to it, trains the motion
-translator briefly on synthetic speech (jaw follows loudness) and writes a weights-only checkpoint.
+translator briefly on synthetic speech (jaw follows loudness), renders its reference clip (the speaker's own
+"video": background, shoulders and the head, with masks) and trains the inpainting generator on it
+(docs/compositing.md), and writes a weights-only checkpoint.
 """
 
 from __future__ import annotations
@@ -25,11 +27,16 @@ def main(
     train_seconds: float = typer.Option(150.0, "--train-seconds", min=0.0,
                                         help="time cap for translator training (0 = untrained)"),
     seed: int = typer.Option(0, "--seed", help="seed of everything random"),
+    no_reference: bool = typer.Option(False, "--no-reference", help="no reference clip (a bare-head speaker)"),
+    inpaint_seconds: float = typer.Option(60.0, "--inpaint-seconds", min=0.0,
+                                          help="time cap for training the inpainting generator (0 = none: the "
+                                               "OpenCV fallback composites)"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bars"),
 ) -> None:
     """Write a demo speaker checkpoint and print its training metrics."""
     start = time.perf_counter()
-    speaker, metrics = make_demo_speaker(gaussians, seed=seed, train_seconds=train_seconds, progress=not quiet)
+    speaker, metrics = make_demo_speaker(gaussians, seed=seed, train_seconds=train_seconds, progress=not quiet,
+                                         reference_clip=not no_reference, inpaint_seconds=inpaint_seconds)
     save_checkpoint(speaker, output)
     metrics["seconds"] = round(time.perf_counter() - start, 1)
     typer.echo(json.dumps(metrics, indent=2, default=float))

@@ -27,7 +27,7 @@ from gaussiantalker.sdk.video import probe_video
 ROOT = Path(__file__).resolve().parents[1]
 GT_EXPORT = [sys.executable, "-m", "gaussiantalker.exporter.cli"]
 # An untrained 2k-Gaussian demo speaker: another speaker of the session's small speaker's architecture.
-SAMPLE_SPEAKER_ARGS = ["--gaussians", "2000", "--seed", "5", "--train-seconds", "0"]
+SAMPLE_SPEAKER_ARGS = ["--gaussians", "2000", "--seed", "5", "--train-seconds", "0", "--no-reference"]
 
 
 def _run(args, cwd, expect=0, env=None):
@@ -51,14 +51,19 @@ def _invoke(app, args, expect=0):
     return result
 
 
-def _check_verified_export(out: str, work: Path) -> None:
-    """What `gt-export speaker.ckpt -o speaker.gtb --verify --report report.json` must leave and say."""
+def _check_verified_export(out: str, work: Path, composited: bool = False) -> None:
+    """What `gt-export speaker.ckpt -o speaker.gtb --verify --report report.json` must leave and say (with the
+    `inpaint` graph and the composited frames for a speaker with a reference clip)."""
     assert "verification PASSED" in out
     report = json.loads((work / "report.json").read_text())
     assert report["passed"] is True
     assert len(report["frames"]) == 25 and all("psnr_db" in f for f in report["frames"])
     assert report["min_psnr_db"] >= 50.0
-    assert set(report["graphs"]) == {"translator", "deform"}
+    assert set(report["graphs"]) == {"translator", "deform"} | ({"inpaint"} if composited else set())
+    assert ("composited" in report) == composited
+    if composited:
+        assert report["composited"]["passed"] and report["composited"]["min_psnr_db"] >= 50.0
+        assert "composited: 12 frames" in out
     assert all("max_abs_err" in g for g in report["graphs"].values())
     assert (work / "speaker.gtb").is_file()
     assert not list(work.glob("*unverified*")) and not list(work.glob(".*"))
@@ -166,8 +171,10 @@ def test_console_script_runs(tmp_path):
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory):
     work = tmp_path_factory.mktemp("cli")
+    # Untrained translator and a briefly trained F: these tests are about the command line (with a reference clip,
+    # as the README's demo makes it).
     _run([sys.executable, str(ROOT / "samples" / "make_demo_speaker.py"), "-o", "speaker.ckpt", "--gaussians", "3000",
-          "--train-seconds", "0", "-q"], work)  # untrained: these tests are about the command line
+          "--train-seconds", "0", "--inpaint-seconds", "3", "-q"], work)
     return work
 
 
@@ -175,7 +182,7 @@ def workdir(tmp_path_factory):
 def test_export_verify_play(workdir):
     out = _run(GT_EXPORT + ["speaker.ckpt", "-o", "speaker.gtb", "--verify", "--report", "report.json",
                             "--resolution", "96", "-q"], workdir)
-    _check_verified_export(out.stdout, workdir)
+    _check_verified_export(out.stdout, workdir, composited=True)
 
     audio = workdir / "speech.wav"
     shutil.copy(ROOT / "samples" / "demo_speech.wav", audio)
