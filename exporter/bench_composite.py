@@ -1,6 +1,6 @@
 """Compositing's cost and seam quality (docs/compositing.md), side by side in one run:
 
-    python -m gaussiantalker.exporter.bench_composite --checkpoint out/speaker_ref.ckpt --bundle out/ref.gtb
+    python -m gaussiantalker.exporter.bench_composite --checkpoint out/speaker.ckpt --bundle out/speaker.gtb
 
 * frames per second through `TalkingHead.frames` (audio to pixels) at the clip's size and at 512x512, composited
   and bare, alternating the four cases over `--rounds` rounds (medians; the machine's noise falls on all);
@@ -77,8 +77,8 @@ def _seams(checkpoint: Path, pairs: int, seed: int) -> dict[str, float]:
 
 
 @app.command()
-def main(checkpoint: Path = typer.Option(Path("out/speaker_ref.ckpt"), help="speaker with a reference clip and F"),
-         bundle: Path = typer.Option(Path("out/ref.gtb"), help="its exported bundle"),
+def main(checkpoint: Path = typer.Option(Path("out/speaker.ckpt"), help="speaker with a reference clip and F"),
+         bundle: Path = typer.Option(Path("out/speaker.gtb"), help="its exported bundle"),
          seconds: float = typer.Option(4.0, help="audio per FPS case"),
          rounds: int = typer.Option(3, min=1, help="alternating rounds"),
          pairs: int = typer.Option(12, min=1, help="re-rendered frames for the seam measure"),
