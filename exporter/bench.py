@@ -126,8 +126,20 @@ def main(
     out: Path = typer.Option(Path("bench-sweep"), "--out", help="with --sweep: folder for the report files"),
     scene: Path = typer.Option(None, "--scene", help="with --sweep: each preset plain and specialised for this scene "
                                "file (docs/scene.md), side by side (use --sizes at the scene's resolution)"),
+    composite: bool = typer.Option(False, "--composite", help="compositing into the reference clip of --checkpoint "
+                                   "(a speaker with one): FPS composited and bare at the clip's size and 512x512, "
+                                   "F's cost, seam steps (docs/compositing.md); writes --out/composite.md"),
 ) -> None:
-    """Benchmark the demo speaker through the runtime and the torch reference (or against --baseline, or --sweep)."""
+    """Benchmark the demo speaker through the runtime and the torch reference (or against --baseline, --sweep or
+    --composite)."""
+    if composite:
+        if checkpoint is None:
+            raise typer.BadParameter("--composite needs --checkpoint (a speaker with a reference clip)",
+                                     param_hint="--checkpoint")
+        from .bench_composite import run_composite_bench
+
+        run_composite_bench(checkpoint, None, seconds, rounds, 12, out / "composite.md")
+        return
     if sweep:
         if skip_demo and sweep_gaussians == 0:
             raise typer.BadParameter("--skip-demo needs a synthetic speaker (--sweep-gaussians > 0)",
@@ -143,6 +155,7 @@ def main(
 
     if checkpoint is not None:
         speaker = load_checkpoint(checkpoint)
+        speaker.reference = speaker.inpaint = None  # the bare head (compositing: exporter/bench_composite.py)
     else:
         speaker, _ = make_demo_speaker(gaussians, train_seconds=0, progress=False)
     audio = synth_speech(seconds, seed=7)
@@ -222,6 +235,7 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
     size_list = [int(s) for s in sizes.split(",")]
     if checkpoint is not None:
         demo = load_checkpoint(checkpoint)
+        demo.reference = demo.inpaint = None  # the bare head (compositing: exporter/bench_composite.py)
     else:
         typer.echo("building the demo speaker (its translator trains for a few minutes; --checkpoint skips this)")
         demo, _ = make_demo_speaker(gaussians)

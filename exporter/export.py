@@ -97,6 +97,8 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     if spec is not None:
         speaker, camera = spec.speaker, spec.camera
         background = list(spec.scene.background_color or background)
+        # A scene fixes its own camera and background: the reference clip (another camera) is left out.
+        speaker.reference = speaker.inpaint = None
     if settings.gaussian_budget is not None:
         speaker = apply_budget(speaker, settings.gaussian_budget, progress=progress)
     writer = BundleWriter(metadata={

@@ -287,3 +287,16 @@ def test_semantic_pass_and_region_weights(clip_export):
         assert np.abs(semantic.astype(int) - expected).max() <= 1
         lips = weights[..., regions.names.index("lips")]
         assert lips.max() > 0.5 and (weights.argmax(-1) == regions.names.index("skin")).sum() > 100
+
+
+def test_scene_export_leaves_the_clip_out(clip_export):
+    from gaussiantalker.exporter.export import export_bundle
+    from gaussiantalker.sdk.bundle import Bundle
+    from gaussiantalker.sdk.scene import Scene
+
+    scene = Scene.from_dict({"camera": {"width": 64, "height": 64}, "head": {"rotation_deg": [[-5, 5]] * 3}})
+    path = clip_export.folder / "scene.gtb"
+    export_bundle(clip_export.speaker, path, scene=scene, progress=False)
+    manifest = Bundle(path).manifest
+    assert "scene" in manifest and "reference" not in manifest and "inpaint" not in manifest["graphs"]
+    assert clip_export.speaker.reference is not None  # the caller's speaker keeps its clip
