@@ -207,6 +207,7 @@ class EncodedClip:
     def from_arrays(cls, frames: Iterable[np.ndarray], masks: Iterable[np.ndarray], camera: Camera) -> EncodedClip:
         """Encode frames (uint8 [H, W, 3]) and masks (float [H, W] in [0, 1]) of `camera`'s size, checking each."""
         size = (camera.width, camera.height)
+        ClipLayout(1, camera)  # the camera's size is checked (even sides) before anything is encoded
         encoded_frames, encoded_masks = [], []
         for index, (frame, mask) in enumerate(zip(frames, masks, strict=True)):
             frame = np.asarray(frame)

@@ -96,6 +96,9 @@ def test_bad_clip_arrays_are_refused_naming_the_problem(change, message):
 def test_layout_refuses_odd_sides_and_unknown_fields():
     with pytest.raises(ReferenceClipError, match="even sides"):
         ClipLayout(2, Camera(33, 24, 30.0, 30.0, 16.0, 12.0))
+    with pytest.raises(ReferenceClipError, match="even sides"):  # before the encoder sees an odd frame
+        EncodedClip.from_arrays([np.zeros((24, 33, 3), np.uint8)], [np.ones((24, 33), np.float32)],
+                                Camera(33, 24, 30.0, 30.0, 16.0, 12.0))
     data = ClipLayout(2, Camera(32, 24, 30.0, 30.0, 16.0, 12.0)).to_dict()
     with pytest.raises(ReferenceClipError, match="unknown field"):
         ClipLayout.from_dict({**data, "fps": 25})
