@@ -21,11 +21,11 @@ from .camera import Camera
 from .errors import BundleError, CameraError, GaussianTalkerError
 
 # Stored codec name -> (libavcodec encoder, decoder). Frames: intra-only H.264, every frame its own keyframe so it
-# decodes alone (2.4x smaller than JPEG at the same PSNR on the demo clip, docs/compositing.md); masks: 8-bit grey
+# decodes alone (0.76x the bytes of JPEG at the same PSNR on the demo clip, docs/compositing.md); masks: 8-bit grey
 # PNG (lossless).
 FRAME_CODECS = {"h264": ("libx264", "h264")}
 MASK_CODECS = {"png": ("png", "png")}
-# x264 constant-rate factor of stored frames: 18 keeps the demo clip at ~39 dB (visually lossless).
+# x264 constant-rate factor of stored frames: 18 keeps the demo clip above 40 dB (visually lossless).
 H264_CRF = 18
 MAX_CLIP_FRAMES = 100_000
 # A mask must have at least this many pixels at M >= 0.5: a clip "with no face in the mask" is refused.
