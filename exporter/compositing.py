@@ -19,9 +19,11 @@ def reference_payload(clip: EncodedClip | None) -> dict | None:
     """A clip as checkpoint content: its layout and one uint8 tensor per encoded frame and mask."""
     if clip is None:
         return None
-    as_tensors = [torch.frombuffer(bytearray(data), dtype=torch.uint8) for data in clip.frames]
-    return {"layout": clip.layout.to_dict(), "frames": as_tensors,
-            "masks": [torch.frombuffer(bytearray(data), dtype=torch.uint8) for data in clip.masks]}
+
+    def as_tensors(entries: list[bytes]) -> list[torch.Tensor]:
+        return [torch.frombuffer(bytearray(data), dtype=torch.uint8) for data in entries]
+
+    return {"layout": clip.layout.to_dict(), "frames": as_tensors(clip.frames), "masks": as_tensors(clip.masks)}
 
 
 def _byte_entries(path: Path, name: str, values) -> list[bytes]:

@@ -97,8 +97,6 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     if spec is not None:
         speaker, camera = spec.speaker, spec.camera
         background = list(spec.scene.background_color or background)
-        # A scene fixes its own camera and background: the reference clip (another camera) is left out.
-        speaker.reference = speaker.inpaint = None
     if settings.gaussian_budget is not None:
         speaker = apply_budget(speaker, settings.gaussian_budget, progress=progress)
     writer = BundleWriter(metadata={
@@ -113,7 +111,8 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         **({} if spec is None else {"scene": spec.scene.to_dict(),
                                     "specialisation": [asdict(r) for r in spec.removals]}),
     })
-    if speaker.reference is not None:
+    # A scene fixes its own camera and background: the reference clip (seen through another camera) is left out.
+    if spec is None and speaker.reference is not None:
         writer.metadata["reference"] = speaker.reference.layout.to_dict()
         writer.metadata["inpaint"] = {"generator": "learned" if speaker.inpaint is not None else "opencv_fallback",
                                       "crop_margin": CROP_MARGIN_PX, "crop_multiple": CROP_MULTIPLE}
@@ -153,7 +152,8 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
     steps.update()
 
     steps.set_postfix_str("reference clip")
-    _add_reference(speaker, writer, result, settings)
+    if spec is None:  # a scene's bundle holds no clip (export_bundle)
+        _add_reference(speaker, writer, result, settings)
     steps.update()
 
     steps.set_postfix_str("writing bundle")

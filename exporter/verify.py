@@ -31,9 +31,8 @@ from tqdm import tqdm
 from gaussiantalker.runtime.composite import crop_box
 from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.runtime.translate import translate_audio
-from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame
+from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame, track_row
 from gaussiantalker.sdk.image import max_abs_error, psnr_db, to_uint8
-from gaussiantalker.sdk.reference_clip import clip_row
 
 from .compositing import composite_reference
 from .demo_audio import synth_speech
@@ -192,7 +191,7 @@ def verify_composited(speaker: Speaker, head: TalkingHead, frames: int = 12, see
                                       disable=not progress)):
         image, trans = speaker.render(torch_drives[index], head.camera, background, transmittance=True)
         premultiplied = np.dstack([image.numpy(), 1.0 - trans.numpy()]).astype(np.float32)
-        row = clip_row(len(head.reference), index)
+        row = track_row(len(head.reference), index)
         reference = composite_reference(premultiplied, head.reference.frame(row), head.reference.mask(row),
                                         speaker.inpaint)
         results.append({"index": index, "psnr_db": psnr_db(reference, test),

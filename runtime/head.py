@@ -18,6 +18,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from itertools import chain
 from pathlib import Path
 from typing import Literal
 
@@ -27,9 +28,9 @@ from gaussiantalker.sdk.audio import load_audio, prepare_audio
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import SpeakerConfig
-from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame
+from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame, track_row
 from gaussiantalker.sdk.errors import AudioError, BundleError, RenderError
-from gaussiantalker.sdk.reference_clip import ReferenceClip, clip_row
+from gaussiantalker.sdk.reference_clip import ReferenceClip
 from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.sdk.scene import Scene, SceneError, SceneGuard
 from gaussiantalker.sdk.video import VideoWriter
@@ -227,9 +228,7 @@ class TalkingHead:
             if reference_frame is not None:
                 raise RenderError("the semantic pass is the bare head's; it takes no reference_frame")
             g = self.gaussians(drive)
-            colors = self.regions.gaussian_colors(g["opacity"].shape[0])
-            prepared = self.splatter.prepare(g["means"], g["cov3d"], colors, g["opacity"], self.camera)
-            return self.splatter.draw(prepared, (0.0, 0.0, 0.0), output="uint8")
+            return self._draw_in_colors(g, self.regions.gaussian_colors(g["opacity"].shape[0]), "uint8")
         if reference_frame is None:
             return self.draw(self.prepare(drive), output)
         self._check_composite_output(output)
@@ -250,10 +249,13 @@ class TalkingHead:
         count, names = g["opacity"].shape[0], self.regions.names
         passes = []
         for first in range(0, len(names), 3):
-            colors = self.regions.one_hot(count, first)
-            prepared = self.splatter.prepare(g["means"], g["cov3d"], colors, g["opacity"], self.camera)
-            passes.append(self.splatter.draw(prepared, (0.0, 0.0, 0.0), output="float"))
+            passes.append(self._draw_in_colors(g, self.regions.one_hot(count, first), "float"))
         return np.concatenate(passes, axis=-1)[..., : len(names)]
+
+    def _draw_in_colors(self, g: dict[str, np.ndarray], colors: np.ndarray, output: FrameOutput) -> np.ndarray:
+        """A frame's Gaussians `g` drawn with these colours [N, 3] instead of their own, over black."""
+        prepared = self.splatter.prepare(g["means"], g["cov3d"], colors, g["opacity"], self.camera)
+        return self.splatter.draw(prepared, (0.0, 0.0, 0.0), output=output)
 
     def _check_composite_output(self, output: str) -> None:
         if not self.composite:
@@ -292,23 +294,24 @@ class TalkingHead:
         frame t (onnxruntime and numpy release the GIL), so the two stages overlap instead of adding up.
         When compositing, each frame goes into the reference clip's picture at the same index as its pose.
         """
-        if self.composite:
-            self._check_composite_output(output)
-            if head_pose is not None:
-                raise RenderError("a composited head follows the reference clip's pose track (any other pose "
-                                  "would misalign it with the clip); pass composite=False to set head_pose")
         if not self.composite:
-            with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-deform") as pool:
-                pending = None
-                for drive in self.drives(audio, sample_rate, head_pose):
-                    upcoming = pool.submit(self.prepare, drive)
-                    if pending is not None:
-                        yield self.draw(pending.result(), output)
-                    pending = upcoming
-                if pending is not None:
-                    yield self.draw(pending.result(), output)
+            yield from self._bare_frames(self.drives(audio, sample_rate, head_pose), output)
             return
+        self._check_composite_output(output)
+        if head_pose is not None:
+            raise RenderError("a composited head follows the reference clip's pose track (any other pose "
+                              "would misalign it with the clip); pass composite=False to set head_pose")
         yield from self._composited_frames(self.drives(audio, sample_rate))
+
+    def _bare_frames(self, drives: Iterator[FrameDrive], output: FrameOutput) -> Iterator[np.ndarray]:
+        """Two overlapping stages: frame t+1 prepared on a worker thread while frame t is drawn."""
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-deform") as pool:
+            prepared = None
+            # The trailing None flushes the last prepared frame; the next frame is submitted before one is drawn.
+            for upcoming in chain((pool.submit(self.prepare, drive) for drive in drives), [None]):
+                if prepared is not None:
+                    yield self.draw(prepared.result(), output)
+                prepared = upcoming
 
     def _composited_frames(self, drives: Iterator[FrameDrive]) -> Iterator[np.ndarray]:
         """Three overlapping stages: frame t+1 prepared with its reference picture decoded, frame t drawn, frame
@@ -317,28 +320,23 @@ class TalkingHead:
         with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-deform") as prepare_pool, \
                 ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-composite") as composite_pool:
             prepared = composited = None
-            for index, drive in enumerate(drives):
-                upcoming = prepare_pool.submit(self._prepare_composited, drive, index)
+            submitted = (prepare_pool.submit(self._prepare_composited, drive, index)
+                         for index, drive in enumerate(drives))
+            for upcoming in chain(submitted, [None]):
                 if prepared is not None:
-                    drawn = composite_pool.submit(self._composite, self.draw(prepared.result()[0], "rgba_float"),
-                                                  *prepared.result()[1:])
+                    splats, picture, mask = prepared.result()
+                    drawn = composite_pool.submit(self._composite, self.draw(splats, "rgba_float"), picture, mask)
                     if composited is not None:
                         yield composited.result()
                     composited = drawn
                 prepared = upcoming
-            if prepared is not None:
-                drawn = composite_pool.submit(self._composite, self.draw(prepared.result()[0], "rgba_float"),
-                                              *prepared.result()[1:])
-                if composited is not None:
-                    yield composited.result()
-                composited = drawn
             if composited is not None:
                 yield composited.result()
 
     def _reference_picture(self, index: int) -> tuple[np.ndarray, np.ndarray]:
         """The reference frame and mask video frame `index` is composited into (the clip forth and back), timed."""
         start = time.perf_counter()
-        row = clip_row(len(self.reference), int(index))
+        row = track_row(len(self.reference), int(index))
         picture, mask = self.reference.frame(row), self.reference.mask(row)
         self._record("reference", time.perf_counter() - start)
         return picture, mask

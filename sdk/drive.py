@@ -93,12 +93,17 @@ class FrameDrive:
                 "head_translation": self.head_translation[None]}
 
 
-def pose_track_frame(track: np.ndarray, index: int) -> HeadPose:
-    """Head pose of frame `index` from a [T, 6] track (rotation, translation), played forth and back (no jump)."""
-    count = track.shape[0]
+def track_row(count: int, index: int) -> int:
+    """Row shown at video frame `index` of a track (or reference clip) of `count` rows, played forth and back
+    (0, 1, ..., count - 1, count - 2, ..., 1, 0, ...: no jump)."""
     if count == 1:
-        return HeadPose.make(track[0, :3], track[0, 3:])
+        return 0
     period = 2 * (count - 1)
     phase = index % period
-    row = phase if phase < count else period - phase
-    return HeadPose.make(track[row, :3], track[row, 3:])
+    return phase if phase < count else period - phase
+
+
+def pose_track_frame(track: np.ndarray, index: int) -> HeadPose:
+    """Head pose of frame `index` from a [T, 6] track (rotation, translation), played forth and back (no jump)."""
+    row = track[track_row(track.shape[0], index)]
+    return HeadPose.make(row[:3], row[3:])

@@ -3,7 +3,8 @@
 The composited frame is I = (1 - M) I_ori + M F(I_gau + (1 - M) I_ori) (docs/compositing.md). A clip is stored
 encoded, one entry per frame and per mask (intra-only H.264 frames, 8-bit PNG masks; the choice is measured in
 docs/compositing.md), so a player decodes any frame alone, one at a time, and never holds the decoded clip. Frame i is
-aligned with row i of the speaker's pose track; the clip is played forth and back like the track.
+aligned with row i of the speaker's pose track; the clip is played forth and back like the track
+(`drive.track_row`).
 
 Encoding and decoding go through PyAV (libavcodec), which the runtime already needs for video out.
 """
@@ -240,16 +241,6 @@ class EncodedClip:
     def nbytes(self) -> int:
         """Encoded size of every frame and mask."""
         return sum(len(b) for b in self.frames) + sum(len(b) for b in self.masks)
-
-
-def clip_row(count: int, index: int) -> int:
-    """Clip frame shown at video frame `index`: forth and back through `count` frames (no jump), as the pose
-    track is played (`drive.pose_track_frame`)."""
-    if count == 1:
-        return 0
-    period = 2 * (count - 1)
-    phase = index % period
-    return phase if phase < count else period - phase
 
 
 class ReferenceClip:

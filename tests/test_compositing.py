@@ -13,14 +13,13 @@ import torch
 
 from gaussiantalker.runtime.composite import CROP_MARGIN_PX, CROP_MULTIPLE, composite, crop_box, opencv_fallback
 from gaussiantalker.sdk.camera import Camera
-from gaussiantalker.sdk.drive import FrameDrive
+from gaussiantalker.sdk.drive import FrameDrive, track_row
 from gaussiantalker.sdk.errors import BundleError, CheckpointError, RenderError
 from gaussiantalker.sdk.image import psnr_db, seam_step, to_uint8
 from gaussiantalker.sdk.reference_clip import (
     ClipLayout,
     EncodedClip,
     ReferenceClipError,
-    clip_row,
     decode_frame,
     decode_mask,
     frame_entry,
@@ -71,7 +70,7 @@ def test_clip_entries_round_trip_and_play_forth_and_back():
         # Masks are stored as their 8-bit levels, losslessly: exactly round(M * 255) / 255.
         np.testing.assert_array_equal(decode_mask(clip.masks[k], clip.layout, "m"),
                                       np.round(masks[k] * 255).astype(np.float32) / 255)
-    assert [clip_row(3, i) for i in range(8)] == [0, 1, 2, 1, 0, 1, 2, 1]
+    assert [track_row(3, i) for i in range(8)] == [0, 1, 2, 1, 0, 1, 2, 1]
     assert ClipLayout.from_dict(clip.layout.to_dict()).to_dict() == clip.layout.to_dict()
 
 
@@ -227,7 +226,7 @@ def test_head_composites_into_the_clip_following_its_track(clip_export, tmp_path
         drives = list(head.drives(audio, head.config.sample_rate))
         assert len(frames) == 6 and frames[0].shape == (CLIP_SIZE[1], CLIP_SIZE[0], 3)
         for index in (0, 5):  # frame 5 shows clip frame 1 (forth and back through 4 frames)
-            row = clip_row(CLIP_FRAMES, index)
+            row = track_row(CLIP_FRAMES, index)
             picture, mask = head.reference.frame(row), head.reference.mask(row)
             outside = mask == 0
             np.testing.assert_array_equal(frames[index][outside], picture[outside])
