@@ -72,6 +72,8 @@ def export(
                                         "contributors over a driven clip and a head-pose sweep"),
     scene: Path = typer.Option(None, "--scene", help="compile the bundle for a scene (TOML/JSON, docs/scene.md): "
                                "leave out what it never uses, record it in the bundle"),
+    mnn: bool = typer.Option(False, "--mnn", help="also store every graph as an MNN model, for "
+                             "TalkingHead(backend='mnn') and native ports (docs/mnn.md; needs the mnn extra)"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bars"),
 ) -> None:
     """Export a speaker checkpoint to a bundle; with --verify, place it only if it reproduces the torch frames.
@@ -96,13 +98,16 @@ def export(
         # has passed), so a failed or interrupted run never replaces a good bundle.
         with atomic_path(output) as staged:
             result = export_bundle(speaker, staged, settings=settings, preset=chosen, progress=not quiet,
-                                   scene=scene_spec)
+                                   scene=scene_spec, mnn=mnn)
             if result.specialisation is not None:
                 from .specialise import format_removals
 
                 typer.echo(format_removals(result.specialisation.removals))
             typer.echo(f"wrote {result.bytes_written / 1e6:.2f} MB bundle ({result.gaussians} Gaussians, "
                        f"tier {result.tier}, graphs: {', '.join(result.graphs)})")
+            if result.mnn:
+                typer.echo("MNN graphs: " + ", ".join(f"{name} {size / 1e6:.2f} MB" for name, size in
+                                                      result.mnn.items()))
             if verify:
                 from .verify import Tolerances
 

@@ -143,6 +143,7 @@ class DeformationGraph(nn.Module):
         # Stored as logs (uniform relative error when quantised); exp is folded by onnxruntime at load.
         self.register_buffer("log_scale", g.log_scale.T.contiguous())  # [3, N]
         self.register_buffer("opacity", torch.sigmoid(g.opacity_logit).clone())  # [N]
+        self.register_buffer("cov_entries", torch.tensor(_COV_ENTRIES))  # upper triangle of a row-major 3x3
         k = sh_coeff_count(self.sh_degree)
         if self.sh_degree > 0:
             self.register_buffer("sh_rest", g.sh[:, 1:k].permute(2, 1, 0).contiguous())  # [3, K-1, N]
@@ -195,7 +196,7 @@ class DeformationGraph(nn.Module):
         scale_bar = torch.exp(self.log_scale)  # [3, N]
         m = world_rotation * (scale.unsqueeze(1) * scale_bar).unsqueeze(1)  # R R_local diag(s) [B, 3, 3, N]
         cov = (m.unsqueeze(2) * m.unsqueeze(1)).sum(3).reshape(batch, 9, n)  # m m^T, row-major [B, 9, N]
-        cov3d = cov[:, _COV_ENTRIES]  # [B, 6, N]
+        cov3d = cov.index_select(1, self.cov_entries)  # [B, 6, N]
 
         rgb = SH_C0 * dc  # [B, 3, N]
         if self.sh_degree > 0:

@@ -24,6 +24,7 @@ from . import onnx_export
 from .deform_graph import DeformationGraph
 from .graph_precision import convert_precision
 from .inpaint import export_inpaint
+from .mnn_export import add_mnn_graphs, mnn_version
 from .onnx_export import add_graph
 from .prune import apply_budget
 from .speaker import Speaker
@@ -47,6 +48,7 @@ class ExportResult:
     tier: str = "fp32"  # the manifest's "precision": fp32, fp16, a preset's name, NAME+custom or custom
     gaussians: int = 0  # Gaussians in the bundle (after scene pruning and a Gaussian budget)
     specialisation: Specialisation | None = None  # what a scene let the export leave out (exporter/specialise.py)
+    mnn: dict = field(default_factory=dict)  # bytes of each graph's .mnn model (`mnn=True`, docs/mnn.md)
 
     def group_bytes(self) -> dict[str, int]:
         """Stored bytes per codec group (exporter/tiers.py) plus 'other' (pose track, index buffers, ...)."""
@@ -82,14 +84,18 @@ def resolve_settings(codec: str | None = None, settings: ExportSettings | None =
 
 def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, codec: str | None = None,
                   settings: ExportSettings | None = None, preset: str | Preset | None = None, progress: bool = True,
-                  example_frames: int = 8, scene: Scene | Specialisation | None = None) -> ExportResult:
+                  example_frames: int = 8, scene: Scene | Specialisation | None = None, mnn: bool = False
+                  ) -> ExportResult:
     """Export `speaker` to one bundle file at `path` (written atomically), or into a file staged by `atomic_path`.
 
     The speed/accuracy knobs (exporter/tiers.py, docs/precision.md): `preset` names a tier (its runtime defaults
     are stored in the bundle), `codec` stores every buffer with one codec, `settings` sets each knob. `scene`
     (docs/scene.md) compiles the bundle for one scene, leaving out what it never uses (or an already measured
-    `specialise` result for it); the bundle records the scene and its camera."""
+    `specialise` result for it); the bundle records the scene and its camera. `mnn` also stores every graph as
+    an MNN model (docs/mnn.md; needs the `mnn` extra)."""
     settings, chosen, tier = resolve_settings(codec, settings, preset)
+    if mnn:
+        mnn_version()  # a missing converter fails here, before any graph is exported
     speaker = speaker.eval()
     spec = (specialise(speaker, scene, progress=progress, sh_degree_cap=settings.sh_degree)
             if isinstance(scene, Scene) else scene)
@@ -116,20 +122,21 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         writer.metadata["reference"] = speaker.reference.layout.to_dict()
         writer.metadata["inpaint"] = {"generator": "learned" if speaker.inpaint is not None else "opencv_fallback",
                                       "crop_margin": CROP_MARGIN_PX, "crop_multiple": CROP_MULTIPLE}
-    steps = tqdm(total=4, desc="gt-export", unit="step", disable=not progress)
+    steps = tqdm(total=5 if mnn else 4, desc="gt-export", unit="step", disable=not progress)
     result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings, tier=tier,
                           gaussians=speaker.gaussians.count, specialisation=spec)
     try:
-        _export_steps(speaker, writer, path, result, settings, example_frames, steps, spec)
+        _export_steps(speaker, writer, path, result, settings, example_frames, steps, spec, mnn)
     finally:
         steps.close()
     return result
 
 
 def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLike | StagedFile, result: ExportResult,
-                  settings: ExportSettings, example_frames: int, steps: tqdm, spec: Specialisation | None) -> None:
-    """Both graphs into `writer`, then one atomic write: nothing reaches `result.path` until every step worked.
-    A flame-driven scene has no translator graph."""
+                  settings: ExportSettings, example_frames: int, steps: tqdm, spec: Specialisation | None,
+                  mnn: bool) -> None:
+    """Both graphs into `writer` (and their MNN models), then one atomic write: nothing reaches `result.path`
+    until every step worked. A flame-driven scene has no translator graph."""
     steps.set_postfix_str("translator graph")
     if spec is None or spec.has_translator:
         model = convert_precision(translator_onnx(speaker.translator, example_frames), settings.translator_precision)
@@ -155,6 +162,11 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
     if spec is None:  # a scene's bundle holds no clip (export_bundle)
         _add_reference(speaker, writer, result, settings)
     steps.update()
+
+    if mnn:
+        steps.set_postfix_str("MNN graphs")
+        result.mnn = add_mnn_graphs(writer)
+        steps.update()
 
     steps.set_postfix_str("writing bundle")
     regions = speaker.flame_arrays.regions

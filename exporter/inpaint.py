@@ -84,8 +84,9 @@ def crop_multiple_ok(height: int, width: int) -> bool:
 
 
 def _sanitize(x: torch.Tensor) -> torch.Tensor:
-    """NaN -> 0, then clamp into INPUT_RANGE (which also takes ±inf); 3x cheaper in onnxruntime than nan_to_num."""
-    return torch.where(torch.isnan(x), 0.0, x).clamp(*INPUT_RANGE)
+    """NaN -> 0, then clamp into INPUT_RANGE (which also takes ±inf); 3x cheaper in onnxruntime than nan_to_num.
+    NaN is found as x != x: MNN has no IsNaN operator, and the comparison is the same test in every backend."""
+    return torch.where(x == x, x, 0.0).clamp(*INPUT_RANGE)
 
 
 def _half(x: torch.Tensor) -> torch.Tensor:

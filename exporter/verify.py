@@ -14,6 +14,10 @@ Tolerances (why these numbers):
   clip against the torch render composited with the torch F, into the same decoded reference pictures, at the
   frame bounds above (outside the mask both are the reference picture exactly); the `inpaint` graph against the
   torch F on random crops and the clip's own crops, to GRAPH_RTOL.
+* MNN graphs (`gt-export --mnn`, docs/mnn.md): each MNN graph against the onnxruntime graph on the same inputs,
+  max |mnn - onnxruntime| <= MNN_RTOL * max |onnxruntime| per output (both run the same decoded float32 weights,
+  so only kernel rounding differs: ~3e-7 measured on the demo speaker), plus the MNN backend's graphs and frames
+  against torch at the tier's bounds above.
 * a scene's bundle (docs/scene.md): its deformation graph leaves out drives outside the scene by design, so it
   is judged by its frames of a driven clip inside the scene, at the scene's camera: SCENE_MIN_PSNR_DB on float and
   8-bit frames (or the tier's bound, if lower).
@@ -43,6 +47,8 @@ GRAPH_RTOL = 1e-4
 HEAD_PSNR_FLOOR_DB = 30.0
 # A pixel belongs to the head region when the torch frame's coverage 1 - T exceeds this (the contract's ALPHA_MIN).
 HEAD_COVERAGE = 1.0 / 255.0
+# MNN vs onnxruntime graph outputs, relative to each output's largest magnitude (fp32 graphs).
+MNN_RTOL = 1e-5
 # Frame bound of a scene-specialised bundle against the torch speaker (what the scene tests hold it to).
 SCENE_MIN_PSNR_DB = 50.0
 
@@ -254,6 +260,67 @@ def verify_frames(speaker: Speaker, head: TalkingHead, frames: int = 25, seed: i
             "max_pixel_error": max(r["max_pixel_error"] for r in results), "passed": passed}
 
 
+def _agreement_cases(speaker: Speaker, head: TalkingHead, seed: int = 0) -> list[tuple[str, dict]]:
+    """(graph, inputs) pairs the two backends are compared on: speech clips, random drives, random crops."""
+    cases: list[tuple[str, dict]] = []
+    spf = speaker.config.samples_per_frame
+    if head.has_translator:
+        for i, frames in enumerate((25, 33)):
+            audio = synth_speech(frames * spf / speaker.config.sample_rate, seed=seed + i)[: frames * spf]
+            cases.append(("translator", {"audio": np.ascontiguousarray(audio[None], np.float32)}))
+    center = head.camera.center.astype(np.float32)[None]
+    for drive in _random_drives(speaker.config.n_expr, 4, seed):
+        cases.append(("deform", {**drive.graph_inputs(), "camera_center": center}))
+    if "inpaint" in head.bundle.manifest["graphs"]:
+        rng = np.random.default_rng(seed)
+        for h, w in ((64, 64), (96, 160)):
+            cases.append(("inpaint", {"image": rng.random((1, 3, h, w), np.float32),
+                                      "mask": rng.random((1, 1, h, w), np.float32),
+                                      "coverage": rng.random((1, 1, h, w), np.float32)}))
+    return cases
+
+
+def verify_backend_agreement(reference: TalkingHead, test: TalkingHead, cases: list[tuple[str, dict]],
+                             tolerance: float = MNN_RTOL) -> dict[str, dict]:
+    """Per graph: the worst max |test - reference| / max |reference| over every output and case."""
+    rows: dict[str, dict] = {}
+    for graph, inputs in cases:
+        expected, actual = reference.graphs.run(graph, inputs), test.graphs.run(graph, inputs)
+        row = rows.setdefault(graph, {"max_abs_err": 0.0, "max_rel_err": 0.0, "finite": True, "cases": 0,
+                                      "tolerance_rel": tolerance})
+        for name, value in expected.items():
+            err = max_abs_error(value, actual[name])
+            row["max_abs_err"] = max(row["max_abs_err"], err)
+            row["max_rel_err"] = max(row["max_rel_err"], err / max(float(np.abs(value).max(initial=0.0)), 1e-30))
+            row["finite"] = row["finite"] and bool(np.all(np.isfinite(actual[name])))
+        row["cases"] += 1
+    for row in rows.values():
+        row["passed"] = row["finite"] and row["max_rel_err"] <= tolerance
+    return rows
+
+
+def verify_mnn(speaker: Speaker, head: TalkingHead, bundle_path, frames: int = 25, seed: int = 1,
+               tolerances: Tolerances = Tolerances()) -> dict:
+    """The bundle's MNN graphs against its onnxruntime graphs (`head`): graph outputs to MNN_RTOL, and the frames
+    of a driven clip rendered from each backend's drives at the frame bounds."""
+    with TalkingHead(bundle_path, resolution=(head.camera.width, head.camera.height), composite=False,
+                     backend="mnn") as mnn_head:
+        graphs = verify_backend_agreement(head, mnn_head, _agreement_cases(speaker, head))
+        audio, torch_drives = driven_clip(speaker, frames, seed)
+        if head.has_translator:
+            pairs = zip(head.frames(audio, speaker.config.sample_rate),
+                        mnn_head.frames(audio, speaker.config.sample_rate), strict=True)
+        else:  # a flame-driven scene's bundle: the torch translator's drives
+            pairs = ((head.render(drive), mnn_head.render(drive)) for drive in torch_drives)
+        results = [{"psnr_db": psnr_db(reference, test),
+                    "max_pixel_error": int(np.abs(reference.astype(np.int16) - test.astype(np.int16)).max())}
+                   for reference, test in pairs]
+    min8 = min(r["psnr_db"] for r in results)
+    passed = min8 >= tolerances.min_psnr_uint8_db and all(g["passed"] for g in graphs.values())
+    return {"converter": head.bundle.manifest["mnn"].get("converter"), "graphs": graphs, "frames": len(results),
+            "min_psnr_db": min8, "max_pixel_error": max(r["max_pixel_error"] for r in results), "passed": passed}
+
+
 def verify_bundle(speaker: Speaker, bundle_path, *, frames: int = 25, resolution: tuple[int, int] | None = (256, 256),
                   tolerances: Tolerances = Tolerances(), progress: bool = True) -> dict:
     """The full report `gt-export --verify` prints and `--report` writes as JSON (`resolution` None: the bundle's
@@ -271,6 +338,8 @@ def verify_bundle(speaker: Speaker, bundle_path, *, frames: int = 25, resolution
             with TalkingHead(bundle_path, resolution=(width // 4 * 2, height // 4 * 2)) as clip_head:
                 graphs["inpaint"] = verify_inpaint(speaker, clip_head, tolerance=tolerances.graph_rtol)
                 composited = verify_composited(speaker, clip_head, tolerances=tolerances, progress=progress)
+        mnn = verify_mnn(speaker, head, bundle_path, frames, tolerances=tolerances) if "mnn" in head.bundle.manifest \
+            else None
     report = {
         "bundle": str(bundle_path),
         "resolution": list(resolution),
@@ -281,8 +350,10 @@ def verify_bundle(speaker: Speaker, bundle_path, *, frames: int = 25, resolution
     }
     if composited is not None:
         report["composited"] = composited
+    if mnn is not None:
+        report["mnn"] = mnn
     report["passed"] = (frame_report["passed"] and all(g["passed"] for g in graphs.values())
-                        and (composited is None or composited["passed"]))
+                        and (composited is None or composited["passed"]) and (mnn is None or mnn["passed"]))
     return report
 
 
@@ -309,6 +380,14 @@ def format_report(report: dict) -> str:
         lines.append(f"composited: {len(composited['frames'])} frames at {w}x{h} ({composited['generator']} F); "
                      f"8-bit PSNR min {composited['min_psnr_db']:.2f} dB, max pixel error "
                      f"{composited['max_pixel_error']} levels {'ok' if composited['passed'] else 'NO'}")
+    mnn = report.get("mnn")
+    if mnn is not None:
+        for name, g in mnn["graphs"].items():
+            lines.append(f"{'mnn ' + name:<12}{g['max_abs_err']:>14.3e}{g['max_rel_err']:>14.3e}"
+                         f"{g['tolerance_rel']:>12.0e}  {'yes' if g['passed'] else 'NO'}  (vs onnxruntime)")
+        lines.append(f"mnn frames: {mnn['frames']} vs onnxruntime's, 8-bit PSNR min {mnn['min_psnr_db']:.2f} dB, "
+                     f"max pixel error {mnn['max_pixel_error']} levels ({mnn['converter']}) "
+                     f"{'ok' if mnn['passed'] else 'NO'}")
     bounds = report["tolerances"]
     head_bound = "" if bounds["min_head_psnr_db"] is None else f", head region >= {bounds['min_head_psnr_db']} dB"
     lines.append(f"verification {'PASSED' if report['passed'] else 'FAILED'} for tier {report.get('tier')} (8-bit >= "

@@ -1,4 +1,4 @@
-"""Graph execution behind a small backend interface; onnxruntime is the one backend today (MNN may follow).
+"""Graph execution behind a small backend interface: onnxruntime (the default) or MNN (runtime/mnn_backend.py).
 
 A bundle's graphs hold no weights: each weight is a bundle buffer (decoded by its codec) handed to
 onnxruntime as an external initializer, so ORT still constant-folds and pre-packs it like an inline weight.
@@ -28,10 +28,24 @@ SPEAKER_GRAPHS = ("translator", "deform")
 POSE_TRACK_WIDTH = 6
 
 
+GRAPH_BACKENDS = ("onnxruntime", "mnn")
+
+
 class GraphBackend(Protocol):
     """What the runtime needs from a graph executor."""
 
     def run(self, graph: str, inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...
+
+
+def open_backend(bundle: Bundle, backend: str = "onnxruntime", threads: int | None = None) -> GraphBackend:
+    """The bundle's graphs ready to run on `backend` ("onnxruntime" or "mnn"), every entry read and checked."""
+    if backend == "onnxruntime":
+        return OnnxRuntimeBackend(bundle, threads=threads)
+    if backend == "mnn":
+        from .mnn_backend import MnnBackend  # noqa: PLC0415 - MNN is an optional extra
+
+        return MnnBackend(bundle, threads=threads)
+    raise ValueError(f"unknown graph backend {backend!r} (known: {', '.join(GRAPH_BACKENDS)})")
 
 
 @dataclass

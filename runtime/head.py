@@ -37,7 +37,7 @@ from gaussiantalker.sdk.video import VideoWriter
 from gaussiantalker.sdk.video_formats import plan_video
 
 from .composite import Inpainter, composite, graph_inpainter, opencv_fallback
-from .graphs import GraphBackend, OnnxRuntimeBackend
+from .graphs import GraphBackend, open_backend
 from .semantic import Regions
 from .splatter import GLSplatter, PreparedSplats
 from .translate import SILENCE_GATE_DBFS, iter_translate
@@ -76,14 +76,17 @@ class TalkingHead:
                  gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS,
                  render_scale: float | None = None, render_target: str | None = None,
                  sort_interval: int | None = None, sort_key_bits: int | None = None,
-                 composite: bool | None = None) -> None:
+                 composite: bool | None = None, backend: str = "onnxruntime", shader_target: str = "330") -> None:
         """`silence_gate_dbfs`: audio windows quieter than this (RMS, dBFS) fade to the neutral face (None: off).
         `render_scale` (draw at this fraction of the size, then upscale), `render_target` ("float32", "float16",
         "uint8" framebuffer), `sort_interval` (depth-sort every k-th frame) and `sort_key_bits` (32 or 16) trade
         accuracy for speed (`RenderSettings`, docs/precision.md); None takes the bundle's preset defaults (the
         contract's full-size float32 frame, sorted every frame on exact depth, for bundles without a preset).
         `composite` (default: whether the bundle has a reference clip) composites frames into the clip, at its
-        camera (resized to `resolution` if given), following its pose track."""
+        camera (resized to `resolution` if given), following its pose track. `backend` runs the graphs on
+        "onnxruntime" or "mnn" (a bundle exported with `gt-export --mnn` and the `mnn` extra, docs/mnn.md);
+        `threads` is the graph threads (None: onnxruntime uses every core, MNN one). `shader_target` picks the
+        GLSL variant compiled ("330", "410", "300es"; the same pixels, docs/shaders.md)."""
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle(bundle)
         manifest = self.bundle.manifest
         self.render_settings = _render_settings(self.bundle, render_scale=render_scale, render_target=render_target,
@@ -93,7 +96,10 @@ class TalkingHead:
             self.config.check_timing()
         except (TypeError, ValueError, AttributeError) as exc:
             raise BundleError(f"{self.bundle.path}: manifest has no valid speaker config: {exc}") from exc
-        self.graphs: GraphBackend = OnnxRuntimeBackend(self.bundle, threads=threads)
+        try:
+            self.graphs: GraphBackend = open_backend(self.bundle, backend, threads=threads)
+        except ValueError as exc:
+            raise RenderError(str(exc)) from None
         self.pose_track = self.bundle.buffer("pose_track") if self.bundle.has_buffer("pose_track") else None
         self.camera = camera or Camera.from_dict(manifest["camera"])
         if resolution is not None:
@@ -106,7 +112,7 @@ class TalkingHead:
         self.scene, self.scene_guard = self._scene()
         if self.scene_guard is not None:
             self.scene_guard.check_camera(self.camera)
-        self.splatter = GLSplatter(gl_context, settings=self.render_settings)
+        self.splatter = GLSplatter(gl_context, settings=self.render_settings, shader_target=shader_target)
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.silence_gate_dbfs = silence_gate_dbfs
         # Read at load like every entry a frame may need, so a damaged one fails here, not mid-video.

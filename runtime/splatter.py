@@ -23,6 +23,13 @@ touch the fewest blocks (`point_start`), usually starting on a multiple of 4 pix
 Measured on llvmpipe (2 cores, demo speaker, 20k Gaussians): the oriented quads, axis-aligned quads and tighter
 fragment-shader early-outs tried instead were all slower; see docs/numerics.md, "Rasterisation in the GL renderer".
 
+Shader variants
+---------------
+Every program (`PROGRAMS`) is compiled from the one source of each shader in shaders/, in the variant that
+`GLSplatter(shader_target=...)` picks: GLSL 3.30 core (the default), 4.10 core or ES 3.00. Variants differ only in
+their header, so all draw the same pixels; `program_sources` gives the exact text compiled, which CI validates
+(docs/shaders.md).
+
 Compositing and the contract's early termination
 ------------------------------------------------
 Gaussians are drawn front to back into an RGBA32F framebuffer cleared to 0 with the premultiplied "under"
@@ -45,6 +52,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import moderngl
 import numpy as np
@@ -54,10 +62,10 @@ from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import straight_rgba, to_uint8
 from gaussiantalker.sdk.render_settings import RENDER_TARGETS, RenderSettings
-from gaussiantalker.shaders import load_shader
+from gaussiantalker.shaders import SHADER_TARGETS, load_shader, shader_variant
 
 from .depth_sort import DepthSorter
-from .gl_context import create_context
+from .gl_context import check_shader_target, create_context
 
 # GLSL functions in shaders/ that are rasterisation, not contract maths: they choose which fragments are tried
 # (the pixel box, where a point sprite goes, the primitive of a culled Gaussian) and never what a pixel gets, so
@@ -97,9 +105,17 @@ _STRIDE = _FLOATS_PER_SPLAT * 4
 _ATTRIBUTES = (("in_mean", 3, 0), ("in_cov_a", 3, 3), ("in_cov_b", 3, 6), ("in_rgba", 4, 9))  # name, size, offset
 
 
+# Largest finite float32: a #define beyond it is not a float32 (GLSL ES highp float is float32 at most).
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def _glsl_float(value: float) -> str:
-    """A GLSL float literal that parses to float32(value) (repr is the shortest round-tripping decimal)."""
-    text = repr(float(value))
+    """A float literal valid in GLSL 3.30/4.10 core and GLSL ES 3.00 that parses to float32(value) (repr is the
+    shortest round-tripping decimal, e.g. `0.3`, `1e+30`, `9.5367431640625e-07`; never `inf` or `nan`)."""
+    value = float(value)
+    if not abs(value) <= _FLOAT32_MAX:
+        raise ValueError(f"{value!r} has no GLSL float32 literal")
+    text = repr(value)
     return text if any(ch in text for ch in ".eE") else text + ".0"
 
 
@@ -134,12 +150,45 @@ def shader_defines() -> dict[str, str]:
 
 
 def with_defines(source: str, defines: dict[str, str]) -> str:
-    """Insert `#define NAME VALUE` lines right after the #version line (GLSL requires #version first)."""
-    first, newline, rest = source.partition("\n")
-    if not first.startswith("#version"):
+    """Insert `#define NAME VALUE` lines after a shader variant's header (its #version line, which GLSL requires
+    first, and the precision statements of GLSL ES), then `#line 2`: the body of every variant is its source from
+    line 2 on, so a driver log's line numbers are those of the file in shaders/ (docs/shaders.md)."""
+    lines = source.split("\n")
+    if not lines[0].startswith("#version"):
         raise RenderError("shader source must start with a #version line")
-    block = "".join(f"#define {name} {value}\n" for name, value in defines.items())
-    return first + newline + block + "#line 2\n" + rest
+    end = 1
+    while end < len(lines) and lines[end].startswith("precision "):
+        end += 1
+    block = [f"#define {name} {value}" for name, value in defines.items()]
+    return "\n".join([*lines[:end], *block, "#line 2", *lines[end:]])
+
+
+class ProgramSpec(NamedTuple):
+    """One GL program the splatter builds: its vertex and fragment shader files and its own #defines."""
+
+    vertex: str
+    fragment: str
+    defines: dict[str, str]  # added to shader_defines()
+
+
+# Every program GLSplatter compiles: point and quad splats (one source, SPLAT_POINTS set per program), the
+# background pass and the render-scale pass (both full-screen triangles without a vertex buffer).
+PROGRAMS = {
+    "points": ProgramSpec("splat.vert", "splat.frag", {"SPLAT_POINTS": "1"}),
+    "quads": ProgramSpec("splat.vert", "splat.frag", {"SPLAT_POINTS": "0"}),
+    "background": ProgramSpec("background.vert", "background.frag", {}),
+    "upscale": ProgramSpec("background.vert", "upscale.frag", {}),
+}
+
+
+def program_sources(program: str, target: str = "330") -> tuple[str, str]:
+    """(vertex, fragment) GLSL of `program` (a PROGRAMS key) for shader `target`, exactly as GLSplatter compiles
+    it: each shader's variant with shader_defines() and the program's own #defines (what CI validates)."""
+    spec = PROGRAMS[program]
+    defines = {**shader_defines(), **spec.defines}
+    vertex, fragment = (with_defines(shader_variant(load_shader(name), target), defines)
+                        for name in (spec.vertex, spec.fragment))
+    return vertex, fragment
 
 
 # -- numpy side of the contract ------------------------------------------------------------------------------
@@ -244,14 +293,21 @@ class GLSplatter:
     `point_sprites=False` draws every Gaussian as an instanced quad (same pixels, slower on llvmpipe).
     `settings` are the speed/accuracy knobs (render scale, framebuffer precision; docs/precision.md); the default
     is the contract's full-size float32 frame.
+    `shader_target` picks the shader variant compiled (`SHADER_TARGETS`: "330", "410", "300es"; docs/shaders.md):
+    they differ only in their header, so every target draws the same pixels; "300es" needs a context that accepts
+    GLSL ES 3.00 (OpenGL 4.3+ or ARB_ES3_compatibility, as Mesa's has).
     On a shared context, render() leaves BLEND and PROGRAM_POINT_SIZE enabled, DEPTH_TEST and CULL_FACE disabled.
     """
 
     def __init__(self, ctx: moderngl.Context | None = None, *, point_sprites: bool = True,
-                 settings: RenderSettings | None = None) -> None:
+                 settings: RenderSettings | None = None, shader_target: str = "330") -> None:
         if settings is not None and not isinstance(settings, RenderSettings):
             raise RenderError(f"settings must be a RenderSettings, got {type(settings).__name__}")
+        if shader_target not in SHADER_TARGETS:
+            raise RenderError(f"shader_target must be one of {', '.join(map(repr, SHADER_TARGETS))}, "
+                              f"got {shader_target!r}")
         self.settings = settings or RenderSettings()
+        self.shader_target = shader_target
         self._sorter = DepthSorter(self.settings.sort_interval, self.settings.sort_key_bits)
         self._owns_ctx = ctx is None
         self.ctx = create_context() if ctx is None else ctx
@@ -267,6 +323,7 @@ class GLSplatter:
         self._upscale_vao: moderngl.VertexArray | None = None
         try:
             with self.ctx:
+                check_shader_target(self.ctx, shader_target)
                 self._build_programs()
                 self.max_point_size = self._max_point_size() if point_sprites else 0.0
         except Exception:
@@ -275,22 +332,21 @@ class GLSplatter:
 
     # -- set-up ---------------------------------------------------------------------------------------------
 
-    def _program(self, vertex: str, fragment: str, extra: dict[str, str] | None = None) -> moderngl.Program:
-        """Compile and link one program with `shader_defines()` plus `extra` (the renderer's per-program
-        #defines); RenderError with the driver log."""
-        defines = {**shader_defines(), **(extra or {})}
+    def _program(self, name: str) -> moderngl.Program:
+        """Compile and link program `name` of PROGRAMS in this splatter's shader target (`program_sources`);
+        RenderError with the driver log."""
+        vertex, fragment = program_sources(name, self.shader_target)
         try:
-            return self.ctx.program(vertex_shader=with_defines(load_shader(vertex), defines),
-                                    fragment_shader=with_defines(load_shader(fragment), defines))
+            return self.ctx.program(vertex_shader=vertex, fragment_shader=fragment)
         except moderngl.Error as exc:
-            raise RenderError(f"shader {vertex}/{fragment} failed to compile or link: {exc}") from exc
+            spec = PROGRAMS[name]
+            raise RenderError(f"shader {spec.vertex}/{spec.fragment} ({name}, target {self.shader_target}) failed "
+                              f"to compile or link: {exc}") from exc
 
     def _build_programs(self) -> None:
-        """Point and quad splat programs (same source), and the background pass (no vertex buffer)."""
-        self._programs["points"] = self._program("splat.vert", "splat.frag", {"SPLAT_POINTS": "1"})
-        self._programs["quads"] = self._program("splat.vert", "splat.frag", {"SPLAT_POINTS": "0"})
-        self._programs["background"] = self._program("background.vert", "background.frag")
-        self._programs["upscale"] = self._program("background.vert", "upscale.frag")
+        """Every program of PROGRAMS; the quad, background and render-scale passes get attribute-less VAOs."""
+        for name in PROGRAMS:
+            self._programs[name] = self._program(name)
         self._quad_vao = self.ctx.vertex_array(self._programs["quads"], [])
         self._background_vao = self.ctx.vertex_array(self._programs["background"], [])
         self._upscale_vao = self.ctx.vertex_array(self._programs["upscale"], [])

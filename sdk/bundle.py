@@ -60,6 +60,7 @@ class BundleWriter:
     _size: int = 0
     _buffers: dict = field(default_factory=dict)
     _graphs: dict = field(default_factory=dict)
+    _stored: dict = field(default_factory=dict)  # buffer name -> its encoded payload (see `decoded_buffer`)
 
     def _append(self, data: bytes) -> dict:
         offset = self._size
@@ -85,6 +86,14 @@ class BundleWriter:
         if expected_nbytes(codec, entry["dtype"], tuple(array.shape), params) != len(payload):
             raise BundleError(f"codec {codec!r} produced {len(payload)} bytes for buffer {name!r}")
         self._buffers[name] = entry
+        self._stored[name] = payload
+
+    def decoded_buffer(self, name: str) -> np.ndarray:
+        """Buffer `name` as a reader will decode it (a lossy codec's values, not the array that was added)."""
+        entry = self._buffers[name]
+        codec = entry["codec"]
+        return get_codec(codec["name"]).decode(self._stored[name], entry["dtype"], tuple(entry["shape"]),
+                                               _codec_params(codec))
 
     def add_graph(self, name: str, onnx_bytes: bytes, inputs: list[dict], outputs: list[dict],
                   initializers: dict[str, str] | None = None, compress: bool = True) -> None:
@@ -100,6 +109,17 @@ class BundleWriter:
             entry.update(compression="zlib", raw_nbytes=len(onnx_bytes))
         entry.update(inputs=inputs, outputs=outputs, initializers=dict(initializers or {}))
         self._graphs[name] = entry
+        self._stored[("graph", name)] = onnx_bytes
+
+    def graph_names(self) -> list[str]:
+        return sorted(self._graphs)
+
+    def graph_info(self, name: str) -> dict:
+        return self._graphs[name]
+
+    def graph_onnx(self, name: str) -> bytes:
+        """Graph `name`'s ONNX bytes as added (uncompressed; its weights are external, see `decoded_buffer`)."""
+        return self._stored[("graph", name)]
 
     def manifest(self) -> dict:
         return {

@@ -1,4 +1,6 @@
 #version 330 core
+// One source for GLSL 3.30 core, 4.10 core and ES 3.00 (OpenGL 3.3/4.1, OpenGL ES 3.0, WebGL 2): the runtime replaces
+// the #version line above with each target's header, nothing else (docs/shaders.md).
 // Full-screen triangle for the background pass (no vertex buffer: positions come from gl_VertexID). Rasterisation
 // only, no contract maths: only main, no torch twin.
 

@@ -1,9 +1,11 @@
 #version 330 core
+// One source for GLSL 3.30 core, 4.10 core and ES 3.00 (OpenGL 3.3/4.1, OpenGL ES 3.0, WebGL 2): the runtime replaces
+// the #version line above with each target's header, nothing else (docs/shaders.md).
 // Per-pixel evaluation of one Gaussian, composited front-to-back by the fixed-function "under" blend
 // (src factor ONE_MINUS_DST_ALPHA, dst factor ONE): the framebuffer holds (C, 1 - T).
 // The maths is the numerics contract (docs/numerics.md). Each function names its torch twin in
 // exporter/splat_math.py (same name, same arguments); tests/test_mirror_names.py checks it.
-// #defines injected by the runtime after the #version line (runtime/splatter.py shader_defines), never re-typed:
+// #defines injected by the runtime after the header (runtime/splatter.py shader_defines), never re-typed:
 //   contract constants, from gaussiantalker.sdk.numerics (the values the torch reference imports), used here:
 //     ALPHA_MAX, ALPHA_MIN, COLOR_LIMIT
 //   the GL renderer's own rasterisation settings (runtime/splatter.py): none used here.

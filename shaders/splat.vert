@@ -1,10 +1,12 @@
 #version 330 core
+// One source for GLSL 3.30 core, 4.10 core and ES 3.00 (OpenGL 3.3/4.1, OpenGL ES 3.0, WebGL 2): the runtime replaces
+// the #version line above with each target's header, nothing else (docs/shaders.md).
 // Per-Gaussian set-up of the EWA splatter: one point sprite (SPLAT_POINTS 1) or one instanced quad (SPLAT_POINTS 0,
 // 4 vertices, triangle strip) per Gaussian; the fragment shader makes every per-pixel decision exactly.
 // The maths is the numerics contract (docs/numerics.md). Each function names its torch twin in
 // exporter/splat_math.py (same name, same arguments; uniforms become trailing arguments there), or says that it is
 // not a contract step (runtime/splatter.py NON_CONTRACT_GLSL_FUNCTIONS); tests/test_mirror_names.py checks both.
-// #defines injected by the runtime after the #version line (runtime/splatter.py shader_defines), never re-typed:
+// #defines injected by the runtime after the header (runtime/splatter.py shader_defines), never re-typed:
 //   contract constants, from gaussiantalker.sdk.numerics (the values the torch reference imports), used here:
 //     LOW_PASS_PX2, EXTENT_SIGMAS, ALPHA_MIN, FINITE_LIMIT, DET_MIN_RELATIVE, COV2D_HUGE_PX2
 //   the GL renderer's own rasterisation settings, from runtime/splatter.py (no torch counterpart), used here:

@@ -1,4 +1,6 @@
 #version 330 core
+// One source for GLSL 3.30 core, 4.10 core and ES 3.00 (OpenGL 3.3/4.1, OpenGL ES 3.0, WebGL 2): the runtime replaces
+// the #version line above with each target's header, nothing else (docs/shaders.md).
 // Render-scale pass (docs/precision.md): the frame drawn at a fraction of the output size is sampled bilinearly
 // (the source texture's LINEAR filter) at each output pixel centre. The framebuffer holds premultiplied (C, 1 - T)
 // or the final colour, both of which interpolate linearly. Rasterisation only, no contract maths: no torch twin.
