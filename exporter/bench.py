@@ -129,9 +129,19 @@ def main(
     composite: bool = typer.Option(False, "--composite", help="compositing into the reference clip of --checkpoint "
                                    "(a speaker with one): FPS composited and bare at the clip's size and 512x512, "
                                    "F's cost, seam steps (docs/compositing.md); writes --out/composite.md"),
+    backends: bool = typer.Option(False, "--backends", help="onnxruntime vs MNN on --checkpoint exported with "
+                                  "--mnn: each graph's ms, stages and FPS at the largest --sizes, alternating "
+                                  "(docs/mnn.md); writes --out/backends.md"),
 ) -> None:
     """Benchmark the demo speaker through the runtime and the torch reference (or against --baseline, --sweep or
     --composite)."""
+    if backends:
+        if checkpoint is None:
+            raise typer.BadParameter("--backends needs --checkpoint", param_hint="--checkpoint")
+        from .bench_backends import run_backends_bench
+
+        run_backends_bench(checkpoint, max(int(s) for s in sizes.split(",")), seconds, rounds, out / "backends.md")
+        return
     if composite:
         if checkpoint is None:
             raise typer.BadParameter("--composite needs --checkpoint (a speaker with a reference clip)",

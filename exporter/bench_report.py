@@ -14,6 +14,7 @@ GOALS = {
     "balanced": {"smaller": 5.0, "head_psnr_db": 47.0},
     "compact": {"smaller": 14.0, "head_psnr_db": 36.0},
     "fast": {"fps_ratio": 2.0, "head_psnr_db": 35.0},
+    "mobile": {"fps_ratio": 1.3, "head_psnr_db": 40.0},
 }
 PLOT_PSNR_CAP_DB = 80.0  # identical frames (infinite PSNR) are drawn here
 

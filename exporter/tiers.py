@@ -154,6 +154,11 @@ PRESETS: dict[str, Preset] = {
                    "16-bit depth-sort keys: ~2x the frame rate at ~35 dB",
                    ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6),
                    RenderSettings(render_scale=0.75, render_target="uint8", sort_key_bits=16), min_head_psnr_db=33.0),
+    "mobile": Preset("mobile", "for phones and WebGL 2 (docs/porting.md): fp16 buffers, 70% of the Gaussians, an "
+                     "RGBA16F framebuffer (GLES 3.0's renderable float, docs/shaders.md), 16-bit depth-sort keys, one "
+                     "graph thread: ~1.3x the frame rate at ~41 dB",
+                     ExportSettings(**dict.fromkeys(CODEC_GROUPS, "fp16"), gaussian_budget=0.7),
+                     RenderSettings(render_target="float16", sort_key_bits=16, graph_threads=1), min_head_psnr_db=39.0),
 }
 
 

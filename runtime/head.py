@@ -85,19 +85,22 @@ class TalkingHead:
         `composite` (default: whether the bundle has a reference clip) composites frames into the clip, at its
         camera (resized to `resolution` if given), following its pose track. `backend` runs the graphs on
         "onnxruntime" or "mnn" (a bundle exported with `gt-export --mnn` and the `mnn` extra, docs/mnn.md);
-        `threads` is the graph threads (None: onnxruntime uses every core, MNN one). `shader_target` picks the
-        GLSL variant compiled ("330", "410", "300es"; the same pixels, docs/shaders.md)."""
+        `threads` is the graph threads (None: the bundle's preset default, else every core for onnxruntime, one
+        for MNN). `shader_target` picks the GLSL variant compiled ("330", "410", "300es"; the same pixels,
+        docs/shaders.md)."""
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle(bundle)
         manifest = self.bundle.manifest
         self.render_settings = _render_settings(self.bundle, render_scale=render_scale, render_target=render_target,
-                                                sort_interval=sort_interval, sort_key_bits=sort_key_bits)
+                                                sort_interval=sort_interval, sort_key_bits=sort_key_bits,
+                                                graph_threads=threads)
         try:
             self.config = SpeakerConfig.from_dict(manifest["speaker"])
             self.config.check_timing()
         except (TypeError, ValueError, AttributeError) as exc:
             raise BundleError(f"{self.bundle.path}: manifest has no valid speaker config: {exc}") from exc
         try:
-            self.graphs: GraphBackend = open_backend(self.bundle, backend, threads=threads)
+            self.graphs: GraphBackend = open_backend(self.bundle, backend,
+                                                     threads=self.render_settings.graph_threads)
         except ValueError as exc:
             raise RenderError(str(exc)) from None
         self.pose_track = self.bundle.buffer("pose_track") if self.bundle.has_buffer("pose_track") else None

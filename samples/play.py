@@ -98,7 +98,10 @@ def play(
     video_format: str = typer.Option(None, "--format", help="container when the extension does not say: mp4, "
                                                             "mov, webm, mkv, gif, png"),
     show: bool = typer.Option(False, "--show", help="also show the frames in a window (needs a display)"),
-    threads: int = typer.Option(None, "--threads", help="onnxruntime threads [default: all cores]"),
+    threads: int = typer.Option(None, "--threads", help="graph threads [default: the bundle's preset, else all "
+                                "cores for onnxruntime, 1 for MNN]"),
+    backend: str = typer.Option("onnxruntime", "--backend", help="graph backend: onnxruntime, or mnn (a bundle "
+                                "exported with gt-export --mnn, the mnn extra; docs/mnn.md)"),
     render_scale: float = typer.Option(None, "--render-scale", help="draw at this fraction of the size, then "
                                        "upscale (0.1-1) [default: the bundle's preset, else 1]"),
     render_target: str = typer.Option(None, "--render-target", help="framebuffer: float32, float16, uint8 "
@@ -129,7 +132,8 @@ def play(
         bg = None if background is None else _parse_background(background)
         head = TalkingHead(speaker, camera=None if composite else camera, resolution=size if composite else None,
                            background=bg, threads=threads, render_scale=render_scale, render_target=render_target,
-                           sort_interval=sort_interval, sort_key_bits=sort_key_bits, composite=composite)
+                           sort_interval=sort_interval, sort_key_bits=sort_key_bits, composite=composite,
+                           backend=backend)
         window = None
         if show:
             headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))

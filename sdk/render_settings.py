@@ -17,12 +17,14 @@ class RenderSettings:
     """`render_scale`: draw at this fraction of the output size, then upscale bilinearly (1: full size);
     `render_target`: framebuffer precision, float32 (the contract's), float16 or uint8;
     `sort_interval`: depth-sort every k-th frame, reusing that order in between (1: every frame);
-    `sort_key_bits`: 32 sorts exact float32 depth (the contract's), 16 sorts depth quantised to 65536 levels."""
+    `sort_key_bits`: 32 sorts exact float32 depth (the contract's), 16 sorts depth quantised to 65536 levels;
+    `graph_threads`: threads each graph runs on (None: the backend's default, every core for onnxruntime)."""
 
     render_scale: float = 1.0
     render_target: str = "float32"
     sort_interval: int = 1
     sort_key_bits: int = 32
+    graph_threads: int | None = None
 
     def __post_init__(self) -> None:
         scale = self.render_scale
@@ -36,6 +38,9 @@ class RenderSettings:
                              f"got {interval!r}")
         if isinstance(self.sort_key_bits, bool) or self.sort_key_bits not in SORT_KEY_BITS:
             raise ValueError(f"sort_key_bits must be 32 or 16, got {self.sort_key_bits!r}")
+        threads = self.graph_threads
+        if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
+            raise ValueError(f"graph_threads must be a whole number >= 1 or None, got {threads!r}")
 
     def draw_size(self, width: int, height: int) -> tuple[int, int]:
         """The framebuffer size a (width, height) frame is drawn at."""

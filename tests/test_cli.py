@@ -123,7 +123,8 @@ def test_bad_input_gives_clear_errors_in_process(in_process_dir):
     assert "error: checkpoint missing.ckpt does not exist" in result.stderr
     result = _invoke(app, ["speaker.ckpt", "-o", "x.gtb", "--codec", "zip9"], expect=2)
     assert "unknown codec 'zip9'" in result.stderr
-    for args, message in ((["--preset", "tiny"], "unknown preset 'tiny' (known: quality, balanced, compact, fast)"),
+    known = "quality, balanced, compact, fast, mobile"
+    for args, message in ((["--preset", "tiny"], f"unknown preset 'tiny' (known: {known})"),
                           (["--preset", "fast", "--codec", "fp16"], "give --preset or --codec, not both"),
                           (["--flame-codec", "q4/x"], "only q16/q8/q4 take a chunk size"),
                           (["--gaussian-budget", "lots"], "--gaussian-budget must be a whole number or a percentage")):

@@ -271,3 +271,19 @@ def test_verify_report_covers_mnn_graphs(mnn_export, small_export):
     text = format_report(report)
     assert "mnn deform" in text and "mnn frames" in text
     json.dumps(mnn)  # the report is written as JSON by --report
+
+
+@needs_mnn
+def test_backends_bench_measures_both_backends(mnn_export):
+    """`gt-bench --backends`' measurement and table run end to end on a small bundle (speed is not judged here)."""
+    from gaussiantalker.exporter.bench_backends import CASES, format_table, measure_case
+
+    audio = synth_speech(0.6, seed=2)
+    runs = {label: [measure_case(mnn_export["path"], backend, threads, 64, audio, 16000)]
+            for label, backend, threads in CASES}
+    for case_runs in runs.values():
+        run = case_runs[0]
+        assert run["frames"] == 15 and run["fps"] > 0
+        assert set(run["graphs_ms"]) == {"translator 10 s", "deformation"}
+    table = format_table(runs, 64, 0.6, 1, Path("speaker.ckpt"), 1.0)
+    assert table.count("\n| ") == len(CASES) + 1 and "| mnn 2 threads |" in table

@@ -26,7 +26,8 @@ from gaussiantalker.sdk.image import psnr_db
 # Rotation vectors of length ~1.7e4 rad: float32 keeps their angle only to ~theta * 2^-23 ~ 2e-3 rad, so any
 # change of weights turns the head by a different amount (test_stability_drive.py); only finiteness is checked.
 CHAOTIC = {"rotations at the drive limit"}
-TIERS = ["balanced", "compact", "fast", "translator-fp16", "translator-int8"]  # conftest `tier_export` makes each
+# conftest `tier_export` makes each
+TIERS = ["balanced", "compact", "fast", "mobile", "translator-fp16", "translator-int8"]
 SIZE = (64, 64)
 # Jaw opening (rad) against the fp32 bundle's on the same extreme audio: measured at most 3.7e-3 (compact's 4-bit
 # translator), 8e-4 (int8 graph), 1.7e-4 (quantised buffers, fp16 graph); the jaw's range in speech is ~0.3.

@@ -25,7 +25,7 @@ from gaussiantalker.sdk.render_settings import RenderSettings
 # 41.5 dB, compact 23.5 dB) less ~3 dB. They sit far below the presets' own bounds, tuned on the 20k-Gaussian demo
 # speaker: the small speaker's Gaussians are ~10x larger, so a quantisation step moves more pixels, and a budget of
 # 65% of 2k Gaussians drops visible ones (docs/precision.md, "Speakers differ").
-SMALL_SPEAKER_BOUNDS = {"balanced": 38.0, "compact": 20.0, "fast": 18.0}
+SMALL_SPEAKER_BOUNDS = {"balanced": 38.0, "compact": 20.0, "fast": 18.0, "mobile": 20.0}
 
 
 def _verify(speaker, path, preset):
@@ -70,6 +70,22 @@ def test_fast_preset_plays_with_its_stored_runtime_defaults(small_speaker, tier_
     with TalkingHead(path, sort_key_bits=32) as head:  # an override keeps the other stored defaults
         assert head.render_settings == RenderSettings(render_scale=0.75, render_target="uint8")
     _verify(small_speaker, path, "fast")
+
+
+def test_mobile_preset_stores_the_es_settings_and_stays_within_its_bound(small_speaker, tier_export):
+    """fp16 buffers and 70% of the Gaussians in the bundle; an RGBA16F framebuffer, 16-bit sort keys and one graph
+    thread as its stored runtime defaults, which TalkingHead applies (one thread reaches onnxruntime)."""
+    path = tier_export("mobile")
+    manifest = Bundle(path).manifest
+    assert manifest["gaussians"] == round(0.7 * small_speaker.gaussians.count)
+    assert {entry["codec"]["name"] for name, entry in manifest["buffers"].items()
+            if name.startswith("deform/") and entry["dtype"] == "float32"} == {"fp16"}
+    with TalkingHead(path) as head:
+        assert head.render_settings == RenderSettings(render_target="float16", sort_key_bits=16, graph_threads=1)
+        assert head.graphs.threads == 1
+    with TalkingHead(path, threads=2) as head:  # an app's own thread count wins
+        assert head.graphs.threads == 2
+    _verify(small_speaker, path, "mobile")
 
 
 def test_framebuffer_precision_knob(small_export):
@@ -178,7 +194,8 @@ def test_bad_export_settings_are_named(settings, message):
 
 
 def test_presets_and_labels():
-    with pytest.raises(BundleError, match="unknown preset 'tiny' \\(known: quality, balanced, compact, fast\\)"):
+    known = "quality, balanced, compact, fast, mobile"
+    with pytest.raises(BundleError, match=f"unknown preset 'tiny' \\(known: {known}\\)"):
         get_preset("tiny")
     assert parse_codec("q4/64") == ("q4", 64) and parse_codec("fp16") == ("fp16", None)
     assert ExportSettings().label() == "fp32" and ExportSettings.all_buffers("fp16").label() == "fp16"
