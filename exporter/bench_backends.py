@@ -49,7 +49,8 @@ def measure_case(bundle: Path, backend: str, threads: int | None, size: int, aud
     """One backend's graph costs and frame timings on `bundle` at `size`x`size`."""
     with TalkingHead(bundle, resolution=(size, size), composite=False, backend=backend, threads=threads) as head:
         speech = synth_speech(TRANSLATOR_SECONDS, seed=11)[None].astype(np.float32)
-        speech = speech[:, : speech.shape[1] // 640 * 640]
+        spf = head.config.samples_per_frame
+        speech = speech[:, : speech.shape[1] // spf * spf]
         drive = next(iter(head.drives(audio, rate)))
         inputs = {**drive.graph_inputs(), "camera_center": head.camera.center.astype(np.float32)[None]}
         graphs = {"translator 10 s": _median_ms(lambda: head.graphs.run("translator", {"audio": speech}), 5),

@@ -20,6 +20,7 @@ import numpy as np
 import onnx
 from onnx import helper, numpy_helper
 
+from gaussiantalker.runtime.mnn_backend import INSTALL_HINT
 from gaussiantalker.sdk.bundle import BundleWriter
 from gaussiantalker.sdk.errors import BundleError
 
@@ -27,7 +28,6 @@ from .mnn_worker import REPORT_PREFIX
 
 MNN_ENTRY_PREFIX = "mnn/"
 CONVERT_TIMEOUT_S = 900
-INSTALL_HINT = 'pip install "gaussiantalker-sdk[mnn]"'
 
 
 def mnn_version() -> str:

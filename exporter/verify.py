@@ -47,6 +47,8 @@ GRAPH_RTOL = 1e-4
 HEAD_PSNR_FLOOR_DB = 30.0
 # A pixel belongs to the head region when the torch frame's coverage 1 - T exceeds this (the contract's ALPHA_MIN).
 HEAD_COVERAGE = 1.0 / 255.0
+# Crop sizes (height, width) the inpaint graph is compared on.
+INPAINT_CROP_SIZES = ((64, 64), (96, 160), (208, 128))
 # MNN vs onnxruntime graph outputs, relative to each output's largest magnitude (fp32 graphs).
 MNN_RTOL = 1e-5
 # Frame bound of a scene-specialised bundle against the torch speaker (what the scene tests hold it to).
@@ -92,10 +94,11 @@ class Tolerances:
         return cls()
 
 
-def _compare(reference: np.ndarray, test: np.ndarray) -> dict:
+def _compare(reference: np.ndarray, test: np.ndarray, floor: float = 1.0) -> dict:
+    """Max abs error, and relative to max(floor, max |reference|); whether `test` is finite."""
     reference, test = np.asarray(reference, np.float64), np.asarray(test, np.float64)
     err = max_abs_error(reference, test)
-    scale = max(1.0, float(np.max(np.abs(reference), initial=0.0)))
+    scale = max(floor, float(np.max(np.abs(reference), initial=0.0)))
     finite = bool(np.all(np.isfinite(test)))
     return {"max_abs_err": err, "max_rel_err": err / scale, "finite": finite}
 
@@ -113,15 +116,27 @@ def verify_translator(speaker: Speaker, head: TalkingHead, frame_counts=(25, 33)
     if not head.has_translator:
         return {"compared": False, "passed": True, "note": "a flame-driven scene's bundle has no translator graph"}
     stats = []
-    spf = speaker.config.samples_per_frame
     for i, frames in enumerate(frame_counts):
-        audio = synth_speech(frames * spf / speaker.config.sample_rate, seed=seed + i)[: frames * spf]
+        audio = _speech_clip(speaker, frames, seed + i)
         with torch.no_grad():
             expression, jaw = speaker.translate(torch.from_numpy(audio)[None])
         out = head.graphs.run("translator", {"audio": audio[None]})
         stats.append(_compare(expression.numpy(), out["expression"]))
         stats.append(_compare(jaw.numpy(), out["jaw_pose"]))
     return _merge(stats, tolerance)
+
+
+def _speech_clip(speaker: Speaker, frames: int, seed: int) -> np.ndarray:
+    """Speech-like audio of exactly `frames` video frames, float32 [640 * frames] at the speaker's rate."""
+    spf = speaker.config.samples_per_frame
+    return synth_speech(frames * spf / speaker.config.sample_rate, seed=seed)[: frames * spf]
+
+
+def _random_crops(seed: int, sizes) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(image, mask, coverage) NCHW crops of uniform noise, one per (height, width) in `sizes`."""
+    rng = np.random.default_rng(seed)
+    return [(rng.random((1, 3, h, w), np.float32), rng.random((1, 1, h, w), np.float32),
+             rng.random((1, 1, h, w), np.float32)) for h, w in sizes]
 
 
 def _random_drives(n_expr: int, count: int, seed: int) -> list[FrameDrive]:
@@ -165,9 +180,7 @@ def verify_inpaint(speaker: Speaker, head: TalkingHead, seed: int = 0, tolerance
         note = ("no inpainting generator: the OpenCV fallback composites" if head.reference is not None
                 else "no reference clip")
         return {"compared": False, "passed": True, "note": note}
-    rng = np.random.default_rng(seed)
-    crops = [(rng.random((1, 3, h, w), np.float32), rng.random((1, 1, h, w), np.float32),
-              rng.random((1, 1, h, w), np.float32)) for h, w in ((64, 64), (96, 160), (208, 128))]
+    crops = _random_crops(seed, INPAINT_CROP_SIZES)
     mask = head.reference.mask(0)
     box = crop_box(mask)
     picture = head.reference.frame(0)[box.rows, box.columns].astype(np.float32) / 255
@@ -212,7 +225,7 @@ def verify_composited(speaker: Speaker, head: TalkingHead, frames: int = 12, see
 def driven_clip(speaker: Speaker, frames: int, seed: int = 1) -> tuple[np.ndarray, list[FrameDrive]]:
     """A speech-like clip of `frames` video frames and the torch speaker's drives for it (pose track applied)."""
     spf = speaker.config.samples_per_frame
-    audio = synth_speech(frames * spf / speaker.config.sample_rate, seed=seed)[: frames * spf]
+    audio = _speech_clip(speaker, frames, seed)
 
     def run(chunk: np.ndarray) -> dict:
         with torch.no_grad():
@@ -263,40 +276,28 @@ def verify_frames(speaker: Speaker, head: TalkingHead, frames: int = 25, seed: i
 def _agreement_cases(speaker: Speaker, head: TalkingHead, seed: int = 0) -> list[tuple[str, dict]]:
     """(graph, inputs) pairs the two backends are compared on: speech clips, random drives, random crops."""
     cases: list[tuple[str, dict]] = []
-    spf = speaker.config.samples_per_frame
     if head.has_translator:
         for i, frames in enumerate((25, 33)):
-            audio = synth_speech(frames * spf / speaker.config.sample_rate, seed=seed + i)[: frames * spf]
-            cases.append(("translator", {"audio": np.ascontiguousarray(audio[None], np.float32)}))
+            cases.append(("translator", {"audio": np.ascontiguousarray(_speech_clip(speaker, frames, seed + i)[None],
+                                                                       np.float32)}))
     center = head.camera.center.astype(np.float32)[None]
     for drive in _random_drives(speaker.config.n_expr, 4, seed):
         cases.append(("deform", {**drive.graph_inputs(), "camera_center": center}))
     if "inpaint" in head.bundle.manifest["graphs"]:
-        rng = np.random.default_rng(seed)
-        for h, w in ((64, 64), (96, 160)):
-            cases.append(("inpaint", {"image": rng.random((1, 3, h, w), np.float32),
-                                      "mask": rng.random((1, 1, h, w), np.float32),
-                                      "coverage": rng.random((1, 1, h, w), np.float32)}))
+        for image, mask, coverage in _random_crops(seed, INPAINT_CROP_SIZES[:2]):
+            cases.append(("inpaint", {"image": image, "mask": mask, "coverage": coverage}))
     return cases
 
 
 def verify_backend_agreement(reference: TalkingHead, test: TalkingHead, cases: list[tuple[str, dict]],
                              tolerance: float = MNN_RTOL) -> dict[str, dict]:
     """Per graph: the worst max |test - reference| / max |reference| over every output and case."""
-    rows: dict[str, dict] = {}
+    stats: dict[str, list[dict]] = {}
     for graph, inputs in cases:
         expected, actual = reference.graphs.run(graph, inputs), test.graphs.run(graph, inputs)
-        row = rows.setdefault(graph, {"max_abs_err": 0.0, "max_rel_err": 0.0, "finite": True, "cases": 0,
-                                      "tolerance_rel": tolerance})
-        for name, value in expected.items():
-            err = max_abs_error(value, actual[name])
-            row["max_abs_err"] = max(row["max_abs_err"], err)
-            row["max_rel_err"] = max(row["max_rel_err"], err / max(float(np.abs(value).max(initial=0.0)), 1e-30))
-            row["finite"] = row["finite"] and bool(np.all(np.isfinite(actual[name])))
-        row["cases"] += 1
-    for row in rows.values():
-        row["passed"] = row["finite"] and row["max_rel_err"] <= tolerance
-    return rows
+        stats.setdefault(graph, []).extend(_compare(value, actual[name], floor=1e-30)
+                                           for name, value in expected.items())
+    return {graph: _merge(graph_stats, tolerance) for graph, graph_stats in stats.items()}
 
 
 def verify_mnn(speaker: Speaker, head: TalkingHead, bundle_path, frames: int = 25, seed: int = 1,

@@ -55,8 +55,6 @@ def mnn_export(small_export, tmp_path_factory):
 
     from gaussiantalker.exporter.export import export_bundle
 
-    if not HAS_MNN:
-        pytest.skip("the mnn extra is not installed")
     path = tmp_path_factory.mktemp("mnn") / "small_mnn.gtb"
     before = _installed()
     with pytest.MonkeyPatch.context() as patch, replaying_onnx_exports(small_export.protos):
