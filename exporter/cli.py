@@ -64,6 +64,7 @@ def export(
     blendshapes: str = typer.Option(None, "--blendshape-codec", help="codec of the speaker blendshape weights"),
     flame: str = typer.Option(None, "--flame-codec", help="codec of the FLAME bases"),
     translator: str = typer.Option(None, "--translator-codec", help="codec of the translator weights"),
+    inpaint: str = typer.Option(None, "--inpaint-codec", help="codec of the inpainting generator's weights"),
     translator_precision: str = typer.Option(None, "--translator-precision", help="translator graph: fp32, fp16, "
                                              "int8 (onnxruntime dynamic quantisation)"),
     sh_degree: int = typer.Option(None, "--sh-degree", min=0, max=3, help="keep SH bands up to this degree"),
@@ -90,8 +91,9 @@ def export(
 
         scene_spec = None if scene is None else load_scene(scene)  # a bad scene fails before the checkpoint loads
         knobs = {"gaussians": gaussians, "sh": sh, "blendshapes": blendshapes, "flame": flame,
-                 "translator": translator, "translator_precision": translator_precision, "sh_degree": sh_degree,
-                 "blendshape_rank": blendshape_rank, "gaussian_budget": _budget(gaussian_budget)}
+                 "translator": translator, "inpaint": inpaint, "translator_precision": translator_precision,
+                 "sh_degree": sh_degree, "blendshape_rank": blendshape_rank,
+                 "gaussian_budget": _budget(gaussian_budget)}
         settings, chosen = _settings(preset, codec, knobs)
         speaker = load_checkpoint(checkpoint)
         # The bundle is staged beside the output and placed there only once it is complete (and, with --verify,

@@ -25,6 +25,7 @@ CODEC_GROUPS: dict[str, tuple[str, ...]] = {
     "blendshapes": ("deform/latent_weight", "deform/latent_basis", "deform/latent_pose.*"),  # W_pos/rot/color, MLP
     "flame": ("deform/blend_basis", "deform/rest_points", "deform/lbs_weights"),  # FLAME bases, rest mesh, skinning
     "translator": ("translator/*",),  # motion translator weights (fp32 graph)
+    "inpaint": ("inpaint/*",),  # the inpainting generator's convolutions (docs/compositing.md)
 }
 # Buffers every frame's geometry hangs on (the rest mesh, the frame guards' reference size, where on its triangle a
 # Gaussian sits): a quantised codec gives them at least 16 bits. Measured on the demo speaker: barycentrics at q8
@@ -65,6 +66,7 @@ class ExportSettings:
     blendshapes: str = "raw"
     flame: str = "raw"
     translator: str = "raw"
+    inpaint: str = "raw"
     translator_precision: str = "fp32"
     sh_degree: int | None = None  # keep SH bands up to this degree (None: all)
     blendshape_rank: int | None = None  # rank of the speaker blendshape matrix (None: full)
@@ -136,8 +138,10 @@ class Preset:
 
 
 # Buffer codecs of the reduced tiers: per-Gaussian values 8-bit (barycentrics, rest sizes 16-bit), SH bands and
-# speaker blendshapes 4-bit, FLAME bases 4-bit in chunks of 128, the translator 8-bit.
-_REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4", "flame": "q4/128", "translator": "q8"}
+# speaker blendshapes 4-bit, FLAME bases 4-bit in chunks of 128, the translator and the inpainting generator 8-bit
+# (F at q8: composited frames 73 dB inside the mask against fp32 F's, q4: 59 dB; docs/compositing.md).
+_REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4", "flame": "q4/128", "translator": "q8",
+                   "inpaint": "q8"}
 
 # The tiers, chosen from measurements on the demo speaker (docs/precision.md has the table and the command).
 # `min_head_psnr_db` is what `gt-export --verify` holds a tier to; each sits below what the tier measured, by the
@@ -147,9 +151,10 @@ PRESETS: dict[str, Preset] = {
     "balanced": Preset("balanced", "quantised buffers, nothing dropped: ~5.8x smaller at ~49 dB",
                        ExportSettings(**_REDUCED_CODECS), min_head_psnr_db=47.0),
     "compact": Preset("compact", "smallest bundle: 65% of the Gaussians, SH degree 0, rank-2 blendshapes, 4-bit "
-                      "translator, FLAME bases in chunks of 256: ~14x smaller at ~36 dB on the demo speaker",
-                      ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "flame": "q4"}, sh_degree=0,
-                                     blendshape_rank=2, gaussian_budget=0.65), min_head_psnr_db=35.0),
+                      "translator and inpainting generator, FLAME bases in chunks of 256: ~14x smaller at ~36 dB on "
+                      "the demo speaker",
+                      ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "flame": "q4", "inpaint": "q4"},
+                                     sh_degree=0, blendshape_rank=2, gaussian_budget=0.65), min_head_psnr_db=35.0),
     "fast": Preset("fast", "fastest frames: 60% of the Gaussians, drawn at 3/4 size into an 8-bit framebuffer, "
                    "16-bit depth-sort keys: ~2x the frame rate at ~35 dB",
                    ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6),

@@ -11,6 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from gaussiantalker.exporter.bench import app
+from gaussiantalker.exporter.bench_composite import F_CODECS, f_precision_settings
 from gaussiantalker.exporter.bench_quality import mouth_box, region_scores, ssim_map
 from gaussiantalker.exporter.bench_report import format_report, goal_rows, pareto_front
 from gaussiantalker.exporter.bench_sweep import REFERENCE, select_cases, sweep_cases, sweep_speaker
@@ -26,8 +27,13 @@ def test_every_knob_and_preset_is_swept():
     assert {c.preset for c in cases if c.preset} == set(PRESETS)
     swept_export = {f.name for c in cases if not c.preset for f in fields(ExportSettings)
                     if getattr(c.export, f.name) != getattr(ExportSettings(), f.name)}
-    assert swept_export == {f.name for f in fields(ExportSettings)}
-    assert set(CODEC_GROUPS) <= swept_export
+    # F's codec shows only in composited frames: the compositing bench sweeps it, the sweep (bare head) does not.
+    swept_by_composite = {f.name for s in f_precision_settings() for f in fields(ExportSettings)
+                          if getattr(s, f.name) != getattr(ExportSettings(), f.name)}
+    assert swept_by_composite == {"inpaint"} and "inpaint" not in swept_export
+    assert len({s.inpaint for s in f_precision_settings()}) == len(F_CODECS) >= 3
+    assert swept_export | swept_by_composite == {f.name for f in fields(ExportSettings)}
+    assert set(CODEC_GROUPS) <= swept_export | swept_by_composite
     swept_runtime = {key for c in cases for key in c.runtime}
     # TalkingHead takes RenderSettings.graph_threads as its `threads` argument.
     assert swept_runtime == {"threads" if f.name == "graph_threads" else f.name for f in fields(RenderSettings)}

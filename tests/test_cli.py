@@ -127,6 +127,7 @@ def test_bad_input_gives_clear_errors_in_process(in_process_dir):
     for args, message in ((["--preset", "tiny"], f"unknown preset 'tiny' (known: {known})"),
                           (["--preset", "fast", "--codec", "fp16"], "give --preset or --codec, not both"),
                           (["--flame-codec", "q4/x"], "only q16/q8/q4 take a chunk size"),
+                          (["--inpaint-codec", "q9"], "inpaint: unknown codec 'q9'"),
                           (["--gaussian-budget", "lots"], "--gaussian-budget must be a whole number or a percentage")):
         result = _invoke(app, ["speaker.ckpt", "-o", "x.gtb", *args], expect=2)
         assert message in result.stderr + result.stdout, args

@@ -34,11 +34,11 @@ def _identity(x, mask, render):
 
 
 @pytest.fixture(scope="module")
-def clip_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
-    """The small speaker with a 4-frame 96x112 demo clip and an untrained F, saved and exported."""
+def clip_export(small_speaker, export_recording, tmp_path_factory) -> SimpleNamespace:
+    """The small speaker with a 4-frame 96x112 demo clip and a random F, saved and exported (its ONNX protos
+    kept: translator, deform, inpaint)."""
     from gaussiantalker.exporter.checkpoint import save_checkpoint
     from gaussiantalker.exporter.demo_clip import ClipComposer, make_demo_clip
-    from gaussiantalker.exporter.export import export_bundle
     from gaussiantalker.exporter.inpaint import InpaintGenerator
 
     speaker = copy.deepcopy(small_speaker)
@@ -47,11 +47,14 @@ def clip_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
     speaker.reference = make_demo_clip(speaker, composer)
     torch.manual_seed(0)
     speaker.inpaint = InpaintGenerator().eval()
+    # An untrained F is exactly its priors (its output layer starts at zero); a random output layer makes every
+    # weight reach the composite, as a trained F's do.
+    torch.nn.init.normal_(speaker.inpaint.head.weight, std=0.1)
     folder = tmp_path_factory.mktemp("clip")
     save_checkpoint(speaker, folder / "clip.ckpt")
-    export_bundle(speaker, folder / "clip.gtb", progress=False)
+    protos = export_recording(speaker, folder / "clip.gtb").protos
     return SimpleNamespace(speaker=speaker, composer=composer, checkpoint=folder / "clip.ckpt",
-                           path=folder / "clip.gtb", folder=folder)
+                           path=folder / "clip.gtb", folder=folder, protos=protos)
 
 
 # -- the clip's storage ------------------------------------------------------------------------------------------
@@ -246,6 +249,42 @@ def test_head_composites_into_the_clip_following_its_track(clip_export, tmp_path
     with TalkingHead(clip_export.path, resolution=(48, 56)) as small:
         assert small.reference.frame(0).shape == (56, 48, 3) and small.reference.mask(0).shape == (56, 48)
         assert next(small.frames(audio, small.config.sample_rate)).shape == (56, 48, 3)
+
+
+def test_inpaint_codec_is_a_precision_knob(clip_export, replay_onnx_exports, tmp_path):
+    """F's weights take the `inpaint` group's codec (`gt-export --inpaint-codec`) and nothing else changes; the
+    composited frames differ from the fp32 F's only inside the mask, by what 8-bit weights change in F's output."""
+    from gaussiantalker.exporter.export import export_bundle
+    from gaussiantalker.exporter.tiers import PRESETS, ExportSettings
+    from gaussiantalker.runtime import TalkingHead
+    from gaussiantalker.sdk.bundle import Bundle
+
+    replay_onnx_exports(clip_export.protos)
+    path = tmp_path / "q8.gtb"
+    export_bundle(clip_export.speaker, path, settings=ExportSettings(inpaint="q8"), progress=False)
+    plain, quantised = Bundle(clip_export.path).manifest["buffers"], Bundle(path).manifest["buffers"]
+    assert plain.keys() == quantised.keys()
+    for name, entry in quantised.items():
+        codec = entry["codec"]["name"]
+        if not name.startswith("inpaint/"):
+            assert codec == plain[name]["codec"]["name"], name
+        else:  # F's larger convolutions 8-bit, those under QUANT_MIN_VALUES values fp16
+            assert codec == ("q8" if np.prod(entry["shape"]) >= 4096 else "fp16"), name
+    assert sum(e["nbytes"] for n, e in quantised.items() if n.startswith("inpaint/")) < \
+        0.35 * sum(e["nbytes"] for n, e in plain.items() if n.startswith("inpaint/"))
+    audio = np.random.default_rng(0).normal(0.0, 0.1, 6 * clip_export.speaker.config.samples_per_frame)
+    with TalkingHead(clip_export.path) as reference, TalkingHead(path) as head:
+        rate = head.config.sample_rate
+        inside_psnr = []
+        for index, (want, got) in enumerate(zip(reference.frames(audio, rate), head.frames(audio, rate),
+                                                 strict=True)):
+            inside = head.reference.mask(track_row(CLIP_FRAMES, index)) > 0
+            np.testing.assert_array_equal(got[~inside], want[~inside])
+            inside_psnr.append(psnr_db(want[inside], got[inside]))
+    # Measured 67.3-67.9 dB (1 level at most): the knob reaches the pixels, and only by 8-bit weights' error;
+    # 55 dB leaves room for other platforms' rounding.
+    assert 55.0 <= min(inside_psnr) < float("inf")
+    assert {PRESETS[name].export.inpaint for name in PRESETS} == {"raw", "q8", "q4", "fp16"}
 
 
 def test_composite_true_without_a_clip_and_a_custom_camera_are_refused(clip_export, small_export):
