@@ -9,6 +9,7 @@ from collections.abc import Iterable
 import moderngl
 
 from gaussiantalker.sdk.errors import RenderError
+from gaussiantalker.shaders import check_target
 
 # The shaders use only what OpenGL 3.3/4.1 core and OpenGL ES 3.0 / WebGL 2 share, in one variant per target
 # (docs/shaders.md); the runtime's own context is desktop core, at least 3.3.
@@ -77,9 +78,10 @@ def create_context(backend: str | None = None) -> moderngl.Context:
 
 def shader_target_problem(ctx: moderngl.Context, target: str) -> str | None:
     """Why `ctx` cannot compile shader `target`'s variant (None when it can), so a splatter fails before compiling."""
-    required = _TARGET_GL_VERSION.get(target)
-    if required is None:
-        return f"unknown shader target {target!r}; allowed: {', '.join(map(repr, _TARGET_GL_VERSION))}"
+    try:
+        required = _TARGET_GL_VERSION[check_target(target)]
+    except ValueError as exc:  # not a target at all: the one message every caller gives
+        return str(exc)
     if ctx.version_code >= required:
         return None
     if target == "300es" and _ES3_ON_DESKTOP in ctx.extensions:

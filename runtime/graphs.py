@@ -72,7 +72,7 @@ class OnnxRuntimeBackend:
         loaded = {name: _load_graph(bundle, name) for name in bundle.graph_names()}
         self.sessions = {name: self._open(bundle, name, graph) for name, graph in loaded.items()}
         if speaker:  # after _check_signature: the declared shapes are now known to be the graphs' own
-            _check_expression_width(bundle)
+            check_expression_width(bundle)
 
     def _open(self, bundle: Bundle, name: str, graph: _LoadedGraph):
         options = self._ort.SessionOptions()
@@ -127,8 +127,9 @@ def check_speaker_bundle(bundle: Bundle) -> None:
                               f"[T >= 1, {POSE_TRACK_WIDTH}] (rotation, translation per frame)")
 
 
-def _check_expression_width(bundle: Bundle) -> None:
-    """The speaker config's n_expr must be the graphs' expression width (drives are built from it)."""
+def check_expression_width(bundle: Bundle) -> None:
+    """The speaker config's n_expr must be the graphs' expression width (drives are built from it); each backend
+    calls this once its graphs' signatures are known to be the manifest's."""
     n_expr = bundle.manifest["speaker"].get("n_expr", SpeakerConfig.n_expr)
     for graph, kind in (("deform", "inputs"), ("translator", "outputs")):
         if graph not in bundle.manifest["graphs"]:

@@ -62,7 +62,7 @@ class MnnBackend:
     """Runs a bundle's `.mnn` graphs with MNN on the CPU (one thread unless told otherwise)."""
 
     def __init__(self, bundle: Bundle, threads: int | None = None) -> None:
-        from .graphs import check_speaker_bundle  # noqa: PLC0415 - graphs.py imports this module
+        from .graphs import check_expression_width, check_speaker_bundle  # noqa: PLC0415 - graphs.py imports this
 
         self.bundle = bundle
         self.threads = int(threads) if threads else 1
@@ -78,6 +78,8 @@ class MnnBackend:
         # Everything is read and checksummed before the first module is built: damage anywhere fails fast.
         models = {name: self._model_bytes(name) for name in names}
         self.modules = {name: self._open(name, data) for name, data in models.items()}
+        if "speaker" in bundle.manifest:  # after _open: the modules' names are now known to be the manifest's
+            check_expression_width(bundle)
 
     def _entry(self, name: str) -> dict:
         entry = self.bundle.manifest["mnn"]["graphs"][name]

@@ -62,7 +62,7 @@ from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import straight_rgba, to_uint8
 from gaussiantalker.sdk.render_settings import RENDER_TARGETS, RenderSettings
-from gaussiantalker.shaders import SHADER_TARGETS, load_shader, shader_variant
+from gaussiantalker.shaders import check_target, load_shader, shader_variant
 
 from .depth_sort import DepthSorter
 from .gl_context import check_shader_target, create_context
@@ -303,9 +303,10 @@ class GLSplatter:
                  settings: RenderSettings | None = None, shader_target: str = "330") -> None:
         if settings is not None and not isinstance(settings, RenderSettings):
             raise RenderError(f"settings must be a RenderSettings, got {type(settings).__name__}")
-        if shader_target not in SHADER_TARGETS:
-            raise RenderError(f"shader_target must be one of {', '.join(map(repr, SHADER_TARGETS))}, "
-                              f"got {shader_target!r}")
+        try:
+            check_target(shader_target)
+        except ValueError as exc:
+            raise RenderError(str(exc)) from None
         self.settings = settings or RenderSettings()
         self.shader_target = shader_target
         self._sorter = DepthSorter(self.settings.sort_interval, self.settings.sort_key_bits)

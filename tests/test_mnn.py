@@ -258,6 +258,21 @@ def test_damaged_mnn_entry_fails_its_checksum(mnn_export, tmp_path):
 
 
 @needs_mnn
+def test_speaker_expression_width_is_checked_on_mnn_too(mnn_export, tmp_path):
+    """A manifest whose speaker n_expr disagrees with the graphs is refused at load by the MNN backend as by
+    onnxruntime's (drives are built from n_expr; the graphs would fail mid-video)."""
+    from test_bundle import _rewrite_manifest
+
+    lying = tmp_path / "lying.gtb"
+    lying.write_bytes(Path(mnn_export["path"]).read_bytes())
+    _rewrite_manifest(lying, lambda manifest: manifest["speaker"].update(n_expr=30))
+    for backend in ("mnn", "onnxruntime"):
+        with pytest.raises(BundleError, match=r"manifest speaker n_expr is 30 but graph 'deform' input 'expression' "
+                                              r"has \d+ coefficients"):
+            TalkingHead(lying, resolution=SIZE, backend=backend)
+
+
+@needs_mnn
 def test_verify_report_covers_mnn_graphs(mnn_export, small_export):
     """gt-export --verify's report gains the MNN rows (graphs vs onnxruntime, frames), all passing."""
     from gaussiantalker.exporter.verify import format_report, verify_bundle

@@ -25,7 +25,12 @@ import pytest
 from test_splatter import BACKGROUND, make_camera, random_scene
 
 from gaussiantalker.runtime import splatter as splatter_module
-from gaussiantalker.runtime.gl_context import check_shader_target, gles_render_target, shader_target_problem
+from gaussiantalker.runtime.gl_context import (
+    _TARGET_GL_VERSION,
+    check_shader_target,
+    gles_render_target,
+    shader_target_problem,
+)
 from gaussiantalker.runtime.splatter import PROGRAMS, GLSplatter, program_sources, shader_defines, with_defines
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.render_settings import RenderSettings
@@ -332,7 +337,7 @@ def test_the_es_variant_is_compiled_as_glsl_es(context_splatter, monkeypatch):
 
 
 def test_unknown_target_is_a_render_error_listing_the_targets(context_splatter):
-    with pytest.raises(RenderError, match=r"shader_target must be one of '330', '410', '300es', got '450'"):
+    with pytest.raises(RenderError, match=r"unknown shader target '450'; allowed: '330', '410', '300es'"):
         GLSplatter(context_splatter.ctx, shader_target="450")
 
 
@@ -341,7 +346,8 @@ def test_targets_a_context_can_compile():
         return SimpleNamespace(version_code=version, extensions=set(extensions))
 
     assert all(shader_target_problem(context(460), target) is None for target in SHADER_TARGETS)
-    assert "unknown shader target '450'" in shader_target_problem(context(460), "450")
+    assert set(_TARGET_GL_VERSION) == set(SHADER_TARGETS)  # every target has its context requirement
+    assert shader_target_problem(context(460), "450") == "unknown shader target '450'; allowed: '330', '410', '300es'"
     assert shader_target_problem(context(330), "330") is None
     assert "needs OpenGL 4.1; this context is OpenGL 3.3" in shader_target_problem(context(330), "410")
     assert shader_target_problem(context(410), "410") is None
