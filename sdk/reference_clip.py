@@ -28,6 +28,10 @@ FRAME_CODECS = {"h264": ("libx264", "h264")}
 MASK_CODECS = {"png": ("png", "png")}
 # x264 constant-rate factor of stored frames: 18 keeps the demo clip above 40 dB (visually lossless).
 H264_CRF = 18
+# The colour description written into each frame's H.264 stream (its VUI): what swscale's RGB -> yuv420p conversion
+# does (the BT.601 matrix, limited range) on sRGB pictures, so a native decoder that honours the tags converts back
+# exactly as the runtime does, and one that guesses from the size (BT.709 for HD) is told otherwise.
+H264_COLOUR_TAGS = "colorprim=bt709:transfer=iec61966-2-1:colormatrix=bt470bg:range=tv"
 MAX_CLIP_FRAMES = 100_000
 # A mask must have at least this many pixels at M >= 0.5: a clip "with no face in the mask" is refused.
 MIN_FACE_PIXELS = 16
@@ -119,12 +123,14 @@ def _encode(encoder: str, frame: av.VideoFrame, pix_fmt: str, options: dict[str,
 
 
 def encode_frame(rgb: np.ndarray, codec: str = "h264") -> bytes:
-    """uint8 [H, W, 3] RGB (even sides) -> one intra-coded H.264 frame (4:2:0, CRF H264_CRF)."""
+    """uint8 [H, W, 3] RGB (even sides) -> one intra-coded H.264 frame (4:2:0, CRF H264_CRF, colour tags
+    H264_COLOUR_TAGS)."""
     rgb = np.ascontiguousarray(rgb)
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ReferenceClipError(f"a reference frame must be uint8 [H, W, 3], got {rgb.dtype} {list(rgb.shape)}")
     frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
-    return _encode(FRAME_CODECS[codec][0], frame, "yuv420p", {"crf": str(H264_CRF), "bf": "0"})
+    return _encode(FRAME_CODECS[codec][0], frame, "yuv420p",
+                   {"crf": str(H264_CRF), "bf": "0", "x264-params": H264_COLOUR_TAGS})
 
 
 def quantise_mask(mask: np.ndarray) -> np.ndarray:
