@@ -53,8 +53,9 @@ def _fps(bundle: Path, resolution, composite_frames: bool, audio: np.ndarray, ra
 
 def _crop_ms(head: TalkingHead, inpaint, frames: int = 30) -> float:
     seconds = []
-    for index in range(frames):
-        mask, picture = head.reference.mask(index), head.reference.frame(index)
+    for index in range(frames):  # a clip shorter than `frames` is played forth and back, as TalkingHead does
+        row = track_row(len(head.reference), index)
+        mask, picture = head.reference.mask(row), head.reference.frame(row)
         box = crop_box(mask)
         x = picture[box.rows, box.columns].astype(np.float32) / 255 * (1 - mask[box.rows, box.columns, None])
         render = np.zeros((*x.shape[:2], 4), np.float32)
@@ -67,7 +68,7 @@ def _crop_ms(head: TalkingHead, inpaint, frames: int = 30) -> float:
 def _seams(speaker, pairs: int, seed: int, inpainters: dict | None = None) -> dict[str, float]:
     """Mean seam step per composite over `pairs` re-rendered frames; `inpainters` adds named Fs (e.g. a bundle's
     `inpaint` graph at some codec) beside the torch F, the fallback, the plain paste and the true frame."""
-    composer = ClipComposer(speaker)
+    composer = ClipComposer(speaker, size=speaker.reference.layout.size)  # the clip's own frames and masks
     rng = np.random.default_rng(seed)
     inpainters = {"F": torch_inpainter(speaker.inpaint), "fallback": opencv_fallback, **(inpainters or {})}
     steps: dict[str, list[float]] = {name: [] for name in [*inpainters, "plain paste", "true frame"]}

@@ -306,6 +306,24 @@ def test_inpaint_codec_is_a_precision_knob(clip_export, replay_onnx_exports, tmp
     assert {PRESETS[name].export.inpaint for name in PRESETS} == {"raw", "q8", "q4", "fp16"}
 
 
+def test_composite_bench_end_to_end(clip_export, replay_onnx_exports, tmp_path):
+    """`gt-bench --composite` on the small clip speaker: every table is written, the reference codec matches
+    itself exactly, a lossy F codec is finite and close, and the seam rows are there (speed is not judged)."""
+    from gaussiantalker.exporter.bench_composite import run_composite_bench
+
+    replay_onnx_exports(clip_export.protos * 3)  # the bench's own export, then one per F codec
+    out = tmp_path / "composite.md"
+    text = run_composite_bench(clip_export.checkpoint, None, seconds=0.4, rounds=1, pairs=2, out=out,
+                               codecs=("raw", "q8"), progress=False)
+    assert out.read_text() == text
+    rows = {line.split("|")[1].strip(): line for line in text.splitlines() if line.startswith("| ")}
+    assert {"96x112 composited", "96x112 bare", "512x512 composited", "512x512 bare"} <= rows.keys()
+    assert {"F", "fallback", "F q8", "plain paste", "true frame"} <= rows.keys()
+    assert "| raw |" in text and " inf dB | inf dB | 0 |" in rows["raw"]
+    q8_min = float(rows["q8"].split("|")[3].split()[0])
+    assert 55.0 <= q8_min < float("inf")  # as in test_inpaint_codec_is_a_precision_knob
+
+
 def test_composite_true_without_a_clip_and_a_custom_camera_are_refused(clip_export, small_export):
     from gaussiantalker.runtime import TalkingHead
 
