@@ -37,6 +37,7 @@ from .compositing import torch_inpainter
 from .demo_audio import synth_speech
 from .demo_clip import ClipComposer
 from .export import export_bundle
+from .speaker import Speaker
 from .tiers import ExportSettings
 
 MIN_JAW_CHANGE = 0.1  # radians between the re-rendered jaw and the clip frame's own
@@ -65,7 +66,7 @@ def _crop_ms(head: TalkingHead, inpaint, frames: int = 30) -> float:
     return 1e3 * statistics.median(seconds)
 
 
-def _seams(speaker, pairs: int, seed: int, inpainters: dict | None = None) -> dict[str, float]:
+def _seams(speaker: Speaker, pairs: int, seed: int, inpainters: dict | None = None) -> dict[str, float]:
     """Mean seam step per composite over `pairs` re-rendered frames; `inpainters` adds named Fs (e.g. a bundle's
     `inpaint` graph at some codec) beside the torch F, the fallback, the plain paste and the true frame."""
     composer = ClipComposer(speaker, size=speaker.reference.layout.size)  # the clip's own frames and masks
@@ -103,7 +104,7 @@ def _f_bytes(bundle: Path) -> int:
     return manifest["graphs"]["inpaint"]["nbytes"] + weights
 
 
-def _f_precision(speaker, codecs: tuple[str, ...], audio: np.ndarray, rate: int, tmp: Path,
+def _f_precision(speaker: Speaker, codecs: tuple[str, ...], audio: np.ndarray, rate: int, tmp: Path,
                  bar: tqdm) -> tuple[list[dict], dict]:
     """Per inpaint codec: F's bytes and its composited frames against the first codec's (8-bit, inside M), plus
     each bundle's F as an inpainter (for the seam measure)."""
@@ -150,7 +151,7 @@ def run_composite_bench(checkpoint: Path, bundle: Path | None, seconds: float, r
                         tmp, progress)
 
 
-def _measure(speaker, checkpoint: Path, bundle: Path, seconds: float, rounds: int, pairs: int, out: Path,
+def _measure(speaker: Speaker, checkpoint: Path, bundle: Path, seconds: float, rounds: int, pairs: int, out: Path,
              codecs: tuple[str, ...], tmp: Path, progress: bool) -> str:
     with TalkingHead(bundle) as head:
         clip_size = (head.camera.width, head.camera.height)
