@@ -26,6 +26,7 @@ from .bench_worker import measure_frames
 from .checkpoint import load_checkpoint
 from .demo_audio import synth_speech
 from .export import export_bundle
+from .verify import _random_crops
 
 # (label, backend, graph threads): each backend at its default, and both on one thread (the mobile preset's).
 CASES = (("onnxruntime", "onnxruntime", None), ("onnxruntime 1 thread", "onnxruntime", 1),
@@ -56,10 +57,7 @@ def measure_case(bundle: Path, backend: str, threads: int | None, size: int, aud
         graphs = {"translator 10 s": _median_ms(lambda: head.graphs.run("translator", {"audio": speech}), 5),
                   "deformation": _median_ms(lambda: head.graphs.run("deform", inputs))}
         if "inpaint" in head.bundle.manifest["graphs"]:
-            rng = np.random.default_rng(0)
-            crop = {"image": rng.random((1, 3, *INPAINT_CROP), np.float32),
-                    "mask": rng.random((1, 1, *INPAINT_CROP), np.float32),
-                    "coverage": rng.random((1, 1, *INPAINT_CROP), np.float32)}
+            crop = dict(zip(("image", "mask", "coverage"), _random_crops(0, [INPAINT_CROP])[0], strict=True))
             graphs["inpaint crop"] = _median_ms(lambda: head.graphs.run("inpaint", crop))
         frames = measure_frames(head, audio, rate, warmup=5)
     return {"graphs_ms": graphs, **frames}

@@ -26,9 +26,7 @@ import typer
 from tqdm import tqdm
 
 from gaussiantalker.runtime.composite import composite, crop_box, graph_inpainter, opencv_fallback
-from gaussiantalker.runtime.graphs import open_backend
 from gaussiantalker.runtime.head import TalkingHead
-from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.drive import track_row
 from gaussiantalker.sdk.image import psnr_db, seam_step, to_uint8
 
@@ -97,9 +95,8 @@ def f_precision_settings(codecs: tuple[str, ...] = F_CODECS) -> list[ExportSetti
     return [ExportSettings(inpaint=codec) for codec in codecs]
 
 
-def _f_bytes(bundle: Path) -> int:
-    """Bytes F takes in `bundle`: its graph entry and its weight buffers."""
-    manifest = Bundle(bundle).manifest
+def _f_bytes(manifest: dict) -> int:
+    """Bytes F takes in a bundle (its `manifest`): its graph entry and its weight buffers."""
     weights = sum(entry["nbytes"] for name, entry in manifest["buffers"].items() if name.startswith("inpaint/"))
     return manifest["graphs"]["inpaint"]["nbytes"] + weights
 
@@ -123,16 +120,13 @@ def _f_precision(speaker: Speaker, codecs: tuple[str, ...], audio: np.ndarray, r
                 inside = head.reference.mask(track_row(len(head.reference), index)) > 0
                 psnrs.append(psnr_db(reference[inside], frame[inside]))
                 errors.append(int(np.abs(reference.astype(np.int16) - frame.astype(np.int16)).max()))
-        inpainters[f"F {codec}"] = _bundle_inpainter(path)
-        rows.append({"codec": codec, "f_bytes": _f_bytes(path), "min_psnr_db": min(psnrs),
+            # The head's graph sessions outlive it (closing a head releases its GL objects only).
+            inpainters[f"F {codec}"] = graph_inpainter(head.graphs.run)
+            f_bytes = _f_bytes(head.bundle.manifest)
+        rows.append({"codec": codec, "f_bytes": f_bytes, "min_psnr_db": min(psnrs),
                      "mean_psnr_db": float(np.mean(psnrs)), "max_pixel_error": max(errors)})
         bar.update()
     return rows, inpainters
-
-
-def _bundle_inpainter(path: Path):
-    """The `inpaint` graph of the bundle at `path` as an inpainter (its own onnxruntime sessions)."""
-    return graph_inpainter(open_backend(Bundle(path)).run)
 
 
 def run_composite_bench(checkpoint: Path, bundle: Path | None, seconds: float, rounds: int, pairs: int,
