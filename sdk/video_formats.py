@@ -113,8 +113,10 @@ class VideoPlan:
         return options
 
     def describe_size(self) -> str:
-        """'WxH', with the padded size when the codec needs even sides."""
-        padded = "" if self.encoded_size == self.size else f" (padded to {self.encoded_size[0]}x{self.encoded_size[1]})"
+        """'WxH', with the padded size when the codec needs even sides (docs/video.md says why it cannot crop)."""
+        padded = "" if self.encoded_size == self.size else (
+            f" (padded to {self.encoded_size[0]}x{self.encoded_size[1]}: {self.codec.name} 4:2:0 needs even sides; "
+            "webm/VP9 keeps odd sizes)")
         return f"{self.size[0]}x{self.size[1]}{padded}"
 
     def describe(self) -> str:
