@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from gaussiantalker.exporter.bench_compare import PACKAGES, Version, _alternating, checkout_root, this_version_root
+from gaussiantalker.exporter.bench.compare import PACKAGES, Version, _alternating, checkout_root, this_version_root
 
 
 def test_a_folder_without_the_packages_is_refused(tmp_path):

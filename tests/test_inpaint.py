@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.inpaint import (
+from gaussiantalker.exporter.export.inpainter_graph import inpainter_onnx
+from gaussiantalker.exporter.model.inpainter import (
     CROP_MULTIPLE,
     W_LOGIT_BIAS,
-    InpaintConfig,
-    InpaintGenerator,
+    InpainterConfig,
+    InpainterNet,
     crop_multiple_ok,
-    export_inpaint,
     masked_l1,
-    train_inpaint,
+    train_inpainter,
 )
 
 # fp32 on both sides and the same ops (convolutions, resizes, elementwise): only summation order differs, which
@@ -74,7 +74,7 @@ def _random_inputs(seed: int, height: int, width: int) -> dict[str, np.ndarray]:
     return {"image": image, "mask": mask, "coverage": coverage}
 
 
-def _torch_run(model: InpaintGenerator, inputs: dict[str, np.ndarray]) -> np.ndarray:
+def _torch_run(model: InpainterNet, inputs: dict[str, np.ndarray]) -> np.ndarray:
     with torch.no_grad():
         return model(*(torch.from_numpy(inputs[k]) for k in ("image", "mask", "coverage"))).numpy()
 
@@ -86,12 +86,12 @@ def exported():
     import onnxruntime as ort
 
     torch.manual_seed(0)
-    model = InpaintGenerator()
+    model = InpainterNet()
     with torch.no_grad():
         torch.nn.init.normal_(model.head.weight, std=0.5)
         torch.nn.init.normal_(model.head.bias, std=0.5)
     model.eval()
-    proto = export_inpaint(model)
+    proto = inpainter_onnx(model)
     options = ort.SessionOptions()
     options.intra_op_num_threads = 1
     session = ort.InferenceSession(proto.SerializeToString(), options, providers=["CPUExecutionProvider"])
@@ -100,7 +100,7 @@ def exported():
 
 def test_output_shape_dtype_and_range() -> None:
     torch.manual_seed(0)
-    model = InpaintGenerator(InpaintConfig(channels=8, levels=2)).eval()
+    model = InpainterNet(InpainterConfig(channels=8, levels=2)).eval()
     with torch.no_grad():
         torch.nn.init.normal_(model.head.weight, std=2.0)
         image = torch.rand(2, 3, 32, 48) * 1.2
@@ -113,7 +113,7 @@ def test_untrained_is_near_identity_on_a_fully_covered_crop() -> None:
     """Mask 1, coverage 1: no hole, and the head starts at zero, so w = sigmoid(W_LOGIT_BIAS) ≈ 0.0067 exactly
     everywhere and |F(x) - x| = w·|fill - x| ≤ w (both in [0, 1]; x above 1 is clamped). Measured ≈ 0.005."""
     torch.manual_seed(0)
-    model = InpaintGenerator().eval()
+    model = InpainterNet().eval()
     image = torch.rand(2, 3, 64, 96, generator=torch.Generator().manual_seed(1)) * 1.1
     ones = torch.ones(2, 1, 64, 96)
     with torch.no_grad():
@@ -127,7 +127,7 @@ def test_untrained_fills_a_hole_from_its_surroundings() -> None:
     0.05 (measured over seeds 0-5: mean ≤ 0.008, max ≤ 0.032; black, they were ~0.45 off). Covered pixels move by
     w·|fill - x| with w = sigmoid(W_LOGIT_BIAS) ≈ 0.0067 and a fill close to x (measured ≤ 0.0012)."""
     torch.manual_seed(0)
-    model = InpaintGenerator().eval()
+    model = InpainterNet().eval()
     image, mask, coverage, target = _holed_scene(np.random.default_rng(3), batch=4)
     with torch.no_grad():
         out = model(image, mask, coverage)
@@ -141,7 +141,7 @@ def test_untrained_fills_a_hole_from_its_surroundings() -> None:
 @pytest.mark.parametrize("value", [0.0, 1.0, 1e4, -1e4, float("nan"), float("inf"), -float("inf")])
 def test_finite_output_for_extreme_inputs(value: float) -> None:
     torch.manual_seed(0)
-    model = InpaintGenerator().eval()
+    model = InpainterNet().eval()
     with torch.no_grad():
         torch.nn.init.normal_(model.head.weight, std=1.0)
         full = torch.full((1, 3, 32, 32), value)
@@ -153,7 +153,7 @@ def test_finite_output_for_extreme_inputs(value: float) -> None:
 
 
 def test_crop_sides_must_be_multiples_of_crop_multiple() -> None:
-    model = InpaintGenerator().eval()
+    model = InpainterNet().eval()
     assert CROP_MULTIPLE == 16
     assert crop_multiple_ok(16, 320) and not crop_multiple_ok(40, 64) and not crop_multiple_ok(0, 16)
     with pytest.raises(ValueError, match="40x64 is not a multiple of 16"):
@@ -161,15 +161,15 @@ def test_crop_sides_must_be_multiples_of_crop_multiple() -> None:
 
 
 def test_config_round_trip_and_errors() -> None:
-    config = InpaintConfig(channels=8, levels=2)
-    assert InpaintConfig.from_dict(config.to_dict()) == config
-    assert InpaintConfig.from_dict({}) == InpaintConfig()
-    assert InpaintConfig.from_dict({"channels": np.int64(24)}).channels == 24
+    config = InpainterConfig(channels=8, levels=2)
+    assert InpainterConfig.from_dict(config.to_dict()) == config
+    assert InpainterConfig.from_dict({}) == InpainterConfig()
+    assert InpainterConfig.from_dict({"channels": np.int64(24)}).channels == 24
     for data, field in (({"channel": 8}, "channel"), ({"channels": 0}, "channels"), ({"levels": -1}, "levels"),
                         ({"levels": 4}, "levels"), ({"channels": 1.5}, "channels"), ({"levels": True}, "levels"),
                         ({"channels": "16"}, "channels")):
         with pytest.raises(ValueError, match=field):
-            InpaintConfig.from_dict(data)
+            InpainterConfig.from_dict(data)
 
 
 def test_brief_training_lowers_the_masked_loss(one_thread) -> None:
@@ -177,23 +177,23 @@ def test_brief_training_lowers_the_masked_loss(one_thread) -> None:
     so the truth inside each hole is HOLE_SHADE darker (a shadowed chin): only training can learn that. Measured
     over seeds 0-7: final/initial loss 0.16-0.25 (seed 0: 0.22); the step count, not the clock, stops it."""
     torch.manual_seed(0)
-    model = InpaintGenerator()
-    losses = train_inpaint(model, lambda rng: _holed_scene(rng, shade=HOLE_SHADE), seconds=300.0, max_steps=100,
+    model = InpainterNet()
+    losses = train_inpainter(model, lambda rng: _holed_scene(rng, shade=HOLE_SHADE), seconds=300.0, max_steps=100,
                            seed=0)
     assert len(losses) == 100 and all(math.isfinite(v) for v in losses)
     assert not model.training
     assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:10]), (losses[:10], losses[-10:])
     with torch.no_grad():  # and on a held-out batch
         image, mask, coverage, target = _holed_scene(np.random.default_rng(99), shade=HOLE_SHADE)
-        untrained = InpaintGenerator().eval()
+        untrained = InpainterNet().eval()
         before = float(masked_l1(untrained(image, mask, coverage), target, mask))
         after = float(masked_l1(model(image, mask, coverage), target, mask))
     assert after < 0.5 * before
 
 
 def test_training_stops_on_the_clock() -> None:
-    model = InpaintGenerator(InpaintConfig(channels=4, levels=1))
-    assert train_inpaint(model, lambda rng: _holed_scene(rng, batch=1, size=32), seconds=0.0) == []
+    model = InpainterNet(InpainterConfig(channels=4, levels=1))
+    assert train_inpainter(model, lambda rng: _holed_scene(rng, batch=1, size=32), seconds=0.0) == []
     assert not model.training
 
 
@@ -211,7 +211,7 @@ def test_onnx_output_depends_on_the_network(exported) -> None:
     """Guard: the compared outputs are not just the parameter-free priors (an all-zero head would also match)."""
     model, _, session = exported
     inputs = _random_inputs(5, 64, 64)
-    prior_only = InpaintGenerator().eval()
+    prior_only = InpainterNet().eval()
     assert np.abs(session.run(None, inputs)[0] - _torch_run(prior_only, inputs)).max() > 0.05
 
 

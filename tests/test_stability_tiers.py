@@ -18,7 +18,7 @@ import math
 import numpy as np
 import pytest
 
-from gaussiantalker.exporter.demo_audio import synth_speech
+from gaussiantalker.exporter.export.speech import synth_speech
 from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.sdk.drive import MAX_DRIVE_MAGNITUDE, FrameDrive, HeadPose
 from gaussiantalker.sdk.image import psnr_db

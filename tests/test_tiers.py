@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.prune import budget_count, gaussian_contributions, prune_speaker
-from gaussiantalker.exporter.tiers import PRESETS, ExportSettings, get_preset, parse_codec
-from gaussiantalker.exporter.verify import HEAD_PSNR_FLOOR_DB, Tolerances, verify_bundle, verify_translator
+from gaussiantalker.exporter.export.presets import PRESETS, ExportSettings, get_preset, parse_codec
+from gaussiantalker.exporter.export.prune import budget_count, gaussian_contributions, prune_speaker
+from gaussiantalker.exporter.verify.verify import HEAD_PSNR_FLOOR_DB, Tolerances, verify_bundle, verify_translator
 from gaussiantalker.runtime.head import TalkingHead, _render_settings
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
