@@ -1,4 +1,4 @@
-"""`gt-bench --sweep`: the cases cover every knob, the quality metrics measure what they claim, and a tiny sweep runs
+"""`gt-bench sweep`: the cases cover every knob, the quality metrics measure what they claim, and a tiny sweep runs
 end to end (speed figures are not judged here: they belong to the benchmark's own report)."""
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def test_case_selection():
 
 
 def test_unknown_cases_are_a_cli_error():
-    result = CliRunner().invoke(app, ["--sweep", "--cases", "zoom"])
+    result = CliRunner().invoke(app, ["sweep", "--cases", "zoom"])
     assert result.exit_code == 2 and "no sweep case matches 'zoom'" in result.output
 
 
