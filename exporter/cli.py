@@ -53,10 +53,10 @@ def export(
     resolution: str = typer.Option(None, "--resolution", help="verification frame size, N or WxH [default: 256, "
                                    "or the scene's]"),
     min_psnr: float = typer.Option(None, "--min-psnr",
-                                   help="required 8-bit PSNR (dB) of every frame [default: the tier's]"),
+                                   help="required 8-bit PSNR (dB) of every frame [default: the label's]"),
     min_float_psnr: float = typer.Option(None, "--min-float-psnr",
-                                         help="required float-frame PSNR (dB) [default: the tier's]"),
-    preset: str = typer.Option(None, "--preset", help=f"speed/accuracy tier: {', '.join(PRESETS)} "
+                                         help="required float-frame PSNR (dB) [default: the label's]"),
+    preset: str = typer.Option(None, "--preset", help=f"speed/accuracy preset: {', '.join(PRESETS)} "
                                                       "(docs/precision.md); the knobs below override its settings"),
     codec: str = typer.Option(None, "--codec", help="one codec for every buffer: raw (fp32), fp16, q16, q8, q4"),
     gaussians: str = typer.Option(None, "--gaussian-codec", help="codec of the per-Gaussian attributes"),
@@ -106,7 +106,7 @@ def export(
 
                 typer.echo(format_removals(result.specialisation.removals))
             typer.echo(f"wrote {result.bytes_written / 1e6:.2f} MB bundle ({result.gaussians} Gaussians, "
-                       f"tier {result.tier}, graphs: {', '.join(result.graphs)})")
+                       f"tier {result.label}, graphs: {', '.join(result.graphs)})")
             if result.mnn:
                 typer.echo("MNN graphs: " + ", ".join(f"{name} {size / 1e6:.2f} MB" for name, size in
                                                       result.mnn.items()))
@@ -134,7 +134,7 @@ def _budget(text: str | None) -> float | None:
 
 def _settings(preset: str | None, codec: str | None, knobs: dict):
     """The export settings: a preset's (or every buffer with --codec, or fp32) with the given knobs replacing
-    its values (the bundle then records the preset's runtime defaults and "NAME+custom" as its tier)."""
+    its values (the bundle then records the preset's runtime defaults and "NAME+custom" as its label)."""
     from .export.export import resolve_settings
 
     if preset is not None and codec is not None:

@@ -11,7 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from gaussiantalker.exporter.bench.app import app
-from gaussiantalker.exporter.bench.composite import F_CODECS, f_precision_settings
+from gaussiantalker.exporter.bench.composite import F_CODECS, f_codec_settings
 from gaussiantalker.exporter.bench.quality import mouth_box, region_scores, ssim_map
 from gaussiantalker.exporter.bench.report import format_report, goal_rows, pareto_front
 from gaussiantalker.exporter.bench.sweep import REFERENCE, select_cases, sweep_cases, sweep_speaker
@@ -28,10 +28,10 @@ def test_every_knob_and_preset_is_swept():
     swept_export = {f.name for c in cases if not c.preset for f in fields(ExportSettings)
                     if getattr(c.export, f.name) != getattr(ExportSettings(), f.name)}
     # F's codec shows only in composited frames: the compositing bench sweeps it, the sweep (bare head) does not.
-    swept_by_composite = {f.name for s in f_precision_settings() for f in fields(ExportSettings)
+    swept_by_composite = {f.name for s in f_codec_settings() for f in fields(ExportSettings)
                           if getattr(s, f.name) != getattr(ExportSettings(), f.name)}
     assert swept_by_composite == {"inpaint"} and "inpaint" not in swept_export
-    assert len({s.inpaint for s in f_precision_settings()}) == len(F_CODECS) >= 3
+    assert len({s.inpaint for s in f_codec_settings()}) == len(F_CODECS) >= 3
     assert swept_export | swept_by_composite == {f.name for f in fields(ExportSettings)}
     assert set(CODEC_GROUPS) <= swept_export | swept_by_composite
     swept_runtime = {key for c in cases for key in c.runtime}

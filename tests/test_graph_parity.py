@@ -1,4 +1,4 @@
-"""Each ONNX graph of the bundle against its torch module, on several inputs (tolerance: see exporter/verify.py).
+"""Each ONNX graph of the bundle against its torch module, on several inputs (tolerance: see exporter/verify/verify.py).
 Quick run: the small speaker; full run: also the 20k-Gaussian demo speaker (conftest `speaker_export`)."""
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Parity: runtime frames (onnxruntime + OpenGL) against the torch speaker's frames, end to end from audio.
 
-Tolerances (the SDK's parity bounds, as in exporter/verify.py): every frame >= 50 dB PSNR on the final 8-bit
+Tolerances (the SDK's parity bounds, as in exporter/verify/verify.py): every frame >= 50 dB PSNR on the final 8-bit
 frames and >= 60 dB on the float frames, no NaN. What legitimately remains is float32 reassociation between the
 two implementations (~1e-6), the GL path's missing early termination (residual transmittance < 0.01, typically
 ~1e-4) and rare depth-order flips of Gaussians whose depths differ by a few ulps. Measured margins are printed in

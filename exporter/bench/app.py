@@ -196,7 +196,7 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
     size_list = [int(s) for s in sizes.split(",")]
     if checkpoint is not None:
         demo = load_checkpoint(checkpoint)
-        demo.reference = demo.inpaint = None  # the bare head (compositing: exporter/bench_composite.py)
+        demo.reference = demo.inpaint = None  # the bare head (compositing: exporter/bench/composite.py)
     else:
         typer.echo("building the demo speaker (its translator trains for a few minutes; --checkpoint skips this)")
         demo, _ = make_demo_speaker(gaussians)

@@ -8,7 +8,7 @@
 * seam quality: on clip frames re-rendered with a jaw that differs from the frame's own by at least
   `MIN_JAW_CHANGE`, the mean absolute colour step across the mask's 0.5 contour (`sdk.image.seam_step`) of the
   composite with F, with the fallback and of the plain paste (1 - M) I_ori + M I_gau, beside the true frame's;
-* F's precision knob (`ExportSettings.inpaint`, `gt-export --inpaint-codec`): one bundle per codec in `F_CODECS`,
+* F's codec knob (`ExportSettings.inpaint`, `gt-export --inpaint-codec`): one bundle per codec in `F_CODECS`,
   each one's F bytes, its composited frames of the same audio against the fp32 F's (8-bit PSNR inside the mask,
   the only pixels F reaches), and the seam step with its F.
 """
@@ -87,7 +87,7 @@ def _seams(speaker: Speaker, pairs: int, seed: int, inpainters: dict | None = No
     return {name: float(np.mean(values)) for name, values in steps.items()}
 
 
-def f_precision_settings(codecs: tuple[str, ...] = F_CODECS) -> list[ExportSettings]:
+def f_codec_settings(codecs: tuple[str, ...] = F_CODECS) -> list[ExportSettings]:
     """The export settings of each measured F codec: the fp32 speaker with only F's weights changed. (This bench,
     not `gt-bench --sweep`, sweeps the knob: only composited frames show F, and the sweep plays the bare head.)"""
     return [ExportSettings(inpaint=codec) for codec in codecs]
@@ -99,12 +99,12 @@ def _f_bytes(manifest: dict) -> int:
     return manifest["graphs"]["inpaint"]["nbytes"] + weights
 
 
-def _f_precision(speaker: Speaker, codecs: tuple[str, ...], audio: np.ndarray, rate: int, tmp: Path,
+def _f_codecs(speaker: Speaker, codecs: tuple[str, ...], audio: np.ndarray, rate: int, tmp: Path,
                  bar: tqdm) -> tuple[list[dict], dict]:
     """Per inpaint codec: F's bytes and its composited frames against the first codec's (8-bit, inside M), plus
     each bundle's F as an inpainter (for the seam measure)."""
     rows, inpainters, reference_frames = [], {}, None
-    for codec, settings in zip(codecs, f_precision_settings(codecs), strict=True):
+    for codec, settings in zip(codecs, f_codec_settings(codecs), strict=True):
         bar.set_postfix_str(f"export, F {codec}")
         path = tmp / f"f-{codec.replace('/', '_')}.gtb"
         export_bundle(speaker, path, settings=settings, progress=False)
@@ -130,7 +130,7 @@ def _f_precision(speaker: Speaker, codecs: tuple[str, ...], audio: np.ndarray, r
 def run_composite_bench(checkpoint: Path, bundle: Path | None, seconds: float, rounds: int, pairs: int,
                         out: Path, codecs: tuple[str, ...] = F_CODECS, progress: bool = True) -> str:
     """Measure, write the Markdown tables to `out` and return them (`bundle` None: the checkpoint exported
-    afresh; `codecs` empty: no F-precision table)."""
+    afresh; `codecs` empty: no F-codec table)."""
     speaker = load_checkpoint(checkpoint)
     if speaker.reference is None:
         raise typer.BadParameter(f"{checkpoint} has no reference clip to composite into", param_hint="--checkpoint")
@@ -163,7 +163,7 @@ def _measure(speaker: Speaker, checkpoint: Path, bundle: Path, seconds: float, r
                 bar.set_postfix_str(f"round {round_index + 1}: {name}")
                 fps[name].append(_fps(bundle, size, composite_frames, audio, rate))
                 bar.update()
-        precision, inpainters = _f_precision(speaker, codecs, audio, rate, tmp, bar)
+        codec_rows, inpainters = _f_codecs(speaker, codecs, audio, rate, tmp, bar)
         bar.set_postfix_str("seam steps")
         seams = _seams(speaker, pairs, seed=11, inpainters={k: v for k, v in inpainters.items() if k != "F raw"})
         bar.update()
@@ -182,11 +182,11 @@ def _measure(speaker: Speaker, checkpoint: Path, bundle: Path, seconds: float, r
               "| composite | seam step | x plain paste |", "|---|---|---|"]
     for name, value in seams.items():
         lines.append(f"| {name} | {value:.4f} | {value / seams['plain paste']:.2f} |")
-    if precision:
-        lines += ["", f"F's precision (`--inpaint-codec`): composited frames of the same {seconds:g} s against the "
-                  f"{precision[0]['codec']} F's, 8-bit PSNR inside the mask (min and mean over frames):", "",
+    if codec_rows:
+        lines += ["", f"F's codec (`--inpaint-codec`): composited frames of the same {seconds:g} s against the "
+                  f"{codec_rows[0]['codec']} F's, 8-bit PSNR inside the mask (min and mean over frames):", "",
                   "| F codec | F bytes | PSNR min | PSNR mean | max pixel error |", "|---|---|---|---|---|"]
-        for row in precision:
+        for row in codec_rows:
             lines.append(f"| {row['codec']} | {row['f_bytes']:,} | {row['min_psnr_db']:.1f} dB | "
                          f"{row['mean_psnr_db']:.1f} dB | {row['max_pixel_error']} |")
     text = "\n".join(lines) + "\n"

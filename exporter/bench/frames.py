@@ -109,7 +109,7 @@ def run_frames_bench(checkpoint: Path | None, gaussians: int, sizes: str, second
 
     if checkpoint is not None:
         speaker = load_checkpoint(checkpoint)
-        speaker.reference = speaker.inpaint = None  # the bare head (compositing: exporter/bench_composite.py)
+        speaker.reference = speaker.inpaint = None  # the bare head (compositing: exporter/bench/composite.py)
     else:
         speaker, _ = make_demo_speaker(gaussians, train_seconds=0, progress=False)
     audio = synth_speech(seconds, seed=7)

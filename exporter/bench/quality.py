@@ -1,4 +1,4 @@
-"""Quality of a tier's frames against the fp32 bundle's frames of the same audio, for `gt-bench --sweep`.
+"""Quality of a reduced bundle's frames against the fp32 bundle's frames of the same audio, for `gt-bench sweep`.
 
 Regions (docs/precision.md, "How the sweep measures"):
 * head: pixels the fp32 frame covers (8-bit alpha >= 1), so the plain background does not inflate the score;

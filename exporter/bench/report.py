@@ -8,7 +8,7 @@ from pathlib import Path
 from .sweep import REFERENCE, SpeakerSweep
 from .worker import STAGES
 
-# The tier goals (docs/precision.md): bundle at least this many times smaller than fp32, head-region PSNR against
+# The preset goals (docs/precision.md): bundle at least this many times smaller than fp32, head-region PSNR against
 # the fp32 frames at least this, frame rate at 512x512 at least this many times the fp32 bundle's.
 GOALS = {
     "balanced": {"smaller": 5.0, "head_psnr_db": 47.0},

@@ -114,7 +114,7 @@ def make_demo_speaker(n_gaussians: int = 20_000, seed: int = 0, train_seconds: f
                       progress: bool = True, config: SpeakerConfig | None = None,
                       reference_clip: bool = False, inpaint_seconds: float = 60.0) -> tuple[Speaker, dict]:
     """Build the demo speaker; returns it with the translator's training metrics. `reference_clip`: also its
-    procedural reference video and masks (exporter/demo_clip.py), and an inpainting generator F trained on it for
+    procedural reference video and masks (exporter/demo/clip.py), and an inpainting generator F trained on it for
     at most `inpaint_seconds` (0: none, so the runtime uses the OpenCV fallback); needs OpenGL."""
     if n_gaussians < 1:
         raise ValueError(f"a speaker needs at least one Gaussian, got {n_gaussians}")

@@ -70,7 +70,7 @@ class DeformationGraph(nn.Module):
     def __init__(self, speaker: Speaker, *, sh_degree: int | None = None, blendshape_rank: int | None = None,
                  drive_allowed: np.ndarray | None = None, latent_subspace: tuple | None = None,
                  vertex_subset: bool = False) -> None:
-        """Scene options (exporter/specialise.py, docs/scene.md): `drive_allowed` [E + 36] bool leaves out the FLAME
+        """Scene options (specialise.py, docs/scene.md): `drive_allowed` [E + 36] bool leaves out the FLAME
         basis rows of drive entries the scene keeps at 0; `latent_subspace` (mean [D], orthonormal basis [D, r])
         stores the speaker blendshapes projected onto the affine subspace γ stays in; `vertex_subset` computes only
         the vertices the Gaussians' triangles use."""

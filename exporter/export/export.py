@@ -45,13 +45,18 @@ class ExportResult:
     graphs: dict = field(default_factory=dict)
     buffer_bytes: dict = field(default_factory=dict)
     settings: ExportSettings | None = None
-    tier: str = "fp32"  # the manifest's "precision": fp32, fp16, a preset's name, NAME+custom or custom
+    label: str = "fp32"  # the manifest's "precision": fp32, fp16, a preset's name, NAME+custom or custom
     gaussians: int = 0  # Gaussians in the bundle (after scene pruning and a Gaussian budget)
-    specialisation: Specialisation | None = None  # what a scene let the export leave out (exporter/specialise.py)
+    specialisation: Specialisation | None = None  # what a scene let the export leave out (export/specialise.py)
     mnn: dict = field(default_factory=dict)  # bytes of each graph's .mnn model (`mnn=True`, docs/mnn.md)
 
+    @property
+    def tier(self) -> str:
+        """The former name of `label`, kept for callers that read it."""
+        return self.label
+
     def group_bytes(self) -> dict[str, int]:
-        """Stored bytes per codec group (exporter/tiers.py) plus 'other' (pose track, index buffers, ...)."""
+        """Stored bytes per codec group (exporter/export/presets.py) plus 'other' (pose track, index buffers, ...)."""
         totals: dict[str, int] = {}
         for name, nbytes in self.buffer_bytes.items():
             group = group_of(name)
@@ -69,7 +74,7 @@ def _deform_example(speaker: Speaker) -> tuple[tuple, dict]:
 
 def resolve_settings(codec: str | None = None, settings: ExportSettings | None = None,
                      preset: str | Preset | None = None) -> tuple[ExportSettings, Preset | None, str]:
-    """(settings, preset, tier label) of an export: explicit `settings` (over a preset's, whose name and runtime
+    """(settings, preset, label) of an export: explicit `settings` (over a preset's, whose name and runtime
     defaults are kept), a preset's own, every buffer with one `codec`, or fp32."""
     if codec is not None and (settings is not None or preset is not None):
         raise BundleError("give codec (every buffer's codec) or settings/preset, not both")
@@ -88,12 +93,12 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
                   ) -> ExportResult:
     """Export `speaker` to one bundle file at `path` (written atomically), or into a file staged by `atomic_path`.
 
-    The speed/accuracy knobs (exporter/tiers.py, docs/precision.md): `preset` names a tier (its runtime defaults
-    are stored in the bundle), `codec` stores every buffer with one codec, `settings` sets each knob. `scene`
+    The speed/accuracy knobs (exporter/export/presets.py, docs/precision.md): `preset` names a preset (its runtime
+    defaults are stored in the bundle), `codec` stores every buffer with one codec, `settings` sets each knob. `scene`
     (docs/scene.md) compiles the bundle for one scene, leaving out what it never uses (or an already measured
     `specialise` result for it); the bundle records the scene and its camera. `mnn` also stores every graph as
     an MNN model (docs/mnn.md; needs the `mnn` extra)."""
-    settings, chosen, tier = resolve_settings(codec, settings, preset)
+    settings, chosen, label = resolve_settings(codec, settings, preset)
     if mnn:
         mnn_version()  # a missing converter fails here, before any graph is exported
     speaker = speaker.eval()
@@ -109,7 +114,7 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         "speaker": speaker.config.to_dict(),
         "camera": camera.to_dict(),
         "background": background,
-        "precision": tier,
+        "precision": label,
         "export_settings": asdict(settings),
         "runtime_defaults": chosen.runtime.to_dict() if chosen is not None else {},
         "gaussians": speaker.gaussians.count,
@@ -123,7 +128,7 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         writer.metadata["inpaint"] = {"generator": "learned" if speaker.inpaint is not None else "opencv_fallback",
                                       "crop_margin": CROP_MARGIN_PX, "crop_multiple": CROP_MULTIPLE}
     steps = tqdm(total=5 if mnn else 4, desc="gt-export", unit="step", disable=not progress)
-    result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings, tier=tier,
+    result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings, label=label,
                           gaussians=speaker.gaussians.count, specialisation=spec)
     try:
         _export_steps(speaker, writer, path, result, settings, example_frames, steps, spec, mnn)

@@ -3,7 +3,7 @@
 Each graph is rebuilt with its weights inline as a reader decodes them (so MNN computes what onnxruntime
 computes), constant-folded by onnxruntime's basic optimisation level (the graph onnxruntime itself runs; MNN's
 converter crashes on some unfolded shape arithmetic), rewritten where MNN's kernels differ from the ONNX
-definition (`mnn_compatible`), then converted by MNN in a guarded child process (exporter/mnn_worker.py).
+definition (`mnn_compatible`), then converted by MNN in a guarded child process (exporter/export/mnn_worker.py).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Every trade the exporter offers is a field of `ExportSettings`; a preset is a named `ExportSettings` plus the
 runtime defaults stored in the bundle (`TalkingHead` plays a bundle with them unless the app overrides them) and
-the tolerances `gt-export --verify` holds the tier to. The sweep (`gt-bench --sweep`) measures every knob alone
+the bound `gt-export --verify` holds its frames to. The sweep (`gt-bench sweep`) measures every knob alone
 and every preset on the same frames; the presets below were chosen from its table.
 """
 
@@ -33,7 +33,7 @@ CODEC_GROUPS: dict[str, tuple[str, ...]] = {
 KEEP_16_BITS = ("deform/rest_points", "deform/rest_scale", "deform/barycentric", "deform/lbs_weights")
 # Quantised codecs spend 8 bytes of chunk parameters per chunk: below this many values a buffer gets fp16 instead.
 QUANT_MIN_VALUES = 4096
-# Translator graph precisions (exporter/graph_precision.py converts to them).
+# Translator graph precisions (exporter/export/graph_precision.py converts to them).
 TRANSLATOR_PRECISIONS = ("fp32", "fp16", "int8")
 
 
@@ -128,7 +128,7 @@ class ExportSettings:
 
 @dataclass(frozen=True)
 class Preset:
-    """A named tier: export settings, runtime defaults, and the bounds `--verify` holds it to."""
+    """A named bundle recipe: export settings, runtime defaults, and the bound `--verify` holds it to."""
 
     name: str
     summary: str
@@ -137,14 +137,14 @@ class Preset:
     min_head_psnr_db: float | None = None  # 8-bit PSNR over the head region vs the fp32 speaker's frames
 
 
-# Buffer codecs of the reduced tiers: per-Gaussian values 8-bit (barycentrics, rest sizes 16-bit), SH bands and
+# Buffer codecs of the reduced presets: per-Gaussian values 8-bit (barycentrics, rest sizes 16-bit), SH bands and
 # speaker blendshapes 4-bit, FLAME bases 4-bit in chunks of 128, the translator and the inpainting generator 8-bit
 # (F at q8: composited frames 73 dB inside the mask against fp32 F's, q4: 59 dB; docs/compositing.md).
 _REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4", "flame": "q4/128", "translator": "q8",
                    "inpaint": "q8"}
 
-# The tiers, chosen from measurements on the demo speaker (docs/precision.md has the table and the command).
-# `min_head_psnr_db` is what `gt-export --verify` holds a tier to; each sits below what the tier measured, by the
+# The presets, chosen from measurements on the demo speaker (docs/precision.md has the table and the command).
+# `min_head_psnr_db` is what `gt-export --verify` holds a preset to; each sits below what the preset measured, by the
 # spread seen between clips and resolutions (`fast` draws at 3/4 size, which costs more at small sizes: its head
 # region measured 35.2 dB at 512x512 but 29.9 dB at gt-export's default 256x256).
 PRESETS: dict[str, Preset] = {

@@ -1,7 +1,7 @@
 """The torch GaussianTalker speaker: translator + FLAME layer + latent-pose MLP + bound Gaussians.
 
 This is the reference the exported bundle is verified against: `deform` is what the deformation graph computes
-(exporter/deform_graph.py exports it with its constants folded) and `render` draws with the pure-torch reference
+(exporter/export/deform_graph.py exports it with its constants folded) and `render` draws with the pure-torch reference
 rasterizer.
 """
 

@@ -6,9 +6,9 @@ Tolerances (why these numbers):
 * frames: PSNR >= 60 dB on float frames and >= 50 dB on the final 8-bit frames (the SDK's parity bounds). What remains
   is float reassociation, the GL path's missing early termination (< 1e-2 residual transmittance, usually < 1e-3)
   and rare depth-order flips of near-equal depths.
-* reduced tiers (quantised codecs, truncations, a Gaussian budget; exporter/tiers.py): their error is the point,
-  so graph errors are reported but the frames decide: every frame's 8-bit PSNR over the head region (pixels the
-  torch frame covers with alpha > 1/255) must reach the tier's bound, the bound its preset was measured to keep
+* reduced exports (quantised codecs, truncations, a Gaussian budget; exporter/export/presets.py): their error is the
+  point, so graph errors are reported but the frames decide: every frame's 8-bit PSNR over the head region (pixels
+  the torch frame covers with alpha > 1/255) must reach the label's bound, the bound its preset was measured to keep
   (docs/precision.md), or HEAD_PSNR_FLOOR_DB for a custom combination of knobs.
 * composited frames (a speaker with a reference clip, docs/compositing.md): the runtime's composite of a driven
   clip against the torch render composited with the torch F, into the same decoded reference pictures, at the
@@ -17,10 +17,10 @@ Tolerances (why these numbers):
 * MNN graphs (`gt-export --mnn`, docs/mnn.md): each MNN graph against the onnxruntime graph on the same inputs,
   max |mnn - onnxruntime| <= MNN_RTOL * max |onnxruntime| per output (both run the same decoded float32 weights,
   so only kernel rounding differs: ~3e-7 measured on the demo speaker), plus the MNN backend's graphs and frames
-  against torch at the tier's bounds above.
+  against torch at the label's bounds above.
 * a scene's bundle (docs/scene.md): its deformation graph leaves out drives outside the scene by design, so it
   is judged by its frames of a driven clip inside the scene, at the scene's camera: SCENE_MIN_PSNR_DB on float and
-  8-bit frames (or the tier's bound, if lower).
+  8-bit frames (or the label's bound, if lower).
 """
 
 from __future__ import annotations
@@ -62,12 +62,12 @@ class Tolerances:
     graph_rtol: float | None = GRAPH_RTOL  # None: graph errors are reported, not a pass criterion
     min_psnr_float_db: float = 60.0
     min_psnr_uint8_db: float = 50.0
-    min_head_psnr_db: float | None = None  # 8-bit PSNR over the head region, for reduced tiers
+    min_head_psnr_db: float | None = None  # 8-bit PSNR over the head region, for reduced exports
 
     @classmethod
     def for_settings(cls, settings, preset=None) -> Tolerances:
-        """Bounds of an export's settings (exporter/tiers.py): fp32 and fp16 as `for_codec`; a reduced tier is
-        held to its preset's head-region bound, or HEAD_PSNR_FLOOR_DB when the knobs are a custom mix."""
+        """Bounds of an export's settings (exporter/export/presets.py): fp32 and fp16 as `for_codec`; a reduced export
+        is held to its preset's head-region bound, or HEAD_PSNR_FLOOR_DB when the knobs are a custom mix."""
         label = settings.label()
         if label in ("fp32", "fp16"):
             return cls.for_codec("raw" if label == "fp32" else "fp16")
@@ -83,11 +83,11 @@ class Tolerances:
 
     @classmethod
     def for_codec(cls, codec: str) -> Tolerances:
-        """Default bounds of a precision tier, against the fp32 torch speaker.
+        """Default bounds of every buffer stored with `codec` (raw or fp16), against the fp32 torch speaker.
 
         fp16 buffers round every weight to 11 significant bits (relative 4.9e-4); through the blendshape and
         LBS sums that gives graph errors of ~1e-4..1e-3 relative and frames at ~57 dB (measured on the demo
-        speaker, README), so the tier is held to 2e-3 relative and 50 dB on float and 8-bit frames.
+        speaker, README), so the fp16 label is held to 2e-3 relative and 50 dB on float and 8-bit frames.
         """
         if codec == "fp16":
             return cls(graph_rtol=2e-3, min_psnr_float_db=50.0, min_psnr_uint8_db=50.0)
