@@ -246,28 +246,29 @@ def small_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
     return export
 
 
-# Tiers of the small speaker that `tier_export` makes: the presets, and each reduced translator graph precision.
+# Reduced bundles of the small speaker that `reduced_export` makes: the presets, and each reduced translator graph
+# precision.
 # Those marked True keep the fp32 export's graphs (only buffer codecs or the translator's precision change, which
 # happen after torch.onnx), so their exports replay the session's recorded graphs.
-SMALL_TIERS = {"balanced": True, "compact": False, "fast": False, "mobile": False, "translator-fp16": True,
+REDUCED_EXPORTS = {"balanced": True, "compact": False, "fast": False, "mobile": False, "translator-fp16": True,
                "translator-int8": True}
 
 
 @pytest.fixture(scope="session")
-def tier_export(small_export, tmp_path_factory):
-    """`tier_export(name)`: the path of `small_export.speaker` exported as tier `name` (a preset, or
+def reduced_export(small_export, tmp_path_factory):
+    """`reduced_export(name)`: the path of `small_export.speaker` exported as `name` (a preset, or
     "translator-fp16"/"translator-int8"), made on first use and shared by the session's tests."""
     from gaussiantalker.exporter.export.export import export_bundle
     from gaussiantalker.exporter.export.presets import ExportSettings
 
-    folder = tmp_path_factory.mktemp("tiers")
+    folder = tmp_path_factory.mktemp("reduced")
     paths = {}
 
     def export(name: str):
         if name not in paths:
             kwargs = ({"settings": ExportSettings(translator_precision=name.split("-")[1])}
                       if name.startswith("translator-") else {"preset": name})
-            replay = replaying_onnx_exports(small_export.protos) if SMALL_TIERS[name] else contextlib.nullcontext()
+            replay = replaying_onnx_exports(small_export.protos) if REDUCED_EXPORTS[name] else contextlib.nullcontext()
             with replay:
                 export_bundle(small_export.speaker, folder / f"{name}.gtb", progress=False, **kwargs)
             paths[name] = folder / f"{name}.gtb"

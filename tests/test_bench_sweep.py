@@ -122,7 +122,7 @@ def test_tiny_sweep_end_to_end(small_export, replay_onnx_exports, tmp_path):
         assert at["frame_ms"] > 0 and at["fps"] > 0 and at["load_s"] > 0 and case["peak_rss_mb"] > 50
         assert set(at["stages_ms"]) == {"translator", "deformation", "sort", "upload", "draw", "readback"}
     assert reference["sizes"]["64"]["fps_vs_reference"] == 1.0
-    report = format_report([sweep], {"cores": 2}, "gt-bench --sweep")
+    report = format_report([sweep], {"cores": 2}, "gt-bench sweep")
     for name in sweep.cases:
         assert f"| {name} |" in report or f"| **{name}** |" in report
     assert goal_rows(sweep) == []  # no preset but the reference was swept

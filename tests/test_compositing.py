@@ -307,7 +307,7 @@ def test_inpaint_codec_is_a_precision_knob(clip_export, replay_onnx_exports, tmp
 
 
 def test_composite_bench_end_to_end(clip_export, replay_onnx_exports, tmp_path):
-    """`gt-bench --composite` on the small clip speaker: every table is written, the reference codec matches
+    """`gt-bench composite` on the small clip speaker: every table is written, the reference codec matches
     itself exactly, a lossy F codec is finite and close, and the seam rows are there (speed is not judged)."""
     from gaussiantalker.exporter.bench.composite import run_composite_bench
 

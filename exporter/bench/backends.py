@@ -1,6 +1,6 @@
 """onnxruntime vs MNN (docs/mnn.md), side by side in one run:
 
-    gt-bench --backends --checkpoint out/speaker.ckpt --seconds 4 --rounds 3 --out docs/bench
+    gt-bench backends --checkpoint out/speaker.ckpt --seconds 4 --rounds 3 --out docs/bench
 
 The speaker is exported once with `--mnn` and played bare (`composite=False`: compositing has its own bench). Each round
 opens every case (backend x graph threads) in turn, alternating so the machine's noise falls on all, and measures
@@ -72,7 +72,7 @@ def run_backends_bench(checkpoint: Path, size: int, seconds: float, rounds: int,
         bundle = Path(tmp) / "speaker_mnn.gtb"
         export_bundle(speaker, bundle, progress=False, mnn=True)
         bundle_mb = bundle.stat().st_size / 1e6
-        with tqdm(total=rounds * len(CASES), desc="gt-bench --backends", unit="run") as bar:
+        with tqdm(total=rounds * len(CASES), desc="gt-bench backends", unit="run") as bar:
             for _ in range(rounds):
                 for label, backend, threads in CASES:
                     bar.set_postfix_str(label)
@@ -104,7 +104,7 @@ def format_table(runs: dict[str, list[dict]], size: int, seconds: float, rounds:
     graph_names = list(first["graphs_ms"])
     stages = list(first["stages_ms"])
     reference_fps = _median(runs[CASES[0][0]], "fps")
-    lines = [f"Command: `gt-bench --backends --checkpoint {checkpoint} --seconds {seconds:g} --rounds {rounds}`; "
+    lines = [f"Command: `gt-bench backends --checkpoint {checkpoint} --seconds {seconds:g} --rounds {rounds}`; "
              f"bundle with MNN graphs {bundle_mb:.1f} MB; medians of {rounds} alternating rounds at {size}x{size}.",
              "",
              "| case | " + " | ".join(f"{g} ms" for g in graph_names) + " | ms/stage (" + " / ".join(stages)

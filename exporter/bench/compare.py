@@ -1,7 +1,7 @@
-"""`gt-bench --baseline DIR`: this SDK and another checkout of it, measured side by side in one run.
+"""`gt-bench compare --baseline DIR`: this SDK and another checkout of it, measured side by side in one run.
 
 These shared machines vary by more than 1.5x from run to run, so a figure is only worth comparing with one taken
-in the same run. Each version runs in its own interpreter (`bench_worker.py`, with that version first on the
+in the same run. Each version runs in its own interpreter (`worker.py`, with that version first on the
 import path), exports the same speaker checkpoint with its own exporter, and renders the same audio through its
 own `TalkingHead`. Rounds alternate the versions (and which goes first), so machine noise falls on both; the
 table reports the median over rounds and the ratio baseline / this version. `play.py` is timed the same way, as
@@ -154,7 +154,7 @@ def compare(baseline: Path, *, gaussians: list[int], sizes: list[int], seconds: 
         write_wav(audio, synth_speech(seconds, seed=7))
         labels = list(versions)
         steps = len(gaussians) * (len(labels) + len(sizes) * rounds * len(labels))
-        bar = tqdm(total=steps + (rounds * len(labels) if play_seconds > 0 else 0), desc="gt-bench --baseline",
+        bar = tqdm(total=steps + (rounds * len(labels) if play_seconds > 0 else 0), desc="gt-bench compare",
                    unit="run", disable=not progress)
         try:
             for version in versions.values():

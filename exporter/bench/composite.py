@@ -89,7 +89,7 @@ def _seams(speaker: Speaker, pairs: int, seed: int, inpainters: dict | None = No
 
 def f_codec_settings(codecs: tuple[str, ...] = F_CODECS) -> list[ExportSettings]:
     """The export settings of each measured F codec: the fp32 speaker with only F's weights changed. (This bench,
-    not `gt-bench --sweep`, sweeps the knob: only composited frames show F, and the sweep plays the bare head.)"""
+    not `gt-bench sweep`, sweeps the knob: only composited frames show F, and the sweep plays the bare head.)"""
     return [ExportSettings(inpaint=codec) for codec in codecs]
 
 
@@ -154,7 +154,7 @@ def _measure(speaker: Speaker, checkpoint: Path, bundle: Path, seconds: float, r
         crop = crop_box(head.reference.mask(0))
     cases = [(f"{w}x{h} {'composited' if c else 'bare'}", (w, h), c) for (w, h) in (clip_size, (512, 512))
              for c in (True, False)]
-    bar = tqdm(total=rounds * len(cases) + len(codecs) + 1, desc="gt-bench --composite", unit="run",
+    bar = tqdm(total=rounds * len(cases) + len(codecs) + 1, desc="gt-bench composite", unit="run",
                disable=not progress)
     with bar:
         fps: dict[str, list[float]] = {name: [] for name, _, _ in cases}

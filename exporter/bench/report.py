@@ -1,4 +1,4 @@
-"""`gt-bench --sweep` output: the markdown table, the goals check, and the plot (matplotlib, the `bench` extra)."""
+"""`gt-bench sweep` output: the markdown table, the goals check, and the plot (matplotlib, the `bench` extra)."""
 
 from __future__ import annotations
 
@@ -93,7 +93,7 @@ def format_goals(sweep: SpeakerSweep) -> str:
 
 def format_report(sweeps: list[SpeakerSweep], machine: dict, command: str) -> str:
     """The whole markdown report: machine, command, then per speaker its goals and its table."""
-    lines = ["# gt-bench --sweep", "", f"Command: `{command}`", "",
+    lines = ["# gt-bench sweep", "", f"Command: `{command}`", "",
              "Machine: " + ", ".join(f"{k} {v}" for k, v in machine.items()), ""]
     for sweep in sweeps:
         lines += [format_sweep(sweep), "", "Goals (largest size):", "", format_goals(sweep), ""]

@@ -1,12 +1,12 @@
-"""`gt-bench --sweep`: every speed/accuracy knob alone and every preset, measured side by side on the same clip.
+"""`gt-bench sweep`: every speed/accuracy knob alone and every preset, measured side by side on the same clip.
 
 For each speaker (the demo speaker and a larger synthetic one), every case's bundle is exported once (cases with
 the same export settings share a bundle; runtime knobs play the fp32 bundle with `TalkingHead` arguments). Each
-case then gets its own worker process (`bench_worker.py`), so its peak memory is its own, and the rounds
+case then gets its own worker process (`worker.py`), so its peak memory is its own, and the rounds
 alternate the cases (the order reversed every other round) at each size: machine noise falls on all of them,
 and ratios are taken within a round. Each round reloads the bundle (load time) and plays the clip through
 `TalkingHead.frames` (frame time and FPS, then per-stage medians). The first round's frames are compared with
-the fp32 bundle's frames of the same audio (`bench_quality.py`: head and mouth PSNR/SSIM, translator FLAME error).
+the fp32 bundle's frames of the same audio (`quality.py`: head and mouth PSNR/SSIM, translator FLAME error).
 """
 
 from __future__ import annotations
@@ -146,7 +146,7 @@ def sweep_speaker(name: str, speaker, cases: list[SweepCase], *, sizes: list[int
     by_name = {c.name: c for c in cases}
     distinct = len({c.bundle_key for c in cases})
     bar = tqdm(total=distinct + len(sizes) * rounds * len(cases) + len(cases), unit="run", disable=not progress,
-               desc=f"gt-bench --sweep {name}")
+               desc=f"gt-bench sweep {name}")
     with tempfile.TemporaryDirectory(prefix="gt-sweep-") as tmp_name:
         tmp = Path(tmp_name)
         audio = tmp / "speech.wav"

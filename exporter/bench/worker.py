@@ -1,8 +1,8 @@
-"""One SDK version's side of `gt-bench --baseline` (and one case's side of `gt-bench --sweep`): export and render
+"""One SDK version's side of `gt-bench compare` (and one case's side of `gt-bench sweep`): export and render
 on request, report timings as JSON lines.
 
-Run as a script by whichever interpreter has the version under test on its path (`bench_compare.py` starts one
-per version, `bench_sweep.py` one per case). The `export` and `frames` requests use only API that every version of
+Run as a script by whichever interpreter has the version under test on its path (`compare.py` starts one
+per version, `sweep.py` one per case). The `export` and `frames` requests use only API that every version of
 the SDK has (`load_checkpoint`, `export_bundle`, `TalkingHead.frames/drives/render/timings`), so they can measure
 an older checkout as well as this one; `frames` with settings, `translate`, `memory` and `release` are the sweep's.
 Requests arrive one JSON object per line on stdin; each answer is one JSON line on the original stdout (anything

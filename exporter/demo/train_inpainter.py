@@ -28,7 +28,7 @@ NEW_JAW_MAX = 1.2 * JAW_OPEN_MAX  # re-rendered jaws range a little past the cli
 
 
 @dataclass
-class InpaintPair:
+class InpainterPair:
     """One training pair on the frame's crop, stored 8-bit: x, target [h, w, 3]; mask, coverage [h, w]."""
 
     x: np.ndarray
@@ -38,7 +38,7 @@ class InpaintPair:
     edge: np.ndarray  # [k, 2] rows, columns of mask-edge pixels (0 < M < 1), patch centres
 
 
-def make_pair(composer: ClipComposer, index: int, jaw: float) -> InpaintPair:
+def make_pair(composer: ClipComposer, index: int, jaw: float) -> InpainterPair:
     """Clip frame `index` re-rendered with `jaw` (radians): F's input and target on the mask's crop."""
     original, _ = composer.frame(index)
     head = composer.render_head(composer.drive(index, jaw))
@@ -49,11 +49,11 @@ def make_pair(composer: ClipComposer, index: int, jaw: float) -> InpaintPair:
     box = crop_box(mask)
     crop = (box.rows, box.columns)
     edge = np.argwhere((mask[crop] > 0.0) & (mask[crop] < 1.0))
-    return InpaintPair(to_uint8(x[crop]), to_uint8(target[crop]), to_uint8(mask[crop]),
+    return InpainterPair(to_uint8(x[crop]), to_uint8(target[crop]), to_uint8(mask[crop]),
                        to_uint8(head[..., 3][crop]), edge)
 
 
-def _patch(pair: InpaintPair, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+def _patch(pair: InpainterPair, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
     height, width = pair.mask.shape
     if pair.edge.size and rng.random() < EDGE_FRACTION:
         cy, cx = pair.edge[rng.integers(len(pair.edge))]
@@ -65,7 +65,7 @@ def _patch(pair: InpaintPair, rng: np.random.Generator) -> tuple[np.ndarray, ...
     return pair.x[window], pair.mask[window], pair.coverage[window], pair.target[window]
 
 
-def batch_sampler(pairs: list[InpaintPair]):
+def batch_sampler(pairs: list[InpainterPair]):
     """`train_inpainter`'s batch source: BATCH random patches of random pairs, as float tensors in [0, 1]."""
 
     def batch(rng: np.random.Generator) -> tuple[torch.Tensor, ...]:

@@ -2,7 +2,7 @@
 
 Not the paper's training (EMOCA-tracked FLAME sequences of real speakers, InfoNCE-decoupled encoder, lip-reading
 consistency): a stand-in that makes the demo speaker visibly talk. Targets per video frame, from
-`demo_audio`: jaw_pose[..., 0] (x-axis rotation opens the jaw) = loudness-driven opening, expression[..., 0]
+`audio.py`: jaw_pose[..., 0] (x-axis rotation opens the jaw) = loudness-driven opening, expression[..., 0]
 (mouth opening) = a scaled copy, expression[..., 1] = slow spectral tilt (fricative vs vowel), all else 0.
 Loss: the paper's reconstruction MSE over all parameters + its lip-motion smoothness term (frame differences).
 

@@ -1,4 +1,4 @@
-"""Speed/accuracy tiers: each preset exports, verifies against the torch speaker within its stated bound, and plays
+"""Speed/accuracy presets: each one exports, verifies against the torch speaker within its stated bound, and plays
 with its stored runtime defaults; runtime knobs and the Gaussian budget's measurement are checked directly."""
 
 from __future__ import annotations
@@ -38,8 +38,8 @@ def _verify(speaker, path, preset):
     return report
 
 
-def test_balanced_preset_is_smaller_and_within_its_bound(small_export, tier_export):
-    path = tier_export("balanced")
+def test_balanced_preset_is_smaller_and_within_its_bound(small_export, reduced_export):
+    path = reduced_export("balanced")
     manifest = Bundle(path).manifest
     assert manifest["precision"] == "balanced"
     assert manifest["runtime_defaults"] == RenderSettings().to_dict()
@@ -47,22 +47,22 @@ def test_balanced_preset_is_smaller_and_within_its_bound(small_export, tier_expo
     # the demo speaker's 20k (5.8x there, docs/precision.md), so the bound here is lower.
     assert os.path.getsize(path) * 3.5 < os.path.getsize(small_export.path)
     report = _verify(small_export.speaker, path, "balanced")
-    assert report["graphs"]["deform"]["max_rel_err"] > 1e-4  # a real reduction, not the fp32 tier renamed
+    assert report["graphs"]["deform"]["max_rel_err"] > 1e-4  # a real reduction, not the fp32 export renamed
 
 
-def test_compact_preset_prunes_truncates_and_stays_within_its_bound(small_speaker, tier_export):
-    path = tier_export("compact")
+def test_compact_preset_prunes_truncates_and_stays_within_its_bound(small_speaker, reduced_export):
+    path = reduced_export("compact")
     manifest = Bundle(path).manifest
     assert manifest["gaussians"] == round(0.65 * small_speaker.gaussians.count)
     assert "deform/sh_rest" not in manifest["buffers"]  # SH degree 0
     assert manifest["buffers"]["deform/latent_weight"]["shape"][0] == 2  # rank 2 (the [8, 2] basis stays inline)
     report = _verify(small_speaker, path, "compact")
     assert report["graphs"]["deform"]["compared"] is False  # fewer Gaussians than the torch speaker
-    assert report["min_head_psnr_db"] < 60  # a real reduction, not the fp32 tier under another name
+    assert report["min_head_psnr_db"] < 60  # a real reduction, not the fp32 export under another name
 
 
-def test_fast_preset_plays_with_its_stored_runtime_defaults(small_speaker, tier_export):
-    path = tier_export("fast")
+def test_fast_preset_plays_with_its_stored_runtime_defaults(small_speaker, reduced_export):
+    path = reduced_export("fast")
     with TalkingHead(path) as head:
         assert head.render_settings == get_preset("fast").runtime
     with TalkingHead(path, render_scale=1.0, render_target="float32", sort_key_bits=32) as head:  # an app's own
@@ -72,10 +72,10 @@ def test_fast_preset_plays_with_its_stored_runtime_defaults(small_speaker, tier_
     _verify(small_speaker, path, "fast")
 
 
-def test_mobile_preset_stores_the_es_settings_and_stays_within_its_bound(small_speaker, tier_export):
+def test_mobile_preset_stores_the_es_settings_and_stays_within_its_bound(small_speaker, reduced_export):
     """fp16 buffers and 70% of the Gaussians in the bundle; an RGBA16F framebuffer, 16-bit sort keys and one graph
     thread as its stored runtime defaults, which TalkingHead applies (one thread reaches onnxruntime)."""
-    path = tier_export("mobile")
+    path = reduced_export("mobile")
     manifest = Bundle(path).manifest
     assert manifest["gaussians"] == round(0.7 * small_speaker.gaussians.count)
     assert {entry["codec"]["name"] for name, entry in manifest["buffers"].items()
@@ -207,10 +207,10 @@ def test_presets_and_labels():
 
 
 @pytest.mark.parametrize("precision, rtol", [("int8", 0.05), ("fp16", 0.01)])
-def test_translator_precision_uses_onnxruntime_tools(small_export, tier_export, precision, rtol):
+def test_translator_precision_uses_onnxruntime_tools(small_export, reduced_export, precision, rtol):
     """int8: MatMul weights quantised (MatMulInteger), convolutions kept float; fp16: half weights, float32 I/O.
     Bounds: the demo translator measured 0.005 (int8) and 4e-4 (fp16) max abs error on a ~1.2 output range."""
-    path = tier_export(f"translator-{precision}")
+    path = reduced_export(f"translator-{precision}")
     bundle = Bundle(path)
     dtypes = {e["dtype"] for name, e in bundle.manifest["buffers"].items() if name.startswith("translator/")}
     assert ("int8" in dtypes) if precision == "int8" else ("float16" in dtypes and "float32" not in dtypes)

@@ -1,4 +1,4 @@
-"""Precision tiers are named settings measured against the fp32 torch speaker (bounds: Tolerances.for_codec)."""
+"""Every buffer at the fp16 codec, measured against the fp32 torch speaker (bounds: Tolerances.for_codec)."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ def test_fp16_buffers_halve_the_bundle_within_their_tolerance(speaker_export, tm
     report = verify_bundle(speaker_export.speaker, path, frames=5, resolution=(128, 128),
                            tolerances=Tolerances.for_codec("fp16"), progress=False)
     assert report["passed"], report
-    # ...and it is really a different tier: the fp32 bounds would not hold for it.
+    # ...and it is really a different export: the fp32 bounds would not hold for it.
     assert report["graphs"]["deform"]["max_rel_err"] > Tolerances().graph_rtol / 10
 
 
