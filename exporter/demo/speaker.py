@@ -146,8 +146,8 @@ def _add_reference(speaker: Speaker, inpaint_seconds: float, seed: int, progress
     speaker.reference = make_demo_clip(speaker, composer)
     metrics = {"reference_frames": speaker.reference.layout.count, "reference_mb": speaker.reference.nbytes / 1e6}
     if inpaint_seconds > 0:
-        speaker.inpaint, inpaint_metrics = train_demo_inpainter(composer, seconds=inpaint_seconds, seed=seed,
+        speaker.inpaint, inpainter_metrics = train_demo_inpainter(composer, seconds=inpaint_seconds, seed=seed,
                                                               progress=progress)
-        metrics.update(inpaint_metrics)
+        metrics.update(inpainter_metrics)
     composer.splatter.release()
     return metrics
