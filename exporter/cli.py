@@ -12,7 +12,7 @@ import typer
 from gaussiantalker.sdk.errors import GaussianTalkerError
 from gaussiantalker.sdk.files import StagedFile, atomic_path, atomic_write
 
-from .tiers import PRESETS, settings_with
+from .export.presets import PRESETS, settings_with
 
 app = typer.Typer(add_completion=False, help=__doc__)
 
@@ -53,10 +53,10 @@ def export(
     resolution: str = typer.Option(None, "--resolution", help="verification frame size, N or WxH [default: 256, "
                                    "or the scene's]"),
     min_psnr: float = typer.Option(None, "--min-psnr",
-                                   help="required 8-bit PSNR (dB) of every frame [default: the tier's]"),
+                                   help="required 8-bit PSNR (dB) of every frame [default: the label's]"),
     min_float_psnr: float = typer.Option(None, "--min-float-psnr",
-                                         help="required float-frame PSNR (dB) [default: the tier's]"),
-    preset: str = typer.Option(None, "--preset", help=f"speed/accuracy tier: {', '.join(PRESETS)} "
+                                         help="required float-frame PSNR (dB) [default: the label's]"),
+    preset: str = typer.Option(None, "--preset", help=f"speed/accuracy preset: {', '.join(PRESETS)} "
                                                       "(docs/precision.md); the knobs below override its settings"),
     codec: str = typer.Option(None, "--codec", help="one codec for every buffer: raw (fp32), fp16, q16, q8, q4"),
     gaussians: str = typer.Option(None, "--gaussian-codec", help="codec of the per-Gaussian attributes"),
@@ -80,8 +80,8 @@ def export(
     """Export a speaker checkpoint to a bundle; with --verify, place it only if it reproduces the torch frames.
 
     Codec values: raw, fp16, q16, q8, q4; a quantised codec may name its chunk size (q4/64)."""
-    from .checkpoint import load_checkpoint
-    from .export import export_bundle
+    from .export.checkpoint import load_checkpoint
+    from .export.export import export_bundle
 
     output = output or checkpoint.with_suffix(".gtb")
     verify = verify or report is not None
@@ -102,16 +102,16 @@ def export(
             result = export_bundle(speaker, staged, settings=settings, preset=chosen, progress=not quiet,
                                    scene=scene_spec, mnn=mnn)
             if result.specialisation is not None:
-                from .specialise import format_removals
+                from .export.specialise import format_removals
 
                 typer.echo(format_removals(result.specialisation.removals))
             typer.echo(f"wrote {result.bytes_written / 1e6:.2f} MB bundle ({result.gaussians} Gaussians, "
-                       f"tier {result.tier}, graphs: {', '.join(result.graphs)})")
+                       f"tier {result.label}, graphs: {', '.join(result.graphs)})")
             if result.mnn:
                 typer.echo("MNN graphs: " + ", ".join(f"{name} {size / 1e6:.2f} MB" for name, size in
                                                       result.mnn.items()))
             if verify:
-                from .verify import Tolerances
+                from .verify.verify import Tolerances
 
                 tolerances = Tolerances.for_settings(settings, chosen)
                 tolerances = tolerances if scene_spec is None else tolerances.for_scene()
@@ -134,8 +134,8 @@ def _budget(text: str | None) -> float | None:
 
 def _settings(preset: str | None, codec: str | None, knobs: dict):
     """The export settings: a preset's (or every buffer with --codec, or fp32) with the given knobs replacing
-    its values (the bundle then records the preset's runtime defaults and "NAME+custom" as its tier)."""
-    from .export import resolve_settings
+    its values (the bundle then records the preset's runtime defaults and "NAME+custom" as its label)."""
+    from .export.export import resolve_settings
 
     if preset is not None and codec is not None:
         raise typer.BadParameter("give --preset or --codec, not both (--codec sets every buffer's codec)")
@@ -148,7 +148,7 @@ def _verify(speaker, staged: StagedFile, output: Path, defaults, frames: int, si
     """Verify the staged bundle; a failure keeps it as NAME.unverified.gtb (not at `output`) and exits 1."""
     from dataclasses import replace
 
-    from .verify import format_report, verify_bundle
+    from .verify.verify import format_report, verify_bundle
 
     tolerances = replace(
         defaults, min_psnr_float_db=defaults.min_psnr_float_db if min_float_psnr is None else min_float_psnr,

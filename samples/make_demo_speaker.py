@@ -14,8 +14,8 @@ from pathlib import Path
 
 import typer
 
-from gaussiantalker.exporter.checkpoint import save_checkpoint
-from gaussiantalker.exporter.demo_speaker import make_demo_speaker
+from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+from gaussiantalker.exporter.export.checkpoint import save_checkpoint
 
 app = typer.Typer(add_completion=False)
 

@@ -4,7 +4,7 @@
 // Per-pixel evaluation of one Gaussian, composited front-to-back by the fixed-function "under" blend
 // (src factor ONE_MINUS_DST_ALPHA, dst factor ONE): the framebuffer holds (C, 1 - T).
 // The maths is the numerics contract (docs/numerics.md). Each function names its torch twin in
-// exporter/splat_math.py (same name, same arguments); tests/test_mirror_names.py checks it.
+// exporter/model/splat_math.py (same name, same arguments); tests/test_mirror_names.py checks it.
 // #defines injected by the runtime after the header (runtime/splatter.py shader_defines), never re-typed:
 //   contract constants, from gaussiantalker.sdk.numerics (the values the torch reference imports), used here:
 //     ALPHA_MAX, ALPHA_MIN, COLOR_LIMIT
@@ -17,14 +17,14 @@ flat in vec4 v_rgba;
 
 out vec4 frag_color;
 
-// Torch twin: `splat_color` (exporter/splat_math.py).
+// Torch twin: `splat_color` (exporter/model/splat_math.py).
 // Colour as composited: clamped to +-COLOR_LIMIT (far above any real colour) so float32 sums stay finite
 // (docs/numerics.md, "Colour clamp").
 vec3 splat_color(vec3 rgb) {
     return clamp(rgb, -COLOR_LIMIT, COLOR_LIMIT);
 }
 
-// Torch twin: `splat_alpha` (exporter/splat_math.py).
+// Torch twin: `splat_alpha` (exporter/model/splat_math.py).
 // min(ALPHA_MAX, opacity * exp(power)), power = -1/2 d^T cov2d^-1 d evaluated in the vertex shader's alpha_shape
 // form (A, k, q) as -1/2 (A (dx - k dy)^2 + q dy^2). Skipped contributions return 0: a positive power (not
 // positive definite) and an alpha below ALPHA_MIN, NaN included (docs/numerics.md, "Alpha and the alpha_shape

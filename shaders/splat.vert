@@ -4,8 +4,8 @@
 // Per-Gaussian set-up of the EWA splatter: one point sprite (SPLAT_POINTS 1) or one instanced quad (SPLAT_POINTS 0,
 // 4 vertices, triangle strip) per Gaussian; the fragment shader makes every per-pixel decision exactly.
 // The maths is the numerics contract (docs/numerics.md). Each function names its torch twin in
-// exporter/splat_math.py (same name, same arguments; uniforms become trailing arguments there), or says that it is
-// not a contract step (runtime/splatter.py NON_CONTRACT_GLSL_FUNCTIONS); tests/test_mirror_names.py checks both.
+// exporter/model/splat_math.py (same name, same arguments; uniforms become trailing arguments there), or says that it
+// is not a contract step (runtime/splatter.py NON_CONTRACT_GLSL_FUNCTIONS); tests/test_mirror_names.py checks both.
 // #defines injected by the runtime after the header (runtime/splatter.py shader_defines), never re-typed:
 //   contract constants, from gaussiantalker.sdk.numerics (the values the torch reference imports), used here:
 //     LOW_PASS_PX2, EXTENT_SIGMAS, ALPHA_MIN, FINITE_LIMIT, DET_MIN_RELATIVE, COV2D_HUGE_PX2
@@ -28,13 +28,13 @@ flat out vec3 v_shape;    // inverse 2D covariance in completed-square form (A, 
 flat out float v_radius;  // extent radius r in pixels
 flat out vec4 v_rgba;     // colour, opacity
 
-// Torch twin: `world_to_camera` (exporter/splat_math.py).
+// Torch twin: `world_to_camera` (exporter/model/splat_math.py).
 // Camera-space position p = R * mean + t of a world position (docs/numerics.md, "Camera and pixel centres").
 vec3 world_to_camera(vec3 mean) {
     return u_R * mean + u_t;
 }
 
-// Torch twin: `camera_to_pixel` (exporter/splat_math.py).
+// Torch twin: `camera_to_pixel` (exporter/model/splat_math.py).
 // u = fx * X / Z + cx, v = fy * Y / Z + cy in continuous pixel coordinates: pixel (x, y) has its centre at
 // (x + 1/2, y + 1/2) (docs/numerics.md, "Camera and pixel centres").
 vec2 camera_to_pixel(vec3 p_cam) {
@@ -42,14 +42,14 @@ vec2 camera_to_pixel(vec3 p_cam) {
                 u_intrinsics.y * p_cam.y / p_cam.z + u_intrinsics.w);
 }
 
-// Torch twin: `clamped_ratios` (exporter/splat_math.py).
+// Torch twin: `clamped_ratios` (exporter/model/splat_math.py).
 // x/z and y/z clamped to the widened field of view (Camera.fov_clamp_limits), before forming J.
 vec2 clamped_ratios(vec3 p_cam) {
     return vec2(clamp(p_cam.x / p_cam.z, u_fov_limits.x, u_fov_limits.y),
                 clamp(p_cam.y / p_cam.z, u_fov_limits.z, u_fov_limits.w));
 }
 
-// Torch twin: `sigma_matrix` (exporter/splat_math.py).
+// Torch twin: `sigma_matrix` (exporter/model/splat_math.py).
 // Packed world covariance (xx, xy, xz), (yy, yz, zz) -> symmetric 3x3.
 mat3 sigma_matrix(vec3 cov_a, vec3 cov_b) {
     return mat3(cov_a.x, cov_a.y, cov_a.z,
@@ -57,7 +57,7 @@ mat3 sigma_matrix(vec3 cov_a, vec3 cov_b) {
                 cov_a.z, cov_b.y, cov_b.z);
 }
 
-// Torch twin: `covariance_2d` (exporter/splat_math.py).
+// Torch twin: `covariance_2d` (exporter/model/splat_math.py).
 // J W Sigma W^T J^T with x/z, y/z clamped to the widened field of view before forming J, plus LOW_PASS_PX2 on the
 // diagonal (docs/numerics.md, "2D covariance and field-of-view clamp"). Returns (a, b, c) = [[a, b], [b, c]].
 vec3 covariance_2d(vec3 p_cam, vec3 cov_a, vec3 cov_b) {
@@ -73,20 +73,20 @@ vec3 covariance_2d(vec3 p_cam, vec3 cov_a, vec3 cov_b) {
     return vec3(dot(m0, s0) + LOW_PASS_PX2, dot(m0, s1), dot(m1, s1) + LOW_PASS_PX2);
 }
 
-// Torch twin: `cov2d_scale` (exporter/splat_math.py).
+// Torch twin: `cov2d_scale` (exporter/model/splat_math.py).
 // max(|a|, |c|) of a 2D covariance: dividing by it keeps every product of its entries below 1 (no float32
 // overflow); it is data, not a constant, so the compiler cannot fold or reassociate it away.
 float cov2d_scale(vec3 cov2d) {
     return max(abs(cov2d.x), abs(cov2d.z));
 }
 
-// Torch twin: `reliable` (exporter/splat_math.py).
+// Torch twin: `reliable` (exporter/model/splat_math.py).
 // det where it exceeds DET_MIN_RELATIVE * products (the sum it is the difference of), else 0: noise is culled.
 float reliable(float det, float products) {
     return det > DET_MIN_RELATIVE * products ? det : 0.0;
 }
 
-// Torch twin: `covariance_2d_determinant` (exporter/splat_math.py).
+// Torch twin: `covariance_2d_determinant` (exporter/model/splat_math.py).
 // det of covariance_2d (its (a, b, c) passed in) / cov2d_scale^2, in the least-cancelling of two forms
 // (docs/numerics.md, "2D determinant conditioning").
 // a c - b^2 cancels badly where J's rows are nearly parallel (grazing view angles). Replacing J's second row by its
@@ -115,7 +115,7 @@ float covariance_2d_determinant(vec3 p_cam, vec3 cov_a, vec3 cov_b, vec3 cov2d) 
     return use_sheared ? sheared : plain;
 }
 
-// Torch twin: `conic_from_cov2d` (exporter/splat_math.py).
+// Torch twin: `conic_from_cov2d` (exporter/model/splat_math.py).
 // Inverse of the 2D covariance, packed (A, B, C), from covariance_2d_determinant (det / cov2d_scale^2).
 vec3 conic_from_cov2d(vec3 cov2d, float det) {
     float s = cov2d_scale(cov2d);
@@ -124,7 +124,7 @@ vec3 conic_from_cov2d(vec3 cov2d, float det) {
     return vec3(abc.z / det_over_s, -abc.y / det_over_s, abc.x / det_over_s);
 }
 
-// Torch twin: `alpha_shape` (exporter/splat_math.py).
+// Torch twin: `alpha_shape` (exporter/model/splat_math.py).
 // The conic in completed-square form (A, k, q): d^T cov2d^-1 d = A (dx - k dy)^2 + q dy^2, with A = c / det,
 // k = b / c, q = 1 / c. A sum of non-negative terms: on the ridge of a long, thin splat, A dx^2 + 2 B dx dy + C dy^2
 // cancels and float32 rounding can make it positive (skipping a pixel that should be fully drawn); this cannot.
@@ -133,7 +133,7 @@ vec3 alpha_shape(vec3 cov2d, float det) {
     return vec3(conic_from_cov2d(cov2d, det).x, cov2d.y / c, 1.0 / c);
 }
 
-// Torch twin: `radius_of` (exporter/splat_math.py).
+// Torch twin: `radius_of` (exporter/model/splat_math.py).
 // EXTENT_SIGMAS * sqrt(lambda_max) of a symmetric 2x2 (a, b, c), negative roots taken as 0.
 float radius_of(vec3 cov2d) {
     float mid = 0.5 * (cov2d.x + cov2d.z);
@@ -141,7 +141,7 @@ float radius_of(vec3 cov2d) {
     return EXTENT_SIGMAS * sqrt(max(lambda_max, 0.0));
 }
 
-// Torch twin: `extent_radius` (exporter/splat_math.py).
+// Torch twin: `extent_radius` (exporter/model/splat_math.py).
 // r = EXTENT_SIGMAS * sqrt(lambda_max) of the dilated 2D covariance, exact, no rounding. Where 0.5 (a + c) >
 // COV2D_HUGE_PX2 it is evaluated on cov2d / cov2d_scale and scaled back, so mid^2 cannot overflow
 // (docs/numerics.md, "Extent radius").
@@ -150,13 +150,13 @@ float extent_radius(vec3 cov2d) {
     return 0.5 * (cov2d.x + cov2d.z) > COV2D_HUGE_PX2 ? radius_of(cov2d / s) * sqrt(s) : radius_of(cov2d);
 }
 
-// Torch twin: `extent_power_bound` (exporter/splat_math.py).
+// Torch twin: `extent_power_bound` (exporter/model/splat_math.py).
 // Largest |power| reachable with |dx|, |dy| <= radius (bounded by FINITE_LIMIT in screen_bounded).
 float extent_power_bound(vec3 conic, float radius) {
     return (abs(conic.x) + 2.0 * abs(conic.y) + abs(conic.z)) * radius * radius;
 }
 
-// Torch twin: `screen_bounded` (exporter/splat_math.py).
+// Torch twin: `screen_bounded` (exporter/model/splat_math.py).
 // Whether every screen-space value stays below FINITE_LIMIT in magnitude, so the per-pixel float32 maths stays
 // finite (docs/numerics.md, "Near plane and culling"). Comparisons with NaN are false, so NaN fails (max() and
 // min() may drop a NaN, so none is used here).

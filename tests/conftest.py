@@ -17,7 +17,7 @@ import pytest
 @pytest.fixture(scope="session")
 def demo_speaker():
     """The default demo speaker (20k Gaussians, translator trained as `make_demo_speaker.py` does)."""
-    from gaussiantalker.exporter.demo_speaker import make_demo_speaker
+    from gaussiantalker.exporter.demo.speaker import make_demo_speaker
 
     speaker, metrics = make_demo_speaker(progress=False)
     speaker.metrics = metrics
@@ -28,7 +28,7 @@ def demo_speaker():
 def replaying_onnx_exports(protos: Sequence) -> Iterator[list]:
     """Within the block, export_onnx returns `protos` in order instead of running torch.onnx (the rest of an
     export runs for real). Yields the list of protos not handed out yet."""
-    import gaussiantalker.exporter.onnx_export as onnx_export_module
+    import gaussiantalker.exporter.export.onnx_export as onnx_export_module
 
     queue = list(protos)
 
@@ -44,8 +44,8 @@ def replaying_onnx_exports(protos: Sequence) -> Iterator[list]:
 
 def _export_recording(speaker, path) -> SimpleNamespace:
     """Export `speaker` to `path`, keeping the two ONNX protos torch.onnx made (translator, deform)."""
-    import gaussiantalker.exporter.onnx_export as onnx_export_module
-    from gaussiantalker.exporter.export import export_bundle
+    import gaussiantalker.exporter.export.onnx_export as onnx_export_module
+    from gaussiantalker.exporter.export.export import export_bundle
 
     protos = []
     real_export_onnx = onnx_export_module.export_onnx
@@ -91,7 +91,7 @@ class RebindError(AssertionError):
 
 def graph_modules(speaker) -> list:
     """The modules export_bundle turns into ONNX graphs, in export order: translator, deform."""
-    from gaussiantalker.exporter.deform_graph import DeformationGraph
+    from gaussiantalker.exporter.export.deform_graph import DeformationGraph
 
     return [speaker.translator, DeformationGraph(speaker)]
 
@@ -126,7 +126,7 @@ def _rebind_onnx(proto, module, recorded_module):
     import onnx
     from onnx import numpy_helper
 
-    from gaussiantalker.exporter.onnx_export import EXTERNALIZE_MIN_BYTES
+    from gaussiantalker.exporter.export.onnx_export import EXTERNALIZE_MIN_BYTES
 
     settings, recorded_settings = module_settings(module), module_settings(recorded_module)
     if settings != recorded_settings:
@@ -159,7 +159,7 @@ def rebinding_onnx_exports(recorded: SimpleNamespace) -> Iterator[list]:
     """Within the block, export_onnx(module, ...) returns the next recorded graph of `recorded` (a `small_export`-
     like namespace) rebound to `module`'s weights instead of running torch.onnx; so any speaker of the recorded
     speaker's architecture exports (gt-export included). Yields the list of rebound protos handed out so far."""
-    import gaussiantalker.exporter.onnx_export as onnx_export_module
+    import gaussiantalker.exporter.export.onnx_export as onnx_export_module
 
     queue = list(zip(recorded.protos, graph_modules(recorded.speaker), strict=True))
     handed_out = []
@@ -180,7 +180,7 @@ def _export_rebound(speaker, path, recorded: SimpleNamespace, **export_kwargs) -
     """Export `speaker` to `path` with `recorded`'s graphs (a `small_export`-like namespace of a speaker of the
     same architecture) rebound to its weights; buffers, codecs and writing run for real.
     Returns the same kind of namespace (path, protos, speaker)."""
-    from gaussiantalker.exporter.export import export_bundle
+    from gaussiantalker.exporter.export.export import export_bundle
 
     with rebinding_onnx_exports(recorded) as protos:
         export_bundle(speaker, path, progress=export_kwargs.pop("progress", False), **export_kwargs)
@@ -226,8 +226,8 @@ def small_speaker():
     """A 2k-Gaussian demo speaker (seed 3), its translator trained as `make_demo_speaker.py` does (the jaw follows
     loudness) but for 100 steps instead of 200 (measured: the same held-out jaw/loudness r, 0.997, in half the
     time): the quick run's speaker (its torch frames are ~4x cheaper than the 20k demo speaker's)."""
-    from gaussiantalker.exporter.demo_speaker import make_demo_speaker
-    from gaussiantalker.exporter.train_translator import TrainSettings, train_demo_translator
+    from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+    from gaussiantalker.exporter.demo.train_translator import TrainSettings, train_demo_translator
 
     speaker, metrics = make_demo_speaker(n_gaussians=2000, seed=3, train_seconds=0, progress=False)
     metrics.update(train_demo_translator(speaker.translator, speaker.config.n_expr, seed=3, progress=False,
@@ -246,28 +246,29 @@ def small_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
     return export
 
 
-# Tiers of the small speaker that `tier_export` makes: the presets, and each reduced translator graph precision.
+# Reduced bundles of the small speaker that `reduced_export` makes: the presets, and each reduced translator graph
+# precision.
 # Those marked True keep the fp32 export's graphs (only buffer codecs or the translator's precision change, which
 # happen after torch.onnx), so their exports replay the session's recorded graphs.
-SMALL_TIERS = {"balanced": True, "compact": False, "fast": False, "mobile": False, "translator-fp16": True,
+REDUCED_EXPORTS = {"balanced": True, "compact": False, "fast": False, "mobile": False, "translator-fp16": True,
                "translator-int8": True}
 
 
 @pytest.fixture(scope="session")
-def tier_export(small_export, tmp_path_factory):
-    """`tier_export(name)`: the path of `small_export.speaker` exported as tier `name` (a preset, or
+def reduced_export(small_export, tmp_path_factory):
+    """`reduced_export(name)`: the path of `small_export.speaker` exported as `name` (a preset, or
     "translator-fp16"/"translator-int8"), made on first use and shared by the session's tests."""
-    from gaussiantalker.exporter.export import export_bundle
-    from gaussiantalker.exporter.tiers import ExportSettings
+    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.presets import ExportSettings
 
-    folder = tmp_path_factory.mktemp("tiers")
+    folder = tmp_path_factory.mktemp("reduced")
     paths = {}
 
     def export(name: str):
         if name not in paths:
             kwargs = ({"settings": ExportSettings(translator_precision=name.split("-")[1])}
                       if name.startswith("translator-") else {"preset": name})
-            replay = replaying_onnx_exports(small_export.protos) if SMALL_TIERS[name] else contextlib.nullcontext()
+            replay = replaying_onnx_exports(small_export.protos) if REDUCED_EXPORTS[name] else contextlib.nullcontext()
             with replay:
                 export_bundle(small_export.speaker, folder / f"{name}.gtb", progress=False, **kwargs)
             paths[name] = folder / f"{name}.gtb"

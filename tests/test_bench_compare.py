@@ -1,4 +1,4 @@
-"""`gt-bench --baseline`: each version's worker imports that version, and a folder that is no checkout is refused.
+"""`gt-bench compare`: each version's worker imports that version, and a folder that is no checkout is refused.
 
 Timings are not tested here (they belong in the benchmark); what is tested is that the two interpreters really
 run two different copies of the SDK, which is what makes the side-by-side table mean anything.
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from gaussiantalker.exporter.bench_compare import PACKAGES, Version, _alternating, checkout_root, this_version_root
+from gaussiantalker.exporter.bench.compare import PACKAGES, Version, _alternating, checkout_root, this_version_root
 
 
 def test_a_folder_without_the_packages_is_refused(tmp_path):

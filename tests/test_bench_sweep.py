@@ -1,4 +1,4 @@
-"""`gt-bench --sweep`: the cases cover every knob, the quality metrics measure what they claim, and a tiny sweep runs
+"""`gt-bench sweep`: the cases cover every knob, the quality metrics measure what they claim, and a tiny sweep runs
 end to end (speed figures are not judged here: they belong to the benchmark's own report)."""
 
 from __future__ import annotations
@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from gaussiantalker.exporter.bench import app
-from gaussiantalker.exporter.bench_composite import F_CODECS, f_precision_settings
-from gaussiantalker.exporter.bench_quality import mouth_box, region_scores, ssim_map
-from gaussiantalker.exporter.bench_report import format_report, goal_rows, pareto_front
-from gaussiantalker.exporter.bench_sweep import REFERENCE, select_cases, sweep_cases, sweep_speaker
-from gaussiantalker.exporter.tiers import CODEC_GROUPS, PRESETS, ExportSettings
+from gaussiantalker.exporter.bench.app import app
+from gaussiantalker.exporter.bench.composite import F_CODECS, f_codec_settings
+from gaussiantalker.exporter.bench.quality import mouth_box, region_scores, ssim_map
+from gaussiantalker.exporter.bench.report import format_report, goal_rows, pareto_front
+from gaussiantalker.exporter.bench.sweep import REFERENCE, select_cases, sweep_cases, sweep_speaker
+from gaussiantalker.exporter.export.presets import CODEC_GROUPS, PRESETS, ExportSettings
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.render_settings import RenderSettings
 
@@ -28,10 +28,10 @@ def test_every_knob_and_preset_is_swept():
     swept_export = {f.name for c in cases if not c.preset for f in fields(ExportSettings)
                     if getattr(c.export, f.name) != getattr(ExportSettings(), f.name)}
     # F's codec shows only in composited frames: the compositing bench sweeps it, the sweep (bare head) does not.
-    swept_by_composite = {f.name for s in f_precision_settings() for f in fields(ExportSettings)
+    swept_by_composite = {f.name for s in f_codec_settings() for f in fields(ExportSettings)
                           if getattr(s, f.name) != getattr(ExportSettings(), f.name)}
     assert swept_by_composite == {"inpaint"} and "inpaint" not in swept_export
-    assert len({s.inpaint for s in f_precision_settings()}) == len(F_CODECS) >= 3
+    assert len({s.inpaint for s in f_codec_settings()}) == len(F_CODECS) >= 3
     assert swept_export | swept_by_composite == {f.name for f in fields(ExportSettings)}
     assert set(CODEC_GROUPS) <= swept_export | swept_by_composite
     swept_runtime = {key for c in cases for key in c.runtime}
@@ -53,7 +53,7 @@ def test_case_selection():
 
 
 def test_unknown_cases_are_a_cli_error():
-    result = CliRunner().invoke(app, ["--sweep", "--cases", "zoom"])
+    result = CliRunner().invoke(app, ["sweep", "--cases", "zoom"])
     assert result.exit_code == 2 and "no sweep case matches 'zoom'" in result.output
 
 
@@ -122,11 +122,11 @@ def test_tiny_sweep_end_to_end(small_export, replay_onnx_exports, tmp_path):
         assert at["frame_ms"] > 0 and at["fps"] > 0 and at["load_s"] > 0 and case["peak_rss_mb"] > 50
         assert set(at["stages_ms"]) == {"translator", "deformation", "sort", "upload", "draw", "readback"}
     assert reference["sizes"]["64"]["fps_vs_reference"] == 1.0
-    report = format_report([sweep], {"cores": 2}, "gt-bench --sweep")
+    report = format_report([sweep], {"cores": 2}, "gt-bench sweep")
     for name in sweep.cases:
         assert f"| {name} |" in report or f"| **{name}** |" in report
     assert goal_rows(sweep) == []  # no preset but the reference was swept
-    from gaussiantalker.exporter.bench_report import plot_sweep  # matplotlib: in the dev extra, so always tested
+    from gaussiantalker.exporter.bench.report import plot_sweep  # matplotlib: in the dev extra, so always tested
 
     png = plot_sweep([sweep], tmp_path / "sweep.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

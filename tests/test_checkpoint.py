@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
+from gaussiantalker.exporter.export.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from gaussiantalker.sdk.drive import FrameDrive
 from gaussiantalker.sdk.errors import CheckpointError
 

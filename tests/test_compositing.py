@@ -37,16 +37,16 @@ def _identity(x, mask, render):
 def clip_export(small_speaker, export_recording, tmp_path_factory) -> SimpleNamespace:
     """The small speaker with a 4-frame 96x112 demo clip and a random F, saved and exported (its ONNX protos
     kept: translator, deform, inpaint)."""
-    from gaussiantalker.exporter.checkpoint import save_checkpoint
-    from gaussiantalker.exporter.demo_clip import ClipComposer, make_demo_clip
-    from gaussiantalker.exporter.inpaint import InpaintGenerator
+    from gaussiantalker.exporter.demo.clip import ClipComposer, make_demo_clip
+    from gaussiantalker.exporter.export.checkpoint import save_checkpoint
+    from gaussiantalker.exporter.model.inpainter import InpainterNet
 
     speaker = copy.deepcopy(small_speaker)
     speaker.pose_track = speaker.pose_track[:CLIP_FRAMES].clone()
     composer = ClipComposer(speaker, size=CLIP_SIZE)
     speaker.reference = make_demo_clip(speaker, composer)
     torch.manual_seed(0)
-    speaker.inpaint = InpaintGenerator().eval()
+    speaker.inpaint = InpainterNet().eval()
     # An untrained F is exactly its priors (its output layer starts at zero); a random output layer makes every
     # weight reach the composite, as a trained F's do.
     torch.nn.init.normal_(speaker.inpaint.head.weight, std=0.1)
@@ -130,7 +130,7 @@ def test_layout_refuses_odd_sides_and_unknown_fields():
 
 
 def test_checkpoint_clip_that_disagrees_with_the_pose_track_is_refused(clip_export, tmp_path):
-    from gaussiantalker.exporter.checkpoint import load_checkpoint
+    from gaussiantalker.exporter.export.checkpoint import load_checkpoint
 
     loaded = load_checkpoint(clip_export.checkpoint)
     assert loaded.reference.layout.to_dict() == clip_export.speaker.reference.layout.to_dict()
@@ -237,7 +237,7 @@ def test_fallback_without_opencv_says_what_to_install(monkeypatch):
 # -- the runtime -------------------------------------------------------------------------------------------------
 
 def test_head_composites_into_the_clip_following_its_track(clip_export, tmp_path):
-    from gaussiantalker.exporter.compositing import composite_reference
+    from gaussiantalker.exporter.model.compositing import composite_reference
     from gaussiantalker.runtime import TalkingHead
 
     with TalkingHead(clip_export.path) as head:
@@ -273,8 +273,8 @@ def test_head_composites_into_the_clip_following_its_track(clip_export, tmp_path
 def test_inpaint_codec_is_a_precision_knob(clip_export, replay_onnx_exports, tmp_path):
     """F's weights take the `inpaint` group's codec (`gt-export --inpaint-codec`) and nothing else changes; the
     composited frames differ from the fp32 F's only inside the mask, by what 8-bit weights change in F's output."""
-    from gaussiantalker.exporter.export import export_bundle
-    from gaussiantalker.exporter.tiers import PRESETS, ExportSettings
+    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.presets import PRESETS, ExportSettings
     from gaussiantalker.runtime import TalkingHead
     from gaussiantalker.sdk.bundle import Bundle
 
@@ -307,9 +307,9 @@ def test_inpaint_codec_is_a_precision_knob(clip_export, replay_onnx_exports, tmp
 
 
 def test_composite_bench_end_to_end(clip_export, replay_onnx_exports, tmp_path):
-    """`gt-bench --composite` on the small clip speaker: every table is written, the reference codec matches
+    """`gt-bench composite` on the small clip speaker: every table is written, the reference codec matches
     itself exactly, a lossy F codec is finite and close, and the seam rows are there (speed is not judged)."""
-    from gaussiantalker.exporter.bench_composite import run_composite_bench
+    from gaussiantalker.exporter.bench.composite import run_composite_bench
 
     replay_onnx_exports(clip_export.protos * 3)  # the bench's own export, then one per F codec
     out = tmp_path / "composite.md"
@@ -368,7 +368,7 @@ def test_semantic_pass_and_region_weights(clip_export):
 
 
 def test_scene_export_leaves_the_clip_out(clip_export):
-    from gaussiantalker.exporter.export import export_bundle
+    from gaussiantalker.exporter.export.export import export_bundle
     from gaussiantalker.sdk.bundle import Bundle
     from gaussiantalker.sdk.scene import Scene
 

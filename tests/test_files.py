@@ -182,7 +182,7 @@ def test_failed_video_leaves_nothing_under_its_name(tmp_path):
 
 
 def test_bundle_and_checkpoint_writers_stage_beside_their_target(tmp_path, monkeypatch, small_speaker):
-    from gaussiantalker.exporter.checkpoint import load_checkpoint, save_checkpoint
+    from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
 
     calls = _refuse_cross_directory_replace(monkeypatch)
     writer = BundleWriter(metadata={})

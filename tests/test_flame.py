@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.demo_head import (
+from gaussiantalker.exporter.demo.head import (
     MOUTH_Y,
     REGION_COLORS,
     REGION_NAMES,
     demo_lip_vertices,
     make_demo_head,
 )
-from gaussiantalker.exporter.flame import (
+from gaussiantalker.exporter.model.flame import (
     FlameArrays,
     FlameLayer,
     add_teeth,

@@ -1,4 +1,4 @@
-"""Each ONNX graph of the bundle against its torch module, on several inputs (tolerance: see exporter/verify.py).
+"""Each ONNX graph of the bundle against its torch module, on several inputs (tolerance: see exporter/verify/verify.py).
 Quick run: the small speaker; full run: also the 20k-Gaussian demo speaker (conftest `speaker_export`)."""
 
 from __future__ import annotations
@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from gaussiantalker.exporter.demo_audio import synth_speech
-from gaussiantalker.exporter.export import DEFORM_INPUTS
-from gaussiantalker.exporter.verify import GRAPH_RTOL, verify_deformation, verify_translator
+from gaussiantalker.exporter.export.export import DEFORM_INPUTS
+from gaussiantalker.exporter.export.speech import synth_speech
+from gaussiantalker.exporter.verify.verify import GRAPH_RTOL, verify_deformation, verify_translator
 from gaussiantalker.runtime import TalkingHead
 
 

@@ -43,7 +43,7 @@ def test_the_check_itself_detects_torch():
     """Guard against a check that cannot fail: importing the exporter does pull torch (where torch is installed;
     .ci/runtime-only also runs this file in a virtualenv without it)."""
     pytest.importorskip("torch")
-    code = CHECK.format(module="gaussiantalker.exporter.speaker", forbidden="()")
+    code = CHECK.format(module="gaussiantalker.exporter.model.speaker", forbidden="()")
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert "torch" in result.stdout
 

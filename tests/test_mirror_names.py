@@ -1,4 +1,5 @@
-"""One name per contract step: the GLSL shaders and the torch reference (exporter/splat_math.py) mirror each other.
+"""One name per contract step: the GLSL shaders and the torch reference (exporter/model/splat_math.py) mirror each
+other.
 
 The GLSL function definitions are parsed out of shaders/*.vert and shaders/*.frag (`<type> <name>(<params>) {` at
 the start of a line; `main` is skipped), and checked against the torch module (docs/numerics.md, "Mirror names"):
@@ -27,7 +28,7 @@ from types import ModuleType
 
 import pytest
 
-from gaussiantalker.exporter import splat_math
+from gaussiantalker.exporter.model import splat_math
 from gaussiantalker.runtime import splatter
 from gaussiantalker.sdk import numerics
 
@@ -201,7 +202,7 @@ def test_twin_parameters_spelled_out():
          "    return vec3(dot(m0, s0) + LOW_PASS_PX2", None),  # a recursive call must not hang or break the walk
         ("splat.frag", "float splat_alpha(vec2 d, vec3 shape, float opacity)",
          "float splat_alpha(vec3 shape, vec2 d, float opacity)", "splat_alpha: torch parameters"),
-        ("splat.vert", "// Torch twin: `radius_of` (exporter/splat_math.py).\n", "",
+        ("splat.vert", "// Torch twin: `radius_of` (exporter/model/splat_math.py).\n", "",
          "does not name its torch twin `radius_of`"),
         ("splat.vert", "float cov2d_scale(vec3 cov2d) {\n    return",
          "float cov2d_scale(vec3 cov2d) {\n    float unused = u_t.x;\n    return",

@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gaussiantalker.exporter.demo_audio import synth_speech
-from gaussiantalker.exporter.mnn_export import convert_to_mnn, mnn_compatible
-from gaussiantalker.exporter.verify import MNN_RTOL, _agreement_cases, verify_backend_agreement
+from gaussiantalker.exporter.export.mnn_export import convert_to_mnn, mnn_compatible
+from gaussiantalker.exporter.export.speech import synth_speech
+from gaussiantalker.exporter.verify.verify import MNN_RTOL, _agreement_cases, verify_backend_agreement
 from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.errors import BundleError, RenderError
@@ -53,7 +53,7 @@ def mnn_export(small_export, tmp_path_factory):
     creation made to fail and the installed distributions listed before and after."""
     from conftest import replaying_onnx_exports
 
-    from gaussiantalker.exporter.export import export_bundle
+    from gaussiantalker.exporter.export.export import export_bundle
 
     path = tmp_path_factory.mktemp("mnn") / "small_mnn.gtb"
     before = _installed()
@@ -89,7 +89,7 @@ def test_worker_refuses_network_and_processes():
     the converter under), and reports each attempt."""
     code = textwrap.dedent("""
         import socket, subprocess
-        from gaussiantalker.exporter.mnn_worker import forbid_side_effects
+        from gaussiantalker.exporter.export.mnn_worker import forbid_side_effects
         attempts = []
         forbid_side_effects(attempts)
         attempts_made = (lambda: socket.socket(), lambda: subprocess.run(["true"]),
@@ -128,8 +128,8 @@ def test_converter_misbehaviour_is_a_clear_export_error(tmp_path, monkeypatch, s
 
 def test_missing_converter_fails_before_exporting(monkeypatch, small_export, tmp_path):
     """--mnn without the extra: an error saying what to install, before any graph is exported."""
-    import gaussiantalker.exporter.mnn_export as mnn_export_module
-    from gaussiantalker.exporter.export import export_bundle
+    import gaussiantalker.exporter.export.mnn_export as mnn_export_module
+    from gaussiantalker.exporter.export.export import export_bundle
 
     def not_installed(name):
         raise importlib.metadata.PackageNotFoundError(name)
@@ -145,7 +145,7 @@ def test_compatibility_rewrites_compute_the_same_function(small_export):
     (Gelu as its erf definition, ReduceL2 as the root of a sum of squares) and the original."""
     import onnxruntime as ort
 
-    from gaussiantalker.exporter.mnn_export import fold_constants
+    from gaussiantalker.exporter.export.mnn_export import fold_constants
 
     translator = fold_constants(small_export.protos[0])
     rewritten = mnn_compatible(translator)
@@ -201,11 +201,12 @@ def test_mnn_inpaint_graph_sanitises_nan(tmp_path, small_export):
     """The inpainting generator's NaN guard (x != x, MNN has no IsNaN) survives conversion: NaN in, finite out."""
     import onnx
 
-    from gaussiantalker.exporter.inpaint import InpaintConfig, InpaintGenerator, export_inpaint
-    from gaussiantalker.exporter.mnn_export import fold_constants
+    from gaussiantalker.exporter.export.inpainter_graph import inpainter_onnx
+    from gaussiantalker.exporter.export.mnn_export import fold_constants
+    from gaussiantalker.exporter.model.inpainter import InpainterConfig, InpainterNet
     from gaussiantalker.runtime.mnn_backend import import_mnn
 
-    model = export_inpaint(InpaintGenerator(InpaintConfig()).eval())
+    model = inpainter_onnx(InpainterNet(InpainterConfig()).eval())
     path = tmp_path / "inpaint.mnn"
     path.write_bytes(convert_to_mnn(mnn_compatible(fold_constants(model)), "inpaint"))
     assert not any(node.op_type == "IsNaN" for node in model.graph.node), onnx.helper.printable_graph(model.graph)
@@ -275,7 +276,7 @@ def test_speaker_expression_width_is_checked_on_mnn_too(mnn_export, tmp_path):
 @needs_mnn
 def test_verify_report_covers_mnn_graphs(mnn_export, small_export):
     """gt-export --verify's report gains the MNN rows (graphs vs onnxruntime, frames), all passing."""
-    from gaussiantalker.exporter.verify import format_report, verify_bundle
+    from gaussiantalker.exporter.verify.verify import format_report, verify_bundle
 
     report = verify_bundle(small_export.speaker, mnn_export["path"], frames=4, resolution=SIZE, progress=False)
     mnn = report["mnn"]
@@ -289,7 +290,7 @@ def test_verify_report_covers_mnn_graphs(mnn_export, small_export):
 @needs_mnn
 def test_backends_bench_measures_both_backends(mnn_export):
     """`gt-bench --backends`' measurement and table run end to end on a small bundle (speed is not judged here)."""
-    from gaussiantalker.exporter.bench_backends import CASES, format_table, measure_case
+    from gaussiantalker.exporter.bench.backends import CASES, format_table, measure_case
 
     audio = synth_speech(0.6, seed=2)
     runs = {label: [measure_case(mnn_export["path"], backend, threads, 64, audio, 16000)]

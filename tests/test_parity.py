@@ -1,6 +1,6 @@
 """Parity: runtime frames (onnxruntime + OpenGL) against the torch speaker's frames, end to end from audio.
 
-Tolerances (the SDK's parity bounds, as in exporter/verify.py): every frame >= 50 dB PSNR on the final 8-bit
+Tolerances (the SDK's parity bounds, as in exporter/verify/verify.py): every frame >= 50 dB PSNR on the final 8-bit
 frames and >= 60 dB on the float frames, no NaN. What legitimately remains is float32 reassociation between the
 two implementations (~1e-6), the GL path's missing early termination (residual transmittance < 0.01, typically
 ~1e-4) and rare depth-order flips of Gaussians whose depths differ by a few ulps. Measured margins are printed in
@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gaussiantalker.exporter.verify import Tolerances, verify_frames
+from gaussiantalker.exporter.verify.verify import Tolerances, verify_frames
 from gaussiantalker.runtime import TalkingHead
 
 FRAMES = 25
@@ -36,7 +36,7 @@ def test_audio_driven_frames_match_torch(speaker_export, size):
 def test_parity_clip_really_moves(speaker_export):
     """Guard against a parity test that cannot fail: the driven clip opens and closes the mouth."""
     with TalkingHead(speaker_export.path, resolution=(128, 128)) as head:
-        from gaussiantalker.exporter.verify import driven_clip
+        from gaussiantalker.exporter.export.probes import driven_clip
 
         audio, _ = driven_clip(speaker_export.speaker, FRAMES)
         drives = list(head.drives(audio, speaker_export.speaker.config.sample_rate))

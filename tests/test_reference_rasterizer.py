@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.rasterizer import render_reference
-from gaussiantalker.exporter.splat_math import (
+from gaussiantalker.exporter.model.rasterizer import render_reference
+from gaussiantalker.exporter.model.splat_math import (
     alpha_shape,
     camera_to_pixel,
     conic_from_cov2d,

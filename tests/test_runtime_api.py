@@ -7,7 +7,7 @@ import types
 import numpy as np
 import pytest
 
-from gaussiantalker.exporter.demo_audio import synth_speech
+from gaussiantalker.exporter.export.speech import synth_speech
 from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.drive import HeadPose

@@ -17,10 +17,10 @@ import pytest
 import torch
 
 from gaussiantalker.exporter.cli import app as export_app
-from gaussiantalker.exporter.deform_graph import DeformationGraph
-from gaussiantalker.exporter.export import export_bundle
-from gaussiantalker.exporter.rasterizer import render_reference
-from gaussiantalker.exporter.specialise import specialise, translator_outputs
+from gaussiantalker.exporter.export.deform_graph import DeformationGraph
+from gaussiantalker.exporter.export.export import export_bundle
+from gaussiantalker.exporter.export.specialise import specialise, translator_outputs
+from gaussiantalker.exporter.model.rasterizer import render_reference
 from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
@@ -163,7 +163,7 @@ def small_scene_bundle(small_speaker, tmp_path_factory):
 
 
 def test_small_speaker_scene_bundle_matches_the_plain_bundle(small_speaker, small_export, small_scene_bundle):
-    from gaussiantalker.exporter.demo_audio import synth_speech
+    from gaussiantalker.exporter.export.speech import synth_speech
 
     path, result = small_scene_bundle
     assert os.path.getsize(path) < os.path.getsize(small_export.path)
@@ -227,7 +227,7 @@ def test_gt_export_scene_errors_before_loading(tmp_path):
 def test_front_scene_on_the_demo_speaker(demo_speaker, demo_bundle, tmp_path):
     """samples/front_scene.toml: >= 2x smaller (the issue's goal; bytes are deterministic) and the frames of the
     pose corners and a driven clip at >= 50 dB against the unspecialised bundle."""
-    from gaussiantalker.exporter.demo_audio import synth_speech
+    from gaussiantalker.exporter.export.speech import synth_speech
 
     path = tmp_path / "front.gtb"
     result = export_bundle(demo_speaker, path, scene=load_scene(FRONT_SCENE), progress=False)

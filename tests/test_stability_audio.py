@@ -20,7 +20,7 @@ import pytest
 import torch
 
 import gaussiantalker.runtime.head as head_module
-from gaussiantalker.exporter.demo_audio import synth_speech
+from gaussiantalker.exporter.export.speech import synth_speech
 from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.runtime.translate import (
     CONTEXT_FRAMES,

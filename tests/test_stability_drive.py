@@ -36,10 +36,10 @@ import torch
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from gaussiantalker.exporter.export import DEFORM_INPUTS, DEFORM_OUTPUTS
-from gaussiantalker.exporter.flame import FlameArrays
-from gaussiantalker.exporter.speaker import Speaker
-from gaussiantalker.exporter.verify import GRAPH_RTOL
+from gaussiantalker.exporter.export.export import DEFORM_INPUTS, DEFORM_OUTPUTS
+from gaussiantalker.exporter.model.flame import FlameArrays
+from gaussiantalker.exporter.model.speaker import Speaker
+from gaussiantalker.exporter.verify.verify import GRAPH_RTOL
 from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.drive import MAX_DRIVE_MAGNITUDE, FrameDrive, HeadPose
@@ -457,7 +457,7 @@ def test_malformed_drives_are_named(base_head, stability):
 
 def _frame_columns(speaker: Speaker, expression: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Column lengths |n0|, |n1|, |n2| [G, 3] and scale S [G] of the triangle frames under the masked Gaussians."""
-    from gaussiantalker.exporter.gaussians import triangle_frame
+    from gaussiantalker.exporter.model.gaussians import triangle_frame
 
     with torch.no_grad():
         vertices = speaker.vertices(torch.from_numpy(expression[None]), torch.zeros(1, 15), torch.zeros(1, 3))[0]

@@ -28,9 +28,9 @@ from types import SimpleNamespace
 import pytest
 import torch
 
-import gaussiantalker.exporter.onnx_export as onnx_export_module
-from gaussiantalker.exporter.checkpoint import load_checkpoint, save_checkpoint
-from gaussiantalker.exporter.export import export_bundle
+import gaussiantalker.exporter.export.onnx_export as onnx_export_module
+from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
+from gaussiantalker.exporter.export.export import export_bundle
 from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.sdk.bundle import _HEADER, HEADER_SIZE, Bundle, _align
 from gaussiantalker.sdk.errors import BundleError, CheckpointError
@@ -533,7 +533,7 @@ _PAUSING_CLI = '''
 import os, runpy, sys, time
 from pathlib import Path
 import onnx
-import gaussiantalker.exporter.onnx_export as onnx_export
+import gaussiantalker.exporter.export.onnx_export as onnx_export
 import gaussiantalker.sdk.bundle as bundle
 import gaussiantalker.sdk.files as files
 

@@ -29,8 +29,8 @@ import torch
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from gaussiantalker.exporter.rasterizer import render_reference
-from gaussiantalker.exporter.splat_math import (
+from gaussiantalker.exporter.model.rasterizer import render_reference
+from gaussiantalker.exporter.model.splat_math import (
     cov3d_from_rotation_scale,
     covariance_2d,
     quat_to_rotmat,

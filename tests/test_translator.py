@@ -8,21 +8,21 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.demo_audio import (
+from gaussiantalker.exporter.demo.audio import (
     jaw_target_from_audio,
     loudness_envelope,
     normalize_audio,
-    synth_speech,
     write_wav,
 )
-from gaussiantalker.exporter.train_translator import TrainSettings, train_demo_translator
-from gaussiantalker.exporter.translator import (
+from gaussiantalker.exporter.demo.train_translator import TrainSettings, train_demo_translator
+from gaussiantalker.exporter.export.speech import synth_speech
+from gaussiantalker.exporter.export.translator_graph import export_translator_onnx
+from gaussiantalker.exporter.model.translator import (
     FeatureEncoder,
     MotionTranslator,
     aligned_padding,
     check_audio_length,
     conv_kernels,
-    export_translator_onnx,
     normalize_waveform,
     paper_translator_config,
     translate,

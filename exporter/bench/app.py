@@ -1,0 +1,231 @@
+"""`gt-bench`: the benchmarks, one subcommand each, every subcommand with only its own options.
+
+    gt-bench frames        per-stage timings and FPS of the runtime vs the torch reference (bench/frames.py)
+    gt-bench sweep         every speed/accuracy knob alone and every preset side by side (bench/sweep.py)
+    gt-bench compare       this SDK against another checkout of it, alternating rounds (bench/compare.py)
+    gt-bench composite     compositing's cost and seam quality (bench/composite.py)
+    gt-bench backends      onnxruntime vs MNN (bench/backends.py)
+    gt-bench video         the encoding cost of every video output (bench/video.py)
+    gt-bench clip-codecs   how to store a reference clip (bench/clip_codecs.py)
+
+The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
+still work: `entry.gt_bench` rewrites them to their subcommand.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from .frames import machine_info
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help="Benchmarks of the runtime against the torch "
+                  "reference, the speed/accuracy knobs, another checkout, compositing, graph backends and video "
+                  "outputs.")
+
+SIZES_HELP = "square resolutions to bench"
+
+
+@app.command()
+def frames(
+    checkpoint: Path = typer.Option(None, "--checkpoint", help="speaker checkpoint [default: untrained demo]"),
+    gaussians: int = typer.Option(20_000, "--gaussians", help="demo speaker size when no checkpoint is given"),
+    sizes: str = typer.Option("256,512", "--sizes", help=SIZES_HELP),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio length driven through the runtime"),
+    torch_frames: int = typer.Option(3, "--torch-frames", help="frames rendered by the torch reference"),
+    paper_translator: bool = typer.Option(False, "--paper-translator", help="also export/run the ~300M translator"),
+    json_path: Path = typer.Option(None, "--json", help="write results as JSON"),
+) -> None:
+    """Per-stage timings and FPS of the runtime vs the torch reference (what a bare `gt-bench` runs)."""
+    from .frames import run_frames_bench
+
+    run_frames_bench(checkpoint, gaussians, sizes, seconds, torch_frames, paper_translator, json_path)
+
+
+@app.command()
+def sweep(
+    checkpoint: Path = typer.Option(None, "--checkpoint", help="speaker checkpoint [default: the demo speaker, "
+                                    "its translator trained for a few minutes]"),
+    gaussians: int = typer.Option(20_000, "--gaussians", help="demo speaker size when no checkpoint is given"),
+    sweep_gaussians: int = typer.Option(100_000, "--sweep-gaussians", min=0, help="size of the synthetic speaker "
+                                        "(0: demo speaker only)"),
+    skip_demo: bool = typer.Option(False, "--skip-demo", help="the synthetic speaker only (each speaker can then "
+                                   "get its own --seconds and --rounds)"),
+    cases: str = typer.Option(None, "--cases", help="only the cases whose name or knob contains one of these "
+                              "comma-separated words, e.g. 'preset,sort' [default: all]"),
+    scene: Path = typer.Option(None, "--scene", help="each preset plain and specialised for this scene file "
+                               "(docs/scene.md), side by side (use --sizes at the scene's resolution)"),
+    sizes: str = typer.Option("256,512", "--sizes", help=SIZES_HELP),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio length of each case"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds per case"),
+    out: Path = typer.Option(Path("bench-sweep"), "--out", help="folder for sweep.md, sweep.json and sweep.png"),
+) -> None:
+    """Every speed/accuracy knob alone and every preset side by side (alternating rounds) on the demo speaker and
+    a larger synthetic one."""
+    if skip_demo and sweep_gaussians == 0:
+        raise typer.BadParameter("--skip-demo needs a synthetic speaker (--sweep-gaussians > 0)",
+                                 param_hint="--skip-demo")
+    _sweep(checkpoint, gaussians, sweep_gaussians, sizes, seconds, rounds, cases, out, skip_demo, scene)
+
+
+@app.command()
+def compare(
+    baseline: Path = typer.Option(..., "--baseline", help="another checkout of the SDK, measured side by side"),
+    gaussians: int = typer.Option(20_000, "--gaussians", help="demo speaker size"),
+    sizes: str = typer.Option("256,512", "--sizes", help=SIZES_HELP),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio length driven through each version"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="rounds per version and case"),
+    scaling: str = typer.Option(None, "--scaling", help="Gaussian counts to compare at the largest size, e.g. "
+                                "20000,50000,100000,200000 [default: --gaussians only]"),
+    play_seconds: float = typer.Option(10.0, "--play-seconds", help="audio length for timing each version's "
+                                       "samples/play.py at 512x512 (0: skip)"),
+    json_path: Path = typer.Option(None, "--json", help="write results as JSON"),
+) -> None:
+    """This SDK and another checkout of it (--baseline), alternating rounds: the per-stage table with speed-ups."""
+    _compare_with_baseline(baseline, gaussians, sizes, seconds, rounds, scaling, play_seconds, json_path)
+
+
+@app.command()
+def composite(
+    checkpoint: Path = typer.Option(..., "--checkpoint", help="a speaker with a reference clip"),
+    bundle: Path = typer.Option(None, "--bundle", help="its exported bundle (default: exported afresh)"),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio per FPS case"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds"),
+    pairs: int = typer.Option(12, "--pairs", min=1, help="re-rendered frames for the seam measure"),
+    codecs: str = typer.Option(None, "--codecs", help="F codecs to measure, comma-separated (the first is the "
+                               "reference; empty: none; default: bench/composite.py's F_CODECS)"),
+    out: Path = typer.Option(Path("bench-sweep"), "--out", help="folder for composite.md"),
+) -> None:
+    """Compositing into the reference clip: FPS composited and bare at the clip's size and 512x512, F's cost and
+    codecs, seam steps (docs/compositing.md)."""
+    from .composite import F_CODECS, run_composite_bench
+
+    chosen = F_CODECS if codecs is None else tuple(c.strip() for c in codecs.split(",") if c.strip())
+    typer.echo(run_composite_bench(checkpoint, bundle, seconds, rounds, pairs, out / "composite.md", chosen))
+
+
+@app.command()
+def backends(
+    checkpoint: Path = typer.Option(..., "--checkpoint", help="speaker checkpoint (exported here with --mnn)"),
+    sizes: str = typer.Option("256,512", "--sizes", help="square resolutions; the largest is benched"),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio length of each case"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds"),
+    out: Path = typer.Option(Path("bench-sweep"), "--out", help="folder for backends.md"),
+) -> None:
+    """onnxruntime vs MNN: each graph's ms, stages and FPS, alternating (docs/mnn.md)."""
+    from .backends import run_backends_bench
+
+    run_backends_bench(checkpoint, max(int(s) for s in sizes.split(",")), seconds, rounds, out / "backends.md")
+
+
+@app.command()
+def video(
+    bundle: Path = typer.Argument(..., help="speaker bundle"),
+    size: int = typer.Option(512, "--size", help="frame side"),
+    frames: int = typer.Option(50, "--frames", help="frames per encode"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds"),
+) -> None:
+    """The encoding cost of every video output (docs/video.md) for BUNDLE's frames at SIZE x SIZE."""
+    from .video import run_video_bench
+
+    run_video_bench(bundle, size, frames, rounds)
+
+
+@app.command("clip-codecs")
+def clip_codecs(checkpoint: Path = typer.Argument(Path("out/speaker.ckpt"), help="a speaker with a reference clip")
+                ) -> None:
+    """Size and decode time of candidate reference-clip codecs on the speaker's clip (docs/compositing.md)."""
+    from .clip_codecs import run_clip_codecs_bench
+
+    run_clip_codecs_bench(checkpoint)
+
+
+def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: float, rounds: int,
+                           scaling: str | None, play_seconds: float, json_path: Path | None) -> None:
+    """`gt-bench compare`: the side-by-side table of bench/compare.py, printed (and written as JSON)."""
+    from dataclasses import asdict
+
+    from .compare import checkout_root, compare, format_table
+
+    try:
+        checkout_root(baseline)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--baseline") from None
+    size_list = [int(s) for s in sizes.split(",")]
+    result = compare(baseline, gaussians=[gaussians], sizes=size_list, seconds=seconds, rounds=rounds,
+                     play_seconds=play_seconds)
+    if scaling:
+        counts = [int(c) for c in scaling.split(",") if int(c) != gaussians]
+        scaled = compare(baseline, gaussians=counts, sizes=[max(size_list)], seconds=seconds, rounds=rounds,
+                         play_seconds=0)
+        result.cases.update(scaled.cases)
+    result_text = format_table(result)
+    typer.echo(f"machine: {json.dumps(machine_info())}\n{result_text}")
+    if json_path is not None:
+        json_path.write_text(json.dumps({"machine": machine_info(), **asdict(result)}, indent=2))
+        typer.echo(f"wrote {json_path}")
+
+
+def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seconds: float, rounds: int,
+           cases: str | None, out: Path, skip_demo: bool = False, scene: Path | None = None) -> None:
+    """`gt-bench sweep`: see bench/sweep.py; writes the markdown report, the JSON and (with matplotlib) the plot."""
+    import sys
+    from dataclasses import asdict
+
+    from gaussiantalker.sdk.errors import GaussianTalkerError
+    from gaussiantalker.sdk.files import atomic_write
+
+    from ..demo.speaker import make_demo_speaker
+    from ..export.checkpoint import load_checkpoint
+    from .report import format_report, plot_sweep
+    from .sweep import scene_cases, select_cases, sweep_cases, sweep_speaker
+
+    try:
+        if scene is not None:
+            from gaussiantalker.sdk.scene import load_scene
+
+            try:
+                load_scene(scene)  # a bad scene file fails here, before any speaker is built
+            except GaussianTalkerError as exc:
+                raise typer.BadParameter(str(exc), param_hint="--scene") from None
+        chosen = select_cases(sweep_cases() if scene is None else scene_cases(str(scene)), cases)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--cases") from None
+    size_list = [int(s) for s in sizes.split(",")]
+    if checkpoint is not None:
+        demo = load_checkpoint(checkpoint)
+        demo.reference = demo.inpaint = None  # the bare head (compositing: exporter/bench/composite.py)
+    else:
+        typer.echo("building the demo speaker (its translator trains for a few minutes; --checkpoint skips this)")
+        demo, _ = make_demo_speaker(gaussians)
+    speakers = [] if skip_demo else [("demo speaker", demo)]
+    if large > 0:
+        synthetic, _ = make_demo_speaker(large, seed=1, train_seconds=0, progress=False, config=demo.config)
+        synthetic.translator.load_state_dict(demo.translator.state_dict())  # the same speech, more Gaussians
+        speakers.append(("synthetic speaker", synthetic))
+    out.mkdir(parents=True, exist_ok=True)
+    sweeps = [sweep_speaker(name, speaker, chosen, sizes=size_list, seconds=seconds, rounds=rounds)
+              for name, speaker in speakers]
+    machine = machine_info()
+    command = "gt-bench " + " ".join(sys.argv[1:])
+    report = format_report(sweeps, machine, command)
+    with atomic_write(out / "sweep.md", "w") as handle:
+        handle.write(report + "\n")
+    with atomic_write(out / "sweep.json", "w") as handle:
+        json.dump({"machine": machine, "command": command, "seconds": seconds, "rounds": rounds,
+                   "speakers": [asdict(s) for s in sweeps]}, handle, indent=2)
+    written = ["sweep.md", "sweep.json"]
+    try:
+        plot_sweep(sweeps, out / "sweep.png")
+        written.append("sweep.png")
+    except ImportError:
+        typer.echo("matplotlib is not installed (pip install 'gaussiantalker-sdk[bench]'): no plot", err=True)
+    typer.echo(report)
+    typer.echo(f"wrote {', '.join(str(out / name) for name in written)}")
+
+
+def main_entry(args: list[str] | None = None) -> None:
+    """Run the app as `gt-bench` (`args`: the command line after the program name; None: sys.argv's)."""
+    app(args=args, prog_name="gt-bench")

@@ -1,0 +1,205 @@
+"""torch Speaker -> `.gtb` bundle: the translator and deformation graphs plus every buffer they need."""
+
+from __future__ import annotations
+
+import os
+import platform
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from gaussiantalker.runtime.composite import CROP_MARGIN_PX, CROP_MULTIPLE
+from gaussiantalker.sdk import __version__ as sdk_version
+from gaussiantalker.sdk.bundle import BundleWriter
+from gaussiantalker.sdk.config import POSE_DIM
+from gaussiantalker.sdk.errors import BundleError
+from gaussiantalker.sdk.files import StagedFile
+from gaussiantalker.sdk.reference_clip import ReferenceClipError, frame_entry, mask_entry
+from gaussiantalker.sdk.scene import Scene
+
+from ..model.speaker import Speaker
+from . import onnx_export
+from .deform_graph import DeformationGraph
+from .graph_precision import convert_precision
+from .inpainter_graph import inpainter_onnx
+from .mnn_export import add_mnn_graphs, mnn_version
+from .onnx_export import add_graph
+from .presets import ExportSettings, Preset, get_preset, group_of
+from .prune import apply_budget
+from .specialise import Specialisation, specialise
+from .translator_graph import translator_onnx
+
+DEFORM_INPUTS = ["expression", "flame_pose", "head_translation", "camera_center"]
+DEFORM_OUTPUTS = ["means", "cov3d", "rgb", "opacity"]
+
+
+@dataclass
+class ExportResult:
+    """What an export wrote: path, size, and per-graph / per-buffer byte counts."""
+
+    path: Path
+    bytes_written: int
+    graphs: dict = field(default_factory=dict)
+    buffer_bytes: dict = field(default_factory=dict)
+    settings: ExportSettings | None = None
+    label: str = "fp32"  # the manifest's "precision": fp32, fp16, a preset's name, NAME+custom or custom
+    gaussians: int = 0  # Gaussians in the bundle (after scene pruning and a Gaussian budget)
+    specialisation: Specialisation | None = None  # what a scene let the export leave out (export/specialise.py)
+    mnn: dict = field(default_factory=dict)  # bytes of each graph's .mnn model (`mnn=True`, docs/mnn.md)
+
+    @property
+    def tier(self) -> str:
+        """The former name of `label`, kept for callers that read it."""
+        return self.label
+
+    def group_bytes(self) -> dict[str, int]:
+        """Stored bytes per codec group (exporter/export/presets.py) plus 'other' (pose track, index buffers, ...)."""
+        totals: dict[str, int] = {}
+        for name, nbytes in self.buffer_bytes.items():
+            group = group_of(name)
+            totals[group] = totals.get(group, 0) + nbytes
+        return totals
+
+
+def _deform_example(speaker: Speaker) -> tuple[tuple, dict]:
+    batch = 2
+    args = (torch.zeros(batch, speaker.config.n_expr), torch.zeros(batch, POSE_DIM), torch.zeros(batch, 3),
+            torch.zeros(batch, 3))
+    dim = torch.export.Dim("batch", min=1, max=4096)
+    return args, {name: {0: dim} for name in DEFORM_INPUTS}
+
+
+def resolve_settings(codec: str | None = None, settings: ExportSettings | None = None,
+                     preset: str | Preset | None = None) -> tuple[ExportSettings, Preset | None, str]:
+    """(settings, preset, label) of an export: explicit `settings` (over a preset's, whose name and runtime
+    defaults are kept), a preset's own, every buffer with one `codec`, or fp32."""
+    if codec is not None and (settings is not None or preset is not None):
+        raise BundleError("give codec (every buffer's codec) or settings/preset, not both")
+    chosen = get_preset(preset) if isinstance(preset, str) else preset
+    if codec is not None:
+        settings = ExportSettings.all_buffers(codec)  # an unknown codec fails here, before any graph export
+    settings = settings or (chosen.export if chosen is not None else ExportSettings())
+    if chosen is None:
+        return settings, None, settings.label()
+    return settings, chosen, chosen.name if settings == chosen.export else f"{chosen.name}+custom"
+
+
+def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, codec: str | None = None,
+                  settings: ExportSettings | None = None, preset: str | Preset | None = None, progress: bool = True,
+                  example_frames: int = 8, scene: Scene | Specialisation | None = None, mnn: bool = False
+                  ) -> ExportResult:
+    """Export `speaker` to one bundle file at `path` (written atomically), or into a file staged by `atomic_path`.
+
+    The speed/accuracy knobs (exporter/export/presets.py, docs/precision.md): `preset` names a preset (its runtime
+    defaults are stored in the bundle), `codec` stores every buffer with one codec, `settings` sets each knob. `scene`
+    (docs/scene.md) compiles the bundle for one scene, leaving out what it never uses (or an already measured
+    `specialise` result for it); the bundle records the scene and its camera. `mnn` also stores every graph as
+    an MNN model (docs/mnn.md; needs the `mnn` extra)."""
+    settings, chosen, label = resolve_settings(codec, settings, preset)
+    if mnn:
+        mnn_version()  # a missing converter fails here, before any graph is exported
+    speaker = speaker.eval()
+    spec = (specialise(speaker, scene, progress=progress, sh_degree_cap=settings.sh_degree)
+            if isinstance(scene, Scene) else scene)
+    camera, background = speaker.camera, list(speaker.background)
+    if spec is not None:
+        speaker, camera = spec.speaker, spec.camera
+        background = list(spec.scene.background_color or background)
+    if settings.gaussian_budget is not None:
+        speaker = apply_budget(speaker, settings.gaussian_budget, progress=progress)
+    writer = BundleWriter(metadata={
+        "speaker": speaker.config.to_dict(),
+        "camera": camera.to_dict(),
+        "background": background,
+        "precision": label,
+        "export_settings": asdict(settings),
+        "runtime_defaults": chosen.runtime.to_dict() if chosen is not None else {},
+        "gaussians": speaker.gaussians.count,
+        "exporter": {"sdk": sdk_version, "torch": torch.__version__, "python": platform.python_version()},
+        **({} if spec is None else {"scene": spec.scene.to_dict(),
+                                    "specialisation": [asdict(r) for r in spec.removals]}),
+    })
+    # A scene fixes its own camera and background: the reference clip (seen through another camera) is left out.
+    if spec is None and speaker.reference is not None:
+        writer.metadata["reference"] = speaker.reference.layout.to_dict()
+        writer.metadata["inpaint"] = {"generator": "learned" if speaker.inpaint is not None else "opencv_fallback",
+                                      "crop_margin": CROP_MARGIN_PX, "crop_multiple": CROP_MULTIPLE}
+    steps = tqdm(total=5 if mnn else 4, desc="gt-export", unit="step", disable=not progress)
+    result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings, label=label,
+                          gaussians=speaker.gaussians.count, specialisation=spec)
+    try:
+        _export_steps(speaker, writer, path, result, settings, example_frames, steps, spec, mnn)
+    finally:
+        steps.close()
+    return result
+
+
+def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLike | StagedFile, result: ExportResult,
+                  settings: ExportSettings, example_frames: int, steps: tqdm, spec: Specialisation | None,
+                  mnn: bool) -> None:
+    """Both graphs into `writer` (and their MNN models), then one atomic write: nothing reaches `result.path`
+    until every step worked. A flame-driven scene has no translator graph."""
+    steps.set_postfix_str("translator graph")
+    if spec is None or spec.has_translator:
+        model = convert_precision(translator_onnx(speaker.translator, example_frames), settings.translator_precision)
+        result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
+    steps.update()
+
+    steps.set_postfix_str("deformation graph")
+    args, dynamic = _deform_example(speaker)
+    scene_options = {} if spec is None else {
+        "drive_allowed": spec.drive_allowed, "vertex_subset": True,
+        "latent_subspace": None if spec.latent_basis is None else (spec.latent_mean, spec.latent_basis)}
+    # A scene's refit already went down to the settings' degree when `specialise` was told it (export_bundle does).
+    sh_degree = settings.sh_degree
+    if spec is not None:
+        sh_degree = spec.sh_degree if sh_degree is None else min(spec.sh_degree, sh_degree)
+    graph = DeformationGraph(speaker, sh_degree=sh_degree, blendshape_rank=settings.blendshape_rank,
+                             **scene_options)
+    model = onnx_export.export_onnx(graph, args, DEFORM_INPUTS, DEFORM_OUTPUTS, dynamic)
+    result.graphs["deform"] = add_graph(writer, "deform", model, settings.codec_for)
+    steps.update()
+
+    steps.set_postfix_str("reference clip")
+    if spec is None:  # a scene's bundle holds no clip (export_bundle)
+        _add_reference(speaker, writer, result, settings)
+    steps.update()
+
+    if mnn:
+        steps.set_postfix_str("MNN graphs")
+        result.mnn = add_mnn_graphs(writer)
+        steps.update()
+
+    steps.set_postfix_str("writing bundle")
+    regions = speaker.flame_arrays.regions
+    if regions is not None:  # the semantic pass: each Gaussian's parent-triangle region (docs/compositing.md)
+        ids = regions[speaker.gaussians.parent.numpy()]
+        names = list(speaker.flame_arrays.region_names)
+        writer.metadata["regions"] = names + [f"region_{i}" for i in range(len(names), int(regions.max()) + 1)]
+        writer.add_buffer("gaussian_regions", ids.astype(np.uint8 if regions.max() < 256 else np.uint16))
+    if speaker.pose_track is not None:
+        writer.add_buffer("pose_track", speaker.pose_track.numpy().astype(np.float32))
+    result.bytes_written = writer.write(path)
+    result.buffer_bytes = {name: entry["nbytes"] for name, entry in writer.manifest()["buffers"].items()}
+    steps.update()
+
+
+def _add_reference(speaker: Speaker, writer: BundleWriter, result: ExportResult, settings: ExportSettings) -> None:
+    """The reference clip's encoded frames and masks (one entry each, decoded once here so a bundle never holds
+    a clip that fails mid-video) and the inpainting generator's graph, if the speaker has them."""
+    clip = speaker.reference
+    if clip is None:
+        return
+    try:
+        clip.check(None if speaker.pose_track is None else int(speaker.pose_track.shape[0]))
+    except ReferenceClipError as exc:
+        raise BundleError(f"cannot export the reference clip: {exc}") from None
+    for index, (frame, mask) in enumerate(zip(clip.frames, clip.masks, strict=True)):
+        writer.add_buffer(frame_entry(index), np.frombuffer(frame, dtype=np.uint8))
+        writer.add_buffer(mask_entry(index), np.frombuffer(mask, dtype=np.uint8))
+    if speaker.inpaint is not None:
+        result.graphs["inpaint"] = add_graph(writer, "inpaint", inpainter_onnx(speaker.inpaint.eval()),
+                                             settings.codec_for)

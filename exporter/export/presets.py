@@ -1,0 +1,189 @@
+"""Speed/accuracy knobs of an export and the named presets built from them (docs/precision.md).
+
+Every trade the exporter offers is a field of `ExportSettings`; a preset is a named `ExportSettings` plus the
+runtime defaults stored in the bundle (`TalkingHead` plays a bundle with them unless the app overrides them) and
+the bound `gt-export --verify` holds its frames to. The sweep (`gt-bench sweep`) measures every knob alone
+and every preset on the same frames; the presets below were chosen from its table.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from dataclasses import dataclass, field, fields, replace
+
+import numpy as np
+
+from gaussiantalker.sdk.codecs import CODECS, MAX_CHUNK
+from gaussiantalker.sdk.errors import BundleError
+from gaussiantalker.sdk.render_settings import RenderSettings
+
+# Buffer groups a codec is chosen for, and which bundle buffers (by glob on the buffer name) belong to each.
+CODEC_GROUPS: dict[str, tuple[str, ...]] = {
+    "gaussians": ("deform/latent_bias", "deform/log_scale", "deform/opacity", "deform/barycentric",
+                  "deform/rest_scale"),  # per-Gaussian static attributes
+    "sh": ("deform/sh_rest",),  # SH bands 1..3
+    "blendshapes": ("deform/latent_weight", "deform/latent_basis", "deform/latent_pose.*"),  # W_pos/rot/color, MLP
+    "flame": ("deform/blend_basis", "deform/rest_points", "deform/lbs_weights"),  # FLAME bases, rest mesh, skinning
+    "translator": ("translator/*",),  # motion translator weights (fp32 graph)
+    "inpaint": ("inpaint/*",),  # the inpainting generator's convolutions (docs/compositing.md)
+}
+# Buffers every frame's geometry hangs on (the rest mesh, the frame guards' reference size, where on its triangle a
+# Gaussian sits): a quantised codec gives them at least 16 bits. Measured on the demo speaker: barycentrics at q8
+# alone cost 40 dB head-region PSNR, every other per-Gaussian buffer at q8 stays above 55 dB.
+KEEP_16_BITS = ("deform/rest_points", "deform/rest_scale", "deform/barycentric", "deform/lbs_weights")
+# Quantised codecs spend 8 bytes of chunk parameters per chunk: below this many values a buffer gets fp16 instead.
+QUANT_MIN_VALUES = 4096
+# Translator graph precisions (exporter/export/graph_precision.py converts to them).
+TRANSLATOR_PRECISIONS = ("fp32", "fp16", "int8")
+
+
+def parse_codec(spec: str) -> tuple[str, int | None]:
+    """A codec knob's value: a codec name, for quantised codecs optionally with its chunk size ("q4/64")."""
+    name, _, chunk_text = str(spec).partition("/")
+    allowed = [c for c in CODECS if not CODECS[c].int_only]
+    if name not in allowed:
+        raise BundleError(f"unknown codec {spec!r} (allowed: {', '.join(allowed)}; quantised ones may name a chunk "
+                          f"size, e.g. q4/64)")
+    if not chunk_text:
+        return name, None
+    if not name.startswith("q") or not chunk_text.isdigit() or not 1 <= int(chunk_text) <= MAX_CHUNK:
+        raise BundleError(f"codec {spec!r}: only q16/q8/q4 take a chunk size, an integer 1..{MAX_CHUNK}")
+    return name, int(chunk_text)
+
+
+def group_of(buffer: str) -> str:
+    """The codec group of bundle buffer `buffer` ('other' for buffers no codec knob applies to)."""
+    return next((group for group, patterns in CODEC_GROUPS.items()
+                 if any(fnmatch.fnmatchcase(buffer, p) for p in patterns)), "other")
+
+
+@dataclass(frozen=True)
+class ExportSettings:
+    """Export-time knobs: a buffer codec per group, the translator graph's precision, model-size truncations."""
+
+    gaussians: str = "raw"
+    sh: str = "raw"
+    blendshapes: str = "raw"
+    flame: str = "raw"
+    translator: str = "raw"
+    inpaint: str = "raw"
+    translator_precision: str = "fp32"
+    sh_degree: int | None = None  # keep SH bands up to this degree (None: all)
+    blendshape_rank: int | None = None  # rank of the speaker blendshape matrix (None: full)
+    gaussian_budget: float | None = None  # keep this fraction (<= 1) or number (> 1) of Gaussians (None: all)
+
+    def __post_init__(self) -> None:
+        for group in CODEC_GROUPS:
+            try:
+                parse_codec(getattr(self, group))
+            except BundleError as exc:
+                raise BundleError(f"{group}: {exc}") from None
+        if self.translator_precision not in TRANSLATOR_PRECISIONS:
+            raise BundleError(f"unknown translator precision {self.translator_precision!r} (allowed: "
+                              f"{', '.join(TRANSLATOR_PRECISIONS)})")
+        if self.sh_degree is not None and not 0 <= self.sh_degree <= 3:
+            raise BundleError(f"sh_degree must be 0..3, got {self.sh_degree}")
+        if self.blendshape_rank is not None and self.blendshape_rank < 1:
+            raise BundleError(f"blendshape_rank must be >= 1, got {self.blendshape_rank}")
+        budget = self.gaussian_budget
+        if budget is not None and not (budget > 0 and (budget <= 1 or float(budget).is_integer())):
+            raise BundleError(f"gaussian_budget must be a fraction in (0, 1] or a whole number of Gaussians, "
+                              f"got {budget}")
+
+    @classmethod
+    def all_buffers(cls, codec: str) -> ExportSettings:
+        """Every group with one codec (what `--codec` sets)."""
+        return cls(**dict.fromkeys(CODEC_GROUPS, codec))
+
+    @property
+    def lossless(self) -> bool:
+        codecs_lossless = all(CODECS[parse_codec(getattr(self, g))[0]].lossless for g in CODEC_GROUPS)
+        return (codecs_lossless and self.translator_precision == "fp32" and self.sh_degree is None
+                and self.blendshape_rank is None and self.gaussian_budget is None)
+
+    def label(self) -> str:
+        """fp32, fp16 (every buffer fp16, nothing else changed) or custom."""
+        if self.lossless:
+            return "fp32"
+        if self == ExportSettings.all_buffers("fp16"):
+            return "fp16"
+        return "custom"
+
+    def codec_for(self, buffer: str, array: np.ndarray) -> tuple[str, int | None]:
+        """(codec, chunk) buffer `buffer` is stored with: integer indices `index` (lossless), floats their group's
+        codec, but at least 16 bits for `KEEP_16_BITS` and fp16 for buffers too small to quantise."""
+        if array.dtype in (np.int32, np.int64):  # vertex and triangle indices
+            return ("index" if array.size and array.min() >= 0 else "raw"), None
+        if array.dtype != np.float32:
+            return "raw", None  # graph weights already reduced (fp16 / int8 graphs) are stored as they are
+        group = group_of(buffer)
+        codec, chunk = parse_codec(getattr(self, group)) if group in CODEC_GROUPS else ("raw", None)
+        if codec.startswith("q"):
+            if array.size < QUANT_MIN_VALUES:
+                return "fp16", None
+            if buffer in KEEP_16_BITS:
+                return "q16", chunk
+        return codec, chunk
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A named bundle recipe: export settings, runtime defaults, and the bound `--verify` holds it to."""
+
+    name: str
+    summary: str
+    export: ExportSettings
+    runtime: RenderSettings = field(default_factory=RenderSettings)
+    min_head_psnr_db: float | None = None  # 8-bit PSNR over the head region vs the fp32 speaker's frames
+
+
+# Buffer codecs of the reduced presets: per-Gaussian values 8-bit (barycentrics, rest sizes 16-bit), SH bands and
+# speaker blendshapes 4-bit, FLAME bases 4-bit in chunks of 128, the translator and the inpainting generator 8-bit
+# (F at q8: composited frames 73 dB inside the mask against fp32 F's, q4: 59 dB; docs/compositing.md).
+_REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4", "flame": "q4/128", "translator": "q8",
+                   "inpaint": "q8"}
+
+# The presets, chosen from measurements on the demo speaker (docs/precision.md has the table and the command).
+# `min_head_psnr_db` is what `gt-export --verify` holds a preset to; each sits below what the preset measured, by the
+# spread seen between clips and resolutions (`fast` draws at 3/4 size, which costs more at small sizes: its head
+# region measured 35.2 dB at 512x512 but 29.9 dB at gt-export's default 256x256).
+PRESETS: dict[str, Preset] = {
+    "quality": Preset("quality", "fp32 everything: parity with the torch speaker (>= 50 dB)", ExportSettings()),
+    "balanced": Preset("balanced", "quantised buffers, nothing dropped: ~5.8x smaller at ~49 dB",
+                       ExportSettings(**_REDUCED_CODECS), min_head_psnr_db=47.0),
+    "compact": Preset("compact", "smallest bundle: 65% of the Gaussians, SH degree 0, rank-2 blendshapes, 4-bit "
+                      "translator and inpainting generator, FLAME bases in chunks of 256: ~14x smaller at ~36 dB on "
+                      "the demo speaker",
+                      ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "flame": "q4", "inpaint": "q4"},
+                                     sh_degree=0, blendshape_rank=2, gaussian_budget=0.65), min_head_psnr_db=35.0),
+    "fast": Preset("fast", "fastest frames: 60% of the Gaussians, drawn at 3/4 size into an 8-bit framebuffer, "
+                   "16-bit depth-sort keys: ~2x the frame rate at ~35 dB",
+                   ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6),
+                   RenderSettings(render_scale=0.75, render_target="uint8", sort_key_bits=16), min_head_psnr_db=29.0),
+    "mobile": Preset("mobile", "for phones and WebGL 2 (docs/porting.md): fp16 buffers, 70% of the Gaussians, an "
+                     "RGBA16F framebuffer (GLES 3.0's renderable float, docs/shaders.md), 16-bit depth-sort keys, one "
+                     "graph thread: ~1.3x the frame rate at ~41 dB",
+                     ExportSettings(**dict.fromkeys(CODEC_GROUPS, "fp16"), gaussian_budget=0.7),
+                     RenderSettings(render_target="float16", sort_key_bits=16, graph_threads=1), min_head_psnr_db=39.0),
+}
+
+
+def get_preset(name: str) -> Preset:
+    """The preset called `name`; BundleError listing the known ones otherwise."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise BundleError(f"unknown preset {name!r} (known: {', '.join(PRESETS)})") from None
+
+
+def settings_with(base: ExportSettings, **overrides) -> ExportSettings:
+    """`base` with the given knobs replaced (None values are left as in `base`)."""
+    known = {f.name for f in fields(ExportSettings)}
+    unknown = set(overrides) - known
+    if unknown:
+        raise BundleError(f"unknown export settings {sorted(unknown)} (known: {sorted(known)})")
+    return replace(base, **{k: v for k, v in overrides.items() if v is not None})
+
+
+__all__ = ["CODEC_GROUPS", "PRESETS", "ExportSettings", "Preset", "get_preset", "group_of", "parse_codec",
+           "settings_with"]

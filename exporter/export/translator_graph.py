@@ -1,0 +1,36 @@
+"""The motion translator as an ONNX graph (the `translator` graph of a bundle, docs/bundle-format.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import onnx
+import torch
+
+from ..model.translator import MotionTranslator, check_audio_length, count_parameters
+from . import onnx_export  # the module, not its function: tests swap `onnx_export.export_onnx` for a replay
+
+# Largest audio length the exported graph accepts, in video frames (10 minutes at 25 fps).
+MAX_EXPORT_FRAMES = 15000
+
+
+def translator_onnx(model: MotionTranslator, example_frames: int = 8):
+    """The translator as an ONNX model proto with a dynamic audio length of 640 * frames samples.
+
+    Input "audio" [1, 640 * frames] float32; outputs "expression" [1, frames, n_expr], "jaw_pose" [1, frames, 3].
+    The batch is fixed at 1 (one utterance per call, as the runtime drives it). Uses the project's quiet
+    exporter (onnx_export.export_onnx, optimize=False so the normalisation epsilon survives).
+    """
+    check_audio_length(example_frames * model.samples_per_frame, model.samples_per_frame)
+    generator = torch.Generator().manual_seed(0)
+    example = 0.1 * torch.randn(1, example_frames * model.samples_per_frame, generator=generator)
+    frames = torch.export.Dim("frames", min=1, max=MAX_EXPORT_FRAMES)
+    return onnx_export.export_onnx(model.eval(), (example,), ["audio"], ["expression", "jaw_pose"],
+                                   dynamic_shapes={"audio": {1: model.samples_per_frame * frames}})
+
+
+def export_translator_onnx(model: MotionTranslator, path: str | Path, example_frames: int = 8) -> None:
+    """Write `translator_onnx(model)` to a .onnx file; weights above 1.5 GB go next to it (`<name>.data`)."""
+    proto = translator_onnx(model, example_frames)
+    large = count_parameters(model) * 4 > 1.5e9
+    onnx.save_model(proto, str(path), save_as_external_data=large, location=Path(path).name + ".data")

@@ -1,0 +1,29 @@
+"""Random inputs verification compares graphs on (beside export/probes.py's speech clips): noise crops for the
+inpainter graph and random drives for the deformation graph."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gaussiantalker.sdk.drive import FrameDrive, HeadPose
+
+
+def random_crops(seed: int, sizes) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(image, mask, coverage) NCHW crops of uniform noise, one per (height, width) in `sizes`."""
+    rng = np.random.default_rng(seed)
+    return [(rng.random((1, 3, h, w), np.float32), rng.random((1, 1, h, w), np.float32),
+             rng.random((1, 1, h, w), np.float32)) for h, w in sizes]
+
+
+def random_drives(n_expr: int, count: int, seed: int) -> list[FrameDrive]:
+    """A neutral drive, then `count - 1` random ones (expression, jaw, neck, eyes, head pose)."""
+    rng = np.random.default_rng(seed)
+    drives = [FrameDrive.make(n_expr)]
+    for _ in range(count - 1):
+        drives.append(FrameDrive.make(
+            n_expr, rng.normal(0, 1, n_expr), rng.normal(0, 0.15, 3) * [1, 0.2, 0.2], rng.normal(0, 0.1, 3),
+            rng.normal(0, 0.1, 6), HeadPose.make(rng.normal(0, 0.2, 3), rng.normal(0, 0.01, 3))))
+    return drives
+
+
+__all__ = ["random_crops", "random_drives"]
