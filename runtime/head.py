@@ -132,13 +132,15 @@ class TalkingHead:
         self._regions = Regions(self.bundle) if "regions" in manifest else None
 
     @classmethod
-    def output_view(cls, bundle: str | os.PathLike | Bundle, output: OutputSettings | None = None, **shortcuts
-                    ) -> OutputView:
-        """The camera and compositing a head with these output settings (or shortcut keywords resolution, camera,
-        background, composite) would have, from the manifest alone: `.size`, `.composite`, `.plan_video(...)`
-        check an output before the speaker is loaded."""
+    def output_view(cls, bundle: str | os.PathLike | Bundle, output: OutputSettings | None = None, *,
+                    resolution: tuple[int, int] | None = None, camera: Camera | None = None, background=None,
+                    composite: bool | None = None) -> OutputView:
+        """The camera and compositing a head with these output settings (or their shortcut keywords) would have,
+        from the manifest alone: `.size`, `.composite`, `.plan_video(...)` check an output before the speaker is
+        loaded."""
         bundle = bundle if isinstance(bundle, Bundle) else Bundle(bundle)
-        return output_view(bundle, merged_output(output, **shortcuts))
+        return output_view(bundle, merged_output(output, resolution=resolution, camera=camera, background=background,
+                                                 composite=composite))
 
     @property
     def frame_size(self) -> tuple[int, int]:

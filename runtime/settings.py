@@ -97,6 +97,8 @@ class BackendSettings:
         threads = self.threads
         if threads is not None and (isinstance(threads, bool) or not isinstance(threads, Integral) or threads < 1):
             raise SettingsError(f"backend threads must be a whole number >= 1 or None, got {threads!r}")
+        if threads is not None:
+            object.__setattr__(self, "threads", int(threads))
         if self.shader_target not in SHADER_TARGETS:
             raise SettingsError(f"unknown shader target {self.shader_target!r}; allowed: "
                                 f"{', '.join(map(repr, SHADER_TARGETS))}")
