@@ -3,6 +3,7 @@
 Everything an app needs is importable from here:
 
     from gaussiantalker.runtime import TalkingHead, HeadPose, GaussianTalkerError
+    from gaussiantalker.runtime import RenderSettings, OutputSettings, BackendSettings   # grouped settings
 """
 
 from gaussiantalker.sdk import __version__
@@ -15,11 +16,15 @@ from gaussiantalker.sdk.errors import (
     DriveError,
     GaussianTalkerError,
     RenderError,
+    SettingsError,
     VideoError,
 )
+from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.sdk.video_formats import VideoPlan, plan_video
 
 from .head import FrameOutput, HeadPoseSource, TalkingHead
+from .output import OutputView
+from .settings import BackendSettings, OutputSettings
 
 __all__ = [
     "TalkingHead",
@@ -28,6 +33,10 @@ __all__ = [
     "FrameDrive",
     "FrameOutput",
     "HeadPoseSource",
+    "RenderSettings",
+    "OutputSettings",
+    "BackendSettings",
+    "OutputView",
     "VideoPlan",
     "plan_video",
     "GaussianTalkerError",
@@ -36,6 +45,7 @@ __all__ = [
     "CameraError",
     "DriveError",
     "RenderError",
+    "SettingsError",
     "VideoError",
     "__version__",
 ]

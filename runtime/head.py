@@ -6,6 +6,12 @@
     head.write_video("talk.mp4", "speech.wav")   # audio muxed in
     head.write_video("talk.webm", "speech.wav", alpha=True)   # with an alpha channel, for overlays
 
+Settings come in groups, as onnxruntime takes SessionOptions (runtime/settings.py, docs/runtime.md); the plain
+keywords above are shortcuts for their fields:
+
+    head = TalkingHead("speaker.gtb", output=OutputSettings(resolution=(512, 512)),
+                       render=RenderSettings(render_scale=0.5), backend=BackendSettings("mnn", threads=2))
+
 A bundle with a reference clip composites every frame into the speaker's own video (docs/compositing.md):
 the output has the clip's size and camera, and the head follows the clip's pose track; `composite=False` gives
 the bare head.
@@ -13,6 +19,7 @@ the bare head.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections import defaultdict
@@ -29,16 +36,18 @@ from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame, track_row
-from gaussiantalker.sdk.errors import AudioError, BundleError, RenderError
+from gaussiantalker.sdk.errors import AudioError, BundleError, RenderError, VideoError
 from gaussiantalker.sdk.reference_clip import ReferenceClip
 from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.sdk.scene import Scene, SceneError, SceneGuard
 from gaussiantalker.sdk.video import VideoWriter
-from gaussiantalker.sdk.video_formats import plan_video
+from gaussiantalker.sdk.video_formats import VideoPlan
 
+from .backend import GraphBackend, open_backend
 from .composite import Inpainter, composite, graph_inpainter, opencv_fallback
-from .graphs import GraphBackend, open_backend
+from .output import COMPOSITE_ALPHA_MESSAGE, OutputView, output_view
 from .semantic import Regions
+from .settings import BackendSettings, OutputSettings, merged_backend, merged_output, merged_render
 from .splatter import GLSplatter, PreparedSplats
 from .translate import SILENCE_GATE_DBFS, iter_translate
 
@@ -55,71 +64,96 @@ HeadPoseSource = Callable[[int], HeadPose] | np.ndarray | HeadPose | None
 FrameOutput = Literal["uint8", "float", "rgba", "rgba_float", "semantic"]
 
 
-def _render_settings(bundle: Bundle, **overrides) -> RenderSettings:
-    """The bundle's stored runtime defaults (BundleError if damaged) with the app's overrides (None: keep the
-    default; RenderError if bad)."""
+def _render_settings(bundle: Bundle, render: RenderSettings | None = None, threads: int | None = None,
+                     threads_label: str = "threads", **shortcuts) -> RenderSettings:
+    """The render settings: `render` (None: the bundle's stored runtime defaults, BundleError if damaged) with the
+    app's shortcut keywords (None: keep the value; SettingsError if bad or given twice)."""
     try:
-        defaults = RenderSettings.from_dict(bundle.manifest.get("runtime_defaults", {}))
+        preset = RenderSettings.from_dict(bundle.manifest.get("runtime_defaults", {}))
     except (TypeError, ValueError) as exc:
         raise BundleError(f"{bundle.path}: manifest 'runtime_defaults' is invalid: {exc}") from None
-    try:
-        return defaults.with_overrides(**overrides)
-    except (TypeError, ValueError) as exc:
-        raise RenderError(str(exc)) from None
+    return merged_render(preset, render, threads, threads_label, **shortcuts)
 
 
 class TalkingHead:
     """A loaded speaker bundle plus an OpenGL splatter: audio or FLAME parameters in, frames out."""
 
-    def __init__(self, bundle: str | os.PathLike | Bundle, *, resolution: tuple[int, int] | None = None,
-                 camera: Camera | None = None, background=None, threads: int | None = None,
-                 gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS,
+    def __init__(self, bundle: str | os.PathLike | Bundle, *, render: RenderSettings | None = None,
+                 output: OutputSettings | None = None, backend: str | BackendSettings = "onnxruntime",
+                 resolution: tuple[int, int] | None = None, camera: Camera | None = None, background=None,
+                 composite: bool | None = None, threads: int | None = None, shader_target: str | None = None,
                  render_scale: float | None = None, render_target: str | None = None,
                  sort_interval: int | None = None, sort_key_bits: int | None = None,
-                 composite: bool | None = None, backend: str = "onnxruntime", shader_target: str = "330") -> None:
-        """`silence_gate_dbfs`: audio windows quieter than this (RMS, dBFS) fade to the neutral face (None: off).
-        `render_scale` (draw at this fraction of the size, then upscale), `render_target` ("float32", "float16",
-        "uint8" framebuffer), `sort_interval` (depth-sort every k-th frame) and `sort_key_bits` (32 or 16) trade
-        accuracy for speed (`RenderSettings`, docs/precision.md); None takes the bundle's preset defaults (the
-        contract's full-size float32 frame, sorted every frame on exact depth, for bundles without a preset).
-        `composite` (default: whether the bundle has a reference clip) composites frames into the clip, at its
-        camera (resized to `resolution` if given), following its pose track. `backend` runs the graphs on
-        "onnxruntime" or "mnn" (a bundle exported with `gt-export --mnn` and the `mnn` extra, docs/mnn.md);
-        `threads` is the graph threads (None: the bundle's preset default, else every core for onnxruntime, one
-        for MNN). `shader_target` picks the GLSL variant compiled ("330", "410", "300es"; the same pixels,
-        docs/shaders.md)."""
+                 gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS) -> None:
+        """Settings come in three groups (docs/runtime.md), each None for the bundle's defaults:
+        `render` (RenderSettings: render scale, framebuffer precision, sort interval and key bits, graph threads;
+        None: the bundle's preset, else the contract's full-size float32 frame sorted every frame on exact depth;
+        docs/precision.md), `output` (OutputSettings: resolution, camera, background, composite; compositing
+        defaults to whether the bundle has a reference clip, docs/compositing.md) and `backend` (a name,
+        "onnxruntime" or "mnn" (docs/mnn.md), or BackendSettings: name, threads, shader_target).
+
+        The keywords resolution, camera, background, composite (output), threads, shader_target (backend) and
+        render_scale, render_target, sort_interval, sort_key_bits (render) are shortcuts for a group's field: one
+        given both ways with two values is a SettingsError naming both. `gl_context`: a moderngl context to draw
+        in (None: a headless one of its own). `silence_gate_dbfs`: audio windows quieter than this (RMS, dBFS) fade
+        to the neutral face (None: off)."""
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle(bundle)
         manifest = self.bundle.manifest
-        self.render_settings = _render_settings(self.bundle, render_scale=render_scale, render_target=render_target,
-                                                sort_interval=sort_interval, sort_key_bits=sort_key_bits,
-                                                graph_threads=threads)
+        self.output_settings = merged_output(output, resolution=resolution, camera=camera, background=background,
+                                             composite=composite)
+        backend_settings = merged_backend(backend, threads=threads, shader_target=shader_target)
+        threads_label = "backend.threads" if isinstance(backend, BackendSettings) and threads is None else "threads"
+        self.render_settings = _render_settings(self.bundle, render, backend_settings.threads, threads_label,
+                                                render_scale=render_scale, render_target=render_target,
+                                                sort_interval=sort_interval, sort_key_bits=sort_key_bits)
+        self.backend_settings = dataclasses.replace(backend_settings, threads=self.render_settings.graph_threads)
         try:
             self.config = SpeakerConfig.from_dict(manifest["speaker"])
             self.config.check_timing()
         except (TypeError, ValueError, AttributeError) as exc:
             raise BundleError(f"{self.bundle.path}: manifest has no valid speaker config: {exc}") from exc
-        try:
-            self.graphs: GraphBackend = open_backend(self.bundle, backend,
-                                                     threads=self.render_settings.graph_threads)
-        except ValueError as exc:
-            raise RenderError(str(exc)) from None
+        self.graphs: GraphBackend = open_backend(self.bundle, self.backend_settings.name,
+                                                 threads=self.backend_settings.threads)
         self.pose_track = self.bundle.buffer("pose_track") if self.bundle.has_buffer("pose_track") else None
-        self.camera = camera or Camera.from_dict(manifest["camera"])
-        if resolution is not None:
-            self.camera = self.camera.resized(*resolution)
-        self.background = np.asarray(background if background is not None else manifest.get("background", (1, 1, 1)),
-                                     dtype=np.float32).reshape(3)
-        self.reference, self.composite, self._inpaint = self._reference(composite, resolution, camera)
-        if self.composite:
-            self.camera = self.reference.camera
+        settings = self.output_settings
+        view = output_view(self.bundle, settings)
+        self.camera, self.composite = view.camera, view.composite
+        self.background = np.asarray(settings.background if settings.background is not None
+                                     else manifest.get("background", (1, 1, 1)), dtype=np.float32).reshape(3)
+        self.reference, self._inpaint = self._reference(settings.resolution)
         self.scene, self.scene_guard = self._scene()
         if self.scene_guard is not None:
             self.scene_guard.check_camera(self.camera)
-        self.splatter = GLSplatter(gl_context, settings=self.render_settings, shader_target=shader_target)
+        self.splatter = GLSplatter(gl_context, settings=self.render_settings,
+                                   shader_target=self.backend_settings.shader_target)
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.silence_gate_dbfs = silence_gate_dbfs
         # Read at load like every entry a frame may need, so a damaged one fails here, not mid-video.
         self._regions = Regions(self.bundle) if "regions" in manifest else None
+
+    @classmethod
+    def output_view(cls, bundle: str | os.PathLike | Bundle, output: OutputSettings | None = None, *,
+                    resolution: tuple[int, int] | None = None, camera: Camera | None = None, background=None,
+                    composite: bool | None = None) -> OutputView:
+        """The camera and compositing a head with these output settings (or their shortcut keywords) would have,
+        from the manifest alone: `.size`, `.composite`, `.plan_video(...)` check an output before the speaker is
+        loaded."""
+        bundle = bundle if isinstance(bundle, Bundle) else Bundle(bundle)
+        return output_view(bundle, merged_output(output, resolution=resolution, camera=camera, background=background,
+                                                 composite=composite))
+
+    @property
+    def frame_size(self) -> tuple[int, int]:
+        """(width, height) of this head's frames."""
+        return self.camera.width, self.camera.height
+
+    def plan_video(self, path: str | os.PathLike, *, alpha: bool = False, codec: str | None = None,
+                   crf: int | None = None, preset: str | None = None, container: str | None = None) -> VideoPlan:
+        """The checked plan for writing this head's frames to `path` (`write_video` takes it): container from the
+        extension or `container`, codec, crf, preset; VideoError if it cannot work (docs/video.md), RenderError
+        for alpha on composited frames."""
+        return OutputView(self.camera, self.composite).plan_video(path, alpha=alpha, codec=codec, crf=crf,
+                                                                  preset=preset, container=container)
 
     def _scene(self) -> tuple[Scene | None, SceneGuard | None]:
         """The scene the bundle was specialised for (docs/scene.md) and its range checks; (None, None) if none."""
@@ -132,24 +166,16 @@ class TalkingHead:
         except (SceneError, TypeError, ValueError, AttributeError) as exc:
             raise BundleError(f"{self.bundle.path}: manifest 'scene' is invalid: {exc}") from None
 
-    def _reference(self, composite: bool | None, resolution, camera: Camera | None
-                   ) -> tuple[ReferenceClip | None, bool, Inpainter | None]:
-        """The bundle's reference clip (None if it has none), whether frames are composited, and F."""
+    def _reference(self, resolution: tuple[int, int] | None) -> tuple[ReferenceClip | None, Inpainter | None]:
+        """The bundle's reference clip (None if it has none) and, when compositing, F."""
         reference = ReferenceClip(self.bundle, resolution) if "reference" in self.bundle.manifest else None
-        composite = reference is not None if composite is None else bool(composite)
-        if not composite:
-            return reference, False, None
-        if reference is None:
-            raise RenderError(f"{self.bundle.path}: composite=True needs a bundle with a reference clip (export a "
-                              "speaker that carries one, docs/compositing.md)")
-        if camera is not None:
-            raise RenderError("a composited frame is seen through the reference clip's camera; pass "
-                              "composite=False to render the bare head with your own camera")
+        if not self.composite:
+            return reference, None
         if self.pose_track is None or len(self.pose_track) != len(reference):
             raise BundleError(f"{self.bundle.path}: the reference clip has {len(reference)} frames but the pose "
                               f"track has {0 if self.pose_track is None else len(self.pose_track)} rows")
         inpaint = graph_inpainter(self.graphs.run) if "inpaint" in self.bundle.manifest["graphs"] else opencv_fallback
-        return reference, True, inpaint
+        return reference, inpaint
 
     @property
     def has_translator(self) -> bool:
@@ -364,35 +390,49 @@ class TalkingHead:
         """Video frames for `samples` audio samples: the last partial frame counts (audio is zero-padded)."""
         return -(-samples // self.config.samples_per_frame)
 
-    def write_video(self, path: str | os.PathLike, audio: AudioSource, sample_rate: int | None = None,
+    def write_video(self, path: str | os.PathLike | VideoPlan, audio: AudioSource, sample_rate: int | None = None,
                     head_pose: HeadPoseSource = None, progress: bool = False,
-                    on_frame: Callable[[np.ndarray], None] | None = None, *, alpha: bool = False,
+                    on_frame: Callable[[np.ndarray], None] | None = None, *, alpha: bool | None = None,
                     codec: str | None = None, crf: int | None = None, preset: str | None = None,
                     container: str | None = None) -> Path:
         """Render the clip and write a video with the audio muxed in (`on_frame` sees each frame); returns the path.
 
-        The container comes from the extension (or `container`): mp4, mov, webm, mkv, gif, or an image sequence
-        such as "frames/%05d.png"; `alpha=True` writes coverage as an alpha channel (webm, mov with
-        codec="prores", mkv, png). Everything about the output is checked before the first frame is rendered
-        (`sdk.video_formats.plan_video`, VideoError); docs/video.md lists the formats.
+        `path` is a file name or a VideoPlan (`plan_video`, `sdk.video_formats.plan_video`; it then says
+        everything: no codec, crf, preset or container, and alpha only if the same). For a file name the container
+        comes from the extension (or `container`): mp4, mov, webm, mkv, gif, or an image sequence such as
+        "frames/%05d.png"; `alpha=True` writes coverage as an alpha channel (webm, mov with codec="prores", mkv,
+        png). Everything about the output is checked before the first frame is rendered (VideoError);
+        docs/video.md lists the formats.
         """
         from tqdm import tqdm
 
-        if self.composite and alpha:
-            raise RenderError("a composited frame is opaque (the reference clip fills it); alpha=True needs the bare "
-                              "head: TalkingHead(..., composite=False)")
-        plan = plan_video(path, (self.camera.width, self.camera.height), alpha=alpha, codec=codec, crf=crf,
-                          preset=preset, container=container)
+        plan = self._video_plan(path, alpha=alpha, codec=codec, crf=crf, preset=preset, container=container)
         samples = self.load_audio(audio, sample_rate)
         total = self.frame_count(samples.shape[0])
-        with VideoWriter(path, self.config.fps, plan.size, audio=samples, sample_rate=self.config.sample_rate,
+        with VideoWriter(plan.path, self.config.fps, plan.size, audio=samples, sample_rate=self.config.sample_rate,
                          plan=plan) as out:
-            frames = self.frames(samples, self.config.sample_rate, head_pose, output="rgba" if alpha else "uint8")
+            frames = self.frames(samples, self.config.sample_rate, head_pose, output="rgba" if plan.alpha else "uint8")
             for frame in tqdm(frames, total=total, unit="frame", disable=not progress, desc="rendering"):
                 out.write(frame)
                 if on_frame is not None:
                     on_frame(frame)
         return plan.path
+
+    def _video_plan(self, path: str | os.PathLike | VideoPlan, *, alpha: bool | None, **options) -> VideoPlan:
+        """`path` planned for this head's frames, or the given VideoPlan checked against them."""
+        if not isinstance(path, VideoPlan):
+            return self.plan_video(path, alpha=bool(alpha), **options)
+        given = [f"{name}={value!r}" for name, value in options.items() if value is not None]
+        if given:
+            raise VideoError(f"a VideoPlan already sets the output; give it or {', '.join(given)}, not both")
+        if alpha is not None and bool(alpha) != path.alpha:
+            raise VideoError(f"alpha={alpha!r} but the VideoPlan has alpha={path.alpha}; give it once")
+        if self.composite and path.alpha:
+            raise RenderError(COMPOSITE_ALPHA_MESSAGE)
+        if tuple(path.size) != self.frame_size:
+            raise VideoError(f"the VideoPlan is for {path.size[0]}x{path.size[1]} frames but this head renders "
+                             f"{self.frame_size[0]}x{self.frame_size[1]} (plan it with head.plan_video)")
+        return path
 
     def close(self) -> None:
         self.splatter.release()

@@ -17,6 +17,8 @@ import numpy as np
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.errors import BundleError
 
+from .bundle_checks import check_expression_width, check_speaker_bundle
+
 INSTALL_HINT = 'pip install "gaussiantalker-sdk[mnn]"'
 
 
@@ -62,8 +64,6 @@ class MnnBackend:
     """Runs a bundle's `.mnn` graphs with MNN on the CPU (one thread unless told otherwise)."""
 
     def __init__(self, bundle: Bundle, threads: int | None = None) -> None:
-        from .graphs import check_expression_width, check_speaker_bundle  # noqa: PLC0415 - graphs.py imports this
-
         self.bundle = bundle
         self.threads = int(threads) if threads else 1
         names = mnn_graph_names(bundle)

@@ -4,7 +4,7 @@ It follows the numerics contract of docs/numerics.md. The per-Gaussian maths liv
 (`world_to_camera`, `camera_to_pixel`, `clamped_ratios`, `sigma_matrix`, `covariance_2d`, `cov2d_scale`,
 `reliable`, `covariance_2d_determinant`, `conic_from_cov2d`, `alpha_shape`, `radius_of`, `extent_radius`,
 `extent_power_bound`, `screen_bounded`) and shaders/splat.frag (`splat_color`, `splat_alpha`); each of these GLSL
-functions has a torch twin of the same name and arguments in exporter/splat_math.py. The shaders' other
+functions has a torch twin of the same name and arguments in exporter/model/splat_math.py. The shaders' other
 functions only decide where to rasterise (`NON_CONTRACT_GLSL_FUNCTIONS`). Numpy does the rest: the near-plane
 and non-finite-input culling with the depth order (runtime/depth_sort.py: `view_depth`, `depth_order`), and the
 final 8-bit conversion (`to_uint8`).
@@ -23,12 +23,8 @@ touch the fewest blocks (`point_start`), usually starting on a multiple of 4 pix
 Measured on llvmpipe (2 cores, demo speaker, 20k Gaussians): the oriented quads, axis-aligned quads and tighter
 fragment-shader early-outs tried instead were all slower; see docs/numerics.md, "Rasterisation in the GL renderer".
 
-Shader variants
----------------
-Every program (`PROGRAMS`) is compiled from the one source of each shader in shaders/, in the variant that
-`GLSplatter(shader_target=...)` picks: GLSL 3.30 core (the default), 4.10 core or ES 3.00. Variants differ only in
-their header, so all draw the same pixels; `program_sources` gives the exact text compiled, which CI validates
-(docs/shaders.md).
+The GL programs themselves (GLSL sources with the runtime's #defines, the shader-target variants, compiling,
+uniforms) are assembled by runtime/programs.py (docs/shaders.md).
 
 Compositing and the contract's early termination
 ------------------------------------------------
@@ -52,7 +48,6 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import moderngl
 import numpy as np
@@ -62,25 +57,17 @@ from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import straight_rgba, to_uint8
 from gaussiantalker.sdk.render_settings import RENDER_TARGETS, RenderSettings
-from gaussiantalker.shaders import check_target, load_shader, shader_variant
+from gaussiantalker.shaders import check_target
 
 from .depth_sort import DepthSorter
 from .gl_context import check_shader_target, create_context
+from .programs import QUAD_SLACK_PX, build_programs, set_camera_uniforms
 
 # GLSL functions in shaders/ that are rasterisation, not contract maths: they choose which fragments are tried
 # (the pixel box, where a point sprite goes, the primitive of a culled Gaussian) and never what a pixel gets, so
-# they have no torch twin in exporter/splat_math.py. Every other GLSL function except main has one
+# they have no torch twin in exporter/model/splat_math.py. Every other GLSL function except main has one
 # (tests/test_mirror_names.py).
 NON_CONTRACT_GLSL_FUNCTIONS = ("pixel_box", "block_cost", "point_start", "cull")
-
-# A Gaussian's pixel box is widened by this much (pixels) so that float rounding in the vertex shader never
-# drops a pixel the fragment shader would accept. 1/64 px is several float32 ulps even at 16384 px and adds an
-# extra row/column with probability ~1/32 per side.
-QUAD_SLACK_PX = 1.0 / 64.0
-
-# Relative (and absolute) widening of the alpha >= ALPHA_MIN ellipse used to shrink the pixel box, far above
-# the float32 error of exp/log/the conic (~1e-6), so the shrink never removes a pixel that passes.
-BOX_SLACK_REL = 1e-3
 
 # Point sprites and quads are drawn in sorted runs, one draw call each. Measured on llvmpipe (20k Gaussians,
 # 512x512), one extra run costs about as much as drawing this many Gaussians as quads instead of points, so a
@@ -103,92 +90,6 @@ _ALPHA_OUTPUTS = ("rgba", "rgba_float")
 _FLOATS_PER_SPLAT = 13  # mean 3, covariance 6, rgb 3, opacity 1
 _STRIDE = _FLOATS_PER_SPLAT * 4
 _ATTRIBUTES = (("in_mean", 3, 0), ("in_cov_a", 3, 3), ("in_cov_b", 3, 6), ("in_rgba", 4, 9))  # name, size, offset
-
-
-# Largest finite float32: a #define beyond it is not a float32 (GLSL ES highp float is float32 at most).
-_FLOAT32_MAX = float(np.finfo(np.float32).max)
-
-
-def _glsl_float(value: float) -> str:
-    """A float literal valid in GLSL 3.30/4.10 core and GLSL ES 3.00 that parses to float32(value) (repr is the
-    shortest round-tripping decimal, e.g. `0.3`, `1e+30`, `9.5367431640625e-07`; never `inf` or `nan`)."""
-    value = float(value)
-    if not abs(value) <= _FLOAT32_MAX:
-        raise ValueError(f"{value!r} has no GLSL float32 literal")
-    text = repr(value)
-    return text if any(ch in text for ch in ".eE") else text + ".0"
-
-
-# Contract constants the shaders get as #defines: read from gaussiantalker.sdk.numerics under the same names, so
-# GLSL and the torch reference use one value each (docs/numerics.md).
-CONTRACT_DEFINES = (
-    "LOW_PASS_PX2",
-    "EXTENT_SIGMAS",
-    "ALPHA_MAX",
-    "ALPHA_MIN",
-    "FINITE_LIMIT",
-    "COLOR_LIMIT",
-    "DET_MIN_RELATIVE",
-    "COV2D_HUGE_PX2",
-)
-
-
-def renderer_defines() -> dict[str, float]:
-    """The GL renderer's own rasterisation settings injected as #defines (not contract maths, no torch twin).
-
-    SPLAT_POINTS (1: point sprites, 0: instanced quads) is the renderer's too; it differs per program and is added
-    where each program is built.
-    """
-    return {"QUAD_SLACK_PX": QUAD_SLACK_PX, "BOX_SLACK_REL": BOX_SLACK_REL}
-
-
-def shader_defines() -> dict[str, str]:
-    """Every #define injected into the shaders (never re-typed in GLSL): the contract constants from
-    sdk.numerics (`CONTRACT_DEFINES`), then the renderer's own settings (`renderer_defines`)."""
-    contract = {name: getattr(numerics, name) for name in CONTRACT_DEFINES}
-    return {name: _glsl_float(value) for name, value in {**contract, **renderer_defines()}.items()}
-
-
-def with_defines(source: str, defines: dict[str, str]) -> str:
-    """Insert `#define NAME VALUE` lines after a shader variant's header (its #version line, which GLSL requires
-    first, and the precision statements of GLSL ES), then `#line 2`: the body of every variant is its source from
-    line 2 on, so a driver log's line numbers are those of the file in shaders/ (docs/shaders.md)."""
-    lines = source.split("\n")
-    if not lines[0].startswith("#version"):
-        raise RenderError("shader source must start with a #version line")
-    end = 1
-    while end < len(lines) and lines[end].startswith("precision "):
-        end += 1
-    block = [f"#define {name} {value}" for name, value in defines.items()]
-    return "\n".join([*lines[:end], *block, "#line 2", *lines[end:]])
-
-
-class ProgramSpec(NamedTuple):
-    """One GL program the splatter builds: its vertex and fragment shader files and its own #defines."""
-
-    vertex: str
-    fragment: str
-    defines: dict[str, str]  # added to shader_defines()
-
-
-# Every program GLSplatter compiles: point and quad splats (one source, SPLAT_POINTS set per program), the
-# background pass and the render-scale pass (both full-screen triangles without a vertex buffer).
-PROGRAMS = {
-    "points": ProgramSpec("splat.vert", "splat.frag", {"SPLAT_POINTS": "1"}),
-    "quads": ProgramSpec("splat.vert", "splat.frag", {"SPLAT_POINTS": "0"}),
-    "background": ProgramSpec("background.vert", "background.frag", {}),
-    "upscale": ProgramSpec("background.vert", "upscale.frag", {}),
-}
-
-
-def program_sources(program: str, target: str = "330") -> tuple[str, str]:
-    """(vertex, fragment) GLSL of `program` (a PROGRAMS key) for shader `target`, exactly as GLSplatter compiles
-    it: each shader's variant with shader_defines() and the program's own #defines (what CI validates)."""
-    spec = PROGRAMS[program]
-    defines = {**shader_defines(), **spec.defines}
-    vertex, fragment = (with_defines(shader_variant(load_shader(name), target), defines)
-                        for name in (spec.vertex, spec.fragment))
-    return vertex, fragment
 
 
 # -- numpy side of the contract ------------------------------------------------------------------------------
@@ -333,21 +234,10 @@ class GLSplatter:
 
     # -- set-up ---------------------------------------------------------------------------------------------
 
-    def _program(self, name: str) -> moderngl.Program:
-        """Compile and link program `name` of PROGRAMS in this splatter's shader target (`program_sources`);
-        RenderError with the driver log."""
-        vertex, fragment = program_sources(name, self.shader_target)
-        try:
-            return self.ctx.program(vertex_shader=vertex, fragment_shader=fragment)
-        except moderngl.Error as exc:
-            spec = PROGRAMS[name]
-            raise RenderError(f"shader {spec.vertex}/{spec.fragment} ({name}, target {self.shader_target}) failed "
-                              f"to compile or link: {exc}") from exc
-
     def _build_programs(self) -> None:
-        """Every program of PROGRAMS; the quad, background and render-scale passes get attribute-less VAOs."""
-        for name in PROGRAMS:
-            self._programs[name] = self._program(name)
+        """Every program of PROGRAMS (runtime/programs.py); the quad, background and render-scale passes get
+        attribute-less VAOs."""
+        self._programs = build_programs(self.ctx, self.shader_target)
         self._quad_vao = self.ctx.vertex_array(self._programs["quads"], [])
         self._background_vao = self.ctx.vertex_array(self._programs["background"], [])
         self._upscale_vao = self.ctx.vertex_array(self._programs["upscale"], [])
@@ -404,17 +294,6 @@ class GLSplatter:
         runs = draw_runs(needs_quad)
         points = n - int(np.count_nonzero(needs_quad))
         return runs if len(runs) * RUN_COST_IN_SPLATS < points else [(0, n, True)]
-
-    def _set_camera_uniforms(self, camera: Camera) -> None:
-        """Camera uniforms of both splat programs (GLSL mat3 is column-major, hence R^T's bytes)."""
-        rotation = np.ascontiguousarray(camera.R.T, dtype=np.float32).tobytes()
-        for key in ("points", "quads"):
-            program = self._programs[key]
-            program["u_R"].write(rotation)
-            program["u_t"].value = tuple(float(v) for v in camera.t)
-            program["u_intrinsics"].value = (camera.fx, camera.fy, camera.cx, camera.cy)
-            program["u_image_size"].value = (float(camera.width), float(camera.height))
-            program["u_fov_limits"].value = camera.fov_clamp_limits()
 
     def _draw(self, target: _Target, runs: list[tuple[int, int, bool]],
               background: tuple[float, float, float] | None) -> None:
@@ -501,7 +380,7 @@ class GLSplatter:
         if len(rows):
             self._ensure_capacity(len(rows))
             self._buffer.write(rows)
-        self._set_camera_uniforms(camera)
+        set_camera_uniforms(self._programs, camera)
         target = self._target(int(camera.width), int(camera.height))
         timings["upload"] = time.perf_counter() - start
 

@@ -12,16 +12,12 @@ from __future__ import annotations
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import typer
 
-from gaussiantalker.runtime import TalkingHead
-from gaussiantalker.sdk.bundle import Bundle
-from gaussiantalker.sdk.camera import Camera
-from gaussiantalker.sdk.errors import GaussianTalkerError
-from gaussiantalker.sdk.reference_clip import ClipLayout
-from gaussiantalker.sdk.video_formats import plan_video
+from gaussiantalker.runtime import BackendSettings, GaussianTalkerError, OutputSettings, TalkingHead
 
 app = typer.Typer(add_completion=False)
 
@@ -115,37 +111,33 @@ def play(
     """Render BUNDLE talking to AUDIO and write a video with the audio muxed in."""
     start = time.perf_counter()
     try:
-        # Everything about the output is checked before anything heavy is loaded or rendered.
-        speaker = Bundle(bundle)
-        composite = "reference" in speaker.manifest and not no_composite
-        if composite and alpha:
+        # Everything about the output is checked before the speaker is loaded (the manifest alone says the frames).
+        size = None if resolution is None else _parse_size(resolution)
+        output_settings = OutputSettings(resolution=size, composite=False if no_composite else None,
+                                         background=None if background is None else _parse_background(background))
+        view = TalkingHead.output_view(bundle, output_settings)
+        if view.composite and alpha:
             raise GaussianTalkerError("a composited frame is opaque (the reference clip fills it): --alpha needs "
                                       "--no-composite")
-        size = None if resolution is None else _parse_size(resolution)
-        if composite:
-            clip = ClipLayout.from_dict(speaker.manifest["reference"])
-            camera = clip.camera.resized(*(size or clip.size))
-        else:
-            camera = Camera.from_dict(speaker.manifest.get("camera", {})).resized(*(size or (512, 512)))
-        plan = plan_video(output, (camera.width, camera.height), alpha=alpha, codec=codec, crf=crf, preset=preset,
-                          container=video_format)
-        bg = None if background is None else _parse_background(background)
-        head = TalkingHead(speaker, camera=None if composite else camera, resolution=size if composite else None,
-                           background=bg, threads=threads, render_scale=render_scale, render_target=render_target,
-                           sort_interval=sort_interval, sort_key_bits=sort_key_bits, composite=composite,
-                           backend=backend)
+        if size is None and not view.composite:  # the bare head defaults to 512x512
+            output_settings = replace(output_settings, resolution=(512, 512))
+            view = TalkingHead.output_view(bundle, output_settings)
+        plan = view.plan_video(output, alpha=alpha, codec=codec, crf=crf, preset=preset, container=video_format)
+        # The render knobs are shortcuts: each one not given keeps the bundle's preset value.
+        head = TalkingHead(bundle, output=output_settings, backend=BackendSettings(backend, threads=threads),
+                           render_scale=render_scale, render_target=render_target, sort_interval=sort_interval,
+                           sort_key_bits=sort_key_bits)
         window = None
         if show:
             headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
             if sys.platform.startswith("linux") and headless:
                 raise GaussianTalkerError("--show needs a display (DISPLAY is not set); the video is still written "
                                           "without --show")
-            window = FrameWindow(camera.width, camera.height, f"GaussianTalker - {bundle.name}")
+            window = FrameWindow(*head.frame_size, f"GaussianTalker - {bundle.name}")
         samples = head.load_audio(audio)
         total = head.frame_count(samples.shape[0])
-        head.write_video(plan.path, samples, head.config.sample_rate, progress=not quiet,
-                         on_frame=window.show if window is not None else None, alpha=alpha, codec=plan.codec.name,
-                         crf=plan.crf, preset=plan.preset, container=plan.container.name)
+        head.write_video(plan, samples, head.config.sample_rate, progress=not quiet,
+                         on_frame=window.show if window is not None else None)
         if window is not None:
             window.close()
         head.close()

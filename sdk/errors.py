@@ -29,6 +29,10 @@ class RenderError(GaussianTalkerError):
     """The OpenGL splatter cannot run: no context could be created, or a shader failed to compile."""
 
 
+class SettingsError(RenderError, ValueError):
+    """A TalkingHead setting is invalid, or given twice with two values (a shortcut keyword and a settings group);
+    a RenderError (what bad render settings always raised) and a ValueError."""
+
 
 class VideoError(GaussianTalkerError):
     """A video cannot be written: bad output path or folder, unknown format, codec or setting, encoder failure."""

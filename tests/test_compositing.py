@@ -333,6 +333,32 @@ def test_composite_true_without_a_clip_and_a_custom_camera_are_refused(clip_expo
         TalkingHead(clip_export.path, camera=clip_export.speaker.camera)
 
 
+def test_output_view_of_a_clip_bundle_is_the_heads(clip_export, tmp_path):
+    """What TalkingHead.output_view says from the manifest (camera, compositing) is what the loaded head does, and a
+    composited head's frames are the same from the output group as from the shortcut keyword."""
+    from gaussiantalker.runtime import OutputSettings, TalkingHead
+    from gaussiantalker.sdk.video_formats import plan_video
+
+    assert TalkingHead.output_view(clip_export.path).size == CLIP_SIZE
+    audio = np.zeros(640 * 3, np.float32)
+    for settings in (OutputSettings(), OutputSettings(resolution=(48, 56)), OutputSettings(composite=False)):
+        view = TalkingHead.output_view(clip_export.path, settings)
+        with TalkingHead(clip_export.path, output=settings) as head:
+            assert (view.composite, view.camera.to_dict()) == (head.composite, head.camera.to_dict())
+            if not head.composite:
+                continue
+            frames = list(head.frames(audio, 16000))
+            with pytest.raises(RenderError, match="alpha=True needs the bare head"):
+                view.plan_video(tmp_path / "talk.webm", alpha=True)
+            with pytest.raises(RenderError, match="alpha=True needs the bare head"):
+                head.write_video(plan_video(tmp_path / "talk.webm", head.frame_size, alpha=True), audio, 16000)
+        if settings.resolution is not None:
+            with TalkingHead(clip_export.path, resolution=settings.resolution) as shortcut:
+                for frame, expected in zip(shortcut.frames(audio, 16000), frames, strict=True):
+                    np.testing.assert_array_equal(frame, expected)
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_rgba_float_is_the_premultiplied_frame_of_the_same_draw(small_export):
     from gaussiantalker.runtime import TalkingHead
 

@@ -29,7 +29,7 @@ from types import ModuleType
 import pytest
 
 from gaussiantalker.exporter.model import splat_math
-from gaussiantalker.runtime import splatter
+from gaussiantalker.runtime import programs, splatter
 from gaussiantalker.sdk import numerics
 
 # GLSL has no 6-vector: the packed world covariance is two vec3 there and one [N, 6] tensor in torch.
@@ -226,13 +226,13 @@ def test_the_mirror_check_can_fail(file, old, new, expected):
 def test_shader_defines_split_contract_from_renderer():
     """Contract #defines come from sdk.numerics; the renderer's own are its rasterisation settings; the headers
     of the splat shaders name the ones each uses, under the right group."""
-    contract = set(splatter.CONTRACT_DEFINES)
-    renderer = set(splatter.renderer_defines()) | {"SPLAT_POINTS"}  # SPLAT_POINTS is set per program
+    contract = set(programs.CONTRACT_DEFINES)
+    renderer = set(programs.renderer_defines()) | {"SPLAT_POINTS"}  # SPLAT_POINTS is set per program
     assert not contract & renderer
     assert all(hasattr(numerics, name) for name in contract)
     assert not any(hasattr(numerics, name) for name in renderer)
-    defines = splatter.shader_defines()
-    assert set(defines) == contract | set(splatter.renderer_defines())
+    defines = programs.shader_defines()
+    assert set(defines) == contract | set(programs.renderer_defines())
     for name in contract:
         assert float(defines[name]) == pytest.approx(float(getattr(numerics, name)), rel=1e-15)
     for file in ("splat.vert", "splat.frag"):

@@ -24,14 +24,15 @@ import numpy as np
 import pytest
 from test_splatter import BACKGROUND, make_camera, random_scene
 
-from gaussiantalker.runtime import splatter as splatter_module
+from gaussiantalker.runtime import programs as programs_module
 from gaussiantalker.runtime.gl_context import (
     _TARGET_GL_VERSION,
     check_shader_target,
     gles_render_target,
     shader_target_problem,
 )
-from gaussiantalker.runtime.splatter import PROGRAMS, GLSplatter, program_sources, shader_defines, with_defines
+from gaussiantalker.runtime.programs import PROGRAMS, program_sources, shader_defines, with_defines
+from gaussiantalker.runtime.splatter import GLSplatter
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.shaders import (
@@ -190,7 +191,7 @@ def test_every_define_is_a_glsl_es_literal():
             assert _ES_INT.fullmatch(value), (name, value)
     for bad in (float("inf"), float("nan"), 1e39):
         with pytest.raises(ValueError, match="no GLSL float32 literal"):
-            splatter_module._glsl_float(bad)
+            programs_module._glsl_float(bad)
 
 
 # -- the feature subset: what OpenGL 4.1 core, OpenGL ES 3.0 and WebGL 2 share ----------------------------------
@@ -325,7 +326,7 @@ def test_the_es_variant_is_compiled_as_glsl_es(context_splatter, monkeypatch):
     source = load_shader("splat.frag")
     at = source.split("\n").index("void main() {") + 1
     probed = source.replace("void main() {\n", "void main() {\n    float probe = 1;\n", 1)
-    monkeypatch.setattr(splatter_module, "load_shader", lambda name: probed if name == "splat.frag" else
+    monkeypatch.setattr(programs_module, "load_shader", lambda name: probed if name == "splat.frag" else
                         load_shader(name))
     GLSplatter(context_splatter.ctx, shader_target="330").release()
     with pytest.raises(RenderError, match=r"target 300es") as raised:

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from gaussiantalker.runtime import gl_context
+from gaussiantalker.runtime import programs as programs_module
 from gaussiantalker.runtime import splatter as splatter_module
 from gaussiantalker.runtime.depth_sort import depth_order, stable_argsort_positive
 from gaussiantalker.runtime.splatter import (
@@ -355,7 +356,7 @@ def test_the_coverage_check_can_fail(splatter, quads_only, monkeypatch, old, new
     drops the whole point), loses pixels, and the check above sees it."""
     source = load_shader("splat.vert")
     assert source.count(old) == 1
-    monkeypatch.setattr(splatter_module, "load_shader",
+    monkeypatch.setattr(programs_module, "load_shader",
                         lambda name: source.replace(old, new) if name == "splat.vert" else load_shader(name))
     broken = GLSplatter(splatter.ctx)
     try:
@@ -370,7 +371,7 @@ def test_point_squares_start_on_pixel_blocks(splatter, monkeypatch):
     source = load_shader("splat.frag")
     main = source[source.index("void main() {"):]
     covered = source.replace(main, "void main() {\n    frag_color = vec4(1.0);\n}\n")  # every tried fragment
-    monkeypatch.setattr(splatter_module, "load_shader",
+    monkeypatch.setattr(programs_module, "load_shader",
                         lambda name: covered if name == "splat.frag" else load_shader(name))
     probe = GLSplatter(splatter.ctx)
     camera = Camera(64, 96, fx=50.0, fy=50.0, cx=30.0, cy=48.0)

@@ -83,7 +83,7 @@ def bench_paper_translator(seconds: float = 10.0) -> dict:
         add_graph(writer, "translator", proto)
         path = Path(tmp) / "paper.gtb"
         size = writer.write(path)
-        from gaussiantalker.runtime.graphs import OnnxRuntimeBackend
+        from gaussiantalker.runtime.onnxruntime_backend import OnnxRuntimeBackend
         from gaussiantalker.sdk.bundle import Bundle
 
         backend = OnnxRuntimeBackend(Bundle(path))

@@ -1,4 +1,4 @@
-"""torch module -> ONNX graph whose weights become bundle buffers (see runtime/graphs.py for the reverse)."""
+"""torch module -> ONNX graph whose weights become bundle buffers (runtime/onnxruntime_backend.py does the reverse)."""
 
 from __future__ import annotations
 

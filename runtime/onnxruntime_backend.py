@@ -1,0 +1,85 @@
+"""The default graph backend: a bundle's ONNX graphs run with onnxruntime on the CPU.
+
+A bundle's graphs hold no weights: each weight is a bundle buffer (decoded by its codec) handed to onnxruntime as
+an external initializer, so ORT still constant-folds and pre-packs it like an inline weight. Before onnxruntime
+sees a graph, every graph and buffer is read and checksummed and checked against the manifest
+(runtime/bundle_checks.py): onnxruntime would otherwise go looking on disk for external data the bundle does not
+supply.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gaussiantalker.sdk.bundle import Bundle
+from gaussiantalker.sdk.errors import BundleError
+
+from .bundle_checks import check_expression_width, check_initializers, check_signature, check_speaker_bundle
+
+
+@dataclass
+class _LoadedGraph:
+    """A graph's checksummed bytes and its decoded external initializers, ready for a session."""
+
+    onnx_bytes: bytes
+    initializers: dict[str, np.ndarray]
+
+
+class OnnxRuntimeBackend:
+    """Runs a bundle's ONNX graphs with onnxruntime on the CPU."""
+
+    def __init__(self, bundle: Bundle, threads: int | None = None) -> None:
+        import onnxruntime as ort
+
+        self._ort = ort
+        self.bundle = bundle
+        self.threads = threads
+        speaker = "speaker" in bundle.manifest
+        if speaker:
+            check_speaker_bundle(bundle)
+        # Everything is read and checked before the first session is built: damage anywhere fails fast.
+        loaded = {name: _load_graph(bundle, name) for name in bundle.graph_names()}
+        self.sessions = {name: self._open(bundle, name, graph) for name, graph in loaded.items()}
+        if speaker:  # after check_signature: the declared shapes are now known to be the graphs' own
+            check_expression_width(bundle)
+
+    def _open(self, bundle: Bundle, name: str, graph: _LoadedGraph):
+        options = self._ort.SessionOptions()
+        options.log_severity_level = 3
+        # Spinning worker threads cost ~35 ms per deformation call on 2 cores and starve llvmpipe's own
+        # rasterizer threads, so idle ORT threads sleep instead.
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        if self.threads:
+            options.intra_op_num_threads = int(self.threads)
+        if graph.initializers:
+            values = [self._ort.OrtValue.ortvalue_from_numpy(array) for array in graph.initializers.values()]
+            options.add_external_initializers(list(graph.initializers), values)
+        try:
+            session = self._ort.InferenceSession(graph.onnx_bytes, options, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own untyped errors
+            raise BundleError(f"{bundle.path}: graph {name!r} cannot be loaded by onnxruntime: {exc}") from exc
+        check_signature(bundle, name, bundle.graph_info(name), session)
+        return session
+
+    def run(self, graph: str, inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Run `graph` on `inputs` (name -> array); every output by name."""
+        session = self.sessions.get(graph)
+        if session is None:
+            raise BundleError(f"{self.bundle.path}: bundle has no graph {graph!r} (it holds: "
+                              f"{', '.join(sorted(self.sessions)) or 'no graphs'})")
+        names = [o.name for o in session.get_outputs()]
+        return dict(zip(names, session.run(names, inputs), strict=True))
+
+
+def _load_graph(bundle: Bundle, name: str) -> _LoadedGraph:
+    """Read and checksum a graph and its buffers; check its initializers against the manifest first."""
+    onnx_bytes = bundle.graph_bytes(name)
+    feeds = bundle.graph_info(name).get("initializers", {})
+    check_initializers(bundle, name, onnx_bytes, feeds)
+    arrays = {init: np.ascontiguousarray(bundle.buffer(buffer)) for init, buffer in feeds.items()}
+    return _LoadedGraph(onnx_bytes, arrays)
+
+
+__all__ = ["OnnxRuntimeBackend"]
