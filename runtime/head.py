@@ -404,7 +404,7 @@ class TalkingHead:
         png). Everything about the output is checked before the first frame is rendered (VideoError);
         docs/video.md lists the formats.
         """
-        from tqdm import tqdm
+        from gaussiantalker.sdk.progress import progress_bar
 
         plan = self._video_plan(path, alpha=alpha, codec=codec, crf=crf, preset=preset, container=container)
         samples = self.load_audio(audio, sample_rate)
@@ -412,7 +412,7 @@ class TalkingHead:
         with VideoWriter(plan.path, self.config.fps, plan.size, audio=samples, sample_rate=self.config.sample_rate,
                          plan=plan) as out:
             frames = self.frames(samples, self.config.sample_rate, head_pose, output="rgba" if plan.alpha else "uint8")
-            for frame in tqdm(frames, total=total, unit="frame", disable=not progress, desc="rendering"):
+            for frame in progress_bar(frames, total=total, unit="frame", disable=not progress, desc="rendering"):
                 out.write(frame)
                 if on_frame is not None:
                     on_frame(frame)

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 import typer
-from tqdm import tqdm
 
 from gaussiantalker.runtime.head import TalkingHead
+from gaussiantalker.sdk.progress import progress_bar
 
 from ..export.checkpoint import load_checkpoint
 from ..export.export import export_bundle
@@ -72,7 +72,7 @@ def run_backends_bench(checkpoint: Path, size: int, seconds: float, rounds: int,
         bundle = Path(tmp) / "speaker_mnn.gtb"
         export_bundle(speaker, bundle, progress=False, mnn=True)
         bundle_mb = bundle.stat().st_size / 1e6
-        with tqdm(total=rounds * len(CASES), desc="gt-bench backends", unit="run") as bar:
+        with progress_bar(total=rounds * len(CASES), desc="gt-bench backends", unit="run") as bar:
             for _ in range(rounds):
                 for label, backend, threads in CASES:
                     bar.set_postfix_str(label)

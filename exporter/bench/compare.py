@@ -20,7 +20,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from tqdm import tqdm
+from gaussiantalker.sdk.progress import progress_bar
 
 from .worker import STAGES
 
@@ -154,7 +154,7 @@ def compare(baseline: Path, *, gaussians: list[int], sizes: list[int], seconds: 
         write_wav(audio, synth_speech(seconds, seed=7))
         labels = list(versions)
         steps = len(gaussians) * (len(labels) + len(sizes) * rounds * len(labels))
-        bar = tqdm(total=steps + (rounds * len(labels) if play_seconds > 0 else 0), desc="gt-bench compare",
+        bar = progress_bar(total=steps + (rounds * len(labels) if play_seconds > 0 else 0), desc="gt-bench compare",
                    unit="run", disable=not progress)
         try:
             for version in versions.values():

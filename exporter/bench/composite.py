@@ -28,6 +28,7 @@ from gaussiantalker.runtime.composite import composite, crop_box, graph_inpainte
 from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.sdk.drive import track_row
 from gaussiantalker.sdk.image import psnr_db, seam_step, to_uint8
+from gaussiantalker.sdk.progress import progress_bar
 
 from ..demo.clip import ClipComposer
 from ..export.checkpoint import load_checkpoint
@@ -154,7 +155,7 @@ def _measure(speaker: Speaker, checkpoint: Path, bundle: Path, seconds: float, r
         crop = crop_box(head.reference.mask(0))
     cases = [(f"{w}x{h} {'composited' if c else 'bare'}", (w, h), c) for (w, h) in (clip_size, (512, 512))
              for c in (True, False)]
-    bar = tqdm(total=rounds * len(cases) + len(codecs) + 1, desc="gt-bench composite", unit="run",
+    bar = progress_bar(total=rounds * len(cases) + len(codecs) + 1, desc="gt-bench composite", unit="run",
                disable=not progress)
     with bar:
         fps: dict[str, list[float]] = {name: [] for name, _, _ in cases}

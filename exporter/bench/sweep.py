@@ -19,8 +19,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from gaussiantalker.sdk.progress import progress_bar
 from gaussiantalker.sdk.render_settings import RenderSettings
 
 from ..export.presets import PRESETS, ExportSettings
@@ -145,7 +145,7 @@ def sweep_speaker(name: str, speaker, cases: list[SweepCase], *, sizes: list[int
     labels = [c.name for c in cases]
     by_name = {c.name: c for c in cases}
     distinct = len({c.bundle_key for c in cases})
-    bar = tqdm(total=distinct + len(sizes) * rounds * len(cases) + len(cases), unit="run", disable=not progress,
+    bar = progress_bar(total=distinct + len(sizes) * rounds * len(cases) + len(cases), unit="run", disable=not progress,
                desc=f"gt-bench sweep {name}")
     with tempfile.TemporaryDirectory(prefix="gt-sweep-") as tmp_name:
         tmp = Path(tmp_name)

@@ -13,10 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from gaussiantalker.runtime.composite import crop_box
 from gaussiantalker.sdk.image import to_uint8
+from gaussiantalker.sdk.progress import progress_bar
 
 from ..model.inpainter import InpainterNet, train_inpainter
 from .clip import JAW_OPEN_MAX, ClipComposer
@@ -84,7 +84,7 @@ def train_demo_inpainter(composer: ClipComposer, *, pairs: int = 96, seconds: fl
     count = len(composer.track)
     start = time.perf_counter()
     data = [make_pair(composer, int(rng.integers(count)), float(rng.uniform(0.0, NEW_JAW_MAX)))
-            for _ in tqdm(range(pairs), desc="inpaint pairs", unit="pair", disable=not progress)]
+            for _ in progress_bar(range(pairs), desc="inpaint pairs", unit="pair", disable=not progress)]
     render_seconds = time.perf_counter() - start
     model = InpainterNet()
     losses = train_inpainter(model, batch_sampler(data), seconds=seconds, seed=seed, progress=progress)

@@ -19,7 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
+
+from gaussiantalker.sdk.progress import progress_bar
 
 from ..export.speech import synth_speech
 from ..model.translator import MotionTranslator
@@ -152,7 +153,7 @@ def train_demo_translator(
     model.eval()  # no dropout/batch-norm anywhere: train and eval behave the same
     initial_loss = best = _evaluate(model, validation, settings.lambda_smooth)
     stale, step, stop_reason, start = 0, 0, "max_steps", time.perf_counter()
-    bar = tqdm(total=settings.max_steps, desc="translator", disable=not progress, leave=False)
+    bar = progress_bar(total=settings.max_steps, desc="translator", disable=not progress, leave=False)
     while step < settings.max_steps:
         if time.perf_counter() - start > seconds_budget:
             stop_reason = "time_budget"

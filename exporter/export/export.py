@@ -17,6 +17,7 @@ from gaussiantalker.sdk.bundle import BundleWriter
 from gaussiantalker.sdk.config import POSE_DIM
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.files import StagedFile
+from gaussiantalker.sdk.progress import progress_bar
 from gaussiantalker.sdk.reference_clip import ReferenceClipError, frame_entry, mask_entry
 from gaussiantalker.sdk.scene import Scene
 
@@ -127,7 +128,7 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         writer.metadata["reference"] = speaker.reference.layout.to_dict()
         writer.metadata["inpaint"] = {"generator": "learned" if speaker.inpaint is not None else "opencv_fallback",
                                       "crop_margin": CROP_MARGIN_PX, "crop_multiple": CROP_MULTIPLE}
-    steps = tqdm(total=5 if mnn else 4, desc="gt-export", unit="step", disable=not progress)
+    steps = progress_bar(total=5 if mnn else 4, desc="gt-export", unit="step", disable=not progress)
     result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings, label=label,
                           gaussians=speaker.gaussians.count, specialisation=spec)
     try:

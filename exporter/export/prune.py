@@ -12,9 +12,9 @@ import copy
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose
+from gaussiantalker.sdk.progress import progress_bar
 
 from ..export.probes import driven_clip
 from ..model.gaussians import BoundGaussians
@@ -44,7 +44,7 @@ def gaussian_contributions(speaker: Speaker, drives: list[FrameDrive], resolutio
     camera = speaker.camera.resized(resolution, resolution)
     center = torch.from_numpy(camera.center.astype(np.float32))[None]
     total = torch.zeros(speaker.gaussians.count, dtype=torch.float64)
-    for drive in tqdm(drives, desc="measuring contributions", unit="frame", disable=not progress):
+    for drive in progress_bar(drives, desc="measuring contributions", unit="frame", disable=not progress):
         inputs = {k: torch.from_numpy(v) for k, v in drive.graph_inputs().items()}
         with torch.no_grad():
             means, cov3d, rgb, opacity = speaker.deform(inputs["expression"], inputs["flame_pose"],

@@ -12,11 +12,11 @@ import itertools
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import FLAME_JOINTS
 from gaussiantalker.sdk.drive import FrameDrive
+from gaussiantalker.sdk.progress import progress_bar
 
 from ..export.probes import driven_clip
 from ..model.rasterizer import render_reference
@@ -85,7 +85,7 @@ def measure_sweep(speaker: Speaker, drives: list[FrameDrive], camera: Camera, pr
     center = torch.from_numpy(camera.center.astype(np.float32))[None]
     max_weight = torch.zeros(speaker.gaussians.count, dtype=torch.float32)
     directions = []
-    for frame in tqdm(drives, desc="scene sweep", unit="frame", disable=not progress):
+    for frame in progress_bar(drives, desc="scene sweep", unit="frame", disable=not progress):
         inputs = {k: torch.from_numpy(v) for k, v in frame.graph_inputs().items()}
         means, cov3d, rgb, opacity = speaker.deform(inputs["expression"], inputs["flame_pose"],
                                                     inputs["head_translation"], center)

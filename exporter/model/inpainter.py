@@ -26,7 +26,8 @@ import numpy as np
 import torch
 import torch.nn.functional as nnf
 from torch import nn
-from tqdm.auto import tqdm
+
+from gaussiantalker.sdk.progress import progress_bar
 
 CROP_MULTIPLE = 16  # 2 (input pool) * 2**MAX_LEVELS (stride-2 levels)
 MAX_LEVELS = 3
@@ -193,7 +194,7 @@ def train_inpainter(model: InpainterNet,
     losses: list[float] = []
     model.train()
     start = time.perf_counter()
-    with tqdm(total=max_steps, disable=not progress, desc="inpaint", unit="step") as bar:
+    with progress_bar(total=max_steps, disable=not progress, desc="inpaint", unit="step") as bar:
         while (max_steps is None or len(losses) < max_steps) and time.perf_counter() - start < seconds:
             image, mask, coverage, target = batch(rng)
             loss = masked_l1(model(image, mask, coverage), target, mask)

@@ -30,12 +30,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from gaussiantalker.runtime.composite import crop_box
 from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.sdk.drive import track_row
 from gaussiantalker.sdk.image import max_abs_error, psnr_db, to_uint8
+from gaussiantalker.sdk.progress import progress_bar
 
 from ..export.probes import driven_clip, speech_clip
 from ..model.compositing import composite_reference
@@ -183,7 +183,7 @@ def verify_composited(speaker: Speaker, head: TalkingHead, frames: int = 12, see
     runtime_frames = head.frames(audio, speaker.config.sample_rate)
     background = torch.zeros(3)
     results = []
-    for index, test in enumerate(tqdm(runtime_frames, total=frames, desc="verify composited", unit="frame",
+    for index, test in enumerate(progress_bar(runtime_frames, total=frames, desc="verify composited", unit="frame",
                                       disable=not progress)):
         image, trans = speaker.render(torch_drives[index], head.camera, background, transmittance=True)
         premultiplied = np.dstack([image.numpy(), 1.0 - trans.numpy()]).astype(np.float32)
@@ -207,7 +207,7 @@ def verify_frames(speaker: Speaker, head: TalkingHead, frames: int = 25, seed: i
     runtime_drives = (list(head.drives(audio, speaker.config.sample_rate))
                       if head.has_translator else torch_drives)
     results = []
-    for index in tqdm(range(frames), desc="verify frames", unit="frame", disable=not progress):
+    for index in progress_bar(range(frames), desc="verify frames", unit="frame", disable=not progress):
         reference, trans = speaker.render(torch_drives[index], head.camera, head.background, transmittance=True)
         reference, head_region = reference.numpy(), (1.0 - trans.numpy()) > HEAD_COVERAGE
         test = head.render(runtime_drives[index], output="float")
