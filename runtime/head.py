@@ -6,7 +6,7 @@
     head.write_video("talk.mp4", "speech.wav")   # audio muxed in
     head.write_video("talk.webm", "speech.wav", alpha=True)   # with an alpha channel, for overlays
 
-Settings come in groups, as onnxruntime takes SessionOptions (runtime/settings.py, docs/runtime.md); the plain
+Settings come in groups, as onnxruntime takes SessionOptions (runtime/settings.py, docs/embedding.md); the plain
 keywords above are shortcuts for their fields:
 
     head = TalkingHead("speaker.gtb", output=OutputSettings(resolution=(512, 512)),
@@ -85,7 +85,7 @@ class TalkingHead:
                  render_scale: float | None = None, render_target: str | None = None,
                  sort_interval: int | None = None, sort_key_bits: int | None = None,
                  gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS) -> None:
-        """Settings come in three groups (docs/runtime.md), each None for the bundle's defaults:
+        """Settings come in three groups (docs/embedding.md), each None for the bundle's defaults:
         `render` (RenderSettings: render scale, framebuffer precision, sort interval and key bits, graph threads;
         None: the bundle's preset, else the contract's full-size float32 frame sorted every frame on exact depth;
         docs/precision.md), `output` (OutputSettings: resolution, camera, background, composite; compositing

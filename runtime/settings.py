@@ -1,6 +1,6 @@
 """TalkingHead's settings in groups, as onnxruntime takes SessionOptions: `OutputSettings` (what the frames look
 like), `BackendSettings` (what runs the graphs and shaders) and `RenderSettings` (speed/accuracy knobs, from
-gaussiantalker.sdk.render_settings); and how the old keyword shortcuts combine with them (docs/runtime.md).
+gaussiantalker.sdk.render_settings); and how the old keyword shortcuts combine with them (docs/embedding.md).
 
 In a group, None is "not set": the bundle's default. A shortcut keyword fills the group's field; a shortcut and a
 group field that are both set to different values are one setting given twice, refused with SettingsError.

@@ -6,7 +6,7 @@ and no more; ffmpeg also resamples what it decodes. In-memory arrays at another 
 the channels are averaged, by libsoxr (python-soxr). A library rather than our own filter: any rate in
 1000..384000 Hz must work, and a rational polyphase filter sized for the exact ratio blows up at odd rates
 (16000/383999 would need a 7.7 M-tap filter). libsoxr handles any ratio exactly, band-limited, in bounded memory
-(it streams the input in blocks into one output allocation), in ~1.5 ms for 10 s of 44.1 kHz audio.
+(it streams the input in blocks into one output allocation), and fast (docs/embedding.md, "Audio input").
 """
 
 from __future__ import annotations
@@ -30,13 +30,10 @@ MIN_SAMPLE_RATE, MAX_SAMPLE_RATE = 1000, 384000
 # full scale) still work because the translator normalises each window. Beyond this a sample is not audio, and
 # the translator's float32 variance (sum of squares) would overflow (at ~1.8e19) and give NaN.
 MAX_SAMPLE_MAGNITUDE = 2.0**31
-# libsoxr quality preset, chosen by measurement (tests/test_stability_audio.py records the tone rows). "HQ"
-# (20-bit; passband flat to 91% of the output Nyquist): 1 and 4 kHz tones resampled from 44.1k, 48k, 22.05k, 8k
-# (1 kHz only) and 383999 Hz to 16 kHz keep frequency within 0.001 Hz and level within 0.001 dB, > 100 dB SNR
-# against the ideal sine (so no delay either); 7 kHz within 0.006 dB; a 10 kHz tone (above the new Nyquist) is
-# suppressed to < -135 dB. 10 s at 44.1 kHz takes 1.5 ms. "VHQ" (28-bit) takes ~1.5x as long for precision far
-# beyond float32 speech features; "MQ"/"LQ" save 10-25% of the time but droop 0.05 / 13 dB at 7 kHz; "QQ"
-# (cubic interpolation) filters no aliases at all (the 10 kHz tone passes at -0.5 dB).
+# libsoxr quality preset, chosen by measurement (tests/test_stability_audio.py records the tone rows): "HQ" keeps
+# tones' frequency and level far beyond what speech features need and suppresses aliases; "VHQ" costs more time for
+# precision float32 features cannot use; "MQ"/"LQ" droop near the passband edge; "QQ" filters no aliases at all.
+# The figures: docs/embedding.md, "Audio input".
 RESAMPLE_QUALITY = "HQ"
 
 

@@ -98,7 +98,7 @@ class BundleWriter:
     def add_graph(self, name: str, onnx_bytes: bytes, inputs: list[dict], outputs: list[dict],
                   initializers: dict[str, str] | None = None, compress: bool = True) -> None:
         """Store an ONNX graph; `initializers` maps its external initializer names to the buffers holding them.
-        `compress`: stored zlib-compressed (lossless; a weightless graph's protobuf shrinks ~4x)."""
+        `compress`: stored zlib-compressed (lossless; how much it saves: docs/bundle-format.md, "Graphs")."""
         if name in self._graphs:
             raise BundleError(f"graph {name!r} added twice")
         for buffer_name in (initializers or {}).values():

@@ -22,11 +22,12 @@ from .camera import Camera
 from .errors import BundleError, CameraError, GaussianTalkerError
 
 # Stored codec name -> (libavcodec encoder, decoder). Frames: intra-only H.264, every frame its own keyframe so it
-# decodes alone (0.76x the bytes of JPEG at the same PSNR on the demo clip, docs/compositing.md); masks: 8-bit grey
+# decodes alone (fewer bytes than JPEG at the same PSNR on the demo clip: docs/compositing.md); masks: 8-bit grey
 # PNG (lossless).
 FRAME_CODECS = {"h264": ("libx264", "h264")}
 MASK_CODECS = {"png": ("png", "png")}
-# x264 constant-rate factor of stored frames: 18 keeps the demo clip above 40 dB (visually lossless).
+# x264 constant-rate factor of stored frames: 18 keeps the demo clip visually lossless (its PSNR:
+# docs/compositing.md, "The reference clip").
 H264_CRF = 18
 # The colour description written into each frame's H.264 stream (its VUI): what swscale's RGB -> yuv420p conversion
 # does (the BT.601 matrix, limited range) on sRGB pictures, so a native decoder that honours the tags converts back

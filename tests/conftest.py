@@ -302,9 +302,29 @@ def rebind_onnx_exports():
 
 # -- stability table --------------------------------------------------------------------------------------------
 # Stability tests call `stability.record(area, case, behaviour)` with what they observed (not what they expect):
-# `GT_STABILITY_TABLE=out/stability.md python -m pytest tests/test_stability_*.py` writes the README's table.
+# `GT_STABILITY_TABLE=docs/stability.md python -m pytest -q tests/test_stability_*.py` writes docs/stability.md.
 
 _STABILITY_ROWS: list[tuple[str, str, str, str]] = []
+
+
+# The page the table is written into: what it is and the command that regenerates it, then the table.
+_STABILITY_HEADER = [
+    "# Stability at the extremes",
+    "",
+    "Extreme drives (expression ±10 σ, jaw/neck/global/eyes to ±π and beyond, head onto and behind the camera),",
+    "collapsed and coincident geometry, heads at 1e-3..1e3 scale, degenerate and huge Gaussians, odd cameras (focal",
+    "1e-3..1e7 px, 1×1 to 4096², 4096×8, principal point far outside), audio of every layout and rate, a 10-minute",
+    "file, damaged bundles and checkpoints, interrupted exports, and every reduced bundle: each case either renders",
+    "finite frames on which torch and the runtime agree (bounds stated in each test module's docstring) or both cull",
+    "the same Gaussians, or raises the SDK's own error naming the problem and the limit; the GL context keeps",
+    "rendering normally afterwards.",
+    "",
+    "The table below is written by the tests themselves: each row is what a test observed, not what it expects.",
+    "This whole page is generated; regenerate it with",
+    "",
+    "    GT_STABILITY_TABLE=docs/stability.md python -m pytest -q tests/test_stability_*.py",
+    "",
+]
 
 
 class StabilityRecorder:
@@ -330,7 +350,8 @@ def pytest_sessionfinish(session, exitstatus):
     if not target or not _STABILITY_ROWS:
         return
     rows = sorted(set(_STABILITY_ROWS))
-    lines = [f"{len(rows)} cases, recorded by the tests ({'all passed' if exitstatus == 0 else 'NOT all passed'}).",
+    lines = [*_STABILITY_HEADER,
+             f"{len(rows)} cases, recorded by the tests ({'all passed' if exitstatus == 0 else 'NOT all passed'}).",
              "", "| area | case | behaviour | test |", "|---|---|---|---|"]
     for area, case, behaviour, test_id in rows:
         cells = (c.replace("|", "\\|") for c in (area, case, behaviour, test_id.split("::")[0].split("/")[-1]))

@@ -3,9 +3,9 @@
 Tolerances (the SDK's parity bounds, as in exporter/verify/verify.py): every frame >= 50 dB PSNR on the final 8-bit
 frames and >= 60 dB on the float frames, no NaN. What legitimately remains is float32 reassociation between the
 two implementations (~1e-6), the GL path's missing early termination (residual transmittance < 0.01, typically
-~1e-4) and rare depth-order flips of Gaussians whose depths differ by a few ulps. Measured margins are printed in
-the README. Quick run: the small speaker (2k Gaussians) at 256; full run: also the 20k-Gaussian demo speaker, where
-splats overlap most, and 512 (conftest `speaker_export`).
+~1e-4) and rare depth-order flips of Gaussians whose depths differ by a few ulps. Measured margins are in
+docs/export.md ("Parity with the torch speaker"). Quick run: the small speaker (2k Gaussians) at 256; full run:
+also the 20k-Gaussian demo speaker, where splats overlap most, and 512 (conftest `speaker_export`).
 """
 
 from __future__ import annotations

@@ -33,7 +33,7 @@ HELDOUT_SEED_OFFSET = 900_000  # held-out clip seed = this + seed: never one of 
 
 @dataclass
 class TrainSettings:
-    """Knobs of the demo training run (defaults: ~15 s on 2 idle cores, 3-5x that when shared; held-out r ~ 0.99)."""
+    """Knobs of the demo training run (its time and held-out correlation: docs/demo-speaker.md)."""
 
     max_steps: int = 200
     batch_size: int = 4

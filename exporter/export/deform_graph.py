@@ -176,7 +176,7 @@ class DeformationGraph(nn.Module):
         vertices = self.posed_vertices(expression, flame_pose, head_translation)  # [B, 3, V]
         batch, n = vertices.shape[0], self.n_gaussians
         # Gathered as [B, 3N, 3] and then transposed: onnxruntime copies a gathered row of 3 floats at the cost
-        # of one float, so this is ~2.5x faster than gathering along the last axis of [B, 3, V].
+        # of one float, so this is faster than gathering along the last axis of [B, 3, V] (docs/deformation.md).
         corner_ids = self.faces.index_select(0, self.parent_triangle).T.reshape(-1)  # [3N]: all v0, v1, v2
         corners = vertices.transpose(1, 2).index_select(1, corner_ids)  # [B, 3N, 3]
         corners = corners.transpose(1, 2).reshape(batch, 3, 3, n)  # [B, xyz, corner, N]
@@ -201,8 +201,8 @@ class DeformationGraph(nn.Module):
         rgb = SH_C0 * dc  # [B, 3, N]
         if self.sh_degree > 0:
             basis = sh_basis(means - camera_center.unsqueeze(2), self.sh_degree, dim=1, skip_dc=True)  # [B, K-1, N]
-            # Channel-major coefficients: onnxruntime reduces over the middle axis of [B, 3, K-1, N] ~1.6x faster
-            # than over the leading axis of [B, K-1, 3, N].
+            # Channel-major coefficients: onnxruntime reduces over the middle axis of [B, 3, K-1, N] faster than
+            # over the leading axis of [B, K-1, 3, N] (docs/deformation.md, "Layout").
             rgb = rgb + (basis.unsqueeze(1) * self.sh_rest).sum(2)
         rgb = torch.clamp_min(rgb + 0.5, 0.0)
         return means.transpose(1, 2), cov3d.transpose(1, 2), rgb.transpose(1, 2), self.opacity

@@ -4,8 +4,8 @@ rewriting graphs by hand.
 * int8: dynamic quantisation of the MatMul weights (per output channel, int8), after onnxruntime's quantisation
   pre-processing (shape inference + its graph optimiser, which folds the weights' Transpose nodes into the
   initializers so the quantiser can see them). Convolutions stay float: measured on the demo translator,
-  quantising them too made it 2.8x slower (ConvInteger) and 30x less accurate (0.17 vs 0.005 max abs error on
-  the expression), with the raw-audio feature extractor the sensitive part.
+  quantising them too (ConvInteger) made it slower and far less accurate (docs/precision.md, "Knobs"), with the
+  raw-audio feature extractor the sensitive part.
 * fp16: every float initializer and op in half precision, inputs and outputs kept float32 (`keep_io_types`).
 """
 

@@ -61,8 +61,8 @@ def _value_info(value: onnx.ValueInfoProto) -> dict:
 
 
 def strip_debug_metadata(model: onnx.ModelProto) -> None:
-    """Drop the exporter's per-node debug annotations (source stack traces, torch names): ~86% of a graph's bytes
-    before this, never read by a runtime. Node names, shapes and semantics are untouched."""
+    """Drop the exporter's per-node debug annotations (source stack traces, torch names): most of a graph's bytes
+    (docs/bundle-format.md, "Graphs"), never read by a runtime. Node names, shapes and semantics are untouched."""
     graphs = [model.graph]
     while graphs:
         graph = graphs.pop()

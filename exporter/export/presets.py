@@ -28,8 +28,8 @@ CODEC_GROUPS: dict[str, tuple[str, ...]] = {
     "inpaint": ("inpaint/*",),  # the inpainting generator's convolutions (docs/compositing.md)
 }
 # Buffers every frame's geometry hangs on (the rest mesh, the frame guards' reference size, where on its triangle a
-# Gaussian sits): a quantised codec gives them at least 16 bits. Measured on the demo speaker: barycentrics at q8
-# alone cost 40 dB head-region PSNR, every other per-Gaussian buffer at q8 stays above 55 dB.
+# Gaussian sits): a quantised codec gives them at least 16 bits. Measured on the demo speaker, barycentrics at q8
+# alone cost far more head-region PSNR than every other per-Gaussian buffer at q8 (docs/precision.md, "Knobs").
 KEEP_16_BITS = ("deform/rest_points", "deform/rest_scale", "deform/barycentric", "deform/lbs_weights")
 # Quantised codecs spend 8 bytes of chunk parameters per chunk: below this many values a buffer gets fp16 instead.
 QUANT_MIN_VALUES = 4096
@@ -139,14 +139,14 @@ class Preset:
 
 # Buffer codecs of the reduced presets: per-Gaussian values 8-bit (barycentrics, rest sizes 16-bit), SH bands and
 # speaker blendshapes 4-bit, FLAME bases 4-bit in chunks of 128, the translator and the inpainting generator 8-bit
-# (F at q8: composited frames 73 dB inside the mask against fp32 F's, q4: 59 dB; docs/compositing.md).
+# (F's codecs measured on composited frames: docs/compositing.md, "F's precision").
 _REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4", "flame": "q4/128", "translator": "q8",
                    "inpaint": "q8"}
 
 # The presets, chosen from measurements on the demo speaker (docs/precision.md has the table and the command).
 # `min_head_psnr_db` is what `gt-export --verify` holds a preset to; each sits below what the preset measured, by the
-# spread seen between clips and resolutions (`fast` draws at 3/4 size, which costs more at small sizes: its head
-# region measured 35.2 dB at 512x512 but 29.9 dB at gt-export's default 256x256).
+# spread seen between clips and resolutions (`fast` draws at 3/4 size, which costs more at small sizes such as
+# gt-export's default 256x256; docs/precision.md, "Presets").
 PRESETS: dict[str, Preset] = {
     "quality": Preset("quality", "fp32 everything: parity with the torch speaker (>= 50 dB)", ExportSettings()),
     "balanced": Preset("balanced", "quantised buffers, nothing dropped: ~5.8x smaller at ~49 dB",

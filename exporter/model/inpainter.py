@@ -79,14 +79,15 @@ def crop_multiple_ok(height: int, width: int) -> bool:
 
 
 def _sanitize(x: torch.Tensor) -> torch.Tensor:
-    """NaN -> 0, then clamp into INPUT_RANGE (which also takes ±inf); 3x cheaper in onnxruntime than nan_to_num.
+    """NaN -> 0, then clamp into INPUT_RANGE (which also takes ±inf); cheaper in onnxruntime than nan_to_num
+    (docs/compositing.md, "The inpainting generator F").
     NaN is found as x != x: MNN has no IsNaN operator, and the comparison is the same test in every backend."""
     return torch.where(x == x, x, 0.0).clamp(*INPUT_RANGE)
 
 
 def _half(x: torch.Tensor) -> torch.Tensor:
-    """2x2 average pool of an even-sized map, written as a bilinear 0.5x resize (identical values; 3x faster in
-    onnxruntime). Sizes rather than scale factors: the same graph, exported twice as fast."""
+    """2x2 average pool of an even-sized map, written as a bilinear 0.5x resize (identical values; faster in
+    onnxruntime: docs/compositing.md). Sizes rather than scale factors: the same graph, exported twice as fast."""
     return nnf.interpolate(x, size=(x.shape[2] // 2, x.shape[3] // 2), mode="bilinear", align_corners=False)
 
 

@@ -42,13 +42,14 @@ __all__ = ["render_reference", "DEFAULT_MEMORY_BUDGET_BYTES", "DEFAULT_TILE_SIZE
 
 # Bound on what one render keeps alive: chunk temporaries and tile lists, or what autograd saves for a frame.
 DEFAULT_MEMORY_BUDGET_BYTES = 1 << 30
-# Tile side in pixels. Results do not depend on it; 8 measured fastest on CPU (16: ~1.5x the per-pixel work
-# wasted on tile corners a splat's box misses; 4: binning and list overhead grow).
+# Tile side in pixels. Results do not depend on it; 8 measured fastest on CPU (larger tiles waste per-pixel work on
+# tile corners a splat's box misses; smaller ones grow binning and list overhead; docs/numerics.md).
 DEFAULT_TILE_SIZE = 8
-# Bytes alive per (pixel, Gaussian) element of a chunk, autograd's saved tensors included (measured ~60).
+# Bytes alive per (pixel, Gaussian) element of a chunk, autograd's saved tensors included, with a margin over the
+# measured value (docs/numerics.md, "The torch reference rasterizer's tiles and chunks").
 _LIVE_BYTES_PER_ELEMENT = 96
 # Chunk size cap (elements): 1 MiB float32 temporaries are recycled by the allocator and stay in cache, while
-# multi-MiB ones are fresh pages each time (measured several times slower on the 2-core CPU VM).
+# multi-MiB ones are fresh pages each time (measured slower: docs/numerics.md).
 _MAX_CHUNK_ELEMENTS = 1 << 18
 # Bytes per (splat, tile) pair while binning (a few int64 arrays and the sort); tile lists get a quarter of
 # the budget, which sets the row-band size.

@@ -175,7 +175,8 @@ def sh_to_rgb(sh: Tensor, dirs: Tensor, degree: int, dc: Tensor | None = None) -
         dc = sh[..., 0, :]
     result = basis[..., :1] * dc  # [..., 3]
     if count > 1:
-        # One [..., K-1, 3] product and sum instead of K-1 broadcast products: ~6x faster in onnxruntime.
+        # One [..., K-1, 3] product and sum instead of K-1 broadcast products: faster in onnxruntime
+        # (docs/deformation.md, "Layout").
         result = result + (basis[..., 1:].unsqueeze(-1) * sh[..., 1:count, :]).sum(dim=-2)
     return torch.clamp_min(result + 0.5, 0.0)
 

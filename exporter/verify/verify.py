@@ -16,8 +16,8 @@ Tolerances (why these numbers):
   torch F on random crops and the clip's own crops, to GRAPH_RTOL.
 * MNN graphs (`gt-export --mnn`, docs/mnn.md): each MNN graph against the onnxruntime graph on the same inputs,
   max |mnn - onnxruntime| <= MNN_RTOL * max |onnxruntime| per output (both run the same decoded float32 weights,
-  so only kernel rounding differs: ~3e-7 measured on the demo speaker), plus the MNN backend's graphs and frames
-  against torch at the label's bounds above.
+  so only kernel rounding differs: docs/mnn.md, "Accuracy", has the demo speaker's errors), plus the MNN
+  backend's graphs and frames against torch at the label's bounds above.
 * a scene's bundle (docs/scene.md): its deformation graph leaves out drives outside the scene by design, so it
   is judged by its frames of a driven clip inside the scene, at the scene's camera: SCENE_MIN_PSNR_DB on float and
   8-bit frames (or the label's bound, if lower).
@@ -86,8 +86,8 @@ class Tolerances:
         """Default bounds of every buffer stored with `codec` (raw or fp16), against the fp32 torch speaker.
 
         fp16 buffers round every weight to 11 significant bits (relative 4.9e-4); through the blendshape and
-        LBS sums that gives graph errors of ~1e-4..1e-3 relative and frames at ~57 dB (measured on the demo
-        speaker, README), so the fp16 label is held to 2e-3 relative and 50 dB on float and 8-bit frames.
+        LBS sums that gives graph errors and frame PSNRs measured on the demo speaker in docs/export.md ("Parity
+        with the torch speaker"), so the fp16 label is held to 2e-3 relative and 50 dB on float and 8-bit frames.
         """
         if codec == "fp16":
             return cls(graph_rtol=2e-3, min_psnr_float_db=50.0, min_psnr_uint8_db=50.0)
