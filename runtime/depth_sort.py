@@ -2,8 +2,9 @@
 
 The contract's order is a stable sort on float32 view depth (`depth_order`). Two runtime knobs trade it for speed
 (`RenderSettings`, docs/precision.md): `sort_key_bits=16` sorts depth quantised to 65536 levels over the frame's
-depth range (numpy's stable sort of uint16 keys is a radix sort, 4-9x faster than the exact 64-bit key sort), and
-`sort_interval=k` sorts only every k-th frame and reuses that order in between (`DepthSorter`).
+depth range (numpy's stable sort of uint16 keys is a radix sort, faster than the exact 64-bit key sort:
+docs/precision.md, "Knobs"), and `sort_interval=k` sorts only every k-th frame and reuses that order in between
+(`DepthSorter`).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ def view_depth(means: np.ndarray, camera: Camera) -> np.ndarray:
 
 
 def stable_argsort_positive(z: np.ndarray) -> np.ndarray:
-    """np.argsort(z, kind="stable") for finite z > 0 (float32), ~15x faster: one sort of unique uint64 keys.
+    """np.argsort(z, kind="stable") for finite z > 0 (float32), faster (docs/numerics.md): one sort of uint64 keys.
 
     A positive float32's bit pattern orders like its value, so key = bits << 32 | index sorts by z and then by
     index, which is exactly the stable order; the keys are unique, so any sort algorithm gives that order.

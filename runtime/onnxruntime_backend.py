@@ -48,8 +48,8 @@ class OnnxRuntimeBackend:
     def _open(self, bundle: Bundle, name: str, graph: _LoadedGraph):
         options = self._ort.SessionOptions()
         options.log_severity_level = 3
-        # Spinning worker threads cost ~35 ms per deformation call on 2 cores and starve llvmpipe's own
-        # rasterizer threads, so idle ORT threads sleep instead.
+        # Spinning worker threads cost time on every deformation call and starve llvmpipe's own rasterizer
+        # threads (measured: docs/speed.md), so idle ORT threads sleep instead.
         options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         if self.threads:
             options.intra_op_num_threads = int(self.threads)

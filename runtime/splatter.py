@@ -20,8 +20,8 @@ sorted runs (a frame whose runs would cost more than points save is drawn as qua
 A point is a square whose side is the box's longer side. llvmpipe shades 4x4 pixel blocks (and runs the shader
 on the 4x2 halves of a block that have a covered pixel), so along the box's shorter side the square is placed to
 touch the fewest blocks (`point_start`), usually starting on a multiple of 4 pixels, instead of being centred.
-Measured on llvmpipe (2 cores, demo speaker, 20k Gaussians): the oriented quads, axis-aligned quads and tighter
-fragment-shader early-outs tried instead were all slower; see docs/numerics.md, "Rasterisation in the GL renderer".
+The oriented quads, axis-aligned quads and tighter fragment-shader early-outs tried instead were all slower on
+llvmpipe (measured: docs/numerics.md, "Rasterisation in the GL renderer").
 
 The GL programs themselves (GLSL sources with the runtime's #defines, the shader-target variants, compiling,
 uniforms) are assembled by runtime/programs.py (docs/shaders.md).
@@ -69,9 +69,9 @@ from .programs import QUAD_SLACK_PX, build_programs, set_camera_uniforms
 # (tests/test_mirror_names.py).
 NON_CONTRACT_GLSL_FUNCTIONS = ("pixel_box", "block_cost", "point_start", "cull")
 
-# Point sprites and quads are drawn in sorted runs, one draw call each. Measured on llvmpipe (20k Gaussians,
-# 512x512), one extra run costs about as much as drawing this many Gaussians as quads instead of points, so a
-# frame is drawn in mixed runs only while runs * RUN_COST_IN_SPLATS < number of point Gaussians, else all quads.
+# Point sprites and quads are drawn in sorted runs, one draw call each. One extra run costs about as much as drawing
+# this many Gaussians as quads instead of points (measured: docs/numerics.md, "Rasterisation in the GL renderer"), so
+# a frame is drawn in mixed runs only while runs * RUN_COST_IN_SPLATS < number of point Gaussians, else all quads.
 RUN_COST_IN_SPLATS = 12
 
 # A Gaussian is drawn as a point when this factor times its conservative radius bound still fits (float margin).

@@ -4,12 +4,10 @@ Windows: each covers WINDOW_FRAMES video frames (10 s at 25 fps); the translator
 audio on each side (1 s), so frames near a join have context on both sides.
 
 Joins: the translator normalises each window's audio on its own, so two neighbouring windows disagree slightly
-on the frames they share (up to ~0.025 rad of jaw and ~0.1 expression units on the demo speaker). Cut from one
-window to the next, that lands as a one-frame jump of up to ~0.015 rad / 0.06 (half the median frame-to-frame
-change of speech: a twitch where the face is still). Instead, the CROSSFADE_FRAMES frames around a join (0.8 s,
-each window's frames there still have >= 15 frames of context) are a linear cross-fade of the two windows'
-outputs, computed anyway from the context: the extra change per frame at a join is then <= ~0.005 rad / 0.02
-(measured against a one-shot translation of the whole clip, tests/test_stability_audio.py).
+on the frames they share. Cut from one window to the next, that lands as a one-frame jump (a twitch where the face
+is still). Instead, the CROSSFADE_FRAMES frames around a join (each window's frames there still have >= 15 frames
+of context) are a linear cross-fade of the two windows' outputs, computed anyway from the context. The measured
+disagreement, jump and cross-faded step: docs/embedding.md, "Long audio" (tests/test_stability_audio.py).
 
 Silence gate: per-utterance normalisation amplifies a window of pure low-level noise to full scale, and the jaw
 opens with no speech. A window whose audio (as the translator sees it, context included) has an RMS below

@@ -54,12 +54,14 @@ class ContainerSpec:
 _X264_PRESETS = ("veryfast", "ultrafast", "superfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
 
 CODECS: dict[str, CodecSpec] = {
-    # "veryfast": libx264 encodes 512x512 at several hundred fps on one core, so encoding never competes with
-    # rendering for the CPU; "medium" (x264's default) makes ~10% smaller files at ~3x the CPU time.
+    # "veryfast": libx264 encodes far faster than the runtime renders, so encoding never competes with rendering
+    # for the CPU; "medium" (x264's default) makes slightly smaller files at several times the CPU time
+    # (measured: docs/video.md, "Codec settings").
     "h264": CodecSpec("h264", "libx264", "yuv420p", None, even_sides=True, crf=(0, 51, 18), presets=_X264_PRESETS,
                       max_side=16384),
-    # libvpx's constant-quality mode needs a zero target bitrate. "deadline=realtime" with cpu-used 5: 5.2 ms a
-    # 512x512 frame (cpu-used 0: 27 ms, slower than rendering; 8: 4.2 ms but 34% larger files); docs/video.md.
+    # libvpx's constant-quality mode needs a zero target bitrate. "deadline=realtime" with cpu-used 5: faster than
+    # rendering (cpu-used 0 is slower than rendering; 8 is barely faster but makes much larger files); the
+    # measured times: docs/video.md, "Codec settings".
     "vp9": CodecSpec("vp9", "libvpx-vp9", "yuv420p", "yuva420p", crf=(0, 63, 32),
                      presets=("realtime", "good", "best"), options={"b": "0", "row-mt": "1", "cpu-used": "5"}),
     # ProRes 4444 (profile 4) for alpha, 422 HQ (profile 3) otherwise; both 10-bit and intra-only.
