@@ -32,6 +32,19 @@ class _LineWriter:
         self.stream.flush()
 
 
+class _LogBar(tqdm):
+    """A bar whose postfix and description changes wait for the next interval instead of forcing a line each."""
+
+    def set_postfix(self, ordered_dict=None, refresh: bool = True, **kwargs: Any) -> None:
+        super().set_postfix(ordered_dict, refresh=False, **kwargs)
+
+    def set_postfix_str(self, s: str = "", refresh: bool = True) -> None:
+        super().set_postfix_str(s, refresh=False)
+
+    def set_description(self, desc: str | None = None, refresh: bool = True) -> None:
+        super().set_description(desc, refresh=False)
+
+
 def progress_bar(iterable: Iterable | None = None, *, file: IO[str] | None = None, **kwargs: Any) -> tqdm:
     """A tqdm bar on `file` (default stderr): in place on a terminal, a line every few seconds in a log."""
     stream = sys.stderr if file is None else file
@@ -40,4 +53,4 @@ def progress_bar(iterable: Iterable | None = None, *, file: IO[str] | None = Non
         return tqdm(iterable, file=stream, **kwargs)
     kwargs.setdefault("mininterval", LOG_INTERVAL_S)
     kwargs.setdefault("ascii", True)  # a log viewer may not be UTF-8
-    return tqdm(iterable, file=_LineWriter(stream), dynamic_ncols=False, ncols=100, **kwargs)
+    return _LogBar(iterable, file=_LineWriter(stream), dynamic_ncols=False, ncols=100, **kwargs)

@@ -24,6 +24,19 @@ def test_a_log_gets_a_few_whole_lines_not_one_redraw_per_step():
     assert lines[-1].startswith("steps: 100%") and "5000/5000" in lines[-1]
 
 
+def test_a_log_is_not_flooded_by_postfix_updates():
+    """Training loops set the loss as a postfix every step; in a log that waits for the next interval."""
+    log = io.StringIO()
+    with progress_bar(total=500, file=log, desc="train") as bar:
+        for step in range(500):
+            bar.update(1)
+            bar.set_postfix(loss=f"{1 / (step + 1):.4g}")
+            bar.set_description("train")
+    lines = log.getvalue().splitlines()
+    assert 1 <= len(lines) <= 3, lines
+    assert "500/500" in lines[-1] and "loss=0.002" in lines[-1]
+
+
 def test_a_log_gets_a_line_per_interval(monkeypatch):
     monkeypatch.setattr(progress, "LOG_INTERVAL_S", 0.0)
     log = io.StringIO()
