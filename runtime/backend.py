@@ -21,13 +21,18 @@ class GraphBackend(Protocol):
     def run(self, graph: str, inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]: ...
 
 
+def check_backend_name(name: str) -> str:
+    """`name` itself if it is a graph backend, else ValueError listing them."""
+    if name not in GRAPH_BACKENDS:
+        raise ValueError(f"unknown graph backend {name!r} (known: {', '.join(GRAPH_BACKENDS)})")
+    return name
+
+
 def open_backend(bundle: Bundle, backend: str = "onnxruntime", threads: int | None = None) -> GraphBackend:
     """The bundle's graphs ready to run on `backend` ("onnxruntime" or "mnn"), every entry read and checked."""
-    if backend == "onnxruntime":
+    if check_backend_name(backend) == "onnxruntime":
         return OnnxRuntimeBackend(bundle, threads=threads)
-    if backend == "mnn":  # MNN itself (an optional extra) is imported only here, by MnnBackend
-        return MnnBackend(bundle, threads=threads)
-    raise ValueError(f"unknown graph backend {backend!r} (known: {', '.join(GRAPH_BACKENDS)})")
+    return MnnBackend(bundle, threads=threads)  # MNN itself (an optional extra) is imported only by MnnBackend
 
 
-__all__ = ["GRAPH_BACKENDS", "GraphBackend", "open_backend"]
+__all__ = ["GRAPH_BACKENDS", "GraphBackend", "check_backend_name", "open_backend"]

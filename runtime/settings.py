@@ -19,9 +19,9 @@ import numpy as np
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import SettingsError
 from gaussiantalker.sdk.render_settings import RenderSettings
-from gaussiantalker.shaders import SHADER_TARGETS
+from gaussiantalker.shaders import check_target
 
-from .backend import GRAPH_BACKENDS
+from .backend import GRAPH_BACKENDS, check_backend_name
 
 
 def _size(value: Any) -> tuple[int, int]:
@@ -92,16 +92,19 @@ class BackendSettings:
     shader_target: str = "330"
 
     def __post_init__(self) -> None:
-        if self.name not in GRAPH_BACKENDS:
-            raise SettingsError(f"unknown graph backend {self.name!r} (known: {', '.join(GRAPH_BACKENDS)})")
+        try:
+            check_backend_name(self.name)
+        except ValueError as exc:
+            raise SettingsError(str(exc)) from None
         threads = self.threads
         if threads is not None and (isinstance(threads, bool) or not isinstance(threads, Integral) or threads < 1):
             raise SettingsError(f"backend threads must be a whole number >= 1 or None, got {threads!r}")
         if threads is not None:
             object.__setattr__(self, "threads", int(threads))
-        if self.shader_target not in SHADER_TARGETS:
-            raise SettingsError(f"unknown shader target {self.shader_target!r}; allowed: "
-                                f"{', '.join(map(repr, SHADER_TARGETS))}")
+        try:
+            check_target(self.shader_target)
+        except ValueError as exc:
+            raise SettingsError(str(exc)) from None
 
 
 def _same(a: Any, b: Any) -> bool:
