@@ -1,4 +1,4 @@
-"""Console-script entry points of the exporter side (`gt-export`, `gt-bench`).
+"""Console-script entry points of the exporter side (`gt-export`, `gt-import`, `gt-bench`).
 
 They check for the `export` extra before importing anything that needs it, so a runtime-only install
 (`pip install gaussiantalker-sdk`, no torch) gets one line saying what to install instead of a traceback.
@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 
 # What the exporter side imports beyond the runtime's dependencies (the `export` extra of pyproject.toml).
-EXPORT_EXTRA_MODULES = ("torch", "onnx", "onnxscript")
+EXPORT_EXTRA_MODULES = ("torch", "onnx", "onnxscript", "plyfile")
 INSTALL_HINT = ('pip install torch==2.13.0 && pip install "gaussiantalker-sdk[export]" '
                 "(torch first, so pip keeps the CPU build)")
 
@@ -38,6 +38,14 @@ def gt_export() -> None:
     """`gt-export`: export (and verify) a speaker checkpoint."""
     _require_export_extra("gt-export")
     from .cli import main
+
+    main()
+
+
+def gt_import() -> None:
+    """`gt-import`: turn an avatar trained elsewhere (LAM) into a speaker checkpoint."""
+    _require_export_extra("gt-import")
+    from .import_cli import main
 
     main()
 

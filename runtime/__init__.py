@@ -3,12 +3,13 @@
 Everything an app needs is importable from here:
 
     from gaussiantalker.runtime import TalkingHead, HeadPose, GaussianTalkerError
+    from gaussiantalker.runtime import BlendshapeDrive, load_motion, ARKIT_BLENDSHAPES   # ARKit speakers
     from gaussiantalker.runtime import RenderSettings, OutputSettings, BackendSettings   # grouped settings
 """
 
 from gaussiantalker.sdk import __version__
 from gaussiantalker.sdk.camera import Camera
-from gaussiantalker.sdk.drive import FrameDrive, HeadPose
+from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive, HeadPose
 from gaussiantalker.sdk.errors import (
     AudioError,
     BundleError,
@@ -19,7 +20,9 @@ from gaussiantalker.sdk.errors import (
     SettingsError,
     VideoError,
 )
+from gaussiantalker.sdk.motion import MotionTrack, load_motion
 from gaussiantalker.sdk.render_settings import RenderSettings
+from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
 from gaussiantalker.sdk.video_formats import VideoPlan, plan_video
 
 from .head import FrameOutput, HeadPoseSource, TalkingHead
@@ -31,6 +34,10 @@ __all__ = [
     "Camera",
     "HeadPose",
     "FrameDrive",
+    "BlendshapeDrive",
+    "MotionTrack",
+    "load_motion",
+    "ARKIT_BLENDSHAPES",
     "FrameOutput",
     "HeadPoseSource",
     "RenderSettings",

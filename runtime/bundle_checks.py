@@ -15,6 +15,7 @@ from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.codecs import ONNX_DTYPES, ORT_DTYPES
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.errors import BundleError, CameraError
+from gaussiantalker.sdk.rig import ArkitRig
 
 from .onnx_wire import model_tensors
 
@@ -23,9 +24,53 @@ SPEAKER_GRAPHS = ("translator", "deform")
 POSE_TRACK_WIDTH = 6
 
 
+def is_speaker_bundle(bundle: Bundle) -> bool:
+    """Whether the bundle holds a speaker (a FLAME 'speaker' section or an ARKit 'rig'), not bare graphs."""
+    return "speaker" in bundle.manifest or "rig" in bundle.manifest
+
+
+def _check_track(bundle: Bundle, name: str, width: int, what: str) -> None:
+    """Buffer `name`, if present, must be float32 [T >= 1, width]."""
+    if bundle.has_buffer(name):
+        entry = bundle.manifest["buffers"][name]
+        shape = entry["shape"]
+        if entry["dtype"] != "float32" or len(shape) != 2 or shape[0] < 1 or shape[1] != width:
+            raise BundleError(f"{bundle.path}: buffer {name!r} is {entry['dtype']} {shape}, expected float32 "
+                              f"[T >= 1, {width}] ({what})")
+
+
+def check_arkit_bundle(bundle: Bundle) -> None:
+    """An ARKit speaker's bundle: a valid rig, a `deform` graph, a valid camera, and well-shaped tracks."""
+    try:
+        rig = ArkitRig.from_dict(bundle.manifest["rig"])
+    except (TypeError, ValueError) as exc:
+        raise BundleError(f"{bundle.path}: manifest 'rig' is invalid: {exc}") from None
+    if "deform" not in bundle.manifest["graphs"]:
+        raise BundleError(f"{bundle.path}: ARKit speaker bundle lacks the 'deform' graph")
+    try:
+        Camera.from_dict(bundle.manifest["camera"])
+    except (CameraError, TypeError, KeyError) as exc:
+        raise BundleError(f"{bundle.path}: manifest 'camera' section is invalid: {exc}") from None
+    _check_track(bundle, "pose_track", POSE_TRACK_WIDTH, "rotation, translation per frame")
+    _check_track(bundle, "motion_track", len(rig.blendshapes), "ARKit weights per frame")
+
+
+def check_blendshape_width(bundle: Bundle) -> None:
+    """The `deform` graph's 'blendshapes' input must be as wide as the rig's blendshape list."""
+    count = len(bundle.manifest["rig"]["blendshapes"])
+    for value in bundle.graph_info("deform")["inputs"]:
+        width = value["shape"][-1] if value["shape"] else None
+        if value["name"] == "blendshapes" and isinstance(width, int) and width != count:
+            raise BundleError(f"{bundle.path}: manifest rig names {count} blendshapes but graph 'deform' input "
+                              f"'blendshapes' has {width}")
+
+
 def check_speaker_bundle(bundle: Bundle) -> None:
     """A speaker bundle must hold both graphs (a flame-driven scene's only `deform`), a valid camera, and (if any)
-    a float32 [T, 6] pose track."""
+    a float32 [T, 6] pose track. An ARKit speaker's: `check_arkit_bundle`."""
+    if "rig" in bundle.manifest:
+        check_arkit_bundle(bundle)
+        return
     scene = bundle.manifest.get("scene")
     flame_driven = isinstance(scene, dict) and isinstance(scene.get("drive"), dict) and \
         scene["drive"].get("driver") == "flame"
@@ -41,17 +86,16 @@ def check_speaker_bundle(bundle: Bundle) -> None:
         Camera.from_dict(bundle.manifest["camera"])
     except CameraError as exc:
         raise BundleError(f"{bundle.path}: manifest 'camera' section is invalid: {exc}") from None
-    if bundle.has_buffer("pose_track"):
-        entry = bundle.manifest["buffers"]["pose_track"]
-        shape = entry["shape"]
-        if entry["dtype"] != "float32" or len(shape) != 2 or shape[0] < 1 or shape[1] != POSE_TRACK_WIDTH:
-            raise BundleError(f"{bundle.path}: buffer 'pose_track' is {entry['dtype']} {shape}, expected float32 "
-                              f"[T >= 1, {POSE_TRACK_WIDTH}] (rotation, translation per frame)")
+    _check_track(bundle, "pose_track", POSE_TRACK_WIDTH, "rotation, translation per frame")
 
 
 def check_expression_width(bundle: Bundle) -> None:
     """The speaker config's n_expr must be the graphs' expression width (drives are built from it); each backend
-    calls this once its graphs' signatures are known to be the manifest's."""
+    calls this once its graphs' signatures are known to be the manifest's. An ARKit speaker's: the rig's
+    blendshape count (`check_blendshape_width`)."""
+    if "rig" in bundle.manifest:
+        check_blendshape_width(bundle)
+        return
     n_expr = bundle.manifest["speaker"].get("n_expr", SpeakerConfig.n_expr)
     for graph, kind in (("deform", "inputs"), ("translator", "outputs")):
         if graph not in bundle.manifest["graphs"]:
@@ -104,5 +148,6 @@ def check_signature(bundle: Bundle, name: str, info: dict, session: Any) -> None
                                   f"the manifest declares {d['dtype']} {d['shape']}")
 
 
-__all__ = ["POSE_TRACK_WIDTH", "SPEAKER_GRAPHS", "check_expression_width", "check_initializers", "check_signature",
+__all__ = ["POSE_TRACK_WIDTH", "SPEAKER_GRAPHS", "check_arkit_bundle", "check_blendshape_width",
+           "is_speaker_bundle", "check_expression_width", "check_initializers", "check_signature",
            "check_speaker_bundle"]

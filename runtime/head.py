@@ -20,6 +20,7 @@ the bare head.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import time
 from collections import defaultdict
@@ -35,10 +36,12 @@ from gaussiantalker.sdk.audio import load_audio, prepare_audio
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import SpeakerConfig
-from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame, track_row
-from gaussiantalker.sdk.errors import AudioError, BundleError, RenderError, VideoError
+from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive, HeadPose, pose_track_frame, track_row
+from gaussiantalker.sdk.errors import AudioError, BundleError, DriveError, RenderError, VideoError
+from gaussiantalker.sdk.motion import MotionTrack, load_motion
 from gaussiantalker.sdk.reference_clip import ReferenceClip
 from gaussiantalker.sdk.render_settings import RenderSettings
+from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_RIG, FLAME_RIG, ArkitRig, check_drive_rig, rig_kind
 from gaussiantalker.sdk.scene import Scene, SceneError, SceneGuard
 from gaussiantalker.sdk.video import VideoWriter
 from gaussiantalker.sdk.video_formats import VideoPlan
@@ -52,6 +55,8 @@ from .splatter import GLSplatter, PreparedSplats
 from .translate import SILENCE_GATE_DBFS, iter_translate
 
 AudioSource = str | os.PathLike | np.ndarray
+# An ARKit motion: a motion file, a MotionTrack, [T, 52] weights at the speaker's fps, or None (the bundle's own).
+MotionSource = str | os.PathLike | MotionTrack | np.ndarray | None
 # Per-stage timings kept per TalkingHead: at most this many recent calls (then trimmed to the newest half), so a
 # long-running head's bookkeeping does not grow with the number of frames it has rendered.
 MAX_TIMINGS_PER_STAGE = 10_000
@@ -107,11 +112,7 @@ class TalkingHead:
                                                 render_scale=render_scale, render_target=render_target,
                                                 sort_interval=sort_interval, sort_key_bits=sort_key_bits)
         self.backend_settings = dataclasses.replace(backend_settings, threads=self.render_settings.graph_threads)
-        try:
-            self.config = SpeakerConfig.from_dict(manifest["speaker"])
-            self.config.check_timing()
-        except (TypeError, ValueError, AttributeError) as exc:
-            raise BundleError(f"{self.bundle.path}: manifest has no valid speaker config: {exc}") from exc
+        self.rig, self.config, self.arkit = self._rig(manifest)
         self.graphs: GraphBackend = open_backend(self.bundle, self.backend_settings.name,
                                                  threads=self.backend_settings.threads)
         self.pose_track = self.bundle.buffer("pose_track") if self.bundle.has_buffer("pose_track") else None
@@ -130,6 +131,38 @@ class TalkingHead:
         self.silence_gate_dbfs = silence_gate_dbfs
         # Read at load like every entry a frame may need, so a damaged one fails here, not mid-video.
         self._regions = Regions(self.bundle) if "regions" in manifest else None
+
+    def _rig(self, manifest: dict) -> tuple[str, SpeakerConfig | None, ArkitRig | None]:
+        """(rig kind, FLAME speaker config or None, ARKit rig or None) from the manifest, checked."""
+        try:
+            kind = rig_kind(manifest)
+            if kind == ARKIT_RIG:
+                return kind, None, ArkitRig.from_dict(manifest["rig"])
+        except (TypeError, ValueError) as exc:
+            raise BundleError(f"{self.bundle.path}: manifest has no valid rig: {exc}") from exc
+        try:
+            config = SpeakerConfig.from_dict(manifest["speaker"])
+            config.check_timing()
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise BundleError(f"{self.bundle.path}: manifest has no valid speaker config: {exc}") from exc
+        return kind, config, None
+
+    @property
+    def fps(self) -> int:
+        """Video frames per second of this speaker."""
+        return self.arkit.fps if self.arkit is not None else self.config.fps
+
+    @property
+    def sample_rate(self) -> int:
+        """Audio sample rate (Hz) this speaker's audio is resampled to."""
+        return self.arkit.sample_rate if self.arkit is not None else self.config.sample_rate
+
+    @property
+    def motion_track(self) -> MotionTrack | None:
+        """The motion an ARKit speaker's avatar ships (its weights at the speaker's fps), None if it has none."""
+        if not self.bundle.has_buffer("motion_track"):
+            return None
+        return MotionTrack(self.bundle.buffer("motion_track"), self.fps)
 
     @classmethod
     def output_view(cls, bundle: str | os.PathLike | Bundle, output: OutputSettings | None = None, *,
@@ -162,6 +195,8 @@ class TalkingHead:
             return None, None
         try:
             scene = Scene.from_dict(data)
+            if self.config is None:
+                raise SceneError("scenes are for FLAME speakers")
             return scene, SceneGuard(scene, self.config.n_expr)
         except (SceneError, TypeError, ValueError, AttributeError) as exc:
             raise BundleError(f"{self.bundle.path}: manifest 'scene' is invalid: {exc}") from None
@@ -193,10 +228,10 @@ class TalkingHead:
     def load_audio(self, audio: AudioSource, sample_rate: int | None = None) -> np.ndarray:
         """Any file or array -> mono float32 at the speaker's sample rate."""
         if isinstance(audio, (str, os.PathLike)):
-            return load_audio(audio, self.config.sample_rate)
+            return load_audio(audio, self.sample_rate)
         if sample_rate is None:
             raise AudioError("an audio array needs its sample_rate")
-        return prepare_audio(audio, sample_rate, self.config.sample_rate)
+        return prepare_audio(audio, sample_rate, self.sample_rate)
 
     def _run_translator(self, chunk: np.ndarray) -> dict:
         """One translator window through the graph (timed)."""
@@ -211,6 +246,10 @@ class TalkingHead:
 
     def translate_blocks(self, audio: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
         """Audio (speaker rate, mono float32) -> (expression, jaw pose) blocks in frame order, one window at a time."""
+        if self.rig == ARKIT_RIG:
+            raise DriveError(f"{self.bundle.path}: this ARKit speaker has no audio model attached, so it cannot turn "
+                             "audio into frames: drive it with render_blendshapes(), motion_frames() or a motion "
+                             "file (docs/import.md)")
         return iter_translate(self._run_translator, audio, self.config.samples_per_frame,
                               silence_gate_dbfs=self.silence_gate_dbfs)
 
@@ -231,9 +270,10 @@ class TalkingHead:
         return pose_track_frame(np.asarray(track, dtype=np.float32).reshape(-1, 6), index)
 
     # -- drive -> frame ------------------------------------------------------------------------------
-    def gaussians(self, drive: FrameDrive) -> dict[str, np.ndarray]:
+    def gaussians(self, drive: FrameDrive | BlendshapeDrive) -> dict[str, np.ndarray]:
         """Run the deformation graph: world-space means, cov3d, rgb, opacity for one frame."""
         start = time.perf_counter()
+        check_drive_rig(self.rig, drive.rig)
         inputs = drive.graph_inputs()
         if self.scene_guard is not None:
             self.scene_guard.check_drive(drive.expression, drive.flame_pose, drive.head_translation)
@@ -307,9 +347,60 @@ class TalkingHead:
     def render_params(self, expression=None, jaw_pose=None, neck_pose=None, eye_pose=None,
                       head_rotation=None, head_translation=None, output: FrameOutput = "uint8") -> np.ndarray:
         """One frame from explicit FLAME parameters and head pose (for apps driven by a face tracker)."""
+        check_drive_rig(self.rig, FLAME_RIG, "use render_blendshapes()")
         drive = FrameDrive.make(self.config.n_expr, expression, jaw_pose, neck_pose, eye_pose,
                                 HeadPose.make(head_rotation, head_translation))
         return self.render(drive, output)
+
+    # -- ARKit speakers ------------------------------------------------------------------------------
+    def render_blendshapes(self, weights=None, head_pose: HeadPose | np.ndarray | None = None,
+                           output: FrameOutput = "uint8") -> np.ndarray:
+        """One frame of an ARKit speaker (docs/import.md): `weights` a {name: weight} dict of ARKit blendshapes
+        (names left out are 0) or a [52] array in ARKIT_BLENDSHAPES order; `head_pose` a HeadPose or [6] array
+        (rotation about the head bone's pivot, translation; None: rest); every output of `render`."""
+        return self.render(self.blendshape_drive(weights, head_pose), output)
+
+    def blendshape_drive(self, weights=None, head_pose: HeadPose | np.ndarray | None = None) -> BlendshapeDrive:
+        """The validated drive of `render_blendshapes`'s arguments (DriveError for a FLAME speaker)."""
+        check_drive_rig(self.rig, ARKIT_RIG, "use render_params() or audio")
+        if head_pose is not None and not isinstance(head_pose, HeadPose):
+            row = np.asarray(head_pose, dtype=np.float64)
+            if row.shape != (6,):
+                raise DriveError(f"head_pose must be a HeadPose or [6] (rotation, translation), got shape "
+                                 f"{tuple(row.shape)}")
+            head_pose = HeadPose.make(row[:3], row[3:])
+        if weights is not None and not isinstance(weights, dict) and self.arkit.blendshapes != ARKIT_BLENDSHAPES:
+            weights = dict(zip(ARKIT_BLENDSHAPES, np.asarray(weights).reshape(-1), strict=True))
+        return BlendshapeDrive.make(weights, head_pose, self.arkit.blendshapes)
+
+    def motion(self, motion: MotionSource = None) -> MotionTrack:
+        """An ARKit motion at this speaker's fps: a motion file (LAM's JSON kinds), a MotionTrack, [T, 52]
+        weights at the speaker's fps, or None for the motion the bundle ships."""
+        check_drive_rig(self.rig, ARKIT_RIG, "FLAME speakers are driven by audio or render_params()")
+        if motion is None:
+            track = self.motion_track
+            if track is None:
+                raise DriveError(f"{self.bundle.path}: the avatar ships no motion track; give a motion file or "
+                                 "[T, 52] ARKit weights")
+        elif isinstance(motion, MotionTrack):
+            track = motion
+        elif isinstance(motion, (str, os.PathLike)):
+            track = load_motion(motion)
+        else:
+            track = MotionTrack(np.asarray(motion, dtype=np.float64), self.fps)
+        return track.at_fps(self.fps)
+
+    def motion_drives(self, motion: MotionSource = None, head_pose: HeadPoseSource = None
+                      ) -> Iterator[BlendshapeDrive]:
+        """One drive per frame of a motion (see `motion`), the head following `head_pose` or the pose track."""
+        for index, weights in enumerate(self.motion(motion).weights):
+            yield self.blendshape_drive(weights, self.head_pose(index, head_pose))
+
+    def motion_frames(self, motion: MotionSource = None, head_pose: HeadPoseSource = None,
+                      output: FrameOutput = "uint8") -> Iterator[np.ndarray]:
+        """Frames of an ARKit speaker playing a motion (see `motion`), one per motion frame, streamed and
+        pipelined like `frames`."""
+        yield from self._bare_frames(self.motion_drives(motion, head_pose), output)
 
     def drives(self, audio: AudioSource, sample_rate: int | None = None,
                head_pose: HeadPoseSource = None) -> Iterator[FrameDrive]:
@@ -388,13 +479,15 @@ class TalkingHead:
 
     def frame_count(self, samples: int) -> int:
         """Video frames for `samples` audio samples: the last partial frame counts (audio is zero-padded)."""
+        if self.config is None:
+            return math.ceil(samples * self.fps / self.sample_rate - 1e-9)
         return -(-samples // self.config.samples_per_frame)
 
-    def write_video(self, path: str | os.PathLike | VideoPlan, audio: AudioSource, sample_rate: int | None = None,
-                    head_pose: HeadPoseSource = None, progress: bool = False,
+    def write_video(self, path: str | os.PathLike | VideoPlan, audio: AudioSource | None = None,
+                    sample_rate: int | None = None, head_pose: HeadPoseSource = None, progress: bool = False,
                     on_frame: Callable[[np.ndarray], None] | None = None, *, alpha: bool | None = None,
                     codec: str | None = None, crf: int | None = None, preset: str | None = None,
-                    container: str | None = None) -> Path:
+                    container: str | None = None, motion: MotionSource = None) -> Path:
         """Render the clip and write a video with the audio muxed in (`on_frame` sees each frame); returns the path.
 
         `path` is a file name or a VideoPlan (`plan_video`, `sdk.video_formats.plan_video`; it then says
@@ -403,15 +496,27 @@ class TalkingHead:
         "frames/%05d.png"; `alpha=True` writes coverage as an alpha channel (webm, mov with codec="prores", mkv,
         png). Everything about the output is checked before the first frame is rendered (VideoError);
         docs/video.md lists the formats.
+
+        An ARKit speaker plays a motion (`motion`, see `TalkingHead.motion`; None: the bundle's own) and muxes
+        `audio` if given; a FLAME speaker renders the audio through its translator.
         """
         from gaussiantalker.sdk.progress import progress_bar
 
         plan = self._video_plan(path, alpha=alpha, codec=codec, crf=crf, preset=preset, container=container)
-        samples = self.load_audio(audio, sample_rate)
-        total = self.frame_count(samples.shape[0])
-        with VideoWriter(plan.path, self.config.fps, plan.size, audio=samples, sample_rate=self.config.sample_rate,
+        output = "rgba" if plan.alpha else "uint8"
+        samples = None if audio is None else self.load_audio(audio, sample_rate)
+        if self.rig == ARKIT_RIG:
+            track = self.motion(motion)
+            frames, total = self.motion_frames(track, head_pose, output), len(track)
+        elif samples is None:
+            raise AudioError("a FLAME speaker's video needs audio (its translator turns speech into motion)")
+        else:
+            if motion is not None:
+                raise DriveError("motion files drive ARKit speakers; this FLAME speaker is driven by its audio")
+            frames = self.frames(samples, self.sample_rate, head_pose, output=output)
+            total = self.frame_count(samples.shape[0])
+        with VideoWriter(plan.path, self.fps, plan.size, audio=samples, sample_rate=self.sample_rate,
                          plan=plan) as out:
-            frames = self.frames(samples, self.config.sample_rate, head_pose, output="rgba" if plan.alpha else "uint8")
             for frame in progress_bar(frames, total=total, unit="frame", disable=not progress, desc="rendering"):
                 out.write(frame)
                 if on_frame is not None:

@@ -17,7 +17,7 @@ import numpy as np
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.errors import BundleError
 
-from .bundle_checks import check_expression_width, check_speaker_bundle
+from .bundle_checks import check_expression_width, check_speaker_bundle, is_speaker_bundle
 
 INSTALL_HINT = 'pip install "gaussiantalker-sdk[mnn]"'
 
@@ -72,13 +72,13 @@ class MnnBackend:
             held = f"MNN graphs only for {', '.join(names)}" if names else "no MNN graphs"
             raise BundleError(f"{bundle.path}: bundle has {held} (missing: {', '.join(missing)}); re-export it with "
                               "`gt-export --mnn` to run it on MNN, or use backend=\"onnxruntime\"")
-        if "speaker" in bundle.manifest:
+        if is_speaker_bundle(bundle):
             check_speaker_bundle(bundle)
         self._nn, self._expr = import_mnn()
         # Everything is read and checksummed before the first module is built: damage anywhere fails fast.
         models = {name: self._model_bytes(name) for name in names}
         self.modules = {name: self._open(name, data) for name, data in models.items()}
-        if "speaker" in bundle.manifest:  # after _open: the modules' names are now known to be the manifest's
+        if is_speaker_bundle(bundle):  # after _open: the modules' names are now known to be the manifest's
             check_expression_width(bundle)
 
     def _entry(self, name: str) -> dict:

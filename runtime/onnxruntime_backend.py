@@ -16,7 +16,13 @@ import numpy as np
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.errors import BundleError
 
-from .bundle_checks import check_expression_width, check_initializers, check_signature, check_speaker_bundle
+from .bundle_checks import (
+    check_expression_width,
+    check_initializers,
+    check_signature,
+    check_speaker_bundle,
+    is_speaker_bundle,
+)
 
 
 @dataclass
@@ -36,7 +42,7 @@ class OnnxRuntimeBackend:
         self._ort = ort
         self.bundle = bundle
         self.threads = threads
-        speaker = "speaker" in bundle.manifest
+        speaker = is_speaker_bundle(bundle)
         if speaker:
             check_speaker_bundle(bundle)
         # Everything is read and checked before the first session is built: damage anywhere fails fast.

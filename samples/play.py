@@ -5,6 +5,9 @@ from the extension: mp4, mov, webm, mkv, gif, or a png sequence such as frames/%
 frames in a window. A bundle with a reference clip is composited into the speaker's own video at the clip's size
 (docs/compositing.md); --no-composite gives the bare head, at the speaker's camera (512x512 unless told
 otherwise), and --alpha an alpha channel for it. The output is checked before anything is rendered.
+
+An ARKit speaker (an imported LAM avatar, docs/import.md) plays a motion: `--motion bsData.json` (LAM's ARKit JSON
+kinds), or without --motion the motion its avatar ships; --audio, if given, is muxed in.
 """
 
 from __future__ import annotations
@@ -77,7 +80,10 @@ def _parse_background(text: str) -> list[float]:
 @app.command()
 def play(
     bundle: Path = typer.Argument(..., help="speaker bundle (.gtb) written by gt-export"),
-    audio: Path = typer.Option(..., "--audio", "-a", help="speech: wav, mp3 or anything ffmpeg reads"),
+    audio: Path = typer.Option(None, "--audio", "-a", help="speech: wav, mp3 or anything ffmpeg reads (an ARKit "
+                               "speaker: muxed beside its motion)"),
+    motion: Path = typer.Option(None, "--motion", "-m", help="an ARKit speaker's motion: a JSON file of ARKit "
+                                "weights as LAM writes them [default: the motion the avatar ships]"),
     output: Path = typer.Option(Path("talk.mp4"), "-o", "--output",
                                 help="video to write: .mp4 .mov .webm .mkv .gif, or frames/%05d.png"),
     resolution: str = typer.Option(None, "--resolution", "-r", help="frame size, N or WxH [default: the reference "
@@ -108,7 +114,7 @@ def play(
                                       "65536 levels, faster [default: the bundle's preset, else 32]"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
 ) -> None:
-    """Render BUNDLE talking to AUDIO and write a video with the audio muxed in."""
+    """Render BUNDLE talking to AUDIO (or playing an ARKit MOTION) and write a video with the audio muxed in."""
     start = time.perf_counter()
     try:
         # Everything about the output is checked before the speaker is loaded (the manifest alone says the frames).
@@ -134,9 +140,16 @@ def play(
                 raise GaussianTalkerError("--show needs a display (DISPLAY is not set); the video is still written "
                                           "without --show")
             window = FrameWindow(*head.frame_size, f"GaussianTalker - {bundle.name}")
-        samples = head.load_audio(audio)
-        total = head.frame_count(samples.shape[0])
-        head.write_video(plan, samples, head.config.sample_rate, progress=not quiet,
+        samples = None if audio is None else head.load_audio(audio)
+        if head.rig == "arkit":
+            track = head.motion(motion)
+            total = len(track)
+        elif samples is None:
+            raise GaussianTalkerError("--audio is required: this speaker turns speech into motion (--motion drives "
+                                      "ARKit speakers)")
+        else:
+            track, total = None, head.frame_count(samples.shape[0])
+        head.write_video(plan, samples, head.sample_rate, progress=not quiet, motion=track,
                          on_frame=window.show if window is not None else None)
         if window is not None:
             window.close()
@@ -145,9 +158,12 @@ def play(
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
     seconds = time.perf_counter() - start
-    audio_note = "" if plan.with_audio else f"; {plan.container.name} holds no audio"
-    typer.echo(f"wrote {output} ({total} frames, {samples.shape[0] / head.config.sample_rate:.1f} s of audio"
-               f"{audio_note}) in {seconds:.1f} s: {plan.describe()}")
+    if samples is None:
+        sound = f"{total / head.fps:.1f} s, no audio"
+    else:
+        sound = f"{samples.shape[0] / head.sample_rate:.1f} s of audio" + \
+            ("" if plan.with_audio else f"; {plan.container.name} holds no audio")
+    typer.echo(f"wrote {output} ({total} frames, {sound}) in {seconds:.1f} s: {plan.describe()}")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
-"""Per-frame drive parameters: FLAME expression and pose plus the head pose, validated and packed for graphs.
+"""Per-frame drive parameters, validated and packed for the deformation graph, one kind per rig (sdk/rig.py).
 
-The deformation graph takes `expression [B, n_expr]`, `flame_pose [B, 15]` (axis-angle per FLAME joint:
-global = head rotation, neck, jaw, left eye, right eye) and `head_translation [B, 3]`.
+A FLAME speaker's graph takes `expression [B, n_expr]`, `flame_pose [B, 15]` (axis-angle per FLAME joint:
+global = head rotation, neck, jaw, left eye, right eye) and `head_translation [B, 3]` (`FrameDrive`); an ARKit
+speaker's takes `blendshapes [B, 52]`, `head_rotation [B, 3]` and `head_translation [B, 3]` (`BlendshapeDrive`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import numpy as np
 
 from .config import POSE_DIM
 from .errors import DriveError
+from .rig import ARKIT_BLENDSHAPES, ARKIT_RIG, FLAME_RIG
 
 # Largest magnitude accepted for any drive value: far beyond anatomy (FLAME units are sigma / radians / metres),
 # small enough that no intermediate product overflows float32.
@@ -69,6 +71,7 @@ class FrameDrive:
     expression: np.ndarray  # [n_expr]
     flame_pose: np.ndarray  # [15]
     head_translation: np.ndarray  # [3]
+    rig = FLAME_RIG
 
     def __post_init__(self) -> None:
         """Validate even when built directly (not through `make`), so no NaN reaches a graph."""
@@ -90,6 +93,51 @@ class FrameDrive:
     def graph_inputs(self) -> dict[str, np.ndarray]:
         """Inputs of the deformation graph for a batch of one frame."""
         return {"expression": self.expression[None], "flame_pose": self.flame_pose[None],
+                "head_translation": self.head_translation[None]}
+
+
+def blendshape_vector(weights, names: tuple[str, ...] = ARKIT_BLENDSHAPES) -> np.ndarray:
+    """float32 [len(names)] from a {name: weight} mapping (names left out are 0) or an array in `names` order;
+    DriveError naming an unknown name, a wrong length or a bad value."""
+    if isinstance(weights, dict):
+        unknown = [key for key in weights if key not in names]
+        if unknown:
+            raise DriveError(f"unknown blendshape name {unknown[0]!r}" + (f" (and {len(unknown) - 1} more)"
+                             if len(unknown) > 1 else "") + f"; the ARKit names are {', '.join(names[:4])}, ... "
+                             "(gaussiantalker.sdk.rig.ARKIT_BLENDSHAPES)")
+        vector = np.zeros(len(names), np.float64)
+        for key, value in weights.items():
+            vector[names.index(key)] = _vector(f"blendshape {key!r}", [value], 1)[0]  # one number each
+        return vector.astype(np.float32)
+    return _vector("blendshapes", weights, len(names))
+
+
+@dataclass(frozen=True)
+class BlendshapeDrive:
+    """Everything that drives one frame of an ARKit speaker, validated: blendshape weights and head pose."""
+
+    blendshapes: np.ndarray  # [52] in ARKIT_BLENDSHAPES order
+    head_rotation: np.ndarray  # [3] axis-angle about the head bone's pivot (radians)
+    head_translation: np.ndarray  # [3] metres
+    rig = ARKIT_RIG
+
+    def __post_init__(self) -> None:
+        """Validate even when built directly (not through `make`), so no NaN reaches a graph."""
+        object.__setattr__(self, "blendshapes", _vector("blendshapes", self.blendshapes, None))
+        object.__setattr__(self, "head_rotation", _vector("head rotation", self.head_rotation, 3))
+        object.__setattr__(self, "head_translation", _vector("head translation", self.head_translation, 3))
+
+    @classmethod
+    def make(cls, weights=None, head_pose: HeadPose | None = None,
+             names: tuple[str, ...] = ARKIT_BLENDSHAPES) -> BlendshapeDrive:
+        """Validate and pack: `weights` a {name: weight} dict or an array in `names` order (None: neutral)."""
+        head_pose = head_pose or HeadPose.make()
+        vector = np.zeros(len(names), np.float32) if weights is None else blendshape_vector(weights, names)
+        return cls(vector, head_pose.rotation, head_pose.translation)
+
+    def graph_inputs(self) -> dict[str, np.ndarray]:
+        """Inputs of the ARKit deformation graph for a batch of one frame."""
+        return {"blendshapes": self.blendshapes[None], "head_rotation": self.head_rotation[None],
                 "head_translation": self.head_translation[None]}
 
 

@@ -36,3 +36,7 @@ class SettingsError(RenderError, ValueError):
 
 class VideoError(GaussianTalkerError):
     """A video cannot be written: bad output path or folder, unknown format, codec or setting, encoder failure."""
+
+
+class ImportFormatError(GaussianTalkerError):
+    """An avatar file to import (docs/import.md) is missing a member or field, or holds one of the wrong shape."""

@@ -77,8 +77,10 @@ def test_runtime_reexports_what_an_app_needs():
     import gaussiantalker.runtime as runtime
     from gaussiantalker.sdk import errors
 
-    for name in ("TalkingHead", "Camera", "HeadPose", "FrameDrive", "__version__"):
+    for name in ("TalkingHead", "Camera", "HeadPose", "FrameDrive", "BlendshapeDrive", "MotionTrack", "load_motion",
+                 "ARKIT_BLENDSHAPES", "__version__"):
         assert hasattr(runtime, name), name
     error_types = {n for n, v in vars(errors).items() if isinstance(v, type) and issubclass(v, Exception)}
-    assert error_types - {"CheckpointError"} <= set(runtime.__all__)  # checkpoints are the exporter's input
+    # Checkpoints and avatar files to import are the exporter's input, not the runtime's.
+    assert error_types - {"CheckpointError", "ImportFormatError"} <= set(runtime.__all__)
     assert runtime.__version__ == __import__("importlib.metadata").metadata.version("gaussiantalker-sdk")

@@ -19,13 +19,18 @@ from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.errors import CameraError, CheckpointError
 from gaussiantalker.sdk.files import atomic_write
+from gaussiantalker.sdk.rig import RIGS
 
+from ..model.arkit_speaker import ArkitSpeaker
 from ..model.flame import FlameArrays
 from ..model.speaker import Speaker
+from .arkit_checkpoint import arkit_payload, load_arkit_payload
 from .compositing_payload import inpainter_from_payload, inpainter_payload, reference_from_payload, reference_payload
 
 FORMAT = "gaussiantalker-speaker"
 VERSION = 1
+# The entries every checkpoint has, and (a FLAME speaker, no "rig" entry) the FLAME speaker's own.
+COMMON_KEYS = ("format", "version")
 REQUIRED_KEYS = ("format", "version", "config", "flame", "shape", "parent", "translator", "latent_pose",
                  "gaussians", "camera", "background")
 _FLAME_FLOAT_KEYS = ("v_template", "shapedirs", "exprdirs", "posedirs", "J_regressor", "lbs_weights")
@@ -110,9 +115,13 @@ def _check_extras(path: Path, payload: dict) -> None:
                                   f"expected [T >= 1, 6]")
 
 
-def save_checkpoint(speaker: Speaker, path: str | os.PathLike) -> Path:
+def save_checkpoint(speaker: Speaker | ArkitSpeaker, path: str | os.PathLike) -> Path:
     """Write `speaker` as a weights-only-loadable checkpoint (atomically: temp file + rename)."""
     path = Path(path)
+    if isinstance(speaker, ArkitSpeaker):
+        with atomic_write(path) as handle:
+            torch.save({"format": FORMAT, "version": VERSION, **arkit_payload(speaker)}, handle)
+        return path
     payload = {
         "format": FORMAT,
         "version": VERSION,
@@ -162,7 +171,10 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
         raise CheckpointError(f"cannot read checkpoint {path}: truncated or not a torch.save file ({detail})") from exc
     if not isinstance(payload, dict):
         raise CheckpointError(f"checkpoint {path} holds a {type(payload).__name__}, not a speaker dict")
-    missing = [k for k in REQUIRED_KEYS if k not in payload]
+    rig = payload.get("rig", "flame")
+    if rig not in RIGS:
+        raise CheckpointError(f"checkpoint {path} has rig {rig!r}; this SDK reads {', '.join(RIGS)}")
+    missing = [k for k in (REQUIRED_KEYS if rig == "flame" else COMMON_KEYS) if k not in payload]
     if missing:
         raise CheckpointError(f"checkpoint {path} is missing entries: {', '.join(missing)}")
     if payload["format"] != FORMAT or payload["version"] != VERSION:
@@ -171,10 +183,13 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
     return payload
 
 
-def load_checkpoint(path: str | os.PathLike) -> Speaker:
-    """Rebuild the torch Speaker from a checkpoint; every entry's type, dtype and shape is checked."""
+def load_checkpoint(path: str | os.PathLike) -> Speaker | ArkitSpeaker:
+    """Rebuild the torch speaker (a FLAME Speaker, or an ArkitSpeaker for "rig": "arkit") from a checkpoint;
+    every entry's type, dtype and shape is checked."""
     path = Path(path)
     payload = read_checkpoint(path)
+    if payload.get("rig") == "arkit":
+        return load_arkit_payload(path, payload)
     try:
         config = SpeakerConfig.from_dict(payload["config"])
         camera = Camera.from_dict(payload["camera"])

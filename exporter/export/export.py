@@ -21,8 +21,10 @@ from gaussiantalker.sdk.progress import progress_bar
 from gaussiantalker.sdk.reference_clip import ReferenceClipError, frame_entry, mask_entry
 from gaussiantalker.sdk.scene import Scene
 
+from ..model.arkit_speaker import ArkitSpeaker
 from ..model.speaker import Speaker
 from . import onnx_export
+from .arkit_graph import ARKIT_DEFORM_INPUTS, ArkitDeformationGraph, arkit_deform_example
 from .deform_graph import DeformationGraph
 from .graph_precision import convert_precision
 from .inpainter_graph import inpainter_onnx
@@ -100,6 +102,9 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     `specialise` result for it); the bundle records the scene and its camera. `mnn` also stores every graph as
     an MNN model (docs/mnn.md; needs the `mnn` extra)."""
     settings, chosen, label = resolve_settings(codec, settings, preset)
+    if isinstance(speaker, ArkitSpeaker) and scene is not None:
+        raise BundleError("scene specialisation (--scene) is for FLAME speakers; an ARKit speaker's bundle is "
+                          "exported without one (docs/import.md)")
     if mnn:
         mnn_version()  # a missing converter fails here, before any graph is exported
     speaker = speaker.eval()
@@ -112,7 +117,8 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     if settings.gaussian_budget is not None:
         speaker = apply_budget(speaker, settings.gaussian_budget, progress=progress)
     writer = BundleWriter(metadata={
-        "speaker": speaker.config.to_dict(),
+        **({"rig": speaker.config.to_dict(), "source": speaker.source} if isinstance(speaker, ArkitSpeaker)
+           else {"speaker": speaker.config.to_dict()}),
         "camera": camera.to_dict(),
         "background": background,
         "precision": label,
@@ -124,7 +130,7 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
                                     "specialisation": [asdict(r) for r in spec.removals]}),
     })
     # A scene fixes its own camera and background: the reference clip (seen through another camera) is left out.
-    if spec is None and speaker.reference is not None:
+    if spec is None and getattr(speaker, "reference", None) is not None:
         writer.metadata["reference"] = speaker.reference.layout.to_dict()
         writer.metadata["inpaint"] = {"generator": "learned" if speaker.inpaint is not None else "opencv_fallback",
                                       "crop_margin": CROP_MARGIN_PX, "crop_multiple": CROP_MULTIPLE}
@@ -143,6 +149,9 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
                   mnn: bool) -> None:
     """Both graphs into `writer` (and their MNN models), then one atomic write: nothing reaches `result.path`
     until every step worked. A flame-driven scene has no translator graph."""
+    if isinstance(speaker, ArkitSpeaker):
+        _export_arkit_steps(speaker, writer, path, result, settings, steps, mnn)
+        return
     steps.set_postfix_str("translator graph")
     if spec is None or spec.has_translator:
         model = convert_precision(translator_onnx(speaker.translator, example_frames), settings.translator_precision)
@@ -183,6 +192,32 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
         writer.add_buffer("gaussian_regions", ids.astype(np.uint8 if regions.max() < 256 else np.uint16))
     if speaker.pose_track is not None:
         writer.add_buffer("pose_track", speaker.pose_track.numpy().astype(np.float32))
+    result.bytes_written = writer.write(path)
+    result.buffer_bytes = {name: entry["nbytes"] for name, entry in writer.manifest()["buffers"].items()}
+    steps.update()
+
+
+def _export_arkit_steps(speaker: ArkitSpeaker, writer: BundleWriter, path: str | os.PathLike | StagedFile,
+                        result: ExportResult, settings: ExportSettings, steps: tqdm, mnn: bool) -> None:
+    """An ARKit speaker's deformation graph, its shipped motion and pose tracks, then one atomic write (its bundle
+    has no translator graph and no reference clip; docs/import.md)."""
+    steps.update()  # no translator graph
+    steps.set_postfix_str("deformation graph")
+    args, dynamic = arkit_deform_example(speaker)
+    graph = ArkitDeformationGraph(speaker, sh_degree=settings.sh_degree)
+    model = onnx_export.export_onnx(graph, args, ARKIT_DEFORM_INPUTS, DEFORM_OUTPUTS, dynamic)
+    result.graphs["deform"] = add_graph(writer, "deform", model, settings.codec_for)
+    steps.update()
+    steps.update()  # no reference clip
+    if mnn:
+        steps.set_postfix_str("MNN graphs")
+        result.mnn = add_mnn_graphs(writer)
+        steps.update()
+    steps.set_postfix_str("writing bundle")
+    if speaker.pose_track is not None:
+        writer.add_buffer("pose_track", speaker.pose_track.numpy().astype(np.float32))
+    if speaker.motion_track is not None:
+        writer.add_buffer("motion_track", speaker.motion_track.numpy().astype(np.float32))
     result.bytes_written = writer.write(path)
     result.buffer_bytes = {name: entry["nbytes"] for name, entry in writer.manifest()["buffers"].items()}
     steps.update()

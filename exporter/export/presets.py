@@ -20,7 +20,7 @@ from gaussiantalker.sdk.render_settings import RenderSettings
 # Buffer groups a codec is chosen for, and which bundle buffers (by glob on the buffer name) belong to each.
 CODEC_GROUPS: dict[str, tuple[str, ...]] = {
     "gaussians": ("deform/latent_bias", "deform/log_scale", "deform/opacity", "deform/barycentric",
-                  "deform/rest_scale"),  # per-Gaussian static attributes
+                  "deform/rest_scale", "deform/rotation", "deform/sh_dc"),  # per-Gaussian static attributes
     "sh": ("deform/sh_rest",),  # SH bands 1..3
     "blendshapes": ("deform/latent_weight", "deform/latent_basis", "deform/latent_pose.*"),  # W_pos/rot/color, MLP
     "flame": ("deform/blend_basis", "deform/rest_points", "deform/lbs_weights"),  # FLAME bases, rest mesh, skinning

@@ -7,8 +7,9 @@ import numpy as np
 import torch
 
 from gaussiantalker.runtime.translate import translate_audio
-from gaussiantalker.sdk.drive import FrameDrive, HeadPose, pose_track_frame
+from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive, HeadPose, pose_track_frame
 
+from ..model.arkit_speaker import ArkitSpeaker
 from ..model.speaker import Speaker
 from .speech import synth_speech
 
@@ -38,4 +39,21 @@ def driven_clip(speaker: Speaker, frames: int, seed: int = 1) -> tuple[np.ndarra
     return audio, drives
 
 
-__all__ = ["driven_clip", "speech_clip"]
+def motion_clip(speaker: ArkitSpeaker, frames: int, seed: int = 1) -> list[BlendshapeDrive]:
+    """`frames` drives of an ARKit speaker: its shipped motion (weights and head pose) sampled evenly over the
+    track, or, without a motion track, random weights (each blendshape on with probability 0.3, uniform in [0, 1])
+    with the pose track's head poses."""
+    length = 0 if speaker.motion_track is None else int(speaker.motion_track.shape[0])
+    rows = np.linspace(0, max(length - 1, 0), frames).round().astype(int)
+    rng = np.random.default_rng(seed)
+    drives = []
+    for index, row in enumerate(rows):
+        drive = speaker.motion_drive(int(row) if length else index)
+        if not length:
+            weights = rng.uniform(0.0, 1.0, speaker.n_blendshapes) * (rng.random(speaker.n_blendshapes) < 0.3)
+            drive = BlendshapeDrive(weights.astype(np.float32), drive.head_rotation, drive.head_translation)
+        drives.append(drive)
+    return drives
+
+
+__all__ = ["driven_clip", "motion_clip", "speech_clip"]

@@ -13,10 +13,11 @@ import copy
 import numpy as np
 import torch
 
-from gaussiantalker.sdk.drive import FrameDrive, HeadPose
+from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive, HeadPose
 from gaussiantalker.sdk.progress import progress_bar
 
-from ..export.probes import driven_clip
+from ..export.probes import driven_clip, motion_clip
+from ..model.arkit_speaker import ArkitSpeaker
 from ..model.gaussians import BoundGaussians
 from ..model.rasterizer import render_reference
 from ..model.speaker import Speaker
@@ -27,8 +28,15 @@ MEASURE_RESOLUTION = 192  # contributions are pixel-area weighted, so a small fr
 MEASURE_FRAMES = 12
 
 
-def measurement_drives(speaker: Speaker, frames: int = MEASURE_FRAMES) -> list[FrameDrive]:
-    """A speech-driven clip (the pose track applied) plus a 3x3 sweep of head pitch and yaw with the mouth open."""
+def measurement_drives(speaker: Speaker | ArkitSpeaker, frames: int = MEASURE_FRAMES
+                       ) -> list[FrameDrive | BlendshapeDrive]:
+    """A driven clip (speech for a FLAME speaker, its motion for an ARKit one; the pose track applied) plus a 3x3
+    sweep of head pitch and yaw with the mouth open."""
+    if isinstance(speaker, ArkitSpeaker):
+        drives: list = motion_clip(speaker, frames, seed=7)
+        open_mouth = {"jawOpen": 0.6} if "jawOpen" in speaker.config.blendshapes else None
+        return drives + [BlendshapeDrive.make(open_mouth, HeadPose.make([pitch, yaw, 0.0]), speaker.config.blendshapes)
+                         for pitch in SWEEP_ANGLES for yaw in SWEEP_ANGLES]
     _, drives = driven_clip(speaker, frames, seed=7)
     jaw_open = np.array([0.25, 0.0, 0.0], np.float32)
     for pitch in SWEEP_ANGLES:
@@ -38,17 +46,15 @@ def measurement_drives(speaker: Speaker, frames: int = MEASURE_FRAMES) -> list[F
     return drives
 
 
-def gaussian_contributions(speaker: Speaker, drives: list[FrameDrive], resolution: int = MEASURE_RESOLUTION,
+def gaussian_contributions(speaker: Speaker | ArkitSpeaker, drives: list, resolution: int = MEASURE_RESOLUTION,
                            progress: bool = False) -> torch.Tensor:
     """[N] summed blend weight of each Gaussian over the frames of `drives` (pixels of a resolution² frame)."""
     camera = speaker.camera.resized(resolution, resolution)
     center = torch.from_numpy(camera.center.astype(np.float32))[None]
     total = torch.zeros(speaker.gaussians.count, dtype=torch.float64)
     for drive in progress_bar(drives, desc="measuring contributions", unit="frame", disable=not progress):
-        inputs = {k: torch.from_numpy(v) for k, v in drive.graph_inputs().items()}
         with torch.no_grad():
-            means, cov3d, rgb, opacity = speaker.deform(inputs["expression"], inputs["flame_pose"],
-                                                        inputs["head_translation"], center)
+            means, cov3d, rgb, opacity = speaker.deform_drive(drive, center)
         probe = rgb[0].clone().requires_grad_(True)
         image, _ = render_reference(means[0], cov3d[0], probe, opacity, camera, (0.0, 0.0, 0.0))
         (gradient,) = torch.autograd.grad(image[..., 0].sum(), probe)
@@ -64,10 +70,12 @@ def budget_count(budget: float, count: int) -> int:
     return max(1, min(count, kept))
 
 
-def prune_speaker(speaker: Speaker, keep: int, contributions: torch.Tensor) -> Speaker:
+def prune_speaker(speaker: Speaker | ArkitSpeaker, keep: int, contributions: torch.Tensor) -> Speaker:
     """A copy of `speaker` with only its `keep` largest contributors (in their original order)."""
     order = torch.argsort(contributions, descending=True, stable=True)[:keep]
     index = torch.sort(order).values
+    if isinstance(speaker, ArkitSpeaker):
+        return speaker.subset(index)
     pruned = copy.deepcopy(speaker)
     old = speaker.gaussians
     faces = torch.as_tensor(speaker.flame_arrays.faces)
@@ -80,7 +88,7 @@ def prune_speaker(speaker: Speaker, keep: int, contributions: torch.Tensor) -> S
     return pruned.eval()
 
 
-def apply_budget(speaker: Speaker, budget: float, progress: bool = False) -> Speaker:
+def apply_budget(speaker: Speaker | ArkitSpeaker, budget: float, progress: bool = False) -> Speaker:
     """`speaker` with its Gaussian budget applied (itself when the budget keeps every Gaussian)."""
     keep = budget_count(budget, speaker.gaussians.count)
     if keep >= speaker.gaussians.count:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gaussiantalker.sdk.drive import FrameDrive, HeadPose
+from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive, HeadPose
 
 
 def random_crops(seed: int, sizes) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -26,4 +26,16 @@ def random_drives(n_expr: int, count: int, seed: int) -> list[FrameDrive]:
     return drives
 
 
-__all__ = ["random_crops", "random_drives"]
+def random_blendshape_drives(names: tuple[str, ...], count: int, seed: int) -> list[BlendshapeDrive]:
+    """A neutral ARKit drive, then `count - 1` random ones: each blendshape on with probability 0.3 (uniform in
+    [0, 1]), a random head pose."""
+    rng = np.random.default_rng(seed)
+    drives = [BlendshapeDrive.make(names=names)]
+    for _ in range(count - 1):
+        weights = rng.uniform(0.0, 1.0, len(names)) * (rng.random(len(names)) < 0.3)
+        drives.append(BlendshapeDrive.make(weights, HeadPose.make(rng.normal(0, 0.2, 3), rng.normal(0, 0.01, 3)),
+                                           names))
+    return drives
+
+
+__all__ = ["random_blendshape_drives", "random_crops", "random_drives"]

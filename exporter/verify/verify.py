@@ -37,10 +37,11 @@ from gaussiantalker.sdk.drive import track_row
 from gaussiantalker.sdk.image import max_abs_error, psnr_db, to_uint8
 from gaussiantalker.sdk.progress import progress_bar
 
-from ..export.probes import driven_clip, speech_clip
+from ..export.probes import driven_clip, motion_clip, speech_clip
+from ..model.arkit_speaker import ArkitSpeaker
 from ..model.compositing import composite_reference
 from ..model.speaker import Speaker
-from .probes import random_crops, random_drives
+from .probes import random_blendshape_drives, random_crops, random_drives
 
 GRAPH_RTOL = 1e-4
 # Head-region bound of a custom (non-preset) reduced export: below the lowest any preset is built to keep (fast, 35).
@@ -113,6 +114,8 @@ def _merge(stats: list[dict], tolerance: float | None) -> dict:
 def verify_translator(speaker: Speaker, head: TalkingHead, frame_counts=(25, 33), seed: int = 0,
                       tolerance: float | None = GRAPH_RTOL) -> dict:
     """Translator graph vs torch on speech-like clips of several lengths (not only the exported one)."""
+    if isinstance(speaker, ArkitSpeaker):
+        return {"compared": False, "passed": True, "note": "an ARKit speaker has no translator graph"}
     if not head.has_translator:
         return {"compared": False, "passed": True, "note": "a flame-driven scene's bundle has no translator graph"}
     stats = []
@@ -139,16 +142,34 @@ def verify_deformation(speaker: Speaker, head: TalkingHead, count: int = 6, seed
                 f"{speaker.gaussians.count} Gaussians (a Gaussian budget): judged by its frames"}
     stats = []
     center = head.camera.center.astype(np.float32)[None]
-    for drive in random_drives(speaker.config.n_expr, count, seed):
-        inputs = drive.graph_inputs()
-        inputs["camera_center"] = center
+    for drive in _random_drives(speaker, count, seed):
+        inputs = {**drive.graph_inputs(), "camera_center": center}
         with torch.no_grad():
-            reference = speaker.deform(*(torch.from_numpy(inputs[k]) for k in
-                                         ("expression", "flame_pose", "head_translation", "camera_center")))
+            reference = speaker.deform_drive(drive, torch.from_numpy(center))
         out = head.graphs.run("deform", inputs)
         for ref, name in zip(reference, ("means", "cov3d", "rgb", "opacity"), strict=True):
             stats.append(_compare(ref.numpy(), out[name]))
     return _merge(stats, tolerance)
+
+
+def _random_drives(speaker: Speaker | ArkitSpeaker, count: int, seed: int) -> list:
+    """Random drives of the speaker's rig (neutral first)."""
+    if isinstance(speaker, ArkitSpeaker):
+        return random_blendshape_drives(speaker.config.blendshapes, count, seed)
+    return random_drives(speaker.config.n_expr, count, seed)
+
+
+def _clip_drives(speaker: Speaker | ArkitSpeaker, head: TalkingHead, frames: int, seed: int) -> tuple[list, list]:
+    """(torch drives, runtime drives) of a driven clip: speech through each side's translator for a FLAME
+    speaker (the torch drives on both sides for a bundle without one), its motion for an ARKit speaker."""
+    if isinstance(speaker, ArkitSpeaker):
+        drives = motion_clip(speaker, frames, seed)
+        return drives, drives
+    audio, torch_drives = driven_clip(speaker, frames, seed)
+    # A flame-driven scene's bundle has no translator: it is driven with the torch translator's FLAME parameters.
+    runtime_drives = (list(head.drives(audio, speaker.config.sample_rate))
+                      if head.has_translator else torch_drives)
+    return torch_drives, runtime_drives
 
 
 def verify_inpainter(speaker: Speaker, head: TalkingHead, seed: int = 0, tolerance: float | None = GRAPH_RTOL) -> dict:
@@ -201,11 +222,9 @@ def verify_composited(speaker: Speaker, head: TalkingHead, frames: int = 12, see
 
 def verify_frames(speaker: Speaker, head: TalkingHead, frames: int = 25, seed: int = 1,
                   tolerances: Tolerances = Tolerances(), progress: bool = False) -> dict:
-    """Audio-driven frames: torch (translator -> deform -> reference rasterizer) vs the runtime, end to end."""
-    audio, torch_drives = driven_clip(speaker, frames, seed)
-    # A flame-driven scene's bundle has no translator: it is driven with the torch translator's FLAME parameters.
-    runtime_drives = (list(head.drives(audio, speaker.config.sample_rate))
-                      if head.has_translator else torch_drives)
+    """Driven frames: torch (translator -> deform -> reference rasterizer; an ARKit speaker: its motion -> deform
+    -> rasterizer) vs the runtime, end to end."""
+    torch_drives, runtime_drives = _clip_drives(speaker, head, frames, seed)
     results = []
     for index in progress_bar(range(frames), desc="verify frames", unit="frame", disable=not progress):
         reference, trans = speaker.render(torch_drives[index], head.camera, head.background, transmittance=True)
@@ -234,12 +253,12 @@ def verify_frames(speaker: Speaker, head: TalkingHead, frames: int = 25, seed: i
 def _agreement_cases(speaker: Speaker, head: TalkingHead, seed: int = 0) -> list[tuple[str, dict]]:
     """(graph, inputs) pairs the two backends are compared on: speech clips, random drives, random crops."""
     cases: list[tuple[str, dict]] = []
-    if head.has_translator:
+    if head.has_translator and not isinstance(speaker, ArkitSpeaker):
         for i, frames in enumerate((25, 33)):
             cases.append(("translator", {"audio": np.ascontiguousarray(speech_clip(speaker, frames, seed + i)[None],
                                                                        np.float32)}))
     center = head.camera.center.astype(np.float32)[None]
-    for drive in random_drives(speaker.config.n_expr, 4, seed):
+    for drive in _random_drives(speaker, 4, seed):
         cases.append(("deform", {**drive.graph_inputs(), "camera_center": center}))
     if "inpaint" in head.bundle.manifest["graphs"]:
         for image, mask, coverage in random_crops(seed, INPAINT_CROP_SIZES[:2]):
@@ -265,11 +284,15 @@ def verify_mnn(speaker: Speaker, head: TalkingHead, bundle_path, frames: int = 2
     with TalkingHead(bundle_path, resolution=(head.camera.width, head.camera.height), composite=False,
                      backend="mnn") as mnn_head:
         graphs = verify_backend_agreement(head, mnn_head, _agreement_cases(speaker, head))
-        audio, torch_drives = driven_clip(speaker, frames, seed)
-        if head.has_translator:
+        if isinstance(speaker, ArkitSpeaker):
+            drives = motion_clip(speaker, frames, seed)
+            pairs = ((head.render(drive), mnn_head.render(drive)) for drive in drives)
+        elif head.has_translator:
+            audio, _ = driven_clip(speaker, frames, seed)
             pairs = zip(head.frames(audio, speaker.config.sample_rate),
                         mnn_head.frames(audio, speaker.config.sample_rate), strict=True)
         else:  # a flame-driven scene's bundle: the torch translator's drives
+            _, torch_drives = driven_clip(speaker, frames, seed)
             pairs = ((head.render(drive), mnn_head.render(drive)) for drive in torch_drives)
         results = [{"psnr_db": psnr_db(reference, test),
                     "max_pixel_error": int(np.abs(reference.astype(np.int16) - test.astype(np.int16)).max())}

@@ -1,0 +1,66 @@
+"""`gt-import lam AVATAR.zip -o avatar.ckpt`: avatars trained elsewhere become speaker checkpoints (docs/import.md),
+which `gt-export` then turns into bundles like any other."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import typer
+
+from gaussiantalker.sdk.errors import GaussianTalkerError
+from gaussiantalker.sdk.rig import COVARIANCE_MODES
+
+app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
+
+
+@app.callback()
+def main_callback() -> None:
+    """Import an avatar as a speaker checkpoint (then: gt-export CHECKPOINT -o BUNDLE.gtb --verify)."""
+
+
+@app.command("lam")
+def lam(
+    avatar: Path = typer.Argument(..., help="LAM avatar zip (skin.glb, offset.ply, animation.glb, ...; at the top "
+                                            "or in one folder), as LAM_WebRender and OpenAvatarChat ship them"),
+    output: Path = typer.Option(None, "-o", "--output", help="checkpoint to write [default: AVATAR with .ckpt]"),
+    clip: str = typer.Option(None, "--clip", help="animation.glb clip whose head motion becomes the pose track "
+                                                  "[default: the idle clip]"),
+    raw_weights: bool = typer.Option(False, "--raw-weights", help="keep the morph targets as stored; by default the "
+                                     "web renderer's weight scales are folded in, so ARKit weights look as there"),
+    covariance: str = typer.Option("static", "--covariance", help="how Gaussians' shapes follow the head: static "
+                                   "(as LAM's renderer draws) or head (turned with the head bone)"),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
+) -> None:
+    """Import a LAM avatar (an ARKit speaker: 52 blendshape weights drive it; docs/import.md)."""
+    from .export.checkpoint import save_checkpoint
+    from .imports.lam import LamOptions, import_lam
+
+    if covariance not in COVARIANCE_MODES:
+        raise typer.BadParameter(f"--covariance must be one of {', '.join(COVARIANCE_MODES)}, got {covariance!r}")
+    output = output or avatar.with_suffix(".ckpt")
+    start = time.perf_counter()
+    try:
+        speaker = import_lam(avatar, LamOptions(clip=clip, renderer_weight_scale=not raw_weights,
+                                                covariance=covariance), progress=not quiet)
+        save_checkpoint(speaker, output)
+    except GaussianTalkerError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    pose = "no pose track" if speaker.pose_track is None else \
+        f"pose track {speaker.pose_track.shape[0]} frames from clip {speaker.source.get('pose_clip')!r}"
+    motion = "no motion track" if speaker.motion_track is None else \
+        f"motion track {speaker.motion_track.shape[0]} frames"
+    typer.echo(f"imported {speaker.gaussians.count} Gaussians, {len(speaker.source['morph_targets'])} morph targets, "
+               f"{pose}, {motion} in {time.perf_counter() - start:.1f} s")
+    typer.echo(f"checkpoint: {output} (next: gt-export {output} --verify)")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app(prog_name="gt-import")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,227 @@
+"""LAM avatars in: `gt-import lam` on avatar zips the tests write (tests/lam_avatars.py), the ARKit speaker's
+torch reference against the format's own maths, its bundle against the torch speaker, and every bad input."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+
+import numpy as np
+import pytest
+import torch
+from lam_avatars import AvatarSpec, expected_centres, motion_json, write_avatar_zip
+from typer.testing import CliRunner
+
+from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
+from gaussiantalker.exporter.export.export import export_bundle
+from gaussiantalker.exporter.imports.lam import LAM_WEIGHT_SCALE, LamOptions, import_lam, rotation_vector
+from gaussiantalker.runtime import DriveError, HeadPose, TalkingHead
+from gaussiantalker.sdk.drive import BlendshapeDrive
+from gaussiantalker.sdk.errors import ImportFormatError
+from gaussiantalker.sdk.image import psnr_db, to_uint8
+from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
+
+# Frames of the small avatar: the runtime against the torch reference rasterizer. The contract's parity bound.
+MIN_PSNR_DB = 50.0
+SIZE = (96, 128)
+
+
+@pytest.fixture(scope="module")
+def avatar_zip(tmp_path_factory):
+    return write_avatar_zip(tmp_path_factory.mktemp("lam") / "avatar.zip")
+
+
+@pytest.fixture(scope="module")
+def avatar(avatar_zip):
+    return import_lam(avatar_zip, progress=False)
+
+
+@pytest.fixture(scope="module")
+def avatar_bundle(avatar, tmp_path_factory):
+    path = tmp_path_factory.mktemp("lam_bundle") / "avatar.gtb"
+    export_bundle(avatar, path, progress=False)
+    return path
+
+
+def _centres(speaker, drive: BlendshapeDrive) -> np.ndarray:
+    with torch.no_grad():
+        means, _, _, _ = speaker.deform_drive(drive, torch.zeros(1, 3))
+    return means[0].numpy()
+
+
+def test_import_places_gaussians_as_lam_renderer(avatar):
+    """Vertex + morphs (with the renderer's weight scales) + offset, carried by the head bone: the format's maths."""
+    spec = AvatarSpec()
+    assert avatar.gaussians.count == spec.rings * spec.segments
+    rest = _centres(avatar, BlendshapeDrive.make())
+    np.testing.assert_allclose(rest, expected_centres(spec, {}), atol=1e-6)
+    weights = {"jawOpen": 0.7, "eyeBlinkLeft": 1.0, "mouthSmileLeft": 0.4}
+    scaled = {name: w * LAM_WEIGHT_SCALE.get(name, 1.0) for name, w in weights.items()}
+    # Pose track frame 15 is t = 0.5 s of the idle clip: the head bone turned 0.3 rad about its local x.
+    row = avatar.pose_track[15].numpy()
+    posed = _centres(avatar, BlendshapeDrive.make(weights, HeadPose.make(row[:3], row[3:])))
+    expected = expected_centres(spec, scaled, 0.3)
+    assert np.abs(expected - expected_centres(spec, scaled, 0.0)).max() > 0.02  # the head really moved
+    np.testing.assert_allclose(posed, expected, atol=1e-6)
+
+
+def test_import_reads_tracks_and_records_source(avatar):
+    assert avatar.source["pose_clip"] == "idle"
+    assert avatar.pose_track.shape == (31, 6)  # 1 s of clip at 30 fps, both ends
+    np.testing.assert_allclose(avatar.pose_track[0].numpy(), 0.0, atol=1e-6)
+    motion = motion_json()
+    assert avatar.motion_track.shape == (len(motion["frames"]), len(ARKIT_BLENDSHAPES))
+    np.testing.assert_allclose(avatar.motion_track.numpy(), [f["weights"] for f in motion["frames"]], atol=1e-6)
+    assert avatar.source["morph_targets"] == ["jawOpen", "eyeBlinkLeft", "mouthSmileLeft", "browInnerUp"]
+
+
+def test_raw_weights_and_other_clip(avatar_zip):
+    raw = import_lam(avatar_zip, LamOptions(clip="speak", renderer_weight_scale=False), progress=False)
+    spec = AvatarSpec()
+    centres = _centres(raw, BlendshapeDrive.make({"jawOpen": 0.7}))
+    np.testing.assert_allclose(centres, expected_centres(spec, {"jawOpen": 0.7}), atol=1e-6)
+    assert raw.source["pose_clip"] == "speak" and raw.pose_track.shape[0] == 7  # 0.2 s at 30 fps
+    np.testing.assert_allclose(np.linalg.norm(raw.pose_track[-1, :3].numpy()), 0.2, atol=1e-5)
+
+
+def test_members_at_top_level_and_colours(tmp_path):
+    spec = AvatarSpec(folder=None, motion=False)
+    speaker = import_lam(write_avatar_zip(tmp_path / "top.zip", spec), progress=False)
+    assert speaker.motion_track is None
+    from lam_avatars import gaussians
+
+    from gaussiantalker.sdk.numerics import SH_C0
+    rgb = speaker.gaussians.sh[:, 0].detach().numpy() * SH_C0 + 0.5  # f_dc is RGB: SH degree 0 round-trips it
+    np.testing.assert_allclose(rgb, gaussians(spec)["f_dc"], atol=1e-6)
+
+
+@pytest.mark.parametrize("spec, member, words", [
+    (AvatarSpec(skip=("offset.ply",)), "offset.ply", "lacks"),
+    (AvatarSpec(skip=("skin.glb",)), "skin.glb", "lacks"),
+    (AvatarSpec(skip=("morphs",)), "skin.glb", "morph targets"),
+    (AvatarSpec(skip=("skin",)), "skin.glb", "no skin"),
+    (AvatarSpec(vertex_order_length=5), "vertex_order.json", "5 entries"),
+    (AvatarSpec(extra_names=("tongueOutX",)), "skin.glb", "'tongueOutX'"),
+    (AvatarSpec(skip=("ply_field",)), "offset.ply", "opacity"),
+])
+def test_bad_avatars_name_the_member(tmp_path, spec, member, words):
+    path = write_avatar_zip(tmp_path / "bad.zip", spec)
+    with pytest.raises(ImportFormatError) as info:
+        import_lam(path, progress=False)
+    assert member in str(info.value) and words in str(info.value), str(info.value)
+
+
+def test_bad_zips(tmp_path):
+    path = tmp_path / "two.zip"
+    good = write_avatar_zip(tmp_path / "one.zip")
+    with zipfile.ZipFile(good) as source, zipfile.ZipFile(path, "w") as target:
+        for info in source.infolist():
+            target.writestr(info.filename, source.read(info))
+            target.writestr("second/" + info.filename.split("/")[-1], source.read(info))
+    with pytest.raises(ImportFormatError, match="several folders"):
+        import_lam(path, progress=False)
+    (tmp_path / "not.zip").write_bytes(b"not a zip")
+    with pytest.raises(ImportFormatError, match="not a readable zip"):
+        import_lam(tmp_path / "not.zip", progress=False)
+    with pytest.raises(ImportFormatError, match="no clip named 'dance'"):
+        import_lam(good, LamOptions(clip="dance"), progress=False)
+
+
+def test_truncated_glb(tmp_path):
+    from gaussiantalker.exporter.imports.gltf import load_glb
+
+    data = zipfile.ZipFile(write_avatar_zip(tmp_path / "a.zip")).read("avatar/skin.glb")
+    with pytest.raises(ImportFormatError, match="skin.glb: glTF version 2 with length"):
+        load_glb(data[: len(data) // 2], "skin.glb")
+    with pytest.raises(ImportFormatError, match="not a binary glTF"):
+        load_glb(b"GLTF" + data[4:], "skin.glb")
+
+
+def test_rotation_vector_round_trips():
+    from lam_avatars import axis_angle_quat, quat_matrix
+
+    rng = np.random.default_rng(0)
+    for angle in (0.0, 1e-8, 0.3, 2.0, np.pi - 1e-6, np.pi):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        vector = rotation_vector(quat_matrix(axis_angle_quat(axis, angle)))
+        np.testing.assert_allclose(quat_matrix(axis_angle_quat(vector if angle else axis, np.linalg.norm(vector))),
+                                   quat_matrix(axis_angle_quat(axis, angle)), atol=1e-6)
+
+
+def test_checkpoint_round_trip(avatar, tmp_path):
+    path = save_checkpoint(avatar, tmp_path / "avatar.ckpt")
+    loaded = load_checkpoint(path)
+    drive = BlendshapeDrive.make({"jawOpen": 0.5}, HeadPose.make([0.1, 0.2, 0.0]))
+    np.testing.assert_array_equal(_centres(loaded, drive), _centres(avatar, drive))
+    assert loaded.source == avatar.source and loaded.config == avatar.config
+
+
+def test_bundle_matches_torch(avatar, avatar_bundle):
+    """Runtime frames of random ARKit drives against the torch reference rasterizer: the contract's 50 dB."""
+    with TalkingHead(avatar_bundle, resolution=SIZE) as head:
+        assert head.rig == "arkit" and head.fps == 30 and head.motion_track is not None
+        rng = np.random.default_rng(1)
+        for index in range(3):
+            weights = dict(zip(ARKIT_BLENDSHAPES, rng.uniform(0, 1, 52) * (rng.random(52) < 0.3), strict=True))
+            pose = HeadPose.make(rng.normal(0, 0.15, 3), rng.normal(0, 0.01, 3))
+            frame = head.render_blendshapes(weights, pose, output="float")
+            reference = avatar.render(head.blendshape_drive(weights, pose), head.camera, head.background).numpy()
+            assert psnr_db(to_uint8(reference), to_uint8(frame)) >= MIN_PSNR_DB, index
+        assert head.render_blendshapes(np.zeros(52)).shape == (SIZE[1], SIZE[0], 3)
+        assert head.render_blendshapes(output="rgba").shape == (SIZE[1], SIZE[0], 4)
+
+
+def test_motion_frames_and_drive_mismatch(avatar_bundle, small_export, tmp_path):
+    with TalkingHead(avatar_bundle, resolution=SIZE) as head:
+        frames = list(head.motion_frames())
+        assert len(frames) == len(head.motion_track) and not np.array_equal(frames[0], frames[3])
+        motion = tmp_path / "motion.json"
+        motion.write_text(json.dumps(motion_json(frames=6, fps=15.0)))
+        assert len(list(head.motion_frames(motion))) == 12  # 6 frames at 15 fps play 12 frames at 30 fps
+        with pytest.raises(DriveError, match="ARKit blendshape weights.*use render_blendshapes"):
+            head.render_params(jaw_pose=[0.2, 0, 0])
+        with pytest.raises(DriveError, match="no audio model"):
+            list(head.frames(np.zeros(16000, np.float32), 16000))
+        with pytest.raises(DriveError, match="unknown blendshape name 'jawopen'"):
+            head.render_blendshapes({"jawopen": 1.0})
+    with TalkingHead(small_export.path, resolution=(64, 64)) as flame_head:
+        with pytest.raises(DriveError, match="FLAME parameters.*a drive of the 52 ARKit"):
+            flame_head.render_blendshapes({"jawOpen": 1.0})
+        with pytest.raises(DriveError, match="FLAME parameters"):
+            flame_head.render(BlendshapeDrive.make())
+
+
+def test_cli_import_export_verify_play(avatar_zip, tmp_path):
+    """gt-import lam, gt-export --verify --preset balanced, then play.py --motion: the user's path."""
+    import sys
+
+    from gaussiantalker.exporter.cli import app as export_app
+    from gaussiantalker.exporter.import_cli import app as import_app
+
+    runner = CliRunner()
+    checkpoint = tmp_path / "avatar.ckpt"
+    result = runner.invoke(import_app, ["lam", str(avatar_zip), "-o", str(checkpoint), "-q"])
+    assert result.exit_code == 0, result.output
+    assert "imported 96 Gaussians, 4 morph targets" in result.output
+    bundle = tmp_path / "avatar.gtb"
+    result = runner.invoke(export_app, [str(checkpoint), "-o", str(bundle), "--verify", "--frames", "3",
+                                        "--resolution", "64", "--preset", "balanced", "-q"])
+    assert result.exit_code == 0, result.output
+    assert "not compared: an ARKit speaker has no translator graph" in result.output
+    assert "verification PASSED" in result.output
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1] / "samples"))
+    try:
+        from play import app as play_app
+    finally:
+        sys.path.pop(0)
+    video = tmp_path / "avatar.mp4"
+    result = runner.invoke(play_app, [str(bundle), "-o", str(video), "-r", "64", "-q"])
+    assert result.exit_code == 0, result.output
+    assert "12 frames, 0.4 s, no audio" in result.output and video.stat().st_size > 0
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"names": ["jawOpen", "smile"], "frames": [{"weights": [0, 1]}]}))
+    result = runner.invoke(play_app, [str(bundle), "-o", str(video), "--motion", str(bad), "-q"])
+    assert result.exit_code == 2 and "unknown blendshape name 'smile'" in result.output
+    result = runner.invoke(import_app, ["lam", str(tmp_path / "missing.zip")])
+    assert result.exit_code == 2 and "does not exist" in result.output
