@@ -31,10 +31,14 @@ def lam(
                                      "web renderer's weight scales are folded in, so ARKit weights look as there"),
     covariance: str = typer.Option("static", "--covariance", help="how Gaussians' shapes follow the head: static "
                                    "(as LAM's renderer draws) or head (turned with the head bone)"),
+    audio_model: Path = typer.Option(None, "--audio-model", help="an audio-to-ARKit ONNX model to attach (input "
+                                     "audio [1, S] at 16 kHz, output [1, T, 52] at 30 fps; docs/import.md), so "
+                                     "audio drives the avatar"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
 ) -> None:
     """Import a LAM avatar (an ARKit speaker: 52 blendshape weights drive it; docs/import.md)."""
     from .export.checkpoint import save_checkpoint
+    from .imports.audio_model import load_audio_model
     from .imports.lam import LamOptions, import_lam
 
     if covariance not in COVARIANCE_MODES:
@@ -42,8 +46,10 @@ def lam(
     output = output or avatar.with_suffix(".ckpt")
     start = time.perf_counter()
     try:
+        model = None if audio_model is None else load_audio_model(audio_model)  # a bad model fails first
         speaker = import_lam(avatar, LamOptions(clip=clip, renderer_weight_scale=not raw_weights,
                                                 covariance=covariance), progress=not quiet)
+        speaker.audio_model = model
         save_checkpoint(speaker, output)
     except GaussianTalkerError as exc:
         typer.echo(f"error: {exc}", err=True)
@@ -52,8 +58,9 @@ def lam(
         f"pose track {speaker.pose_track.shape[0]} frames from clip {speaker.source.get('pose_clip')!r}"
     motion = "no motion track" if speaker.motion_track is None else \
         f"motion track {speaker.motion_track.shape[0]} frames"
+    attached = "" if model is None else f", audio model {audio_model.name} attached"
     typer.echo(f"imported {speaker.gaussians.count} Gaussians, {len(speaker.source['morph_targets'])} morph targets, "
-               f"{pose}, {motion} in {time.perf_counter() - start:.1f} s")
+               f"{pose}, {motion}{attached} in {time.perf_counter() - start:.1f} s")
     typer.echo(f"checkpoint: {output} (next: gt-export {output} --verify)")
 
 

@@ -56,13 +56,17 @@ def check_arkit_bundle(bundle: Bundle) -> None:
 
 
 def check_blendshape_width(bundle: Bundle) -> None:
-    """The `deform` graph's 'blendshapes' input must be as wide as the rig's blendshape list."""
+    """The `deform` graph's 'blendshapes' input, and an audio model's (`translator`) output, must be as wide as
+    the rig's blendshape list."""
     count = len(bundle.manifest["rig"]["blendshapes"])
-    for value in bundle.graph_info("deform")["inputs"]:
-        width = value["shape"][-1] if value["shape"] else None
-        if value["name"] == "blendshapes" and isinstance(width, int) and width != count:
-            raise BundleError(f"{bundle.path}: manifest rig names {count} blendshapes but graph 'deform' input "
-                              f"'blendshapes' has {width}")
+    for graph, kind in (("deform", "inputs"), ("translator", "outputs")):
+        if graph not in bundle.manifest["graphs"]:
+            continue
+        for value in bundle.graph_info(graph)[kind]:
+            width = value["shape"][-1] if value["shape"] else None
+            if value["name"] == "blendshapes" and isinstance(width, int) and width != count:
+                raise BundleError(f"{bundle.path}: manifest rig names {count} blendshapes but graph {graph!r} "
+                                  f"{kind[:-1]} 'blendshapes' has {width}")
 
 
 def check_speaker_bundle(bundle: Bundle) -> None:

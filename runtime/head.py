@@ -52,7 +52,7 @@ from .output import COMPOSITE_ALPHA_MESSAGE, OutputView, output_view
 from .semantic import Regions
 from .settings import BackendSettings, OutputSettings, merged_backend, merged_output, merged_render
 from .splatter import GLSplatter, PreparedSplats
-from .translate import SILENCE_GATE_DBFS, iter_translate
+from .translate import SILENCE_GATE_DBFS, blendshape_params, iter_translate
 
 AudioSource = str | os.PathLike | np.ndarray
 # An ARKit motion: a motion file, a MotionTrack, [T, 52] weights at the speaker's fps, or None (the bundle's own).
@@ -244,18 +244,25 @@ class TalkingHead:
         self._record("translator", time.perf_counter() - start)
         return out
 
-    def translate_blocks(self, audio: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """Audio (speaker rate, mono float32) -> (expression, jaw pose) blocks in frame order, one window at a time."""
+    def translate_blocks(self, audio: np.ndarray) -> Iterator:
+        """Audio (speaker rate, mono float32) -> blocks in frame order, one window at a time: (expression, jaw pose)
+        for a FLAME speaker, ARKit weights [n, 52] for an ARKit speaker with an audio model (docs/import.md)."""
         if self.rig == ARKIT_RIG:
-            raise DriveError(f"{self.bundle.path}: this ARKit speaker has no audio model attached, so it cannot turn "
-                             "audio into frames: drive it with render_blendshapes(), motion_frames() or a motion "
-                             "file (docs/import.md)")
+            if not self.has_translator:
+                raise DriveError(f"{self.bundle.path}: this ARKit speaker has no audio model attached, so it cannot "
+                                 "turn audio into frames: drive it with render_blendshapes(), motion_frames() or a "
+                                 "motion file, or attach one (gt-import lam --audio-model; docs/import.md)")
+            return iter_translate(self._run_translator, audio, self.sample_rate / self.fps,
+                                  silence_gate_dbfs=self.silence_gate_dbfs, params_of=blendshape_params)
         return iter_translate(self._run_translator, audio, self.config.samples_per_frame,
                               silence_gate_dbfs=self.silence_gate_dbfs)
 
-    def translate(self, audio: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Audio (speaker rate, mono float32) -> expression [T, n_expr], jaw pose [T, 3] via the translator graph."""
+    def translate(self, audio: np.ndarray) -> tuple[np.ndarray, np.ndarray] | np.ndarray:
+        """Audio (speaker rate, mono float32) -> expression [T, n_expr], jaw pose [T, 3] via the translator graph
+        (an ARKit speaker: its audio model's weights [T, 52])."""
         blocks = list(self.translate_blocks(audio))
+        if self.rig == ARKIT_RIG:
+            return np.concatenate(blocks)
         return np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks])
 
     def head_pose(self, index: int, source: HeadPoseSource = None) -> HeadPose:
@@ -403,10 +410,16 @@ class TalkingHead:
         yield from self._bare_frames(self.motion_drives(motion, head_pose), output)
 
     def drives(self, audio: AudioSource, sample_rate: int | None = None,
-               head_pose: HeadPoseSource = None) -> Iterator[FrameDrive]:
+               head_pose: HeadPoseSource = None) -> Iterator[FrameDrive | BlendshapeDrive]:
         """Per-frame drive parameters for an audio clip (translator output + head pose), translated per window."""
         index = 0
-        for expression, jaw in self.translate_blocks(self.load_audio(audio, sample_rate)):
+        for block in self.translate_blocks(self.load_audio(audio, sample_rate)):
+            if self.rig == ARKIT_RIG:
+                for weights in block:
+                    yield self.blendshape_drive(weights, self.head_pose(index, head_pose))
+                    index += 1
+                continue
+            expression, jaw = block
             for row in range(expression.shape[0]):
                 yield FrameDrive.make(self.config.n_expr, expression[row], jaw[row],
                                       head_pose=self.head_pose(index, head_pose))
@@ -497,21 +510,22 @@ class TalkingHead:
         png). Everything about the output is checked before the first frame is rendered (VideoError);
         docs/video.md lists the formats.
 
-        An ARKit speaker plays a motion (`motion`, see `TalkingHead.motion`; None: the bundle's own) and muxes
-        `audio` if given; a FLAME speaker renders the audio through its translator.
+        A FLAME speaker, and an ARKit speaker with an audio model, render the audio through their translator; an
+        ARKit speaker given a `motion` (see `TalkingHead.motion`), or without an audio model (then None: the
+        bundle's own motion), plays it and muxes `audio` if given.
         """
         from gaussiantalker.sdk.progress import progress_bar
 
         plan = self._video_plan(path, alpha=alpha, codec=codec, crf=crf, preset=preset, container=container)
         output = "rgba" if plan.alpha else "uint8"
         samples = None if audio is None else self.load_audio(audio, sample_rate)
-        if self.rig == ARKIT_RIG:
+        if self.rig == ARKIT_RIG and (motion is not None or samples is None or not self.has_translator):
             track = self.motion(motion)
             frames, total = self.motion_frames(track, head_pose, output), len(track)
         elif samples is None:
             raise AudioError("a FLAME speaker's video needs audio (its translator turns speech into motion)")
         else:
-            if motion is not None:
+            if motion is not None and self.rig != ARKIT_RIG:
                 raise DriveError("motion files drive ARKit speakers; this FLAME speaker is driven by its audio")
             frames = self.frames(samples, self.sample_rate, head_pose, output=output)
             total = self.frame_count(samples.shape[0])

@@ -39,6 +39,18 @@ SILENCE_GATE_DBFS = -60.0
 SILENCE_GATE_RAMP_DB = 6.0
 
 Run = Callable[[np.ndarray], dict]
+# A window's graph outputs -> its parameters [frames, D] (FLAME: expression then jaw pose).
+ParamsOf = Callable[[dict, int], np.ndarray]
+
+
+def flame_params(out: dict, frames: int) -> np.ndarray:
+    """A FLAME translator window's outputs -> [frames, n_expr + 3] (expression then jaw)."""
+    return np.concatenate([out["expression"][0], out["jaw_pose"][0]], axis=-1)
+
+
+def frame_start(index: int, samples_per_frame: float) -> int:
+    """First audio sample of video frame `index` (frames of a fractional length start at the rounded sample)."""
+    return int(round(index * samples_per_frame))
 
 
 def window_plan(total: int, window_frames: int = WINDOW_FRAMES, context_frames: int = CONTEXT_FRAMES
@@ -68,14 +80,15 @@ def _check_settings(window_frames: int, context_frames: int, crossfade_frames: i
                          f"({2 * context_frames}) and <= window_frames ({window_frames})")
 
 
-def _run_window(run: Run, audio: np.ndarray, spf: int, lo: int, hi: int, gate_dbfs: float | None) -> np.ndarray:
-    """Translator outputs [hi - lo, n_expr + 3] (expression then jaw) of frames [lo, hi), silence-gated."""
-    chunk = audio[lo * spf: hi * spf]
-    if chunk.shape[0] < (hi - lo) * spf:  # the clip's last partial frame: zero-pad this window only
-        chunk = np.pad(chunk, (0, (hi - lo) * spf - chunk.shape[0]))
+def _run_window(run: Run, audio: np.ndarray, spf: float, lo: int, hi: int, gate_dbfs: float | None,
+                params_of: ParamsOf = flame_params) -> np.ndarray:
+    """Translator outputs [hi - lo, D] of frames [lo, hi) (`params_of`: FLAME's expression then jaw), gated."""
+    start, stop = frame_start(lo, spf), frame_start(hi, spf)
+    chunk = audio[start:stop]
+    if chunk.shape[0] < stop - start:  # the clip's last partial frame: zero-pad this window only
+        chunk = np.pad(chunk, (0, stop - start - chunk.shape[0]))
     chunk = np.ascontiguousarray(chunk, dtype=np.float32)
-    out = run(chunk)
-    params = np.concatenate([out["expression"][0], out["jaw_pose"][0]], axis=-1)
+    params = params_of(run(chunk), hi - lo)
     return params * np.float32(silence_gain(chunk, gate_dbfs))
 
 
@@ -87,32 +100,39 @@ def _join(left: np.ndarray, left_lo: int, right: np.ndarray, right_lo: int, join
     return (1 - weight) * left[frames - left_lo] + weight * right[frames - right_lo]
 
 
-def iter_translate(run: Run, audio: np.ndarray, samples_per_frame: int, window_frames: int = WINDOW_FRAMES,
+def iter_translate(run: Run, audio: np.ndarray, samples_per_frame: float, window_frames: int = WINDOW_FRAMES,
                    context_frames: int = CONTEXT_FRAMES, crossfade_frames: int = CROSSFADE_FRAMES,
-                   silence_gate_dbfs: float | None = SILENCE_GATE_DBFS) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                   silence_gate_dbfs: float | None = SILENCE_GATE_DBFS, params_of: ParamsOf = flame_params,
+                   split: Callable[[np.ndarray], object] | None = None) -> Iterator:
     """Yield (expression [n, n_expr], jaw_pose [n, 3]) blocks in frame order, running window k+1 only when window
     k's last frames are due (it is needed for their cross-fade); `run(audio_chunk) -> {"expression", "jaw_pose"}`.
-    """
+    Another translator (an ARKit speaker's audio model) gives its own `params_of` and `split` (None: the
+    parameters [n, D] as they are); `samples_per_frame` may be fractional (16 kHz at 30 fps)."""
     _check_settings(window_frames, context_frames, crossfade_frames)
-    total = -(-audio.shape[0] // samples_per_frame)
+    split = split or (_split if params_of is flame_params else _whole)
+    total = int(np.ceil(audio.shape[0] / samples_per_frame - 1e-9))
     if total == 0:
         raise AudioError("audio is empty (0 samples)")
     half = crossfade_frames // 2
     previous, emitted = None, 0
     for start, stop, lo, hi in window_plan(total, window_frames, context_frames):
-        params = _run_window(run, audio, samples_per_frame, lo, hi, silence_gate_dbfs)
+        params = _run_window(run, audio, samples_per_frame, lo, hi, silence_gate_dbfs, params_of)
         if previous is not None:
             prev_params, prev_lo = previous
             block = [prev_params[emitted - prev_lo: start - half - prev_lo]]
             if half:
                 block.append(_join(prev_params, prev_lo, params, lo, start, half, total))
             emitted = min(start + half, total)
-            yield _split(np.concatenate(block))
+            yield split(np.concatenate(block))
         previous = (params, lo)
         last_stop = stop
     prev_params, prev_lo = previous
     if emitted < last_stop:
-        yield _split(prev_params[emitted - prev_lo: last_stop - prev_lo])
+        yield split(prev_params[emitted - prev_lo: last_stop - prev_lo])
+
+
+def _whole(params: np.ndarray) -> np.ndarray:
+    return params
 
 
 def _split(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -127,3 +147,23 @@ def translate_audio(run: Run, audio: np.ndarray, samples_per_frame: int, window_
     blocks = list(iter_translate(run, audio, samples_per_frame, window_frames, context_frames, crossfade_frames,
                                  silence_gate_dbfs))
     return np.concatenate([b[0] for b in blocks]), np.concatenate([b[1] for b in blocks])
+
+
+def resample_rows(values: np.ndarray, rows: int) -> np.ndarray:
+    """[T, D] -> [rows, D], linear in time over the same span (frame centres aligned); itself when T == rows."""
+    if values.shape[0] == rows:
+        return values
+    if values.shape[0] == 1:
+        return np.repeat(values, rows, axis=0)
+    source = (np.arange(values.shape[0]) + 0.5) / values.shape[0]
+    target = (np.arange(rows) + 0.5) / rows
+    return np.stack([np.interp(target, source, values[:, k]) for k in range(values.shape[1])], 1).astype(np.float32)
+
+
+def blendshape_params(out: dict, frames: int) -> np.ndarray:
+    """An audio-to-ARKit model's window outputs -> [frames, 52]: its `blendshapes` [1, T, 52], resampled in time
+    when the model's T is not the window's frame count (docs/import.md, "Audio models")."""
+    values = np.asarray(out["blendshapes"], np.float32)
+    if values.ndim != 3 or values.shape[0] != 1 or values.shape[1] < 1:
+        raise AudioError(f"the audio model returned blendshapes of shape {list(values.shape)}, expected [1, T >= 1, K]")
+    return resample_rows(values[0], frames)

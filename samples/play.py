@@ -7,7 +7,8 @@ frames in a window. A bundle with a reference clip is composited into the speake
 otherwise), and --alpha an alpha channel for it. The output is checked before anything is rendered.
 
 An ARKit speaker (an imported LAM avatar, docs/import.md) plays a motion: `--motion bsData.json` (LAM's ARKit JSON
-kinds), or without --motion the motion its avatar ships; --audio, if given, is muxed in.
+kinds), or without --motion the motion its avatar ships, with --audio muxed in if given; with an attached audio
+model and no --motion, the audio drives it.
 """
 
 from __future__ import annotations
@@ -141,7 +142,7 @@ def play(
                                           "without --show")
             window = FrameWindow(*head.frame_size, f"GaussianTalker - {bundle.name}")
         samples = None if audio is None else head.load_audio(audio)
-        if head.rig == "arkit":
+        if head.rig == "arkit" and (motion is not None or samples is None or not head.has_translator):
             track = head.motion(motion)
             total = len(track)
         elif samples is None:

@@ -274,3 +274,26 @@ def read_zip_member(path: Path, name: str) -> bytes:
 
 
 __all__ = ["AvatarSpec", "expected_centres", "head_motion", "io", "motion_json", "write_avatar_zip"]
+
+
+def energy_audio_model(path: str | Path, frame_samples: int = 533, width: int = 52, gain: float = 8.0) -> Path:
+    """A tiny audio-to-ARKit ONNX model (onnx.helper, no torch): jawOpen = gain x mean |audio| over each
+    `frame_samples` block, every other weight 0; T = floor(S / frame_samples) frames."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
+
+    kernel = np.zeros((width, 1, frame_samples), np.float32)
+    kernel[min(ARKIT_BLENDSHAPES.index("jawOpen"), width - 1), 0, :] = gain / frame_samples
+    nodes = [helper.make_node("Abs", ["pcm"], ["level"]),
+             helper.make_node("Unsqueeze", ["level", "axis1"], ["level3"]),
+             helper.make_node("Conv", ["level3", "kernel"], ["per_frame"], strides=[frame_samples]),
+             helper.make_node("Transpose", ["per_frame"], ["arkit"], perm=[0, 2, 1])]
+    graph = helper.make_graph(
+        nodes, "energy", [helper.make_tensor_value_info("pcm", TensorProto.FLOAT, [1, "samples"])],
+        [helper.make_tensor_value_info("arkit", TensorProto.FLOAT, [1, "frames", width])],
+        [numpy_helper.from_array(kernel, "kernel"), numpy_helper.from_array(np.array([1], np.int64), "axis1")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    onnx.save(model, str(path))
+    return Path(path)

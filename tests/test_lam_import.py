@@ -208,7 +208,7 @@ def test_cli_import_export_verify_play(avatar_zip, tmp_path):
     result = runner.invoke(export_app, [str(checkpoint), "-o", str(bundle), "--verify", "--frames", "3",
                                         "--resolution", "64", "--preset", "balanced", "-q"])
     assert result.exit_code == 0, result.output
-    assert "not compared: an ARKit speaker has no translator graph" in result.output
+    assert "not compared: an ARKit speaker without an audio model" in result.output
     assert "verification PASSED" in result.output
     sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1] / "samples"))
     try:
@@ -225,3 +225,41 @@ def test_cli_import_export_verify_play(avatar_zip, tmp_path):
     assert result.exit_code == 2 and "unknown blendshape name 'smile'" in result.output
     result = runner.invoke(import_app, ["lam", str(tmp_path / "missing.zip")])
     assert result.exit_code == 2 and "does not exist" in result.output
+
+
+def test_audio_model_drives_the_avatar(avatar_zip, tmp_path):
+    """An attached audio-to-ARKit model: checked and renamed at import, carried into the bundle as its translator
+    graph, verified against the model file, and audio then drives the avatar (loud: jaw open, silent: neutral)."""
+    from lam_avatars import energy_audio_model
+
+    from gaussiantalker.exporter.cli import app as export_app
+    from gaussiantalker.exporter.import_cli import app as import_app
+    from gaussiantalker.exporter.imports.audio_model import load_audio_model
+
+    bad = energy_audio_model(tmp_path / "bad.onnx", width=10)
+    with pytest.raises(ImportFormatError, match=r"must be float32 \[1, T, 52\].*10"):
+        load_audio_model(bad)
+    model = energy_audio_model(tmp_path / "energy.onnx")
+    runner = CliRunner()
+    checkpoint, bundle = tmp_path / "a.ckpt", tmp_path / "a.gtb"
+    result = runner.invoke(import_app, ["lam", str(avatar_zip), "-o", str(checkpoint), "--audio-model", str(model),
+                                        "-q"])
+    assert result.exit_code == 0 and "audio model energy.onnx attached" in result.output, result.output
+    assert load_checkpoint(checkpoint).audio_model == load_audio_model(model)
+    result = runner.invoke(export_app, [str(checkpoint), "-o", str(bundle), "--verify", "--frames", "2",
+                                        "--resolution", "48", "-q"])
+    assert result.exit_code == 0 and "verification PASSED" in result.output, result.output
+    assert "translator       0.000e+00" in result.output  # the bundle's graph is the attached model, exactly
+    rate = 16000
+    t = np.arange(rate) / rate
+    loud = (0.5 * np.sin(2 * np.pi * 220 * t)).astype(np.float32)
+    audio = np.concatenate([np.zeros(rate // 2, np.float32), loud])  # 1.5 s: silence, then a loud tone
+    with TalkingHead(bundle, resolution=(48, 48)) as head:
+        weights = head.translate(audio)
+        assert weights.shape == (45, 52)  # 1.5 s at 30 fps, though the model gives floor(S / 533) = 45 frames
+        jaw = weights[:, ARKIT_BLENDSHAPES.index("jawOpen")]
+        assert jaw[:10].max() < 1e-6 and jaw[20:40].min() > 0.5 * 8 * 2 / np.pi * 0.9, jaw
+        frames = list(head.frames(audio, rate))
+        assert len(frames) == 45 and not np.array_equal(frames[0], frames[30])
+        video = head.write_video(tmp_path / "talk.mp4", audio, rate)
+        assert video.stat().st_size > 0

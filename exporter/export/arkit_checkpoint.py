@@ -37,6 +37,8 @@ def arkit_payload(speaker: ArkitSpeaker) -> dict:
         "pose_track": None if speaker.pose_track is None else speaker.pose_track.clone(),
         "motion_track": None if speaker.motion_track is None else speaker.motion_track.clone(),
         "source": speaker.source,
+        "audio_model": None if speaker.audio_model is None else
+        torch.frombuffer(bytearray(speaker.audio_model), dtype=torch.uint8),
     }
 
 
@@ -104,9 +106,16 @@ def load_arkit_payload(path: Path, payload: dict) -> ArkitSpeaker:
     source = payload.get("source") or {}
     if not isinstance(source, dict):
         raise CheckpointError(f"checkpoint {path}: 'source' must be a dict")
-    return ArkitSpeaker(config, BlendshapeRig(rest, morphs, pivot), gaussians, camera, background,
-                        _optional_track(path, payload, "pose_track", 6),
-                        _optional_track(path, payload, "motion_track", len(config.blendshapes)), source).eval()
+    speaker = ArkitSpeaker(config, BlendshapeRig(rest, morphs, pivot), gaussians, camera, background,
+                           _optional_track(path, payload, "pose_track", 6),
+                           _optional_track(path, payload, "motion_track", len(config.blendshapes)), source)
+    model = payload.get("audio_model")
+    if model is not None:
+        _tensor(path, "'audio_model'", model, (None,), floating=False)
+        if model.dtype != torch.uint8:
+            raise CheckpointError(f"checkpoint {path}: 'audio_model' must be the ONNX file's bytes (uint8)")
+        speaker.audio_model = model.numpy().tobytes()
+    return speaker.eval()
 
 
 __all__ = ["arkit_payload", "load_arkit_payload"]

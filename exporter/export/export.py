@@ -8,6 +8,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import onnx
 import torch
 from tqdm import tqdm
 
@@ -201,7 +202,11 @@ def _export_arkit_steps(speaker: ArkitSpeaker, writer: BundleWriter, path: str |
                         result: ExportResult, settings: ExportSettings, steps: tqdm, mnn: bool) -> None:
     """An ARKit speaker's deformation graph, its shipped motion and pose tracks, then one atomic write (its bundle
     has no translator graph and no reference clip; docs/import.md)."""
-    steps.update()  # no translator graph
+    steps.set_postfix_str("audio model")
+    if speaker.audio_model is not None:  # the attached audio-to-ARKit model is the translator graph
+        model = convert_precision(onnx.load_from_string(speaker.audio_model), settings.translator_precision)
+        result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
+    steps.update()
     steps.set_postfix_str("deformation graph")
     args, dynamic = arkit_deform_example(speaker)
     graph = ArkitDeformationGraph(speaker, sh_degree=settings.sh_degree)

@@ -42,6 +42,8 @@ class ArkitSpeaker(nn.Module):
         self.pose_track = None if pose_track is None else torch.as_tensor(pose_track, dtype=torch.float32)
         self.motion_track = None if motion_track is None else torch.as_tensor(motion_track, dtype=torch.float32)
         self.source = dict(source or {})
+        # An attached audio-to-ARKit ONNX model (serialised; exporter/imports/audio_model.py), or None.
+        self.audio_model: bytes | None = None
 
     @property
     def n_blendshapes(self) -> int:

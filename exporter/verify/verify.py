@@ -38,6 +38,7 @@ from gaussiantalker.sdk.image import max_abs_error, psnr_db, to_uint8
 from gaussiantalker.sdk.progress import progress_bar
 
 from ..export.probes import driven_clip, motion_clip, speech_clip
+from ..export.speech import synth_speech
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.compositing import composite_reference
 from ..model.speaker import Speaker
@@ -115,7 +116,9 @@ def verify_translator(speaker: Speaker, head: TalkingHead, frame_counts=(25, 33)
                       tolerance: float | None = GRAPH_RTOL) -> dict:
     """Translator graph vs torch on speech-like clips of several lengths (not only the exported one)."""
     if isinstance(speaker, ArkitSpeaker):
-        return {"compared": False, "passed": True, "note": "an ARKit speaker has no translator graph"}
+        if speaker.audio_model is None:
+            return {"compared": False, "passed": True, "note": "an ARKit speaker without an audio model"}
+        return _verify_audio_model(speaker, head, frame_counts, seed, tolerance)
     if not head.has_translator:
         return {"compared": False, "passed": True, "note": "a flame-driven scene's bundle has no translator graph"}
     stats = []
@@ -126,6 +129,24 @@ def verify_translator(speaker: Speaker, head: TalkingHead, frame_counts=(25, 33)
         out = head.graphs.run("translator", {"audio": audio[None]})
         stats.append(_compare(expression.numpy(), out["expression"]))
         stats.append(_compare(jaw.numpy(), out["jaw_pose"]))
+    return _merge(stats, tolerance)
+
+
+def _verify_audio_model(speaker: ArkitSpeaker, head: TalkingHead, frame_counts, seed: int,
+                        tolerance: float | None) -> dict:
+    """An attached audio model has no torch twin: the bundle's `translator` graph against the attached model
+    itself (onnxruntime on both), on speech-like clips of several lengths."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    original = ort.InferenceSession(speaker.audio_model, options, providers=["CPUExecutionProvider"])
+    stats = []
+    for i, frames in enumerate(frame_counts):
+        samples = int(round(frames * speaker.config.sample_rate / speaker.config.fps))
+        audio = synth_speech(samples / speaker.config.sample_rate, seed=seed + i)[:samples][None]
+        expected = original.run(["blendshapes"], {"audio": audio})[0]
+        stats.append(_compare(expected, head.graphs.run("translator", {"audio": audio})["blendshapes"]))
     return _merge(stats, tolerance)
 
 
