@@ -4,12 +4,14 @@ torch reference against the format's own maths, its bundle against the torch spe
 from __future__ import annotations
 
 import json
+import sys
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from lam_avatars import AvatarSpec, expected_centres, motion_json, write_avatar_zip
+from lam_avatars import AvatarSpec, expected_centres, gaussians, motion_json, write_avatar_zip
 from typer.testing import CliRunner
 
 from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
@@ -19,11 +21,13 @@ from gaussiantalker.runtime import DriveError, HeadPose, TalkingHead
 from gaussiantalker.sdk.drive import BlendshapeDrive
 from gaussiantalker.sdk.errors import ImportFormatError
 from gaussiantalker.sdk.image import psnr_db, to_uint8
+from gaussiantalker.sdk.numerics import SH_C0
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
 
 # Frames of the small avatar: the runtime against the torch reference rasterizer. The contract's parity bound.
 MIN_PSNR_DB = 50.0
 SIZE = (96, 128)
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -88,9 +92,7 @@ def test_members_at_top_level_and_colours(tmp_path):
     spec = AvatarSpec(folder=None, motion=False)
     speaker = import_lam(write_avatar_zip(tmp_path / "top.zip", spec), progress=False)
     assert speaker.motion_track is None
-    from lam_avatars import gaussians
 
-    from gaussiantalker.sdk.numerics import SH_C0
     rgb = speaker.gaussians.sh[:, 0].detach().numpy() * SH_C0 + 0.5  # f_dc is RGB: SH degree 0 round-trips it
     np.testing.assert_allclose(rgb, gaussians(spec)["f_dc"], atol=1e-6)
 
@@ -194,8 +196,6 @@ def test_motion_frames_and_drive_mismatch(avatar_bundle, small_export, tmp_path)
 
 def test_cli_import_export_verify_play(avatar_zip, tmp_path):
     """gt-import lam, gt-export --verify --preset balanced, then play.py --motion: the user's path."""
-    import sys
-
     from gaussiantalker.exporter.cli import app as export_app
     from gaussiantalker.exporter.import_cli import app as import_app
 
@@ -210,7 +210,7 @@ def test_cli_import_export_verify_play(avatar_zip, tmp_path):
     assert result.exit_code == 0, result.output
     assert "not compared: an ARKit speaker without an audio model" in result.output
     assert "verification PASSED" in result.output
-    sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parents[1] / "samples"))
+    sys.path.insert(0, str(ROOT / "samples"))
     try:
         from play import app as play_app
     finally:
@@ -263,3 +263,20 @@ def test_audio_model_drives_the_avatar(avatar_zip, tmp_path):
         assert len(frames) == 45 and not np.array_equal(frames[0], frames[30])
         video = head.write_video(tmp_path / "talk.mp4", audio, rate)
         assert video.stat().st_size > 0
+
+
+def test_mnn_graphs_and_scene_refusal(avatar, tmp_path):
+    """An ARKit speaker's bundle with MNN graphs verifies like a FLAME one (MNN vs onnxruntime, frames vs torch);
+    a scene is refused with a clear error (scenes are for FLAME speakers)."""
+    from gaussiantalker.exporter.verify.verify import verify_bundle
+    from gaussiantalker.sdk.errors import BundleError
+    from gaussiantalker.sdk.scene import load_scene
+
+    pytest.importorskip("MNN", reason="the mnn extra is not installed")
+    path = tmp_path / "mnn.gtb"
+    export_bundle(avatar, path, progress=False, mnn=True)
+    report = verify_bundle(avatar, path, frames=2, resolution=(48, 48), progress=False)
+    assert report["passed"] and report["mnn"]["passed"], report
+    with pytest.raises(BundleError, match="scene specialisation .* is for FLAME speakers"):
+        export_bundle(avatar, tmp_path / "scene.gtb", progress=False, scene=load_scene(
+            ROOT / "samples" / "front_scene.toml"))
