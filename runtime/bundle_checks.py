@@ -55,18 +55,24 @@ def check_arkit_bundle(bundle: Bundle) -> None:
     _check_track(bundle, "motion_track", len(rig.blendshapes), "ARKit weights per frame")
 
 
-def check_blendshape_width(bundle: Bundle) -> None:
-    """The `deform` graph's 'blendshapes' input, and an audio model's (`translator`) output, must be as wide as
-    the rig's blendshape list."""
-    count = len(bundle.manifest["rig"]["blendshapes"])
+def _check_width(bundle: Bundle, value_name: str, expected: int, claim: str, unit: str) -> None:
+    """The last axis of `value_name` (the `deform` graph's input, the `translator` graph's output) must be
+    `expected`, what the manifest's `claim` says; BundleError naming both."""
     for graph, kind in (("deform", "inputs"), ("translator", "outputs")):
         if graph not in bundle.manifest["graphs"]:
             continue
         for value in bundle.graph_info(graph)[kind]:
             width = value["shape"][-1] if value["shape"] else None
-            if value["name"] == "blendshapes" and isinstance(width, int) and width != count:
-                raise BundleError(f"{bundle.path}: manifest rig names {count} blendshapes but graph {graph!r} "
-                                  f"{kind[:-1]} 'blendshapes' has {width}")
+            if value["name"] == value_name and isinstance(width, int) and width != expected:
+                raise BundleError(f"{bundle.path}: {claim} but graph {graph!r} {kind[:-1]} {value_name!r} has "
+                                  f"{width} {unit}")
+
+
+def check_blendshape_width(bundle: Bundle) -> None:
+    """The `deform` graph's 'blendshapes' input, and an audio model's (`translator`) output, must be as wide as
+    the rig's blendshape list."""
+    count = len(bundle.manifest["rig"]["blendshapes"])
+    _check_width(bundle, "blendshapes", count, f"manifest rig names {count} blendshapes", "weights")
 
 
 def check_speaker_bundle(bundle: Bundle) -> None:
@@ -101,14 +107,7 @@ def check_expression_width(bundle: Bundle) -> None:
         check_blendshape_width(bundle)
         return
     n_expr = bundle.manifest["speaker"].get("n_expr", SpeakerConfig.n_expr)
-    for graph, kind in (("deform", "inputs"), ("translator", "outputs")):
-        if graph not in bundle.manifest["graphs"]:
-            continue
-        for value in bundle.graph_info(graph)[kind]:
-            width = value["shape"][-1] if value["shape"] else None
-            if value["name"] == "expression" and isinstance(width, int) and width != n_expr:
-                raise BundleError(f"{bundle.path}: manifest speaker n_expr is {n_expr!r} but graph {graph!r} "
-                                  f"{kind[:-1]} 'expression' has {width} coefficients")
+    _check_width(bundle, "expression", n_expr, f"manifest speaker n_expr is {n_expr!r}", "coefficients")
 
 
 def check_initializers(bundle: Bundle, name: str, onnx_bytes: bytes, feeds: dict[str, str]) -> None:

@@ -9,23 +9,23 @@ from __future__ import annotations
 
 import copy
 
-import numpy as np
 import torch
 from torch import nn
 
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.drive import BlendshapeDrive, HeadPose, track_row
-from gaussiantalker.sdk.rig import ARKIT_RIG, ArkitRig, check_drive_rig
+from gaussiantalker.sdk.rig import ARKIT_RIG, ArkitRig
 
 from .blendshape_rig import BlendshapeRig
-from .rasterizer import render_reference
+from .reference_render import ReferenceRendering
 from .vertex_binding import VertexBoundGaussians
 
 
-class ArkitSpeaker(nn.Module):
+class ArkitSpeaker(ReferenceRendering, nn.Module):
     """Rig + vertex-bound Gaussians + camera, and the motion the avatar ships (ARKit weights and head pose)."""
 
     rig_kind = ARKIT_RIG
+    drive_inputs = ("blendshapes", "head_rotation", "head_translation")
 
     def __init__(self, config: ArkitRig, rig: BlendshapeRig, gaussians: VertexBoundGaussians, camera: Camera,
                  background=(1.0, 1.0, 1.0), pose_track: torch.Tensor | None = None,
@@ -55,23 +55,6 @@ class ArkitSpeaker(nn.Module):
         vertices = self.rig.vertices(blendshapes)
         rotation = self.rig.head_rotation(head_rotation)
         return self.gaussians(vertices, rotation, self.rig.pivot, head_translation, camera_center)
-
-    def deform_drive(self, drive: BlendshapeDrive, camera_center: torch.Tensor):
-        """`deform` of one validated drive (batch of one)."""
-        check_drive_rig(self.rig_kind, drive.rig)
-        inputs = {k: torch.from_numpy(v) for k, v in drive.graph_inputs().items()}
-        return self.deform(inputs["blendshapes"], inputs["head_rotation"], inputs["head_translation"], camera_center)
-
-    @torch.no_grad()
-    def render(self, drive: BlendshapeDrive, camera: Camera | None = None, background=None, *,
-               transmittance: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-        """Reference frame [H, W, 3] float32 (C + T * background) for one drive (and T [H, W] if asked)."""
-        camera = camera or self.camera
-        center = torch.from_numpy(camera.center.astype(np.float32))[None]
-        means, cov3d, rgb, opacity = self.deform_drive(drive, center)
-        bg = torch.as_tensor(self.background if background is None else background, dtype=torch.float32)
-        image, trans = render_reference(means[0], cov3d[0], rgb[0], opacity, camera, bg)
-        return (image, trans) if transmittance else image
 
     def motion_drive(self, index: int) -> BlendshapeDrive:
         """Frame `index` of the shipped motion: its weights (neutral without a motion track) and head pose (the

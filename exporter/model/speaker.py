@@ -7,24 +7,22 @@ rasterizer.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 from torch import nn
 
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import POSE_DIM, SpeakerConfig
-from gaussiantalker.sdk.drive import FrameDrive
 from gaussiantalker.sdk.reference_clip import EncodedClip
-from gaussiantalker.sdk.rig import FLAME_RIG, check_drive_rig
+from gaussiantalker.sdk.rig import FLAME_RIG
 
 from .flame import FlameArrays, FlameLayer
 from .gaussians import BoundGaussians, LatentPoseMLP
 from .inpainter import InpainterNet
-from .rasterizer import render_reference
+from .reference_render import ReferenceRendering
 from .translator import MotionTranslator
 
 
-class Speaker(nn.Module):
+class Speaker(ReferenceRendering, nn.Module):
     """One trained speaker. Non-tensor state (camera, background, FLAME arrays) travels in the checkpoint too.
 
     Optional: `reference` (the original video clip the face is composited into, aligned with `pose_track`) and
@@ -32,6 +30,7 @@ class Speaker(nn.Module):
     """
 
     rig_kind = FLAME_RIG
+    drive_inputs = ("expression", "flame_pose", "head_translation")
 
     def __init__(self, config: SpeakerConfig, flame: FlameArrays, shape: torch.Tensor, parent: torch.Tensor,
                  camera: Camera, background=(1.0, 1.0, 1.0), pose_track: torch.Tensor | None = None) -> None:
@@ -73,22 +72,4 @@ class Speaker(nn.Module):
         vertices = self.vertices(expression, flame_pose, head_translation)
         gamma = self.latent_pose(flame_pose[:, 3:])
         return self.gaussians(vertices, gamma, camera_center)
-
-    def deform_drive(self, drive: FrameDrive, camera_center: torch.Tensor):
-        """`deform` of one validated drive (batch of one)."""
-        check_drive_rig(self.rig_kind, drive.rig)
-        inputs = {k: torch.from_numpy(v) for k, v in drive.graph_inputs().items()}
-        return self.deform(inputs["expression"], inputs["flame_pose"], inputs["head_translation"], camera_center)
-
-    @torch.no_grad()
-    def render(self, drive: FrameDrive, camera: Camera | None = None, background=None, *,
-               transmittance: bool = False) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
-        """Reference frame [H, W, 3] float32 (C + T * background) for one validated drive (and its transmittance
-        T [H, W] with `transmittance=True`)."""
-        camera = camera or self.camera
-        center = torch.from_numpy(camera.center.astype(np.float32))[None]
-        means, cov3d, rgb, opacity = self.deform_drive(drive, center)
-        bg = torch.as_tensor(self.background if background is None else background, dtype=torch.float32)
-        image, trans = render_reference(means[0], cov3d[0], rgb[0], opacity, camera, bg)
-        return (image, trans) if transmittance else image
 
