@@ -122,6 +122,7 @@ function base64(bytes) {
 }
 
 async function load({url, width, height, background = [1, 1, 1]}) {
+  const t0 = performance.now();
   const { GaussianSplatRenderer } = await import(RENDERER_URL);
   const stage = document.getElementById('stage');
   stage.style.width = `${width}px`;
@@ -143,12 +144,21 @@ async function load({url, width, height, background = [1, 1, 1]}) {
   const mesh = state.viewer.skinModel;
   state.names = [...new Set([...ARKIT_NAMES, ...Object.keys(mesh.morphTargetDictionary || {})])];
   state.weights = fullWeights({});
+  const tInstance = performance.now();
   await Promise.race([loadedPromise, sleep(TIMEOUT_MS).then(() => { throw new Error('avatar load timed out'); })]);
-  // Let the renderer's own loop run until the scene's fade-in is over and no sort is in flight, then stop it.
-  await until(() => state.viewer.splatRenderReady && !state.viewer.splatMesh.visibleRegionChanging &&
-                    !state.viewer.sortRunning, 'the scene fade-in');
+  const tBuilt = performance.now();
+  // Stop the renderer's own loop once the splats are drawable and no sort is in flight.
+  await until(() => state.viewer.splatRenderReady && !state.viewer.sortRunning, 'the first sort');
   renderer.render = () => {};  // the loop's requestAnimationFrame callback calls this.render(): it ends here
   cancelAnimationFrame(state.viewer.requestFrameId);
+  // The scene fades in over a few hundred frames (an update per frame); run those updates without drawing, so
+  // frames are taken in the faded-in state the loop reaches (fadeInComplete = 1: no fade term in the shader).
+  let fadeSteps = 0;
+  while (state.viewer.splatMesh.visibleRegionChanging) {
+    if (++fadeSteps > 100000) throw new Error('the scene fade-in does not end');
+    state.viewer.splatMesh.updateVisibleRegionFadeDistance(state.viewer.sceneRevealMode);
+  }
+  const tFaded = performance.now();
   renderer.getChatState = undefined;  // no chat state: the AnimationManager never starts a clip
   renderer.mixer.stopAllAction();
   renderer.mixer.timeScale = 0;
@@ -169,6 +179,8 @@ async function load({url, width, height, background = [1, 1, 1]}) {
     boneRootParents: parents,
     splatMeshMatrix: state.viewer.splatMesh.matrixWorld.toArray(),
     useFlame: !!renderer.useFlame,
+    seconds: {modelLoad: (tInstance - t0) / 1000, splatBuild: (tBuilt - tInstance) / 1000,
+              fadeIn: (tFaded - tBuilt) / 1000, fadeInSteps: fadeSteps},
   };
 }
 
