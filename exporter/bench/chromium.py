@@ -133,7 +133,7 @@ class Chromium:
             while data:
                 data = data[os.write(self._to_browser, data):]
         except OSError as exc:
-            raise ChromiumError(f"Chromium is gone ({exc}); its stderr ends:\n" + "\n".join(self._stderr_tail))
+            raise ChromiumError(f"Chromium is gone ({exc}); its stderr ends:\n" + "\n".join(self._stderr_tail)) from exc
         with self._lock:
             if not self._reply_ready.wait_for(lambda: ident in self._replies or self._closed, timeout):
                 raise ChromiumError(f"{method} got no answer in {timeout:.0f} s")
