@@ -28,6 +28,7 @@ from gaussiantalker.exporter.bench.lam_web_camera import (
     to_three,
 )
 from gaussiantalker.exporter.bench.lam_web_run import load_motion, parse_frames, write_png
+from gaussiantalker.exporter.bench.lam_web_synthetic import default_splats, write_synthetic_avatar
 from gaussiantalker.sdk.camera import Camera
 
 
@@ -232,10 +233,7 @@ def test_headless_chromium_has_webgl2_with_our_flags():
 
 
 def test_harness_page_imports_the_installed_renderer():
-    _skip_without_chromium()
-    reason = lam_web.check_installed()
-    if reason:
-        pytest.skip(reason)
+    _skip_without_renderer()
     server = lam_web._Server({"page": lam_web.PAGE_DIR, "renderer": lam_web.renderer_dir()})
     try:
         with Chromium(window=(64, 64)) as browser:
@@ -249,16 +247,105 @@ def test_harness_page_imports_the_installed_renderer():
     assert exported == ["function", "function", "object"]
 
 
+def _skip_without_renderer() -> None:
+    _skip_without_chromium()
+    reason = lam_web.check_installed()
+    if reason:
+        pytest.skip(reason)
+
+
+@pytest.fixture(scope="module")
+def synthetic_renderer(tmp_path_factory):
+    """The synthetic avatar (lam_web_synthetic: splats at known places) in the web renderer, 192x160."""
+    _skip_without_renderer()
+    path = write_synthetic_avatar(tmp_path_factory.mktemp("lam") / "synthetic.zip")
+    with lam_web.LamWebRenderer(path, (192, 160), (1.0, 1.0, 1.0)) as renderer:
+        yield renderer, default_splats()
+
+
+def _blob_centre(image: np.ndarray, channel: int, near: np.ndarray, radius: int = 9) -> np.ndarray:
+    """Centroid (pixel centres at +0.5) of how far `channel` drops below white within `radius` px of `near`."""
+    x0, y0 = (int(round(v)) for v in near)
+    window = 255.0 - image[y0 - radius: y0 + radius + 1, x0 - radius: x0 + radius + 1, channel].astype(np.float64)
+    ys, xs = np.mgrid[y0 - radius: y0 + radius + 1, x0 - radius: x0 + radius + 1]
+    assert window.sum() > 255, f"no splat near {near}"
+    return np.array([(window * (xs + 0.5)).sum(), (window * (ys + 0.5)).sum()]) / window.sum()
+
+
+# the channel that drops under each visible synthetic splat: red and blue splats take green away, green takes red
+_DROPPED = (1, 0, 0)
+
+
+def _check_splats_land(renderer, camera: Camera, weights: dict, scaled: dict) -> None:
+    """Each visible splat's blob is centred on our Camera's projection of its centre, to 0.1 px."""
+    web, splats = renderer
+    image = web.render(camera, weights)
+    expected = _project(camera, splats.centres(scaled))
+    for index, channel in enumerate(_DROPPED):
+        found = _blob_centre(image, channel, expected[index])
+        assert np.abs(found - expected[index]).max() < 0.1, (index, found, expected[index])
+    return image
+
+
+def test_synthetic_splats_land_where_our_camera_projects_them(synthetic_renderer):
+    web, splats = synthetic_renderer
+    camera = lam_default_camera(192, 160)
+    image = _check_splats_land(synthetic_renderer, camera, {}, {})
+    assert np.array_equal(web.render(None, {}), image)  # the renderer's own camera: the same pixels
+    assert web.last["restPoseError"] < 1e-6 and web.last["alpha_min"] == 255
+    # The renderer does not draw the last splat (the yellow one, in view): its pixels stay background.
+    last = _project(camera, splats.centres())[-1]
+    assert np.array_equal(image[int(last[1]), int(last[0])], [255, 255, 255])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_synthetic_splats_through_other_cameras(synthetic_renderer, seed):
+    rng = np.random.default_rng(seed)
+    target = np.array([0.0, 1.62, 0.0])
+    eye = target + np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3), rng.uniform(0.6, 1.2)])
+    camera = Camera.looking_at(eye, target + rng.normal(size=3) * 0.02, [rng.uniform(-0.2, 0.2), 1.0, 0.0],
+                               192, 160, float(rng.uniform(30.0, 60.0)), near=0.1)
+    _check_splats_land(synthetic_renderer, camera, {}, {})
+
+
+def test_synthetic_morphs_move_splats_by_the_scaled_weights(synthetic_renderer):
+    """jawOpen is scaled by the renderer's motionConfig (x1.2), eyeBlinkLeft is not; the harness feeds raw weights."""
+    camera = lam_default_camera(192, 160)
+    _check_splats_land(synthetic_renderer, camera, {"jawOpen": 0.5, "eyeBlinkLeft": 1.0},
+                       {"jawOpen": 0.6, "eyeBlinkLeft": 1.0})
+    web, _ = synthetic_renderer
+    assert web.last["bsWeight"]["jawOpen"] == pytest.approx(0.6) and web.last["bsWeight"]["tongueOut"] == 0.0
+
+
+def test_a_playing_clip_is_stopped_and_the_rest_pose_restored(synthetic_renderer):
+    """An app that started a chat-state clip (each synthetic clip turns the head 30 degrees): frames still show the
+    rest pose, because every frame stops the mixer's actions and puts every node back."""
+    web, _ = synthetic_renderer
+    turned = web.browser.evaluate("""(() => {
+        const renderer = window.gtLamWeb.state.renderer, mixer = renderer.mixer;
+        const action = mixer.clipAction(window.gtLamWeb.state.animationClips[3]);
+        mixer.timeScale = 1; action.reset().play(); mixer.update(0.9);
+        const head = renderer.viewer.skinModel.skeleton.bones.find((b) => b.name === 'head');
+        return 2 * Math.acos(Math.min(1, Math.abs(head.quaternion.w))) * 180 / Math.PI;
+    })()""")
+    assert turned == pytest.approx(27.0, abs=0.5)  # the clip did turn the head
+    _check_splats_land(synthetic_renderer, lam_default_camera(192, 160), {}, {})
+    assert web.last["restPoseError"] < 1e-6
+
+
+def test_synthetic_background_is_the_clear_colour(synthetic_renderer):
+    web, _ = synthetic_renderer
+    image = web.render(None, {}, background=(0.2, 0.4, 0.6))
+    assert np.array_equal(image[0, 0], [51, 102, 153]) and np.array_equal(image[-1, -1], [51, 102, 153])
+
+
 @pytest.fixture(scope="module")
 def avatar_renderer():
     """The real avatar at GT_LAM_AVATAR in the web renderer, 256x256 (no avatar ships with the repository)."""
     path = os.environ.get("GT_LAM_AVATAR")
     if not path:
         pytest.skip("set GT_LAM_AVATAR to a LAM avatar zip to run the avatar tests (docs/lam-web.md)")
-    _skip_without_chromium()
-    reason = lam_web.check_installed()
-    if reason:
-        pytest.skip(reason)
+    _skip_without_renderer()
     with lam_web.LamWebRenderer(Path(path), (256, 256), (1.0, 1.0, 1.0)) as renderer:
         yield renderer
 
@@ -270,6 +357,7 @@ def test_converted_default_camera_draws_the_renderers_own_pixels(avatar_renderer
     assert avatar_renderer.last["camera"]["fov"] == pytest.approx(50.0)
     assert np.array_equal(avatar_renderer.render(None, {}), own)  # frames do not drift: the rest pose is held
     assert (own < 200).mean() > 0.02 and np.array_equal(own[0, 0], [255, 255, 255])
+    assert avatar_renderer.last["alpha_min"] == 255  # opaque drawing buffer: what the page shows is what we read
 
 
 def test_weights_and_background_reach_the_frame(avatar_renderer):

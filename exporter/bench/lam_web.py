@@ -205,6 +205,7 @@ class LamWebRenderer:
         if reply["restPoseError"] > 1e-6:
             raise RuntimeError(f"the skeleton left its rest pose (error {reply['restPoseError']:.3g})")
         rgba = np.frombuffer(base64.b64decode(reply["rgba"]), np.uint8).reshape(reply["height"], reply["width"], 4)
+        self.last["alpha_min"] = int(rgba[..., 3].min())  # 255: the canvas shows RGB as read (docs/lam-web.md)
         return np.ascontiguousarray(rgba[::-1, :, :3])
 
     def close(self) -> None:

@@ -23,6 +23,7 @@ const state = {
   step: null,          // its original per-frame function (GaussianSplatRenderer.prototype.render)
   viewer: null,
   restPose: [],        // [object, position, quaternion, scale] of every node under the animation mixer's root
+  animationClips: [],  // the clips of animation.glb the renderer made actions for (tests start one)
   defaultCamera: null, // the renderer's own camera as it set it up
   names: [],           // every weight name accepted: ARKit's and the mesh's morph targets
   weights: {},         // what getExpressionData() hands the renderer (a fresh copy per call)
@@ -55,6 +56,16 @@ function restoreRestPose() {
   }
 }
 
+function freezeAnimation() {
+  // No chat state (the AnimationManager never starts a clip), every action stopped, mixer time stopped, and every
+  // node under the mixer's root back at its rest pose: the skeleton the splats are skinned with is the rest pose.
+  const renderer = state.renderer;
+  renderer.getChatState = undefined;
+  renderer.mixer.stopAllAction();
+  renderer.mixer.timeScale = 0;
+  restoreRestPose();
+}
+
 function restPoseError() {
   let error = 0;
   for (const [object, position, quaternion, scale] of state.restPose) {
@@ -62,6 +73,13 @@ function restPoseError() {
                      1 - Math.abs(object.quaternion.dot(quaternion)));
   }
   return error;
+}
+
+function headBoneMatrix() {
+  // The skinning matrix (bone.matrixWorld * boneInverse) of the bone the splat shader moves every splat with.
+  const index = state.viewer.splatMesh.material.uniforms.headBoneIndex.value;
+  const matrices = state.viewer.skinModel.skeleton.boneMatrices;
+  return index >= 0 ? Array.from(matrices.slice(16 * index, 16 * index + 16)) : null;
 }
 
 function setSize(width, height) {
@@ -137,6 +155,7 @@ async function load({url, width, height, background = [1, 1, 1]}) {
   if (!renderer || !renderer.viewer) throw new Error('GaussianSplatRenderer.getInstance failed (see the console)');
   state.renderer = renderer;
   state.step = GaussianSplatRenderer.prototype.render;
+  state.animationClips = renderer.animManager ? renderer.mixer._actions.map((a) => a.getClip()) : [];
   state.viewer = renderer.viewer;
   // The rest pose, taken before the render loop's first mixer update (the loop starts once the splats are built).
   const root = renderer.mixer.getRoot();
@@ -159,10 +178,7 @@ async function load({url, width, height, background = [1, 1, 1]}) {
     state.viewer.splatMesh.updateVisibleRegionFadeDistance(state.viewer.sceneRevealMode);
   }
   const tFaded = performance.now();
-  renderer.getChatState = undefined;  // no chat state: the AnimationManager never starts a clip
-  renderer.mixer.stopAllAction();
-  renderer.mixer.timeScale = 0;
-  restoreRestPose();
+  freezeAnimation();
   state.width = width;
   state.height = height;
   state.viewer.renderer.setPixelRatio(1);
@@ -191,7 +207,7 @@ async function render({weights = {}, camera = null, background = [1, 1, 1], widt
   viewer.renderer.setClearColor(hexColor(background), 1.0);
   setCamera(camera);
   state.weights = fullWeights(weights);
-  restoreRestPose();
+  freezeAnimation();
   await until(() => !viewer.sortRunning, 'an earlier sort');
   step();  // sets this frame's weights and textures and starts the sort for this camera
   await until(() => !viewer.sortRunning, 'this frame\'s sort');
@@ -207,10 +223,11 @@ async function render({weights = {}, camera = null, background = [1, 1, 1], widt
   return {
     width: state.width, height: state.height, rgba: base64(pixels),  // bottom row first (GL order)
     restPoseError: restPoseError(),
+    headBoneMatrix: headBoneMatrix(),
     bsWeight: {...viewer.splatMesh.bsWeight},
     camera: snapshotCamera(viewer.camera),
     ms: performance.now() - t0,
   };
 }
 
-window.gtLamWeb = { load, render, ARKIT_NAMES, ready: true };
+window.gtLamWeb = { load, render, ARKIT_NAMES, ready: true, state };
