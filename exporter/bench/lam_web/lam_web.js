@@ -127,9 +127,17 @@ function fullWeights(weights) {
 
 function step() {
   // One pass of the renderer's own frame function: motionConfig scaling, setExpression, viewer.update (morph and
-  // bone textures, a forced full sort), viewer.render. Its requestAnimationFrame re-arm is cancelled at once.
-  state.step.call(state.renderer);
-  cancelAnimationFrame(state.viewer.requestFrameId);
+  // bone textures, a forced full sort), and its draw, which is skipped here: with SwiftShader a draw is most of a
+  // frame's time and render() draws once, after the second pass. Its requestAnimationFrame re-arm is cancelled.
+  const viewer = state.viewer;
+  const draw = viewer.render;
+  viewer.render = () => {};
+  try {
+    state.step.call(state.renderer);
+  } finally {
+    viewer.render = draw;
+    cancelAnimationFrame(viewer.requestFrameId);
+  }
 }
 
 function base64(bytes) {
@@ -211,8 +219,8 @@ async function render({weights = {}, camera = null, background = [1, 1, 1], widt
   await until(() => !viewer.sortRunning, 'an earlier sort');
   step();  // sets this frame's weights and textures and starts the sort for this camera
   await until(() => !viewer.sortRunning, 'this frame\'s sort');
-  step();  // the same state again: the bone texture sees this frame's matrices, the landed order is used
-  viewer.render();  // draw now, in this task, so the drawing buffer is still intact for readPixels
+  step();  // the same state again: the bone texture sees this frame's matrices
+  viewer.render();  // draw with the landed order, in this task, so the drawing buffer is intact for readPixels
   const gl = viewer.renderer.getContext();
   if (gl.drawingBufferWidth !== state.width || gl.drawingBufferHeight !== state.height) {
     throw new Error(`drawing buffer is ${gl.drawingBufferWidth}x${gl.drawingBufferHeight}, ` +
