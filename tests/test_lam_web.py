@@ -208,6 +208,19 @@ def test_cli_lists_lam_web():
         assert option in result.output
 
 
+def test_cli_refuses_an_off_centre_camera_before_starting_a_browser(tmp_path):
+    from typer.testing import CliRunner
+
+    from gaussiantalker.exporter.bench.app import app
+
+    camera = Camera(64, 64, 60.0, 60.0, 30.0, 32.0)
+    (tmp_path / "camera.json").write_text(json.dumps(camera.to_dict()))
+    result = CliRunner().invoke(app, ["lam-web", str(tmp_path / "none.zip"), "--camera", str(tmp_path / "camera.json"),
+                                      "--size", "64", "-o", str(tmp_path / "out")])
+    assert result.exit_code == 2 and "principal point" in result.output
+    assert not (tmp_path / "out").exists()
+
+
 # --- the browser: needs Debian's chromium (and for the renderer, the npm cache) --------------------------------
 
 def _skip_without_chromium() -> None:
@@ -337,6 +350,29 @@ def test_synthetic_background_is_the_clear_colour(synthetic_renderer):
     web, _ = synthetic_renderer
     image = web.render(None, {}, background=(0.2, 0.4, 0.6))
     assert np.array_equal(image[0, 0], [51, 102, 153]) and np.array_equal(image[-1, -1], [51, 102, 153])
+
+
+def test_cli_writes_frames_cameras_and_weights(tmp_path):
+    from typer.testing import CliRunner
+
+    from gaussiantalker.exporter.bench.app import app
+
+    _skip_without_renderer()
+    avatar = write_synthetic_avatar(tmp_path / "synthetic.zip")
+    motion = tmp_path / "motion.json"
+    motion.write_text(json.dumps({"names": list(lam_web.ARKIT_NAMES),
+                                  "frames": [{"weights": [0.0] * 52}, {"weights": [0.0] * 24 + [0.5] + [0.0] * 27}]}))
+    out = tmp_path / "out"
+    result = CliRunner().invoke(app, ["lam-web", str(avatar), "--motion", str(motion), "--frames", "0,-1",
+                                      "--size", "96", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "frame 1:" in result.output and "per frame" in result.output
+    assert sorted(p.name for p in out.iterdir()) == ["cameras.json", "web_0.png", "web_1.png", "weights.json"]
+    camera = Camera.from_dict(json.loads((out / "cameras.json").read_text()))
+    assert np.allclose(camera.R, lam_default_camera(96, 96).R) and camera.width == 96
+    weights = json.loads((out / "weights.json").read_text())
+    assert weights["frames"]["1"]["jawOpen"] == 0.5 and weights["frames"]["0"]["jawOpen"] == 0.0
+    assert (out / "web_0.png").read_bytes() != (out / "web_1.png").read_bytes()  # the red splat moved
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ import numpy as np
 
 from gaussiantalker.sdk.camera import Camera
 
-from .lam_web import LamWebRenderer, weights_dict
+from .lam_web import LamWebRenderer, page_camera, weights_dict
 from .lam_web_camera import lam_default_camera
 
 
@@ -68,6 +68,7 @@ def run_lam_web(avatar: Path, out: Path, motion: Path | None = None, frames: str
     camera = camera if camera is not None else lam_default_camera(size, size)
     if (camera.width, camera.height) != (size, size):
         camera = camera.resized(size, size)
+    page_camera(camera, (size, size))  # refuse a camera three.js cannot draw before starting a browser
     if motion is None:
         jobs = [("neutral", {})]
     else:
