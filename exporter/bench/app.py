@@ -7,6 +7,7 @@
     gt-bench backends      onnxruntime vs MNN (bench/backends.py)
     gt-bench video         the encoding cost of every video output (bench/video.py)
     gt-bench clip-codecs   how to store a reference clip (bench/clip_codecs.py)
+    gt-bench lam-web       ground-truth frames of a LAM avatar from the original web renderer (bench/lam_web.py)
 
 The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
 still work: `entry.gt_bench` rewrites them to their subcommand.
@@ -140,6 +141,47 @@ def clip_codecs(checkpoint: Path = typer.Argument(Path("out/speaker.ckpt"), help
     from .clip_codecs import run_clip_codecs_bench
 
     run_clip_codecs_bench(checkpoint)
+
+
+@app.command("lam-web")
+def lam_web(
+    avatar: Path = typer.Argument(None, help="a LAM avatar zip (one folder: skin.glb, animation.glb, offset.ply, "
+                                  "vertex_order.json)"),
+    motion: Path = typer.Option(None, "--motion", help="motion JSON {names, frames: [{weights}]} [default: the "
+                                "neutral face, all weights 0]"),
+    frames: str = typer.Option("0", "--frames", help="comma-separated motion frame indexes"),
+    size: int = typer.Option(512, "--size", min=1, help="frame side"),
+    camera: Path = typer.Option(None, "--camera", help="camera JSON (Camera.to_dict()) [default: the renderer's "
+                                "own camera]"),
+    background: str = typer.Option("1,1,1", "--background", help="background r,g,b in 0..1"),
+    out: Path = typer.Option(Path("out/lam-web"), "-o", "--out", help="folder for web_{frame}.png, cameras.json, "
+                             "weights.json"),
+    cache: Path = typer.Option(None, "--cache", help="npm cache folder [default: $GT_LAM_WEB_CACHE or "
+                               "~/.cache/gaussiantalker/lam-web]"),
+    install: bool = typer.Option(False, "--install", help="first install the npm renderer and Debian's chromium"),
+) -> None:
+    """Frames of AVATAR drawn by the original LAM web renderer in headless Chromium (docs/lam-web.md)."""
+    from gaussiantalker.sdk.camera import Camera
+
+    from .lam_web import LamWebMissing
+    from .lam_web import install as install_lam_web
+    from .lam_web_run import run_lam_web
+
+    if install:
+        typer.echo(f"installed the renderer in {install_lam_web(cache)}")
+    if avatar is None:
+        if not install:
+            raise typer.BadParameter("give an avatar zip (or --install)", param_hint="AVATAR")
+        return
+    rgb = tuple(float(c) for c in background.split(","))
+    if len(rgb) != 3:
+        raise typer.BadParameter("three numbers: r,g,b", param_hint="--background")
+    view = Camera.from_dict(json.loads(camera.read_text())) if camera is not None else None
+    try:
+        run_lam_web(avatar, out, motion, frames, size, rgb, view, cache, echo=typer.echo)
+    except (LamWebMissing, ValueError) as exc:
+        typer.echo(f"gt-bench lam-web: {exc}", err=True)
+        raise typer.Exit(2) from exc
 
 
 def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: float, rounds: int,
