@@ -1,8 +1,8 @@
 """Small LAM-format avatar zips for the tests, written from the glTF 2.0 and PLY specifications (no avatar is
-committed): an ellipsoid head mesh with a few sparse ARKit morph targets, a skeleton root -> neck -> head under a
-Z-up, centimetre root like LAM's, an animation.glb whose clips turn the head, an offset.ply of one Gaussian per
-vertex. `expected_centres` computes where LAM's renderer puts each Gaussian with this module's own maths, so the
-importer is checked against the format, not against itself.
+committed): an ellipsoid head mesh with a few sparse ARKit morph targets, a skeleton hip -> neck -> head (LAM's
+renderer needs the bone named "hip") under a Z-up, centimetre root like LAM's, an animation.glb whose clips turn
+the head, an offset.ply of one Gaussian per vertex. `expected_centres` computes where LAM's renderer puts each
+Gaussian with this module's own maths, so the importer is checked against the format, not against itself.
 """
 
 from __future__ import annotations
@@ -18,7 +18,8 @@ import numpy as np
 
 ROOT_ROTATION = (np.sqrt(0.5), 0.0, 0.0, np.sqrt(0.5))  # glTF (x, y, z, w): +90 degrees about x, as LAM's root
 ROOT_SCALE = 0.01  # the skeleton in centimetres
-NECK_LOCAL = (0.0, 0.0, -150.0)  # under the root: 1.5 m up in the world (y)
+HIP_LOCAL = (0.0, 0.0, -140.0)  # under the root: 1.4 m up in the world (y)
+NECK_LOCAL = (0.0, 0.0, -10.0)  # 0.1 m above the hip
 HEAD_LOCAL = (0.0, 0.0, -10.0)  # 0.1 m above the neck
 MORPHS = {  # name -> (which vertices move: a predicate on the rest position relative to the head centre, delta m)
     "jawOpen": (lambda p: p[:, 1] < -0.03, (0.0, -0.02, 0.005)),
@@ -141,14 +142,18 @@ class _Glb:
         return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
 
 
+HEAD_NODE = 3
+
+
 def _skeleton_nodes() -> list[dict]:
-    return [{"name": "root", "rotation": list(ROOT_ROTATION), "scale": [ROOT_SCALE] * 3, "children": [1]},
-            {"name": "neck", "translation": list(NECK_LOCAL), "children": [2]},
+    return [{"name": "Armature", "rotation": list(ROOT_ROTATION), "scale": [ROOT_SCALE] * 3, "children": [1]},
+            {"name": "hip", "translation": list(HIP_LOCAL), "children": [2]},
+            {"name": "neck", "translation": list(NECK_LOCAL), "children": [3]},
             {"name": "head", "translation": list(HEAD_LOCAL)}]
 
 
 def world(locals_: list[np.ndarray]) -> list[np.ndarray]:
-    """World matrices of the chain root -> neck -> head from their local matrices."""
+    """World matrices of the chain root -> hip -> neck -> head from their local matrices."""
     out, current = [], np.eye(4)
     for local in locals_:
         current = current @ local
@@ -157,7 +162,9 @@ def world(locals_: list[np.ndarray]) -> list[np.ndarray]:
 
 
 def rest_worlds() -> list[np.ndarray]:
-    return world([trs(r=ROOT_ROTATION, s=[ROOT_SCALE] * 3), trs(t=NECK_LOCAL), trs(t=HEAD_LOCAL)])
+    """World matrices of the joints hip, neck, head at rest."""
+    return world([trs(r=ROOT_ROTATION, s=[ROOT_SCALE] * 3), trs(t=HIP_LOCAL), trs(t=NECK_LOCAL),
+                  trs(t=HEAD_LOCAL)])[1:]
 
 
 def skin_glb(spec: AvatarSpec) -> bytes:
@@ -174,11 +181,11 @@ def skin_glb(spec: AvatarSpec) -> bytes:
                                 "WEIGHTS_0": weights}, "targets": targets}
     inverse_bind = np.stack([np.linalg.inv(m).T for m in rest_worlds()])  # column-major, as glTF stores them
     nodes = _skeleton_nodes()
-    nodes[0]["children"] = [1, 3]
+    nodes[0]["children"] = [1, 4]
     nodes.append({"name": "head_mesh", "mesh": 0, "skin": 0})
     glb.doc.update({"scene": 0, "scenes": [{"nodes": [0]}], "nodes": nodes,
                     "meshes": [{"name": "head", "primitives": [primitive], "extras": {"targetNames": names}}],
-                    "skins": [{"joints": [0, 1, 2],
+                    "skins": [{"joints": [1, 2, HEAD_NODE],
                                "inverseBindMatrices": glb.accessor(inverse_bind.reshape(3, 16), "MAT4")}]})
     if "skin" in spec.skip:
         del glb.doc["skins"]
@@ -196,7 +203,7 @@ def animation_glb(spec: AvatarSpec) -> bytes:
         animations.append({"name": name, "samplers": [{"input": glb.accessor(times, "SCALAR"),
                                                        "output": glb.accessor(values, "VEC4"),
                                                        "interpolation": "LINEAR"}],
-                           "channels": [{"sampler": 0, "target": {"node": 2, "path": "rotation"}}]})
+                           "channels": [{"sampler": 0, "target": {"node": HEAD_NODE, "path": "rotation"}}]})
     glb.doc.update({"scene": 0, "scenes": [{"nodes": [0]}], "nodes": _skeleton_nodes(), "animations": animations})
     return glb.bytes()
 
@@ -204,9 +211,9 @@ def animation_glb(spec: AvatarSpec) -> bytes:
 def head_motion(angle: float) -> np.ndarray:
     """The head bone's world motion (4x4) when its local rotation is `angle` about local x."""
     rest = rest_worlds()
-    posed = world([trs(r=ROOT_ROTATION, s=[ROOT_SCALE] * 3), trs(t=NECK_LOCAL),
+    posed = world([trs(r=ROOT_ROTATION, s=[ROOT_SCALE] * 3), trs(t=HIP_LOCAL), trs(t=NECK_LOCAL),
                    trs(t=HEAD_LOCAL, r=axis_angle_quat((1, 0, 0), angle))])
-    return posed[2] @ np.linalg.inv(rest[2])
+    return posed[3] @ np.linalg.inv(rest[2])
 
 
 def expected_centres(spec: AvatarSpec, weights: dict[str, float], angle: float = 0.0) -> np.ndarray:
@@ -260,6 +267,8 @@ def write_avatar_zip(path: str | Path, spec: AvatarSpec | None = None) -> Path:
         members["bsData.json"] = json.dumps(motion_json()).encode()
     prefix = f"{spec.folder}/" if spec.folder else ""
     with zipfile.ZipFile(path, "w") as archive:
+        if prefix:
+            archive.writestr(prefix, b"")  # the folder's own entry, as zip tools write (LAM's renderer needs it)
         for name, data in members.items():
             if name not in spec.skip:
                 archive.writestr(prefix + name, data)

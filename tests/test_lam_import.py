@@ -93,8 +93,14 @@ def test_members_at_top_level_and_colours(tmp_path):
     speaker = import_lam(write_avatar_zip(tmp_path / "top.zip", spec), progress=False)
     assert speaker.motion_track is None
 
-    rgb = speaker.gaussians.sh[:, 0].detach().numpy() * SH_C0 + 0.5  # f_dc is RGB: SH degree 0 round-trips it
-    np.testing.assert_allclose(rgb, gaussians(spec)["f_dc"], atol=1e-6)
+    # f_dc is RGB, stored in 8 bits by the renderer: SH degree 0 round-trips it; opacity also 8 bits.
+    rgb = speaker.gaussians.sh[:, 0].detach().numpy() * SH_C0 + 0.5
+    np.testing.assert_allclose(rgb, np.floor(gaussians(spec)["f_dc"] * 255) / 255, atol=1e-6)
+    opacity = torch.sigmoid(speaker.gaussians.opacity_logit).detach().numpy()
+    np.testing.assert_allclose(opacity, np.floor(255 / (1 + np.exp(-gaussians(spec)["opacity"]))) / 255, atol=1e-6)
+    exact = import_lam(tmp_path / "top.zip", LamOptions(renderer_colours=False), progress=False)
+    np.testing.assert_allclose(exact.gaussians.sh[:, 0].detach().numpy() * SH_C0 + 0.5, gaussians(spec)["f_dc"],
+                               atol=1e-6)
 
 
 @pytest.mark.parametrize("spec, member, words", [

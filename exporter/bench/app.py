@@ -159,6 +159,8 @@ def lam_web(
     cache: Path = typer.Option(None, "--cache", help="npm cache folder [default: $GT_LAM_WEB_CACHE or "
                                "~/.cache/gaussiantalker/lam-web]"),
     install: bool = typer.Option(False, "--install", help="first install the npm renderer and Debian's chromium"),
+    compare: Path = typer.Option(None, "--compare", help="a bundle of the same avatar (gt-import lam + gt-export): "
+                                 "draw the same frames with the runtime and write their PSNR (compare.json)"),
 ) -> None:
     """Frames of AVATAR drawn by the original LAM web renderer in headless Chromium (docs/lam-web.md)."""
     from gaussiantalker.sdk.camera import Camera
@@ -178,7 +180,7 @@ def lam_web(
         raise typer.BadParameter("three numbers: r,g,b", param_hint="--background")
     view = Camera.from_dict(json.loads(camera.read_text())) if camera is not None else None
     try:
-        run_lam_web(avatar, out, motion, frames, size, rgb, view, cache, echo=typer.echo)
+        run_lam_web(avatar, out, motion, frames, size, rgb, view, cache, echo=typer.echo, compare=compare)
     except (LamWebMissing, ValueError) as exc:
         typer.echo(f"gt-bench lam-web: {exc}", err=True)
         raise typer.Exit(2) from exc

@@ -49,6 +49,9 @@ LAM_CAMERA_PITCH_DEG = -10.0
 LAM_CAMERA_FOV_DEG = 50.0
 LAM_REFERENCE_CENTER = (-0.0013, 1.6523, 0.0151)
 LAM_REFERENCE_HEIGHT = 0.2936
+# Opacity logit of a Gaussian whose 8-bit opacity is 0 in the renderer: sigmoid 2e-9, far below the contract's
+# 1/255 alpha floor, so it is never drawn either.
+OPACITY_ZERO_LOGIT = -20.0
 # The bind pose must be the rest pose: head bone world x inverse bind = identity to this tolerance.
 BIND_TOLERANCE = 1e-4
 
@@ -60,6 +63,7 @@ class LamOptions:
 
     clip: str | None = None  # None: the first clip named *idle*, else the first clip
     renderer_weight_scale: bool = True
+    renderer_colours: bool = True  # colours and opacities in the renderer's 8 bits
     covariance: str = "static"
     head_bone: str = HEAD_BONE
 
@@ -81,6 +85,17 @@ def rotation_vector(matrix: np.ndarray) -> np.ndarray:
     column = int(np.argmax(np.diag(outer)))
     axis = outer[:, column] / np.linalg.norm(outer[:, column])
     return axis * angle * (1.0 if axis @ twice_sin_axis >= 0 else -1.0)
+
+
+def renderer_colours(f_dc: np.ndarray, opacity_logit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(RGB [N, 3], opacity logit [N]) as LAM's renderer stores them: 8 bits each, floor(value * 255) / 255 of
+    the clamped f_dc and of sigmoid(opacity); an opacity stored as 0 gets the logit OPACITY_ZERO_LOGIT (never
+    drawn, as there)."""
+    rgb = np.floor(np.clip(f_dc.astype(np.float64), 0.0, 1.0) * 255.0) / 255.0
+    alpha = np.floor(255.0 / (1.0 + np.exp(-opacity_logit.astype(np.float64)))) / 255.0
+    with np.errstate(divide="ignore"):
+        logit = np.where(alpha > 0, np.log(alpha) - np.log1p(-np.minimum(alpha, 1 - 1e-7)), OPACITY_ZERO_LOGIT)
+    return rgb.astype(np.float32), logit.astype(np.float32)
 
 
 def lam_camera(center: np.ndarray, height: float, width_px: int = 512, height_px: int = 512) -> Camera:
@@ -254,12 +269,13 @@ def _speaker(cloud, rest, morphs, pivot, options: LamOptions, pose_track, motion
     config = ArkitRig(covariance=options.covariance, fps=LAM_FPS)
     rig = BlendshapeRig(torch.from_numpy(rest), torch.from_numpy(morphs), torch.from_numpy(pivot))
     gaussians = VertexBoundGaussians(torch.arange(cloud.count), sh_degree=0, covariance=options.covariance)
-    rgb = np.clip(cloud.f_dc, 0.0, 1.0)
+    rgb, opacity_logit = renderer_colours(cloud.f_dc, cloud.opacity) if options.renderer_colours else \
+        (np.clip(cloud.f_dc, 0.0, 1.0), cloud.opacity)
     with torch.no_grad():
         gaussians.offset.copy_(torch.from_numpy(cloud.xyz))
         gaussians.rotation.copy_(torch.from_numpy(cloud.rotation))
         gaussians.log_scale.copy_(torch.from_numpy(cloud.log_scale))
-        gaussians.opacity_logit.copy_(torch.from_numpy(cloud.opacity))
+        gaussians.opacity_logit.copy_(torch.from_numpy(opacity_logit))
         gaussians.sh.copy_(torch.from_numpy((rgb - 0.5) / SH_C0)[:, None, :])
     centres = rest + cloud.xyz
     low, high = np.percentile(centres, 1, axis=0), np.percentile(centres, 99, axis=0)
