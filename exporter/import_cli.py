@@ -1,5 +1,6 @@
 """`gt-import lam AVATAR.zip -o avatar.ckpt`: avatars trained elsewhere become speaker checkpoints (docs/import.md),
-which `gt-export` then turns into bundles like any other."""
+which `gt-export` then turns into bundles like any other; `gt-import flame FLAME.pkl -o flame.npz` converts FLAME's
+model pickle safely."""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ app = typer.Typer(add_completion=False, help=__doc__, no_args_is_help=True)
 
 @app.callback()
 def main_callback() -> None:
-    """Import an avatar as a speaker checkpoint (then: gt-export CHECKPOINT -o BUNDLE.gtb --verify)."""
+    """Import an avatar as a speaker checkpoint (then: gt-export CHECKPOINT -o BUNDLE.gtb --verify), or convert a
+    FLAME model pickle to npz."""
 
 
 @app.command("lam")
@@ -62,6 +64,28 @@ def lam(
     typer.echo(f"imported {speaker.gaussians.count} Gaussians, {len(speaker.source['morph_targets'])} morph targets, "
                f"{pose}, {motion}{attached} in {time.perf_counter() - start:.1f} s")
     typer.echo(f"checkpoint: {output} (next: gt-export {output} --verify)")
+
+
+@app.command("flame")
+def flame(
+    model: Path = typer.Argument(..., help="FLAME's model pickle: generic_model.pkl (FLAME 2020), flame2023.pkl "
+                                           "(FLAME 2023); read without running anything from it"),
+    output: Path = typer.Option(None, "-o", "--output", help="npz to write [default: MODEL with .npz]"),
+    flame_version: str = typer.Option(None, "--flame-version", help="the FLAME release to record "
+                                      "[default: from the file name, as the FLAME site ships it]"),
+) -> None:
+    """Convert FLAME's pickle to the SDK's FLAME npz (standard keys, no pickles; docs/import.md)."""
+    from .imports.flame_pkl import convert_flame_pkl
+
+    output = output or model.with_suffix(".npz")
+    try:
+        result = convert_flame_pkl(model, output, version=flame_version)
+    except GaussianTalkerError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(f"FLAME {result.version}: {result.n_vertices} vertices, {result.n_faces} faces, {result.n_shape} shape "
+               f"+ {result.n_expr} expression columns in {result.seconds:.1f} s")
+    typer.echo(f"npz: {result.output} (read by exporter.model.flame.load_flame_npz)")
 
 
 def main() -> None:

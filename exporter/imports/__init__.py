@@ -1,2 +1,3 @@
-"""Importers: avatars trained elsewhere become ordinary speaker checkpoints (docs/import.md). Imports `model`,
-`export` (the checkpoint file), `gaussiantalker.sdk` and its own modules."""
+"""Importers: avatars trained elsewhere become ordinary speaker checkpoints, and FLAME's model pickle becomes the
+FLAME npz (docs/import.md). Imports `model`, `export` (the checkpoint file), `gaussiantalker.sdk` and its own
+modules."""
