@@ -8,6 +8,7 @@
     gt-bench video         the encoding cost of every video output (bench/video.py)
     gt-bench clip-codecs   how to store a reference clip (bench/clip_codecs.py)
     gt-bench lam-web       ground-truth frames of a LAM avatar from the original web renderer (bench/lam_web.py)
+    gt-bench avatar        an imported LAM avatar: import, export, verify, presets' quality, FPS (bench/avatar.py)
 
 The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
 still work: `entry.gt_bench` rewrites them to their subcommand.
@@ -184,6 +185,43 @@ def lam_web(
     except (LamWebMissing, ValueError) as exc:
         typer.echo(f"gt-bench lam-web: {exc}", err=True)
         raise typer.Exit(2) from exc
+
+
+@app.command()
+def avatar(
+    avatar_zip: Path = typer.Argument(..., help="a LAM avatar zip (docs/import.md)"),
+    motion: Path = typer.Option(None, "--motion", help="ARKit motion file played for quality and FPS [default: the "
+                                "avatar's own motion track, else random ARKit drives]"),
+    frames: int = typer.Option(30, "--frames", min=1, help="frames sampled evenly from the motion for quality"),
+    fps_seconds: float = typer.Option(4.0, "--fps-seconds", min=0.1, help="seconds of frames per FPS run"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating FPS rounds"),
+    demo_checkpoint: Path = typer.Option(None, "--demo-checkpoint", help="the demo speaker played beside the avatar "
+                                         "(samples/make_demo_speaker.py) [default: an untrained one built here]"),
+    gaussians: int = typer.Option(20_000, "--gaussians", min=1, help="demo speaker size when no checkpoint is given"),
+    note: str = typer.Option(None, "--note", help="a line about the machine or the run, written into avatar.md"),
+    out: Path = typer.Option(Path("bench-avatar"), "--out", help="folder for avatar.md and avatar.json"),
+) -> None:
+    """An imported LAM avatar: import, preset export and verify times, bundle sizes, each preset's head PSNR against
+    fp32, and FPS at 512x512 beside the demo speaker (alternating rounds)."""
+    import shlex
+    import sys
+
+    from gaussiantalker.sdk.errors import GaussianTalkerError
+
+    from .avatar import format_report, run_avatar_bench
+
+    for path, hint in ((avatar_zip, "AVATAR_ZIP"), (motion, "--motion"), (demo_checkpoint, "--demo-checkpoint")):
+        if path is not None and not path.is_file():
+            raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
+    command = shlex.join(["gt-bench", *sys.argv[1:]])
+    try:
+        result = run_avatar_bench(avatar_zip, motion, frames, fps_seconds, rounds, demo_checkpoint, gaussians, out,
+                                  command, note)
+    except GaussianTalkerError as exc:  # a damaged avatar zip or motion file: its message, not a traceback
+        typer.echo(f"gt-bench avatar: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(format_report(result))
+    typer.echo(f"wrote {out / 'avatar.md'}, {out / 'avatar.json'}")
 
 
 def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: float, rounds: int,

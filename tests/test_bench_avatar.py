@@ -1,0 +1,50 @@
+"""`gt-bench avatar` end to end on a tiny synthetic LAM avatar (tests/lam_avatars.py) beside a tiny demo speaker:
+both reports are written and hold a finite number for every measure of every preset."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+from lam_avatars import write_avatar_zip
+from typer.testing import CliRunner
+
+from gaussiantalker.exporter.bench.app import app
+from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+from gaussiantalker.exporter.export.checkpoint import save_checkpoint
+from gaussiantalker.exporter.export.presets import PRESETS
+
+pytestmark = pytest.mark.slow  # six torch.onnx exports (five presets, the demo speaker) and a verify: over 20 s
+
+
+def test_bench_avatar_writes_every_measure(tmp_path):
+    avatar = write_avatar_zip(tmp_path / "avatar.zip")
+    demo, _ = make_demo_speaker(n_gaussians=300, seed=3, train_seconds=0, progress=False)
+    save_checkpoint(demo, tmp_path / "demo.ckpt")
+    out = tmp_path / "bench"
+    result = CliRunner().invoke(app, ["avatar", str(avatar), "--demo-checkpoint", str(tmp_path / "demo.ckpt"),
+                                      "--frames", "4", "--fps-seconds", "0.4", "--rounds", "1", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    report = json.loads((out / "avatar.json").read_text())
+    markdown = (out / "avatar.md").read_text()
+    assert set(report["presets"]) == set(PRESETS)
+    assert "the avatar's own motion track" in report["quality"]["motion"]
+    assert len(report["quality"]["frames"]) == 4
+    numbers = [report["import_s"], report["verify"]["verify_s"], report["verify"]["min_psnr_db"]]
+    for name, preset in report["presets"].items():
+        numbers += [preset["export_s"], *preset["export_s_rounds"], preset["bundle_mb"], preset["smaller_than_fp32"]]
+        assert len(preset["export_s_rounds"]) == 1
+        if name != "quality":
+            numbers += [preset["head_psnr_median_db"], preset["head_psnr_min_db"]]
+            assert f"| {name} |" in markdown
+    assert report["presets"]["quality"]["smaller_than_fp32"] == 1.0
+    assert report["presets"]["compact"]["smaller_than_fp32"] > 1.0
+    cases = report["fps"]["cases"]
+    assert set(cases) == {"avatar quality", "avatar fast", "demo speaker fp32"}
+    for case in cases.values():
+        numbers += [case["frame_ms"], case["fps"], *case["fps_rounds"]]
+        assert len(case["frame_ms_rounds"]) == 1
+    numbers += list(report["fps"]["fps_vs_demo"].values())
+    assert all(math.isfinite(n) and n > 0 for n in numbers), numbers
+    assert report["command"].startswith("gt-bench") and "## Frames per second" in markdown
