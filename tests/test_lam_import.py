@@ -286,3 +286,16 @@ def test_mnn_graphs_and_scene_refusal(avatar, tmp_path):
     with pytest.raises(BundleError, match="scene specialisation .* is for FLAME speakers"):
         export_bundle(avatar, tmp_path / "scene.gtb", progress=False, scene=load_scene(
             ROOT / "samples" / "front_scene.toml"))
+
+
+def test_morph_targets_keep_8_bits_in_reduced_presets():
+    """4-bit morph targets cost 12 dB of head PSNR on LAM's sample avatar (presets.KEEP_8_BITS): a quantised
+    preset stores them with at least 8 bits, in the preset's chunks; the FLAME bases keep the preset's codec."""
+    from gaussiantalker.exporter.export.presets import get_preset
+
+    morphs = np.zeros((51, 60_000), np.float32)
+    for name in ("balanced", "compact", "fast"):
+        settings = get_preset(name).export
+        flame = settings.codec_for("deform/blend_basis", morphs)
+        assert flame[0] == "q4" and settings.codec_for("deform/morph_basis", morphs) == ("q8", flame[1]), name
+    assert get_preset("mobile").export.codec_for("deform/morph_basis", morphs) == ("fp16", None)

@@ -3,8 +3,8 @@
 Folded once (each exact up to float32 rounding; docs/deformation.md, "ARKit speakers"):
 * the bound vertex, the offset and the head pivot into one rest point per Gaussian, x̄_v(i) + o_i - p, so a frame's
   centre is R (rest + w · morphs) + p + t;
-* the morph targets into one [K, 3N] matrix over the Gaussians' vertices, component-major like the FLAME graph's
-  bases, leaving out blendshapes whose morph target is zero everywhere (tongueOut in LAM avatars);
+* the morph targets into one [K, 3N] matrix (`morph_basis`) over the Gaussians' vertices, component-major like the
+  FLAME graph's bases, leaving out blendshapes whose morph target is zero everywhere (tongueOut in LAM avatars);
 * covariance, colour and opacity depend on no input when the covariance is static and the SH degree 0 (LAM): the
   graph computes them from the stored quaternions, log-scales and SH, and onnxruntime folds them at load.
 """
@@ -44,7 +44,7 @@ class ArkitDeformationGraph(nn.Module):
             keep[0] |= not bool(keep.any())  # an all-zero rig keeps one row, so no tensor has a zero-size axis
             self.register_buffer("drive_rows", None if bool(keep.all()) else torch.nonzero(keep).reshape(-1))
             self.register_buffer("rest_points", rest.T.reshape(-1).float().contiguous())  # [3N]
-            self.register_buffer("blend_basis", basis[keep].float().contiguous())  # [K kept, 3N]
+            self.register_buffer("morph_basis", basis[keep].float().contiguous())  # [K kept, 3N]
             self.register_buffer("pivot", rig.pivot.float().reshape(1, 3, 1).clone())
             self.register_buffer("rotation", g.rotation.detach().T.contiguous())  # [4, N] (w, x, y, z)
             self.register_buffer("log_scale", g.log_scale.detach().T.contiguous())  # [3, N]
@@ -59,7 +59,7 @@ class ArkitDeformationGraph(nn.Module):
                 camera_center: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         batch, n = blendshapes.shape[0], self.n_gaussians
         weights = blendshapes if self.drive_rows is None else blendshapes.index_select(1, self.drive_rows)
-        points = (self.rest_points + weights @ self.blend_basis).reshape(batch, 3, n)  # x + o - p  [B, 3, N]
+        points = (self.rest_points + weights @ self.morph_basis).reshape(batch, 3, n)  # x + o - p  [B, 3, N]
         rotation = rodrigues(head_rotation)  # [B, 3, 3]
         means = torch.matmul(rotation, points) + self.pivot + head_translation.unsqueeze(2)  # [B, 3, N]
 
