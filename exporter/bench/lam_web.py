@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from gaussiantalker.sdk.camera import Camera
+from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
 
 from .chromium import INSTALL_CHROMIUM, Chromium, chromium_path
 from .lam_web_camera import lam_default_camera, to_three
@@ -32,18 +33,8 @@ VERSION = "0.0.8"
 MODULE = "gaussian-splat-renderer-for-lam.module.js"
 PAGE_DIR = Path(__file__).with_name("lam_web")
 CACHE_ENV = "GT_LAM_WEB_CACHE"
-# The 52 ARKit blendshape names in Apple's order (a weight vector without names is read in this order).
-ARKIT_NAMES = (
-    "browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft", "browOuterUpRight", "cheekPuff",
-    "cheekSquintLeft", "cheekSquintRight", "eyeBlinkLeft", "eyeBlinkRight", "eyeLookDownLeft", "eyeLookDownRight",
-    "eyeLookInLeft", "eyeLookInRight", "eyeLookOutLeft", "eyeLookOutRight", "eyeLookUpLeft", "eyeLookUpRight",
-    "eyeSquintLeft", "eyeSquintRight", "eyeWideLeft", "eyeWideRight", "jawForward", "jawLeft", "jawOpen", "jawRight",
-    "mouthClose", "mouthDimpleLeft", "mouthDimpleRight", "mouthFrownLeft", "mouthFrownRight", "mouthFunnel",
-    "mouthLeft", "mouthLowerDownLeft", "mouthLowerDownRight", "mouthPressLeft", "mouthPressRight", "mouthPucker",
-    "mouthRight", "mouthRollLower", "mouthRollUpper", "mouthShrugLower", "mouthShrugUpper", "mouthSmileLeft",
-    "mouthSmileRight", "mouthStretchLeft", "mouthStretchRight", "mouthUpperUpLeft", "mouthUpperUpRight",
-    "noseSneerLeft", "noseSneerRight", "tongueOut",
-)
+# The 52 ARKit blendshape names (a weight vector without names is read in this order: LAM's and the SDK's).
+ARKIT_NAMES = ARKIT_BLENDSHAPES
 
 Weights = Mapping[str, float] | Sequence[float]
 
