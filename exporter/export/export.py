@@ -179,20 +179,28 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
         _add_reference(speaker, writer, result, settings)
     steps.update()
 
-    if mnn:
-        steps.set_postfix_str("MNN graphs")
-        result.mnn = add_mnn_graphs(writer)
-        steps.update()
-
-    steps.set_postfix_str("writing bundle")
+    buffers = {}
     regions = speaker.flame_arrays.regions
     if regions is not None:  # the semantic pass: each Gaussian's parent-triangle region (docs/compositing.md)
         ids = regions[speaker.gaussians.parent.numpy()]
         names = list(speaker.flame_arrays.region_names)
         writer.metadata["regions"] = names + [f"region_{i}" for i in range(len(names), int(regions.max()) + 1)]
-        writer.add_buffer("gaussian_regions", ids.astype(np.uint8 if regions.max() < 256 else np.uint16))
-    if speaker.pose_track is not None:
-        writer.add_buffer("pose_track", speaker.pose_track.numpy().astype(np.float32))
+        buffers["gaussian_regions"] = ids.astype(np.uint8 if regions.max() < 256 else np.uint16)
+    _write_bundle(writer, path, result, steps, mnn, {**buffers, "pose_track": speaker.pose_track})
+
+
+def _write_bundle(writer: BundleWriter, path: str | os.PathLike | StagedFile, result: ExportResult, steps: tqdm,
+                  mnn: bool, buffers: dict) -> None:
+    """The last steps of every export: the MNN models (if asked), the speaker's own buffers (None: absent; tensors
+    stored as float32), then one atomic write."""
+    if mnn:
+        steps.set_postfix_str("MNN graphs")
+        result.mnn = add_mnn_graphs(writer)
+        steps.update()
+    steps.set_postfix_str("writing bundle")
+    for name, value in buffers.items():
+        if value is not None:
+            writer.add_buffer(name, value.numpy().astype(np.float32) if isinstance(value, torch.Tensor) else value)
     result.bytes_written = writer.write(path)
     result.buffer_bytes = {name: entry["nbytes"] for name, entry in writer.manifest()["buffers"].items()}
     steps.update()
@@ -214,18 +222,8 @@ def _export_arkit_steps(speaker: ArkitSpeaker, writer: BundleWriter, path: str |
     result.graphs["deform"] = add_graph(writer, "deform", model, settings.codec_for)
     steps.update()
     steps.update()  # no reference clip
-    if mnn:
-        steps.set_postfix_str("MNN graphs")
-        result.mnn = add_mnn_graphs(writer)
-        steps.update()
-    steps.set_postfix_str("writing bundle")
-    if speaker.pose_track is not None:
-        writer.add_buffer("pose_track", speaker.pose_track.numpy().astype(np.float32))
-    if speaker.motion_track is not None:
-        writer.add_buffer("motion_track", speaker.motion_track.numpy().astype(np.float32))
-    result.bytes_written = writer.write(path)
-    result.buffer_bytes = {name: entry["nbytes"] for name, entry in writer.manifest()["buffers"].items()}
-    steps.update()
+    _write_bundle(writer, path, result, steps, mnn,
+                  {"pose_track": speaker.pose_track, "motion_track": speaker.motion_track})
 
 
 def _add_reference(speaker: Speaker, writer: BundleWriter, result: ExportResult, settings: ExportSettings) -> None:

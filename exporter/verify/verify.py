@@ -305,16 +305,13 @@ def verify_mnn(speaker: Speaker, head: TalkingHead, bundle_path, frames: int = 2
     with TalkingHead(bundle_path, resolution=(head.camera.width, head.camera.height), composite=False,
                      backend="mnn") as mnn_head:
         graphs = verify_backend_agreement(head, mnn_head, _agreement_cases(speaker, head))
-        if isinstance(speaker, ArkitSpeaker):
-            drives = motion_clip(speaker, frames, seed)
-            pairs = ((head.render(drive), mnn_head.render(drive)) for drive in drives)
-        elif head.has_translator:
+        if head.has_translator and not isinstance(speaker, ArkitSpeaker):
             audio, _ = driven_clip(speaker, frames, seed)
             pairs = zip(head.frames(audio, speaker.config.sample_rate),
                         mnn_head.frames(audio, speaker.config.sample_rate), strict=True)
-        else:  # a flame-driven scene's bundle: the torch translator's drives
-            _, torch_drives = driven_clip(speaker, frames, seed)
-            pairs = ((head.render(drive), mnn_head.render(drive)) for drive in torch_drives)
+        else:  # an ARKit speaker's motion, or a flame-driven scene's torch-translator drives
+            _, drives = _clip_drives(speaker, head, frames, seed)
+            pairs = ((head.render(drive), mnn_head.render(drive)) for drive in drives)
         results = [{"psnr_db": psnr_db(reference, test),
                     "max_pixel_error": int(np.abs(reference.astype(np.int16) - test.astype(np.int16)).max())}
                    for reference, test in pairs]
