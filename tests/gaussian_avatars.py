@@ -30,8 +30,8 @@ DEFAULT_ITERATION = 30000
 RINGS, SEGMENTS = 173, 29  # 5017 vertices used, 6 left unreferenced; 2 * 172 * 29 = 9976 triangles
 RADII = np.array([0.075, 0.11, 0.09])  # x, y, z semi-axes: about 0.21 m tall
 THETA = np.linspace(0.35, np.pi - 0.2, RINGS)  # polar angle from the bottom (open neck) to near the crown
-# Segment angles about y (0 = straight ahead): 15 segments on the front +-50 degrees (the mouth), 14 round the back.
-PHI = np.deg2rad(np.concatenate([np.linspace(50.0, -50.0, 15), -50.0 - (260.0 / 15) * np.arange(1, 15)]))
+# Segment angles about y (0 = straight ahead): 15 segments on the front +-35 degrees (the mouth), 14 round the back.
+PHI = np.deg2rad(np.concatenate([np.linspace(35.0, -35.0, 15), -35.0 - (290.0 / 15) * np.arange(1, 15)]))
 UPPER_LIP_RING, LOWER_LIP_RING = 56, 50  # the rings the lip vertices sit on (about 9 mm apart, y ~ -4.5 cm)
 EYES = np.array([[0.032, 0.03, 0.0], [-0.032, 0.03, 0.0]])  # left (+x), right; z set on the surface below
 
@@ -116,7 +116,7 @@ def _skinning(points: np.ndarray, on_surface: np.ndarray) -> np.ndarray:
     y, z = points[:, 1], points[:, 2]
     mouth = -RADII[1] * (np.cos(THETA[UPPER_LIP_RING]) + np.cos(THETA[LOWER_LIP_RING])) / 2
     root = 1.0 - _smoothstep(y, -0.095, -0.075)
-    jaw = (1.0 - _smoothstep(y, mouth - 0.003, mouth + 0.003)) * _smoothstep(z, 0.0, 0.03)
+    jaw = (1.0 - _smoothstep(y, mouth - 0.003, mouth + 0.003)) * _smoothstep(z, -0.03, 0.0)
     eyes = [0.8 * np.exp(-((points - e) ** 2).sum(1) / (2 * 0.008**2)) for e in _eye_points(points, on_surface)]
     rest = (1.0 - root) * (1.0 - jaw)
     weights = np.stack([root, rest * (1.0 - eyes[0] - eyes[1]), (1.0 - root) * jaw, rest * eyes[0], rest * eyes[1]],
