@@ -1,6 +1,6 @@
-"""`gt-import lam AVATAR.zip -o avatar.ckpt`: avatars trained elsewhere become speaker checkpoints (docs/import.md),
-which `gt-export` then turns into bundles like any other; `gt-import flame FLAME.pkl -o flame.npz` converts FLAME's
-model pickle safely."""
+"""`gt-import lam AVATAR.zip -o avatar.ckpt`, `gt-import gaussian-avatars DIR --flame FLAME.pkl -o avatar.ckpt`:
+avatars trained elsewhere become speaker checkpoints (docs/import.md), which `gt-export` then turns into bundles like
+any other; `gt-import flame FLAME.pkl -o flame.npz` converts FLAME's model pickle safely."""
 
 from __future__ import annotations
 
@@ -63,6 +63,55 @@ def lam(
     attached = "" if model is None else f", audio model {audio_model.name} attached"
     typer.echo(f"imported {speaker.gaussians.count} Gaussians, {len(speaker.source['morph_targets'])} morph targets, "
                f"{pose}, {motion}{attached} in {time.perf_counter() - start:.1f} s")
+    typer.echo(f"checkpoint: {output} (next: gt-export {output} --verify)")
+
+
+@app.command("gaussian-avatars")
+def gaussian_avatars(
+    avatar: Path = typer.Argument(..., help="GaussianAvatars output directory (with point_cloud/iteration_N/"
+                                            "point_cloud.ply and flame_param.npz), or that iteration folder"),
+    flame_model: Path = typer.Option(..., "--flame", help="your FLAME 2023 model: flame2023.pkl (read without "
+                                     "running anything from it) or the npz `gt-import flame` writes"),
+    output: Path = typer.Option(None, "-o", "--output", help="checkpoint to write [default: avatar.ckpt in the "
+                                "current directory]"),
+    iteration: int = typer.Option(None, "--iteration", help="training iteration to import [default: the last]"),
+    fps: float = typer.Option(25.0, "--fps", help="frame rate of the tracked motion in flame_param.npz (the file "
+                              "records none); resampled to the speaker's 25 fps"),
+    resolution: int = typer.Option(512, "--resolution", help="side of the default camera's square frame, pixels"),
+    background: str = typer.Option("1,1,1", "--background", help="background colour r,g,b in 0..1"),
+    audio_model: Path = typer.Option(None, "--audio-model", help="an audio-to-FLAME ONNX model to attach (input "
+                                     "audio [1, S] at 16 kHz; outputs expression [1, T, 100] and jaw pose [1, T, 3] "
+                                     "at 25 fps; docs/import.md), so audio drives the avatar"),
+) -> None:
+    """Import a GaussianAvatars avatar (a FLAME speaker: FLAME parameters or its tracked motion drive it)."""
+    from .export.checkpoint import save_checkpoint
+    from .imports.audio_model import flame_outputs, load_audio_model
+    from .imports.gaussian_avatars import GaussianAvatarsOptions, import_gaussian_avatars
+    from .imports.gaussian_avatars_flame import GA_N_EXPR
+
+    try:
+        colour = tuple(float(c) for c in background.split(","))
+    except ValueError:
+        colour = ()
+    if len(colour) != 3 or not all(0.0 <= c <= 1.0 for c in colour):
+        raise typer.BadParameter(f"--background must be three numbers r,g,b in 0..1, got {background!r}")
+    if not (fps > 0 and 16 <= resolution <= 8192):
+        raise typer.BadParameter("--fps must be positive and --resolution within 16..8192")
+    output = output or Path("avatar.ckpt")
+    start = time.perf_counter()
+    try:
+        model = None if audio_model is None else load_audio_model(audio_model, flame_outputs(GA_N_EXPR))
+        speaker = import_gaussian_avatars(avatar, flame_model, GaussianAvatarsOptions(
+            iteration=iteration, fps=fps, resolution=resolution, background=colour))
+        speaker.audio_model = model
+        save_checkpoint(speaker, output)
+    except GaussianTalkerError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    attached = "" if model is None else f", audio model {audio_model.name} attached"
+    typer.echo(f"imported {speaker.gaussians.count} Gaussians (SH degree {speaker.config.sh_degree}) on "
+               f"{speaker.flame_arrays.n_faces} triangles from {speaker.source['iteration']}, motion track "
+               f"{speaker.motion_track.shape[0]} frames{attached} in {time.perf_counter() - start:.1f} s")
     typer.echo(f"checkpoint: {output} (next: gt-export {output} --verify)")
 
 

@@ -4,6 +4,7 @@ Everything an app needs is importable from here:
 
     from gaussiantalker.runtime import TalkingHead, HeadPose, GaussianTalkerError
     from gaussiantalker.runtime import BlendshapeDrive, load_motion, ARKIT_BLENDSHAPES   # ARKit speakers
+    from gaussiantalker.runtime import FlameMotion, load_flame_motion   # FLAME motions (imported avatars)
     from gaussiantalker.runtime import RenderSettings, OutputSettings, BackendSettings   # grouped settings
 """
 
@@ -20,12 +21,14 @@ from gaussiantalker.sdk.errors import (
     SettingsError,
     VideoError,
 )
+from gaussiantalker.sdk.flame_motion import FlameMotion, load_flame_motion
 from gaussiantalker.sdk.motion import MotionTrack, load_motion
 from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
 from gaussiantalker.sdk.video_formats import VideoPlan, plan_video
 
 from .head import FrameOutput, HeadPoseSource, TalkingHead
+from .motions import MotionSource
 from .output import OutputView
 from .settings import BackendSettings, OutputSettings
 
@@ -37,9 +40,12 @@ __all__ = [
     "BlendshapeDrive",
     "MotionTrack",
     "load_motion",
+    "FlameMotion",
+    "load_flame_motion",
     "ARKIT_BLENDSHAPES",
     "FrameOutput",
     "HeadPoseSource",
+    "MotionSource",
     "RenderSettings",
     "OutputSettings",
     "BackendSettings",

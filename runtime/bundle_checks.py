@@ -15,12 +15,16 @@ from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.codecs import ONNX_DTYPES, ORT_DTYPES
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.errors import BundleError, CameraError
+from gaussiantalker.sdk.flame_motion import TABLE_POSE_COLUMNS
 from gaussiantalker.sdk.rig import ArkitRig
 
 from .onnx_wire import model_tensors
 
 # What a speaker bundle (one whose manifest has a 'speaker' section) must hold for TalkingHead.
 SPEAKER_GRAPHS = ("translator", "deform")
+# The manifest's "driver" of a FLAME speaker bundle without a translator graph (an imported avatar driven by FLAME
+# parameters and its motion track; docs/bundle-format.md).
+FLAME_DRIVER = "flame"
 POSE_TRACK_WIDTH = 6
 
 
@@ -82,8 +86,8 @@ def check_speaker_bundle(bundle: Bundle) -> None:
         check_arkit_bundle(bundle)
         return
     scene = bundle.manifest.get("scene")
-    flame_driven = isinstance(scene, dict) and isinstance(scene.get("drive"), dict) and \
-        scene["drive"].get("driver") == "flame"
+    flame_driven = bundle.manifest.get("driver") == FLAME_DRIVER or (
+        isinstance(scene, dict) and isinstance(scene.get("drive"), dict) and scene["drive"].get("driver") == "flame")
     required = [name for name in SPEAKER_GRAPHS if not (flame_driven and name == "translator")]
     missing = [name for name in required if name not in bundle.manifest["graphs"]]
     if missing:
@@ -97,6 +101,10 @@ def check_speaker_bundle(bundle: Bundle) -> None:
     except CameraError as exc:
         raise BundleError(f"{bundle.path}: manifest 'camera' section is invalid: {exc}") from None
     _check_track(bundle, "pose_track", POSE_TRACK_WIDTH, "rotation, translation per frame")
+    n_expr = bundle.manifest["speaker"].get("n_expr", SpeakerConfig.n_expr)
+    if isinstance(n_expr, int):
+        _check_track(bundle, "motion_track", n_expr + TABLE_POSE_COLUMNS,
+                     "expression, FLAME pose and translation per frame")
 
 
 def check_expression_width(bundle: Bundle) -> None:
@@ -151,6 +159,6 @@ def check_signature(bundle: Bundle, name: str, info: dict, session: Any) -> None
                                   f"the manifest declares {d['dtype']} {d['shape']}")
 
 
-__all__ = ["POSE_TRACK_WIDTH", "SPEAKER_GRAPHS", "check_arkit_bundle", "check_blendshape_width",
+__all__ = ["FLAME_DRIVER", "POSE_TRACK_WIDTH", "SPEAKER_GRAPHS", "check_arkit_bundle", "check_blendshape_width",
            "is_speaker_bundle", "check_expression_width", "check_initializers", "check_signature",
            "check_speaker_bundle"]

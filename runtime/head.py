@@ -38,7 +38,8 @@ from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive, HeadPose, pose_track_frame, track_row
 from gaussiantalker.sdk.errors import AudioError, BundleError, DriveError, RenderError, VideoError
-from gaussiantalker.sdk.motion import MotionTrack, load_motion
+from gaussiantalker.sdk.flame_motion import FlameMotion
+from gaussiantalker.sdk.motion import MotionTrack
 from gaussiantalker.sdk.reference_clip import ReferenceClip
 from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_RIG, FLAME_RIG, ArkitRig, check_drive_rig, rig_kind
@@ -48,6 +49,7 @@ from gaussiantalker.sdk.video_formats import VideoPlan
 
 from .backend import GraphBackend, open_backend
 from .composite import Inpainter, composite, graph_inpainter, opencv_fallback
+from .motions import MotionSource, arkit_motion, flame_motion
 from .output import COMPOSITE_ALPHA_MESSAGE, OutputView, output_view
 from .semantic import Regions
 from .settings import BackendSettings, OutputSettings, merged_backend, merged_output, merged_render
@@ -55,8 +57,6 @@ from .splatter import GLSplatter, PreparedSplats
 from .translate import SILENCE_GATE_DBFS, blendshape_params, iter_translate
 
 AudioSource = str | os.PathLike | np.ndarray
-# An ARKit motion: a motion file, a MotionTrack, [T, 52] weights at the speaker's fps, or None (the bundle's own).
-MotionSource = str | os.PathLike | MotionTrack | np.ndarray | None
 # Per-stage timings kept per TalkingHead: at most this many recent calls (then trimmed to the newest half), so a
 # long-running head's bookkeeping does not grow with the number of frames it has rendered.
 MAX_TIMINGS_PER_STAGE = 10_000
@@ -158,11 +158,13 @@ class TalkingHead:
         return self.arkit.sample_rate if self.arkit is not None else self.config.sample_rate
 
     @property
-    def motion_track(self) -> MotionTrack | None:
-        """The motion an ARKit speaker's avatar ships (its weights at the speaker's fps), None if it has none."""
+    def motion_track(self) -> MotionTrack | FlameMotion | None:
+        """The motion the bundle ships at the speaker's fps (an ARKit speaker's weights, an imported FLAME avatar's
+        tracked parameters), None if it has none."""
         if not self.bundle.has_buffer("motion_track"):
             return None
-        return MotionTrack(self.bundle.buffer("motion_track"), self.fps)
+        table = self.bundle.buffer("motion_track")
+        return MotionTrack(table, self.fps) if self.rig == ARKIT_RIG else FlameMotion.from_table(table, self.fps)
 
     @classmethod
     def output_view(cls, bundle: str | os.PathLike | Bundle, output: OutputSettings | None = None, *,
@@ -236,9 +238,12 @@ class TalkingHead:
     def _run_translator(self, chunk: np.ndarray) -> dict:
         """One translator window through the graph (timed)."""
         if not self.has_translator:
-            raise BundleError(f"{self.bundle.path}: this bundle was specialised for a flame-driven scene and has no "
-                              "translator graph, so it cannot turn audio into frames: drive it with render_params() "
-                              "or render(), or re-export it with an audio-driven scene (or without --scene)")
+            why = ("was specialised for a flame-driven scene" if self.scene is not None else
+                   "holds an imported avatar without an audio model")
+            raise BundleError(f"{self.bundle.path}: this bundle {why} and has no translator graph, so it cannot turn "
+                              "audio into frames: drive it with render_params(), render() or motion_frames() (a "
+                              "motion file), or re-export it without --scene / attach an audio model "
+                              "(docs/import.md)")
         start = time.perf_counter()
         out = self.graphs.run("translator", {"audio": chunk[None]})
         self._record("translator", time.perf_counter() - start)
@@ -380,33 +385,31 @@ class TalkingHead:
             weights = dict(zip(ARKIT_BLENDSHAPES, np.asarray(weights).reshape(-1), strict=True))
         return BlendshapeDrive.make(weights, head_pose, self.arkit.blendshapes)
 
-    def motion(self, motion: MotionSource = None) -> MotionTrack:
-        """An ARKit motion at this speaker's fps: a motion file (LAM's JSON kinds), a MotionTrack, [T, 52]
-        weights at the speaker's fps, or None for the motion the bundle ships."""
-        check_drive_rig(self.rig, ARKIT_RIG, "FLAME speakers are driven by audio or render_params()")
-        if motion is None:
-            track = self.motion_track
-            if track is None:
-                raise DriveError(f"{self.bundle.path}: the avatar ships no motion track; give a motion file or "
-                                 "[T, 52] ARKit weights")
-        elif isinstance(motion, MotionTrack):
-            track = motion
-        elif isinstance(motion, (str, os.PathLike)):
-            track = load_motion(motion)
-        else:
-            track = MotionTrack(np.asarray(motion, dtype=np.float64), self.fps)
-        return track.at_fps(self.fps)
+    def motion(self, motion: MotionSource = None) -> MotionTrack | FlameMotion:
+        """A motion at this speaker's fps (runtime/motions.py): for an ARKit speaker a motion file (LAM's JSON
+        kinds), a MotionTrack or [T, 52] weights; for a FLAME speaker a FLAME motion npz (GaussianAvatars'
+        flame_param.npz keys), a FlameMotion or a [T, n_expr + 18] table; None: the motion the bundle ships."""
+        where = str(self.bundle.path)
+        if self.rig == ARKIT_RIG:
+            return arkit_motion(motion, self.motion_track, self.fps, where)
+        return flame_motion(motion, self.motion_track, self.fps, self.config.n_expr, where)
 
     def motion_drives(self, motion: MotionSource = None, head_pose: HeadPoseSource = None
-                      ) -> Iterator[BlendshapeDrive]:
-        """One drive per frame of a motion (see `motion`), the head following `head_pose` or the pose track."""
-        for index, weights in enumerate(self.motion(motion).weights):
+                      ) -> Iterator[BlendshapeDrive | FrameDrive]:
+        """One drive per frame of a motion (see `motion`). An ARKit speaker's head follows `head_pose` or the pose
+        track; a FLAME motion carries its own head pose, which `head_pose` (if given) replaces."""
+        track = self.motion(motion)
+        if isinstance(track, FlameMotion):
+            for index in range(len(track)):
+                yield track.drive(index, None if head_pose is None else self.head_pose(index, head_pose))
+            return
+        for index, weights in enumerate(track.weights):
             yield self.blendshape_drive(weights, self.head_pose(index, head_pose))
 
     def motion_frames(self, motion: MotionSource = None, head_pose: HeadPoseSource = None,
                       output: FrameOutput = "uint8") -> Iterator[np.ndarray]:
-        """Frames of an ARKit speaker playing a motion (see `motion`), one per motion frame, streamed and
-        pipelined like `frames`."""
+        """Frames of a speaker playing a motion (see `motion`), one per motion frame, streamed and pipelined like
+        `frames`."""
         yield from self._bare_frames(self.motion_drives(motion, head_pose), output)
 
     def drives(self, audio: AudioSource, sample_rate: int | None = None,
@@ -510,23 +513,22 @@ class TalkingHead:
         png). Everything about the output is checked before the first frame is rendered (VideoError);
         docs/video.md lists the formats.
 
-        A FLAME speaker, and an ARKit speaker with an audio model, render the audio through their translator; an
-        ARKit speaker given a `motion` (see `TalkingHead.motion`), or without an audio model (then None: the
-        bundle's own motion), plays it and muxes `audio` if given.
+        A speaker with a translator (a FLAME speaker's, an imported avatar's audio model) renders the audio through
+        it; given a `motion` (see `TalkingHead.motion`), or without a translator or audio (then None: the bundle's
+        own motion), it plays the motion and muxes `audio` if given.
         """
         from gaussiantalker.sdk.progress import progress_bar
 
         plan = self._video_plan(path, alpha=alpha, codec=codec, crf=crf, preset=preset, container=container)
         output = "rgba" if plan.alpha else "uint8"
         samples = None if audio is None else self.load_audio(audio, sample_rate)
-        if self.rig == ARKIT_RIG and (motion is not None or samples is None or not self.has_translator):
+        if self.rig == FLAME_RIG and samples is None and motion is None and self.has_translator \
+                and self.motion_track is None:
+            raise AudioError("this speaker's video needs audio (its translator turns speech into motion) or a motion")
+        if motion is not None or samples is None or not self.has_translator:
             track = self.motion(motion)
             frames, total = self.motion_frames(track, head_pose, output), len(track)
-        elif samples is None:
-            raise AudioError("a FLAME speaker's video needs audio (its translator turns speech into motion)")
         else:
-            if motion is not None and self.rig != ARKIT_RIG:
-                raise DriveError("motion files drive ARKit speakers; this FLAME speaker is driven by its audio")
             frames = self.frames(samples, self.sample_rate, head_pose, output=output)
             total = self.frame_count(samples.shape[0])
         with VideoWriter(plan.path, self.fps, plan.size, audio=samples, sample_rate=self.sample_rate,

@@ -6,9 +6,10 @@ frames in a window. A bundle with a reference clip is composited into the speake
 (docs/compositing.md); --no-composite gives the bare head, at the speaker's camera (512x512 unless told
 otherwise), and --alpha an alpha channel for it. The output is checked before anything is rendered.
 
-An ARKit speaker (an imported LAM avatar, docs/import.md) plays a motion: `--motion bsData.json` (LAM's ARKit JSON
-kinds), or without --motion the motion its avatar ships, with --audio muxed in if given; with an attached audio
-model and no --motion, the audio drives it.
+An imported avatar (docs/import.md) plays a motion: an ARKit speaker (LAM) `--motion bsData.json` (LAM's ARKit JSON
+kinds), a FLAME speaker (GaussianAvatars) `--motion flame_param.npz` (per-frame FLAME parameters), or `--motion`
+alone (or, without a translator, no --motion) the motion the avatar ships, with --audio muxed in if given; with an
+attached audio model and no --motion, the audio drives it.
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ import typer
 from gaussiantalker.runtime import BackendSettings, GaussianTalkerError, OutputSettings, TalkingHead
 
 app = typer.Typer(add_completion=False)
+# The value of a bare `--motion`: play the motion the bundle ships.
+OWN_MOTION = "@bundle"
 
 
 class FrameWindow:
@@ -83,8 +86,9 @@ def play(
     bundle: Path = typer.Argument(..., help="speaker bundle (.gtb) written by gt-export"),
     audio: Path = typer.Option(None, "--audio", "-a", help="speech: wav, mp3 or anything ffmpeg reads (an ARKit "
                                "speaker: muxed beside its motion)"),
-    motion: Path = typer.Option(None, "--motion", "-m", help="an ARKit speaker's motion: a JSON file of ARKit "
-                                "weights as LAM writes them [default: the motion the avatar ships]"),
+    motion: str = typer.Option(None, "--motion", "-m", help="a motion to play: an ARKit speaker's JSON of ARKit "
+                               "weights as LAM writes them, a FLAME speaker's npz of FLAME parameters "
+                               "(GaussianAvatars' flame_param.npz keys); --motion alone: the avatar's own"),
     output: Path = typer.Option(Path("talk.mp4"), "-o", "--output",
                                 help="video to write: .mp4 .mov .webm .mkv .gif, or frames/%05d.png"),
     resolution: str = typer.Option(None, "--resolution", "-r", help="frame size, N or WxH [default: the reference "
@@ -142,12 +146,12 @@ def play(
                                           "without --show")
             window = FrameWindow(*head.frame_size, f"GaussianTalker - {bundle.name}")
         samples = None if audio is None else head.load_audio(audio)
-        if head.rig == "arkit" and (motion is not None or samples is None or not head.has_translator):
-            track = head.motion(motion)
+        if motion is not None or samples is None or not head.has_translator:
+            if motion is None and head.has_translator and head.motion_track is None:
+                raise GaussianTalkerError("--audio is required: this speaker turns speech into motion (or give "
+                                          "--motion FILE)")
+            track = head.motion(None if motion == OWN_MOTION else motion)
             total = len(track)
-        elif samples is None:
-            raise GaussianTalkerError("--audio is required: this speaker turns speech into motion (--motion drives "
-                                      "ARKit speakers)")
         else:
             track, total = None, head.frame_count(samples.shape[0])
         head.write_video(plan, samples, head.sample_rate, progress=not quiet, motion=track,
@@ -167,5 +171,17 @@ def play(
     typer.echo(f"wrote {output} ({total} frames, {sound}) in {seconds:.1f} s: {plan.describe()}")
 
 
+def _own_motion_flag(argv: list[str]) -> list[str]:
+    """`--motion` (or `-m`) given without a file means the avatar's own motion: OWN_MOTION is put in as its value
+    (hand-written because typer options cannot take an optional value)."""
+    out = []
+    for index, arg in enumerate(argv):
+        out.append(arg)
+        following = argv[index + 1] if index + 1 < len(argv) else None
+        if arg in ("--motion", "-m") and (following is None or following.startswith("-")):
+            out.append(OWN_MOTION)
+    return out
+
+
 if __name__ == "__main__":
-    app()
+    app(_own_motion_flag(sys.argv[1:]))

@@ -6,7 +6,7 @@ point (X, Y, Z) lands at u = fx * X / Z + cx, v = fy * Y / Z + cy in the same co
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -51,6 +51,13 @@ def _matrix(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
     if array.size != int(np.prod(shape)):
         raise CameraError(f"camera {name} must have shape {shape}, got {array.shape}")
     return array.reshape(shape)
+
+
+def _axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """[3, 3] rotation by `angle` radians about unit-length `axis` (Rodrigues)."""
+    x, y, z = axis / np.linalg.norm(axis)
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + np.sin(angle) * k + (1.0 - np.cos(angle)) * (k @ k)
 
 
 @dataclass(frozen=True)
@@ -142,6 +149,16 @@ class Camera:
                        float(data.get("near", DEFAULT_NEAR)))
         except (KeyError, TypeError, ValueError) as exc:
             raise CameraError(f"camera description is incomplete or malformed: {exc}") from exc
+
+    def orbited(self, yaw_deg: float, pitch_deg: float, target) -> Camera:
+        """This camera swung around `target` [3]: by yaw about its own up axis, then by pitch about its right axis
+        (same intrinsics, same distance): a novel view of what it looks at."""
+        target = _matrix("target", target, (3,))
+        turn = _axis_rotation(-self.R[1], np.radians(_real("yaw_deg", yaw_deg)))
+        turn = _axis_rotation(turn @ self.R[0], np.radians(_real("pitch_deg", pitch_deg))) @ turn
+        eye = target + turn @ (self.center - target)
+        rotation = self.R @ turn.T  # rows: the turned camera axes
+        return replace(self, R=rotation, t=-rotation @ eye)
 
     @classmethod
     def looking_at(cls, eye, target, up, width: int, height: int, fov_y_deg: float,

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields
 
+from .rig import TRIANGLE_BINDINGS
+
 # FLAME joint order (kinematic tree: global is the root, neck its child, jaw and eyes children of the neck).
 FLAME_JOINTS = ("global", "neck", "jaw", "left_eye", "right_eye")
 FLAME_PARENTS = (-1, 0, 1, 1, 1)
@@ -70,6 +72,13 @@ class SpeakerConfig:
     latent_dim: int = 8  # dimension of gamma = W_gamma(psi), the rank of the speaker-specific blendshapes
     latent_hidden: int = 64
     translator: TranslatorConfig = field(default_factory=TranslatorConfig)
+    # How the Gaussians follow their triangles: "triangle" (the paper's frame) or "scaled_triangle" (GaussianAvatars';
+    # sdk/rig.py TRIANGLE_BINDINGS, docs/numerics.md).
+    binding: str = "triangle"
+
+    def __post_init__(self) -> None:
+        if self.binding not in TRIANGLE_BINDINGS:
+            raise ValueError(f"speaker binding must be one of {', '.join(TRIANGLE_BINDINGS)}, got {self.binding!r}")
 
     @property
     def samples_per_frame(self) -> int:

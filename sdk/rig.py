@@ -30,9 +30,15 @@ ARKIT_BLENDSHAPES = (
 )
 ARKIT_COUNT = len(ARKIT_BLENDSHAPES)
 
-# How a Gaussian follows the mesh: "triangle" (paper §3.3.1: the parent triangle's frame moves, rotates and scales
-# it) or "vertex" (LAM: the centre is a mesh vertex plus a fixed offset carried by the head bone; docs/numerics.md).
-BINDINGS = ("triangle", "vertex")
+# How a Gaussian follows the mesh (docs/numerics.md): "triangle" (paper §3.3.1: the parent triangle's frame moves,
+# rotates and scales it), "scaled_triangle" (GaussianAvatars: the same frame, with the local position and scale in
+# units of the triangle's size k) or "vertex" (LAM: a mesh vertex plus a fixed offset carried by the head bone).
+TRIANGLE_BINDING = "triangle"
+SCALED_TRIANGLE_BINDING = "scaled_triangle"
+VERTEX_BINDING = "vertex"
+BINDINGS = (TRIANGLE_BINDING, SCALED_TRIANGLE_BINDING, VERTEX_BINDING)
+# The bindings of a FLAME speaker (Gaussians on mesh triangles).
+TRIANGLE_BINDINGS = (TRIANGLE_BINDING, SCALED_TRIANGLE_BINDING)
 # A vertex-bound Gaussian's covariance: "static" keeps its rest-pose covariance whatever the head does (what LAM's
 # web renderer draws), "head" turns it with the head bone.
 COVARIANCE_MODES = ("static", "head")
@@ -57,8 +63,8 @@ class ArkitRig:
         if unknown or len(set(self.blendshapes)) != len(self.blendshapes) or not self.blendshapes:
             raise ValueError(f"rig blendshapes must be distinct ARKit names, got unknown {unknown[:3]}"
                              if unknown else "rig blendshapes must be a non-empty list of distinct ARKit names")
-        if self.binding not in BINDINGS:
-            raise ValueError(f"rig binding must be one of {', '.join(BINDINGS)}, got {self.binding!r}")
+        if self.binding != VERTEX_BINDING:
+            raise ValueError(f"an ARKit rig's binding is {VERTEX_BINDING!r}, got {self.binding!r}")
         if self.covariance not in COVARIANCE_MODES:
             raise ValueError(f"rig covariance must be one of {', '.join(COVARIANCE_MODES)}, got {self.covariance!r}")
         for name in ("fps", "sample_rate"):
@@ -103,4 +109,5 @@ def check_drive_rig(expected: str, given: str, hint: str = "") -> None:
 
 
 __all__ = ["ARKIT_BLENDSHAPES", "ARKIT_COUNT", "ARKIT_RIG", "ArkitRig", "BINDINGS", "COVARIANCE_MODES", "FLAME_RIG",
-           "RIGS", "check_drive_rig", "rig_kind"]
+           "RIGS", "SCALED_TRIANGLE_BINDING", "TRIANGLE_BINDING", "TRIANGLE_BINDINGS", "VERTEX_BINDING",
+           "check_drive_rig", "rig_kind"]

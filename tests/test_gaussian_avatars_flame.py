@@ -182,6 +182,11 @@ def test_loader_pickle_and_gt_import_npz(tmp_path):
     with pytest.raises(ImportFormatError, match=r"'flame_version' is '2020': GaussianAvatars tracks with FLAME 2023 "
                                                 r"\(flame2023.pkl\)"):
         load_gaussian_avatars_flame(tmp_path / "old.npz")
+    old_pickle = tmp_path / "generic_model.pkl"  # FLAME 2020's file name
+    old_pickle.write_bytes(pkl.read_bytes())
+    with pytest.raises(ImportFormatError, match=r"the file name says FLAME is '2020': GaussianAvatars tracks with "
+                                                r"FLAME 2023"):
+        load_gaussian_avatars_flame(old_pickle)
 
 
 @pytest.mark.parametrize("n_expr", [50, 200])

@@ -216,7 +216,7 @@ def test_cli_import_export_verify_play(avatar_zip, tmp_path):
     result = runner.invoke(export_app, [str(checkpoint), "-o", str(bundle), "--verify", "--frames", "3",
                                         "--resolution", "64", "--preset", "balanced", "-q"])
     assert result.exit_code == 0, result.output
-    assert "not compared: an ARKit speaker without an audio model" in result.output
+    assert "not compared: an imported speaker without an audio model" in result.output
     assert "verification PASSED" in result.output
     sys.path.insert(0, str(ROOT / "samples"))
     try:

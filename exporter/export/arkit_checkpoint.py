@@ -37,9 +37,32 @@ def arkit_payload(speaker: ArkitSpeaker) -> dict:
         "pose_track": None if speaker.pose_track is None else speaker.pose_track.clone(),
         "motion_track": None if speaker.motion_track is None else speaker.motion_track.clone(),
         "source": speaker.source,
-        "audio_model": None if speaker.audio_model is None else
-        torch.frombuffer(bytearray(speaker.audio_model), dtype=torch.uint8),
+        "audio_model": audio_model_entry(speaker.audio_model),
     }
+
+
+def audio_model_entry(model: bytes | None) -> torch.Tensor | None:
+    """An attached ONNX audio model's bytes as a uint8 tensor (what the weights-only unpickler reads)."""
+    return None if model is None else torch.frombuffer(bytearray(model), dtype=torch.uint8)
+
+
+def audio_model_from(path: Path, payload: dict) -> bytes | None:
+    """The attached audio model's bytes from a checkpoint (None: none attached); CheckpointError if malformed."""
+    model = payload.get("audio_model")
+    if model is None:
+        return None
+    _tensor(path, "'audio_model'", model, (None,), floating=False)
+    if model.dtype != torch.uint8:
+        raise CheckpointError(f"checkpoint {path}: 'audio_model' must be the ONNX file's bytes (uint8)")
+    return model.numpy().tobytes()
+
+
+def source_from(path: Path, payload: dict) -> dict:
+    """Where an imported speaker came from (a plain dict; empty when absent); CheckpointError if not a dict."""
+    source = payload.get("source") or {}
+    if not isinstance(source, dict):
+        raise CheckpointError(f"checkpoint {path}: 'source' must be a dict")
+    return source
 
 
 def _tensor(path: Path, label: str, value, shape: tuple, floating: bool = True) -> torch.Tensor:
@@ -58,7 +81,8 @@ def _tensor(path: Path, label: str, value, shape: tuple, floating: bool = True) 
     return value
 
 
-def _optional_track(path: Path, payload: dict, key: str, width: int) -> torch.Tensor | None:
+def optional_track(path: Path, payload: dict, key: str, width: int) -> torch.Tensor | None:
+    """The [T >= 1, width] float track `key` of a checkpoint, or None when absent; CheckpointError if malformed."""
     value = payload.get(key)
     if value is None:
         return None
@@ -103,19 +127,13 @@ def load_arkit_payload(path: Path, payload: dict) -> ArkitSpeaker:
     with torch.no_grad():
         for key, value in values.items():
             getattr(gaussians, key).copy_(value)
-    source = payload.get("source") or {}
-    if not isinstance(source, dict):
-        raise CheckpointError(f"checkpoint {path}: 'source' must be a dict")
     speaker = ArkitSpeaker(config, BlendshapeRig(rest, morphs, pivot), gaussians, camera, background,
-                           _optional_track(path, payload, "pose_track", 6),
-                           _optional_track(path, payload, "motion_track", len(config.blendshapes)), source)
-    model = payload.get("audio_model")
-    if model is not None:
-        _tensor(path, "'audio_model'", model, (None,), floating=False)
-        if model.dtype != torch.uint8:
-            raise CheckpointError(f"checkpoint {path}: 'audio_model' must be the ONNX file's bytes (uint8)")
-        speaker.audio_model = model.numpy().tobytes()
+                           optional_track(path, payload, "pose_track", 6),
+                           optional_track(path, payload, "motion_track", len(config.blendshapes)),
+                           source_from(path, payload))
+    speaker.audio_model = audio_model_from(path, payload)
     return speaker.eval()
 
 
-__all__ = ["arkit_payload", "load_arkit_payload"]
+__all__ = ["arkit_payload", "audio_model_entry", "audio_model_from", "load_arkit_payload", "optional_track",
+           "source_from"]

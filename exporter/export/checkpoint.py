@@ -23,8 +23,15 @@ from gaussiantalker.sdk.rig import RIGS
 
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.flame import FlameArrays
-from ..model.speaker import Speaker
-from .arkit_checkpoint import arkit_payload, load_arkit_payload
+from ..model.speaker import MOTION_POSE_COLUMNS, Speaker
+from .arkit_checkpoint import (
+    arkit_payload,
+    audio_model_entry,
+    audio_model_from,
+    load_arkit_payload,
+    optional_track,
+    source_from,
+)
 from .compositing_payload import inpainter_from_payload, inpainter_payload, reference_from_payload, reference_payload
 
 FORMAT = "gaussiantalker-speaker"
@@ -87,7 +94,7 @@ def _check_state(path: Path, name: str, module: torch.nn.Module, state: object, 
 
 def _check_config(path: Path, config: SpeakerConfig) -> None:
     """Sizes and rates must be positive ints (fps 0 would only fail later, dividing by zero in the exporter)."""
-    sizes = {f.name: getattr(config, f.name) for f in fields(config) if f.name != "translator"}
+    sizes = {f.name: getattr(config, f.name) for f in fields(config) if f.name not in ("translator", "binding")}
     sizes.update({f"translator.{f.name}": getattr(config.translator, f.name) for f in fields(config.translator)
                   if f.name != "conv_strides"})
     for key, value in sizes.items():
@@ -129,7 +136,8 @@ def save_checkpoint(speaker: Speaker | ArkitSpeaker, path: str | os.PathLike) ->
         "flame": _flame_to_dict(speaker.flame_arrays),
         "shape": speaker.shape.detach().clone(),
         "parent": speaker.gaussians.parent.detach().clone(),
-        "translator": speaker.translator.state_dict(),
+        # None: no trained translator (an imported avatar; it may carry an attached "audio_model" instead).
+        "translator": None if speaker.translator is None else speaker.translator.state_dict(),
         "latent_pose": speaker.latent_pose.state_dict(),
         "gaussians": {k: v for k, v in speaker.gaussians.state_dict().items() if k not in ("parent", "vertex_ids")},
         "camera": speaker.camera.to_dict(),
@@ -137,6 +145,9 @@ def save_checkpoint(speaker: Speaker | ArkitSpeaker, path: str | os.PathLike) ->
         "pose_track": None if speaker.pose_track is None else speaker.pose_track.clone(),
         "reference": reference_payload(speaker.reference),
         "inpaint": inpainter_payload(speaker.inpaint),
+        "motion_track": None if speaker.motion_track is None else speaker.motion_track.clone(),
+        "audio_model": audio_model_entry(speaker.audio_model),
+        "source": speaker.source,
     }
     with atomic_write(path) as handle:
         torch.save(payload, handle)
@@ -206,12 +217,16 @@ def load_checkpoint(path: str | os.PathLike) -> Speaker | ArkitSpeaker:
         raise CheckpointError(f"checkpoint {path}: FLAME model has {flame.n_shape} shape / {flame.n_expr} expression "
                               f"bases but the config says {config.n_shape} / {config.n_expr}")
     _check_extras(path, payload)
+    motion = optional_track(path, payload, "motion_track", config.n_expr + MOTION_POSE_COLUMNS)
     try:
         speaker = Speaker(config, flame, payload["shape"], parent, camera, payload["background"],
-                          payload.get("pose_track"))
+                          payload.get("pose_track"), translator=payload["translator"] is not None,
+                          motion_track=motion)
     except (RuntimeError, ValueError, TypeError) as exc:
         raise CheckpointError(f"checkpoint {path}: config, shape or pose track do not fit together: {exc}") from exc
     _load_states(path, speaker, payload)
+    speaker.audio_model = audio_model_from(path, payload)
+    speaker.source = source_from(path, payload)
     track = payload.get("pose_track")
     speaker.reference = reference_from_payload(path, payload.get("reference"),
                                                None if track is None else int(track.shape[0]))
@@ -222,8 +237,11 @@ def load_checkpoint(path: str | os.PathLike) -> Speaker | ArkitSpeaker:
 def _load_states(path: Path, speaker: Speaker, payload: dict) -> None:
     """Strict state-dict loading of translator, latent-pose MLP and Gaussians, after type/dtype checks."""
     derived = {"parent": speaker.gaussians.parent, "vertex_ids": speaker.gaussians.vertex_ids}
-    for name, module, skip in (("translator", speaker.translator, ()), ("latent_pose", speaker.latent_pose, ()),
-                               ("gaussians", speaker.gaussians, tuple(derived))):
+    modules = (("translator", speaker.translator, ()), ("latent_pose", speaker.latent_pose, ()),
+               ("gaussians", speaker.gaussians, tuple(derived)))
+    for name, module, skip in modules:
+        if module is None:  # no trained translator
+            continue
         state = _check_state(path, name, module, payload[name], skip)
         if name == "gaussians":
             state.update(derived)

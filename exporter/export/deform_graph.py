@@ -28,9 +28,10 @@ import torch
 from torch import nn
 
 from gaussiantalker.sdk.numerics import SH_C0, sh_coeff_count
+from gaussiantalker.sdk.rig import SCALED_TRIANGLE_BINDING
 
 from ..model.flame import N_JOINTS, POSE_FEATURE_DIM, forward_kinematics, rodrigues
-from ..model.gaussians import triangle_frame
+from ..model.gaussians import triangle_frame, triangle_size
 from ..model.speaker import Speaker
 from ..model.splat_math import quat_to_rotmat, sh_basis
 
@@ -80,6 +81,7 @@ class DeformationGraph(nn.Module):
         self.n_vertices, self.n_gaussians = flame.n_vertices, gaussians.count
         self.sh_degree = gaussians.sh_degree if sh_degree is None else min(int(sh_degree), gaussians.sh_degree)
         self.parents = tuple(int(p) for p in flame.parents)
+        self.scaled_binding = gaussians.binding == SCALED_TRIANGLE_BINDING
         self.latent_pose = speaker.latent_pose
         self.blendshape_rank = blendshape_rank
         with torch.no_grad():
@@ -160,6 +162,15 @@ class DeformationGraph(nn.Module):
             mean, basis = (t.double() for t in latent_subspace)  # [D], [D, r]
             bias = bias + (mean - (mean @ basis) @ basis.T) @ weight
             weight = basis.T @ weight  # [r, 10N]
+        # Speaker blendshapes that are exactly zero (an imported avatar has none) add nothing: the graph leaves out
+        # the latent-pose MLP and the product, and the per-Gaussian values are the constant bias (exact).
+        self.has_latent = bool(weight.abs().max() > 0)
+        if not self.has_latent:
+            self.latent_pose = None
+            self.blendshape_rank = None
+            self.has_latent_basis = False
+            self.register_buffer("latent_bias", bias.float().contiguous())  # [10N]
+            return
         if self.blendshape_rank is not None and self.blendshape_rank < weight.shape[0]:
             factor, weight = low_rank_factors(weight, int(self.blendshape_rank), LATENT_ROWS, n)
             basis = factor if basis is None else basis @ factor
@@ -180,15 +191,21 @@ class DeformationGraph(nn.Module):
         corner_ids = self.faces.index_select(0, self.parent_triangle).T.reshape(-1)  # [3N]: all v0, v1, v2
         corners = vertices.transpose(1, 2).index_select(1, corner_ids)  # [B, 3N, 3]
         corners = corners.transpose(1, 2).reshape(batch, 3, 3, n)  # [B, xyz, corner, N]
-        rotation, scale = triangle_frame(corners[:, :, 0], corners[:, :, 1], corners[:, :, 2], self.rest_scale,
-                                         dim=1)  # [B, 3, 3, N], [B, N]
+        v0, v1, v2 = corners[:, :, 0], corners[:, :, 1], corners[:, :, 2]  # [B, 3, N] each
+        rotation, scale = triangle_frame(v0, v1, v2, self.rest_scale, dim=1)  # [B, 3, 3, N], [B, N]
         origin = (corners * self.barycentric).sum(2)  # P [B, 3, N]
 
-        gamma = self.latent_pose(flame_pose[:, 3:])  # [B, D]
-        if self.has_latent_basis:
-            gamma = gamma @ self.latent_basis  # [B, r]
-        latent = (gamma @ self.latent_weight + self.latent_bias).reshape(batch, sum(LATENT_ROWS), n)
+        if self.has_latent:
+            gamma = self.latent_pose(flame_pose[:, 3:])  # [B, D]
+            if self.has_latent_basis:
+                gamma = gamma @ self.latent_basis  # [B, r]
+            latent = (gamma @ self.latent_weight + self.latent_bias).reshape(batch, sum(LATENT_ROWS), n)
+        else:
+            latent = self.latent_bias.reshape(1, sum(LATENT_ROWS), n).expand(batch, -1, -1)
         local_position, quaternion, dc = latent.split(LATENT_ROWS, dim=1)  # [B, 3|4|3, N]
+        if self.scaled_binding:  # position and scale in units of the triangle's size k (docs/numerics.md)
+            scale = triangle_size(rotation, v0, v1, v2, dim=1)  # [B, N]
+            local_position = local_position * scale.unsqueeze(1)
 
         means = (rotation * local_position.unsqueeze(1)).sum(2) + origin  # R u_bar' + P  [B, 3, N]
         local_rotation = quat_to_rotmat(quaternion, dim=1)  # [B, 3, 3, N]

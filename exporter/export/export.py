@@ -12,6 +12,7 @@ import onnx
 import torch
 from tqdm import tqdm
 
+from gaussiantalker.runtime.bundle_checks import FLAME_DRIVER
 from gaussiantalker.runtime.composite import CROP_MARGIN_PX, CROP_MULTIPLE
 from gaussiantalker.sdk import __version__ as sdk_version
 from gaussiantalker.sdk.bundle import BundleWriter
@@ -106,6 +107,9 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     if isinstance(speaker, ArkitSpeaker) and scene is not None:
         raise BundleError("scene specialisation (--scene) is for FLAME speakers; an ARKit speaker's bundle is "
                           "exported without one (docs/import.md)")
+    if not isinstance(speaker, ArkitSpeaker) and speaker.translator is None and scene is not None:
+        raise BundleError("scene specialisation (--scene) needs the speaker's trained translator; an imported avatar's "
+                          "bundle is exported without one (docs/import.md)")
     if mnn:
         mnn_version()  # a missing converter fails here, before any graph is exported
     speaker = speaker.eval()
@@ -118,8 +122,9 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     if settings.gaussian_budget is not None:
         speaker = apply_budget(speaker, settings.gaussian_budget, progress=progress)
     writer = BundleWriter(metadata={
-        **({"rig": speaker.config.to_dict(), "source": speaker.source} if isinstance(speaker, ArkitSpeaker)
+        **({"rig": speaker.config.to_dict()} if isinstance(speaker, ArkitSpeaker)
            else {"speaker": speaker.config.to_dict()}),
+        **({"source": speaker.source} if speaker.source else {}),
         "camera": camera.to_dict(),
         "background": background,
         "precision": label,
@@ -154,7 +159,11 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
         _export_arkit_steps(speaker, writer, path, result, settings, steps, mnn)
         return
     steps.set_postfix_str("translator graph")
-    if spec is None or spec.has_translator:
+    if speaker.translator is None:  # an imported avatar: its attached audio-to-FLAME model, if any
+        _add_audio_model(speaker, writer, result, settings)
+        if speaker.audio_model is None:
+            writer.metadata["driver"] = FLAME_DRIVER
+    elif spec is None or spec.has_translator:
         model = convert_precision(translator_onnx(speaker.translator, example_frames), settings.translator_precision)
         result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
     steps.update()
@@ -186,7 +195,8 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
         names = list(speaker.flame_arrays.region_names)
         writer.metadata["regions"] = names + [f"region_{i}" for i in range(len(names), int(regions.max()) + 1)]
         buffers["gaussian_regions"] = ids.astype(np.uint8 if regions.max() < 256 else np.uint16)
-    _write_bundle(writer, path, result, steps, mnn, {**buffers, "pose_track": speaker.pose_track})
+    _write_bundle(writer, path, result, steps, mnn,
+                  {**buffers, "pose_track": speaker.pose_track, "motion_track": speaker.motion_track})
 
 
 def _write_bundle(writer: BundleWriter, path: str | os.PathLike | StagedFile, result: ExportResult, steps: tqdm,
@@ -211,9 +221,7 @@ def _export_arkit_steps(speaker: ArkitSpeaker, writer: BundleWriter, path: str |
     """An ARKit speaker's deformation graph, its shipped motion and pose tracks, then one atomic write (its bundle
     has no translator graph and no reference clip; docs/import.md)."""
     steps.set_postfix_str("audio model")
-    if speaker.audio_model is not None:  # the attached audio-to-ARKit model is the translator graph
-        model = convert_precision(onnx.load_from_string(speaker.audio_model), settings.translator_precision)
-        result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
+    _add_audio_model(speaker, writer, result, settings)
     steps.update()
     steps.set_postfix_str("deformation graph")
     args, dynamic = arkit_deform_example(speaker)
@@ -224,6 +232,14 @@ def _export_arkit_steps(speaker: ArkitSpeaker, writer: BundleWriter, path: str |
     steps.update()  # no reference clip
     _write_bundle(writer, path, result, steps, mnn,
                   {"pose_track": speaker.pose_track, "motion_track": speaker.motion_track})
+
+
+def _add_audio_model(speaker: Speaker | ArkitSpeaker, writer: BundleWriter, result: ExportResult,
+                     settings: ExportSettings) -> None:
+    """An imported speaker's attached audio model (ONNX; exporter/imports/audio_model.py) as its translator graph."""
+    if speaker.audio_model is not None:
+        model = convert_precision(onnx.load_from_string(speaker.audio_model), settings.translator_precision)
+        result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
 
 
 def _add_reference(speaker: Speaker, writer: BundleWriter, result: ExportResult, settings: ExportSettings) -> None:

@@ -39,13 +39,20 @@ def driven_clip(speaker: Speaker, frames: int, seed: int = 1) -> tuple[np.ndarra
     return audio, drives
 
 
-def motion_clip(speaker: ArkitSpeaker, frames: int, seed: int = 1) -> list[BlendshapeDrive]:
-    """`frames` drives of an ARKit speaker: its shipped motion (weights and head pose) sampled evenly over the
-    track, or, without a motion track, random weights (each blendshape on with probability 0.3, uniform in [0, 1])
-    with the pose track's head poses."""
+def motion_clip(speaker: ArkitSpeaker | Speaker, frames: int, seed: int = 1) -> list[BlendshapeDrive | FrameDrive]:
+    """`frames` drives of a speaker played without audio (an ARKit speaker, an imported FLAME avatar): its shipped
+    motion sampled evenly over the track, or, without a motion track, random drives: ARKit weights (each blendshape
+    on with probability 0.3, uniform in [0, 1]) with the pose track's head poses, or FLAME expressions N(0, 0.7)
+    with the jaw opening up to 0.3 rad."""
     length = 0 if speaker.motion_track is None else int(speaker.motion_track.shape[0])
     rows = np.linspace(0, max(length - 1, 0), frames).round().astype(int)
     rng = np.random.default_rng(seed)
+    if isinstance(speaker, Speaker):
+        if length:
+            return [speaker.motion_drive(int(row)) for row in rows]
+        n_expr = speaker.config.n_expr
+        return [FrameDrive.make(n_expr, rng.normal(0.0, 0.7, n_expr), [rng.uniform(0.0, 0.3), 0.0, 0.0])
+                for _ in range(frames)]
     drives = []
     for index, row in enumerate(rows):
         drive = speaker.motion_drive(int(row) if length else index)
@@ -56,4 +63,9 @@ def motion_clip(speaker: ArkitSpeaker, frames: int, seed: int = 1) -> list[Blend
     return drives
 
 
-__all__ = ["driven_clip", "motion_clip", "speech_clip"]
+def plays_audio(speaker: Speaker | ArkitSpeaker) -> bool:
+    """Whether the torch speaker turns audio into drives itself (a FLAME speaker with its trained translator)."""
+    return isinstance(speaker, Speaker) and speaker.translator is not None
+
+
+__all__ = ["driven_clip", "motion_clip", "plays_audio", "speech_clip"]

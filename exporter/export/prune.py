@@ -16,7 +16,7 @@ import torch
 from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive, HeadPose
 from gaussiantalker.sdk.progress import progress_bar
 
-from ..export.probes import driven_clip, motion_clip
+from ..export.probes import driven_clip, motion_clip, plays_audio
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.gaussians import BoundGaussians
 from ..model.rasterizer import render_reference
@@ -30,14 +30,14 @@ MEASURE_FRAMES = 12
 
 def measurement_drives(speaker: Speaker | ArkitSpeaker, frames: int = MEASURE_FRAMES
                        ) -> list[FrameDrive | BlendshapeDrive]:
-    """A driven clip (speech for a FLAME speaker, its motion for an ARKit one; the pose track applied) plus a 3x3
-    sweep of head pitch and yaw with the mouth open."""
+    """A driven clip (speech for a FLAME speaker, its motion for an ARKit one or an imported FLAME avatar; the pose
+    track applied) plus a 3x3 sweep of head pitch and yaw with the mouth open."""
     if isinstance(speaker, ArkitSpeaker):
         drives: list = motion_clip(speaker, frames, seed=7)
         open_mouth = {"jawOpen": 0.6} if "jawOpen" in speaker.config.blendshapes else None
         return drives + [BlendshapeDrive.make(open_mouth, HeadPose.make([pitch, yaw, 0.0]), speaker.config.blendshapes)
                          for pitch in SWEEP_ANGLES for yaw in SWEEP_ANGLES]
-    _, drives = driven_clip(speaker, frames, seed=7)
+    drives = driven_clip(speaker, frames, seed=7)[1] if plays_audio(speaker) else motion_clip(speaker, frames, seed=7)
     jaw_open = np.array([0.25, 0.0, 0.0], np.float32)
     for pitch in SWEEP_ANGLES:
         for yaw in SWEEP_ANGLES:

@@ -1,5 +1,5 @@
 """FLAME as GaussianAvatars uses it: FLAME 2023 with 300 shape + 100 expression columns and 120 teeth vertices
-(docs/import.md, "GaussianAvatars").
+(docs/import.md, "GaussianAvatars avatars").
 
 GaussianAvatars binds its Gaussians to the triangles of FLAME plus a teeth extension it builds from the template:
 two slabs (upper and lower teeth) behind the lips, 8 rows of 15 vertices, 168 triangles. The extension is rebuilt
@@ -25,7 +25,7 @@ from ..model.flame import (
     _parents_from_kintree,
     load_flame_npz,
 )
-from .flame_pkl import FLAME_LAYOUT, N_EXPR_KEY, N_SHAPE_KEY, VERSION_KEY, flame_arrays_from_pickle
+from .flame_pkl import FLAME_LAYOUT, N_EXPR_KEY, N_SHAPE_KEY, VERSION_KEY, detect_version, flame_arrays_from_pickle
 
 GA_N_SHAPE = 300
 GA_N_EXPR = 100
@@ -180,8 +180,18 @@ def load_gaussian_avatars_flame(path: str | Path) -> FlameArrays:
     return add_gaussian_avatars_teeth(arrays)
 
 
+def _refuse_older_release(path: Path, version: str, where: str) -> None:
+    """ImportFormatError when the model is a FLAME release before 2023 (`version` as flame_pkl names it)."""
+    if version.split(" ")[0] in _OLDER_RELEASES:
+        raise ImportFormatError(
+            f"{path}: {where} is {version!r}: GaussianAvatars tracks with FLAME 2023 (flame2023.pkl), and avatars "
+            f"tracked with it do not fit FLAME {version}'s template; import flame2023.pkl instead")
+
+
 def _load_pickle(path: Path) -> FlameArrays:
-    """A FLAME pickle through flame_pkl's safe reader (its layout check names any wrong field)."""
+    """A FLAME pickle through flame_pkl's safe reader (its layout check names any wrong field); a file named as
+    FLAME ships an older release (generic_model.pkl: FLAME 2020) is refused, as its npz would be."""
+    _refuse_older_release(path, detect_version(path), "the file name says FLAME")
     raw = flame_arrays_from_pickle(path, FLAME_LAYOUT)
     return FlameArrays(
         v_template=_f32(raw["v_template"]),
@@ -199,11 +209,7 @@ def _load_npz(path: Path) -> FlameArrays:
     """A FLAME npz with exactly 300 shape + 100 expression columns, not one recorded as FLAME 2020."""
     columns = _npz_member_shape(path, "shapedirs")
     info = _npz_info(path)
-    version = str(info.get(VERSION_KEY, ""))
-    if version.split(" ")[0] in _OLDER_RELEASES:
-        raise ImportFormatError(
-            f"{path}: '{VERSION_KEY}' is {version!r}: GaussianAvatars tracks with FLAME 2023 (flame2023.pkl), and "
-            f"avatars tracked with it do not fit FLAME {version}'s template; import flame2023.pkl instead")
+    _refuse_older_release(path, str(info.get(VERSION_KEY, "")), f"'{VERSION_KEY}'")
     n_shape = int(info.get(N_SHAPE_KEY, GA_N_SHAPE))
     total = columns[2] if len(columns) == 3 else -1
     if n_shape != GA_N_SHAPE or total != GA_N_SHAPE + GA_N_EXPR:

@@ -4,6 +4,9 @@ World-space Gaussian of binding i on triangle T (vertices v0, v1, v2), with gamm
     u = R (u_bar + BS(gamma; W_pos)) + P,   r = R r_bar BS(gamma; W_rot),   s = S s_bar,
     kappa0' = kappa0 + BS(gamma; W_color),  colour = sh_to_rgb(kappa', centre - camera centre)
 where P = eta . (v0, v1, v2), R = [n0 n1 n2] (columns), S = mean edge length (`triangle_frame`).
+
+The "scaled_triangle" binding (GaussianAvatars, docs/numerics.md) uses the same frame R but measures the local
+position in units of the triangle's size k (`triangle_size`): u = k R (u_bar + ...) + P, s = k s_bar.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from torch import nn
 
 from gaussiantalker.sdk.config import LATENT_POSE_INPUT_DIM
 from gaussiantalker.sdk.numerics import FRAME_EPS, sh_coeff_count
+from gaussiantalker.sdk.rig import SCALED_TRIANGLE_BINDING, TRIANGLE_BINDING, TRIANGLE_BINDINGS
 
 from .splat_math import cov3d_from_rotation_scale, quat_to_rotmat, sh_to_rgb
 
@@ -76,6 +80,16 @@ def triangle_frame(v0: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor,
     return rotation, scale
 
 
+def triangle_size(rotation: torch.Tensor, v0: torch.Tensor, v1: torch.Tensor, v2: torch.Tensor, dim: int = -1
+                  ) -> torch.Tensor:
+    """GaussianAvatars' triangle size k = (|e01| + |n2 · e02|) / 2 [...]: half the first edge plus the triangle's
+    height over it, with n2 the third axis of `triangle_frame`'s `rotation` (same `dim` layout). No division."""
+    n2 = rotation.select(-1 if dim < 0 else dim + 1, 2)  # [..., 3] (or [B, 3, N] with dim=1)
+    e01, e02 = v1 - v0, v2 - v0
+    height = (n2 * e02).sum(dim).abs()
+    return 0.5 * (torch.linalg.vector_norm(e01, dim=dim) + height)
+
+
 class LatentPoseMLP(nn.Module):
     """W_gamma: FLAME pose psi (neck, jaw, eyes; [B, 12]) -> latent pose gamma [B, latent_dim]."""
 
@@ -90,11 +104,15 @@ class LatentPoseMLP(nn.Module):
 class BoundGaussians(nn.Module):
     """Gaussian attributes in triangle-local space plus the speaker-specific blendshape weights."""
 
-    def __init__(self, parent: torch.Tensor, faces: torch.Tensor, sh_degree: int, latent_dim: int) -> None:
+    def __init__(self, parent: torch.Tensor, faces: torch.Tensor, sh_degree: int, latent_dim: int,
+                 binding: str = TRIANGLE_BINDING) -> None:
         super().__init__()
+        if binding not in TRIANGLE_BINDINGS:
+            raise ValueError(f"binding must be one of {', '.join(TRIANGLE_BINDINGS)}, got {binding!r}")
         n = int(parent.shape[0])
         k = sh_coeff_count(sh_degree)
         self.sh_degree = sh_degree
+        self.binding = binding
         self.register_buffer("parent", parent.long())  # [N] parent triangle index
         self.register_buffer("vertex_ids", faces.long()[parent.long()])  # [N, 3] parent triangle's vertices
         self.barycentric = nn.Parameter(torch.full((n, 3), 1.0 / 3.0))  # eta [N, 3]
@@ -129,6 +147,9 @@ class BoundGaussians(nn.Module):
         origin = (self.barycentric.unsqueeze(-1) * corners).sum(2)  # P [B, N, 3]
 
         local_position = self.local_position + torch.einsum("nkd,bd->bnk", self.w_pos, gamma)  # [B, N, 3]
+        if self.binding == SCALED_TRIANGLE_BINDING:  # position and scale in units of the triangle's size k
+            scale = triangle_size(rotation, corners[:, :, 0], corners[:, :, 1], corners[:, :, 2])  # [B, N]
+            local_position = local_position * scale.unsqueeze(-1)
         means = (rotation * local_position.unsqueeze(-2)).sum(-1) + origin  # R u_bar' + P
 
         # r_bar' = r_bar * BS(gamma; W_rot): composed as quaternions (|q1 q2| = |q1||q2|, so normalising the

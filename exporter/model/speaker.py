@@ -12,6 +12,9 @@ from torch import nn
 
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import POSE_DIM, SpeakerConfig
+from gaussiantalker.sdk.drive import FrameDrive, track_row
+from gaussiantalker.sdk.flame_motion import TABLE_POSE_COLUMNS as MOTION_POSE_COLUMNS
+from gaussiantalker.sdk.flame_motion import FlameMotion
 from gaussiantalker.sdk.reference_clip import EncodedClip
 from gaussiantalker.sdk.rig import FLAME_RIG
 
@@ -27,25 +30,38 @@ class Speaker(ReferenceRendering, nn.Module):
 
     Optional: `reference` (the original video clip the face is composited into, aligned with `pose_track`) and
     `inpaint` (the trained inpainting generator F; None: the runtime's non-learned fallback), docs/compositing.md.
+    An imported avatar (docs/import.md) may have no trained translator (`translator=False`: `self.translator` is
+    None), an attached audio-to-FLAME ONNX model instead (`audio_model`), and the motion it was tracked with
+    (`motion_track` [T, n_expr + 18]: expression | flame_pose | head translation, `sdk.flame_motion`).
     """
 
     rig_kind = FLAME_RIG
     drive_inputs = ("expression", "flame_pose", "head_translation")
 
     def __init__(self, config: SpeakerConfig, flame: FlameArrays, shape: torch.Tensor, parent: torch.Tensor,
-                 camera: Camera, background=(1.0, 1.0, 1.0), pose_track: torch.Tensor | None = None) -> None:
+                 camera: Camera, background=(1.0, 1.0, 1.0), pose_track: torch.Tensor | None = None, *,
+                 translator: bool = True, motion_track: torch.Tensor | None = None) -> None:
         super().__init__()
         self.config = config
         self.flame_arrays = flame
         self.flame = FlameLayer(flame)
         self.register_buffer("shape", torch.as_tensor(shape, dtype=torch.float32).reshape(config.n_shape))
-        self.translator = MotionTranslator(config.translator, config.n_expr, config.speaker_id)
+        self.translator = (MotionTranslator(config.translator, config.n_expr, config.speaker_id) if translator
+                           else None)
         self.latent_pose = LatentPoseMLP(config.latent_dim, config.latent_hidden)
         self.gaussians = BoundGaussians(torch.as_tensor(parent), torch.as_tensor(flame.faces), config.sh_degree,
-                                        config.latent_dim)
+                                        config.latent_dim, config.binding)
         self.camera = camera
         self.background = tuple(float(c) for c in background)
         self.pose_track = None if pose_track is None else torch.as_tensor(pose_track, dtype=torch.float32)
+        self.motion_track = None if motion_track is None else torch.as_tensor(motion_track, dtype=torch.float32)
+        if self.motion_track is not None and (self.motion_track.ndim != 2
+                                              or self.motion_track.shape[1] != config.n_expr + MOTION_POSE_COLUMNS):
+            raise ValueError(f"motion_track has shape {list(self.motion_track.shape)}, expected "
+                             f"[T, {config.n_expr + MOTION_POSE_COLUMNS}] (expression | flame_pose | translation)")
+        # An attached audio-to-FLAME ONNX model (serialised; exporter/imports/audio_model.py), or None.
+        self.audio_model: bytes | None = None
+        self.source: dict = {}
         self.reference: EncodedClip | None = None
         self.inpaint: InpainterNet | None = None
         self.refresh_rest_geometry()
@@ -58,7 +74,15 @@ class Speaker(ReferenceRendering, nn.Module):
 
     def translate(self, audio: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """audio [B, S] (S a multiple of samples_per_frame) -> expression [B, T, n_expr], jaw_pose [B, T, 3]."""
+        if self.translator is None:
+            raise ValueError("this speaker has no trained translator (an imported avatar): it is driven by FLAME "
+                             "parameters or its motion track")
         return self.translator(audio)
+
+    def motion_drive(self, index: int) -> FrameDrive:
+        """Frame `index` of the motion track (played forth and back like every track) as a FrameDrive."""
+        table = self.motion_track.numpy()
+        return FlameMotion.from_table(table, self.config.fps).drive(track_row(table.shape[0], index))
 
     def vertices(self, expression: torch.Tensor, flame_pose: torch.Tensor, head_translation: torch.Tensor
                  ) -> torch.Tensor:
