@@ -526,6 +526,9 @@ class TalkingHead:
                 and self.motion_track is None:
             raise AudioError("this speaker's video needs audio (its translator turns speech into motion) or a motion")
         if motion is not None or samples is None or not self.has_translator:
+            if self.composite:
+                raise RenderError("a composited head follows the reference clip and its audio; play a motion with "
+                                  "composite=False")
             track = self.motion(motion)
             frames, total = self.motion_frames(track, head_pose, output), len(track)
         else:

@@ -140,21 +140,25 @@ def parse_flame_motion(arrays: Mapping[str, np.ndarray], fps: float, where: str 
     return FlameMotion(expr, pose, parts["translation"], fps)
 
 
-def load_flame_motion(path: str | os.PathLike, fps: float) -> FlameMotion:
-    """Read a FLAME motion npz (GaussianAvatars' `flame_param.npz` or one with the same keys), never unpickling;
-    `fps` is its frame rate (the file does not record one)."""
-    path = Path(path)
+def read_npz(path: Path, error: type[Exception], what: str) -> dict[str, np.ndarray]:
+    """Every array of an npz file, never unpickling; `error` naming the file and `what` it should be otherwise."""
     try:
         data = np.load(path, allow_pickle=False)
         if not isinstance(data, np.lib.npyio.NpzFile):
-            raise DriveError(f"FLAME motion {path} is one array, not an npz of per-frame arrays")
+            raise error(f"{path} is one array, not {what}")
         with data:
-            arrays = {key: data[key] for key in data.files}
+            return {key: data[key] for key in data.files}
     except FileNotFoundError:
-        raise DriveError(f"motion file {path} does not exist") from None
+        raise error(f"{path} does not exist") from None
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise DriveError(f"cannot read FLAME motion {path} (an npz of per-frame arrays): {exc}") from None
+        raise error(f"cannot read {path} ({what}): {exc}") from None
+
+
+def load_flame_motion(path: str | os.PathLike, fps: float) -> FlameMotion:
+    """Read a FLAME motion npz (GaussianAvatars' `flame_param.npz` or one with the same keys), never unpickling;
+    `fps` is its frame rate (the file does not record one)."""
+    arrays = read_npz(Path(path), DriveError, "an npz of per-frame FLAME parameters")
     return parse_flame_motion(arrays, fps, str(path))
 
 
-__all__ = ["FlameMotion", "MOTION_KEYS", "TABLE_POSE_COLUMNS", "load_flame_motion", "parse_flame_motion"]
+__all__ = ["FlameMotion", "MOTION_KEYS", "TABLE_POSE_COLUMNS", "load_flame_motion", "parse_flame_motion", "read_npz"]

@@ -333,6 +333,19 @@ def test_composite_true_without_a_clip_and_a_custom_camera_are_refused(clip_expo
         TalkingHead(clip_export.path, camera=clip_export.speaker.camera)
 
 
+
+def test_a_composited_head_does_not_play_a_motion(clip_export, tmp_path):
+    """A FLAME motion plays on the bare head only: composited frames follow the clip and its audio."""
+    from gaussiantalker.runtime import TalkingHead
+
+    n_expr = clip_export.speaker.config.n_expr
+    with TalkingHead(clip_export.path) as head:
+        with pytest.raises(RenderError, match="play a motion with composite=False"):
+            head.write_video(tmp_path / "m.mp4", motion=np.zeros((2, n_expr + 18), np.float32))
+    with TalkingHead(clip_export.path, composite=False, resolution=(32, 32)) as head:
+        assert len(list(head.motion_frames(np.zeros((2, n_expr + 18), np.float32)))) == 2
+
+
 def test_output_view_of_a_clip_bundle_is_the_heads(clip_export, tmp_path):
     """What TalkingHead.output_view says from the manifest (camera, compositing) is what the loaded head does, and a
     composited head's frames are the same from the output group as from the shortcut keyword."""

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import os
 import re
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +21,7 @@ import torch
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import DEFAULT_FPS, SpeakerConfig
 from gaussiantalker.sdk.errors import DriveError, ImportFormatError
-from gaussiantalker.sdk.flame_motion import FlameMotion, parse_flame_motion
+from gaussiantalker.sdk.flame_motion import FlameMotion, parse_flame_motion, read_npz
 from gaussiantalker.sdk.numerics import sh_coeff_count
 from gaussiantalker.sdk.rig import SCALED_TRIANGLE_BINDING
 
@@ -99,17 +98,10 @@ def read_bound_gaussians(path: Path, n_faces: int):
 def read_flame_params(path: Path, n_vertices: int, fps: float) -> tuple[np.ndarray, np.ndarray, FlameMotion]:
     """(shape [300], static offset [V, 3], tracked motion) from flame_param.npz, never unpickling; ImportFormatError
     naming the key that is missing or mis-shaped."""
-    try:
-        data = np.load(path, allow_pickle=False)
-        if not isinstance(data, np.lib.npyio.NpzFile):
-            raise ImportFormatError(f"{path}: one array, not an npz of FLAME parameters")
-        with data:
-            arrays = {key: data[key] for key in data.files}
-    except FileNotFoundError:
+    if not path.is_file():
         raise ImportFormatError(f"{path.parent}: {PARAMS_NAME} is missing (GaussianAvatars saves it beside "
-                                f"{PLY_NAME})") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise ImportFormatError(f"{path}: not a readable npz: {exc}") from None
+                                f"{PLY_NAME})")
+    arrays = read_npz(path, ImportFormatError, "an npz of FLAME parameters")
     shape = np.asarray(arrays.get("shape", np.zeros(0)), np.float64).reshape(-1)
     if "shape" not in arrays or shape.shape != (GA_N_SHAPE,) or not np.isfinite(shape).all():
         got = list(np.shape(arrays["shape"])) if "shape" in arrays else "missing"
