@@ -72,8 +72,8 @@ def gaussian_avatars(
                                             "point_cloud.ply and flame_param.npz), or that iteration folder"),
     flame_model: Path = typer.Option(..., "--flame", help="your FLAME 2023 model: flame2023.pkl (read without "
                                      "running anything from it) or the npz `gt-import flame` writes"),
-    output: Path = typer.Option(None, "-o", "--output", help="checkpoint to write [default: avatar.ckpt in the "
-                                "current directory]"),
+    output: Path = typer.Option(None, "-o", "--output", help="checkpoint to write [default: AVATAR's folder name "
+                                "with .ckpt, in the current directory]"),
     iteration: int = typer.Option(None, "--iteration", help="training iteration to import [default: the last]"),
     fps: float = typer.Option(25.0, "--fps", help="frame rate of the tracked motion in flame_param.npz (the file "
                               "records none); resampled to the speaker's 25 fps"),
@@ -97,7 +97,7 @@ def gaussian_avatars(
         raise typer.BadParameter(f"--background must be three numbers r,g,b in 0..1, got {background!r}")
     if not (fps > 0 and 16 <= resolution <= 8192):
         raise typer.BadParameter("--fps must be positive and --resolution within 16..8192")
-    output = output or Path("avatar.ckpt")
+    output = output or Path(f"{avatar.resolve().name}.ckpt")
     start = time.perf_counter()
     try:
         model = None if audio_model is None else load_audio_model(audio_model, flame_outputs(GA_N_EXPR))

@@ -259,14 +259,16 @@ def verify_frames(speaker: Speaker, head: TalkingHead, frames: int = 25, seed: i
     return _frames_report(results, tolerances)
 
 
-def verify_views(speaker: Speaker | ArkitSpeaker, head: TalkingHead, seed: int = 2,
+def verify_views(speaker: Speaker | ArkitSpeaker, head: TalkingHead, views: int = len(VIEW_ORBITS), seed: int = 2,
                  tolerances: Tolerances = Tolerances()) -> dict:
-    """Frames from novel cameras: the bundle's camera swung around the head's centre (VIEW_ORBITS), one drive of
+    """Frames from novel cameras: the bundle's camera swung around the head's centre (the first `views` of
+    VIEW_ORBITS; verify_bundle asks for as many as it renders frames, at most all three), one drive of
     a driven clip each, torch vs runtime as in `verify_frames` (a scene's bundle has one camera: not compared; a
     Gaussian budget's bundle: reported, not judged, as its Gaussians were chosen for its own camera)."""
     if head.scene is not None:
         return {"compared": False, "passed": True, "note": "a scene's bundle is for its own camera"}
-    torch_drives, runtime_drives = _clip_drives(speaker, head, len(VIEW_ORBITS), seed)
+    orbits = VIEW_ORBITS[:max(1, views)]
+    torch_drives, runtime_drives = _clip_drives(speaker, head, len(orbits), seed)
     camera = head.camera
     pruned = head.bundle.manifest.get("gaussians") != speaker.gaussians.count
     with torch.no_grad():
@@ -274,7 +276,7 @@ def verify_views(speaker: Speaker | ArkitSpeaker, head: TalkingHead, seed: int =
     target = centre[0].median(dim=0).values.double().numpy()
     results = []
     try:
-        for index, (yaw, pitch) in enumerate(VIEW_ORBITS):
+        for index, (yaw, pitch) in enumerate(orbits):
             head.camera = camera.orbited(yaw, pitch, target)  # the same head, seen from elsewhere
             results.append({**_frame_result(speaker, head, torch_drives[index], runtime_drives[index], index),
                             "yaw_deg": yaw, "pitch_deg": pitch})
@@ -378,7 +380,7 @@ def verify_bundle(speaker: Speaker, bundle_path, *, frames: int = 25, resolution
         graphs = {"translator": verify_translator(speaker, head, tolerance=tolerances.graph_rtol),
                   "deform": verify_deformation(speaker, head, tolerance=tolerances.graph_rtol)}
         frame_report = verify_frames(speaker, head, frames, tolerances=tolerances, progress=progress)
-        views = verify_views(speaker, head, tolerances=tolerances)
+        views = verify_views(speaker, head, views=min(frames, len(VIEW_ORBITS)), tolerances=tolerances)
         composited = None
         if head.reference is not None:
             width, height = head.reference.layout.size
