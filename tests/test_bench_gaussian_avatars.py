@@ -1,6 +1,6 @@
 """`gt-bench avatar` on a GaussianAvatars avatar: a tiny synthetic one (tests/gaussian_avatars.py) with its FLAME
 model beside a tiny demo speaker writes both reports with a finite number for every measure; without --flame, or
-with --flame beside a zip, it says what is wrong."""
+with --flame beside a zip, or --presets without quality, it says what is wrong."""
 
 from __future__ import annotations
 
@@ -69,4 +69,8 @@ def test_bench_avatar_directory_needs_flame(tmp_path):
     zipped.write_bytes(b"PK")
     result = CliRunner().invoke(app, ["avatar", str(zipped), "--flame", str(flame), "--out", str(tmp_path / "b")])
     assert result.exit_code == 2 and "GaussianAvatars output directory" in result.output
-    assert not (tmp_path / "bench").exists() and not (tmp_path / "b").exists()
+    for presets, words in (("balanced,fast", "quality (the reference)"), ("quality,tiny", "presets among")):
+        result = CliRunner().invoke(app, ["avatar", str(avatar), "--flame", str(flame), "--presets", presets,
+                                          "--out", str(tmp_path / "c")])
+        assert result.exit_code == 2 and words in result.output
+    assert not any((tmp_path / name).exists() for name in ("bench", "b", "c"))

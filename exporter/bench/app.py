@@ -205,6 +205,10 @@ def avatar(
     gaussians: int = typer.Option(20_000, "--gaussians", min=1, help="demo speaker size when no checkpoint is given"),
     note: str = typer.Option(None, "--note", help="a line about the machine or the run, written into avatar.md"),
     out: Path = typer.Option(Path("bench-avatar"), "--out", help="folder for avatar.md and avatar.json"),
+    presets: str = typer.Option(None, "--presets", help="comma-separated presets to export and compare, quality "
+                                "among them [default: all]"),
+    verify_frames: int = typer.Option(25, "--verify-frames", min=0, help="frames verify_bundle compares against the "
+                                      "torch speaker (its 6 novel views come on top); 0: no verify"),
 ) -> None:
     """An imported LAM or GaussianAvatars avatar: import, preset export and verify times, bundle sizes, each preset's
     head PSNR against fp32, and FPS at 512x512 beside the demo speaker (alternating rounds)."""
@@ -221,6 +225,12 @@ def avatar(
     if flame is not None and not avatar_path.is_dir():
         raise typer.BadParameter(f"{avatar_path}: --flame is for a GaussianAvatars output directory, and this is no "
                                  "directory", param_hint="AVATAR")
+    from ..export.presets import PRESETS
+
+    chosen = None if presets is None else [name.strip() for name in presets.split(",") if name.strip()]
+    if chosen is not None and ("quality" not in chosen or set(chosen) - set(PRESETS)):
+        raise typer.BadParameter(f"{presets!r}: presets among {', '.join(PRESETS)}, quality (the reference) "
+                                 "among them", param_hint="--presets")
     checks = ((motion, "--motion"), (demo_checkpoint, "--demo-checkpoint"), (flame, "--flame"))
     for path, hint in ((avatar_path, "AVATAR"), *checks) if flame is None else checks:
         if path is not None and not path.is_file():
@@ -228,7 +238,7 @@ def avatar(
     command = shlex.join(["gt-bench", *sys.argv[1:]])
     try:
         result = run_avatar_bench(avatar_path, motion, frames, fps_seconds, rounds, demo_checkpoint, gaussians, out,
-                                  command, note, flame)
+                                  command, note, flame, chosen, verify_frames)
     except GaussianTalkerError as exc:  # a damaged avatar, FLAME model or motion file: its message, not a traceback
         typer.echo(f"gt-bench avatar: {exc}", err=True)
         raise typer.Exit(2) from None

@@ -28,7 +28,7 @@ import json
 import statistics
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -103,14 +103,16 @@ def sample_indices(count: int, samples: int) -> np.ndarray:
     return np.unique(np.linspace(0, count - 1, min(samples, count)).round().astype(int))
 
 
-def timed_costs(load: Callable[[], object], folder: Path, rounds: int) -> tuple[object, dict[str, dict], dict]:
-    """`rounds` rounds of importing the avatar (`load`), exporting every preset into `folder` and verifying the
-    fp32 bundle: the speaker, each preset's export (path, seconds per round, bytes, Gaussians) and the verify's
-    (seconds per round, frames, resolution, min 8-bit PSNR, novel views' min 8-bit PSNR, passed) plus the import's
-    seconds per round."""
-    exports = {name: {"path": folder / f"{name}.gtb", "export_s_rounds": []} for name in PRESETS}
+def timed_costs(load: Callable[[], object], folder: Path, rounds: int, presets: Sequence[str] = tuple(PRESETS),
+                verify_frames: int = 25) -> tuple[object, dict[str, dict], dict]:
+    """`rounds` rounds of importing the avatar (`load`), exporting each of `presets` into `folder` and verifying the
+    fp32 bundle on `verify_frames` frames (0: no verify): the speaker, each preset's export (path, seconds per round,
+    bytes, Gaussians) and the verify's (seconds per round, frames, resolution, min 8-bit PSNR, novel views' min 8-bit
+    PSNR, passed) plus the import's seconds per round."""
+    exports = {name: {"path": folder / f"{name}.gtb", "export_s_rounds": []} for name in presets}
     costs: dict = {"import_s_rounds": [], "verify_s_rounds": []}
-    with progress_bar(total=rounds * (len(PRESETS) + 2), desc="import, export, verify", unit="step") as bar:
+    steps = rounds * (len(presets) + 1 + (verify_frames > 0))
+    with progress_bar(total=steps, desc="import, export, verify", unit="step") as bar:
         for _ in range(rounds):
             bar.set_postfix_str("import")
             start = time.perf_counter()
@@ -124,9 +126,11 @@ def timed_costs(load: Callable[[], object], folder: Path, rounds: int) -> tuple[
                 export["export_s_rounds"].append(time.perf_counter() - start)
                 export.update(bytes=export["path"].stat().st_size, gaussians=result.gaussians)
                 bar.update()
+            if not verify_frames:
+                continue
             bar.set_postfix_str("verify fp32")
             start = time.perf_counter()
-            report = verify_bundle(speaker, exports[REFERENCE]["path"], progress=False)
+            report = verify_bundle(speaker, exports[REFERENCE]["path"], frames=verify_frames, progress=False)
             costs["verify_s_rounds"].append(time.perf_counter() - start)
             costs.update(frames=len(report["frames"]), resolution=report["resolution"],
                          min_psnr_db=report["min_psnr_db"], views_min_psnr_db=report["views"].get("min_psnr_db"),
@@ -135,7 +139,7 @@ def timed_costs(load: Callable[[], object], folder: Path, rounds: int) -> tuple[
     for export in exports.values():
         export["export_s"] = statistics.median(export["export_s_rounds"])
     costs["import_s"] = statistics.median(costs["import_s_rounds"])
-    costs["verify_s"] = statistics.median(costs["verify_s_rounds"])
+    costs["verify_s"] = statistics.median(costs["verify_s_rounds"]) if verify_frames else None
     return speaker, exports, costs
 
 
@@ -190,16 +194,19 @@ def demo_speaker(checkpoint: Path | None, gaussians: int):
 
 def run_avatar_bench(avatar: Path, motion: Path | None, samples: int, fps_seconds: float, rounds: int,
                      demo_checkpoint: Path | None, demo_gaussians: int, out: Path, command: str,
-                     note: str | None = None, flame: Path | None = None) -> dict:
+                     note: str | None = None, flame: Path | None = None, presets: Sequence[str] | None = None,
+                     verify_frames: int = 25) -> dict:
     """Every measure of the module docstring (`flame` given: `avatar` is a GaussianAvatars directory, else a LAM
-    zip); writes `out`/avatar.md and `out`/avatar.json and returns the JSON."""
+    zip; `presets`: a subset holding quality, None: all; `verify_frames` 0: no verify); writes `out`/avatar.md and
+    `out`/avatar.json and returns the JSON."""
+    presets = tuple(PRESETS) if presets is None else tuple(name for name in PRESETS if name in presets)
     started = time.perf_counter()
     date = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     machine = machine_info()
     with tempfile.TemporaryDirectory(prefix="gt-bench-avatar-") as tmp:
         folder = Path(tmp)
         importer, load = avatar_importer(avatar, flame)
-        speaker, exports, costs = timed_costs(load, folder, rounds)
+        speaker, exports, costs = timed_costs(load, folder, rounds, presets, verify_frames)
         with TalkingHead(exports[REFERENCE]["path"], resolution=(SIZE, SIZE)) as head:
             table, motion_line = bench_motion(head, motion)
             fps, rig = head.fps, head.rig
@@ -208,7 +215,7 @@ def run_avatar_bench(avatar: Path, motion: Path | None, samples: int, fps_second
         demo = demo_speaker(demo_checkpoint, demo_gaussians)
         demo_bundle = folder / "demo.gtb"
         export_bundle(demo, demo_bundle, progress=True)
-        speed = fps_rounds({name: exports[name]["path"] for name in FPS_PRESETS}, demo_bundle, table,
+        speed = fps_rounds({name: exports[name]["path"] for name in FPS_PRESETS if name in exports}, demo_bundle, table,
                            max(2, int(round(fps_seconds * fps))), rounds, SIZE)
         speed["demo_gaussians"] = demo.gaussians.count
     reference_bytes = exports[REFERENCE]["bytes"]
@@ -249,6 +256,16 @@ def _import_line(result: dict) -> str:
     return f"`{importer}`" + (" (its FLAME model loaded each time)" if result.get("flame") else "")
 
 
+def _verify_line(verify: dict) -> str:
+    """verify_bundle's time and worst frames, or that it was not run."""
+    if verify.get("verify_s") is None:
+        return "`verify_bundle`: not run (--verify-frames 0)."
+    return (f"`verify_bundle` of the fp32 bundle ({verify['frames']} frames at {verify['resolution'][0]}x"
+            f"{verify['resolution'][1]}): {verify['verify_s']:.1f} s ({_rounds(verify['verify_s_rounds'], '.1f')}), "
+            f"min 8-bit PSNR {verify['min_psnr_db']:.1f} dB{_views_part(verify)} "
+            f"({'passed' if verify['passed'] else 'FAILED'}).")
+
+
 def _views_part(verify: dict) -> str:
     """The novel views' minimum, when the report has one."""
     views = verify.get("views_min_psnr_db")
@@ -275,10 +292,7 @@ def format_report(result: dict) -> str:
               "this order and verifying the fp32 bundle; medians over rounds (the first export of the run also "
               "pays torch.onnx's start-up).", "",
               f"{_import_line(result)}: {result['import_s']:.2f} s ({_rounds(result['import_s_rounds'], '.2f')}). "
-              f"`verify_bundle` of the fp32 bundle ({verify['frames']} frames at {verify['resolution'][0]}x"
-              f"{verify['resolution'][1]}): {verify['verify_s']:.1f} s ({_rounds(verify['verify_s_rounds'], '.1f')}), "
-              f"min 8-bit PSNR {verify['min_psnr_db']:.1f} dB{_views_part(verify)} "
-              f"({'passed' if verify['passed'] else 'FAILED'}).", "",
+              f"{_verify_line(verify)}", "",
               "| preset | export s (median) | export s per round | bundle MB | × smaller than fp32 | Gaussians |",
               "|---|---|---|---|---|---|"]
     for name, preset in result["presets"].items():
