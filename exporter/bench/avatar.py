@@ -18,6 +18,9 @@ avatar zip or a GaussianAvatars output directory with the user's FLAME model:
   first frames left out) per round, medians over rounds.
 
 The motion is a table `TalkingHead.motion` takes for either rig: ARKit weights [T, 52] or a FLAME table [T, E + 18].
+`--presets` (a subset holding quality) and `--verify-frames` trim the costs of a large avatar on a small machine: a
+Gaussian budget (compact, fast, mobile) and verify draw with the torch reference rasterizer, whose time grows with
+the Gaussians (docs/bench/gaussian-avatars/avatar.md).
 """
 
 from __future__ import annotations
