@@ -231,8 +231,10 @@ def avatar(
     if chosen is not None and ("quality" not in chosen or set(chosen) - set(PRESETS)):
         raise typer.BadParameter(f"{presets!r}: presets among {', '.join(PRESETS)}, quality (the reference) "
                                  "among them", param_hint="--presets")
-    checks = ((motion, "--motion"), (demo_checkpoint, "--demo-checkpoint"), (flame, "--flame"))
-    for path, hint in ((avatar_path, "AVATAR"), *checks) if flame is None else checks:
+    files = [(motion, "--motion"), (demo_checkpoint, "--demo-checkpoint"), (flame, "--flame")]
+    if flame is None:
+        files.insert(0, (avatar_path, "AVATAR"))  # a LAM zip; a GaussianAvatars directory was checked above
+    for path, hint in files:
         if path is not None and not path.is_file():
             raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
     command = shlex.join(["gt-bench", *sys.argv[1:]])
