@@ -3,10 +3,19 @@ network): a synthetic FLAME-layout head model, the avatar folder (point_cloud/it
 flame_param.npz beside it), and an independent numpy reference of what GaussianAvatars computes from them: FLAME
 with its teeth (`ga_flame_with_teeth`, `ga_flame_vertices`) and the triangle binding (`ga_world_gaussians`).
 Nothing here calls the SDK, so the importer is checked against the format, not against itself.
+
+Run as a script it writes a synthetic avatar of any size for benchmarks (`gt-bench avatar`; docs/bench/
+gaussian-avatars/avatar.md was measured on the one below: FLAME's sizes, 100k Gaussians at SH degree 3):
+
+    python tests/gaussian_avatars.py OUT --gaussians 100000 --frames 100 --seed 0
+
+writes OUT/flame.npz (the FLAME-layout model, for `--flame`) and OUT/avatar/point_cloud/iteration_30000/
+{point_cloud.ply, flame_param.npz}.
 """
 
 from __future__ import annotations
 
+import argparse
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -430,3 +439,24 @@ def write_gaussian_avatar(
     with param_path.open("wb") as handle:
         np.savez(handle, **params)
     return {"ply": ply, "params": params, "ply_path": ply_path, "param_path": param_path, "iteration": iteration}
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The script of the module docstring: a synthetic FLAME model and a GaussianAvatars avatar on it under OUT."""
+    parser = argparse.ArgumentParser(description="Write a synthetic GaussianAvatars avatar and its FLAME-layout model.")
+    parser.add_argument("out", type=Path, help="folder for flame.npz and avatar/")
+    parser.add_argument("--gaussians", type=int, default=2000, help="Gaussians in the avatar")
+    parser.add_argument("--frames", type=int, default=8, help="frames of its tracked motion")
+    parser.add_argument("--sh-degree", type=int, default=3, choices=range(4), help="SH degree of its colours")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the model and the avatar")
+    args = parser.parse_args(argv)
+    args.out.mkdir(parents=True, exist_ok=True)
+    model = synthetic_flame(args.seed)
+    flame = write_flame_npz(args.out / "flame.npz", model)
+    written = write_gaussian_avatar(args.out / "avatar", model, n_gaussians=args.gaussians, frames=args.frames,
+                                    sh_degree=args.sh_degree, seed=args.seed)
+    print(f"wrote {flame} and {written['ply_path']} ({args.gaussians:,} Gaussians, {args.frames} frames)")
+
+
+if __name__ == "__main__":
+    main()

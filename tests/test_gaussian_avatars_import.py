@@ -23,6 +23,7 @@ from typer.testing import CliRunner
 
 from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
 from gaussiantalker.exporter.export.export import export_bundle
+from gaussiantalker.exporter.export.prune import prune_speaker
 from gaussiantalker.exporter.imports.gaussian_avatars import GaussianAvatarsOptions, import_gaussian_avatars
 from gaussiantalker.exporter.imports.gaussian_avatars_flame import load_gaussian_avatars_flame
 from gaussiantalker.exporter.model.splat_math import quat_to_rotmat
@@ -114,6 +115,18 @@ def test_checkpoint_round_trip(avatar, tmp_path):
     torch.testing.assert_close(loaded.motion_track, avatar.motion_track)
     drive = avatar.motion_drive(3)
     np.testing.assert_array_equal(_deformed(loaded, drive)[0], _deformed(avatar, drive)[0])
+
+
+def test_pruned_avatar_keeps_its_binding(avatar):
+    """A Gaussian budget (the compact, fast and mobile presets) keeps GaussianAvatars' scaled_triangle binding: the
+    kept Gaussians deform exactly as they did in the whole avatar."""
+    keep = (torch.arange(avatar.gaussians.count) % 3 != 0).numpy()
+    pruned = prune_speaker(avatar, int(keep.sum()), torch.from_numpy(keep.astype(np.float64)))
+    assert pruned.gaussians.binding == "scaled_triangle" and pruned.gaussians.count == int(keep.sum())
+    drive = avatar.motion_drive(FRAMES - 1)
+    whole, kept = _deformed(avatar, drive), _deformed(pruned, drive)
+    for part in range(3):
+        np.testing.assert_array_equal(kept[part], whole[part][keep])
 
 
 def test_bundle_plays_its_motion_like_torch(avatar, avatar_bundle):

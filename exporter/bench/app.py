@@ -8,7 +8,8 @@
     gt-bench video         the encoding cost of every video output (bench/video.py)
     gt-bench clip-codecs   how to store a reference clip (bench/clip_codecs.py)
     gt-bench lam-web       ground-truth frames of a LAM avatar from the original web renderer (bench/lam_web.py)
-    gt-bench avatar        an imported LAM avatar: import, export, verify, presets' quality, FPS (bench/avatar.py)
+    gt-bench avatar        an imported LAM or GaussianAvatars avatar: import, export, verify, presets' quality,
+                           FPS (bench/avatar.py)
 
 The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
 still work: `entry.gt_bench` rewrites them to their subcommand.
@@ -189,9 +190,13 @@ def lam_web(
 
 @app.command()
 def avatar(
-    avatar_zip: Path = typer.Argument(..., help="a LAM avatar zip (docs/import.md)"),
-    motion: Path = typer.Option(None, "--motion", help="ARKit motion file played for quality and FPS [default: the "
-                                "avatar's own motion track, else random ARKit drives]"),
+    avatar_path: Path = typer.Argument(..., metavar="AVATAR", help="a LAM avatar zip, or a GaussianAvatars output "
+                                       "directory with --flame (docs/import.md)"),
+    flame: Path = typer.Option(None, "--flame", help="the FLAME model (.pkl or .npz) a GaussianAvatars avatar is "
+                               "imported with (gt-import gaussian-avatars --flame)"),
+    motion: Path = typer.Option(None, "--motion", help="motion played for quality and FPS: an ARKit motion file for "
+                                "a LAM avatar, a FLAME motion npz for a GaussianAvatars one [default: the avatar's "
+                                "own motion track, else random ARKit drives]"),
     frames: int = typer.Option(30, "--frames", min=1, help="frames sampled evenly from the motion for quality"),
     fps_seconds: float = typer.Option(4.0, "--fps-seconds", min=0.1, help="seconds of frames per FPS run"),
     rounds: int = typer.Option(3, "--rounds", min=1, help="alternating FPS rounds"),
@@ -200,9 +205,13 @@ def avatar(
     gaussians: int = typer.Option(20_000, "--gaussians", min=1, help="demo speaker size when no checkpoint is given"),
     note: str = typer.Option(None, "--note", help="a line about the machine or the run, written into avatar.md"),
     out: Path = typer.Option(Path("bench-avatar"), "--out", help="folder for avatar.md and avatar.json"),
+    presets: str = typer.Option(None, "--presets", help="comma-separated presets to export and compare, quality "
+                                "among them [default: all]"),
+    verify_frames: int = typer.Option(25, "--verify-frames", min=0, help="frames verify_bundle compares against the "
+                                      "torch speaker (its 6 novel views come on top); 0: no verify"),
 ) -> None:
-    """An imported LAM avatar: import, preset export and verify times, bundle sizes, each preset's head PSNR against
-    fp32, and FPS at 512x512 beside the demo speaker (alternating rounds)."""
+    """An imported LAM or GaussianAvatars avatar: import, preset export and verify times, bundle sizes, each preset's
+    head PSNR against fp32, and FPS at 512x512 beside the demo speaker (alternating rounds)."""
     import shlex
     import sys
 
@@ -210,14 +219,29 @@ def avatar(
 
     from .avatar import format_report, run_avatar_bench
 
-    for path, hint in ((avatar_zip, "AVATAR_ZIP"), (motion, "--motion"), (demo_checkpoint, "--demo-checkpoint")):
+    if avatar_path.is_dir() and flame is None:
+        raise typer.BadParameter(f"{avatar_path} is a directory: a GaussianAvatars avatar, which needs its FLAME "
+                                 "model (--flame FLAME.pkl|npz)", param_hint="--flame")
+    if flame is not None and not avatar_path.is_dir():
+        raise typer.BadParameter(f"{avatar_path}: --flame is for a GaussianAvatars output directory, and this is no "
+                                 "directory", param_hint="AVATAR")
+    from ..export.presets import PRESETS
+
+    chosen = None if presets is None else [name.strip() for name in presets.split(",") if name.strip()]
+    if chosen is not None and ("quality" not in chosen or set(chosen) - set(PRESETS)):
+        raise typer.BadParameter(f"{presets!r}: presets among {', '.join(PRESETS)}, quality (the reference) "
+                                 "among them", param_hint="--presets")
+    files = [(motion, "--motion"), (demo_checkpoint, "--demo-checkpoint"), (flame, "--flame")]
+    if flame is None:
+        files.insert(0, (avatar_path, "AVATAR"))  # a LAM zip; a GaussianAvatars directory was checked above
+    for path, hint in files:
         if path is not None and not path.is_file():
             raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
     command = shlex.join(["gt-bench", *sys.argv[1:]])
     try:
-        result = run_avatar_bench(avatar_zip, motion, frames, fps_seconds, rounds, demo_checkpoint, gaussians, out,
-                                  command, note)
-    except GaussianTalkerError as exc:  # a damaged avatar zip or motion file: its message, not a traceback
+        result = run_avatar_bench(avatar_path, motion, frames, fps_seconds, rounds, demo_checkpoint, gaussians, out,
+                                  command, note, flame, chosen, verify_frames)
+    except GaussianTalkerError as exc:  # a damaged avatar, FLAME model or motion file: its message, not a traceback
         typer.echo(f"gt-bench avatar: {exc}", err=True)
         raise typer.Exit(2) from None
     typer.echo(format_report(result))

@@ -1,16 +1,26 @@
-"""`gt-bench avatar`: an imported LAM avatar (docs/import.md) measured end to end on one machine in one run:
+"""`gt-bench avatar`: an imported avatar (docs/import.md) measured end to end on one machine in one run, a LAM
+avatar zip or a GaussianAvatars output directory with the user's FLAME model:
 
     gt-bench avatar avatar.zip --motion motion.json --demo-checkpoint demo.ckpt --out docs/bench/lam
+    gt-bench avatar avatar_dir --flame flame2023.pkl --demo-checkpoint demo.ckpt --out docs/bench/gaussian-avatars
 
-* Costs, in alternating rounds (medians): `import_lam`'s time, each preset's export time and bundle size (quality
-  is the fp32 bundle), and `verify_bundle`'s time on the fp32 bundle at its defaults (25 frames at 256x256) with
-  its minimum 8-bit PSNR.
+* Costs, in alternating rounds (medians): the import's time (`import_lam`, or `import_gaussian_avatars` with its
+  FLAME model's loading), each preset's export time and bundle size (quality is the fp32 bundle), and
+  `verify_bundle`'s time on the fp32 bundle at its defaults (25 frames at 256x256) with its minimum 8-bit PSNR and
+  its novel views' minimum.
 * Quality: each preset's frames against the fp32 bundle's, rendered by the runtime at 512x512 with each bundle's
-  own runtime defaults, at frames sampled evenly over a motion with the avatar's pose track; 8-bit PSNR over the
-  head region (the pixels whose fp32 coverage, output="rgba_float" alpha, exceeds 1/255); median and minimum.
-* Speed: alternating rounds of playing the avatar's fp32 and `fast` bundles through `TalkingHead.motion_frames`
-  and the demo speaker's fp32 bundle (its bare head) through `TalkingHead.frames(audio)`, the same number of frames
-  each at 512x512; steady-state median ms per frame (the first frames left out) per round, medians over rounds.
+  own runtime defaults, at frames sampled evenly over a motion (`TalkingHead.motion_drives`: an ARKit avatar's
+  weights with its pose track, a FLAME avatar's parameters with their own head pose); 8-bit PSNR over the head
+  region (the pixels whose fp32 coverage, output="rgba_float" alpha, exceeds 1/255); median and minimum.
+* Speed (exporter/bench/avatar_speed.py): alternating rounds of playing the avatar's fp32 and `fast` bundles
+  through `TalkingHead.motion_frames` and the demo speaker's fp32 bundle (its bare head) through
+  `TalkingHead.frames(audio)`, the same number of frames each at 512x512; steady-state median ms per frame (the
+  first frames left out) per round, medians over rounds.
+
+The motion is a table `TalkingHead.motion` takes for either rig: ARKit weights [T, 52] or a FLAME table [T, E + 18].
+`--presets` (a subset holding quality) and `--verify-frames` trim the costs of a large avatar on a small machine: a
+Gaussian budget (compact, fast, mobile) and verify draw with the torch reference rasterizer, whose time grows with
+the Gaussians (docs/bench/gaussian-avatars/avatar.md).
 """
 
 from __future__ import annotations
@@ -21,32 +31,43 @@ import json
 import statistics
 import tempfile
 import time
-from itertools import islice
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.sdk.files import atomic_write
+from gaussiantalker.sdk.flame_motion import FlameMotion
 from gaussiantalker.sdk.image import psnr_db
 from gaussiantalker.sdk.progress import progress_bar
-from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
+from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_RIG
 
 from ..export.export import export_bundle
 from ..export.presets import PRESETS
-from ..export.speech import synth_speech
-from ..imports.lam import import_lam
 from ..verify.verify import verify_bundle
+from .avatar_speed import WARMUP_FRAMES, fps_rounds
 from .frames import machine_info
 
 REFERENCE = "quality"  # the fp32 preset: every other preset's frames are compared with its frames
 FPS_PRESETS = ("quality", "fast")  # the avatar's bundles played in the speed rounds
 SIZE = 512  # square frame side of the quality and speed measures
 HEAD_COVERAGE = 1.0 / 255.0  # the head region: fp32 coverage above this
-WARMUP_FRAMES = 5  # first frames of each played clip left out of the steady-state median
-# Random ARKit drives (when the avatar ships no motion and none is given): a new key pose every KEY_FRAMES frames,
-# each blendshape active with probability KEY_ACTIVE at a uniform 0..1 weight, linear in between.
+# Random ARKit drives (when an ARKit avatar ships no motion and none is given): a new key pose every KEY_FRAMES
+# frames, each blendshape active with probability KEY_ACTIVE at a uniform 0..1 weight, linear in between.
 RANDOM_SECONDS, KEY_FRAMES, KEY_ACTIVE = 10.0, 15, 0.2
+
+
+def avatar_importer(avatar: Path, flame: Path | None) -> tuple[str, Callable[[], object]]:
+    """The import the costs time, by name: a GaussianAvatars directory with its FLAME model (`flame`, loaded by
+    every import as `gt-import` does), else a LAM avatar zip."""
+    if flame is not None:
+        from ..imports.gaussian_avatars import import_gaussian_avatars
+
+        return "import_gaussian_avatars", lambda: import_gaussian_avatars(avatar, flame)
+    from ..imports.lam import import_lam
+
+    return "import_lam", lambda: import_lam(avatar, progress=False)
 
 
 def random_motion(frames: int, seed: int = 0) -> np.ndarray:
@@ -59,14 +80,22 @@ def random_motion(frames: int, seed: int = 0) -> np.ndarray:
     return np.stack([np.interp(at, np.arange(keys + 1), values[:, k]) for k in range(values.shape[1])], axis=1)
 
 
+def _table(track) -> np.ndarray:
+    """A motion as the table `TalkingHead.motion` takes back: FLAME [T, E + 18] or ARKit weights [T, 52]."""
+    return track.table if isinstance(track, FlameMotion) else track.weights
+
+
 def bench_motion(head: TalkingHead, motion: Path | None) -> tuple[np.ndarray, str]:
-    """The motion the quality and speed measures play ([T, 52] at the avatar's fps) and a line saying which."""
+    """The motion the quality and speed measures play (a table at the avatar's fps, see the module docstring) and
+    a line saying which."""
     if motion is not None:
         track = head.motion(motion)
-        return track.weights, f"{motion.name} ({len(track)} frames at {head.fps} fps)"
+        return _table(track), f"{motion.name} ({len(track)} frames at {head.fps} fps)"
     if head.motion_track is not None:
         track = head.motion()
-        return track.weights, f"the avatar's own motion track ({len(track)} frames at {head.fps} fps)"
+        return _table(track), f"the avatar's own motion track ({len(track)} frames at {head.fps} fps)"
+    if head.rig != ARKIT_RIG:
+        head.motion()  # a FLAME avatar without a motion: the DriveError saying what to give
     frames = int(round(RANDOM_SECONDS * head.fps))
     return random_motion(frames), (f"random ARKit drives ({frames} frames, seed 0: a key pose every {KEY_FRAMES} "
                                    f"frames, {KEY_ACTIVE:.0%} of the blendshapes at uniform 0..1 weights)")
@@ -77,17 +106,20 @@ def sample_indices(count: int, samples: int) -> np.ndarray:
     return np.unique(np.linspace(0, count - 1, min(samples, count)).round().astype(int))
 
 
-def timed_costs(avatar: Path, folder: Path, rounds: int) -> tuple[object, dict[str, dict], dict]:
-    """`rounds` rounds of importing `avatar`, exporting every preset into `folder` and verifying the fp32 bundle:
-    the speaker, each preset's export (path, seconds per round, bytes, Gaussians) and the verify's (seconds per
-    round, frames, resolution, min 8-bit PSNR, passed) plus the import's seconds per round."""
-    exports = {name: {"path": folder / f"{name}.gtb", "export_s_rounds": []} for name in PRESETS}
+def timed_costs(load: Callable[[], object], folder: Path, rounds: int, presets: Sequence[str] = tuple(PRESETS),
+                verify_frames: int = 25) -> tuple[object, dict[str, dict], dict]:
+    """`rounds` rounds of importing the avatar (`load`), exporting each of `presets` into `folder` and verifying the
+    fp32 bundle on `verify_frames` frames (0: no verify): the speaker, each preset's export (path, seconds per round,
+    bytes, Gaussians) and the verify's (seconds per round, frames, resolution, min 8-bit PSNR, novel views' min 8-bit
+    PSNR, passed) plus the import's seconds per round."""
+    exports = {name: {"path": folder / f"{name}.gtb", "export_s_rounds": []} for name in presets}
     costs: dict = {"import_s_rounds": [], "verify_s_rounds": []}
-    with progress_bar(total=rounds * (len(PRESETS) + 2), desc="import, export, verify", unit="step") as bar:
+    steps = rounds * (len(presets) + 1 + (verify_frames > 0))
+    with progress_bar(total=steps, desc="import, export, verify", unit="step") as bar:
         for _ in range(rounds):
             bar.set_postfix_str("import")
             start = time.perf_counter()
-            speaker = import_lam(avatar, progress=False)
+            speaker = load()
             costs["import_s_rounds"].append(time.perf_counter() - start)
             bar.update()
             for name, export in exports.items():
@@ -97,28 +129,33 @@ def timed_costs(avatar: Path, folder: Path, rounds: int) -> tuple[object, dict[s
                 export["export_s_rounds"].append(time.perf_counter() - start)
                 export.update(bytes=export["path"].stat().st_size, gaussians=result.gaussians)
                 bar.update()
+            if not verify_frames:
+                continue
             bar.set_postfix_str("verify fp32")
             start = time.perf_counter()
-            report = verify_bundle(speaker, exports[REFERENCE]["path"], progress=False)
+            report = verify_bundle(speaker, exports[REFERENCE]["path"], frames=verify_frames, progress=False)
             costs["verify_s_rounds"].append(time.perf_counter() - start)
             costs.update(frames=len(report["frames"]), resolution=report["resolution"],
-                         min_psnr_db=report["min_psnr_db"], passed=bool(report["passed"]))
+                         min_psnr_db=report["min_psnr_db"], views_min_psnr_db=report["views"].get("min_psnr_db"),
+                         passed=bool(report["passed"]))
             bar.update()
     for export in exports.values():
         export["export_s"] = statistics.median(export["export_s_rounds"])
     costs["import_s"] = statistics.median(costs["import_s_rounds"])
-    costs["verify_s"] = statistics.median(costs["verify_s_rounds"])
+    costs["verify_s"] = statistics.median(costs["verify_s_rounds"]) if verify_frames else None
     return speaker, exports, costs
 
 
-def render_at(bundle: Path, weights: np.ndarray, indices: np.ndarray, bar, coverage: bool = False
+def render_at(bundle: Path, motion: np.ndarray, indices: np.ndarray, bar, coverage: bool = False
               ) -> tuple[np.ndarray, np.ndarray | None, dict]:
-    """uint8 frames [S, SIZE, SIZE, 3] of `bundle` (its own runtime defaults) at motion frames `indices` with the pose
-    track, the coverage masks when asked, and the render settings the bundle picked."""
+    """uint8 frames [S, SIZE, SIZE, 3] of `bundle` (its own runtime defaults) at frames `indices` of `motion` (its
+    `motion_drives`), the coverage masks when asked, and the render settings the bundle picked."""
     frames, masks = [], []
+    wanted = set(indices.tolist())
     with TalkingHead(bundle, resolution=(SIZE, SIZE), composite=False) as head:
-        for index in indices:
-            drive = head.blendshape_drive(weights[index], head.head_pose(int(index)))
+        for index, drive in enumerate(head.motion_drives(motion)):
+            if index not in wanted:
+                continue
             frames.append(head.render(drive))
             if coverage:
                 masks.append(head.render(drive, output="rgba_float")[..., 3] > HEAD_COVERAGE)
@@ -127,68 +164,22 @@ def render_at(bundle: Path, weights: np.ndarray, indices: np.ndarray, bar, cover
     return np.stack(frames), (np.stack(masks) if coverage else None), settings
 
 
-def preset_quality(exports: dict[str, dict], weights: np.ndarray, indices: np.ndarray) -> dict[str, dict]:
+def preset_quality(exports: dict[str, dict], motion: np.ndarray, indices: np.ndarray) -> dict[str, dict]:
     """Per preset: head-region 8-bit PSNR of its frames against the fp32 bundle's (per frame, median, minimum)
     and the runtime defaults it played with."""
     results = {}
     with progress_bar(total=len(exports) * len(indices), desc=f"quality at {SIZE}²", unit="frame") as bar:
-        reference, heads, settings = render_at(exports[REFERENCE]["path"], weights, indices, bar, coverage=True)
+        reference, heads, settings = render_at(exports[REFERENCE]["path"], motion, indices, bar, coverage=True)
         results[REFERENCE] = {"runtime": settings, "head_pixels_median": int(np.median(heads.sum(axis=(1, 2))))}
         for name, export in exports.items():
             if name == REFERENCE:
                 continue
             bar.set_postfix_str(name)
-            frames, _, settings = render_at(export["path"], weights, indices, bar)
+            frames, _, settings = render_at(export["path"], motion, indices, bar)
             psnrs = [psnr_db(reference[i][heads[i]], frames[i][heads[i]]) for i in range(len(indices))]
             results[name] = {"runtime": settings, "head_psnr_db": psnrs,
                              "head_psnr_median_db": float(statistics.median(psnrs)), "head_psnr_min_db": min(psnrs)}
     return results
-
-
-def timed_play(frames) -> list[float]:
-    """Wall seconds between consecutive frames of a frame iterator (the first counts from the call)."""
-    walls = []
-    start = time.perf_counter()
-    for _ in frames:
-        now = time.perf_counter()
-        walls.append(now - start)
-        start = now
-    return walls
-
-
-def steady_ms(walls: list[float]) -> float:
-    """Median ms per frame once the pipeline is full (WARMUP_FRAMES left out, fewer on a short clip)."""
-    return 1e3 * statistics.median(walls[min(WARMUP_FRAMES, len(walls) // 2):])
-
-
-def fps_rounds(avatar_bundles: dict[str, Path], demo_bundle: Path, weights: np.ndarray, frames: int,
-               rounds: int) -> dict:
-    """Alternating rounds: each avatar bundle plays `frames` motion frames, the demo speaker as many frames of
-    synthetic speech; per case the per-round ms/frame and FPS and their medians, and the avatar/demo FPS ratios."""
-    motion = np.resize(weights, (frames, weights.shape[1]))  # the motion's first frames, repeated if it is shorter
-    heads = {f"avatar {name}": TalkingHead(path, resolution=(SIZE, SIZE)) for name, path in avatar_bundles.items()}
-    demo = heads["demo speaker fp32"] = TalkingHead(demo_bundle, resolution=(SIZE, SIZE), composite=False)
-    audio = synth_speech(frames / demo.fps + 1.0, seed=7)  # a second more, so the clip has `frames` frames
-    runs: dict[str, list[float]] = {label: [] for label in heads}
-    try:
-        with progress_bar(total=rounds * len(heads), desc=f"FPS at {SIZE}²", unit="run") as bar:
-            for _ in range(rounds):
-                for label, head in heads.items():
-                    bar.set_postfix_str(label)
-                    if head is demo:
-                        walls = timed_play(islice(head.frames(audio, demo.sample_rate), frames))
-                    else:
-                        walls = timed_play(head.motion_frames(motion))
-                    runs[label].append(steady_ms(walls))
-                    bar.update()
-    finally:
-        for head in heads.values():
-            head.close()
-    cases = {label: {"frame_ms_rounds": ms, "fps_rounds": [1e3 / m for m in ms], "frame_ms": statistics.median(ms),
-                     "fps": 1e3 / statistics.median(ms)} for label, ms in runs.items()}
-    demo_fps = cases["demo speaker fp32"]["fps"]
-    ratios = {label: case["fps"] / demo_fps for label, case in cases.items() if label.startswith("avatar")}
-    return {"size": SIZE, "frames": frames, "rounds": rounds, "cases": cases, "fps_vs_demo": ratios}
 
 
 def demo_speaker(checkpoint: Path | None, gaussians: int):
@@ -206,24 +197,29 @@ def demo_speaker(checkpoint: Path | None, gaussians: int):
 
 def run_avatar_bench(avatar: Path, motion: Path | None, samples: int, fps_seconds: float, rounds: int,
                      demo_checkpoint: Path | None, demo_gaussians: int, out: Path, command: str,
-                     note: str | None = None) -> dict:
-    """Every measure of the module docstring; writes `out`/avatar.md and `out`/avatar.json and returns the JSON."""
+                     note: str | None = None, flame: Path | None = None, presets: Sequence[str] | None = None,
+                     verify_frames: int = 25) -> dict:
+    """Every measure of the module docstring (`flame` given: `avatar` is a GaussianAvatars directory, else a LAM
+    zip; `presets`: a subset holding quality, None: all; `verify_frames` 0: no verify); writes `out`/avatar.md and
+    `out`/avatar.json and returns the JSON."""
+    presets = tuple(PRESETS) if presets is None else tuple(name for name in PRESETS if name in presets)
     started = time.perf_counter()
     date = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     machine = machine_info()
     with tempfile.TemporaryDirectory(prefix="gt-bench-avatar-") as tmp:
         folder = Path(tmp)
-        speaker, exports, costs = timed_costs(avatar, folder, rounds)
+        importer, load = avatar_importer(avatar, flame)
+        speaker, exports, costs = timed_costs(load, folder, rounds, presets, verify_frames)
         with TalkingHead(exports[REFERENCE]["path"], resolution=(SIZE, SIZE)) as head:
-            weights, motion_line = bench_motion(head, motion)
-            fps = head.fps
-        indices = sample_indices(len(weights), samples)
-        quality = preset_quality(exports, weights, indices)
+            table, motion_line = bench_motion(head, motion)
+            fps, rig = head.fps, head.rig
+        indices = sample_indices(len(table), samples)
+        quality = preset_quality(exports, table, indices)
         demo = demo_speaker(demo_checkpoint, demo_gaussians)
         demo_bundle = folder / "demo.gtb"
         export_bundle(demo, demo_bundle, progress=True)
-        speed = fps_rounds({name: exports[name]["path"] for name in FPS_PRESETS}, demo_bundle, weights,
-                           max(2, int(round(fps_seconds * fps))), rounds)
+        speed = fps_rounds({name: exports[name]["path"] for name in FPS_PRESETS if name in exports}, demo_bundle, table,
+                           max(2, int(round(fps_seconds * fps))), rounds, SIZE)
         speed["demo_gaussians"] = demo.gaussians.count
     reference_bytes = exports[REFERENCE]["bytes"]
     presets = {name: {"export_s": e["export_s"], "export_s_rounds": e["export_s_rounds"],
@@ -231,9 +227,10 @@ def run_avatar_bench(avatar: Path, motion: Path | None, samples: int, fps_second
                       "gaussians": e["gaussians"], **quality[name]}
                for name, e in exports.items()}
     result = {"command": command, "date": date, "machine": machine, "note": note, "avatar": str(avatar),
+              "flame": None if flame is None else str(flame), "importer": importer, "rig": rig,
               "gaussians": speaker.gaussians.count, "import_s": costs.pop("import_s"),
               "import_s_rounds": costs.pop("import_s_rounds"), "verify": costs, "presets": presets,
-              "quality": {"size": SIZE, "motion": motion_line, "motion_frames": len(weights),
+              "quality": {"size": SIZE, "motion": motion_line, "motion_frames": len(table),
                           "frames": [int(i) for i in indices], "head_coverage_above": HEAD_COVERAGE},
               "fps": speed, "run_s": time.perf_counter() - started}
     out.mkdir(parents=True, exist_ok=True)
@@ -256,6 +253,33 @@ def _rounds(values: list[float], spec: str) -> str:
     return " / ".join(format(v, spec) for v in values)
 
 
+def _import_line(result: dict) -> str:
+    """The import that was timed (the FLAME model's loading is part of `import_gaussian_avatars`)."""
+    importer = result.get("importer", "import_lam")
+    return f"`{importer}`" + (" (its FLAME model loaded each time)" if result.get("flame") else "")
+
+
+def _verify_line(verify: dict) -> str:
+    """verify_bundle's time and worst frames, or that it was not run."""
+    if verify.get("verify_s") is None:
+        return "`verify_bundle`: not run (--verify-frames 0)."
+    return (f"`verify_bundle` of the fp32 bundle ({verify['frames']} frames at {verify['resolution'][0]}x"
+            f"{verify['resolution'][1]}): {verify['verify_s']:.1f} s ({_rounds(verify['verify_s_rounds'], '.1f')}), "
+            f"min 8-bit PSNR {verify['min_psnr_db']:.1f} dB{_views_part(verify)} "
+            f"({'passed' if verify['passed'] else 'FAILED'}).")
+
+
+def _views_part(verify: dict) -> str:
+    """The novel views' minimum, when the report has one."""
+    views = verify.get("views_min_psnr_db")
+    return "" if views is None else f", novel views' min {views:.1f} dB"
+
+
+def _pose_words(result: dict) -> str:
+    """Where the played head's pose comes from: an ARKit avatar's pose track, a FLAME motion's own head pose."""
+    return "the avatar's pose track" if result.get("rig", ARKIT_RIG) == ARKIT_RIG else "the motion's own head pose"
+
+
 def format_report(result: dict) -> str:
     """avatar.md: command, date, machine, then a table per measure."""
     machine = ", ".join(f"{k} {v}" for k, v in result["machine"].items())
@@ -264,23 +288,22 @@ def format_report(result: dict) -> str:
              f"run took {result['run_s']:.0f} s.", "", f"Machine: {machine}", ""]
     if result.get("note"):
         lines += [f"Note: {result['note']}", ""]
-    lines += [f"Avatar: {Path(result['avatar']).name}, {result['gaussians']:,} Gaussians.", "",
+    flame = f" with FLAME model {Path(result['flame']).name}" if result.get("flame") else ""
+    lines += [f"Avatar: {Path(result['avatar']).name}{flame}, {result['gaussians']:,} Gaussians.", "",
               "## Import, export and verify", "",
               f"{len(result['import_s_rounds'])} rounds, each importing the avatar, exporting every preset in "
               "this order and verifying the fp32 bundle; medians over rounds (the first export of the run also "
               "pays torch.onnx's start-up).", "",
-              f"`import_lam`: {result['import_s']:.2f} s ({_rounds(result['import_s_rounds'], '.2f')}). "
-              f"`verify_bundle` of the fp32 bundle ({verify['frames']} frames at {verify['resolution'][0]}x"
-              f"{verify['resolution'][1]}): {verify['verify_s']:.1f} s ({_rounds(verify['verify_s_rounds'], '.1f')}), "
-              f"min 8-bit PSNR {verify['min_psnr_db']:.1f} dB ({'passed' if verify['passed'] else 'FAILED'}).", "",
+              f"{_import_line(result)}: {result['import_s']:.2f} s ({_rounds(result['import_s_rounds'], '.2f')}). "
+              f"{_verify_line(verify)}", "",
               "| preset | export s (median) | export s per round | bundle MB | × smaller than fp32 | Gaussians |",
               "|---|---|---|---|---|---|"]
     for name, preset in result["presets"].items():
         lines.append(f"| {name} | {preset['export_s']:.2f} | {_rounds(preset['export_s_rounds'], '.1f')} | "
                      f"{preset['bundle_mb']:.2f} | {preset['smaller_than_fp32']:.1f} | {preset['gaussians']:,} |")
     lines += ["", f"## Quality against the fp32 bundle at {quality['size']}x{quality['size']}", "",
-              f"{len(quality['frames'])} frames sampled evenly from {quality['motion']}, the head following the "
-              f"avatar's pose track; each bundle with its own runtime defaults. Head region: the pixels whose fp32 "
+              f"{len(quality['frames'])} frames sampled evenly from {quality['motion']}, the head following "
+              f"{_pose_words(result)}; each bundle with its own runtime defaults. Head region: the pixels whose fp32 "
               f"coverage exceeds 1/255 (median {result['presets'][REFERENCE]['head_pixels_median']:,} pixels a "
               "frame). 8-bit PSNR.", "",
               "| preset | runtime defaults | head PSNR median dB | head PSNR min dB |", "|---|---|---|---|"]
@@ -292,7 +315,8 @@ def format_report(result: dict) -> str:
                          f"{preset['head_psnr_min_db']:.1f} |")
     lines += ["", f"## Frames per second at {fps['size']}x{fps['size']}", "",
               f"{fps['rounds']} alternating rounds of {fps['frames']} frames each: the avatar's bundles through "
-              f"`TalkingHead.motion_frames` (the motion above from its start, with the pose track), the demo "
+              f"`TalkingHead.motion_frames` (the motion above from its start, "
+              f"with {_pose_words(result)}), the demo "
               f"speaker's fp32 bundle ({fps['demo_gaussians']:,} Gaussians, bare head) through "
               "`TalkingHead.frames(audio)` (its translator included). Steady-state median ms per frame "
               f"(the first {WARMUP_FRAMES} frames left out), medians over rounds.", "",

@@ -79,7 +79,7 @@ def prune_speaker(speaker: Speaker | ArkitSpeaker, keep: int, contributions: tor
     pruned = copy.deepcopy(speaker)
     old = speaker.gaussians
     faces = torch.as_tensor(speaker.flame_arrays.faces)
-    new = BoundGaussians(old.parent[index], faces, old.sh_degree, speaker.config.latent_dim)
+    new = BoundGaussians(old.parent[index], faces, old.sh_degree, speaker.config.latent_dim, binding=old.binding)
     with torch.no_grad():
         for name, value in old.named_parameters():
             getattr(new, name).copy_(value[index])
