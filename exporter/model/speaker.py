@@ -81,6 +81,8 @@ class Speaker(ReferenceRendering, nn.Module):
 
     def motion_drive(self, index: int) -> FrameDrive:
         """Frame `index` of the motion track (played forth and back like every track) as a FrameDrive."""
+        if self.motion_track is None:
+            raise ValueError("this speaker has no motion track (only imported avatars ship one)")
         table = self.motion_track.numpy()
         return FlameMotion.from_table(table, self.config.fps).drive(track_row(table.shape[0], index))
 
