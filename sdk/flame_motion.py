@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 import zipfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +19,7 @@ import numpy as np
 from .config import POSE_DIM
 from .drive import MAX_DRIVE_MAGNITUDE, FrameDrive, HeadPose
 from .errors import DriveError
+from .motion import resample_at_fps
 
 # The npz keys of a FLAME motion and their widths (None: the expression count); flame_pose is their concatenation
 # rotation | neck | jaw | eyes, in FLAME_JOINTS order.
@@ -89,12 +90,7 @@ class FlameMotion:
         """The same motion resampled (linearly in time, every column) to `fps`, covering the same duration."""
         if abs(fps - self.fps) < 1e-9:
             return self
-        count = max(1, int(round(len(self) * fps / self.fps)))
-        source = np.arange(len(self)) / self.fps
-        target = np.minimum(np.arange(count) / fps, source[-1])
-        table = self.table
-        resampled = np.stack([np.interp(target, source, table[:, k]) for k in range(table.shape[1])], axis=1)
-        return FlameMotion.from_table(resampled, fps)
+        return FlameMotion.from_table(resample_at_fps(self.table, self.fps, fps), fps)
 
     def drive(self, index: int, head_pose: HeadPose | None = None) -> FrameDrive:
         """Frame `index` as a FrameDrive (`head_pose` given: it replaces the motion's rotation and translation)."""
@@ -102,11 +98,6 @@ class FlameMotion:
         head = head_pose or HeadPose.make(pose[:3], self.head_translation[index])
         return FrameDrive.make(self.n_expr, self.expression[index], jaw_pose=pose[6:9], neck_pose=pose[3:6],
                                eye_pose=pose[9:15], head_pose=head)
-
-    def drives(self) -> Iterator[FrameDrive]:
-        """Every frame's FrameDrive, in order."""
-        for index in range(len(self)):
-            yield self.drive(index)
 
 
 def _table(name: str, value: object, count: int, width: int | None, where: str) -> np.ndarray:

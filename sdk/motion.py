@@ -52,11 +52,16 @@ class MotionTrack:
         """The same motion resampled (linearly in time) to `fps`, covering the same duration."""
         if abs(fps - self.fps) < 1e-9:
             return self
-        count = max(1, int(round(len(self) * fps / self.fps)))
-        source = np.arange(len(self)) / self.fps
-        target = np.minimum(np.arange(count) / fps, source[-1])
-        columns = [np.interp(target, source, self.weights[:, k]) for k in range(self.weights.shape[1])]
-        return MotionTrack(np.stack(columns, axis=1), fps)
+        return MotionTrack(resample_at_fps(self.weights, self.fps, fps), fps)
+
+
+def resample_at_fps(rows: np.ndarray, fps: float, new_fps: float) -> np.ndarray:
+    """Per-frame rows [T, D] at `fps` resampled linearly in time to `new_fps`, covering the same duration
+    (round(T * new_fps / fps) rows, at least one; the last row holds past the end). float64."""
+    count = max(1, int(round(rows.shape[0] * new_fps / fps)))
+    source = np.arange(rows.shape[0]) / fps
+    target = np.minimum(np.arange(count) / new_fps, source[-1])
+    return np.stack([np.interp(target, source, rows[:, k]) for k in range(rows.shape[1])], axis=1)
 
 
 def _frame_weights(frame, names: list[str], index: int, where: str) -> list[float]:
@@ -126,4 +131,4 @@ def load_motion(path: str | os.PathLike) -> MotionTrack:
     return parse_motion(data, str(path))
 
 
-__all__ = ["DEFAULT_MOTION_FPS", "MotionTrack", "load_motion", "parse_motion"]
+__all__ = ["DEFAULT_MOTION_FPS", "MotionTrack", "load_motion", "parse_motion", "resample_at_fps"]
