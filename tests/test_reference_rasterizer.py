@@ -44,8 +44,10 @@ BACKGROUND = (0.2, 0.4, 0.9)
 # --------------------------------------------------------------------------- a literal 3DGS forward, in numpy
 
 
-def brute_force(means, cov3d, rgb, opacity, camera: Camera, background) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel, per Gaussian, in float32, written the way the 3DGS CUDA forward pass reads."""
+def brute_force(means, cov3d, rgb, opacity, camera: Camera, background, counts: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel, per Gaussian, in float32, written the way the 3DGS CUDA forward pass reads. `counts` [2, H, W],
+    if given, gets the Gaussians blended per pixel: all, and those blended while T >= 1/255."""
     f32 = np.float32
     means, cov3d, rgb, opacity = (np.asarray(x.detach(), dtype=f32) for x in (means, cov3d, rgb, opacity))
     R, t = camera.R.astype(f32), camera.t.astype(f32)
@@ -94,6 +96,9 @@ def brute_force(means, cov3d, rgb, opacity, camera: Camera, background) -> tuple
                 test_T = T * (f32(1) - alpha)
                 if test_T < f32(TRANSMITTANCE_MIN):
                     break
+                if counts is not None:
+                    counts[0, y, x] += 1
+                    counts[1, y, x] += int(f32(255) * (alpha * T) >= alpha)
                 C = C + rgb[i] * alpha * T
                 T = test_T
             image[y, x] = C + T * np.asarray(background, dtype=f32)
@@ -182,6 +187,21 @@ def test_matches_brute_force_termination_and_ties():
     swapped, _ = render_reference(means[perm], cov3d[perm], rgb[perm], opacity[perm], camera, BACKGROUND)
     assert float((swapped - image).abs().max()) > 0.05
     assert_matches_brute_force(means[perm], cov3d[perm], rgb[perm], opacity[perm], camera)
+
+
+def test_blend_count_matches_the_literal_loop():
+    """The per-pixel blend counts (docs/demo-speaker.md, "Surface") agree exactly with the literal loop's, on a scene
+    whose pixels hit the stop rule, with one-Gaussian chunks too (the count carries across chunks)."""
+    means, cov3d, rgb, opacity, camera = stacked_scene()
+    want = np.zeros((2, camera.height, camera.width), np.int64)
+    brute_force(means, cov3d, rgb, opacity, camera, BACKGROUND, counts=want)
+    assert (want[0] > want[1]).any() and want[1].max() > 0  # some pixels blend Gaussians after saturating visibly
+    for budget in (1, 1 << 30):
+        got = torch.zeros(2, camera.height, camera.width, dtype=torch.int64)
+        render_reference(means, cov3d, rgb, opacity, camera, BACKGROUND, blend_count=got, memory_budget_bytes=budget)
+        np.testing.assert_array_equal(got.numpy(), want)
+    with pytest.raises(ValueError, match="without gradients"):
+        render_reference(means.requires_grad_(True), cov3d, rgb, opacity, camera, BACKGROUND, blend_count=got)
 
 
 @pytest.mark.parametrize(("tile_size", "budget"), [(1, 20_000), (5, 1), (16, 1 << 30), (64, 1 << 30)])

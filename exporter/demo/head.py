@@ -9,7 +9,7 @@ joints, brows and hair, each face labelled with a region from `REGION_NAMES`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -122,7 +122,7 @@ def _profile_keys() -> np.ndarray:
             [-0.096, 0.0440, 0.0520, 0.0540],  # under the chin
             [-0.108, 0.0445, 0.0440, 0.0510],  # top of the neck
             [-0.130, 0.0470, 0.0440, 0.0520],
-            [-0.160, 0.0500, 0.0460, 0.0540],  # neck base (open boundary, as in FLAME)
+            [-0.160, 0.0500, 0.0460, 0.0540],  # neck base (closed by a fan: _close_neck)
         ]
     )
     return np.concatenate([cranium, face])
@@ -198,6 +198,7 @@ class _Skin:
     lower_side: np.ndarray  # [S] 1 below the lip line (lower-lip copies included), 0 on or above it
     cut: np.ndarray  # [S] 1 in the columns well inside the mouth cut, falling to 0 at the corners
     lip_rows: tuple[np.ndarray, np.ndarray]  # upper / lower lip seam rows [n], corners shared
+    grid_faces: int = -1  # faces [:grid_faces] are the ring grid's, in _grid_faces order; the neck cap's follow
 
 
 def _build_skin() -> _Skin:
@@ -216,12 +217,34 @@ def _build_skin() -> _Skin:
     n_rows = rows.shape[0]
     crown = np.array([[0.0, _profile_keys()[0, 0], 0.0]])
     grid = np.stack([x, y, z], -1).reshape(-1, 3)
-    return _cut_mouth(
+    skin = _cut_mouth(
         np.concatenate([crown, grid]),
         _grid_faces(n_rows),
         np.concatenate([[0.0], front.reshape(-1)]),
         np.concatenate([[0.0], np.broadcast_to(phi, x.shape).reshape(-1)]),
         n_rows,
+    )
+    return _close_neck(skin, n_rows)
+
+
+def _close_neck(skin: _Skin, n_rows: int) -> _Skin:
+    """Close the neck's open base ring with a fan to its centre, so the surface has no hole to see inside through
+    (only the mouth, closed behind by the mouth pocket of `add_teeth`)."""
+    ring = _grid_index(n_rows - 1, np.arange(N_COLUMNS))
+    pole = len(skin.positions)
+    centre = skin.positions[ring].mean(0, keepdims=True)
+    c = np.arange(N_COLUMNS)
+    fan = np.stack([np.full(N_COLUMNS, pole), _grid_index(n_rows - 1, c + 1), _grid_index(n_rows - 1, c)], 1)
+    return replace(
+        skin,
+        positions=np.concatenate([skin.positions, centre]),
+        faces=np.concatenate([skin.faces, fan]).astype(np.int64),
+        front=np.append(skin.front, 0.0),
+        azimuth=np.append(skin.azimuth, 0.0),
+        ring=np.append(skin.ring, -1),  # like the crown pole: no ring of its own
+        lower_side=np.append(skin.lower_side, 1.0),
+        cut=np.append(skin.cut, 0.0),
+        grid_faces=len(skin.faces),
     )
 
 
@@ -344,11 +367,13 @@ def _hairline(azimuth: np.ndarray) -> np.ndarray:
 def _label_points(skin: _Skin) -> np.ndarray:
     """Where each skin face is classified [F, 3]: its grid quad's centre, so both halves of a quad agree."""
     p = skin.positions[skin.faces]  # [F, 3, 3]; faces in _grid_faces order: fan, (a, e, b) block, (a, d, e) block
-    n_quads = (len(p) - N_COLUMNS) // 2
+    grid = len(p) if skin.grid_faces < 0 else skin.grid_faces
+    n_quads = (grid - N_COLUMNS) // 2
     fan = p[:N_COLUMNS].mean(1)
     first = 0.5 * (p[N_COLUMNS : N_COLUMNS + n_quads, 0] + p[N_COLUMNS : N_COLUMNS + n_quads, 1])
-    second = 0.5 * (p[N_COLUMNS + n_quads :, 0] + p[N_COLUMNS + n_quads :, 2])
-    return np.concatenate([fan, first, second])
+    second = 0.5 * (p[N_COLUMNS + n_quads : grid, 0] + p[N_COLUMNS + n_quads : grid, 2])
+    neck_cap = p[grid:].mean(1)
+    return np.concatenate([fan, first, second, neck_cap])
 
 
 def _skin_regions(skin: _Skin) -> np.ndarray:

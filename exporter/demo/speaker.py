@@ -21,10 +21,11 @@ from .train_translator import train_demo_translator
 
 DEMO_BACKGROUND = (0.93, 0.93, 0.95)
 POSE_TRACK_FRAMES = 150
-# tangential sigma = this * sqrt(area per Gaussian): neighbouring splats overlap enough to close the surface,
-# little enough to keep llvmpipe's fill rate (overdraw grows with its square) at real-time at 512x512.
-TANGENT_COVERAGE = 0.7
-OPACITY_LOGIT = 4.0  # sigmoid(4) = 0.982: the front surface hides the back of the head
+# tangential sigma = this * sqrt(area per Gaussian): neighbouring splats overlap enough that the surface is opaque
+# like a trained head's (nothing behind it shows through at any yaw in +-90 degrees; measured in
+# docs/demo-speaker.md, "Surface"); overdraw, and so llvmpipe's fill work, grows with its square.
+TANGENT_COVERAGE = 1.0
+OPACITY_LOGIT = 8.0  # sigmoid(8) = 0.9997, above the contract's 0.99 clamp: every surface splat is as opaque as allowed
 CAMERA_DISTANCE = 0.85  # metres from the head's centre
 NORMAL_FLATNESS = 0.2  # sigma along the triangle normal relative to the tangential sigma
 
@@ -39,10 +40,11 @@ def _face_geometry(head: FlameArrays) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _allocate(area: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
-    """Parent triangle per Gaussian: one per face first (no holes), the rest proportional to area."""
+    """Parent triangle per Gaussian (sorted): one per face first (no holes), the rest proportional to area."""
     faces = np.arange(area.shape[0])
-    if count <= faces.size:
-        return np.sort(rng.choice(faces, size=count, replace=False, p=area / area.sum()))
+    if count <= faces.size:  # systematic sampling of the cumulative area: evenly spread, so the surface stays closed
+        steps = (np.arange(count) + rng.uniform()) * (area.sum() / count)
+        return np.minimum(np.searchsorted(np.cumsum(area), steps), faces.size - 1)
     extra = rng.choice(faces, size=count - faces.size, p=area / area.sum())
     return np.sort(np.concatenate([faces, extra]))
 
@@ -89,7 +91,10 @@ def _init_gaussians(speaker: Speaker, head: FlameArrays, parent: np.ndarray, rng
     n, d = g.count, speaker.config.latent_dim
     area, mean_edge = _face_geometry(head)
     per_face = np.bincount(parent, minlength=area.shape[0])[parent]
-    tangent = TANGENT_COVERAGE * np.sqrt(area[parent] / per_face)
+    # Area each Gaussian covers: its share of its triangle, or, with fewer Gaussians than triangles (some triangles
+    # get none), its share of the whole surface, so that the splats still close it.
+    share = area[parent] / per_face if n >= area.shape[0] else np.full(n, area.sum() / n)
+    tangent = TANGENT_COVERAGE * np.sqrt(share)
     scale_local = np.stack([tangent, NORMAL_FLATNESS * tangent, tangent], axis=1) / mean_edge[parent, None]
 
     colours = np.asarray(REGION_COLORS, np.float32)[head.regions[parent]]

@@ -237,7 +237,7 @@ def add_teeth(
     *,
     interior: bool = True,
 ) -> FlameArrays:
-    """Append upper/lower teeth (and a dark inner-mouth wall) that move in sync with their anchor lip rows.
+    """Append upper/lower teeth (and a closed dark mouth pocket) that move in sync with their anchor lip rows.
 
     The lip rows run along the mouth in the same order (equal length). Each new vertex copies its anchor's
     shapedirs/exprdirs/posedirs rows and LBS weights and has no J_regressor weight, so it gets no blendshapes
@@ -251,20 +251,23 @@ def add_teeth(
         raise ValueError("upper_lip_idx and lower_lip_idx must be equal-length rows of at least 2 vertices")
     if min(upper.min(), lower.min()) < 0 or max(upper.max(), lower.max()) >= n_v:
         raise ValueError(f"lip vertex indices must lie in [0, {n_v})")
-    rows, strips = _teeth_layout(upper, lower, depth, height, interior)
-    return _append_anchored(arrays, rows, strips)
+    rows, strips, corners = _teeth_layout(upper, lower, depth, height, interior)
+    return _append_anchored(arrays, rows, strips, corners)
 
 
 # A row is (anchor vertex per entry [n], template offset from the anchor [3]); a strip joins two rows with
 # quads and has a region name and the direction its normals should face.
 _Row = tuple[np.ndarray, np.ndarray]
 _Strip = tuple[str, int, int, tuple[float, float, float]]
+# A single triangle given as three (row, entry) references (entry -1: the row's last), with its region name.
+_Corner = tuple[str, tuple[tuple[int, int], tuple[int, int], tuple[int, int]]]
 
 
 def _teeth_layout(
     upper: np.ndarray, lower: np.ndarray, depth: float, height: float, interior: bool
-) -> tuple[list[_Row], list[_Strip]]:
-    """Rows of new vertices behind the lip rows, and the strips (teeth faces, inner wall) joining them."""
+) -> tuple[list[_Row], list[_Strip], list[_Corner]]:
+    """Rows of new vertices behind the lip rows, the strips (teeth faces, inner pocket) joining them and the
+    single triangles closing the pocket's sides."""
     back = np.array([0.0, 0.0, -1.0])
     up = np.array([0.0, 1.0, 0.0])
     lower_depth = 1.25 * depth  # lower incisors sit behind the upper ones (overbite), so they never z-fight
@@ -282,15 +285,24 @@ def _teeth_layout(
         (TEETH_REGION, 3, 4, (0.0, 0.0, 1.0)),
         (TEETH_REGION, 4, 5, (0.0, 1.0, 0.0)),
     ]
-    if interior:  # dark back wall from above the upper gum to below the lower gum; stretches as the jaw opens
-        rows.append((upper, 1.5 * height * up + 3.0 * depth * back))
-        rows.append((lower, -1.5 * height * up + 3.0 * depth * back))
-        strips.append((MOUTH_INTERIOR_REGION, 6, 7, (0.0, 0.0, 1.0)))
-    return rows, strips
+    corners: list[_Corner] = []
+    if interior:  # a closed dark pocket behind the lips that stretches as the jaw opens (docs/demo-speaker.md):
+        rows.append((upper, 1.5 * height * up + 3.0 * depth * back))  # 6: top of the back wall
+        rows.append((lower, -1.5 * height * up + 3.0 * depth * back))  # 7: bottom of the back wall
+        rows.append((upper, 0.0 * up))  # 8: the upper lip's inner edge (a copy of the lip row)
+        rows.append((lower, 0.0 * up))  # 9: the lower lip's inner edge
+        strips.append((MOUTH_INTERIOR_REGION, 6, 7, (0.0, 0.0, 1.0)))  # back wall
+        strips.append((MOUTH_INTERIOR_REGION, 8, 6, (0.0, -1.0, 0.0)))  # roof, from the upper lip to the wall
+        strips.append((MOUTH_INTERIOR_REGION, 9, 7, (0.0, 1.0, 0.0)))  # floor, from the lower lip to the wall
+        # Side walls at each mouth corner, where the lip rows meet: (lip corner, wall top, wall bottom).
+        corners = [(MOUTH_INTERIOR_REGION, ((8, end), (6, end), (7, end))) for end in (0, -1)]
+    return rows, strips, corners
 
 
-def _append_anchored(arrays: FlameArrays, rows: list[_Row], strips: list[_Strip]) -> FlameArrays:
-    """Append the rows as anchored vertex copies and the strips as faces with their region labels."""
+def _append_anchored(arrays: FlameArrays, rows: list[_Row], strips: list[_Strip], corners: list[_Corner] = ()
+                     ) -> FlameArrays:
+    """Append the rows as anchored vertex copies and the strips and corner triangles as faces with their region
+    labels."""
     names = list(arrays.region_names) or [BASE_REGION]
     regions = arrays.regions if arrays.regions is not None else np.zeros(arrays.n_faces, dtype=np.int64)
     anchor_idx = np.concatenate([anchor for anchor, _ in rows])  # [T]
@@ -306,6 +318,11 @@ def _append_anchored(arrays: FlameArrays, rows: list[_Row], strips: list[_Strip]
         faces = _orient(_strip_faces(ids_a, ids_b), all_pos, np.asarray(facing))
         new_faces.append(faces)
         new_regions.append(np.full(len(faces), names.index(region), dtype=np.int64))
+    for region, refs in corners:
+        if region not in names:
+            names.append(region)
+        new_faces.append(np.array([[starts[row] + entry % rows[row][0].size for row, entry in refs]], np.int64))
+        new_regions.append(np.array([names.index(region)], np.int64))
     return _with_vertices(arrays, anchor_idx, positions, new_faces, new_regions, names, regions)
 
 

@@ -127,17 +127,29 @@ def render_reference(
     tile_size: int = DEFAULT_TILE_SIZE,
     memory_budget_bytes: int = DEFAULT_MEMORY_BUDGET_BYTES,
     max_weight: Tensor | None = None,
+    blend_count: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Render one frame by the numerics contract: (image C + T * background [H, W, 3], transmittance T [H, W]).
 
     `max_weight` [N] float32, if given, is raised in place to each Gaussian's largest blend weight alpha_i T_i
-    over this frame's pixels (what scene pruning measures, docs/scene.md)."""
+    over this frame's pixels (what scene pruning measures, docs/scene.md). `blend_count` [2, H, W], if given, is set
+    in place to the number of Gaussians blended into each pixel [0] before the contract stopped it and [1] while its
+    T was still >= 1/255, before it was visibly saturated (how deep a surface is: without gradients only;
+    docs/demo-speaker.md)."""
     _check_inputs(means, cov3d, rgb, opacity, tile_size, memory_budget_bytes)
     bg = torch.as_tensor(background, dtype=torch.float32, device=means.device).reshape(3)
     splats = _prepare_splats(means, cov3d, rgb, opacity, camera)
     grid = _Grid(camera.width, camera.height, tile_size)
     weights = None if max_weight is None else torch.zeros(len(splats.radius) + 1, dtype=torch.float32)
-    color, trans = _render_tiles(splats, _tile_rects(splats, grid), grid, memory_budget_bytes, weights)
+    counts: list[tuple[Tensor, Tensor]] | None = None if blend_count is None else []
+    if counts is not None and torch.is_grad_enabled() and (means.requires_grad or rgb.requires_grad):
+        raise ValueError("render_reference: blend_count is measured without gradients (use torch.no_grad())")
+    color, trans = _render_tiles(splats, _tile_rects(splats, grid), grid, memory_budget_bytes, weights, counts)
+    if blend_count is not None:
+        per_tile = torch.zeros(grid.tiles, grid.pixels, 2, dtype=torch.int64)
+        for tile_ids, count in counts:
+            per_tile[tile_ids] = count
+        blend_count.copy_(_untile(per_tile, grid)[: camera.height, : camera.width].permute(2, 0, 1))
     if max_weight is not None:
         max_weight.scatter_reduce_(0, splats.index, weights[:-1].to(max_weight.dtype), "amax")
     color = _untile(color, grid)[: camera.height, : camera.width]  # [H, W, 3]
@@ -244,17 +256,19 @@ def _bin_band(rects: _Rects, y0: int, y1: int, grid: _Grid) -> _Bins:
     return _Bins(splat[owner[order]], torch.cumsum(count, 0) - count, count)
 
 
-def _render_tiles(splats: _Splats, rects: _Rects, grid: _Grid, budget: int, max_weight: Tensor | None = None
-                  ) -> tuple[Tensor, Tensor]:
+def _render_tiles(splats: _Splats, rects: _Rects, grid: _Grid, budget: int, max_weight: Tensor | None = None,
+                  counts: list | None = None) -> tuple[Tensor, Tensor]:
     """Composite every non-empty tile, band by band, in padded batches; empty tiles stay colour 0, T 1.
-    `max_weight` [M + 1] (the pad last), if given, is raised to each splat's largest blend weight."""
+    `max_weight` [M + 1] (the pad last), if given, is raised to each splat's largest blend weight; `counts`, if
+    given, gets (tile ids, blended Gaussians per pixel) per batch."""
     device = splats.xy.device
     chunk_elements = max(1, min(_MAX_CHUNK_ELEMENTS, budget // _LIVE_BYTES_PER_ELEMENT))
     params, rgb = _pack_params(splats)
     needs_grad = torch.is_grad_enabled() and (params.requires_grad or rgb.requires_grad)
     pairs = int(torch.where(rects.ok, (rects.tx1 - rects.tx0 + 1) * (rects.ty1 - rects.ty0 + 1), 0).sum())
     use_checkpoint = needs_grad and pairs * grid.pixels * _LIVE_BYTES_PER_ELEMENT > budget
-    kwargs = {"params": params, "rgb": rgb, "grid": grid, "chunk_elements": chunk_elements, "max_weight": max_weight}
+    kwargs = {"params": params, "rgb": rgb, "grid": grid, "chunk_elements": chunk_elements, "max_weight": max_weight,
+              "counts": counts}
     colors, transmittances, done_tiles = [], [], []
     for y0, y1 in _row_bands(rects, grid, max(1, budget // (4 * _PAIR_BYTES))):
         batches = _batch_lists(_bin_band(rects, y0, y1, grid), grid.pixels, chunk_elements, len(splats.radius))
@@ -306,11 +320,11 @@ def _group_batches(
 
 def _composite_group(
     group: list[tuple[Tensor, Tensor]], *, params: Tensor, rgb: Tensor, grid: _Grid, chunk_elements: int,
-    max_weight: Tensor | None = None,
+    max_weight: Tensor | None = None, counts: list | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Composite each batch of a group; colours [sum B, P, 3] and transmittances [sum B, P] in group order."""
-    results = [_composite_batch(t, s, params, rgb, grid=grid, chunk_elements=chunk_elements, max_weight=max_weight)
-               for t, s in group]
+    results = [_composite_batch(t, s, params, rgb, grid=grid, chunk_elements=chunk_elements, max_weight=max_weight,
+                                counts=counts) for t, s in group]
     return torch.cat([color for color, _ in results]), torch.cat([trans for _, trans in results])
 
 
@@ -343,7 +357,7 @@ def _plan_batches(count: Tensor, pixels: int, chunk_elements: int) -> list[tuple
 
 def _composite_batch(
     tile_ids: Tensor, splat_ids: Tensor, params: Tensor, rgb: Tensor, *, grid: _Grid, chunk_elements: int,
-    max_weight: Tensor | None = None,
+    max_weight: Tensor | None = None, counts: list | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Front-to-back compositing of B tiles' padded lists [B, K], walked in K chunks that carry T and `done`."""
     ts = grid.tile_size
@@ -357,6 +371,7 @@ def _composite_batch(
     color = torch.zeros(n_tiles, pixels, 3, dtype=rgb.dtype, device=rgb.device)  # [B, P, 3]
     trans = torch.ones(n_tiles, pixels, dtype=rgb.dtype, device=rgb.device)  # [B, P]
     done = torch.zeros(n_tiles, pixels, dtype=torch.bool, device=rgb.device)  # [B, P] stopped by T_MIN
+    blended = torch.zeros(n_tiles, pixels, 2, dtype=torch.int64, device=rgb.device) if counts is not None else None
     for k0 in range(0, k_total, k_chunk):
         ids = splat_ids[:, k0 : k0 + k_chunk]  # [B, k]
         u, v, a, slope, q, opacity, r = params[:, ids].unsqueeze(2).unbind(0)  # each [B, 1, k]
@@ -370,8 +385,14 @@ def _composite_batch(
         if max_weight is not None:
             with torch.no_grad():
                 max_weight.scatter_reduce_(0, ids.reshape(-1), weight.amax(1).reshape(-1), "amax")
+        if blended is not None:  # blended at all; blended while T >= 1/255 (weight = alpha T >= alpha / 255)
+            w = weight.detach()
+            blended[..., 0] += torch.count_nonzero(w > 0, dim=-1)
+            blended[..., 1] += torch.count_nonzero((w > 0) & (255.0 * w >= alpha.detach()), dim=-1)
         if bool(done.all()):
             break
+    if counts is not None:
+        counts.append((tile_ids, blended))
     return color, trans
 
 
