@@ -58,3 +58,19 @@ def test_head_surface_has_no_hole_but_the_mouth():
     lips = np.unique(head.faces[head.regions == REGION_NAMES.index("lips")])
     assert np.isin(open_vertices, lips).all()  # every open edge is a lip's: no hole at the neck
     assert head.v_template[open_vertices, 1].min() > -0.06  # all at the mouth, none at the neck base (y < -0.15)
+
+
+def test_gt_bench_surface_writes_its_table(tmp_path):
+    """`gt-bench surface` on a small demo head: one row per yaw in the table and the JSON."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from gaussiantalker.exporter.bench.app import app
+    from gaussiantalker.exporter.bench.surface import SURFACE_YAWS_DEG
+
+    result = CliRunner().invoke(app, ["surface", "--gaussians", "500", "--resolution", "48", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    views = json.loads((tmp_path / "surface.json").read_text())["views"]
+    assert [v["yaw_deg"] for v in views] == list(SURFACE_YAWS_DEG)
+    assert (tmp_path / "surface.md").read_text().count("\n| ") == len(SURFACE_YAWS_DEG) + 1  # header + rows

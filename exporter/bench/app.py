@@ -7,6 +7,7 @@
     gt-bench backends      onnxruntime vs MNN (bench/backends.py)
     gt-bench video         the encoding cost of every video output (bench/video.py)
     gt-bench clip-codecs   how to store a reference clip (bench/clip_codecs.py)
+    gt-bench surface       how opaque a head's surface is from around it (bench/surface.py)
     gt-bench lam-web       ground-truth frames of a LAM avatar from the original web renderer (bench/lam_web.py)
     gt-bench avatar        an imported LAM or GaussianAvatars avatar: import, export, verify, presets' quality,
                            FPS (bench/avatar.py)
@@ -143,6 +144,41 @@ def clip_codecs(checkpoint: Path = typer.Argument(Path("out/speaker.ckpt"), help
     from .clip_codecs import run_clip_codecs_bench
 
     run_clip_codecs_bench(checkpoint)
+
+
+@app.command()
+def surface(
+    checkpoint: Path = typer.Option(None, "--checkpoint", help="a FLAME speaker checkpoint [default: the demo head, "
+                                    "untrained]"),
+    gaussians: int = typer.Option(20_000, "--gaussians", help="demo speaker size when no checkpoint is given"),
+    resolution: int = typer.Option(160, "--resolution", min=32, help="square size of the torch reference frames"),
+    out: Path = typer.Option(None, "--out", help="folder for surface.md and surface.json"),
+) -> None:
+    """How opaque the head's surface is from yaw -90 to 90 degrees: how much of its hidden half shows through, how
+    many pixels saturate, how many Gaussians a pixel blends (docs/demo-speaker.md, "Surface")."""
+    from ..demo.speaker import make_demo_speaker
+    from ..export.checkpoint import load_checkpoint
+    from ..model.speaker import Speaker
+    from .surface import measure_surface, surface_table
+
+    if checkpoint is None:
+        speaker, _ = make_demo_speaker(gaussians, train_seconds=0, progress=False)
+    else:
+        speaker = load_checkpoint(checkpoint)
+        if not isinstance(speaker, Speaker):
+            raise typer.BadParameter("the surface measure needs a FLAME speaker (triangle-bound Gaussians)",
+                                     param_hint="--checkpoint")
+    views = measure_surface(speaker, resolution=resolution)
+    table = surface_table(views)
+    typer.echo(table)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        source = str(checkpoint) if checkpoint else f"demo head, {gaussians} Gaussians"
+        (out / "surface.md").write_text(f"# Surface of {source} at {resolution}x{resolution}\n\n{table}\n")
+        (out / "surface.json").write_text(json.dumps({"machine": machine_info(), "source": source,
+                                                      "resolution": resolution,
+                                                      "views": [v.to_dict() for v in views]}, indent=2))
+        typer.echo(f"wrote {out / 'surface.md'}")
 
 
 @app.command("lam-web")
