@@ -55,6 +55,7 @@ CONTRACT_DEFINES = (
     "COLOR_LIMIT",
     "DET_MIN_RELATIVE",
     "COV2D_HUGE_PX2",
+    "TRANSMITTANCE_MIN",
 )
 
 
@@ -97,12 +98,14 @@ class ProgramSpec(NamedTuple):
 
 
 # Every program GLSplatter compiles: point and quad splats (one source, SPLAT_POINTS set per program), the
-# background pass and the render-scale pass (both full-screen triangles without a vertex buffer).
+# background pass, the render-scale pass and the early stop's saturation mark (full-screen triangles without a
+# vertex buffer).
 PROGRAMS = {
     "points": ProgramSpec("splat.vert", "splat.frag", {"SPLAT_POINTS": "1"}),
     "quads": ProgramSpec("splat.vert", "splat.frag", {"SPLAT_POINTS": "0"}),
     "background": ProgramSpec("background.vert", "background.frag", {}),
     "upscale": ProgramSpec("background.vert", "upscale.frag", {}),
+    "saturation": ProgramSpec("background.vert", "saturation.frag", {}),
 }
 
 

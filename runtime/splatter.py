@@ -122,6 +122,21 @@ def draw_runs(needs_quad: np.ndarray) -> list[tuple[int, int, bool]]:
     return [(int(a), int(b), bool(needs_quad[a])) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
+def early_stop_segments(runs: list[tuple[int, int, bool]], fractions: tuple[float, ...]
+                        ) -> list[list[tuple[int, int, bool]]]:
+    """The draw runs cut into segments at each fraction of the sorted Gaussians (RenderSettings.early_stop);
+    empty segments are dropped, so () or a frame too small to cut gives one segment, the runs themselves."""
+    n = runs[-1][1] if runs else 0
+    cuts = sorted({round(f * n) for f in fractions} - {0, n})
+    if not cuts:
+        return [runs]
+    segments: list[list[tuple[int, int, bool]]] = []
+    bounds = [0, *cuts, n]
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        segments.append([(max(a, lo), min(b, hi), q) for a, b, q in runs if a < hi and b > lo])
+    return segments
+
+
 def pack_gaussians(means, cov3d, rgb, opacity) -> np.ndarray:
     """Validate shapes and pack [N, 13] float32 rows: mean xyz, cov xx xy xz yy yz zz, rgb, opacity."""
     means = np.asarray(means, dtype=np.float32)
@@ -181,9 +196,27 @@ class _Target:
             self.texture.release()
             raise
         self.scratch = np.empty((height, width, 3), dtype=np.float32)
+        self._early_stop: tuple | None = None  # (depth renderbuffer, splat fbo, mark fbo), see early_stop_fbos
+
+    def early_stop_fbos(self, ctx: moderngl.Context) -> tuple[moderngl.Framebuffer, moderngl.Framebuffer]:
+        """(splat, mark) framebuffers sharing one depth buffer, made on first use: the splats blend into the colour
+        texture, depth-tested but never writing depth; the saturation mark writes only depth, while it samples the
+        colour texture (which is why it is a framebuffer of its own: no texture is read while attached)."""
+        if self._early_stop is None:
+            depth = ctx.depth_renderbuffer(self.texture.size)
+            splat = ctx.framebuffer(color_attachments=[self.texture], depth_attachment=depth)
+            splat.depth_mask = False
+            mark = ctx.framebuffer(depth_attachment=depth)
+            mark.depth_mask = True
+            self._early_stop = (depth, splat, mark)
+        return self._early_stop[1], self._early_stop[2]
 
     def release(self) -> None:
         """Free the GL objects."""
+        if self._early_stop is not None:
+            for obj in reversed(self._early_stop):
+                obj.release()
+            self._early_stop = None
         self.fbo.release()
         self.texture.release()
 
@@ -223,6 +256,7 @@ class GLSplatter:
         self._quad_vao: moderngl.VertexArray | None = None
         self._background_vao: moderngl.VertexArray | None = None
         self._upscale_vao: moderngl.VertexArray | None = None
+        self._saturation_vao: moderngl.VertexArray | None = None
         try:
             with self.ctx:
                 check_shader_target(self.ctx, shader_target)
@@ -241,6 +275,7 @@ class GLSplatter:
         self._quad_vao = self.ctx.vertex_array(self._programs["quads"], [])
         self._background_vao = self.ctx.vertex_array(self._programs["background"], [])
         self._upscale_vao = self.ctx.vertex_array(self._programs["upscale"], [])
+        self._saturation_vao = self.ctx.vertex_array(self._programs["saturation"], [])
 
     def _max_point_size(self) -> float:
         """Largest point sprite side the driver draws (GL_POINT_SIZE_RANGE; 0 where unknown)."""
@@ -306,15 +341,47 @@ class GLSplatter:
         ctx.enable(moderngl.BLEND | moderngl.PROGRAM_POINT_SIZE)
         ctx.blend_equation = moderngl.FUNC_ADD
         ctx.blend_func = moderngl.ONE_MINUS_DST_ALPHA, moderngl.ONE  # "under": dst += (1 - dst.a) * src
+        segments = early_stop_segments(runs, self.settings.early_stop)
+        if len(segments) > 1:
+            self._draw_segments(target, segments)
+        else:
+            self._draw_runs(runs)
+        if background is not None:
+            self._programs["background"]["u_background"].value = background
+            self._background_vao.render(moderngl.TRIANGLES, vertices=3)
+
+    def _draw_runs(self, runs: list[tuple[int, int, bool]]) -> None:
+        """Blend these runs of sorted splats into the framebuffer in use."""
         for start, stop, as_quads in runs:
             if as_quads:
                 self._bind_quads_at(start)
                 self._quad_vao.render(moderngl.TRIANGLE_STRIP, vertices=4, instances=stop - start)
             else:
                 self._point_vao.render(moderngl.POINTS, vertices=stop - start, first=start)
-        if background is not None:
-            self._programs["background"]["u_background"].value = background
-            self._background_vao.render(moderngl.TRIANGLES, vertices=3)
+
+    def _draw_segments(self, target: _Target, segments: list[list[tuple[int, int, bool]]]) -> None:
+        """The early stop (RenderSettings.early_stop): each segment of runs is blended depth-tested against the
+        saturation mark, and after every segment but the last the mark pass writes depth (window depth 0.5, the
+        splats' own, so LESS rejects them) where the transmittance so far is below TRANSMITTANCE_MIN. Leaves the
+        target's plain framebuffer in use and DEPTH_TEST disabled."""
+        ctx = self.ctx
+        splat_fbo, mark_fbo = target.early_stop_fbos(ctx)
+        mark_fbo.clear(depth=1.0)
+        ctx.depth_func = "<"
+        ctx.enable(moderngl.DEPTH_TEST)
+        program = self._programs["saturation"]
+        program["u_accumulated"].value = 0
+        for index, segment in enumerate(segments):
+            splat_fbo.use()
+            self._draw_runs(segment)
+            if index + 1 < len(segments):
+                mark_fbo.use()
+                ctx.disable(moderngl.BLEND)
+                target.texture.use(location=0)
+                self._saturation_vao.render(moderngl.TRIANGLES, vertices=3)
+                ctx.enable(moderngl.BLEND)
+        ctx.disable(moderngl.DEPTH_TEST)
+        target.fbo.use()
 
     def _upscale(self, source: _Target, target: _Target) -> None:
         """Sample `source` bilinearly at every pixel centre of the larger `target` (the render-scale pass)."""
@@ -425,10 +492,11 @@ class GLSplatter:
             self._release_buffer()
             while self._targets:
                 self._targets.popitem()[1].release()
-            for obj in (self._quad_vao, self._background_vao, self._upscale_vao, *self._programs.values()):
+            for obj in (self._quad_vao, self._background_vao, self._upscale_vao, self._saturation_vao,
+                        *self._programs.values()):
                 if obj is not None:
                     obj.release()
-        self._quad_vao = self._background_vao = self._upscale_vao = None
+        self._quad_vao = self._background_vao = self._upscale_vao = self._saturation_vao = None
         self._programs = {}
         if self._owns_ctx:
             self.ctx.release()

@@ -10,6 +10,23 @@ RENDER_TARGETS = {"float32": "f4", "float16": "f2", "uint8": "f1"}
 MIN_RENDER_SCALE = 0.1
 MAX_SORT_INTERVAL = 60  # frames; a longer-lived depth order is wrong for any moving head
 SORT_KEY_BITS = (32, 16)
+MAX_EARLY_STOPS = 8  # segment boundaries; each costs a full-screen pass and a GL flush
+
+
+def _early_stop(value) -> tuple[float, ...]:
+    """`value` as a tuple of strictly increasing fractions in (0, 1), at most MAX_EARLY_STOPS, or ValueError."""
+    message = (f"early_stop must be a sequence of at most {MAX_EARLY_STOPS} strictly increasing fractions "
+               f"between 0 and 1 (exclusive), e.g. (0.5,); got {value!r}")
+    if isinstance(value, str | bytes) or not isinstance(value, tuple | list):
+        raise ValueError(message)
+    if len(value) > MAX_EARLY_STOPS:
+        raise ValueError(message)
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, int | float) or not 0.0 < v < 1.0:
+            raise ValueError(message)
+    if any(b <= a for a, b in zip(value[:-1], value[1:], strict=True)):
+        raise ValueError(message)
+    return tuple(float(v) for v in value)
 
 
 @dataclass(frozen=True)
@@ -18,13 +35,17 @@ class RenderSettings:
     `render_target`: framebuffer precision, float32 (the contract's), float16 or uint8;
     `sort_interval`: depth-sort every k-th frame, reusing that order in between (1: every frame);
     `sort_key_bits`: 32 sorts exact float32 depth (the contract's), 16 sorts depth quantised to 65536 levels;
-    `graph_threads`: threads each graph runs on (None: the backend's default, every core for onnxruntime)."""
+    `graph_threads`: threads each graph runs on (None: the backend's default, every core for onnxruntime);
+    `early_stop`: experimental, off by default (docs/numerics.md, "Early stop of saturated pixels"): fractions of
+    the depth-sorted Gaussians after which the splatter marks pixels whose transmittance is below the contract's
+    TRANSMITTANCE_MIN, so that later Gaussians skip them (() : off; e.g. (0.5,))."""
 
     render_scale: float = 1.0
     render_target: str = "float32"
     sort_interval: int = 1
     sort_key_bits: int = 32
     graph_threads: int | None = None
+    early_stop: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         scale = self.render_scale
@@ -41,13 +62,21 @@ class RenderSettings:
         threads = self.graph_threads
         if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
             raise ValueError(f"graph_threads must be a whole number >= 1 or None, got {threads!r}")
+        object.__setattr__(self, "early_stop", _early_stop(self.early_stop))
 
     def draw_size(self, width: int, height: int) -> tuple[int, int]:
         """The framebuffer size a (width, height) frame is drawn at."""
         return max(1, round(width * self.render_scale)), max(1, round(height * self.render_scale))
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        """The settings as a manifest table; `early_stop` only when set, so bundles without it stay readable by
+        runtimes that predate it."""
+        data = asdict(self)
+        if not data["early_stop"]:
+            del data["early_stop"]
+        else:
+            data["early_stop"] = list(data["early_stop"])
+        return data
 
     @classmethod
     def from_dict(cls, data: dict) -> RenderSettings:
@@ -65,4 +94,6 @@ class RenderSettings:
         return RenderSettings(**{**self.to_dict(), **{k: v for k, v in overrides.items() if v is not None}})
 
 
-__all__ = ["MAX_SORT_INTERVAL", "MIN_RENDER_SCALE", "RENDER_TARGETS", "SORT_KEY_BITS", "RenderSettings"]
+__all__ = [
+    "MAX_EARLY_STOPS", "MAX_SORT_INTERVAL", "MIN_RENDER_SCALE", "RENDER_TARGETS", "SORT_KEY_BITS", "RenderSettings",
+]
