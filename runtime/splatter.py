@@ -360,26 +360,25 @@ class GLSplatter:
                 self._point_vao.render(moderngl.POINTS, vertices=stop - start, first=start)
 
     def _draw_segments(self, target: _Target, segments: list[list[tuple[int, int, bool]]]) -> None:
-        """The early stop (RenderSettings.early_stop): each segment of runs is blended depth-tested against the
-        saturation mark, and after every segment but the last the mark pass writes depth (window depth 0.5, the
-        splats' own, so LESS rejects them) where the transmittance so far is below TRANSMITTANCE_MIN. Leaves the
-        target's plain framebuffer in use and DEPTH_TEST disabled."""
+        """The early stop (RenderSettings.early_stop): the first segment of runs is drawn as usual; before each
+        later one the mark pass writes depth (window depth 0.5, the splats' own, so the LESS test rejects them)
+        where the transmittance so far is below TRANSMITTANCE_MIN, and the segment is blended depth-tested against
+        it. Leaves the target's plain framebuffer in use and DEPTH_TEST disabled."""
         ctx = self.ctx
         splat_fbo, mark_fbo = target.early_stop_fbos(ctx)
+        self._draw_runs(segments[0])  # nothing is marked yet: no depth test (it costs every fragment)
         mark_fbo.clear(depth=1.0)
         ctx.depth_func = "<"
-        ctx.enable(moderngl.DEPTH_TEST)
-        program = self._programs["saturation"]
-        program["u_accumulated"].value = 0
-        for index, segment in enumerate(segments):
+        self._programs["saturation"]["u_accumulated"].value = 0
+        ctx.enable(moderngl.DEPTH_TEST)  # also needed to write depth
+        for segment in segments[1:]:
+            mark_fbo.use()
+            ctx.disable(moderngl.BLEND)
+            target.texture.use(location=0)
+            self._saturation_vao.render(moderngl.TRIANGLES, vertices=3)  # a mark stays: T only falls
+            ctx.enable(moderngl.BLEND)
             splat_fbo.use()
             self._draw_runs(segment)
-            if index + 1 < len(segments):
-                mark_fbo.use()
-                ctx.disable(moderngl.BLEND)
-                target.texture.use(location=0)
-                self._saturation_vao.render(moderngl.TRIANGLES, vertices=3)
-                ctx.enable(moderngl.BLEND)
         ctx.disable(moderngl.DEPTH_TEST)
         target.fbo.use()
 

@@ -8,6 +8,8 @@
     gt-bench video         the encoding cost of every video output (bench/video.py)
     gt-bench clip-codecs   how to store a reference clip (bench/clip_codecs.py)
     gt-bench surface       how opaque a head's surface is from around it (bench/surface.py)
+    gt-bench early-stop    the GL splatter's early stop of saturated pixels against the plain draw
+                           (bench/early_stop.py)
     gt-bench lam-web       ground-truth frames of a LAM avatar from the original web renderer (bench/lam_web.py)
     gt-bench avatar        an imported LAM or GaussianAvatars avatar: import, export, verify, presets' quality,
                            FPS (bench/avatar.py)
@@ -144,6 +146,37 @@ def clip_codecs(checkpoint: Path = typer.Argument(Path("out/speaker.ckpt"), help
     from .clip_codecs import run_clip_codecs_bench
 
     run_clip_codecs_bench(checkpoint)
+
+
+@app.command("early-stop")
+def early_stop(
+    gaussians: str = typer.Option("20000,100000", "--gaussians", help="demo speaker sizes (untrained)"),
+    sizes: str = typer.Option("256,512", "--sizes", help=SIZES_HELP),
+    settings: str = typer.Option("0.5;0.3,0.6;0.4,0.6,0.8", "--settings",
+                                 help="early-stop settings to compare with the plain draw: ';' between settings, "
+                                      "',' between a setting's fractions"),
+    frames: int = typer.Option(30, "--frames", min=1, help="frames per setting and round"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds"),
+    json_path: Path = typer.Option(None, "--json", help="write the results here"),
+) -> None:
+    """Saturated pixels after each fraction of the sorted Gaussians, and the early stop's agreement with and speed
+    against the plain draw (docs/numerics.md, "Early stop of saturated pixels")."""
+    from ..demo.speaker import make_demo_speaker
+    from .early_stop import early_stop_tables, run_early_stop_bench
+
+    try:
+        choices = [tuple(float(f) for f in part.split(",")) for part in settings.split(";") if part.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"not fractions: {settings!r}", param_hint="--settings") from None
+    results = {"machine": machine_info(), "speakers": []}
+    for n in (int(g) for g in gaussians.split(",")):
+        speaker, _ = make_demo_speaker(n, train_seconds=0, progress=False)
+        result = run_early_stop_bench(speaker, tuple(int(s) for s in sizes.split(",")), choices, frames, rounds)
+        results["speakers"].append(result)
+        typer.echo(early_stop_tables(result) + "\n")
+    if json_path is not None:
+        json_path.write_text(json.dumps(results, indent=2))
+        typer.echo(f"wrote {json_path}")
 
 
 @app.command()
