@@ -41,6 +41,10 @@ so it is bounded by T_stop * max|c_i - background|. The stop happens before a Ga
 T_stop * (1 - alpha) < 1e-4 and alpha <= 0.99, hence T_stop < 1e-4 / 0.01 = 0.01: the worst case is
 0.01 * max colour difference, and typically (T_stop ~ 1e-4..1e-3) it is ~1e-4..1e-3, below half an 8-bit
 level. tests/test_splatter.py measures it against a literal numpy implementation of the rule.
+
+The experimental `RenderSettings.early_stop` (off by default; slower on llvmpipe) skips pixels whose T is already
+below TRANSMITTANCE_MIN after given fractions of the sorted Gaussians, with a depth mark (`_draw_segments`;
+docs/numerics.md, "Early stop of saturated pixels").
 """
 
 from __future__ import annotations
