@@ -11,6 +11,8 @@ MIN_RENDER_SCALE = 0.1
 MAX_SORT_INTERVAL = 60  # frames; a longer-lived depth order is wrong for any moving head
 SORT_KEY_BITS = (32, 16)
 MAX_EARLY_STOPS = 8  # segment boundaries; each costs a full-screen pass and a GL flush
+# Fields that are experiments, off by default and not in the presets or the knob sweep (docs/precision.md).
+EXPERIMENTAL_FIELDS = frozenset({"early_stop"})
 
 
 def _early_stop(value) -> tuple[float, ...]:
@@ -95,5 +97,6 @@ class RenderSettings:
 
 
 __all__ = [
-    "MAX_EARLY_STOPS", "MAX_SORT_INTERVAL", "MIN_RENDER_SCALE", "RENDER_TARGETS", "SORT_KEY_BITS", "RenderSettings",
+    "EXPERIMENTAL_FIELDS", "MAX_EARLY_STOPS", "MAX_SORT_INTERVAL", "MIN_RENDER_SCALE", "RENDER_TARGETS",
+    "SORT_KEY_BITS", "RenderSettings",
 ]
