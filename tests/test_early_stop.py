@@ -133,3 +133,23 @@ def test_early_stop_setting_round_trips_through_a_manifest_table():
     assert settings.early_stop == (0.25, 0.5)
     assert RenderSettings.from_dict(settings.to_dict()) == settings
     assert "early_stop" not in RenderSettings().to_dict()  # off: bundles stay readable by older runtimes
+
+
+@pytest.mark.parametrize("target", ["float16", "uint8"])
+def test_lower_precision_targets_agree_with_their_plain_draw(plain, target):
+    """float16/uint8 framebuffers round the stored 1 - T, so a pixel is marked at T up to ~2.4e-4 / 1/510; the skipped
+    weights sum to at most that (measured: the frames are identical, the rounded alpha reaches 1 and the plain draw
+    adds nothing after it either)."""
+    camera = make_camera(64, 48)
+    scene = random_scene(7, n=200, opacity_max=0.99, scale=0.15)
+    same = GLSplatter(plain.ctx, settings=RenderSettings(render_target=target))
+    early = _early(plain, (0.3, 0.6), render_target=target)
+    try:
+        expected = same.render(*scene, camera, BACKGROUND, output="float")
+        frame = early.render(*scene, camera, BACKGROUND, output="float")
+    finally:
+        same.release()
+        early.release()
+    mark_t = {"float16": 2.0**-12, "uint8": 0.5 / 255}[target]  # the largest T that rounds to a stored alpha of 1
+    assert np.abs(frame - expected).max() <= mark_t * np.abs(scene[2][:, None, :] - np.asarray(BACKGROUND)).max() \
+        + FLOAT_TOL
