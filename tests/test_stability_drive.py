@@ -50,6 +50,7 @@ from gaussiantalker.sdk.numerics import SH_C0
 SIZE = (64, 64)
 ANGLE_ULPS = 8
 MIN_FRAME_PSNR_DB = 60.0
+STOP_RULE_BOUND = 0.01  # T at a stopped pixel is < 1e-4 / (1 - 0.99) (runtime/splatter.py)
 SCALE_RTOL = 1e-4
 N_EXPR = 20
 PI = math.pi
@@ -205,15 +206,22 @@ def check_frame(speaker: Speaker, head: TalkingHead, drive: FrameDrive, *, torch
     deformation is only float32-defined to the angle-conditioning bound (the graph check covers that part).
     """
     reference = speaker.render(drive, head.camera).numpy()
+    out = _torch_deform(speaker, _inputs(drive, head.camera.center))
     if torch_gaussians:
-        out = _torch_deform(speaker, _inputs(drive, head.camera.center))
         prepared = head.splatter.prepare(out["means"][0], out["cov3d"][0], out["rgb"][0], out["opacity"], head.camera)
         frame = head.draw(prepared, output="float")
     else:
         frame = head.render(drive, output="float")
     assert np.isfinite(reference).all() and np.isfinite(frame).all()
     psnr = min(psnr_db(reference, frame), 200.0)
-    assert psnr >= MIN_FRAME_PSNR_DB, (psnr, max_abs_error(reference, frame))
+    # Colours far outside [0, 1] (rotations of 1e4 rad drive the latent-pose MLP, and with it the colour offsets, to
+    # ~20) widen the one documented difference between the two: GL cannot stop a saturated pixel, so the Gaussians
+    # the reference skips still add up to 0.01 x the colour range (runtime/splatter.py, docs/numerics.md).
+    spread = float(np.abs(out["rgb"][0] - np.asarray(speaker.background, np.float32)).max())
+    if spread > 1.0:
+        assert max_abs_error(reference, frame) <= STOP_RULE_BOUND * spread, (psnr, spread)
+    else:
+        assert psnr >= MIN_FRAME_PSNR_DB, (psnr, max_abs_error(reference, frame))
     return psnr, max_abs_error(reference, frame)
 
 

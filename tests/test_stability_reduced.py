@@ -18,6 +18,7 @@ import math
 import numpy as np
 import pytest
 
+from gaussiantalker.exporter.export.presets import PRESETS
 from gaussiantalker.exporter.export.speech import synth_speech
 from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.sdk.drive import MAX_DRIVE_MAGNITUDE, FrameDrive, HeadPose
@@ -26,6 +27,11 @@ from gaussiantalker.sdk.image import psnr_db
 # Rotation vectors of length ~1.7e4 rad: float32 keeps their angle only to ~theta * 2^-23 ~ 2e-3 rad, so any
 # change of weights turns the head by a different amount (test_stability_drive.py); only finiteness is checked.
 CHAOTIC = {"rotations at the drive limit"}
+# A Gaussian budget keeps the largest contributors over its pose sweep (+-0.3 rad): on the opaque demo head the back
+# of the head contributes nothing there and is pruned first, so the head turned around shows the holes; only
+# finiteness is checked there (verify likewise reports, not judges, budget bundles from novel views).
+SEEN_FROM_BEHIND = {"global -pi"}
+BUDGET_PRESETS = {name for name, preset in PRESETS.items() if preset.export.gaussian_budget is not None}
 # conftest `reduced_export` makes each
 REDUCED = ["balanced", "compact", "fast", "mobile", "translator-fp16", "translator-int8"]
 SIZE = (64, 64)
@@ -89,7 +95,9 @@ def test_reduced_bundle_stays_finite_at_the_extremes(name, reduced_export, fp32_
             reference, alpha = fp32_head.render(drive), fp32_head.render(drive, output="rgba")[..., 3] >= 1
             if alpha.sum() >= 20:  # a head to compare (not culled or off-screen in the fp32 frame)
                 psnr = psnr_db(reference[alpha], head.render(drive)[alpha])
-                assert psnr >= FLOOR_DB or case in CHAOTIC, (name, case, psnr)
+                if case in CHAOTIC or (name in BUDGET_PRESETS and case in SEEN_FROM_BEHIND):
+                    continue
+                assert psnr >= FLOOR_DB, (name, case, psnr)
                 worst, checked = min(worst, psnr), checked + 1
         for case, audio in _audio().items():
             drives_of_clip = list(head.drives(audio, SR))
