@@ -78,7 +78,7 @@ class TrainSettings:
     warmup_steps: int = 30
     lambda_smooth: float = 1.0
     # Loss weight of jaw x: (mouth_open / jaw angle)^2 = 4^2, so the jaw's errors count as much as the mouth's
-    # (its targets are 4x smaller than mouth_open's; with weight 1 the larger coefficients crowd it out).
+    # (its targets are 4x smaller than mouth_open's, so with weight 1 its errors barely count in the loss).
     jaw_weight: float = 16.0
     check_every: int = 50  # validation interval (steps) for the plateau test
     patience: int = 3  # stop after this many checks without a 2% validation improvement
