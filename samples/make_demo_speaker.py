@@ -1,9 +1,9 @@
 """Build the deterministic demo speaker: `python samples/make_demo_speaker.py -o speaker.ckpt`.
 
 Generates the procedural FLAME-structured head, binds ~20k region-coloured Gaussians to it, trains the motion
-translator briefly on synthetic speech (jaw follows loudness), renders its reference clip (the speaker's own
-"video": background, shoulders and the head, with masks) and trains the inpainting generator on it
-(docs/compositing.md), and writes a weights-only checkpoint.
+translator briefly on synthetic speech (jaw, lips, brows and blinks follow the audio; docs/demo-speaker.md),
+renders its reference clip (the speaker's own "video": background, shoulders and the head, with masks) and trains
+the inpainting generator on it (docs/compositing.md), and writes a weights-only checkpoint.
 """
 
 from __future__ import annotations

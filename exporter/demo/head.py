@@ -552,33 +552,85 @@ def _shapedirs(mesh: _Mesh, n_shape: int, rng: np.random.Generator) -> np.ndarra
     return np.stack(fields[:n_shape], 2) if n_shape else np.zeros((len(p), 3, 0))
 
 
+# Named expression fields, in basis order (coefficient k moves field k); coefficients past these are random local
+# bumps. docs/demo-speaker.md tabulates them with the motion signals that drive them.
+EXPRESSION_FIELDS = (
+    "mouth_open", "smile", "pucker", "funnel", "lip_press", "upper_lip_raise", "lower_lip_depress",
+    "mouth_stretch", "corner_down", "chin_raise", "cheek_raise", "brow_raise", "brow_furrow", "blink_left",
+    "blink_right",
+)  # fmt: skip
+# The random bumps drawn for a basis of n_expr fields: as many as when only 4 fields were named, so the bases built
+# after the expression basis (pose correctives) keep their random draws whatever the number of named fields.
+_LEGACY_NAMED_FIELDS = 4
+
+
+def _blink_field(mesh: _Mesh, sign: float) -> np.ndarray:
+    """Eye closure [V, 3] of the eye at x = sign * EYE_X: the upper lid sweeps down and a little forward over the
+    eyeball (forward so its skin passes in front of the eyeball, not through it), the lower lid rises a little."""
+    p = mesh.positions
+    front = _skin_attr(mesh, mesh.skin.front, 0.0)
+    dx, dy = p[:, 0] - sign * EYE_X, p[:, 1] - EYE_Y
+    across = front * np.exp(-((dx / 0.019) ** 4))  # flat over the eye's width, gone at the nose and temple
+    upper = _smoothstep(-0.004, 0.0, dy) * (1.0 - _smoothstep(0.006, 0.022, dy))  # lid: full, fading to the brow
+    lower = np.exp(-(((dy + 0.008) / 0.004) ** 2))  # the lower lid's row
+    return across[:, None] * np.stack(
+        [np.zeros_like(dx), -upper + 0.6 * lower, 0.35 * upper + 0.1 * lower], 1
+    )
+
+
 def _exprdirs(mesh: _Mesh, n_expr: int, rng: np.random.Generator) -> np.ndarray:
-    """Expression basis [V, 3, n_expr]: mouth open, smile, pucker, brow raise, then random local bumps."""
+    """Expression basis [V, 3, n_expr]: the local action fields of EXPRESSION_FIELDS, then random local bumps.
+
+    Each field is scaled so its largest vertex displacement is EXPR_SIGMA_MM per unit coefficient; eyeballs get
+    no expression (they move with the eye joints only).
+    """
     p = mesh.positions
     x, y = p[:, 0], p[:, 1]
+    ax, sx = np.abs(x), np.sign(x)
     front = _skin_attr(mesh, mesh.skin.front, 0.0)  # eyeballs get no expression
     zero = np.zeros_like(x)
-    side = 2.0 * _lower_face(mesh) - 1.0  # +1 lower lip, -1 upper lip, 0 at the corners
+    lower = _lower_face(mesh)  # 1 on the lower lip and below, 0 on the upper lip and above (0/1 across the cut)
+    side = 2.0 * lower - 1.0  # +1 lower lip, -1 upper lip, 0 at the corners
     around_mouth = front * _gauss(x, y, 0.0, MOUTH_Y, 0.028, 0.02)
     open_dy = np.where(side > 0, -side, -0.4 * side) * around_mouth
     corners = front * (
         _gauss(x, y, MOUTH_HALF_WIDTH, MOUTH_Y, 0.012, 0.012) - _gauss(x, y, -MOUTH_HALF_WIDTH, MOUTH_Y, 0.012, 0.012)
     )  # signed: +right corner region (x > 0), - left
+    corner = np.abs(corners)
     pucker = front * _gauss(x, y, 0.0, MOUTH_Y, 0.026, 0.014)
-    brows = front * _gauss(np.abs(x), y, 0.03, 0.04, 0.025, 0.014)
-    named = [
-        np.stack([zero, open_dy, -0.15 * np.clip(side, 0, None) * around_mouth], 1),  # 0: mouth open
-        np.stack([0.6 * corners, np.abs(corners), -0.4 * np.abs(corners)], 1),  # 1: smile
-        np.stack([-x / MOUTH_HALF_WIDTH * pucker, zero, pucker], 1),  # 2: pucker
-        np.stack([zero, brows, zero], 1),  # 3: brow raise
-    ]
-    fields = [_normalized(f, EXPR_SIGMA_MM) for f in named]
+    lips = front * _gauss(x, y, 0.0, MOUTH_Y, 0.022, 0.009)  # both lips, to the corners
+    upper_lip = (1.0 - lower) * front * _gauss(x, y, 0.0, MOUTH_Y + 0.006, 0.02, 0.008)
+    lower_lip = lower * front * _gauss(x, y, 0.0, MOUTH_Y - 0.007, 0.02, 0.009)
+    chin = front * _gauss(x, y, 0.0, -0.072, 0.02, 0.014)
+    cheeks = front * _gauss(ax, y, 0.042, -0.008, 0.016, 0.013)
+    brows = front * _gauss(ax, y, 0.03, 0.04, 0.025, 0.014)
+    inner_brows = front * _gauss(ax, y, 0.014, 0.036, 0.013, 0.01)
+    named = {
+        "mouth_open": np.stack([zero, open_dy, -0.15 * np.clip(side, 0, None) * around_mouth], 1),
+        "smile": np.stack([0.6 * corners, corner, -0.4 * corner], 1),  # corners up, out and back
+        "pucker": np.stack([-x / MOUTH_HALF_WIDTH * pucker, zero, pucker], 1),  # lips narrow and push forward
+        "funnel": np.stack([zero, -0.7 * side * lips, lips], 1),  # lips flare apart and forward
+        "lip_press": np.stack([zero, -(y - MOUTH_Y) / 0.009 * lips, -0.6 * lips], 1),  # lips thin and roll in
+        "upper_lip_raise": np.stack([zero, upper_lip, 0.3 * upper_lip], 1),
+        "lower_lip_depress": np.stack([zero, -lower_lip, 0.2 * lower_lip], 1),
+        "mouth_stretch": np.stack([sx * corner, -0.3 * corner, -0.2 * corner], 1),  # corners pulled sideways
+        "corner_down": np.stack([0.2 * corners, -corner, zero], 1),
+        "chin_raise": np.stack([zero, 0.7 * chin + 0.3 * lower_lip, 0.6 * chin], 1),  # chin boss up, lower lip pushed
+        "cheek_raise": np.stack([0.2 * sx * cheeks, cheeks, 0.3 * cheeks], 1),
+        "brow_raise": np.stack([zero, brows, zero], 1),
+        "brow_furrow": np.stack([-0.6 * sx * inner_brows, -inner_brows, 0.2 * inner_brows], 1),  # inner brows down, in
+        "blink_left": _blink_field(mesh, 1.0),  # FLAME's left eye: the subject's left, +x
+        "blink_right": _blink_field(mesh, -1.0),
+    }
+    assert tuple(named) == EXPRESSION_FIELDS
+    fields = [_normalized(named[name], EXPR_SIGMA_MM) for name in EXPRESSION_FIELDS[:n_expr]]
     skin = mesh.part == 0
     face = skin & (np.abs(x) < 0.055) & (y > -0.09) & (y < 0.06) & (front > 0.7)
     centers = p[face]
-    while len(fields) < n_expr:
-        fields.append(_normalized(_bump_field(rng, p, centers) * skin[:, None], EXPR_SIGMA_MM))
-    return np.stack(fields[:n_expr], 2) if n_expr else np.zeros((len(p), 3, 0))
+    bumps = [_normalized(_bump_field(rng, p, centers) * skin[:, None], EXPR_SIGMA_MM)
+             for _ in range(max(0, n_expr - _LEGACY_NAMED_FIELDS))]
+    fields += bumps[: max(0, n_expr - len(fields))]
+    return np.stack(fields, 2) if n_expr else np.zeros((len(p), 3, 0))
 
 
 def _posedirs(mesh: _Mesh, weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:

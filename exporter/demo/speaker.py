@@ -1,5 +1,5 @@
 """A deterministic demo speaker: the procedural FLAME-structured head, ~20k Gaussians coloured by face region,
-a gentle head-pose track, and a translator trained briefly so the jaw follows loudness.
+a gentle head-pose track, and a translator trained briefly so the face follows the audio (docs/demo-speaker.md).
 
 Not a trained photoreal avatar: it is a complete, real speaker of the same structure, so every code path of
 export, verification and playback runs without the licensed FLAME file or any downloaded weights.

@@ -14,7 +14,7 @@ import numpy as np
 
 from gaussiantalker.sdk.config import DEFAULT_SAMPLE_RATE
 
-__all__ = ["SAMPLE_RATE", "synth_speech"]
+__all__ = ["SAMPLE_RATE", "VOWELS", "synth_speech", "synth_vowels"]
 
 SAMPLE_RATE = DEFAULT_SAMPLE_RATE
 
@@ -29,6 +29,7 @@ _VOWEL_FORMANTS = (
     (440.0, 1020.0, 2240.0),  # schwa-ish
     (490.0, 1350.0, 1690.0),  # er
 )
+VOWELS = ("a", "i", "e", "ae", "u", "o", "schwa", "er")  # names of _VOWEL_FORMANTS' rows
 _FORMANT_BANDWIDTHS = (80.0, 100.0, 140.0)
 _FILTER_TAIL = 1024  # samples of resonator ring-out kept after each segment (overlap-added)
 
@@ -86,10 +87,12 @@ def _glottal_source(f0_start: float, f0_end: float, length: int, rng: np.random.
 
 
 def _voiced_segment(
-    length: int, f0: tuple[float, float], voice: _Voice, rng: np.random.Generator, sr: int
+    length: int, f0: tuple[float, float], voice: _Voice, rng: np.random.Generator, sr: int, vowel: int | None = None
 ) -> np.ndarray:
-    """One vowel nucleus: glottal source through three formant resonators, unit RMS, with its ring-out tail."""
-    formants = np.array(_VOWEL_FORMANTS[rng.integers(len(_VOWEL_FORMANTS))]) * voice.formant_scale
+    """One vowel nucleus (a random one, or VOWELS[vowel]): glottal source through three formant resonators, unit
+    RMS, with its ring-out tail."""
+    index = rng.integers(len(_VOWEL_FORMANTS)) if vowel is None else vowel
+    formants = np.array(_VOWEL_FORMANTS[index]) * voice.formant_scale
     formants *= rng.uniform(0.93, 1.07, size=3)
 
     def response(freqs: np.ndarray) -> np.ndarray:
@@ -166,4 +169,30 @@ def synth_speech(seconds: float, seed: int, sample_rate: int = SAMPLE_RATE) -> n
     if peak > 0:
         audio = audio * (rng.uniform(0.55, 0.75) / peak)
     audio = audio + 2e-4 * rng.standard_normal(n)  # faint noise floor, as a real recording has
+    return audio.astype(np.float32)
+
+
+def synth_vowels(
+    layout: list[tuple[str | None, float]], seed: int = 0, sample_rate: int = SAMPLE_RATE
+) -> np.ndarray:
+    """Audio of known vowels: `layout` is (vowel name from VOWELS, or None for silence, seconds) in order; each
+    vowel is one voiced nucleus at a fixed pitch. Same scale and noise floor as synth_speech (for tests whose
+    expected behaviour depends on the vowel or on where the pauses are)."""
+    rng = np.random.default_rng(seed)
+    sr = sample_rate
+    voice = _Voice(f0=120.0, formant_scale=1.0)
+    n = int(round(sum(seconds for _, seconds in layout) * sr))
+    if n <= 0:
+        raise ValueError("synth_vowels needs a layout of positive total duration")
+    out = np.zeros(n + _FILTER_TAIL)
+    start = 0.0
+    for name, seconds in layout:
+        if name is not None:
+            if name not in VOWELS:
+                raise ValueError(f"unknown vowel {name!r}; expected one of {VOWELS}")
+            segment = _voiced_segment(int(seconds * sr), (120.0, 112.0), voice, rng, sr, VOWELS.index(name))
+            _add(out, int(start * sr), segment)
+        start += seconds
+    audio, peak = out[:n], float(np.max(np.abs(out[:n])))
+    audio = (audio * (0.65 / peak) if peak > 0 else audio) + 2e-4 * rng.standard_normal(n)
     return audio.astype(np.float32)
