@@ -10,7 +10,7 @@
   the frames.
 * Per preset (`--presets`): the whole `.gtb` file, with the clip setting the preset stores, against `quality`'s,
   beside the same speaker exported without its clip and inpainting generator (the bare head `gt-bench sweep`
-  measures).
+  measures), and each preset's size goal (`report.GOALS`) checked on the whole file.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from ..export.export import export_bundle
 from ..export.presets import PRESETS, ExportSettings
 from ..export.speech import synth_speech
 from ..model.speaker import Speaker
+from .report import GOALS
 
 CLIP_CRFS = (18, 23, 28, 33)  # the knob's values measured after "keep" (18: the CRF the clip is stored at)
 REGIONS = ("whole", "inside", "outside")  # composited-frame regions: the frame, M >= 0.5, M < 0.5
@@ -147,11 +148,14 @@ def format_tables(checkpoint: Path, gaussians: int, clip_rows: list[dict], prese
         lines += ["", f"Presets, whole `.gtb` files against {preset_rows[0]['preset']}'s (with the clip setting each "
                   "preset stores), beside the same speaker without its clip and F (the bare head `gt-bench sweep` "
                   "measures):", "",
-                  "| preset | clip setting | whole file MB | of which clip MB | × smaller (whole file) | "
-                  "bare head MB | × smaller (bare head) |", "|---|---|---|---|---|---|---|"]
+                  "| preset | clip setting | whole file MB | of which clip MB | × smaller (whole file) | size goal "
+                  "(whole file) | bare head MB | × smaller (bare head) |", "|---|---|---|---|---|---|---|---|"]
         for row in preset_rows:
+            smaller = whole / row["bundle_bytes"]
+            target = GOALS.get(row["preset"], {}).get("smaller")
+            goal = "" if target is None else f"≥ {target:g}: {'met' if smaller >= target else 'missed'}"
             lines.append(f"| {row['preset']} | {row['reference']} | {row['bundle_bytes'] / 1e6:.2f} | "
-                         f"{row['clip_bytes'] / 1e6:.2f} | {whole / row['bundle_bytes']:.1f} | "
+                         f"{row['clip_bytes'] / 1e6:.2f} | {smaller:.1f} | {goal} | "
                          f"{row['bare_bytes'] / 1e6:.2f} | {bare / row['bare_bytes']:.1f} |")
     return "\n".join(lines) + "\n"
 
