@@ -5,6 +5,7 @@ outputs, and TalkingHead's composited frames, on the small speaker with a small 
 from __future__ import annotations
 
 import copy
+import json
 from types import SimpleNamespace
 
 import numpy as np
@@ -533,12 +534,19 @@ def test_clip_crf_bench_end_to_end(clip_export, replay_onnx_exports, tmp_path):
     rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]] for line in text.splitlines()
             if line.startswith("| ") and not line.startswith("| clip setting") and not line.startswith("| preset")}
     assert rows["keep"][2:] == ["identical"] * 4
-    keep_mb, crf_mb = float(rows["keep"][0].split()[0]), float(rows[f"crf:{CLIP_TEST_CRF}"][0].split()[0])
-    assert crf_mb < keep_mb
+    measured = json.loads(out.with_suffix(".json").read_text())
+    keep, coarse = measured["clip"]
+    assert coarse["frame_bytes"] < keep["frame_bytes"] and coarse["clip_bytes"] < keep["clip_bytes"]
+    assert keep["clip_bytes"] - keep["frame_bytes"] == coarse["clip_bytes"] - coarse["frame_bytes"]  # masks kept
     worst = [float("inf") if cell == "identical" else float(cell.split(" / ")[0])
              for cell in rows[f"crf:{CLIP_TEST_CRF}"][2:]]
     assert min(worst) < float("inf") and all(value >= 29.0 for value in worst)  # as above
     quality, balanced = rows["quality"], rows["balanced"]
     assert quality[0] == "keep" and quality[3] == quality[6] == "1.0" and quality[4] == ""
-    assert float(balanced[1]) < float(quality[1]) and float(balanced[3]) > 1.0 and float(balanced[6]) > 1.0
-    assert balanced[4] == f"≥ 5: {'met' if float(balanced[3]) >= 5 else 'missed'}"
+    sizes = {row["preset"]: row for row in measured["presets"]}
+    assert sizes["balanced"]["bundle_bytes"] < sizes["quality"]["bundle_bytes"]
+    assert sizes["balanced"]["bare_bytes"] < sizes["quality"]["bare_bytes"]
+    assert sizes["balanced"]["clip_bytes"] < sizes["quality"]["clip_bytes"]  # balanced re-encodes the clip
+    assert sizes["quality"]["bare_bytes"] < sizes["quality"]["bundle_bytes"] - sizes["quality"]["clip_bytes"]
+    ratio = sizes["quality"]["bundle_bytes"] / sizes["balanced"]["bundle_bytes"]
+    assert balanced[3] == f"{ratio:.1f}" and balanced[4] == f"≥ 5: {'met' if ratio >= 5 else 'missed'}"

@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -162,8 +163,8 @@ def format_tables(checkpoint: Path, gaussians: int, clip_rows: list[dict], prese
 
 def run_clip_crf_bench(checkpoint: Path, crfs: tuple[int, ...], presets: tuple[str, ...], seconds: float,
                        out: Path, progress: bool = True) -> str:
-    """Measure, write the Markdown tables to `out` and return them (`presets` empty: no presets table; the first
-    preset is the reference of the ratios)."""
+    """Measure, write the Markdown tables to `out` (and every row, in bytes, to `out` with the suffix .json) and
+    return them (`presets` empty: no presets table; the first preset is the reference of the ratios)."""
     speaker = load_checkpoint(checkpoint)
     if speaker.reference is None:
         raise typer.BadParameter(f"{checkpoint} has no reference clip", param_hint="--checkpoint")
@@ -176,4 +177,7 @@ def run_clip_crf_bench(checkpoint: Path, crfs: tuple[int, ...], presets: tuple[s
     text = format_tables(checkpoint, speaker.gaussians.count, clip_rows, preset_rows, seconds)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
+    out.with_suffix(".json").write_text(json.dumps({"checkpoint": str(checkpoint), "seconds": seconds,
+                                                    "clip": clip_rows, "presets": preset_rows}, indent=2,
+                                                   default=lambda value: str(value)))
     return text

@@ -187,11 +187,12 @@ _CLIP_CRF = {"balanced": "crf:20", "compact": "crf:33", "fast": "crf:38", "mobil
 # gt-export's default 256x256; docs/precision.md, "Presets").
 PRESETS: dict[str, Preset] = {
     "quality": Preset("quality", "fp32 everything: parity with the torch speaker (>= 50 dB)", ExportSettings()),
-    "balanced": Preset("balanced", "quantised buffers, nothing dropped: ~5.8x smaller at ~49 dB",
+    "balanced": Preset("balanced", "quantised buffers, nothing dropped, the clip at CRF 20: ~3x smaller with the "
+                       "demo clip (5.8x the bare head) at ~49 dB",
                        ExportSettings(**_REDUCED_CODECS, reference=_CLIP_CRF["balanced"]), min_head_psnr_db=47.0),
     "compact": Preset("compact", "smallest bundle: 65% of the Gaussians, SH degree 0, rank-2 blendshapes, 4-bit "
-                      "translator and inpainting generator, FLAME bases in chunks of 256: ~14x smaller at ~36 dB on "
-                      "the demo speaker",
+                      "translator and inpainting generator, FLAME bases in chunks of 256, the clip at CRF 33: ~7x "
+                      "smaller with the demo clip (14x the bare head) at ~36 dB on the demo speaker",
                       ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "flame": "q4", "inpaint": "q4"},
                                      sh_degree=0, blendshape_rank=2, gaussian_budget=0.65,
                                      reference=_CLIP_CRF["compact"]), min_head_psnr_db=35.0),
