@@ -71,6 +71,9 @@ def export(
     blendshape_rank: int = typer.Option(None, "--blendshape-rank", min=1, help="rank of the blendshape matrix"),
     gaussian_budget: str = typer.Option(None, "--gaussian-budget", help="keep N Gaussians (or P%), the largest "
                                         "contributors over a driven clip and a head-pose sweep"),
+    reference: str = typer.Option(None, "--reference-codec", help="the reference clip's frames: keep (as the "
+                                  "checkpoint stores them) or crf:N (re-encoded with x264 at CRF N, 0-51: larger "
+                                  "is smaller and coarser; masks stay lossless; docs/compositing.md)"),
     scene: Path = typer.Option(None, "--scene", help="compile the bundle for a scene (TOML/JSON, docs/scene.md): "
                                "leave out what it never uses, record it in the bundle"),
     mnn: bool = typer.Option(False, "--mnn", help="also store every graph as an MNN model, for "
@@ -93,7 +96,7 @@ def export(
         knobs = {"gaussians": gaussians, "sh": sh, "blendshapes": blendshapes, "flame": flame,
                  "translator": translator, "inpaint": inpaint, "translator_precision": translator_precision,
                  "sh_degree": sh_degree, "blendshape_rank": blendshape_rank,
-                 "gaussian_budget": _budget(gaussian_budget)}
+                 "gaussian_budget": _budget(gaussian_budget), "reference": reference}
         settings, chosen = _settings(preset, codec, knobs)
         speaker = load_checkpoint(checkpoint)
         # The bundle is staged beside the output and placed there only once it is complete (and, with --verify,
@@ -105,8 +108,10 @@ def export(
                 from .export.specialise import format_removals
 
                 typer.echo(format_removals(result.specialisation.removals))
+            clip = (f", reference clip {result.reference_bytes / 1e6:.2f} MB ({result.settings.reference})"
+                    if result.reference_bytes else "")
             typer.echo(f"wrote {result.bytes_written / 1e6:.2f} MB bundle ({result.gaussians} Gaussians, "
-                       f"tier {result.label}, graphs: {', '.join(result.graphs)})")
+                       f"tier {result.label}, graphs: {', '.join(result.graphs)}{clip})")
             if result.mnn:
                 typer.echo("MNN graphs: " + ", ".join(f"{name} {size / 1e6:.2f} MB" for name, size in
                                                       result.mnn.items()))

@@ -27,8 +27,11 @@ from .errors import BundleError, CameraError, GaussianTalkerError
 FRAME_CODECS = {"h264": ("libx264", "h264")}
 MASK_CODECS = {"png": ("png", "png")}
 # x264 constant-rate factor of stored frames: 18 keeps the demo clip visually lossless (its PSNR:
-# docs/compositing.md, "The reference clip").
+# docs/compositing.md, "The reference clip"). An export may re-encode a clip at a larger CRF (`reencode_frame`;
+# the `reference` export knob, docs/precision.md).
 H264_CRF = 18
+# x264's CRF range for 8-bit pictures: 0 (lossless) .. 51 (coarsest).
+MAX_H264_CRF = 51
 # The colour description written into each frame's H.264 stream (its VUI): what swscale's RGB -> yuv420p conversion
 # does (the BT.601 matrix, limited range) on sRGB pictures, so a native decoder that honours the tags converts back
 # exactly as the runtime does, and one that guesses from the size (BT.709 for HD) is told otherwise.
@@ -123,15 +126,24 @@ def _encode(encoder: str, frame: av.VideoFrame, pix_fmt: str, options: dict[str,
     return b"".join(bytes(packet) for packet in packets)
 
 
-def encode_frame(rgb: np.ndarray, codec: str = "h264") -> bytes:
-    """uint8 [H, W, 3] RGB (even sides) -> one intra-coded H.264 frame (4:2:0, CRF H264_CRF, colour tags
+def _check_crf(crf: int) -> int:
+    if isinstance(crf, bool) or not isinstance(crf, int | np.integer) or not 0 <= crf <= MAX_H264_CRF:
+        raise ReferenceClipError(f"an H.264 CRF must be an integer 0..{MAX_H264_CRF}, got {crf!r}")
+    return int(crf)
+
+
+def _encode_h264(picture: av.VideoFrame, codec: str, crf: int) -> bytes:
+    return _encode(FRAME_CODECS[codec][0], picture, "yuv420p",
+                   {"crf": str(_check_crf(crf)), "bf": "0", "x264-params": H264_COLOUR_TAGS})
+
+
+def encode_frame(rgb: np.ndarray, codec: str = "h264", crf: int = H264_CRF) -> bytes:
+    """uint8 [H, W, 3] RGB (even sides) -> one intra-coded H.264 frame (4:2:0, CRF `crf`, colour tags
     H264_COLOUR_TAGS)."""
     rgb = np.ascontiguousarray(rgb)
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ReferenceClipError(f"a reference frame must be uint8 [H, W, 3], got {rgb.dtype} {list(rgb.shape)}")
-    frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
-    return _encode(FRAME_CODECS[codec][0], frame, "yuv420p",
-                   {"crf": str(H264_CRF), "bf": "0", "x264-params": H264_COLOUR_TAGS})
+    return _encode_h264(av.VideoFrame.from_ndarray(rgb, format="rgb24"), codec, crf)
 
 
 def quantise_mask(mask: np.ndarray) -> np.ndarray:
@@ -169,6 +181,16 @@ def decode_frame(data: bytes, layout: ClipLayout, label: str) -> np.ndarray:
     picture = _decode(FRAME_CODECS[layout.frame_codec][1], data, label)
     _check_size(label, picture, layout.size)
     return picture.to_ndarray(format="rgb24")
+
+
+def reencode_frame(data: bytes, layout: ClipLayout, label: str, crf: int) -> bytes:
+    """One stored frame re-encoded at CRF `crf` (intra-only, the same colour tags). The decoded 4:2:0 picture goes
+    to the encoder as it is, so the only loss added is the new encode's (no RGB round trip)."""
+    picture = _decode(FRAME_CODECS[layout.frame_codec][1], data, label)
+    _check_size(label, picture, layout.size)
+    if picture.format.name != "yuv420p":
+        raise ReferenceClipError(f"{label} must be 4:2:0 (yuv420p), got pixel format {picture.format.name}")
+    return _encode_h264(picture, layout.frame_codec, crf)
 
 
 def decode_mask_levels(data: bytes, layout: ClipLayout, label: str) -> np.ndarray:
@@ -243,6 +265,19 @@ class EncodedClip:
             decode_frame(self.frames[index], self.layout, f"reference frame {index}")
             mask = decode_mask(self.masks[index], self.layout, f"reference mask {index}")
             check_mask(mask, self.layout.size, f"reference mask {index}")
+
+    def reencoded(self, crf: int) -> EncodedClip:
+        """This clip with every frame re-encoded at CRF `crf` (`reencode_frame`); the masks (lossless) and the
+        layout are kept as they are."""
+        _check_crf(crf)
+        frames = [reencode_frame(data, self.layout, f"reference frame {index}", crf)
+                  for index, data in enumerate(self.frames)]
+        return EncodedClip(self.layout, frames, list(self.masks))
+
+    @property
+    def frame_bytes(self) -> int:
+        """Encoded size of every frame."""
+        return sum(len(b) for b in self.frames)
 
     @property
     def nbytes(self) -> int:

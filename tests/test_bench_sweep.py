@@ -11,6 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from gaussiantalker.exporter.bench.app import app
+from gaussiantalker.exporter.bench.clip_crf import CLIP_CRFS, clip_settings
 from gaussiantalker.exporter.bench.composite import F_CODECS, f_codec_settings
 from gaussiantalker.exporter.bench.quality import mouth_box, region_scores, ssim_map
 from gaussiantalker.exporter.bench.report import format_report, goal_rows, pareto_front
@@ -32,7 +33,12 @@ def test_every_knob_and_preset_is_swept():
                           if getattr(s, f.name) != getattr(ExportSettings(), f.name)}
     assert swept_by_composite == {"inpaint"} and "inpaint" not in swept_export
     assert len({s.inpaint for s in f_codec_settings()}) == len(F_CODECS) >= 3
-    assert swept_export | swept_by_composite == {f.name for f in fields(ExportSettings)}
+    # The reference clip's setting likewise: `gt-bench clip-crf` sweeps it.
+    swept_by_clip = {f.name for s in clip_settings() for f in fields(ExportSettings)
+                     if getattr(s, f.name) != getattr(ExportSettings(), f.name)}
+    assert swept_by_clip == {"reference"} and "reference" not in swept_export
+    assert len({s.reference for s in clip_settings()}) == len(CLIP_CRFS) + 1 >= 4
+    assert swept_export | swept_by_composite | swept_by_clip == {f.name for f in fields(ExportSettings)}
     assert set(CODEC_GROUPS) <= swept_export | swept_by_composite
     swept_runtime = {key for c in cases for key in c.runtime}
     # TalkingHead takes RenderSettings.graph_threads as its `threads` argument; experimental fields are left out.

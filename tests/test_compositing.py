@@ -5,6 +5,7 @@ outputs, and TalkingHead's composited frames, on the small speaker with a small 
 from __future__ import annotations
 
 import copy
+import json
 from types import SimpleNamespace
 
 import numpy as np
@@ -417,3 +418,135 @@ def test_scene_export_leaves_the_clip_out(clip_export):
     manifest = Bundle(path).manifest
     assert "scene" in manifest and "reference" not in manifest and "inpaint" not in manifest["graphs"]
     assert clip_export.speaker.reference is not None  # the caller's speaker keeps its clip
+
+
+# -- the clip's codec knob (`ExportSettings.reference`, docs/compositing.md) -------------------------------------
+
+CLIP_TEST_CRF = 33  # far above the stored CRF 18, so the re-encoded frames are clearly smaller and coarser
+
+
+def _entries(path) -> dict:
+    from gaussiantalker.sdk.bundle import Bundle
+
+    return {name: entry["sha256"] for name, entry in Bundle(path).manifest["buffers"].items()}
+
+
+def test_reference_keep_stores_the_checkpoints_bytes(clip_export):
+    """"keep" (the default, `quality`'s) writes every frame and mask entry byte for byte as the checkpoint holds it."""
+    from gaussiantalker.exporter.export.presets import ExportSettings
+    from gaussiantalker.sdk.bundle import Bundle
+    from gaussiantalker.sdk.reference_clip import mask_entry
+
+    assert ExportSettings().reference == "keep"
+    bundle, clip = Bundle(clip_export.path), clip_export.speaker.reference
+    assert bundle.manifest["export_settings"]["reference"] == "keep"
+    for index in range(CLIP_FRAMES):
+        assert bundle.buffer(frame_entry(index)).tobytes() == clip.frames[index]
+        assert bundle.buffer(mask_entry(index)).tobytes() == clip.masks[index]
+
+
+def test_reference_crf_reencodes_the_frames_only(clip_export, replay_onnx_exports, tmp_path):
+    """crf:N re-encodes every frame (smaller, intra-only, colour tags kept, decodable alone); masks and every other
+    entry are unchanged; the composited frames stay close to the stored clip's."""
+    import av
+
+    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.presets import ExportSettings
+    from gaussiantalker.runtime import TalkingHead
+    from gaussiantalker.sdk.bundle import Bundle
+    from gaussiantalker.sdk.reference_clip import _decode
+
+    replay_onnx_exports(clip_export.protos)
+    path = tmp_path / "crf.gtb"
+    result = export_bundle(clip_export.speaker, path, settings=ExportSettings(reference=f"crf:{CLIP_TEST_CRF}"),
+                           progress=False)
+    keep, coarse = _entries(clip_export.path), _entries(path)
+    frames = {frame_entry(i) for i in range(CLIP_FRAMES)}
+    assert keep.keys() == coarse.keys()
+    assert {name for name in keep if keep[name] != coarse[name]} == frames  # only the frames changed
+    manifest, plain = Bundle(path).manifest, Bundle(clip_export.path).manifest
+    assert manifest["export_settings"]["reference"] == f"crf:{CLIP_TEST_CRF}"
+    assert manifest["reference"] == plain["reference"]
+    assert sum(manifest["buffers"][n]["nbytes"] for n in frames) < \
+        0.7 * sum(plain["buffers"][n]["nbytes"] for n in frames)
+    assert 0 < result.reference_bytes < sum(e["nbytes"] for n, e in plain["buffers"].items()
+                                            if n.startswith("reference/"))
+    bundle = Bundle(path)
+    for index in range(CLIP_FRAMES):  # each entry one intra picture with the stored frames' colour description
+        picture = _decode("h264", bundle.buffer(frame_entry(index)).tobytes(), "frame")
+        assert picture.key_frame and picture.pict_type == av.video.frame.PictureType.I
+        assert (picture.colorspace, picture.color_range, picture.color_primaries, picture.color_trc) == \
+            (av.video.reformatter.Colorspace.ITU601, av.video.reformatter.ColorRange.MPEG, 1, 13)
+    audio = np.random.default_rng(0).normal(0.0, 0.1, 6 * clip_export.speaker.config.samples_per_frame)
+    with TalkingHead(clip_export.path) as stored, TalkingHead(path) as head:
+        rate = head.config.sample_rate
+        clip_psnr = [psnr_db(stored.reference.frame(i), head.reference.frame(i)) for i in range(CLIP_FRAMES)]
+        frame_psnr = [psnr_db(want, got) for want, got in zip(stored.frames(audio, rate), head.frames(audio, rate),
+                                                               strict=True)]
+    # Measured on this 96x112 clip at CRF 33: clip frames 32.5-32.6 dB and composited frames 35.9-36.1 dB against
+    # the stored clip's (the demo clip at CRF 33: 38.3 and 40.7 dB, docs/compositing.md). 29 and 32 dB leave ~3.5 dB
+    # for another x264 build's rate control; a coarser clip than this CRF's, or a colour or alignment slip (tens of
+    # levels), fails, and so does a re-encode that changed nothing (inf).
+    assert 29.0 <= min(clip_psnr) and max(clip_psnr) < float("inf")
+    assert 32.0 <= min(frame_psnr) and max(frame_psnr) < float("inf")
+
+
+def test_reference_knob_in_presets_and_without_a_clip(clip_export, small_export, replay_onnx_exports, tmp_path):
+    """A preset re-encodes the clip at its own CRF (the same bytes as `EncodedClip.reencoded`); a speaker without a
+    clip exports the same entries whatever the knob says."""
+    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.presets import PRESETS, ExportSettings, parse_reference
+    from gaussiantalker.sdk.bundle import Bundle
+
+    replay_onnx_exports(clip_export.protos)
+    preset = PRESETS["balanced"]
+    path = tmp_path / "balanced.gtb"
+    export_bundle(clip_export.speaker, path, preset="balanced", progress=False)
+    bundle = Bundle(path)
+    assert bundle.manifest["export_settings"]["reference"] == preset.export.reference
+    expected = clip_export.speaker.reference.reencoded(parse_reference(preset.export.reference))
+    assert [bundle.buffer(frame_entry(i)).tobytes() for i in range(CLIP_FRAMES)] == expected.frames
+    assert expected.masks == clip_export.speaker.reference.masks
+
+    replay_onnx_exports(small_export.protos)
+    bare = tmp_path / "bare.gtb"
+    result = export_bundle(small_export.speaker, bare, settings=ExportSettings(reference="crf:40"), progress=False)
+    assert result.reference_bytes == 0 and _entries(bare) == _entries(small_export.path)
+    assert "reference" not in Bundle(bare).manifest
+
+
+def test_reencoding_refuses_a_bad_crf(clip_export):
+    with pytest.raises(ReferenceClipError, match="CRF must be an integer 0..51, got 52"):
+        clip_export.speaker.reference.reencoded(52)
+
+
+def test_clip_crf_bench_end_to_end(clip_export, replay_onnx_exports, tmp_path):
+    """`gt-bench clip-crf` on the small clip speaker: "keep" matches itself exactly, a CRF row is smaller and finite,
+    and the presets table compares whole files and bare heads (ratios from the files' sizes)."""
+    from gaussiantalker.exporter.bench.clip_crf import run_clip_crf_bench
+
+    with_f, bare = clip_export.protos, clip_export.protos[:2]  # a bare head has no inpaint graph
+    replay_onnx_exports(with_f * 3 + bare + with_f + bare)  # keep, crf:33, quality (+ bare), balanced (+ bare)
+    out = tmp_path / "clip-crf.md"
+    text = run_clip_crf_bench(clip_export.checkpoint, (CLIP_TEST_CRF,), ("quality", "balanced"), seconds=0.2,
+                              out=out, progress=False)
+    assert out.read_text() == text
+    rows = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]] for line in text.splitlines()
+            if line.startswith("| ") and not line.startswith("| clip setting") and not line.startswith("| preset")}
+    assert rows["keep"][2:] == ["identical"] * 4
+    measured = json.loads(out.with_suffix(".json").read_text())
+    keep, coarse = measured["clip"]
+    assert coarse["frame_bytes"] < keep["frame_bytes"] and coarse["clip_bytes"] < keep["clip_bytes"]
+    assert keep["clip_bytes"] - keep["frame_bytes"] == coarse["clip_bytes"] - coarse["frame_bytes"]  # masks kept
+    worst = [float("inf") if cell == "identical" else float(cell.split(" / ")[0])
+             for cell in rows[f"crf:{CLIP_TEST_CRF}"][2:]]
+    assert min(worst) < float("inf") and all(value >= 29.0 for value in worst)  # as above
+    quality, balanced = rows["quality"], rows["balanced"]
+    assert quality[0] == "keep" and quality[3] == quality[6] == "1.0" and quality[4] == ""
+    sizes = {row["preset"]: row for row in measured["presets"]}
+    assert sizes["balanced"]["bundle_bytes"] < sizes["quality"]["bundle_bytes"]
+    assert sizes["balanced"]["bare_bytes"] < sizes["quality"]["bare_bytes"]
+    assert sizes["balanced"]["clip_bytes"] < sizes["quality"]["clip_bytes"]  # balanced re-encodes the clip
+    assert sizes["quality"]["bare_bytes"] < sizes["quality"]["bundle_bytes"] - sizes["quality"]["clip_bytes"]
+    ratio = sizes["quality"]["bundle_bytes"] / sizes["balanced"]["bundle_bytes"]
+    assert balanced[3] == f"{ratio:.1f}" and balanced[4] == f"≥ 5: {'met' if ratio >= 5 else 'missed'}"

@@ -4,13 +4,20 @@ with its stored runtime defaults; runtime knobs and the Gaussian budget's measur
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.export.presets import PRESETS, ExportSettings, get_preset, parse_codec
+from gaussiantalker.exporter.export.presets import (
+    PRESETS,
+    ExportSettings,
+    get_preset,
+    parse_codec,
+    parse_reference,
+)
 from gaussiantalker.exporter.export.prune import budget_count, gaussian_contributions, prune_speaker
 from gaussiantalker.exporter.verify.verify import HEAD_PSNR_FLOOR_DB, Tolerances, verify_bundle, verify_translator
 from gaussiantalker.runtime.head import TalkingHead, _render_settings
@@ -187,6 +194,12 @@ def test_pruning_keeps_the_largest_contributors_in_order(small_speaker):
     ({"blendshape_rank": 0}, "blendshape_rank must be >= 1"),
     ({"gaussian_budget": 1.5}, "gaussian_budget must be a fraction"),
     ({"gaussian_budget": -1}, "gaussian_budget must be a fraction"),
+    ({"reference": "crf:52"}, r"unknown reference clip setting 'crf:52' \(allowed: keep, or crf:N"),
+    ({"reference": "crf:-1"}, "unknown reference clip setting 'crf:-1'"),
+    ({"reference": "crf:"}, "unknown reference clip setting 'crf:'"),
+    ({"reference": "crf:2.5"}, "unknown reference clip setting 'crf:2.5'"),
+    ({"reference": "jpeg"}, "unknown reference clip setting 'jpeg'"),
+    ({"reference": "CRF:28"}, "unknown reference clip setting 'CRF:28'"),
 ])
 def test_bad_export_settings_are_named(settings, message):
     with pytest.raises(BundleError, match=message):
@@ -204,6 +217,17 @@ def test_presets_and_labels():
         bound = Tolerances.for_settings(preset.export, preset).min_head_psnr_db
         assert bound == preset.min_head_psnr_db
     assert Tolerances.for_settings(ExportSettings(sh="q8")).min_head_psnr_db == HEAD_PSNR_FLOOR_DB
+    # The clip's setting is a knob of its own (the label says so), but verify's bounds are the head's: both sides
+    # composite into the bundle's decoded clip.
+    clip_only = ExportSettings(reference="crf:30")
+    assert clip_only.label() == "custom" and not clip_only.lossless
+    assert Tolerances.for_settings(clip_only) == Tolerances.for_settings(ExportSettings())
+    balanced = get_preset("balanced")
+    kept = Tolerances.for_settings(replace(balanced.export, reference="keep"), balanced)
+    assert kept.min_head_psnr_db == balanced.min_head_psnr_db
+    # quality keeps the clip as stored; every other preset re-encodes it at a CRF (docs/compositing.md).
+    assert get_preset("quality").export.reference == "keep"
+    assert all(parse_reference(p.export.reference) is not None for n, p in PRESETS.items() if n != "quality")
 
 
 @pytest.mark.parametrize("precision, rtol", [("int8", 0.05), ("fp16", 0.01)])

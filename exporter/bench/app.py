@@ -7,6 +7,7 @@
     gt-bench backends      onnxruntime vs MNN (bench/backends.py)
     gt-bench video         the encoding cost of every video output (bench/video.py)
     gt-bench clip-codecs   how to store a reference clip (bench/clip_codecs.py)
+    gt-bench clip-crf      the reference clip's codec knob: bytes against PSNR, presets' whole files (bench/clip_crf.py)
     gt-bench surface       how opaque a head's surface is from around it (bench/surface.py)
     gt-bench early-stop    the GL splatter's early stop of saturated pixels against the plain draw
                            (bench/early_stop.py)
@@ -212,6 +213,32 @@ def surface(
                                                       "resolution": resolution,
                                                       "views": [v.to_dict() for v in views]}, indent=2))
         typer.echo(f"wrote {out / 'surface.md'}")
+
+
+@app.command("clip-crf")
+def clip_crf(
+    checkpoint: Path = typer.Option(..., "--checkpoint", help="a speaker with a reference clip"),
+    crfs: str = typer.Option(None, "--crfs", help="x264 CRFs of the clip to measure against the clip as stored, "
+                             "comma-separated [default: bench/clip_crf.py's CLIP_CRFS, 18,23,28,33]"),
+    presets: str = typer.Option(None, "--presets", help="presets whose whole files to compare, comma-separated "
+                                "(the first is the reference; empty: none) [default: all, quality first]"),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio played through each bundle"),
+    out: Path = typer.Option(Path("bench-sweep"), "--out", help="folder for clip-crf.md"),
+) -> None:
+    """The reference clip's codec knob (`gt-export --reference-codec`): clip and bundle bytes against the PSNR of
+    the clip and of the composited frames; the presets' whole-file sizes (docs/compositing.md)."""
+    from ..export.presets import PRESETS
+    from .clip_crf import CLIP_CRFS, run_clip_crf_bench
+
+    try:
+        crf_values = CLIP_CRFS if crfs is None else tuple(int(c) for c in crfs.split(",") if c.strip())
+    except ValueError:
+        raise typer.BadParameter(f"--crfs must be integers, got {crfs!r}", param_hint="--crfs") from None
+    chosen = tuple(PRESETS) if presets is None else tuple(p.strip() for p in presets.split(",") if p.strip())
+    unknown = [p for p in chosen if p not in PRESETS]
+    if unknown:
+        raise typer.BadParameter(f"unknown preset(s) {unknown} (known: {', '.join(PRESETS)})", param_hint="--presets")
+    typer.echo(run_clip_crf_bench(checkpoint, crf_values, chosen, seconds, out / "clip-crf.md"))
 
 
 @app.command("lam-web")

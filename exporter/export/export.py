@@ -32,7 +32,7 @@ from .graph_precision import convert_precision
 from .inpainter_graph import inpainter_onnx
 from .mnn_export import add_mnn_graphs, mnn_version
 from .onnx_export import add_graph
-from .presets import ExportSettings, Preset, get_preset, group_of
+from .presets import ExportSettings, Preset, get_preset, group_of, parse_reference
 from .prune import apply_budget
 from .specialise import Specialisation, specialise
 from .translator_graph import translator_onnx
@@ -54,6 +54,11 @@ class ExportResult:
     gaussians: int = 0  # Gaussians in the bundle (after scene pruning and a Gaussian budget)
     specialisation: Specialisation | None = None  # what a scene let the export leave out (export/specialise.py)
     mnn: dict = field(default_factory=dict)  # bytes of each graph's .mnn model (`mnn=True`, docs/mnn.md)
+
+    @property
+    def reference_bytes(self) -> int:
+        """Stored bytes of the reference clip's frames and masks (0: no clip in the bundle)."""
+        return sum(nbytes for name, nbytes in self.buffer_bytes.items() if name.startswith("reference/"))
 
     @property
     def tier(self) -> str:
@@ -244,11 +249,15 @@ def _add_audio_model(speaker: Speaker | ArkitSpeaker, writer: BundleWriter, resu
 
 def _add_reference(speaker: Speaker, writer: BundleWriter, result: ExportResult, settings: ExportSettings) -> None:
     """The reference clip's encoded frames and masks (one entry each, decoded once here so a bundle never holds
-    a clip that fails mid-video) and the inpainting generator's graph, if the speaker has them."""
+    a clip that fails mid-video; the frames re-encoded at the `reference` knob's CRF when it names one, the masks
+    always as they are) and the inpainting generator's graph, if the speaker has them."""
     clip = speaker.reference
     if clip is None:
         return
     try:
+        crf = parse_reference(settings.reference)
+        if crf is not None:
+            clip = clip.reencoded(crf)
         clip.check(None if speaker.pose_track is None else int(speaker.pose_track.shape[0]))
     except ReferenceClipError as exc:
         raise BundleError(f"cannot export the reference clip: {exc}") from None

@@ -15,6 +15,7 @@ import numpy as np
 
 from gaussiantalker.sdk.codecs import CODECS, MAX_CHUNK
 from gaussiantalker.sdk.errors import BundleError
+from gaussiantalker.sdk.reference_clip import MAX_H264_CRF
 from gaussiantalker.sdk.render_settings import RenderSettings
 
 # Buffer groups a codec is chosen for, and which bundle buffers (by glob on the buffer name) belong to each.
@@ -56,6 +57,19 @@ def parse_codec(spec: str) -> tuple[str, int | None]:
     return name, int(chunk_text)
 
 
+def parse_reference(spec: str) -> int | None:
+    """The reference-clip knob's value: "keep" (the clip's frames stored as the checkpoint holds them: None) or
+    "crf:N" (every frame re-encoded with x264 at CRF N: N)."""
+    text = str(spec)
+    if text == "keep":
+        return None
+    name, _, crf = text.partition(":")
+    if name != "crf" or not crf.isdigit() or not 0 <= int(crf) <= MAX_H264_CRF:
+        raise BundleError(f"unknown reference clip setting {spec!r} (allowed: keep, or crf:N with N an integer "
+                          f"0..{MAX_H264_CRF}, e.g. crf:28; docs/compositing.md)")
+    return int(crf)
+
+
 def group_of(buffer: str) -> str:
     """The codec group of bundle buffer `buffer` ('other' for buffers no codec knob applies to)."""
     return next((group for group, patterns in CODEC_GROUPS.items()
@@ -64,7 +78,8 @@ def group_of(buffer: str) -> str:
 
 @dataclass(frozen=True)
 class ExportSettings:
-    """Export-time knobs: a buffer codec per group, the translator graph's precision, model-size truncations."""
+    """Export-time knobs: a buffer codec per group, the translator graph's precision, model-size truncations, and
+    how the reference clip's frames are stored (`reference`: "keep" or "crf:N", `parse_reference`)."""
 
     gaussians: str = "raw"
     sh: str = "raw"
@@ -76,6 +91,7 @@ class ExportSettings:
     sh_degree: int | None = None  # keep SH bands up to this degree (None: all)
     blendshape_rank: int | None = None  # rank of the speaker blendshape matrix (None: full)
     gaussian_budget: float | None = None  # keep this fraction (<= 1) or number (> 1) of Gaussians (None: all)
+    reference: str = "keep"  # the reference clip's frames: as stored, or re-encoded at an x264 CRF ("crf:28")
 
     def __post_init__(self) -> None:
         for group in CODEC_GROUPS:
@@ -94,6 +110,7 @@ class ExportSettings:
         if budget is not None and not (budget > 0 and (budget <= 1 or float(budget).is_integer())):
             raise BundleError(f"gaussian_budget must be a fraction in (0, 1] or a whole number of Gaussians, "
                               f"got {budget}")
+        parse_reference(self.reference)
 
     @classmethod
     def all_buffers(cls, codec: str) -> ExportSettings:
@@ -104,7 +121,13 @@ class ExportSettings:
     def lossless(self) -> bool:
         codecs_lossless = all(CODECS[parse_codec(getattr(self, g))[0]].lossless for g in CODEC_GROUPS)
         return (codecs_lossless and self.translator_precision == "fp32" and self.sh_degree is None
-                and self.blendshape_rank is None and self.gaussian_budget is None)
+                and self.blendshape_rank is None and self.gaussian_budget is None and self.reference == "keep")
+
+    def head_settings(self) -> ExportSettings:
+        """These settings with the reference clip stored as it is: what the head's frames depend on (`gt-export
+        --verify` composites the runtime's and the torch render into the same decoded clip pictures, so the clip's
+        codec is not part of what it proves)."""
+        return replace(self, reference="keep")
 
     def label(self) -> str:
         """fp32, fp16 (every buffer fp16, nothing else changed) or custom."""
@@ -150,6 +173,13 @@ class Preset:
 # (F's codecs measured on composited frames: docs/compositing.md, "F's precision").
 _REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4", "flame": "q4/128", "translator": "q8",
                    "inpaint": "q8"}
+# The reference clip's frames (`reference`; the measured table: docs/compositing.md, "The clip's codec"). Each reduced
+# preset takes the largest measured x264 CRF whose composited frames stay at least 3 dB above the preset's
+# `min_head_psnr_db` (the clip's error at most half the error the bound allows) in their worst region: outside the
+# mask, where the frame is the clip itself (inside it the clip costs 10-20 dB less). On the demo clip, minimum over
+# 150 frames: balanced CRF 20 (outside the mask 50.9 dB, bound 47), mobile 28 (42.2, 39), compact 33 (39.8, 35),
+# fast 38 (36.9, 29). `quality` keeps the clip as stored (CRF 18).
+_CLIP_CRF = {"balanced": "crf:20", "compact": "crf:33", "fast": "crf:38", "mobile": "crf:28"}
 
 # The presets, chosen from measurements on the demo speaker (docs/precision.md has the table and the command).
 # `min_head_psnr_db` is what `gt-export --verify` holds a preset to; each sits below what the preset measured, by the
@@ -157,21 +187,24 @@ _REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4", "flame": 
 # gt-export's default 256x256; docs/precision.md, "Presets").
 PRESETS: dict[str, Preset] = {
     "quality": Preset("quality", "fp32 everything: parity with the torch speaker (>= 50 dB)", ExportSettings()),
-    "balanced": Preset("balanced", "quantised buffers, nothing dropped: ~5.8x smaller at ~49 dB",
-                       ExportSettings(**_REDUCED_CODECS), min_head_psnr_db=47.0),
+    "balanced": Preset("balanced", "quantised buffers, nothing dropped, the clip at CRF 20: ~3x smaller with the "
+                       "demo clip (5.8x the bare head) at ~49 dB",
+                       ExportSettings(**_REDUCED_CODECS, reference=_CLIP_CRF["balanced"]), min_head_psnr_db=47.0),
     "compact": Preset("compact", "smallest bundle: 65% of the Gaussians, SH degree 0, rank-2 blendshapes, 4-bit "
-                      "translator and inpainting generator, FLAME bases in chunks of 256: ~14x smaller at ~36 dB on "
-                      "the demo speaker",
+                      "translator and inpainting generator, FLAME bases in chunks of 256, the clip at CRF 33: ~7x "
+                      "smaller with the demo clip (14x the bare head) at ~36 dB on the demo speaker",
                       ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "flame": "q4", "inpaint": "q4"},
-                                     sh_degree=0, blendshape_rank=2, gaussian_budget=0.65), min_head_psnr_db=35.0),
+                                     sh_degree=0, blendshape_rank=2, gaussian_budget=0.65,
+                                     reference=_CLIP_CRF["compact"]), min_head_psnr_db=35.0),
     "fast": Preset("fast", "fastest frames: 60% of the Gaussians, drawn at 3/4 size into an 8-bit framebuffer, "
                    "16-bit depth-sort keys: ~2x the frame rate at ~35 dB",
-                   ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6),
+                   ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6, reference=_CLIP_CRF["fast"]),
                    RenderSettings(render_scale=0.75, render_target="uint8", sort_key_bits=16), min_head_psnr_db=29.0),
     "mobile": Preset("mobile", "for phones and WebGL 2 (docs/porting.md): fp16 buffers, 70% of the Gaussians, an "
                      "RGBA16F framebuffer (GLES 3.0's renderable float, docs/shaders.md), 16-bit depth-sort keys, one "
                      "graph thread: ~1.3x the frame rate at ~41 dB",
-                     ExportSettings(**dict.fromkeys(CODEC_GROUPS, "fp16"), gaussian_budget=0.7),
+                     ExportSettings(**dict.fromkeys(CODEC_GROUPS, "fp16"), gaussian_budget=0.7,
+                                    reference=_CLIP_CRF["mobile"]),
                      RenderSettings(render_target="float16", sort_key_bits=16, graph_threads=1), min_head_psnr_db=39.0),
 }
 
@@ -194,4 +227,4 @@ def settings_with(base: ExportSettings, **overrides) -> ExportSettings:
 
 
 __all__ = ["CODEC_GROUPS", "PRESETS", "ExportSettings", "Preset", "get_preset", "group_of", "parse_codec",
-           "settings_with"]
+           "parse_reference", "settings_with"]
