@@ -36,7 +36,7 @@ import numpy as np
 from gaussiantalker.sdk import numerics
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import RenderError
-from gaussiantalker.sdk.image import straight_rgba, to_uint8
+from gaussiantalker.sdk.image import straight_rgba
 from gaussiantalker.sdk.render_settings import RenderSettings
 
 from .depth_sort import DepthSorter
@@ -473,14 +473,29 @@ class CPUSplatter:
         self.release()
 
 
+@njit(parallel=True, cache=True, error_model="numpy")
+def _over_background(frame, background, out, as_bytes):
+    """out = C + T * background (float32 [H, W, 3]) or, for a uint8 `out`, `to_uint8` of it: floor(clamp(v, 0, 1)
+    * 255 + 0.5) in float32, NaN as 0."""
+    for y in prange(frame.shape[0]):
+        for x in range(frame.shape[1]):
+            for ch in range(3):
+                value = frame[y, x, ch] + frame[y, x, 3] * background[ch]
+                if as_bytes:
+                    value = min(max(value, _ZERO), _ONE) if value == value else _ZERO
+                    out[y, x, ch] = np.uint8(np.floor(value * _F(255.0) + _HALF))
+                else:
+                    out[y, x, ch] = value
+
+
 def _convert(frame: np.ndarray, background: np.ndarray, output: str) -> np.ndarray:
     """(C, T) [H, W, 4] -> the requested output (the GL splatter's four)."""
-    color, trans = frame[..., :3], frame[..., 3:4]
     if output in ("rgba", "rgba_float"):
-        premultiplied = np.concatenate([color, 1.0 - trans], axis=-1)
+        premultiplied = np.concatenate([frame[..., :3], 1.0 - frame[..., 3:4]], axis=-1)
         return premultiplied if output == "rgba_float" else straight_rgba(premultiplied, background)
-    image = color + trans * background
-    return to_uint8(image) if output == "uint8" else image
+    out = np.empty((*frame.shape[:2], 3), dtype=np.uint8 if output == "uint8" else np.float32)
+    _over_background(frame, background, out, output == "uint8")
+    return out
 
 
 _WARM = False
@@ -494,7 +509,9 @@ def warm_up() -> None:
     camera = Camera(3, 2, 2.0, 2.0, 1.5, 1.0)
     rows = np.zeros((1, 13), dtype=np.float32)
     rows[0, 2], rows[0, 3], rows[0, 6], rows[0, 8], rows[0, 9:13] = 1.0, 0.1, 0.1, 0.1, 0.5
-    splat_frame(rows, camera)
+    frame, _, _ = splat_frame(rows, camera)
+    for output in ("uint8", "float"):
+        _convert(frame, np.ones(3, dtype=np.float32), output)
     exp_approx(np.zeros(1, dtype=np.float32))
     _WARM = True
 
