@@ -191,3 +191,102 @@ def test_cache_dir_follows_the_user(monkeypatch, tmp_path):
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     assert cs.cache_dir() == tmp_path / "xdg" / "gaussiantalker" / "numba"
+
+
+# -- TalkingHead(renderer=...) ----------------------------------------------------------------------------------
+
+
+def test_renderer_setting_is_checked():
+    from gaussiantalker.runtime.settings import BackendSettings, merged_backend
+    from gaussiantalker.sdk.errors import SettingsError
+
+    assert BackendSettings().renderer == "gl"
+    assert merged_backend("onnxruntime", renderer="cpu").renderer == "cpu"
+    with pytest.raises(SettingsError, match="renderer"):
+        BackendSettings(renderer="vulkan")
+    with pytest.raises(SettingsError, match="given twice"):
+        merged_backend(BackendSettings(renderer="gl"), renderer="cpu")
+
+
+def test_auto_picks_cpu_on_a_software_gl_and_says_why(monkeypatch, caplog):
+    from gaussiantalker.runtime import renderer as renderer_module
+    from gaussiantalker.sdk.errors import SettingsError
+
+    assert renderer_module.is_software_renderer("llvmpipe (LLVM 15.0.6, 256 bits)")
+    assert renderer_module.is_software_renderer("Google SwiftShader")
+    assert not renderer_module.is_software_renderer("NVIDIA GeForce RTX 4090/PCIe/SSE2")
+    monkeypatch.setattr(renderer_module, "_reported", set())
+    with caplog.at_level("INFO", logger="gaussiantalker.runtime"):
+        splatter, name = renderer_module.make_splatter("auto")
+    is_software = renderer_module.is_software_renderer(GLSplatter().ctx.info["GL_RENDERER"])
+    assert name == ("cpu" if is_software else "gl") and isinstance(splatter, CPUSplatter) == (name == "cpu")
+    assert f"the {name} splatter" in caplog.text
+    splatter.release()
+    monkeypatch.setattr(renderer_module, "cpu_splatter_available", lambda: False)
+    splatter, name = renderer_module.make_splatter("auto")  # no numba: GL, whatever the GL is
+    assert name == "gl"
+    splatter.release()
+    with pytest.raises(SettingsError, match=r"gaussiantalker-sdk\[cpu\]"):
+        renderer_module.make_splatter("cpu")
+
+
+def _head_frames(path, renderer, drives, output="uint8", **kwargs):
+    from gaussiantalker.runtime import TalkingHead
+
+    with TalkingHead(path, renderer=renderer, **kwargs) as head:
+        assert head.renderer == renderer
+        return [head.render(drive, output) for drive in drives]
+
+
+@pytest.fixture(scope="module")
+def small_drives(small_export):
+    from gaussiantalker.exporter.export.probes import driven_clip
+
+    return driven_clip(small_export.speaker, 4)[1]
+
+
+def test_small_speaker_frames_match_torch(small_export):
+    """End to end (audio -> translator -> deformation graph -> CPU splatter) against the torch speaker."""
+    from gaussiantalker.exporter.verify.verify import verify_frames
+    from gaussiantalker.runtime import TalkingHead
+
+    with TalkingHead(small_export.path, resolution=(128, 128), renderer="cpu") as head:
+        report = verify_frames(small_export.speaker, head, frames=4)
+    assert all(f["finite"] for f in report["frames"])
+    assert min(f["psnr_db"] for f in report["frames"]) >= MIN_PSNR_8BIT
+
+
+@pytest.mark.parametrize("camera", ["bundle", "novel"])
+def test_small_speaker_frames_match_gl(small_export, small_drives, camera):
+    kwargs = {"resolution": (96, 80)}
+    if camera == "novel":  # off-centre principal point, another angle and distance
+        base = Camera.looking_at([0.25, -0.1, 0.45], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 96, 80, 35.0)
+        kwargs = {"camera": Camera(96, 80, base.fx, base.fy * 1.1, 30.0, 50.0, base.R, base.t)}
+    cpu = _head_frames(small_export.path, "cpu", small_drives, **kwargs)
+    gl = _head_frames(small_export.path, "gl", small_drives, **kwargs)
+    for mine, theirs in zip(cpu, gl, strict=True):
+        assert (mine != mine[0, 0]).any()  # the head is in view
+        assert psnr_db(mine.astype(np.float64) / 255, theirs.astype(np.float64) / 255) >= MIN_PSNR_8BIT
+
+
+@pytest.mark.parametrize("preset", ["balanced", "fast"])
+def test_presets_match_gl(reduced_export, small_drives, preset):
+    """A preset's bundle and render settings, CPU vs GL (GL's framebuffer in float32: the CPU always blends in
+    float32, so an 8-bit or float16 framebuffer is a GL-only loss). `fast` draws at 3/4 size: the upscale's
+    bilinear weights are 8-bit in llvmpipe's sampler, so its bound is that of the render-scale test (45 dB)."""
+    path = reduced_export(preset)
+    cpu = _head_frames(path, "cpu", small_drives, resolution=(96, 96), render_target="float32")
+    gl = _head_frames(path, "gl", small_drives, resolution=(96, 96), render_target="float32")
+    bound = 45.0 if preset == "fast" else MIN_PSNR_8BIT
+    for mine, theirs in zip(cpu, gl, strict=True):
+        assert psnr_db(mine.astype(np.float64) / 255, theirs.astype(np.float64) / 255) >= bound
+
+
+def test_semantic_and_alpha_outputs_match_gl(small_export, small_drives):
+    drives = small_drives[:1]
+    for output in ("semantic", "rgba", "rgba_float"):
+        mine = _head_frames(small_export.path, "cpu", drives, output, resolution=(64, 64))[0]
+        theirs = _head_frames(small_export.path, "gl", drives, output, resolution=(64, 64))[0]
+        assert mine.shape == theirs.shape and mine.dtype == theirs.dtype
+        scale = 255.0 if mine.dtype == np.uint8 else 1.0
+        assert psnr_db(mine.astype(np.float64) / scale, theirs.astype(np.float64) / scale) >= MIN_PSNR_8BIT, output
