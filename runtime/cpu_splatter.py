@@ -67,9 +67,10 @@ from numba import njit, prange  # noqa: E402
 
 TILE = 16  # tile side in pixels (the 3DGS rasterizer's)
 _TILE_PIXELS = TILE * TILE
-_LANES = 8  # pixels per vectorised run (one AVX2 register of float32)
+_LANES = 4  # pixels per vectorised run: one SSE register of float32 (4: 53 ms, 8: 63 ms, 16: 105 ms per frame; AMD
+# Zen 1, whose AVX units are 128 bits wide, docs/bench/renderers.md)
 # Offsets of the planes in a tile's accumulator (red at 0), unsigned like the pixel index added to them.
-_G, _B, _T, _LIVE = (np.uint64(k * _TILE_PIXELS) for k in range(1, 5))
+_G, _B, _T = (np.uint64(k * _TILE_PIXELS) for k in range(1, 4))
 _PARAMS = 11  # per kept Gaussian: u, v, A, k, q, opacity, radius, r, g, b, alpha level (see `_project`)
 
 _F = np.float32
@@ -101,7 +102,7 @@ _BOX_SLACK_REL = 1e-3
 _BOX_SLACK_PX = 1.0
 
 
-@njit(inline="always", cache=True, error_model="numpy")
+@njit(inline="always", cache=True, error_model="numpy", fastmath={"contract"})
 def _exp(x):
     """exp(x) for float32 x <= 0 (x > 0 is taken as 0): branch-free, vectorisable (see the constants above)."""
     y = min(max(x, _EXP_LO), _ZERO) * _EXP_SPLIT
@@ -283,7 +284,7 @@ def _bin(boxes, tiles_x, tiles_y):
     return start, lists
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract"})
 def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
     """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99 clamp,
     skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN."""
@@ -292,12 +293,13 @@ def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
         ty, tx = tile // tiles_x, tile % tiles_x
         x0, y0 = tx * TILE, ty * TILE
         x1, y1 = min(x0 + TILE, width), min(y0 + TILE, height)
-        # One array holds the tile's red, green, blue, T and live (1 until the pixel stops, 0 outside the image)
-        # planes at constant offsets, so the compiler sees that the planes do not overlap and vectorises.
-        acc = np.zeros(5 * _TILE_PIXELS, dtype=np.float32)
-        acc[_T: _T + _TILE_PIXELS] = _ONE
+        # One array holds the tile's red, green, blue and T planes at constant offsets, so the compiler sees that
+        # the planes do not overlap and vectorises. A pixel that has stopped keeps -T (and one outside the image
+        # -1): T > 0 is "still blending".
+        acc = np.zeros(4 * _TILE_PIXELS, dtype=np.float32)
+        acc[_T: _T + _TILE_PIXELS] = -_ONE
         for py in range(y1 - y0):
-            acc[_LIVE + py * TILE: _LIVE + py * TILE + x1 - x0] = _ONE
+            acc[_T + py * TILE: _T + py * TILE + x1 - x0] = _ONE
         running = (x1 - x0) * (y1 - y0)  # pixels of the tile that have not stopped
         for j in range(start[tile], start[tile + 1]):
             if running == 0:
@@ -338,17 +340,18 @@ def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
                         tt = dx - skdy
                         power = _NEG_HALF * (sa * tt * tt + qdy)
                         alpha = min(_ALPHA_MAX, opacity * _exp(power))
-                        use = (abs(dx) <= radius) & (power <= _ZERO) & (alpha >= _ALPHA_MIN) & (acc[_LIVE + i] > _ZERO)
                         t_old = acc[_T + i]
+                        use = (abs(dx) <= radius) & (power <= _ZERO) & (alpha >= _ALPHA_MIN) & (t_old > _ZERO)
                         t_new = t_old * (_ONE - alpha)
                         stop = use & (t_new < _T_MIN)
-                        add = use & (t_new >= _T_MIN)
-                        w = alpha * t_old if add else _ZERO
+                        added = alpha if use & (t_new >= _T_MIN) else _ZERO
+                        # Stores of computed values only (T * (1 - 0) is exact): a select between a new and the
+                        # loaded value would become a masked store, slow on AMD CPUs.
+                        w = added * t_old
                         acc[i] += red * w
                         acc[_G + i] += green * w
                         acc[_B + i] += blue * w
-                        acc[_T + i] = t_new if add else t_old
-                        acc[_LIVE + i] = _ZERO if stop else acc[_LIVE + i]
+                        acc[_T + i] = -t_old if stop else t_old * (_ONE - added)
                         stopped += 1 if stop else 0
                     running -= stopped
         for py in range(y0, y1):
@@ -357,7 +360,7 @@ def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
                 out[py, px, 0] = acc[row + px]
                 out[py, px, 1] = acc[_G + row + px]
                 out[py, px, 2] = acc[_B + row + px]
-                out[py, px, 3] = acc[_T + row + px]
+                out[py, px, 3] = abs(acc[_T + row + px])
 
 
 def splat_frame(rows: np.ndarray, camera: Camera) -> tuple[np.ndarray, float, float]:
