@@ -89,10 +89,10 @@ _DET_REL = _F(numerics.DET_MIN_RELATIVE)
 _HUGE = _F(numerics.COV2D_HUGE_PX2)
 
 # exp(x) = exp(x / 16)^16: x / 16 lies in [-0.625, 0] once x is clamped to [_EXP_LO, 0], where a degree-8 Taylor
-# polynomial (Horner) is within 1e-7 relatively; four squarings follow. Only float multiply-adds and selects, so the
-# per-pixel loop vectorises (numba's np.exp calls libm per lane, and a 2^n exponent split needs int64 -> float
-# conversions that AVX2 lacks; both measured ~2x slower per frame). alpha >= 1/255 needs x >= ln(1/255) = -5.55, so
-# below _EXP_LO the value only has to stay small. Max relative error against float64 exp: docs/numerics.md.
+# polynomial (Estrin form) is within 1.3e-7 relatively; four squarings follow. Only float multiply-adds and
+# selects, so the per-pixel loop vectorises (numba's np.exp calls libm per lane, and a 2^n exponent split needs
+# int64 -> float conversions that AVX2 lacks; both measured ~2x slower per frame). alpha >= 1/255 needs
+# x >= ln(1/255) = -5.55, so below _EXP_LO the value only has to stay small. Max relative error against float64 exp: docs/numerics.md.
 _EXP_LO = _F(-10.0)
 _EXP_SPLIT = _F(1.0 / 16.0)
 _TAYLOR = tuple(_F(1.0 / math.factorial(k)) for k in range(9))  # 1/k!, k = 0..8
@@ -106,15 +106,11 @@ _BOX_SLACK_PX = 1.0
 def _exp(x):
     """exp(x) for float32 x <= 0 (x > 0 is taken as 0): branch-free, vectorisable (see the constants above)."""
     y = min(max(x, _EXP_LO), _ZERO) * _EXP_SPLIT
-    p = _TAYLOR[8]
-    p = p * y + _TAYLOR[7]
-    p = p * y + _TAYLOR[6]
-    p = p * y + _TAYLOR[5]
-    p = p * y + _TAYLOR[4]
-    p = p * y + _TAYLOR[3]
-    p = p * y + _TAYLOR[2]
-    p = p * y + _TAYLOR[1]
-    p = p * y + _TAYLOR[0]
+    y2 = y * y  # Estrin's scheme: the same polynomial in a shorter dependency chain than Horner's
+    y4 = y2 * y2
+    low = (_TAYLOR[0] + _TAYLOR[1] * y) + (_TAYLOR[2] + _TAYLOR[3] * y) * y2
+    high = (_TAYLOR[4] + _TAYLOR[5] * y) + (_TAYLOR[6] + _TAYLOR[7] * y) * y2
+    p = low + (high + _TAYLOR[8] * y4) * y4
     p = p * p
     p = p * p
     p = p * p
