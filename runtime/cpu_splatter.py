@@ -92,7 +92,8 @@ _HUGE = _F(numerics.COV2D_HUGE_PX2)
 # polynomial (Estrin form) is within 1.3e-7 relatively; four squarings follow. Only float multiply-adds and
 # selects, so the per-pixel loop vectorises (numba's np.exp calls libm per lane, and a 2^n exponent split needs
 # int64 -> float conversions that AVX2 lacks; both measured ~2x slower per frame). alpha >= 1/255 needs
-# x >= ln(1/255) = -5.55, so below _EXP_LO the value only has to stay small. Max relative error against float64 exp: docs/numerics.md.
+# x >= ln(1/255) = -5.55, so below _EXP_LO the value only has to stay small. Max relative error against float64
+# exp: docs/numerics.md.
 _EXP_LO = _F(-10.0)
 _EXP_SPLIT = _F(1.0 / 16.0)
 _TAYLOR = tuple(_F(1.0 / math.factorial(k)) for k in range(9))  # 1/k!, k = 0..8
