@@ -56,8 +56,10 @@ HEAD_PSNR_FLOOR_DB = 30.0
 HEAD_COVERAGE = 1.0 / 255.0
 # Crop sizes (height, width) the inpaint graph is compared on.
 INPAINT_CROP_SIZES = ((64, 64), (96, 160), (208, 128))
-# MNN vs onnxruntime graph outputs, relative to each output's largest magnitude (fp32 graphs).
-MNN_RTOL = 1e-5
+# MNN vs onnxruntime graph outputs, relative to each output's largest magnitude (fp32 graphs): only kernel rounding
+# differs. Measured on the covariances, whose entries are sums of terms that cancel: ~2e-6 with the earlier,
+# small-splat demo head, 1.1e-5 with the opaque one's larger splats (2k test speaker, docs/mnn.md "Accuracy").
+MNN_RTOL = 3e-5
 # Novel views of `verify_views`: (yaw, pitch) in degrees of the bundle's camera swung around the head's centre.
 VIEW_ORBITS = ((-35.0, 0.0), (35.0, 0.0), (0.0, 20.0))
 # Frame bound of a scene-specialised bundle against the torch speaker (what the scene tests hold it to).
@@ -99,10 +101,12 @@ class Tolerances:
 
         fp16 buffers round every weight to 11 significant bits (relative 4.9e-4); through the blendshape and
         LBS sums that gives graph errors and frame PSNRs measured on the demo speaker in docs/export.md ("Parity
-        with the torch speaker"), so the fp16 label is held to 2e-3 relative and 50 dB on float and 8-bit frames.
+        with the torch speaker"), so the fp16 label is held to 2e-3 relative on graphs. Frames: 45 dB float and
+        8-bit, because on an opaque head the ~1e-4 m position error swaps the depth order of a few near-coincident
+        opaque splats, which changes those pixels by up to ~56 levels (2k test speaker: 46.4 dB minimum).
         """
         if codec == "fp16":
-            return cls(graph_rtol=2e-3, min_psnr_float_db=50.0, min_psnr_uint8_db=50.0)
+            return cls(graph_rtol=2e-3, min_psnr_float_db=45.0, min_psnr_uint8_db=45.0)
         return cls()
 
 
