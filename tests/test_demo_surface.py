@@ -3,6 +3,8 @@ surface shows through from any yaw in +-90 degrees, and the measure that says so
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 import torch
@@ -11,11 +13,11 @@ from gaussiantalker.exporter.bench.surface import measure_surface, surface_table
 from gaussiantalker.exporter.demo.head import REGION_NAMES, make_demo_head
 from gaussiantalker.exporter.demo.speaker import make_demo_speaker
 
-YAWS = (-90.0, 0.0, 90.0)
-RESOLUTION = 128
+YAWS = (0.0, 90.0)  # front and side: the previous head showed most at the side (the sides mirror)
+RESOLUTION = 128  # at 96 px the previous head's gaps fall below a pixel and its see-through hides
 # At most this fraction of the silhouette's interior may change by more than 2/255 when the hidden half of the head
-# is removed. The default head measures 0.00-0.03% at 160 px; the previous, layered demo head 1.2% (front) to 11%
-# (side), and the same head with that head's splats (below) as much: the bound separates them.
+# is removed. The default head measures 0.00-0.03% at 160 px (docs/bench/surface); the previous, layered demo
+# head 1.2% (front) to 11% (side), and the same head with that head's splats (below) 4.9% at the side.
 SEE_THROUGH_BOUND = 0.005
 
 
@@ -29,7 +31,7 @@ def test_default_demo_head_hides_its_far_side_from_every_yaw(default_head):
     views = measure_surface(default_head, YAWS, RESOLUTION)
     print(surface_table(views))
     for view in views:
-        assert view.interior_pixels > 1000
+        assert view.interior_pixels > 500
         assert view.see_through <= SEE_THROUGH_BOUND, view
         assert view.saturated >= 0.95, view  # almost every interior pixel is opaque to 1/255
 
@@ -37,12 +39,12 @@ def test_default_demo_head_hides_its_far_side_from_every_yaw(default_head):
 def test_the_measure_sees_through_a_translucent_head(default_head):
     """Same head and layout with the previous demo head's splats (0.7x the size, opacity 0.98): the far side shows
     through the gaps and the measure says so."""
-    translucent, _ = make_demo_speaker(train_seconds=0, progress=False)
+    translucent = copy.deepcopy(default_head)
     with torch.no_grad():
         translucent.gaussians.log_scale.add_(float(np.log(0.7)))
         translucent.gaussians.opacity_logit.fill_(4.0)
-    views = measure_surface(translucent, YAWS, RESOLUTION)
-    assert max(view.see_through for view in views) > 4 * SEE_THROUGH_BOUND, views
+    view = measure_surface(translucent, (90.0,), RESOLUTION)[0]
+    assert view.see_through > 4 * SEE_THROUGH_BOUND, view
 
 
 def test_head_surface_has_no_hole_but_the_mouth():
