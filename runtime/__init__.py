@@ -6,6 +6,7 @@ Everything an app needs is importable from here:
     from gaussiantalker.runtime import BlendshapeDrive, load_motion, ARKIT_BLENDSHAPES   # ARKit speakers
     from gaussiantalker.runtime import FlameMotion, load_flame_motion   # FLAME motions (imported avatars)
     from gaussiantalker.runtime import RenderSettings, OutputSettings, BackendSettings   # grouped settings
+    from gaussiantalker.runtime import LiveSession, LiveFrame, IdleMotion   # live sessions (TalkingHead.live)
 """
 
 from gaussiantalker.sdk import __version__
@@ -17,6 +18,7 @@ from gaussiantalker.sdk.errors import (
     CameraError,
     DriveError,
     GaussianTalkerError,
+    LiveError,
     RenderError,
     SettingsError,
     VideoError,
@@ -28,6 +30,8 @@ from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
 from gaussiantalker.sdk.video_formats import VideoPlan, plan_video
 
 from .head import FrameOutput, HeadPoseSource, TalkingHead
+from .idle import IdleMotion
+from .live import LiveFrame, LiveSession, LiveStats
 from .motions import MotionSource
 from .output import OutputView
 from .settings import BackendSettings, OutputSettings
@@ -60,5 +64,10 @@ __all__ = [
     "RenderError",
     "SettingsError",
     "VideoError",
+    "LiveError",
+    "LiveSession",
+    "LiveFrame",
+    "LiveStats",
+    "IdleMotion",
     "__version__",
 ]

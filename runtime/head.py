@@ -493,6 +493,20 @@ class TalkingHead:
         self._record("composite", time.perf_counter() - start)
         return frame
 
+    def live(self, *, lookahead_ms: float = 160.0, paced: bool = True, context_ms: float = 1000.0,
+             output: FrameOutput | None = "uint8", audio_rate: int | None = None, idle=None,
+             max_queued_s: float = 120.0):
+        """A live session (runtime/live.py, docs/live.md): push audio chunks as they arrive, read each frame as
+        soon as its audio plus `lookahead_ms` is in. `paced`: frames at the frame rate on the wall clock, idling
+        when no audio is queued; False: as fast as they are ready. `output`: a FrameOutput, or None for drives
+        only (no rendering). `audio_rate`: the rate of each LiveFrame's audio (None: the speaker's). `idle`: an
+        IdleMotion (blinks, sway, ease). Sessions of one head share its weights and GL context; read each
+        session's frames on the thread that made the head."""
+        from .live import LiveSession
+
+        return LiveSession(self, lookahead_ms=lookahead_ms, paced=paced, context_ms=context_ms, output=output,
+                           audio_rate=audio_rate, idle=idle, max_queued_s=max_queued_s)
+
     def frame_count(self, samples: int) -> int:
         """Video frames for `samples` audio samples: the last partial frame counts (audio is zero-padded)."""
         if self.config is None:

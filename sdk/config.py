@@ -75,8 +75,15 @@ class SpeakerConfig:
     # How the Gaussians follow their triangles: "triangle" (the paper's frame) or "scaled_triangle" (GaussianAvatars';
     # sdk/rig.py TRIANGLE_BINDINGS, docs/numerics.md).
     binding: str = "triangle"
+    # Names of the expression coefficients where the basis has named parts (the demo speaker's local fields; empty
+    # for an unnamed basis such as a tracked FLAME one): live sessions find the speaker's blink here (docs/live.md).
+    expression_names: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        self.expression_names = tuple(str(name) for name in self.expression_names)
+        if self.expression_names and len(self.expression_names) != self.n_expr:
+            raise ValueError(f"expression_names holds {len(self.expression_names)} names for {self.n_expr} "
+                             "expression coefficients")
         if self.binding not in TRIANGLE_BINDINGS:
             raise ValueError(f"speaker binding must be one of {', '.join(TRIANGLE_BINDINGS)}, got {self.binding!r}")
 

@@ -40,3 +40,8 @@ class VideoError(GaussianTalkerError):
 
 class ImportFormatError(GaussianTalkerError):
     """An avatar file to import (docs/import.md) is missing a member or field, or holds one of the wrong shape."""
+
+
+class LiveError(GaussianTalkerError):
+    """A live session was used wrongly: audio pushed after end() or close(), more audio queued than the session
+    holds (a consumer that stopped reading), frames() read twice at once, or a bad session setting."""

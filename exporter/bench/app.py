@@ -14,6 +14,8 @@
     gt-bench lam-web       ground-truth frames of a LAM avatar from the original web renderer (bench/lam_web.py)
     gt-bench avatar        an imported LAM or GaussianAvatars avatar: import, export, verify, presets' quality,
                            FPS (bench/avatar.py)
+    gt-bench live          live sessions: first-frame latency, agreement with offline frames, barge-in, drift,
+                           sessions per process (bench/live.py)
 
 The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
 still work: `entry.gt_bench` rewrites them to their subcommand.
@@ -342,6 +344,45 @@ def avatar(
         raise typer.Exit(2) from None
     typer.echo(format_report(result))
     typer.echo(f"wrote {out / 'avatar.md'}, {out / 'avatar.json'}")
+
+
+@app.command()
+def live(
+    bundle: Path = typer.Argument(..., help="a speaker bundle with a translator (.gtb)"),
+    size: int = typer.Option(512, "--size", min=16, help="square frame size of the latency and barge-in runs"),
+    lookaheads: str = typer.Option("0,80,160,320", "--lookaheads", help="lookaheads to measure (ms)"),
+    utterances: int = typer.Option(10, "--utterances", min=1, help="utterances per lookahead for the latency"),
+    barge_trials: int = typer.Option(5, "--barge-trials", min=1, help="interrupt() trials"),
+    drift_minutes: float = typer.Option(60.0, "--drift-minutes", min=0.0, help="minutes of the drift run (0: none)"),
+    session_sizes: str = typer.Option("512,256", "--session-sizes", help="frame sizes of the sessions run"),
+    most_sessions: int = typer.Option(8, "--most-sessions", min=1, help="largest session count tried"),
+    out: Path = typer.Option(None, "--out", help="folder for live.md and live.json"),
+) -> None:
+    """Live sessions (docs/live.md): first-frame latency p50/p95 per lookahead (paced, real-time pushes), jaw
+    agreement with offline frames, barge-in time, drift over a long free-running session, sessions sustained."""
+    import shlex
+    import sys
+
+    from .live import live_tables, run_live_bench
+
+    if not bundle.is_file():
+        raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
+    try:
+        chosen = [float(v) for v in lookaheads.split(",") if v.strip()]
+        sizes = [int(v) for v in session_sizes.split(",") if v.strip()]
+    except ValueError:
+        raise typer.BadParameter("comma-separated numbers expected",
+                                 param_hint="--lookaheads/--session-sizes") from None
+    result = run_live_bench(bundle, size, chosen, utterances, barge_trials, drift_minutes, sizes, most_sessions)
+    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    tables = live_tables(result)
+    typer.echo(tables)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "live.json").write_text(json.dumps(result, indent=2))
+        (out / "live.md").write_text(f"# Live sessions\n\n`{result['command']}` on {result['machine']['cpu']}, "
+                                     f"{result['machine']['cores']} cores, {result['machine']['gl']}.\n\n{tables}\n")
+        typer.echo(f"wrote {out / 'live.md'}, {out / 'live.json'}")
 
 
 def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: float, rounds: int,

@@ -7,6 +7,8 @@ export, verification and playback runs without the licensed FLAME file or any do
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import torch
 
@@ -16,7 +18,7 @@ from gaussiantalker.sdk.numerics import SH_C0
 
 from ..model.flame import FlameArrays
 from ..model.speaker import Speaker
-from .head import REGION_COLORS, make_demo_head
+from .head import EXPRESSION_FIELDS, REGION_COLORS, make_demo_head
 from .train_translator import train_demo_translator
 
 DEMO_BACKGROUND = (0.93, 0.93, 0.95)
@@ -124,6 +126,9 @@ def make_demo_speaker(n_gaussians: int = 20_000, seed: int = 0, train_seconds: f
     if n_gaussians < 1:
         raise ValueError(f"a speaker needs at least one Gaussian, got {n_gaussians}")
     config = config or SpeakerConfig()
+    if not config.expression_names:  # the named fields, then the random local bumps (exporter/demo/head.py)
+        names = EXPRESSION_FIELDS + tuple(f"bump_{k}" for k in range(len(EXPRESSION_FIELDS), config.n_expr))
+        config = dataclasses.replace(config, expression_names=names[: config.n_expr])
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     head = make_demo_head(n_shape=config.n_shape, n_expr=config.n_expr, seed=seed)

@@ -94,7 +94,8 @@ def _check_state(path: Path, name: str, module: torch.nn.Module, state: object, 
 
 def _check_config(path: Path, config: SpeakerConfig) -> None:
     """Sizes and rates must be positive ints (fps 0 would only fail later, dividing by zero in the exporter)."""
-    sizes = {f.name: getattr(config, f.name) for f in fields(config) if f.name not in ("translator", "binding")}
+    not_sizes = ("translator", "binding", "expression_names")
+    sizes = {f.name: getattr(config, f.name) for f in fields(config) if f.name not in not_sizes}
     sizes.update({f"translator.{f.name}": getattr(config.translator, f.name) for f in fields(config.translator)
                   if f.name != "conv_strides"})
     for key, value in sizes.items():

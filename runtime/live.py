@@ -1,0 +1,367 @@
+"""Live sessions: audio arrives in chunks while frames leave, each as soon as its audio and lookahead are in.
+
+    with TalkingHead("speaker.gtb") as head, head.live(lookahead_ms=160) as live:
+        live.push(samples, sample_rate=24000)   # any chunk size, rate, int16 or float; returns at once
+        for frame in live.frames():             # LiveFrame: index, pts, image, audio
+            ...
+        live.interrupt()                        # barge-in: drop queued audio, ease to the idle face
+        live.end()                              # no more audio: the rest flushes, then frames() ends
+
+The timeline (docs/live.md): frame n shows the samples [n, n + 1) / fps of a timeline made of the pushed audio and
+of silent gaps where the face idled, so `pts` is the audio clock by construction. The translator sees a sliding
+window: `context_ms` of the timeline's past, the frames it translates, and `lookahead_ms` of pushed audio ahead.
+Paced mode gives frame n at start + n / fps on the wall clock (a frame whose lookahead is late goes out with what
+has arrived; no audio at all means an idle frame); free-running mode gives frames as fast as they are ready and
+idle frames only when no audio is queued.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive
+from gaussiantalker.sdk.errors import LiveError
+from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_RIG
+
+from .idle import IdleMotion, IdleTrack, blink_vector
+from .live_audio import ResampledQueue, live_chunk
+from .translate import blendshape_params, flame_params, frame_start, silence_gain
+
+# Frames translated per translator call at most when audio is queued ahead (a long push): bigger batches cost
+# fewer calls but delay the first of them.
+MAX_BATCH_FRAMES = 8
+# Audio queued but not yet shown, at most (seconds): a push beyond it is refused (LiveError), so a consumer that
+# stops reading cannot make memory grow.
+MAX_QUEUED_S = 120.0
+# Paced mode re-anchors its clock when it falls behind by more than this many frames (a renderer slower than real
+# time): frames then come as fast as they are made instead of in a burst that tries to catch up.
+MAX_LAG_FRAMES = 2
+
+
+@dataclass(frozen=True)
+class LiveFrame:
+    """One frame of a live session: `image` (the head's output mode; None for output=None), `audio` (float32 mono
+    at `sample_rate`: the samples this frame shows, zeros while idle), `pts` = index / fps on the audio clock,
+    `speaking` (False while idle or easing to idle) and the `drive` it was rendered from."""
+
+    index: int
+    pts: float
+    image: np.ndarray | None
+    audio: np.ndarray
+    sample_rate: int
+    speaking: bool
+    drive: FrameDrive | BlendshapeDrive
+
+
+@dataclass
+class LiveStats:
+    """Counts of a session so far (docs/live.md): what an app monitors to see a slow producer or consumer."""
+
+    frames: int = 0
+    speaking_frames: int = 0
+    idle_frames: int = 0
+    late_frames: int = 0  # paced: shown with less lookahead than asked (the producer fell behind)
+    underruns: int = 0  # paced: idle frames put in while part of a frame's audio was queued
+    translator_calls: int = 0
+    dropped_s: float = 0.0  # audio dropped by interrupt()
+    interrupts: int = 0
+
+
+@dataclass
+class _Translated:
+    params: np.ndarray  # [D]
+    out_audio: np.ndarray
+    late: bool
+
+
+@dataclass
+class _Plan:
+    params: np.ndarray | None  # None: idle
+    out_audio: np.ndarray
+    late: bool = False
+    underrun: bool = False
+
+
+@dataclass
+class _Timeline:
+    """Frame lengths in samples at one rate (a fractional samples-per-frame is rounded per frame)."""
+
+    rate: int
+    fps: float
+    per_frame: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.per_frame = self.rate / self.fps
+
+    def span(self, first: int, last: int) -> int:
+        """Samples of frames [first, last)."""
+        return frame_start(last, self.per_frame) - frame_start(first, self.per_frame)
+
+
+class LiveSession:
+    """A live session on a TalkingHead (`TalkingHead.live`): push audio from any thread, read frames on the thread
+    that owns the head's GL context."""
+
+    def __init__(self, head, *, lookahead_ms: float = 160.0, paced: bool = True, context_ms: float = 1000.0,
+                 output: str | None = "uint8", audio_rate: int | None = None, idle: IdleMotion | None = None,
+                 max_queued_s: float = MAX_QUEUED_S) -> None:
+        for name, value in (("lookahead_ms", lookahead_ms), ("context_ms", context_ms), ("max_queued_s", max_queued_s)):
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise LiveError(f"{name} must be a finite number >= 0, got {value!r}")
+        if not head.has_translator:
+            head._run_translator(np.zeros(1, np.float32))  # raises the BundleError that says why and what instead
+        self.head, self.paced, self.output = head, bool(paced), output
+        self.fps = float(head.fps)
+        self.lookahead_frames = math.ceil(lookahead_ms * self.fps / 1000.0 - 1e-9)
+        self.context_frames = math.ceil(context_ms * self.fps / 1000.0 - 1e-9)
+        self.sample_rate = int(audio_rate) if audio_rate is not None else head.sample_rate
+        self._speech = _Timeline(head.sample_rate, self.fps)
+        self._out = _Timeline(self.sample_rate, self.fps)
+        self._heard = ResampledQueue(head.sample_rate)  # what the translator hears
+        self._shown = ResampledQueue(self.sample_rate)  # what the frames carry
+        self._history = np.zeros(self._speech.span(0, self.context_frames), np.float32)
+        self._max_queued = int(max_queued_s * head.sample_rate)
+        arkit = head.rig == ARKIT_RIG
+        self._params_of = blendshape_params if arkit else flame_params
+        names = ARKIT_BLENDSHAPES if arkit else tuple(getattr(head.config, "expression_names", ()) or ())
+        self._size = len(ARKIT_BLENDSHAPES) if arkit else head.config.n_expr + 3
+        idle = idle or IdleMotion()
+        self._idle = IdleTrack(idle, self.fps)
+        self._blink = blink_vector(names, self._size, idle.blink)
+        self._sway = head.pose_track is None and (idle.sway_deg > 0 or idle.breath_mm > 0)
+        self._translated: deque[_Translated] = deque()
+        self._cond = threading.Condition()
+        self._epoch = 0  # bumped by interrupt(): translator results of an older epoch are dropped
+        self._flushed = False  # queued audio is complete: its last frames need no lookahead
+        self._ended = self._closed = self._reading = False
+        self._next_index = 0
+        self._last_spoken: np.ndarray | None = None
+        self._frames_since_speech = 0
+        self.stats = LiveStats()
+
+    # -- producer side (any thread) ------------------------------------------------------------------------------
+    def push(self, samples, sample_rate: int) -> None:
+        """Queue a chunk of speech (any size; int PCM or float; mono or [S, C]); returns at once. AudioError for
+        bad audio, LiveError after end()/close() or when more than max_queued_s would be waiting."""
+        mono, rate = live_chunk(samples, sample_rate)
+        with self._cond:
+            if self._closed or self._ended:
+                raise LiveError("this live session has " + ("been closed" if self._closed else "ended (end() was "
+                                "called)") + ": open a new one with head.live() to push more audio")
+            queued = len(self._heard.samples) + round(mono.shape[0] * self.head.sample_rate / rate)
+            if queued > self._max_queued:
+                raise LiveError(f"{queued / self.head.sample_rate:.1f} s of audio would be waiting, more than "
+                                f"max_queued_s={self._max_queued / self.head.sample_rate:g}: the frames are not being "
+                                "read (or not as fast as audio is pushed)")
+            if mono.shape[0]:
+                self._heard.push(mono, rate)
+                self._shown.push(mono, rate)
+                self._flushed = False
+            self._cond.notify_all()
+
+    def flush(self) -> None:
+        """The queued audio is a complete utterance: its last frames go out without waiting for lookahead (the
+        end of a text-to-speech reply). The session stays open for more."""
+        with self._cond:
+            self._heard.flush()
+            self._shown.flush()
+            self._flushed = True
+            self._cond.notify_all()
+
+    def end(self) -> None:
+        """No more audio: the queued frames flush, then frames() ends."""
+        self.flush()
+        with self._cond:
+            self._ended = True
+            self._cond.notify_all()
+
+    def interrupt(self) -> None:
+        """Barge-in: drop the queued audio and frames not yet shown; the face eases to idle. The next push starts
+        a new utterance with a clean context."""
+        with self._cond:
+            dropped = len(self._heard.samples) + sum(self._speech.per_frame for _ in self._translated)
+            self.stats.dropped_s += dropped / self.head.sample_rate
+            self.stats.interrupts += 1
+            self._heard.clear()
+            self._shown.clear()
+            self._translated.clear()
+            self._history[:] = 0.0
+            self._epoch += 1
+            self._flushed = False
+            self._cond.notify_all()
+
+    def close(self) -> None:
+        """Stop: frames() ends at its next frame; later pushes are refused."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    def __enter__(self) -> LiveSession:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def queued_s(self) -> float:
+        """Seconds of pushed audio not yet shown."""
+        with self._cond:
+            return (len(self._heard.samples) + len(self._translated) * self._speech.per_frame) / self.head.sample_rate
+
+    # -- consumer side (the GL thread) ---------------------------------------------------------------------------
+    def frames(self) -> Iterator[LiveFrame]:
+        """Frames until end() has flushed or close(): paced at the frame rate, or free-running (docs/live.md)."""
+        with self._cond:
+            if self._reading:
+                raise LiveError("frames() of this live session is already being read; read it once")
+            self._reading = True
+        try:
+            anchor_time, anchor_index = time.monotonic(), self._next_index
+            while True:
+                plan = self._plan(anchor_time + (self._next_index - anchor_index) / self.fps)
+                if plan is None:
+                    return
+                frame = self._render(plan)
+                if self.paced and time.monotonic() - anchor_time - (self._next_index - anchor_index) / self.fps \
+                        > MAX_LAG_FRAMES / self.fps:
+                    anchor_time, anchor_index = time.monotonic(), self._next_index
+                yield frame
+        finally:
+            with self._cond:
+                self._reading = False
+
+    def poll(self) -> list[LiveFrame]:
+        """The frames whose audio and lookahead are in now (no idle frames, no waiting): for apps that push and
+        read on one thread or event loop."""
+        frames = []
+        while True:
+            with self._cond:
+                ready = bool(self._translated) or self._ready_batch() > 0
+            if not ready:
+                return frames
+            plan = self._plan(None)
+            if plan is None:
+                return frames
+            frames.append(self._render(plan))
+
+    def _ready_batch(self) -> int:
+        """Frames that can be translated now (their audio and lookahead queued, or flushed), 0 if none."""
+        queued = len(self._heard.samples)
+        first = self._next_index + len(self._translated)
+        if queued == 0:
+            return 0
+        count = 0
+        while count < MAX_BATCH_FRAMES:
+            own = self._speech.span(first, first + count + 1)
+            ahead = self._speech.span(first + count + 1, first + count + 1 + self.lookahead_frames)
+            if queued >= own + ahead or (self._flushed and queued > self._speech.span(first, first + count)):
+                count += 1
+            else:
+                break
+        return count
+
+    def _plan(self, due: float | None) -> _Plan | None:
+        """The next frame's plan, translating a batch when one is ready; waits (paced: until `due`; free: until
+        audio or end) when nothing can be shown. `due` None: never wait and never idle (poll)."""
+        while True:
+            with self._cond:
+                if self._closed or (self._ended and not len(self._heard.samples) and not self._translated):
+                    return None
+                if due is not None and self.paced and due > time.monotonic():
+                    self._cond.wait(due - time.monotonic())  # paced: nothing goes out before its time
+                    continue
+                if self._translated:
+                    item = self._translated.popleft()
+                    return _Plan(item.params, item.out_audio, late=item.late)
+                count = self._ready_batch()
+                late = False
+                mid_utterance = self._last_spoken is not None and self._frames_since_speech == 0
+                if count == 0 and due is not None and self.paced and mid_utterance \
+                        and len(self._heard.samples) >= self._speech.span(self._next_index, self._next_index + 1):
+                    # Mid-utterance, its own audio is in but its lookahead is late: show it with what is in. (An
+                    # utterance starts only once its first frame's lookahead is in, which gives later frames slack.)
+                    count, late = 1, True
+                if count:
+                    job = self._take_batch(count, late)
+                elif due is None:
+                    return None
+                elif not self.paced and len(self._heard.samples):
+                    self._cond.wait()
+                    continue
+                else:
+                    underrun = mid_utterance and bool(len(self._heard.samples))
+                    self._place(np.zeros(self._speech.span(self._next_index, self._next_index + 1), np.float32))
+                    return _Plan(None, np.zeros(self._out.span(self._next_index, self._next_index + 1), np.float32),
+                                 underrun=underrun)
+            self._translate(*job)
+
+    def _take_batch(self, count: int, late: bool) -> tuple:
+        """Under the lock: cut `count` frames' audio off the queues and build the translator window."""
+        first = self._next_index + len(self._translated)
+        own = self._speech.span(first, first + count)
+        ahead = self._speech.span(first + count, first + count + self.lookahead_frames)
+        window = np.concatenate([self._history, self._heard.samples.peek(own + ahead)])
+        speech = self._heard.samples.take(own)
+        shown = [self._shown.samples.take(self._out.span(index, index + 1)) for index in range(first, first + count)]
+        self._place(speech)
+        return window, count, shown, late, self._epoch
+
+    def _place(self, speech: np.ndarray) -> None:
+        """Append shown speech-rate samples to the translator's past context (a sliding window)."""
+        if self._history.shape[0]:
+            self._history = np.concatenate([self._history, speech])[-self._history.shape[0]:]
+
+    def _translate(self, window: np.ndarray, count: int, shown: list, late: bool, epoch: int) -> None:
+        """Run the translator on a window outside the lock; keep the batch's frames unless interrupted meanwhile."""
+        frames = self.context_frames + count + self.lookahead_frames
+        params = self._params_of(self.head._run_translator(window), frames) * np.float32(
+            silence_gain(window, self.head.silence_gate_dbfs))
+        with self._cond:
+            self.stats.translator_calls += 1
+            if epoch != self._epoch:
+                return
+            for row, audio in zip(params[self.context_frames:self.context_frames + count], shown, strict=True):
+                self._translated.append(_Translated(row.astype(np.float32), audio, late))
+
+    def _render(self, plan: _Plan) -> LiveFrame:
+        """The plan's drive (idle motion added) rendered; bookkeeping of the ease and the stats."""
+        index = self._next_index
+        speaking = plan.params is not None
+        if speaking:
+            params, self._last_spoken, self._frames_since_speech = plan.params, plan.params, 0
+        else:
+            self._frames_since_speech += 1
+            ease = 0.0 if self._last_spoken is None else self._idle.ease_weight(self._frames_since_speech)
+            params = self._last_spoken * np.float32(ease) if ease > 0 else np.zeros(self._size, np.float32)
+        blink = self._idle.blink_weight(index, idle=not speaking)
+        if blink:
+            params = params + np.float32(blink) * self._blink
+        drive = self._drive(params, index)
+        image = None
+        if self.output is not None:
+            image = self.head.render(drive, self.output, reference_frame=index if self.head.composite else None)
+        stats = self.stats
+        stats.frames += 1
+        stats.speaking_frames += speaking
+        stats.idle_frames += not speaking
+        stats.late_frames += plan.late
+        stats.underruns += plan.underrun
+        self._next_index += 1
+        return LiveFrame(index, index / self.fps, image, plan.out_audio, self.sample_rate, speaking, drive)
+
+    def _drive(self, params: np.ndarray, index: int) -> FrameDrive | BlendshapeDrive:
+        pose = self._idle.sway(index) if self._sway else self.head.head_pose(index)
+        if self.head.rig == ARKIT_RIG:
+            return self.head.blendshape_drive(np.clip(params, 0.0, 1.0), pose)
+        n_expr = self.head.config.n_expr
+        return FrameDrive.make(n_expr, params[:n_expr], params[n_expr:], head_pose=pose)
+
+
+__all__ = ["LiveSession", "LiveFrame", "LiveStats", "IdleMotion"]
