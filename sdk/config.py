@@ -82,7 +82,7 @@ class SpeakerConfig:
     def __post_init__(self) -> None:
         self.expression_names = tuple(str(name) for name in self.expression_names)
         if self.expression_names and len(self.expression_names) != self.n_expr:
-            raise ValueError(f"expression_names holds {len(self.expression_names)} names for {self.n_expr} "
+            raise ValueError(f"{len(self.expression_names)} expression_names for {self.n_expr} "
                              "expression coefficients")
         if self.binding not in TRIANGLE_BINDINGS:
             raise ValueError(f"speaker binding must be one of {', '.join(TRIANGLE_BINDINGS)}, got {self.binding!r}")

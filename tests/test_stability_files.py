@@ -249,7 +249,11 @@ RUNTIME_LIES = {
     "missing 'camera' section": (lambda m: m.pop("camera"), "manifest has no 'camera' section"),
     "'speaker' section not a table": (lambda m: m.update(speaker=[]), "'speaker' section is not a table"),
     "'camera' section invalid": (lambda m: m["camera"].pop("fx"), "'camera' section is invalid"),
-    "speaker n_expr disagrees with graphs": (lambda m: m["speaker"].update(n_expr=30), "n_expr is 30"),
+    # (Its expression names go too: 20 names for 30 coefficients is a config error of its own.)
+    "speaker n_expr disagrees with graphs": (lambda m: m["speaker"].update(n_expr=30, expression_names=[]),
+                                             "n_expr is 30"),
+    "speaker expression names miscounted": (lambda m: m["speaker"].update(expression_names=["jaw"]),
+                                            "1 expression_names for 20 expression coefficients"),
     "speaker fps disagrees with the translator": (lambda m: m["speaker"].update(fps=30),
                                                   "no valid speaker config: config timing disagrees"),
     "speaker config has an unknown key": (lambda m: m["speaker"].update(colour="red"),

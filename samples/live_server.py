@@ -1,0 +1,242 @@
+"""Live sample: `python samples/live_server.py speaker.gtb [--port 8080]`, then open http://127.0.0.1:8080/.
+
+Streams the talking head to a browser over WebRTC (aiortc; `pip install ".[live]"`). The page chooses what the
+head says: a sound file on the server (`--audio`, default the sample speech), the browser's microphone (the head
+mouths what it hears and sends it back in sync), or text spoken by `espeak-ng` when it is installed. Each
+connection gets its own live session (docs/live.md) on a render thread of its own, which owns its TalkingHead and
+its GL context; frames go to the connection's video and audio tracks with the session's clock as their
+timestamps, so picture and voice stay in sync. `GET /stats` reports each session's counters (the browser test
+reads it).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import fractions
+import json
+import shutil
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import typer
+
+from gaussiantalker.runtime import GaussianTalkerError, TalkingHead
+from gaussiantalker.sdk.audio import load_audio
+
+try:
+    from aiohttp import web
+    from aiortc import MediaStreamTrack, RTCPeerConnection, RTCSessionDescription
+    from aiortc.mediastreams import MediaStreamError
+    from av import AudioFrame, VideoFrame
+except ImportError as exc:  # the runtime alone does not install them
+    raise SystemExit(f"live_server.py needs aiortc and aiohttp: pip install 'gaussiantalker-sdk[live]' ({exc})") \
+        from None
+
+PAGE = Path(__file__).with_name("live_page.html")
+SPEECH = Path(__file__).with_name("demo_speech.wav")
+AUDIO_RATE = 48000  # WebRTC's Opus clock
+CHUNK_S = 0.02  # what a voice source pushes at a time
+QUEUE_FRAMES = 50  # frames waiting for a track, at most (2 s): a reader that stalls loses the oldest
+
+
+class FrameTrack(MediaStreamTrack):
+    """A video or audio track fed by the render thread with the live session's frames (`put` from any thread)."""
+
+    def __init__(self, kind: str, loop: asyncio.AbstractEventLoop) -> None:
+        super().__init__()
+        self.kind, self._loop, self.fps = kind, loop, 25
+        self._queue: asyncio.Queue = asyncio.Queue(QUEUE_FRAMES)
+
+    def put(self, frame) -> None:
+        self._loop.call_soon_threadsafe(self._put, frame)
+
+    def _put(self, frame) -> None:
+        if self._queue.full():
+            self._queue.get_nowait()
+        self._queue.put_nowait(frame)
+
+    async def recv(self):
+        frame = await self._queue.get()
+        if frame is None:
+            self.stop()
+            raise MediaStreamError
+        if self.kind == "video":
+            out = VideoFrame.from_ndarray(frame.image, format="rgb24")
+            out.pts, out.time_base = frame.index * 90000 // self.fps, fractions.Fraction(1, 90000)
+            return out
+        pcm = np.clip(frame.audio * 32767.0, -32768, 32767).astype(np.int16)[None]
+        out = AudioFrame.from_ndarray(pcm, format="s16", layout="mono")
+        out.sample_rate = AUDIO_RATE
+        out.pts, out.time_base = round(frame.index * AUDIO_RATE / self.fps), fractions.Fraction(1, AUDIO_RATE)
+        return out
+
+
+class Session:
+    """One connection's live session on a render thread of its own, with its counters for /stats."""
+
+    def __init__(self, bundle: Path, size: int, lookahead_ms: float, loop: asyncio.AbstractEventLoop) -> None:
+        self.ready = threading.Event()
+        self.stats: dict = {"frames": 0, "speaking_frames": 0, "jaw": [], "level": []}
+        self._args = (bundle, size, lookahead_ms)
+        self.live = self.head = None
+        self.error: str | None = None
+        self.video, self.audio = FrameTrack("video", loop), FrameTrack("audio", loop)
+        self._thread = threading.Thread(target=self._run, name="gt-live-render", daemon=True)
+
+    def start(self) -> None:
+        """Load the head on the render thread and start its session (blocks until it is ready)."""
+        self._thread.start()
+        self.ready.wait()
+        if self.error:
+            raise RuntimeError(self.error)
+
+    def _run(self) -> None:
+        bundle, size, lookahead_ms = self._args
+        try:
+            head = TalkingHead(bundle, resolution=(size, size), composite=False)
+        except GaussianTalkerError as exc:
+            self.error = str(exc)
+            self.ready.set()
+            return
+        with head, head.live(lookahead_ms=lookahead_ms, audio_rate=AUDIO_RATE) as live:
+            self.head, self.live = head, live
+            self.video.fps = self.audio.fps = head.fps
+            self.ready.set()
+            for frame in live.frames():
+                self.stats["frames"] += 1
+                self.stats["speaking_frames"] += frame.speaking
+                pose = getattr(frame.drive, "flame_pose", None)  # an ARKit speaker's jaw: its jawOpen weight
+                self.stats["jaw"].append(float(pose[6]) if pose is not None else float(frame.drive.blendshapes[24]))
+                self.stats["level"].append(float(np.sqrt(np.mean(frame.audio ** 2))))
+                del self.stats["jaw"][:-1500], self.stats["level"][:-1500]  # the last minute
+                self.video.put(frame)
+                self.audio.put(frame)
+        self.video.put(None)
+        self.audio.put(None)
+
+    def summary(self) -> dict:
+        jaw, level = np.array(self.stats["jaw"]), np.array(self.stats["level"])
+        speaking = level > 1e-4
+        corr = float(np.corrcoef(jaw, level)[0, 1]) if jaw.size > 2 and jaw.std() > 0 and level.std() > 0 else 0.0
+        return {"frames": self.stats["frames"], "speaking_frames": self.stats["speaking_frames"],
+                "jaw_range_speaking": float(np.ptp(jaw[speaking])) if speaking.any() else 0.0,
+                "jaw_loudness_r": corr, "fps": self.head.fps if self.head else None,
+                "size": list(self.head.frame_size) if self.head else None,
+                "late_frames": self.live.stats.late_frames if self.live else 0}
+
+
+async def push_real_time(live, audio: np.ndarray, rate: int) -> None:
+    """Push `audio` in CHUNK_S chunks at real time, as a voice that speaks as it is made, then flush."""
+    step = int(rate * CHUNK_S)
+    start = time.monotonic()
+    for k, first in enumerate(range(0, audio.shape[0], step)):
+        await asyncio.sleep(max(0.0, start + k * CHUNK_S - time.monotonic()))
+        live.push(audio[first:first + step], rate)
+    live.flush()
+
+
+async def push_track(live, track: MediaStreamTrack) -> None:
+    """Push what the browser's microphone sends, as it arrives."""
+    while True:
+        try:
+            frame = await track.recv()
+        except MediaStreamError:
+            return
+        samples = frame.to_ndarray()  # s16, [channels or 1, samples] (interleaved for packed stereo)
+        channels = len(frame.layout.channels)
+        mono = samples.reshape(-1, channels) if samples.shape[0] == 1 else samples.T
+        live.push(mono, frame.sample_rate)
+
+
+def spoken_text(text: str) -> tuple[np.ndarray, int]:
+    """`text` spoken by espeak-ng (a wav on stdout): mono samples and rate."""
+    exe = shutil.which("espeak-ng") or shutil.which("espeak")
+    if exe is None:
+        raise web.HTTPBadRequest(text="text-to-speech needs espeak-ng on the server (apt-get install espeak-ng)")
+    wav = subprocess.run([exe, "--stdout", text[:2000]], capture_output=True, check=True).stdout
+    path = Path(f"/tmp/gt-live-{threading.get_ident()}.wav")
+    path.write_bytes(wav)
+    try:
+        return load_audio(path, 16000), 16000
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path) -> web.Application:
+    app = web.Application()
+    sessions: dict[RTCPeerConnection, Session] = {}
+
+    async def index(request: web.Request) -> web.Response:
+        return web.Response(text=PAGE.read_text(), content_type="text/html")
+
+    async def offer(request: web.Request) -> web.Response:
+        params = await request.json()
+        source = params.get("source", "file")
+        if source not in ("file", "mic", "text"):
+            raise web.HTTPBadRequest(text=f"source must be file, mic or text, got {source!r}")
+        pc = RTCPeerConnection()
+        loop = asyncio.get_running_loop()
+        session = Session(bundle, size, lookahead_ms, loop)
+        sessions[pc] = session
+
+        @pc.on("track")
+        def on_track(track: MediaStreamTrack) -> None:
+            if track.kind == "audio" and source == "mic":
+                asyncio.ensure_future(push_track(session.live, track))
+
+        @pc.on("connectionstatechange")
+        async def on_state() -> None:
+            if pc.connectionState in ("failed", "closed"):
+                await close(pc)
+
+        await loop.run_in_executor(None, session.start)
+        pc.addTrack(session.video)
+        pc.addTrack(session.audio)
+        await pc.setRemoteDescription(RTCSessionDescription(sdp=params["sdp"], type=params["type"]))
+        await pc.setLocalDescription(await pc.createAnswer())
+        if source == "file":
+            samples = load_audio(speech, 16000)
+            asyncio.ensure_future(push_real_time(session.live, samples, 16000))
+        elif source == "text":
+            samples, rate = await loop.run_in_executor(None, spoken_text, str(params.get("text", "Hello.")))
+            asyncio.ensure_future(push_real_time(session.live, samples, rate))
+        return web.json_response({"sdp": pc.localDescription.sdp, "type": pc.localDescription.type})
+
+    async def close(pc: RTCPeerConnection) -> None:
+        session = sessions.pop(pc, None)
+        if session is not None and session.live is not None:
+            session.live.close()
+        await pc.close()
+
+    async def stats(request: web.Request) -> web.Response:
+        return web.json_response([session.summary() for session in sessions.values()])
+
+    async def on_shutdown(app: web.Application) -> None:
+        await asyncio.gather(*(close(pc) for pc in list(sessions)))
+
+    app.router.add_get("/", index)
+    app.router.add_post("/offer", offer)
+    app.router.add_get("/stats", stats)
+    app.on_shutdown.append(on_shutdown)
+    return app
+
+
+def main(bundle: Path = typer.Argument(..., help="a speaker bundle with a translator (.gtb)"),
+         port: int = typer.Option(8080, "--port", help="port on 127.0.0.1"),
+         host: str = typer.Option("127.0.0.1", "--host", help="address to listen on"),
+         size: int = typer.Option(256, "--size", min=16, help="square frame size"),
+         lookahead_ms: float = typer.Option(160.0, "--lookahead-ms", min=0.0, help="the live session's lookahead"),
+         audio: Path = typer.Option(SPEECH, "--audio", help="the sound file the page's 'file' source plays")) -> None:
+    """Serve the live page and stream the talking head over WebRTC."""
+    for path, hint in ((bundle, "BUNDLE"), (audio, "--audio")):
+        if not path.is_file():
+            raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
+    print(json.dumps({"url": f"http://{host}:{port}/", "bundle": str(bundle)}), flush=True)
+    web.run_app(make_app(bundle, size, lookahead_ms, audio), host=host, port=port, print=None)
+
+
+if __name__ == "__main__":
+    typer.run(main)
