@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import os
 from collections.abc import Iterator, Sequence
 from types import SimpleNamespace
 
@@ -18,7 +19,7 @@ import pytest
 def demo_speaker(small_speaker):
     """The default demo speaker (20k Gaussians) with the small speaker's trained translator. The translator learns
     from synthetic speech alone, whatever the head, so one training serves both; its default 400 steps (~70 s) are
-    checked by test_demo_motion's opt-in test and measured by `make_demo_speaker.py` (docs/demo-speaker.md)."""
+    checked by test_demo_motion's heavy test and measured by `make_demo_speaker.py` (docs/demo-speaker.md)."""
     from gaussiantalker.exporter.demo.speaker import make_demo_speaker
 
     speaker, metrics = make_demo_speaker(progress=False, train_seconds=0)
@@ -78,6 +79,17 @@ def _settle_heap() -> None:
 
 def pytest_collection_finish(session):
     _settle_heap()
+
+
+def pytest_collection_modifyitems(config, items):
+    """`heavy` cases (minutes each: the demo speaker's defaults end to end) run only with GT_HEAVY=1; CI and the
+    full run skip them, their figures come from the commands their docs name (CONTRIBUTING.md)."""
+    if os.environ.get("GT_HEAVY"):
+        return
+    skip = pytest.mark.skip(reason="heavy: run with GT_HEAVY=1 (CONTRIBUTING.md)")
+    for item in items:
+        if "heavy" in item.keywords:
+            item.add_marker(skip)
 
 
 # -- rebinding recorded graphs to another speaker's weights ------------------------------------------------------

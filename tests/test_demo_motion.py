@@ -3,8 +3,6 @@ basis, the head's named expression fields, and what a briefly trained translator
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import pytest
 
@@ -208,9 +206,7 @@ def test_quick_speaker_moves_the_whole_basis_on_unseen_speech(small_speaker) -> 
     _check_trained(small_speaker.metrics, 5, QUICK_CORR_BOUNDS)
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(not os.environ.get("GT_FULL_TRAINING"), reason="the default 400-step training takes ~70 s: "
-                    "run with GT_FULL_TRAINING=1 (its figures: docs/demo-speaker.md, from make_demo_speaker.py)")
+@pytest.mark.heavy  # the default 400-step training, ~70 s (its figures: docs/demo-speaker.md)
 def test_default_training_moves_the_whole_basis_on_unseen_speech() -> None:
     """The demo speaker as `make_demo_speaker.py` builds it (translator: default settings, 400 steps, seed 0)."""
     from gaussiantalker.exporter.demo.speaker import make_demo_speaker

@@ -223,7 +223,7 @@ def test_gt_export_scene_errors_before_loading(tmp_path):
 
 
 # -- the demo speaker and the sample front scene (slow) ------------------------------------------------------
-@pytest.mark.slow
+@pytest.mark.heavy  # ~90 s: two torch.onnx exports and the pruning sweep of the 20k speaker (docs/scene.md)
 def test_front_scene_on_the_demo_speaker(demo_speaker, demo_bundle, tmp_path):
     """samples/front_scene.toml: >= 2x smaller (the issue's goal; bytes are deterministic) and the frames of the
     pose corners and a driven clip at >= 50 dB against the unspecialised bundle."""
