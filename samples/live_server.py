@@ -67,7 +67,7 @@ class FrameTrack(MediaStreamTrack):
             out = VideoFrame.from_ndarray(frame.image, format="rgb24")
             out.pts, out.time_base = frame.index * 90000 // self.fps, fractions.Fraction(1, 90000)
             return out
-        pcm = np.clip(frame.audio * 32767.0, -32768, 32767).astype(np.int16)[None]
+        pcm = np.clip(np.round(frame.audio * 32768.0), -32768, 32767).astype(np.int16)[None]
         out = AudioFrame.from_ndarray(pcm, format="s16", layout="mono")
         out.sample_rate = AUDIO_RATE
         out.pts, out.time_base = round(frame.index * AUDIO_RATE / self.fps), fractions.Fraction(1, AUDIO_RATE)

@@ -19,6 +19,7 @@ print(",".join(bad))
     ("gaussiantalker.runtime", ()),
     ("gaussiantalker.runtime.head", ()),
     ("gaussiantalker.runtime.splatter", ()),
+    ("gaussiantalker.runtime.live", ()),
     ("gaussiantalker.sdk.bundle", ("gaussiantalker.runtime", "gaussiantalker.exporter")),
     ("gaussiantalker.sdk.audio", ("gaussiantalker.runtime", "gaussiantalker.exporter")),
     ("gaussiantalker.sdk.video", ("gaussiantalker.runtime", "gaussiantalker.exporter")),
