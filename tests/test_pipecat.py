@@ -1,19 +1,17 @@
 """The Pipecat adapter (runtime/pipecat_video.py, docs/live.md "Pipecat") in Pipecat's own test pipeline runner,
 offline: text-to-speech audio frames in, the head's audio and image frames out in order and in sync. Skips when
-the pipecat extra is not installed (CI installs it)."""
+the pipecat extra is not installed (`pip install ".[pipecat]"`)."""
 
 from __future__ import annotations
 
 import asyncio
-import os
 
 import numpy as np
 import pytest
 
 from gaussiantalker.sdk.audio import load_audio, resample
 
-if not os.environ.get("CI"):
-    pytest.importorskip("pipecat", reason="the pipecat extra is not installed: pip install '.[pipecat]'")
+pytest.importorskip("pipecat", reason="the pipecat extra is not installed: pip install '.[pipecat]'")
 
 from pipecat.frames.frames import (  # noqa: E402
     InterruptionFrame,
