@@ -1,0 +1,138 @@
+"""A Pipecat frame processor that gives a voice agent a face (docs/live.md, "Pipecat"):
+
+    pipeline = Pipeline([transport.input(), stt, llm, tts, TalkingHeadVideo("speaker.gtb"), transport.output()])
+
+Text-to-speech audio frames go into a live session instead of straight on; every frame of the session then goes
+downstream as an OutputAudioRawFrame (the samples it shows, silence while idle) followed by an OutputImageRawFrame
+queued with that audio (`sync_with_audio`), so the output transport plays voice and face together. The end of a
+reply (TTSStoppedFrame) flushes the session, an interruption is a barge-in, and the face idles between turns.
+
+The session runs on a render thread of its own, which owns the TalkingHead and its GL context; its frames reach
+the pipeline's event loop through a queue drained by one task, so they keep their order.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import threading
+
+import numpy as np
+
+try:
+    from pipecat.frames.frames import (
+        CancelFrame,
+        EndFrame,
+        InterruptionFrame,
+        OutputAudioRawFrame,
+        OutputImageRawFrame,
+        StartFrame,
+        TTSAudioRawFrame,
+        TTSStoppedFrame,
+    )
+    from pipecat.processors.frame_processor import FrameDirection, FrameProcessor, FrameProcessorSetup
+except ImportError as exc:  # an optional extra: the runtime does not need it
+    raise ImportError(f"TalkingHeadVideo needs Pipecat: pip install 'gaussiantalker-sdk[pipecat]' ({exc})") from None
+
+from .head import TalkingHead
+from .live import LiveFrame
+
+
+class TalkingHeadVideo(FrameProcessor):
+    """Text-to-speech audio in; the talking head's frames and the same audio out, in sync (paced at the frame rate,
+    idling between turns). `bundle`: a speaker bundle with a translator; `resolution`, `lookahead_ms` and `idle` as
+    for TalkingHead and TalkingHead.live."""
+
+    def __init__(self, bundle: str | os.PathLike, *, resolution: tuple[int, int] | None = None,
+                 lookahead_ms: float = 160.0, idle=None, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self._bundle, self._resolution, self._lookahead_ms, self._idle = bundle, resolution, lookahead_ms, idle
+        self._live = None
+        self._audio_rate = 16000
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+        self._queue: asyncio.Queue | None = None
+        self._sender: asyncio.Task | None = None
+
+    # -- the pipeline's side -------------------------------------------------------------------------------------
+    async def setup(self, setup: FrameProcessorSetup) -> None:
+        await super().setup(setup)
+        self._audio_rate = setup.audio_out_sample_rate  # the transport's output rate: the frames' audio comes at it
+
+    async def process_frame(self, frame, direction: FrameDirection) -> None:
+        await super().process_frame(frame, direction)
+        if isinstance(frame, StartFrame):
+            await self.push_frame(frame, direction)
+            await self._start(self._audio_rate)
+            return
+        if isinstance(frame, TTSAudioRawFrame):
+            pcm = np.frombuffer(frame.audio, np.int16).reshape(-1, frame.num_channels)
+            self._live.push(pcm, frame.sample_rate)
+            return  # its samples go on with the frames that show them
+        if isinstance(frame, TTSStoppedFrame):
+            self._live.flush()
+        elif isinstance(frame, InterruptionFrame):
+            self._live.interrupt()
+        elif isinstance(frame, (EndFrame, CancelFrame)):
+            await self._stop(drain=isinstance(frame, EndFrame))
+        await self.push_frame(frame, direction)
+
+    async def _start(self, audio_rate: int) -> None:
+        loop = asyncio.get_running_loop()
+        self._queue = asyncio.Queue()
+        self._thread = threading.Thread(target=self._render, args=(loop, audio_rate), name="gt-pipecat-render",
+                                        daemon=True)
+        self._thread.start()
+        await loop.run_in_executor(None, self._ready.wait)
+        if self._error is not None:
+            raise self._error
+        self._sender = self.create_task(self._send())
+
+    async def _stop(self, drain: bool) -> None:
+        """EndFrame: the session ends, its last frames go out first. CancelFrame: close at once."""
+        if self._live is None:
+            return
+        if drain:
+            self._live.end()
+        else:
+            self._live.close()
+        await asyncio.get_running_loop().run_in_executor(None, self._thread.join)
+        if drain:
+            await self._sender  # every frame the session made is pushed before the EndFrame
+        else:
+            await self.cancel_task(self._sender)
+        self._live = None
+
+    async def _send(self) -> None:
+        """Push the session's frames downstream in order: the audio they show, then the picture, queued with it."""
+        while True:
+            frame: LiveFrame | None = await self._queue.get()
+            if frame is None:
+                return
+            pcm = np.clip(np.round(frame.audio * 32768.0), -32768, 32767).astype(np.int16).tobytes()  # int16 exact
+            await self.push_frame(OutputAudioRawFrame(audio=pcm, sample_rate=frame.sample_rate, num_channels=1))
+            height, width = frame.image.shape[:2]
+            image = OutputImageRawFrame(image=frame.image.tobytes(), size=(width, height), format="RGB")
+            image.sync_with_audio = True
+            image.pts = round(frame.pts * 1e9)  # Pipecat's presentation times are nanoseconds
+            await self.push_frame(image)
+
+    # -- the render thread ---------------------------------------------------------------------------------------
+    def _render(self, loop: asyncio.AbstractEventLoop, audio_rate: int) -> None:
+        try:
+            head = TalkingHead(self._bundle, resolution=self._resolution, composite=False)
+            live = head.live(lookahead_ms=self._lookahead_ms, audio_rate=audio_rate, idle=self._idle)
+        except BaseException as exc:  # reported on the pipeline's side, by _start
+            self._error = exc
+            self._ready.set()
+            return
+        with head, live:
+            self._live = live
+            self._ready.set()
+            for frame in live.frames():
+                loop.call_soon_threadsafe(self._queue.put_nowait, frame)
+        loop.call_soon_threadsafe(self._queue.put_nowait, None)
+
+
+__all__ = ["TalkingHeadVideo"]
