@@ -26,12 +26,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gaussiantalker.sdk.audio import as_mono
 from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive
 from gaussiantalker.sdk.errors import LiveError
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_RIG
 
 from .idle import IdleMotion, IdleTrack, blink_vector
-from .live_audio import ResampledQueue, live_chunk
+from .live_audio import ResampledQueue
 from .translate import blendshape_params, flame_params, frame_start, silence_gain
 
 # Frames translated per translator call at most when audio is queued ahead (a long push): bigger batches cost
@@ -150,7 +151,7 @@ class LiveSession:
     def push(self, samples, sample_rate: int) -> None:
         """Queue a chunk of speech (any size; int PCM or float; mono or [S, C]); returns at once. AudioError for
         bad audio, LiveError after end()/close() or when more than max_queued_s would be waiting."""
-        mono, rate = live_chunk(samples, sample_rate)
+        mono, rate = as_mono(samples, sample_rate)
         with self._cond:
             if self._closed or self._ended:
                 raise LiveError("this live session has " + ("been closed" if self._closed else "ended (end() was "
@@ -186,8 +187,7 @@ class LiveSession:
         """Barge-in: drop the queued audio and frames not yet shown; the face eases to idle. The next push starts
         a new utterance with a clean context."""
         with self._cond:
-            dropped = len(self._heard.samples) + sum(self._speech.per_frame for _ in self._translated)
-            self.stats.dropped_s += dropped / self.head.sample_rate
+            self.stats.dropped_s += self._queued_seconds()
             self.stats.interrupts += 1
             self._heard.clear()
             self._shown.clear()
@@ -213,7 +213,11 @@ class LiveSession:
     def queued_s(self) -> float:
         """Seconds of pushed audio not yet shown."""
         with self._cond:
-            return (len(self._heard.samples) + len(self._translated) * self._speech.per_frame) / self.head.sample_rate
+            return self._queued_seconds()
+
+    def _queued_seconds(self) -> float:
+        """Under the lock: pushed audio not yet shown, queued or translated, in seconds."""
+        return (len(self._heard.samples) + len(self._translated) * self._speech.per_frame) / self.head.sample_rate
 
     # -- consumer side (the GL thread) ---------------------------------------------------------------------------
     def frames(self) -> Iterator[LiveFrame]:
@@ -241,15 +245,9 @@ class LiveSession:
         """The frames whose audio and lookahead are in now (no idle frames, no waiting): for apps that push and
         read on one thread or event loop."""
         frames = []
-        while True:
-            with self._cond:
-                ready = bool(self._translated) or self._ready_batch() > 0
-            if not ready:
-                return frames
-            plan = self._plan(None)
-            if plan is None:
-                return frames
+        while (plan := self._plan(None)) is not None:  # _plan(None) neither waits nor idles
             frames.append(self._render(plan))
+        return frames
 
     def _ready_batch(self) -> int:
         """Frames that can be translated now (their audio and lookahead queued, or flushed), 0 if none."""

@@ -4,7 +4,7 @@ One queue holds the audio at the speaker's rate (what the translator hears), the
 rate (what each LiveFrame carries for the app's transport). Both are cut by the same video-frame clock, so they
 stay aligned however the chunks were sized. Resampling streams through libsoxr (python-soxr's ResampleStream):
 resampling each chunk on its own would put a filter edge, an audible click, at every chunk border
-(docs/live.md, "Audio").
+(docs/live.md, "The timeline and the audio clock").
 """
 
 from __future__ import annotations
@@ -12,8 +12,7 @@ from __future__ import annotations
 import numpy as np
 import soxr
 
-from gaussiantalker.sdk.audio import RESAMPLE_QUALITY, _check_rate, _to_float, _to_mono
-from gaussiantalker.sdk.errors import AudioError
+from gaussiantalker.sdk.audio import RESAMPLE_QUALITY
 
 
 class SampleFifo:
@@ -83,15 +82,3 @@ class ResampledQueue:
         self.samples.clear()
         self._stream, self._source_rate = None, None
 
-
-def live_chunk(samples, sample_rate) -> tuple[np.ndarray, int]:
-    """A pushed chunk as mono float32 and its rate: int16/int32/uint8 PCM or float, [S], [S, C] or [C, S];
-    AudioError naming the problem (NaN, a bad rate, a bad layout)."""
-    rate = _check_rate(sample_rate)
-    try:
-        array = np.asarray(samples)
-    except (TypeError, ValueError) as exc:
-        raise AudioError(f"pushed audio is not a numeric array: {exc}") from exc
-    if array.size == 0:
-        return np.zeros(0, np.float32), rate
-    return np.ascontiguousarray(_to_mono(_to_float(array)), dtype=np.float32), rate

@@ -127,14 +127,22 @@ def resample(samples: np.ndarray, source_rate: int, target_rate: int = TARGET_SA
     return padded
 
 
-def prepare_audio(samples: np.ndarray, sample_rate: int, target_rate: int = TARGET_SAMPLE_RATE) -> np.ndarray:
-    """Any in-memory audio -> mono float32 at target_rate; AudioError naming what is wrong with it."""
+def as_mono(samples, sample_rate) -> tuple[np.ndarray, int]:
+    """Any in-memory audio (int PCM or float; [S], [S, C] or [C, S]) -> (mono float32 [S], its checked rate), not
+    resampled; empty stays empty. AudioError naming what is wrong with it."""
     rate = _check_rate(sample_rate)
     try:
         samples = np.asarray(samples)
     except (TypeError, ValueError) as exc:
         raise AudioError(f"audio is not a numeric array: {exc}") from exc
-    mono = _to_mono(_to_float(samples))
+    if samples.size == 0:
+        return np.zeros(0, np.float32), rate
+    return np.ascontiguousarray(_to_mono(_to_float(samples)), dtype=np.float32), rate
+
+
+def prepare_audio(samples: np.ndarray, sample_rate: int, target_rate: int = TARGET_SAMPLE_RATE) -> np.ndarray:
+    """Any in-memory audio -> mono float32 at target_rate; AudioError naming what is wrong with it."""
+    mono, rate = as_mono(samples, sample_rate)
     if mono.size == 0:
         raise AudioError("audio is empty (0 samples)")
     return np.ascontiguousarray(resample(mono, rate, target_rate), dtype=np.float32)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from gaussiantalker.runtime import IdleMotion, TalkingHead
+from gaussiantalker.runtime.live_audio import SampleFifo
 from gaussiantalker.sdk.audio import load_audio, resample
 
 CHUNK_MS = 20.0
@@ -135,19 +136,13 @@ def drift(head: TalkingHead, speech: np.ndarray, minutes: float, rate: int = 441
     total = int(minutes * 60 * rate)
     started = time.perf_counter()
     with head.live(paced=False, output=None, audio_rate=rate) as live:
-        history = []  # pushed samples not yet shown, to compare with what frames carry
+        pending = SampleFifo()  # pushed samples not yet shown, to compare with what frames carry
 
         def take(frames):
             nonlocal shown_samples, mismatched
             for frame in frames:
-                expected = np.concatenate(history)[: frame.audio.shape[0]] if history else np.zeros(0, np.float32)
-                consumed = expected.shape[0]
-                head_of = np.concatenate(history)[consumed:] if history else np.zeros(0, np.float32)
-                history.clear()
-                if head_of.shape[0]:
-                    history.append(head_of)
-                got = frame.audio[:consumed]
-                mismatched += int(not np.array_equal(got, expected))
+                count = min(len(pending), frame.audio.shape[0])
+                mismatched += int(not np.array_equal(frame.audio[:count], pending.take(count)))
                 shown_samples += frame.audio.shape[0]
                 jaws.append(float(frame.drive.flame_pose[6]))
                 levels.append(float(np.sqrt(np.mean(frame.audio ** 2))))
@@ -159,7 +154,7 @@ def drift(head: TalkingHead, speech: np.ndarray, minutes: float, rate: int = 441
                 size = int(rng.integers(rate // 200, rate // 20))
                 chunk = part[start:start + size]
                 live.push(chunk, rate)
-                history.append(chunk)
+                pending.append(chunk)
                 pushed += chunk.shape[0]
                 start += size
                 take(live.poll())
