@@ -5,8 +5,13 @@ head says: a sound file on the server (`--audio`, default the sample speech), th
 mouths what it hears and sends it back in sync), or text spoken by `espeak-ng` when it is installed. Each
 connection gets its own live session (docs/live.md) on a render thread of its own, which owns its TalkingHead and
 its GL context; frames go to the connection's video and audio tracks with the session's clock as their
-timestamps, so picture and voice stay in sync. `GET /stats` reports each session's counters (the browser test
-reads it).
+timestamps, so picture and voice stay in sync. `GET /stats` reports each session's counters, `GET /health` the
+open sessions and render threads (the browser tests read both).
+
+A browser that leaves ends its session at once: the page posts `/close` with its session id when it stops or
+unloads. One that vanishes without a word (a crash, a dropped network) is noticed by WebRTC's consent checks,
+which give up after about 30 s; the session then ends the same way. Either way the render thread stops and the
+voice source stops pushing.
 """
 
 from __future__ import annotations
@@ -18,12 +23,13 @@ import shutil
 import subprocess
 import threading
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
 import typer
 
-from gaussiantalker.runtime import GaussianTalkerError, TalkingHead
+from gaussiantalker.runtime import GaussianTalkerError, LiveError, TalkingHead
 from gaussiantalker.sdk.audio import load_audio
 
 try:
@@ -77,6 +83,8 @@ class FrameTrack(MediaStreamTrack):
 class Session:
     """One connection's live session on a render thread of its own, with its counters for /stats."""
 
+    THREAD_NAME = "gt-live-render"
+
     def __init__(self, bundle: Path, size: int, lookahead_ms: float, loop: asyncio.AbstractEventLoop) -> None:
         self.ready = threading.Event()
         self.stats: dict = {"frames": 0, "speaking_frames": 0, "jaw": [], "level": []}
@@ -84,7 +92,7 @@ class Session:
         self.live = self.head = None
         self.error: str | None = None
         self.video, self.audio = FrameTrack("video", loop), FrameTrack("audio", loop)
-        self._thread = threading.Thread(target=self._run, name="gt-live-render", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=self.THREAD_NAME, daemon=True)
 
     def start(self) -> None:
         """Load the head on the render thread and start its session (blocks until it is ready)."""
@@ -129,17 +137,21 @@ class Session:
 
 
 async def push_real_time(live, audio: np.ndarray, rate: int) -> None:
-    """Push `audio` in CHUNK_S chunks at real time, as a voice that speaks as it is made, then flush."""
+    """Push `audio` in CHUNK_S chunks at real time, as a voice that speaks as it is made, then flush. Stops
+    quietly when the session closes (the browser left)."""
     step = int(rate * CHUNK_S)
     start = time.monotonic()
-    for k, first in enumerate(range(0, audio.shape[0], step)):
-        await asyncio.sleep(max(0.0, start + k * CHUNK_S - time.monotonic()))
-        live.push(audio[first:first + step], rate)
-    live.flush()
+    try:
+        for k, first in enumerate(range(0, audio.shape[0], step)):
+            await asyncio.sleep(max(0.0, start + k * CHUNK_S - time.monotonic()))
+            live.push(audio[first:first + step], rate)
+        live.flush()
+    except LiveError:
+        return
 
 
 async def push_track(live, track: MediaStreamTrack) -> None:
-    """Push what the browser's microphone sends, as it arrives."""
+    """Push what the browser's microphone sends, as it arrives, until the track or the session ends."""
     while True:
         try:
             frame = await track.recv()
@@ -148,7 +160,10 @@ async def push_track(live, track: MediaStreamTrack) -> None:
         samples = frame.to_ndarray()  # s16, [channels or 1, samples] (interleaved for packed stereo)
         channels = len(frame.layout.channels)
         mono = samples.reshape(-1, channels) if samples.shape[0] == 1 else samples.T
-        live.push(mono, frame.sample_rate)
+        try:
+            live.push(mono, frame.sample_rate)
+        except LiveError:
+            return
 
 
 def spoken_text(text: str) -> tuple[np.ndarray, int]:
@@ -168,6 +183,7 @@ def spoken_text(text: str) -> tuple[np.ndarray, int]:
 def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path) -> web.Application:
     app = web.Application()
     sessions: dict[RTCPeerConnection, Session] = {}
+    connections: dict[str, RTCPeerConnection] = {}  # the id each page holds -> its connection
 
     async def index(request: web.Request) -> web.Response:
         return web.Response(text=PAGE.read_text(), content_type="text/html")
@@ -181,6 +197,8 @@ def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path) -> web.
         loop = asyncio.get_running_loop()
         session = Session(bundle, size, lookahead_ms, loop)
         sessions[pc] = session
+        session_id = uuid.uuid4().hex
+        connections[session_id] = pc
 
         @pc.on("track")
         def on_track(track: MediaStreamTrack) -> None:
@@ -203,16 +221,33 @@ def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path) -> web.
         elif source == "text":
             samples, rate = await loop.run_in_executor(None, spoken_text, str(params.get("text", "Hello.")))
             asyncio.ensure_future(push_real_time(session.live, samples, rate))
-        return web.json_response({"sdp": pc.localDescription.sdp, "type": pc.localDescription.type})
+        return web.json_response({"sdp": pc.localDescription.sdp, "type": pc.localDescription.type,
+                                  "session": session_id})
 
     async def close(pc: RTCPeerConnection) -> None:
         session = sessions.pop(pc, None)
+        for key in [key for key, value in connections.items() if value is pc]:
+            del connections[key]
         if session is not None and session.live is not None:
             session.live.close()
         await pc.close()
 
+    async def leave(request: web.Request) -> web.Response:
+        """The page is leaving (its Stop button, or unload through sendBeacon): end its session now."""
+        session_id = (await request.text()).strip()
+        pc = connections.get(session_id)
+        if pc is None:
+            raise web.HTTPNotFound(text=f"no live session {session_id[:40]!r} (already closed?)")
+        await close(pc)
+        return web.Response(status=204)
+
     async def stats(request: web.Request) -> web.Response:
         return web.json_response([session.summary() for session in sessions.values()])
+
+    async def health(request: web.Request) -> web.Response:
+        """Open sessions and running render threads: both drop to 0 when every browser has left."""
+        threads = sum(thread.name == Session.THREAD_NAME for thread in threading.enumerate())
+        return web.json_response({"sessions": len(sessions), "render_threads": threads})
 
     async def on_shutdown(app: web.Application) -> None:
         await asyncio.gather(*(close(pc) for pc in list(sessions)))
@@ -220,6 +255,8 @@ def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path) -> web.
     app.router.add_get("/", index)
     app.router.add_post("/offer", offer)
     app.router.add_get("/stats", stats)
+    app.router.add_get("/health", health)
+    app.router.add_post("/close", leave)
     app.on_shutdown.append(on_shutdown)
     return app
 

@@ -59,6 +59,31 @@ def _server(bundle: Path, port: int) -> subprocess.Popen:
     raise AssertionError(f"live_server.py did not answer within 60 s: {process.stdout.read()[-3000:]}")
 
 
+def _get(port: int, path: str):
+    return json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=10).read())
+
+
+def _wait_frames(browser: Chromium, count: int, timeout: float = 90.0) -> dict:
+    """The page's liveStats once it has shown `count` frames (or failed, or timed out)."""
+    deadline, stats = time.monotonic() + timeout, {}
+    while time.monotonic() < deadline:
+        stats = browser.evaluate("window.liveStats") or {}
+        if stats.get("error") or stats.get("frames", 0) >= count:
+            break
+        time.sleep(0.3)
+    return stats
+
+
+def _seconds_until_closed(port: int, timeout: float) -> float:
+    """Seconds until the server has no session and no render thread left (AssertionError after `timeout`)."""
+    start = time.monotonic()
+    while time.monotonic() - start < timeout:
+        if _get(port, "/health") == {"sessions": 0, "render_threads": 0}:
+            return time.monotonic() - start
+        time.sleep(0.2)
+    raise AssertionError(f"the session outlived its browser by {timeout} s: {_get(port, '/health')}")
+
+
 def test_browser_receives_the_head_talking_with_its_microphone(small_export):
     _requirements()
     port = _free_port()
@@ -66,13 +91,8 @@ def test_browser_receives_the_head_talking_with_its_microphone(small_export):
     try:
         with Chromium(extra_flags=MEDIA_FLAGS) as browser:
             browser.navigate(f"http://127.0.0.1:{port}/?source=mic&autostart=1")
-            deadline, stats = time.monotonic() + 90, {}
-            while time.monotonic() < deadline:
-                stats = browser.evaluate("window.liveStats") or {}
-                if stats.get("error") or stats.get("frames", 0) >= 100:
-                    break
-                time.sleep(0.5)
-            session = json.loads(urllib.request.urlopen(f"http://127.0.0.1:{port}/stats", timeout=10).read())
+            stats = _wait_frames(browser, 100)
+            session = _get(port, "/stats")
     finally:
         server.terminate()
         server.wait(timeout=30)
@@ -89,3 +109,35 @@ def test_browser_receives_the_head_talking_with_its_microphone(small_export):
     assert summary["size"] == [SIZE, SIZE] and summary["speaking_frames"] > 25, summary
     # The mouth follows what the microphone sent: jaw against the loudness of each frame's audio.
     assert summary["jaw_loudness_r"] > 0.5 and summary["jaw_range_speaking"] > 0.05, summary
+
+
+@pytest.mark.slow
+def test_a_browser_that_leaves_mid_reply_ends_its_session(small_export):
+    """Mid-reply (the 10 s sample speech still being pushed), a page that navigates away ends its session at once;
+    the server then serves a new page; a browser killed outright is noticed by WebRTC's consent checks (~30 s).
+    Every time, the session and its render thread end and the server logs no error."""
+    _requirements()
+    port = _free_port()
+    server = _server(small_export.path, port)
+    page = f"http://127.0.0.1:{port}/?source=file&autostart=1"
+    try:
+        with Chromium(extra_flags=MEDIA_FLAGS) as browser:
+            browser.navigate(page)
+            assert _wait_frames(browser, 25).get("frames", 0) >= 25
+            assert _get(port, "/health") == {"sessions": 1, "render_threads": 1}
+            browser.navigate("about:blank")
+            # The page's beacon ends it: well under a second here, 5 s allows for a loaded machine.
+            left_s = _seconds_until_closed(port, 5.0)
+            browser.navigate(page)
+            stats = _wait_frames(browser, 25)
+            assert stats.get("frames", 0) >= 25 and not stats.get("error"), stats
+            browser.process.kill()  # no beacon, no goodbye: only the consent checks can tell
+            browser.process.wait()
+            # aioice's consent checks give up after 6 missed checks 5 s apart: ~30 s, 60 s for a loaded machine.
+            vanished_s = _seconds_until_closed(port, 60.0)
+    finally:
+        server.terminate()
+        log = server.communicate(timeout=30)[0]
+    print(f"closed {left_s:.2f} s after the page left, {vanished_s:.1f} s after the browser was killed")
+    for sign in ("Traceback", "Error", "never retrieved"):
+        assert sign not in log, log[-3000:]
