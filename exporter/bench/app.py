@@ -5,6 +5,7 @@
     gt-bench compare       this SDK against another checkout of it, alternating rounds (bench/compare.py)
     gt-bench composite     compositing's cost and seam quality (bench/composite.py)
     gt-bench backends      onnxruntime vs MNN (bench/backends.py)
+    gt-bench renderers     the CPU tile splatter vs the GL splatter, alternating (bench/renderers.py)
     gt-bench video         the encoding cost of every video output (bench/video.py)
     gt-bench clip-codecs   how to store a reference clip (bench/clip_codecs.py)
     gt-bench clip-crf      the reference clip's codec knob: bytes against PSNR, presets' whole files (bench/clip_crf.py)
@@ -51,6 +52,21 @@ def frames(
     from .frames import run_frames_bench
 
     run_frames_bench(checkpoint, gaussians, sizes, seconds, torch_frames, paper_translator, json_path)
+
+
+@app.command()
+def renderers(
+    gaussians: str = typer.Option("20000,100000", "--gaussians", help="demo speaker sizes (comma-separated)"),
+    sizes: str = typer.Option("256,512,1024", "--sizes", help=SIZES_HELP),
+    frames: int = typer.Option(10, "--frames", min=1, help="draws per splatter per round"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds"),
+    threads: str = typer.Option("1,2", "--threads", help="CPU splatter thread counts (comma-separated)"),
+    json_path: Path = typer.Option(None, "--json", help="write results as JSON"),
+) -> None:
+    """The CPU tile splatter vs the GL splatter: splat-time medians and ratios, alternating (the cpu extra)."""
+    from .renderers import run_renderers_bench
+
+    run_renderers_bench(gaussians, sizes, frames, rounds, threads, json_path)
 
 
 @app.command()
