@@ -8,8 +8,8 @@ rasterizer's generic triangle/point set-up, 4x4-block shading and RGBA32F blendi
    the torch reference computes them (exporter/model/splat_math.py): world -> camera -> pixel, the FOV-clamped 2D
    covariance with the low-pass filter, the least-cancelling determinant, the conic's `alpha_shape`, the extent
    radius and the culling rules; plus the whole-pixel box where it can reach alpha >= ALPHA_MIN.
-2. `_bin` (serial, cheap): the kept Gaussians binned to the 16x16 tiles their box overlaps, walking the sorted
-   list once so every tile's list stays front to back.
+2. `_bin` (parallel over slices of the sorted list): the kept Gaussians binned to the 16x16 tiles their box
+   overlaps, every tile's list kept front to back.
 3. `_blend_tiles` (parallel over tiles): each tile's 256 pixels accumulated front to back in a small array that
    stays in L1 cache, with the contract's per-pixel extent test, alpha bound, 0.99 clamp and the T_MIN stop; a tile
    whose pixels have all stopped skips the rest of its list. The per-pixel loop is written branch-free (selects, a
@@ -26,6 +26,7 @@ a warm start loads machine code instead of compiling; a render loop never compil
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import time
@@ -52,6 +53,9 @@ def cache_dir() -> Path:
     return Path(base) / "gaussiantalker" / "numba"
 
 
+logger = logging.getLogger("gaussiantalker.runtime")
+
+
 def _configure_numba_cache() -> None:
     """Point numba's on-disk cache at `cache_dir` (only when the user has not chosen one) before any kernel loads."""
     import numba
@@ -67,8 +71,9 @@ from numba import njit, prange  # noqa: E402
 
 TILE = 16  # tile side in pixels (the 3DGS rasterizer's)
 _TILE_PIXELS = TILE * TILE
-_LANES = 4  # pixels per vectorised run: one SSE register of float32 (4: 53 ms, 8: 63 ms, 16: 105 ms per frame; AMD
-# Zen 1, whose AVX units are 128 bits wide, docs/bench/renderers.md)
+# Pixels per vectorised run: one SSE register of float32 (4: 53 ms, 8: 63 ms, 16: 105 ms per frame on an AMD Zen 1,
+# whose AVX units are 128 bits wide, docs/bench/renderers.md). `_blend_tiles`'s saturated-run test reads exactly 4.
+_LANES = 4
 # Offsets of the planes in a tile's accumulator (red at 0), unsigned like the pixel index added to them.
 _G, _B, _T = (np.uint64(k * _TILE_PIXELS) for k in range(1, 4))
 _PARAMS = 11  # per kept Gaussian: u, v, A, k, q, opacity, radius, r, g, b, alpha level (see `_project`)
@@ -257,27 +262,43 @@ def _project(rows, R, t, intr, limits, width, height, params, boxes):
         boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = x0, x1, y0, y1
 
 
-@njit(cache=True, error_model="numpy")
+_BIN_CHUNKS = 8  # contiguous slices of the sorted list that `_bin` counts and fills in parallel
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
 def _bin(boxes, tiles_x, tiles_y):
-    """Per-tile lists of Gaussian indices (each front to back): (start [tiles + 1], list [pairs])."""
-    count = np.zeros(tiles_x * tiles_y + 1, dtype=np.int64)
-    for i in range(boxes.shape[0]):
-        if boxes[i, 0] < 0:
-            continue
-        for ty in range(boxes[i, 2] // TILE, boxes[i, 3] // TILE + 1):
-            for tx in range(boxes[i, 0] // TILE, boxes[i, 1] // TILE + 1):
-                count[ty * tiles_x + tx + 1] += 1
-    start = np.cumsum(count)
-    cursor = start[:-1].copy()
-    lists = np.empty(start[-1], dtype=np.int32)
-    for i in range(boxes.shape[0]):
-        if boxes[i, 0] < 0:
-            continue
-        for ty in range(boxes[i, 2] // TILE, boxes[i, 3] // TILE + 1):
-            for tx in range(boxes[i, 0] // TILE, boxes[i, 1] // TILE + 1):
-                tile = ty * tiles_x + tx
-                lists[cursor[tile]] = i
-                cursor[tile] += 1
+    """Per-tile lists of Gaussian indices (each front to back): (start [tiles + 1], list [pairs]). The sorted list
+    is cut into _BIN_CHUNKS contiguous slices, each counted and then written by one thread; a tile's entries from
+    slice k go after those of slices < k, so every tile's list keeps the depth order."""
+    n, tiles = boxes.shape[0], tiles_x * tiles_y
+    per_chunk = -(-n // _BIN_CHUNKS)
+    count = np.zeros((_BIN_CHUNKS, tiles), dtype=np.int64)
+    for chunk in prange(_BIN_CHUNKS):
+        for i in range(chunk * per_chunk, min(n, (chunk + 1) * per_chunk)):
+            if boxes[i, 0] < 0:
+                continue
+            for ty in range(boxes[i, 2] // TILE, boxes[i, 3] // TILE + 1):
+                for tx in range(boxes[i, 0] // TILE, boxes[i, 1] // TILE + 1):
+                    count[chunk, ty * tiles_x + tx] += 1
+    start = np.zeros(tiles + 1, dtype=np.int64)
+    cursor = np.empty((_BIN_CHUNKS, tiles), dtype=np.int64)  # where each slice writes next in each tile
+    total = 0
+    for tile in range(tiles):
+        start[tile] = total
+        for chunk in range(_BIN_CHUNKS):
+            cursor[chunk, tile] = total
+            total += count[chunk, tile]
+    start[tiles] = total
+    lists = np.empty(total, dtype=np.int32)
+    for chunk in prange(_BIN_CHUNKS):
+        for i in range(chunk * per_chunk, min(n, (chunk + 1) * per_chunk)):
+            if boxes[i, 0] < 0:
+                continue
+            for ty in range(boxes[i, 2] // TILE, boxes[i, 3] // TILE + 1):
+                for tx in range(boxes[i, 0] // TILE, boxes[i, 1] // TILE + 1):
+                    tile = ty * tiles_x + tx
+                    lists[cursor[chunk, tile]] = i
+                    cursor[chunk, tile] += 1
     return start, lists
 
 
@@ -298,6 +319,8 @@ def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
         for py in range(y1 - y0):
             acc[_T + py * TILE: _T + py * TILE + x1 - x0] = _ONE
         running = (x1 - x0) * (y1 - y0)  # pixels of the tile that have not stopped
+        row_running = np.zeros(TILE, dtype=np.int64)  # the same per pixel row: a row with none left is skipped
+        row_running[: y1 - y0] = x1 - x0
         for j in range(start[tile], start[tile + 1]):
             if running == 0:
                 break
@@ -308,6 +331,8 @@ def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
             level = params[g, 10]
             bx0, bx1 = max(boxes[g, 0], x0), min(boxes[g, 1], x1 - 1)
             for py in range(max(boxes[g, 2], y0), min(boxes[g, 3], y1 - 1) + 1):
+                if row_running[py - y0] == 0:
+                    continue
                 dy = _F(py) + _HALF - v
                 if abs(dy) > radius:
                     continue
@@ -329,8 +354,13 @@ def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
                 lx0, lx1 = (gx0 - x0) // _LANES * _LANES, gx1 - x0
                 row = (py - y0) * TILE
                 for lane0 in range(lx0, lx1 + 1, _LANES):
-                    stopped = 0
                     first = np.uint64(row + lane0)  # unsigned: no negative-index wraparound, which blocks SIMD
+                    # A run whose pixels have all stopped (or lie outside the image) changes nothing: skip it. On an
+                    # opaque head most runs behind the first few layers are such (docs/bench/renderers.md).
+                    if max(max(acc[_T + first], acc[_T + first + np.uint64(1)]),
+                           max(acc[_T + first + np.uint64(2)], acc[_T + first + np.uint64(3)])) <= _ZERO:
+                        continue
+                    stopped = 0
                     for lane in range(_LANES):  # branch-free, fixed width: vectorised
                         i = first + np.uint64(lane)
                         dx = _F(x0 + lane0 + lane) + _HALF - u
@@ -351,6 +381,7 @@ def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
                         acc[_T + i] = -t_old if stop else t_old * (_ONE - added)
                         stopped += 1 if stop else 0
                     running -= stopped
+                    row_running[py - y0] -= stopped
         for py in range(y0, y1):
             row = (py - y0) * TILE - x0
             for px in range(x0, x1):
@@ -412,6 +443,9 @@ class CPUSplatter:
         self._sorter = DepthSorter(self.settings.sort_interval, self.settings.sort_key_bits)
         self.last_timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         self.released = False
+        if not _WARM and not kernels_cached():
+            logger.warning("compiling the CPU splatter's kernels for this machine: once, about 20 s on 2 cores "
+                           "(cached in %s)", cache_dir())
         start = time.perf_counter()
         warm_up()
         self.warm_up_seconds = time.perf_counter() - start
@@ -501,6 +535,15 @@ def _convert(frame: np.ndarray, background: np.ndarray, output: str) -> np.ndarr
 _WARM = False
 
 
+def kernels_cached() -> bool:
+    """Whether the blend kernel's machine code for this source is in numba's cache, so that construction loads
+    instead of compiling. It reads numba's index path, an internal attribute: where that is missing, True."""
+    try:
+        return Path(_blend_tiles._cache._cache_file._index_path).is_file()
+    except AttributeError:
+        return True
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel on a tiny frame, once per process."""
     global _WARM
@@ -516,4 +559,5 @@ def warm_up() -> None:
     _WARM = True
 
 
-__all__ = ["CPUSplatter", "TILE", "cache_dir", "exp_approx", "splat_frame", "upscale_bilinear", "warm_up"]
+__all__ = ["CPUSplatter", "TILE", "cache_dir", "exp_approx", "kernels_cached", "splat_frame", "upscale_bilinear",
+           "warm_up"]

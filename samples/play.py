@@ -109,8 +109,9 @@ def play(
                                 "cores for onnxruntime, 1 for MNN]"),
     backend: str = typer.Option("onnxruntime", "--backend", help="graph backend: onnxruntime, or mnn (a bundle "
                                 "exported with gt-export --mnn, the mnn extra; docs/mnn.md)"),
-    renderer: str = typer.Option("gl", "--renderer", help="what splats: gl, cpu (the numba tile splatter, the cpu "
-                                 "extra) or auto (cpu where the GL is a software rasterizer; docs/embedding.md)"),
+    renderer: str = typer.Option("auto", "--renderer", help="what splats: gl, cpu (the numba tile splatter, the "
+                                 "cpu extra) or auto (cpu where the GL is a software rasterizer and numba is "
+                                 "installed; docs/embedding.md)"),
     render_scale: float = typer.Option(None, "--render-scale", help="draw at this fraction of the size, then "
                                        "upscale (0.1-1) [default: the bundle's preset, else 1]"),
     render_target: str = typer.Option(None, "--render-target", help="framebuffer: float32, float16, uint8 "

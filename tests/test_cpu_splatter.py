@@ -4,13 +4,14 @@ Bounds, and why:
 * vs the torch reference (render_reference): both are the contract in float32 with the same stop rule; they differ
   by float32 reassociation (matmul order, fx / z as a reciprocal in torch) and the CPU's exp (relative error
   < 5e-6, `test_exp_error_bound`), a few 1e-7 per contribution. Float frames: max abs <= 1e-5 (measured ~5e-7);
-  8-bit frames: PSNR >= 60 dB (the brief's parity bound; measured: identical or a level at a few pixels).
+  8-bit frames: PSNR >= 60 dB (below one 8-bit level of RMS error; measured: identical or a level at a few pixels).
 * vs GL: GL cannot stop at T_MIN (docs/numerics.md, "Compositing order and early termination"), so a stopped pixel
   may differ by up to 0.01 * max |colour - background|; the 8-bit PSNR bound is again 60 dB.
 """
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -191,6 +192,35 @@ def test_cache_dir_follows_the_user(monkeypatch, tmp_path):
     monkeypatch.delenv("NUMBA_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     assert cs.cache_dir() == tmp_path / "xdg" / "gaussiantalker" / "numba"
+
+
+def test_a_cold_kernel_cache_is_announced_before_compiling(monkeypatch, caplog):
+    """A first construction on a machine compiles for ~20 s: it says so first (a warning), a warm one is silent."""
+    CPUSplatter()
+    assert cs.kernels_cached(), "the kernels this process compiled or loaded are in the cache"
+    monkeypatch.setattr(cs, "_WARM", False)
+    with caplog.at_level("WARNING", logger="gaussiantalker.runtime"):
+        CPUSplatter()
+    assert not caplog.records
+    monkeypatch.setattr(cs, "_WARM", False)
+    monkeypatch.setattr(cs, "kernels_cached", lambda: False)
+    with caplog.at_level("WARNING", logger="gaussiantalker.runtime"):
+        CPUSplatter()
+    assert "compiling the CPU splatter's kernels" in caplog.text and str(cs.cache_dir()) in caplog.text
+
+
+def test_renderers_bench_runs_both_splatters(tmp_path):
+    """`gt-bench renderers` on a tiny speaker: both splatters timed, ratios written (the speed itself: the bench)."""
+    from typer.testing import CliRunner
+
+    from gaussiantalker.exporter.bench.app import app
+
+    out = tmp_path / "renderers.json"
+    result = CliRunner().invoke(app, ["renderers", "--gaussians", "500", "--sizes", "32", "--frames", "1",
+                                      "--rounds", "1", "--threads", "1", "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    (run,) = json.loads(out.read_text())["runs"]
+    assert run["size"] == 32 and set(run["splat_ms"]) == {"gl", "cpu1"} and run["gl_over_cpu"]["cpu1"] > 0
 
 
 # -- TalkingHead(renderer=...) ----------------------------------------------------------------------------------

@@ -5,11 +5,20 @@ prepared once per splatter (the depth sort is the same numpy for both) and drawn
 alternate GL, CPU at each thread count, so a busy machine slows all of them alike. Reported per size: medians of
 the splat time after preparing (GL: upload + draw + readback, with the vertex work; CPU: projection and binning +
 tile blending + conversion), and the ratio GL / CPU (> 1: the CPU splatter is faster).
+
+With `--play BUNDLE` it also times the whole path a user runs, per renderer, alternating: audio -> pixels
+(`TalkingHead.frames` on the sample speech, in one process: the head is made once per renderer, frames timed) and
+`samples/play.py` end to end (interpreter, imports, bundle load, the JIT cache load, render, encoding), bare at
+`--play-size` and composited at the clip's size.
 """
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
+import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -82,3 +91,54 @@ def run_renderers_bench(gaussians: str, sizes: str, frames: int, rounds: int, th
         json_path.write_text(json.dumps(results, indent=2))
         typer.echo(f"wrote {json_path}")
     return results
+
+
+PLAYER = Path(__file__).resolve().parents[2] / "samples" / "play.py"
+SPEECH = Path(__file__).resolve().parents[2] / "samples" / "demo_speech.wav"
+
+
+def _frames_seconds(head, audio: np.ndarray, rate: int) -> float:
+    """Wall seconds of `head.frames` over the whole clip (every frame produced, nothing written)."""
+    start = time.perf_counter()
+    for _ in head.frames(audio, rate):
+        pass
+    return time.perf_counter() - start
+
+
+def run_play_bench(bundle: Path, renderers: list[str], size: int, rounds: int) -> dict:
+    """Audio -> pixels and play.py wall seconds per renderer on the sample speech (10 s), alternating rounds."""
+    from gaussiantalker.runtime import TalkingHead
+    from gaussiantalker.sdk.audio import load_audio
+
+    audio = load_audio(SPEECH, 16000)
+    seconds = audio.shape[0] / 16000
+    heads = {name: TalkingHead(bundle, resolution=(size, size), composite=False, renderer=name)
+             for name in renderers}
+    frames_s: dict[str, list[float]] = {name: [] for name in renderers}
+    play_s: dict[str, list[float]] = {f"{name} {kind}": [] for name in renderers for kind in ("bare", "composited")}
+    try:
+        for head in heads.values():  # warm: graphs, GL programs, kernels, first-touch pages
+            _frames_seconds(head, audio[:16000], 16000)
+        with tempfile.TemporaryDirectory() as tmp:
+            for index in range(rounds):
+                order = renderers if index % 2 == 0 else renderers[::-1]
+                for name in order:
+                    frames_s[name].append(_frames_seconds(heads[name], audio, 16000))
+                for name in order:
+                    for kind in ("bare", "composited"):
+                        command = [sys.executable, str(PLAYER), str(bundle), "--audio", str(SPEECH), "-o",
+                                   str(Path(tmp) / "out.mp4"), "--renderer", name, "--quiet"]
+                        command += ["-r", str(size), "--no-composite"] if kind == "bare" else []
+                        start = time.perf_counter()
+                        subprocess.run(command, check=True, capture_output=True)
+                        play_s[f"{name} {kind}"].append(time.perf_counter() - start)
+                typer.echo(f"round {index + 1}/{rounds}: " + " ".join(
+                    f"{k}={v[-1]:.2f}s" for k, v in {**frames_s, **play_s}.items()))
+    finally:
+        for head in heads.values():
+            head.close()
+    return {"audio_seconds": seconds, "size": size, "rounds": rounds,
+            "frames_s": {k: float(np.median(v)) for k, v in frames_s.items()},
+            "play_s": {k: float(np.median(v)) for k, v in play_s.items()},
+            "frames_rtf": {k: float(np.median(v)) / seconds for k, v in frames_s.items()},
+            "play_rtf": {k: float(np.median(v)) / seconds for k, v in play_s.items()}}
