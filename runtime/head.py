@@ -51,9 +51,10 @@ from .backend import GraphBackend, open_backend
 from .composite import Inpainter, composite, graph_inpainter, opencv_fallback
 from .motions import MotionSource, arkit_motion, flame_motion
 from .output import COMPOSITE_ALPHA_MESSAGE, OutputView, output_view
+from .renderer import make_splatter
 from .semantic import Regions
 from .settings import BackendSettings, OutputSettings, merged_backend, merged_output, merged_render
-from .splatter import GLSplatter, PreparedSplats
+from .splatter import PreparedSplats
 from .translate import SILENCE_GATE_DBFS, blendshape_params, iter_translate
 
 AudioSource = str | os.PathLike | np.ndarray
@@ -81,13 +82,14 @@ def _render_settings(bundle: Bundle, render: RenderSettings | None = None, threa
 
 
 class TalkingHead:
-    """A loaded speaker bundle plus an OpenGL splatter: audio or FLAME parameters in, frames out."""
+    """A loaded speaker bundle plus a splatter (OpenGL or the CPU tile splatter): audio or FLAME parameters in,
+    frames out."""
 
     def __init__(self, bundle: str | os.PathLike | Bundle, *, render: RenderSettings | None = None,
                  output: OutputSettings | None = None, backend: str | BackendSettings = "onnxruntime",
                  resolution: tuple[int, int] | None = None, camera: Camera | None = None, background=None,
                  composite: bool | None = None, threads: int | None = None, shader_target: str | None = None,
-                 render_scale: float | None = None, render_target: str | None = None,
+                 renderer: str | None = None, render_scale: float | None = None, render_target: str | None = None,
                  sort_interval: int | None = None, sort_key_bits: int | None = None,
                  gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS) -> None:
         """Settings come in three groups (docs/embedding.md), each None for the bundle's defaults:
@@ -95,9 +97,10 @@ class TalkingHead:
         None: the bundle's preset, else the contract's full-size float32 frame sorted every frame on exact depth;
         docs/precision.md), `output` (OutputSettings: resolution, camera, background, composite; compositing
         defaults to whether the bundle has a reference clip, docs/compositing.md) and `backend` (a name,
-        "onnxruntime" or "mnn" (docs/mnn.md), or BackendSettings: name, threads, shader_target).
+        "onnxruntime" or "mnn" (docs/mnn.md), or BackendSettings: name, threads, shader_target, renderer).
 
-        The keywords resolution, camera, background, composite (output), threads, shader_target (backend) and
+        The keywords resolution, camera, background, composite (output), threads, shader_target, renderer (backend:
+        "gl", "cpu" or "auto", docs/embedding.md; `head.renderer` says which one draws) and
         render_scale, render_target, sort_interval, sort_key_bits (render) are shortcuts for a group's field: one
         given both ways with two values is a SettingsError naming both. `gl_context`: a moderngl context to draw
         in (None: a headless one of its own). `silence_gate_dbfs`: audio windows quieter than this (RMS, dBFS) fade
@@ -106,7 +109,7 @@ class TalkingHead:
         manifest = self.bundle.manifest
         self.output_settings = merged_output(output, resolution=resolution, camera=camera, background=background,
                                              composite=composite)
-        backend_settings = merged_backend(backend, threads=threads, shader_target=shader_target)
+        backend_settings = merged_backend(backend, threads=threads, shader_target=shader_target, renderer=renderer)
         threads_label = "backend.threads" if isinstance(backend, BackendSettings) and threads is None else "threads"
         self.render_settings = _render_settings(self.bundle, render, backend_settings.threads, threads_label,
                                                 render_scale=render_scale, render_target=render_target,
@@ -125,8 +128,9 @@ class TalkingHead:
         self.scene, self.scene_guard = self._scene()
         if self.scene_guard is not None:
             self.scene_guard.check_camera(self.camera)
-        self.splatter = GLSplatter(gl_context, settings=self.render_settings,
-                                   shader_target=self.backend_settings.shader_target)
+        self.splatter, self.renderer = make_splatter(self.backend_settings.renderer, gl_context=gl_context,
+                                                     settings=self.render_settings,
+                                                     shader_target=self.backend_settings.shader_target)
         self.timings: dict[str, list[float]] = defaultdict(list)
         self.silence_gate_dbfs = silence_gate_dbfs
         # Read at load like every entry a frame may need, so a damaged one fails here, not mid-video.

@@ -81,15 +81,22 @@ class OutputSettings:
         return hash(self._key())
 
 
+# What splats the frames (docs/embedding.md, "Renderer"): the OpenGL splatter, the CPU tile splatter, or "auto".
+RENDERERS = ("auto", "gl", "cpu")
+
+
 @dataclass(frozen=True)
 class BackendSettings:
     """What runs a TalkingHead: the graph backend `name` ("onnxruntime" or "mnn", docs/mnn.md), its `threads`
-    (None: the bundle's preset, else every core for onnxruntime, one for MNN) and the GLSL variant compiled,
-    `shader_target` ("330", "410", "300es"; the same pixels, docs/shaders.md)."""
+    (None: the bundle's preset, else every core for onnxruntime, one for MNN), the GLSL variant compiled,
+    `shader_target` ("330", "410", "300es"; the same pixels, docs/shaders.md), and the `renderer` that splats:
+    "gl", "cpu" (the numba tile splatter, the `cpu` extra) or "auto" (cpu where the GL is a software rasterizer
+    and numba is installed, else gl)."""
 
     name: str = "onnxruntime"
     threads: int | None = None
     shader_target: str = "330"
+    renderer: str = "gl"
 
     def __post_init__(self) -> None:
         try:
@@ -105,6 +112,8 @@ class BackendSettings:
             check_target(self.shader_target)
         except ValueError as exc:
             raise SettingsError(str(exc)) from None
+        if self.renderer not in RENDERERS:
+            raise SettingsError(f"renderer must be one of {', '.join(map(repr, RENDERERS))}, got {self.renderer!r}")
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -141,17 +150,20 @@ def merged_output(output: OutputSettings | None, **shortcuts: Any) -> OutputSett
 
 
 def merged_backend(backend: str | BackendSettings, threads: int | None = None,
-                   shader_target: str | None = None) -> BackendSettings:
-    """The backend group from `backend=` (a name or a BackendSettings) and the threads, shader_target shortcuts."""
+                   shader_target: str | None = None, renderer: str | None = None) -> BackendSettings:
+    """The backend group from `backend=` (a name or a BackendSettings) and the threads, shader_target, renderer
+    shortcuts."""
     if isinstance(backend, str):
-        return BackendSettings(backend, threads, "330" if shader_target is None else shader_target)
+        return BackendSettings(backend, threads, "330" if shader_target is None else shader_target,
+                               BackendSettings.renderer if renderer is None else renderer)
     if not isinstance(backend, BackendSettings):
         raise SettingsError(f"backend= must be a backend name ({', '.join(GRAPH_BACKENDS)}) or a BackendSettings, "
                             f"got {type(backend).__name__}")
     return dataclasses.replace(
         backend, threads=_one_value("threads", {"threads": threads, "backend.threads": backend.threads}),
         shader_target=_one_value("shader_target", {"shader_target": shader_target,
-                                                   "backend.shader_target": backend.shader_target}))
+                                                   "backend.shader_target": backend.shader_target}),
+        renderer=_one_value("renderer", {"renderer": renderer, "backend.renderer": backend.renderer}))
 
 
 def merged_render(preset: RenderSettings, render: RenderSettings | None, threads: int | None,
@@ -174,4 +186,5 @@ def merged_render(preset: RenderSettings, render: RenderSettings | None, threads
         raise SettingsError(str(exc)) from None
 
 
-__all__ = ["BackendSettings", "OutputSettings", "RenderSettings", "merged_backend", "merged_output", "merged_render"]
+__all__ = ["RENDERERS", "BackendSettings", "OutputSettings", "RenderSettings", "merged_backend", "merged_output",
+           "merged_render"]

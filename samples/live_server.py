@@ -85,10 +85,11 @@ class Session:
 
     THREAD_NAME = "gt-live-render"
 
-    def __init__(self, bundle: Path, size: int, lookahead_ms: float, loop: asyncio.AbstractEventLoop) -> None:
+    def __init__(self, bundle: Path, size: int, lookahead_ms: float, renderer: str,
+                 loop: asyncio.AbstractEventLoop) -> None:
         self.ready = threading.Event()
         self.stats: dict = {"frames": 0, "speaking_frames": 0, "jaw": [], "level": []}
-        self._args = (bundle, size, lookahead_ms)
+        self._args = (bundle, size, lookahead_ms, renderer)
         self.live = self.head = None
         self.error: str | None = None
         self.video, self.audio = FrameTrack("video", loop), FrameTrack("audio", loop)
@@ -102,9 +103,9 @@ class Session:
             raise RuntimeError(self.error)
 
     def _run(self) -> None:
-        bundle, size, lookahead_ms = self._args
+        bundle, size, lookahead_ms, renderer = self._args
         try:
-            head = TalkingHead(bundle, resolution=(size, size), composite=False)
+            head = TalkingHead(bundle, resolution=(size, size), composite=False, renderer=renderer)
         except GaussianTalkerError as exc:
             self.error = str(exc)
             self.ready.set()
@@ -133,7 +134,8 @@ class Session:
                 "jaw_range_speaking": float(np.ptp(jaw[speaking])) if speaking.any() else 0.0,
                 "jaw_loudness_r": corr, "fps": self.head.fps if self.head else None,
                 "size": list(self.head.frame_size) if self.head else None,
-                "late_frames": self.live.stats.late_frames if self.live else 0}
+                "late_frames": self.live.stats.late_frames if self.live else 0,
+                "renderer": self.head.renderer if self.head else None}
 
 
 async def push_real_time(live, audio: np.ndarray, rate: int) -> None:
@@ -180,7 +182,7 @@ def spoken_text(text: str) -> tuple[np.ndarray, int]:
         path.unlink(missing_ok=True)
 
 
-def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path) -> web.Application:
+def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, renderer: str = "auto") -> web.Application:
     app = web.Application()
     sessions: dict[RTCPeerConnection, Session] = {}
     connections: dict[str, RTCPeerConnection] = {}  # the id each page holds -> its connection
@@ -195,7 +197,7 @@ def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path) -> web.
             raise web.HTTPBadRequest(text=f"source must be file, mic or text, got {source!r}")
         pc = RTCPeerConnection()
         loop = asyncio.get_running_loop()
-        session = Session(bundle, size, lookahead_ms, loop)
+        session = Session(bundle, size, lookahead_ms, renderer, loop)
         sessions[pc] = session
         session_id = uuid.uuid4().hex
         connections[session_id] = pc
@@ -266,13 +268,15 @@ def main(bundle: Path = typer.Argument(..., help="a speaker bundle with a transl
          host: str = typer.Option("127.0.0.1", "--host", help="address to listen on"),
          size: int = typer.Option(256, "--size", min=16, help="square frame size"),
          lookahead_ms: float = typer.Option(160.0, "--lookahead-ms", min=0.0, help="the live session's lookahead"),
-         audio: Path = typer.Option(SPEECH, "--audio", help="the sound file the page's 'file' source plays")) -> None:
+         audio: Path = typer.Option(SPEECH, "--audio", help="the sound file the page's 'file' source plays"),
+         renderer: str = typer.Option("auto", "--renderer", help="what splats: gl, cpu or auto (cpu where the GL "
+                                      "is a software rasterizer and numba is installed; docs/embedding.md)")) -> None:
     """Serve the live page and stream the talking head over WebRTC."""
     for path, hint in ((bundle, "BUNDLE"), (audio, "--audio")):
         if not path.is_file():
             raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
     print(json.dumps({"url": f"http://{host}:{port}/", "bundle": str(bundle)}), flush=True)
-    web.run_app(make_app(bundle, size, lookahead_ms, audio), host=host, port=port, print=None)
+    web.run_app(make_app(bundle, size, lookahead_ms, audio, renderer), host=host, port=port, print=None)
 
 
 if __name__ == "__main__":

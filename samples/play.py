@@ -109,6 +109,9 @@ def play(
                                 "cores for onnxruntime, 1 for MNN]"),
     backend: str = typer.Option("onnxruntime", "--backend", help="graph backend: onnxruntime, or mnn (a bundle "
                                 "exported with gt-export --mnn, the mnn extra; docs/mnn.md)"),
+    renderer: str = typer.Option("auto", "--renderer", help="what splats: gl, cpu (the numba tile splatter, the "
+                                 "cpu extra) or auto (cpu where the GL is a software rasterizer and numba is "
+                                 "installed; docs/embedding.md)"),
     render_scale: float = typer.Option(None, "--render-scale", help="draw at this fraction of the size, then "
                                        "upscale (0.1-1) [default: the bundle's preset, else 1]"),
     render_target: str = typer.Option(None, "--render-target", help="framebuffer: float32, float16, uint8 "
@@ -135,7 +138,8 @@ def play(
             view = TalkingHead.output_view(bundle, output_settings)
         plan = view.plan_video(output, alpha=alpha, codec=codec, crf=crf, preset=preset, container=video_format)
         # The render knobs are shortcuts: each one not given keeps the bundle's preset value.
-        head = TalkingHead(bundle, output=output_settings, backend=BackendSettings(backend, threads=threads),
+        head = TalkingHead(bundle, output=output_settings, backend=BackendSettings(backend, threads=threads,
+                                                                                 renderer=renderer),
                            render_scale=render_scale, render_target=render_target, sort_interval=sort_interval,
                            sort_key_bits=sort_key_bits)
         window = None
@@ -168,7 +172,8 @@ def play(
     else:
         sound = f"{samples.shape[0] / head.sample_rate:.1f} s of audio" + \
             ("" if plan.with_audio else f"; {plan.container.name} holds no audio")
-    typer.echo(f"wrote {output} ({total} frames, {sound}) in {seconds:.1f} s: {plan.describe()}")
+    typer.echo(f"wrote {output} ({total} frames, {sound}) in {seconds:.1f} s with the {head.renderer} renderer: "
+               f"{plan.describe()}")
 
 
 def _own_motion_flag(argv: list[str]) -> list[str]:

@@ -5,6 +5,7 @@
     gt-bench compare       this SDK against another checkout of it, alternating rounds (bench/compare.py)
     gt-bench composite     compositing's cost and seam quality (bench/composite.py)
     gt-bench backends      onnxruntime vs MNN (bench/backends.py)
+    gt-bench renderers     the CPU tile splatter vs the GL splatter, alternating (bench/renderers.py)
     gt-bench video         the encoding cost of every video output (bench/video.py)
     gt-bench clip-codecs   how to store a reference clip (bench/clip_codecs.py)
     gt-bench clip-crf      the reference clip's codec knob: bytes against PSNR, presets' whole files (bench/clip_crf.py)
@@ -51,6 +52,34 @@ def frames(
     from .frames import run_frames_bench
 
     run_frames_bench(checkpoint, gaussians, sizes, seconds, torch_frames, paper_translator, json_path)
+
+
+@app.command()
+def renderers(
+    gaussians: str = typer.Option("20000,100000", "--gaussians", help="demo speaker sizes (comma-separated; empty: "
+                                  "only --play)"),
+    sizes: str = typer.Option("256,512,1024", "--sizes", help=SIZES_HELP),
+    frames: int = typer.Option(10, "--frames", min=1, help="draws per splatter per round"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds"),
+    threads: str = typer.Option("1,2", "--threads", help="CPU splatter thread counts (comma-separated)"),
+    json_path: Path = typer.Option(None, "--json", help="write results as JSON"),
+    play: Path = typer.Option(None, "--play", help="a bundle: also time audio -> pixels and samples/play.py on the "
+                              "sample speech with each renderer"),
+    play_size: int = typer.Option(512, "--play-size", min=16, help="--play's bare frame size"),
+    play_rounds: int = typer.Option(3, "--play-rounds", min=1, help="--play's alternating rounds"),
+) -> None:
+    """The CPU tile splatter vs the GL splatter: splat-time medians and ratios, alternating (the cpu extra)."""
+    from .renderers import run_play_bench, run_renderers_bench
+
+    if play is not None and not play.is_file():
+        raise typer.BadParameter(f"{play}: no such bundle", param_hint="--play")
+    results = run_renderers_bench(gaussians, sizes, frames, rounds, threads, None) if gaussians else {}
+    if play is not None:
+        results["play"] = run_play_bench(play, ["gl", "cpu"], play_size, play_rounds)
+        typer.echo(json.dumps(results["play"], indent=2))
+    if json_path is not None:
+        json_path.write_text(json.dumps(results, indent=2))
+        typer.echo(f"wrote {json_path}")
 
 
 @app.command()
@@ -356,6 +385,7 @@ def live(
     drift_minutes: float = typer.Option(60.0, "--drift-minutes", min=0.0, help="minutes of the drift run (0: none)"),
     session_sizes: str = typer.Option("512,256", "--session-sizes", help="frame sizes of the sessions run"),
     most_sessions: int = typer.Option(8, "--most-sessions", min=1, help="largest session count tried"),
+    renderer: str = typer.Option("gl", "--renderer", help="what splats: gl, cpu or auto (docs/embedding.md)"),
     out: Path = typer.Option(None, "--out", help="folder for live.md and live.json"),
 ) -> None:
     """Live sessions (docs/live.md): first-frame latency p50/p95 per lookahead (paced, real-time pushes), jaw
@@ -373,7 +403,8 @@ def live(
     except ValueError:
         raise typer.BadParameter("comma-separated numbers expected",
                                  param_hint="--lookaheads/--session-sizes") from None
-    result = run_live_bench(bundle, size, chosen, utterances, barge_trials, drift_minutes, sizes, most_sessions)
+    result = run_live_bench(bundle, size, chosen, utterances, barge_trials, drift_minutes, sizes, most_sessions,
+                            renderer)
     result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
     tables = live_tables(result)
     typer.echo(tables)
@@ -381,7 +412,8 @@ def live(
         out.mkdir(parents=True, exist_ok=True)
         (out / "live.json").write_text(json.dumps(result, indent=2))
         (out / "live.md").write_text(f"# Live sessions\n\n`{result['command']}` on {result['machine']['cpu']}, "
-                                     f"{result['machine']['cores']} cores, {result['machine']['gl']}.\n\n{tables}\n")
+                                     f"{result['machine']['cores']} cores, {result['machine']['gl']}; splatted by the "
+                                     f"{result['renderer']} renderer.\n\n{tables}\n")
         typer.echo(f"wrote {out / 'live.md'}, {out / 'live.json'}")
 
 

@@ -177,12 +177,12 @@ def drift(head: TalkingHead, speech: np.ndarray, minutes: float, rate: int = 441
                 resource.RUSAGE_SELF).ru_maxrss / 1024, "wall_s": seconds}
 
 
-def sessions(bundle: Path, size: int, speech: np.ndarray, seconds: float, most: int) -> dict:
+def sessions(bundle: Path, size: int, speech: np.ndarray, seconds: float, most: int, renderer: str = "gl") -> dict:
     """Sessions of one head rendered round-robin on one thread, free-running with their audio pushed: the
     aggregate frame rate for 1..most sessions, and the largest count whose rate keeps every session at the
     speaker's fps (real time)."""
     rows = []
-    with TalkingHead(bundle, resolution=(size, size), composite=False) as head:
+    with TalkingHead(bundle, resolution=(size, size), composite=False, renderer=renderer) as head:
         rate = head.sample_rate
         audio = speech[: int(seconds * rate)]
         head.render_params()  # warm the GL context
@@ -211,22 +211,22 @@ def sessions(bundle: Path, size: int, speech: np.ndarray, seconds: float, most: 
 
 
 def run_live_bench(bundle: Path, size: int, lookaheads: list[float], utterances: int, barge_trials: int,
-                   drift_minutes: float, session_sizes: list[int], most_sessions: int) -> dict:
-    """Everything docs/bench/live.md reports, in one run."""
-    with TalkingHead(bundle, resolution=(size, size), composite=False) as head:
+                   drift_minutes: float, session_sizes: list[int], most_sessions: int, renderer: str = "gl") -> dict:
+    """Everything docs/bench/live.md reports, in one run, with the `renderer` that splats ("gl", "cpu", "auto")."""
+    with TalkingHead(bundle, resolution=(size, size), composite=False, renderer=renderer) as head:
         speech = sample_speech(head.sample_rate)
         head.render_params()
         started = time.perf_counter()
         for _ in range(10):
             head.render_params()
-        result = {"bundle": str(bundle), "size": size, "fps": head.fps,
+        result = {"bundle": str(bundle), "size": size, "fps": head.fps, "renderer": head.renderer,
                   "frame_ms": 1000 * (time.perf_counter() - started) / 10,
                   "latency": [first_frame_latency(head, speech, ms, utterances) for ms in lookaheads],
                   "agreement": [agreement(head, speech, ms) for ms in lookaheads],
                   "barge_in": barge_in(head, speech, barge_trials)}
         if drift_minutes > 0:
             result["drift"] = drift(head, speech, drift_minutes)
-    result["sessions"] = [sessions(bundle, s, speech, 4.0, most_sessions) for s in session_sizes]
+    result["sessions"] = [sessions(bundle, s, speech, 4.0, most_sessions, renderer) for s in session_sizes]
     return result
 
 

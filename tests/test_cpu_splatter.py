@@ -1,0 +1,322 @@
+"""The CPU tile splatter (runtime/cpu_splatter.py) against the torch reference and the GL splatter.
+
+Bounds, and why:
+* vs the torch reference (render_reference): both are the contract in float32 with the same stop rule; they differ
+  by float32 reassociation (matmul order, fx / z as a reciprocal in torch) and the CPU's exp (relative error
+  < 5e-6, `test_exp_error_bound`), a few 1e-7 per contribution. Float frames: max abs <= 1e-5 (measured ~5e-7);
+  8-bit frames: PSNR >= 60 dB (below one 8-bit level of RMS error; measured: identical or a level at a few pixels).
+* vs GL: GL cannot stop at T_MIN (docs/numerics.md, "Compositing order and early termination"), so a stopped pixel
+  may differ by up to 0.01 * max |colour - background|; the 8-bit PSNR bound is again 60 dB.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from test_reference_rasterizer import off_centre_camera, random_scene, stacked_scene
+
+from gaussiantalker.exporter.model.rasterizer import render_reference
+from gaussiantalker.exporter.model.splat_math import cov3d_from_rotation_scale, quat_to_rotmat
+from gaussiantalker.runtime import cpu_splatter as cs
+from gaussiantalker.runtime.cpu_splatter import CPUSplatter, exp_approx, upscale_bilinear
+from gaussiantalker.runtime.splatter import FRAME_OUTPUTS, GLSplatter
+from gaussiantalker.sdk.camera import Camera
+from gaussiantalker.sdk.errors import RenderError
+from gaussiantalker.sdk.image import psnr_db, to_uint8
+from gaussiantalker.sdk.render_settings import RenderSettings
+
+BACKGROUND = (0.2, 0.4, 0.1)
+FLOAT_TOL = 1e-5  # vs the torch reference (see the module docstring)
+MIN_PSNR_8BIT = 60.0
+
+
+@pytest.fixture(scope="module")
+def cpu():
+    return CPUSplatter()
+
+
+@pytest.fixture(scope="module")
+def gl():
+    instance = GLSplatter()
+    yield instance
+    instance.release()
+
+
+def _numpy(scene):
+    means, cov3d, rgb, opacity, camera = scene
+    return [x.numpy() for x in (means, cov3d, rgb, opacity)], camera
+
+
+def _reference(arrays, camera) -> np.ndarray:
+    image, _ = render_reference(*[torch.from_numpy(a) for a in arrays], camera, BACKGROUND)
+    return image.numpy()
+
+
+def _psnr8(a: np.ndarray, b: np.ndarray) -> float:
+    return psnr_db(to_uint8(a).astype(np.float64) / 255, to_uint8(b).astype(np.float64) / 255)
+
+
+def assert_matches_reference(cpu, arrays, camera) -> np.ndarray:
+    frame = cpu.render(*arrays, camera, BACKGROUND, output="float")
+    want = _reference(arrays, camera)
+    assert frame.shape == want.shape and frame.dtype == np.float32
+    assert np.abs(frame - want).max() <= FLOAT_TOL
+    assert _psnr8(frame, want) >= MIN_PSNR_8BIT
+    return frame
+
+
+def test_exp_error_bound():
+    """`_exp`'s max relative error over [-10, 0] (the range where alpha can pass), stated in docs/numerics.md."""
+    x = np.linspace(-10.0, 0.0, 1_000_001, dtype=np.float32)
+    want = np.exp(x.astype(np.float64))
+    error = np.abs(exp_approx(x) - want) / want
+    assert error.max() < 5e-6  # measured 3.5e-6
+    below = exp_approx(np.array([-10.5, -50.0, -1e30, -np.inf], dtype=np.float32))
+    assert np.all(below >= 0) and np.all(below * 1.0 < 1 / 255)  # opacity <= 1: skipped, as exp(x) would be
+    assert exp_approx(np.array([0.0, 1.0], dtype=np.float32)).tolist() == [1.0, 1.0]  # power > 0 is skipped anyway
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_random_scenes_match_reference_and_gl(cpu, gl, seed):
+    arrays, camera = _numpy(random_scene(seed, n=120, camera=off_centre_camera(61, 43)))
+    frame = assert_matches_reference(cpu, arrays, camera)
+    gl_frame = gl.render(*arrays, camera, BACKGROUND, output="float")
+    colour_gap = np.abs(arrays[2][:, None, :] - np.asarray(BACKGROUND)).max()
+    assert np.abs(frame - gl_frame).max() <= 0.01 * colour_gap + FLOAT_TOL  # GL's missing stop (docstring)
+    assert _psnr8(frame, gl_frame) >= MIN_PSNR_8BIT
+
+
+def test_termination_and_depth_ties_match_reference(cpu):
+    means, cov3d, rgb, opacity, camera = stacked_scene()
+    assert_matches_reference(cpu, [x.numpy() for x in (means, cov3d, rgb, opacity)], camera)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (2, 1), (17, 31), (33, 16), (16, 16)])
+def test_image_sizes(cpu, size):
+    width, height = size
+    arrays, camera = _numpy(random_scene(5, n=60, camera=off_centre_camera(width, height), px_sigma=(0.3, 6.0)))
+    assert_matches_reference(cpu, arrays, camera)
+
+
+def test_4096_frame_with_few_gaussians(cpu, gl):
+    """The largest size, cheap with few Gaussians; against GL (the torch reference's 4096^2 tiles cost seconds)."""
+    base = off_centre_camera(4096, 4096)
+    arrays, camera = _numpy(random_scene(2, n=12, camera=base, px_sigma=(50.0, 400.0)))
+    frame = cpu.render(*arrays, camera, BACKGROUND)
+    want = gl.render(*arrays, camera, BACKGROUND)
+    assert frame.shape == (4096, 4096, 3) and frame.dtype == np.uint8
+    assert (frame != to_uint8(np.broadcast_to(np.float32(BACKGROUND), (1, 1, 3)))).any()  # something was drawn
+    assert psnr_db(frame.astype(np.float64) / 255, want.astype(np.float64) / 255) >= MIN_PSNR_8BIT
+
+
+def test_extreme_inputs_match_reference(cpu):
+    """The stability extremes of tests/test_reference_rasterizer.py: zero quaternion, zero and huge scales, opacity
+    0, at the camera centre, exactly at and just in front of the near plane, Inf/NaN means, an overflowing
+    covariance, far outside the field of view."""
+    camera = Camera(32, 24, 30.0, 30.0, 16.0, 12.0)
+    near = camera.near
+    below_near = float(np.nextafter(np.float32(near), np.float32(0)))
+    rows = [
+        ([0.0, 0.0, 2.0], [0, 0, 0, 0], [0.05] * 3, 0.8), ([0.3, 0.1, 2.0], [1, 2, 3, 4], [0.0] * 3, 1.0),
+        ([-0.2, 0.2, 3.0], [1, 0, 0, 0], [1e3] * 3, 0.5), ([0.1, -0.1, 2.0], [1, 0, 0, 0], [0.1] * 3, 0.0),
+        ([0.0, 0.0, 0.0], [1, 0, 0, 0], [0.1] * 3, 1.0), ([0.01, 0.0, near], [1, 0, 0, 0], [0.002] * 3, 1.0),
+        ([0.0, 0.01, below_near], [1, 0, 0, 0], [0.002] * 3, 1.0), ([math.inf, 0.0, 2.0], [1, 0, 0, 0], [0.1] * 3, 1.0),
+        ([0.0, math.nan, 2.0], [1, 0, 0, 0], [0.1] * 3, 1.0), ([0.2, 0.2, 2.0], [1, 0, 0, 0], [1e20] * 3, 1.0),
+        ([50.0, -40.0, 1.0], [1, 0, 0, 0], [0.5] * 3, 1.0), ([0.0, 0.05, 2.0], [1, 0.3, 0, 0], [1e-6, 0.3, 1e-9], 0.9),
+    ]
+    means = torch.tensor([r[0] for r in rows], dtype=torch.float32)
+    rot = quat_to_rotmat(torch.tensor([r[1] for r in rows], dtype=torch.float32))
+    cov3d = cov3d_from_rotation_scale(rot, torch.tensor([r[2] for r in rows], dtype=torch.float32))
+    opacity = torch.tensor([r[3] for r in rows], dtype=torch.float32)
+    rgb = torch.rand(len(rows), 3, generator=torch.Generator().manual_seed(0))
+    arrays = [x.numpy() for x in (means, cov3d, rgb, opacity)]
+    frame = assert_matches_reference(cpu, arrays, camera)
+    assert np.isfinite(frame).all()
+    alone = [5, 6]  # the Gaussian at z = near is drawn, the one just in front of it is not
+    at_near = cpu.render(*[a[alone] for a in arrays], camera, BACKGROUND, output="float")[12, 17]
+    assert np.abs(at_near - np.float32(BACKGROUND)).max() > 0.1
+
+
+def test_output_modes_match_gl(cpu, gl):
+    arrays, camera = _numpy(random_scene(4, n=80, camera=off_centre_camera(40, 30)))
+    for output in FRAME_OUTPUTS:
+        mine = cpu.render(*arrays, camera, BACKGROUND, output=output)
+        theirs = gl.render(*arrays, camera, BACKGROUND, output=output)
+        assert mine.shape == theirs.shape and mine.dtype == theirs.dtype, output
+        scale = 255.0 if mine.dtype == np.uint8 else 1.0
+        # uint8: a value within float rounding of a level boundary may move one level; float: GL's missing stop.
+        assert np.abs(mine.astype(np.float64) - theirs.astype(np.float64)).max() / scale <= 1.01 / 255, output
+
+
+def test_render_scale_upscales_like_gl(gl):
+    settings = RenderSettings(render_scale=0.5)
+    cpu = CPUSplatter(settings=settings)
+    gl_scaled = GLSplatter(settings=settings)
+    try:
+        arrays, camera = _numpy(random_scene(6, n=80, camera=off_centre_camera(48, 36)))
+        mine = cpu.render(*arrays, camera, BACKGROUND, output="float")
+        theirs = gl_scaled.render(*arrays, camera, BACKGROUND, output="float")
+        assert mine.shape == (36, 48, 3)
+        # llvmpipe filters with 8-bit fractional weights: ~1/256 of a neighbour difference.
+        assert _psnr8(mine, theirs) >= 45.0
+    finally:
+        gl_scaled.release()
+
+
+def test_upscale_bilinear_is_exact_on_linear_ramps():
+    """Bilinear sampling at pixel centres reproduces a linear ramp inside the image (the edges clamp)."""
+    ramp = np.arange(8, dtype=np.float32)[None, :, None] * np.ones((4, 1, 1), np.float32)
+    up = upscale_bilinear(ramp, 16, 8)
+    np.testing.assert_allclose(up[:, 1:-1, 0], np.broadcast_to((np.arange(1, 15) + 0.5) / 2 - 0.5, (8, 14)), atol=1e-6)
+
+
+def test_released_and_bad_arguments(cpu):
+    other = CPUSplatter()
+    other.release()
+    arrays, camera = _numpy(random_scene(0, n=5))
+    with pytest.raises(RenderError, match="released"):
+        other.render(*arrays, camera, BACKGROUND)
+    with pytest.raises(RenderError, match="output"):
+        cpu.render(*arrays, camera, BACKGROUND, output="png")
+    with pytest.raises(RenderError, match="background"):
+        cpu.render(*arrays, camera, (0.0, math.nan, 0.0))
+
+
+def test_cache_dir_follows_the_user(monkeypatch, tmp_path):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "mine"))
+    assert cs.cache_dir() == tmp_path / "mine"
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cs.cache_dir() == tmp_path / "xdg" / "gaussiantalker" / "numba"
+
+
+def test_a_cold_kernel_cache_is_announced_before_compiling(monkeypatch, caplog):
+    """A first construction on a machine compiles for ~20 s: it says so first (a warning), a warm one is silent."""
+    CPUSplatter()
+    assert cs.kernels_cached(), "the kernels this process compiled or loaded are in the cache"
+    monkeypatch.setattr(cs, "_WARM", False)
+    with caplog.at_level("WARNING", logger="gaussiantalker.runtime"):
+        CPUSplatter()
+    assert not caplog.records
+    monkeypatch.setattr(cs, "_WARM", False)
+    monkeypatch.setattr(cs, "kernels_cached", lambda: False)
+    with caplog.at_level("WARNING", logger="gaussiantalker.runtime"):
+        CPUSplatter()
+    assert "compiling the CPU splatter's kernels" in caplog.text and str(cs.cache_dir()) in caplog.text
+
+
+def test_renderers_bench_runs_both_splatters(tmp_path):
+    """`gt-bench renderers` on a tiny speaker: both splatters timed, ratios written (the speed itself: the bench)."""
+    from typer.testing import CliRunner
+
+    from gaussiantalker.exporter.bench.app import app
+
+    out = tmp_path / "renderers.json"
+    result = CliRunner().invoke(app, ["renderers", "--gaussians", "500", "--sizes", "32", "--frames", "1",
+                                      "--rounds", "1", "--threads", "1", "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    (run,) = json.loads(out.read_text())["runs"]
+    assert run["size"] == 32 and set(run["splat_ms"]) == {"gl", "cpu1"} and run["gl_over_cpu"]["cpu1"] > 0
+
+
+# -- TalkingHead(renderer=...) ----------------------------------------------------------------------------------
+
+
+def test_renderer_setting_is_checked():
+    from gaussiantalker.runtime.settings import BackendSettings, merged_backend
+    from gaussiantalker.sdk.errors import SettingsError
+
+    assert BackendSettings().renderer == "gl"
+    assert merged_backend("onnxruntime", renderer="cpu").renderer == "cpu"
+    with pytest.raises(SettingsError, match="renderer"):
+        BackendSettings(renderer="vulkan")
+    with pytest.raises(SettingsError, match="given twice"):
+        merged_backend(BackendSettings(renderer="gl"), renderer="cpu")
+
+
+def test_auto_picks_cpu_on_a_software_gl_and_says_why(monkeypatch, caplog):
+    from gaussiantalker.runtime import renderer as renderer_module
+    from gaussiantalker.sdk.errors import SettingsError
+
+    assert renderer_module.is_software_renderer("llvmpipe (LLVM 15.0.6, 256 bits)")
+    assert renderer_module.is_software_renderer("Google SwiftShader")
+    assert not renderer_module.is_software_renderer("NVIDIA GeForce RTX 4090/PCIe/SSE2")
+    monkeypatch.setattr(renderer_module, "_reported", set())
+    with caplog.at_level("INFO", logger="gaussiantalker.runtime"):
+        splatter, name = renderer_module.make_splatter("auto")
+    is_software = renderer_module.is_software_renderer(GLSplatter().ctx.info["GL_RENDERER"])
+    assert name == ("cpu" if is_software else "gl") and isinstance(splatter, CPUSplatter) == (name == "cpu")
+    assert f"the {name} splatter" in caplog.text
+    splatter.release()
+    monkeypatch.setattr(renderer_module, "cpu_splatter_available", lambda: False)
+    splatter, name = renderer_module.make_splatter("auto")  # no numba: GL, whatever the GL is
+    assert name == "gl"
+    splatter.release()
+    with pytest.raises(SettingsError, match=r"gaussiantalker-sdk\[cpu\]"):
+        renderer_module.make_splatter("cpu")
+
+
+def _head_frames(path, renderer, drives, output="uint8", **kwargs):
+    from gaussiantalker.runtime import TalkingHead
+
+    with TalkingHead(path, renderer=renderer, **kwargs) as head:
+        assert head.renderer == renderer
+        return [head.render(drive, output) for drive in drives]
+
+
+@pytest.fixture(scope="module")
+def small_drives(small_export):
+    from gaussiantalker.exporter.export.probes import driven_clip
+
+    return driven_clip(small_export.speaker, 4)[1]
+
+
+def test_small_speaker_frames_match_torch(small_export):
+    """End to end (audio -> translator -> deformation graph -> CPU splatter) against the torch speaker."""
+    from gaussiantalker.exporter.verify.verify import verify_frames
+    from gaussiantalker.runtime import TalkingHead
+
+    with TalkingHead(small_export.path, resolution=(128, 128), renderer="cpu") as head:
+        report = verify_frames(small_export.speaker, head, frames=4)
+    assert all(f["finite"] for f in report["frames"])
+    assert min(f["psnr_db"] for f in report["frames"]) >= MIN_PSNR_8BIT
+
+
+@pytest.mark.parametrize("camera", ["bundle", "novel"])
+def test_small_speaker_frames_match_gl(small_export, small_drives, camera):
+    kwargs = {"resolution": (96, 80)}
+    if camera == "novel":  # off-centre principal point, another angle and distance
+        base = Camera.looking_at([0.25, -0.1, 0.45], [0.0, 0.0, 0.0], [0.0, -1.0, 0.0], 96, 80, 35.0)
+        kwargs = {"camera": Camera(96, 80, base.fx, base.fy * 1.1, 30.0, 50.0, base.R, base.t)}
+    cpu = _head_frames(small_export.path, "cpu", small_drives, **kwargs)
+    gl = _head_frames(small_export.path, "gl", small_drives, **kwargs)
+    for mine, theirs in zip(cpu, gl, strict=True):
+        assert (mine != mine[0, 0]).any()  # the head is in view
+        assert psnr_db(mine.astype(np.float64) / 255, theirs.astype(np.float64) / 255) >= MIN_PSNR_8BIT
+
+
+@pytest.mark.parametrize("preset", ["balanced", "fast"])
+def test_presets_match_gl(reduced_export, small_drives, preset):
+    """A preset's bundle and render settings, CPU vs GL (GL's framebuffer in float32: the CPU always blends in
+    float32, so an 8-bit or float16 framebuffer is a GL-only loss). `fast` draws at 3/4 size: the upscale's
+    bilinear weights are 8-bit in llvmpipe's sampler, so its bound is that of the render-scale test (45 dB)."""
+    path = reduced_export(preset)
+    cpu = _head_frames(path, "cpu", small_drives, resolution=(96, 96), render_target="float32")
+    gl = _head_frames(path, "gl", small_drives, resolution=(96, 96), render_target="float32")
+    bound = 45.0 if preset == "fast" else MIN_PSNR_8BIT
+    for mine, theirs in zip(cpu, gl, strict=True):
+        assert psnr_db(mine.astype(np.float64) / 255, theirs.astype(np.float64) / 255) >= bound
+
+
+def test_semantic_and_alpha_outputs_match_gl(small_export, small_drives):
+    drives = small_drives[:1]
+    for output in ("semantic", "rgba", "rgba_float"):
+        mine = _head_frames(small_export.path, "cpu", drives, output, resolution=(64, 64))[0]
+        theirs = _head_frames(small_export.path, "gl", drives, output, resolution=(64, 64))[0]
+        assert mine.shape == theirs.shape and mine.dtype == theirs.dtype
+        scale = 255.0 if mine.dtype == np.uint8 else 1.0
+        assert psnr_db(mine.astype(np.float64) / scale, theirs.astype(np.float64) / scale) >= MIN_PSNR_8BIT, output
