@@ -335,6 +335,25 @@ def test_composite_true_without_a_clip_and_a_custom_camera_are_refused(clip_expo
 
 
 
+def test_the_cpu_splatter_composites_like_gl(clip_export):
+    """renderer="cpu" (runtime/cpu_splatter.py) through the whole compositing path: the clip's frames, F's
+    inpainting and the mask blend, against GL's composited frames (both splatters' bare frames agree at >= 60 dB,
+    tests/test_cpu_splatter.py; the compositing after them is the same numpy)."""
+    from gaussiantalker.exporter.export.speech import synth_speech
+    from gaussiantalker.runtime import TalkingHead
+
+    pytest.importorskip("numba", reason="the cpu extra is not installed")
+    speech = synth_speech(0.4, seed=3)
+    frames = {}
+    for renderer in ("gl", "cpu"):
+        with TalkingHead(clip_export.path, renderer=renderer) as head:
+            assert head.composite and head.renderer == renderer
+            frames[renderer] = list(head.frames(speech, 16000))
+    assert len(frames["cpu"]) == len(frames["gl"]) > 0
+    for mine, theirs in zip(frames["cpu"], frames["gl"], strict=True):
+        assert psnr_db(mine.astype(np.float64) / 255, theirs.astype(np.float64) / 255) >= 60.0
+
+
 def test_a_composited_head_does_not_play_a_motion(clip_export, tmp_path):
     """A FLAME motion plays on the bare head only: composited frames follow the clip and its audio."""
     from gaussiantalker.runtime import TalkingHead

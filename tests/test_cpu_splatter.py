@@ -299,12 +299,12 @@ def test_small_speaker_frames_match_gl(small_export, small_drives, camera):
         assert psnr_db(mine.astype(np.float64) / 255, theirs.astype(np.float64) / 255) >= MIN_PSNR_8BIT
 
 
-@pytest.mark.parametrize("preset", ["balanced", "fast"])
-def test_presets_match_gl(reduced_export, small_drives, preset):
-    """A preset's bundle and render settings, CPU vs GL (GL's framebuffer in float32: the CPU always blends in
+@pytest.mark.parametrize("preset", ["quality", "balanced", "compact", "fast", "mobile"])
+def test_presets_match_gl(small_export, reduced_export, small_drives, preset):
+    """Every preset's bundle and render settings, CPU vs GL (GL's framebuffer in float32: the CPU always blends in
     float32, so an 8-bit or float16 framebuffer is a GL-only loss). `fast` draws at 3/4 size: the upscale's
     bilinear weights are 8-bit in llvmpipe's sampler, so its bound is that of the render-scale test (45 dB)."""
-    path = reduced_export(preset)
+    path = small_export.path if preset == "quality" else reduced_export(preset)  # quality: the fp32 default
     cpu = _head_frames(path, "cpu", small_drives, resolution=(96, 96), render_target="float32")
     gl = _head_frames(path, "gl", small_drives, resolution=(96, 96), render_target="float32")
     bound = 45.0 if preset == "fast" else MIN_PSNR_8BIT
