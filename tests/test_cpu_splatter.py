@@ -299,6 +299,16 @@ def test_small_speaker_frames_match_gl(small_export, small_drives, camera):
         assert psnr_db(mine.astype(np.float64) / 255, theirs.astype(np.float64) / 255) >= MIN_PSNR_8BIT
 
 
+def test_nan_drives_are_refused_before_the_cpu_splatter(small_export):
+    from gaussiantalker.runtime import TalkingHead
+    from gaussiantalker.sdk.errors import DriveError
+
+    with TalkingHead(small_export.path, resolution=(32, 32), renderer="cpu") as head:
+        with pytest.raises(DriveError, match="jaw pose has non-finite values"):
+            head.render_params(jaw_pose=[np.nan, 0.0, 0.0])
+        assert head.render_params(jaw_pose=[0.2, 0.0, 0.0]).std() > 0  # and the head still draws
+
+
 @pytest.mark.parametrize("preset", ["quality", "balanced", "compact", "fast", "mobile"])
 def test_presets_match_gl(small_export, reduced_export, small_drives, preset):
     """Every preset's bundle and render settings, CPU vs GL (GL's framebuffer in float32: the CPU always blends in
