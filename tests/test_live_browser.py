@@ -111,11 +111,9 @@ def test_browser_receives_the_head_talking_with_its_microphone(small_export):
     assert summary["jaw_loudness_r"] > 0.5 and summary["jaw_range_speaking"] > 0.05, summary
 
 
-@pytest.mark.slow
-def test_a_browser_that_leaves_mid_reply_ends_its_session(small_export):
-    """Mid-reply (the 10 s sample speech still being pushed), a page that navigates away ends its session at once;
-    the server then serves a new page; a browser killed outright is noticed by WebRTC's consent checks (~30 s).
-    Every time, the session and its render thread end and the server logs no error."""
+def _leave_mid_reply(small_export, leave) -> float:
+    """Start the 10 s sample speech in a page, let `leave(browser, port, page)` end it after 25 frames, check that
+    the server logged no error, and return the seconds `leave` measured."""
     _requirements()
     port = _free_port()
     server = _server(small_export.path, port)
@@ -125,19 +123,43 @@ def test_a_browser_that_leaves_mid_reply_ends_its_session(small_export):
             browser.navigate(page)
             assert _wait_frames(browser, 25).get("frames", 0) >= 25
             assert _get(port, "/health") == {"sessions": 1, "render_threads": 1}
-            browser.navigate("about:blank")
-            # The page's beacon ends it: well under a second here, 5 s allows for a loaded machine.
-            left_s = _seconds_until_closed(port, 5.0)
-            browser.navigate(page)
-            stats = _wait_frames(browser, 25)
-            assert stats.get("frames", 0) >= 25 and not stats.get("error"), stats
-            browser.process.kill()  # no beacon, no goodbye: only the consent checks can tell
-            browser.process.wait()
-            # aioice's consent checks give up after 6 missed checks 5 s apart: ~30 s, 60 s for a loaded machine.
-            vanished_s = _seconds_until_closed(port, 60.0)
+            seconds = leave(browser, port, page)
     finally:
         server.terminate()
         log = server.communicate(timeout=30)[0]
-    print(f"closed {left_s:.2f} s after the page left, {vanished_s:.1f} s after the browser was killed")
     for sign in ("Traceback", "Error", "never retrieved"):
         assert sign not in log, log[-3000:]
+    return seconds
+
+
+@pytest.mark.slow
+def test_a_page_that_leaves_mid_reply_ends_its_session(small_export):
+    """Mid-reply (the sample speech still being pushed), a page that navigates away ends its session at once (its
+    beacon), the session's render thread ends, the server logs no error and serves the next page."""
+
+    def leave(browser: Chromium, port: int, page: str) -> float:
+        browser.navigate("about:blank")
+        # The page's beacon ends it: well under a second here, 5 s allows for a loaded machine.
+        seconds = _seconds_until_closed(port, 5.0)
+        browser.navigate(page)
+        stats = _wait_frames(browser, 25)
+        assert stats.get("frames", 0) >= 25 and not stats.get("error"), stats
+        return seconds
+
+    seconds = _leave_mid_reply(small_export, leave)
+    print(f"closed {seconds:.2f} s after the page left")
+
+
+@pytest.mark.heavy
+def test_a_browser_killed_mid_reply_ends_its_session(small_export):
+    """A browser killed outright says nothing: WebRTC's consent checks notice (~30 s, aioice's fixed schedule, so
+    this case is `heavy`), and the session and its render thread end as cleanly as when a page leaves."""
+
+    def leave(browser: Chromium, port: int, page: str) -> float:
+        browser.process.kill()
+        browser.process.wait()
+        # aioice's consent checks give up after 6 missed checks 5 s apart: ~30 s, 60 s for a loaded machine.
+        return _seconds_until_closed(port, 60.0)
+
+    seconds = _leave_mid_reply(small_export, leave)
+    print(f"closed {seconds:.1f} s after the browser was killed")
