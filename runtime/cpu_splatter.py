@@ -43,6 +43,8 @@ from gaussiantalker.sdk.render_settings import RenderSettings
 from .depth_sort import DepthSorter
 from .splatter import FRAME_OUTPUTS, STAGES, PreparedSplats, _background_rgb, pack_gaussians
 
+logger = logging.getLogger("gaussiantalker.runtime")
+
 
 def cache_dir() -> Path:
     """Where compiled kernels are cached: $NUMBA_CACHE_DIR if the user set it, else the user cache directory
@@ -51,9 +53,6 @@ def cache_dir() -> Path:
         return Path(os.environ["NUMBA_CACHE_DIR"])
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "gaussiantalker" / "numba"
-
-
-logger = logging.getLogger("gaussiantalker.runtime")
 
 
 def _configure_numba_cache() -> None:
