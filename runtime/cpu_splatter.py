@@ -41,7 +41,7 @@ from gaussiantalker.sdk.image import straight_rgba
 from gaussiantalker.sdk.render_settings import RenderSettings
 
 from .depth_sort import DepthSorter
-from .splatter import FRAME_OUTPUTS, STAGES, PreparedSplats, _background_rgb, pack_gaussians
+from .splatter import FRAME_OUTPUTS, STAGES, PreparedSplats, _background_rgb, sorted_rows
 
 logger = logging.getLogger("gaussiantalker.runtime")
 
@@ -451,17 +451,9 @@ class CPUSplatter:
 
     def prepare(self, means, cov3d, rgb, opacity, camera: Camera) -> PreparedSplats:
         """Validate, pack and depth-sort (numpy only: safe on a worker thread)."""
-        if not isinstance(camera, Camera):
-            raise RenderError(f"camera must be a gaussiantalker.sdk.camera.Camera, got {type(camera).__name__}")
         start = time.perf_counter()
-        output_size = (int(camera.width), int(camera.height))
-        draw_size = self.settings.draw_size(*output_size)
-        if draw_size != output_size:
-            camera = camera.resized(*draw_size)
-        packed = pack_gaussians(means, cov3d, rgb, opacity)
-        rows = np.ascontiguousarray(packed[self._sorter.order(packed, camera)])
-        return PreparedSplats(rows, [], camera, time.perf_counter() - start,
-                              output_size if draw_size != output_size else None)
+        rows, camera, output_size = sorted_rows(self._sorter, self.settings, means, cov3d, rgb, opacity, camera)
+        return PreparedSplats(np.ascontiguousarray(rows), [], camera, time.perf_counter() - start, output_size)
 
     def draw(self, prepared: PreparedSplats, background, *, output: str = "uint8") -> np.ndarray:
         """Splat a prepared frame -> the `output` frame (see `GLSplatter.render`). Timings: "upload" is the

@@ -186,6 +186,21 @@ class PreparedSplats:
     output_size: tuple[int, int] | None = None  # (width, height) returned, when it differs from the drawn size
 
 
+def sorted_rows(sorter: DepthSorter, settings: RenderSettings, means, cov3d, rgb, opacity, camera: Camera
+                ) -> tuple[np.ndarray, Camera, tuple[int, int] | None]:
+    """What both splatters prepare alike: the Gaussians validated, packed and sorted front to back ([n, 13]) for the
+    camera at the render scale's draw size, that camera, and the output size to upscale to (None: no upscale)."""
+    if not isinstance(camera, Camera):
+        raise RenderError(f"camera must be a gaussiantalker.sdk.camera.Camera, got {type(camera).__name__}")
+    output_size = (int(camera.width), int(camera.height))
+    draw_size = settings.draw_size(*output_size)
+    if draw_size != output_size:
+        camera = camera.resized(*draw_size)  # the same view, fewer pixels: upscaled after drawing
+    packed = pack_gaussians(means, cov3d, rgb, opacity)
+    rows = packed[sorter.order(packed, camera)]
+    return rows, camera, (output_size if draw_size != output_size else None)
+
+
 class _Target:
     """A framebuffer of one resolution and precision (moderngl dtype f4, f2 or f1) plus its read-back scratch."""
 
@@ -399,18 +414,10 @@ class GLSplatter:
 
     def prepare(self, means, cov3d, rgb, opacity, camera: Camera) -> PreparedSplats:
         """Validate, pack, depth-sort and plan draw runs (numpy only, no GL: safe on a worker thread)."""
-        if not isinstance(camera, Camera):
-            raise RenderError(f"camera must be a gaussiantalker.sdk.camera.Camera, got {type(camera).__name__}")
         start = time.perf_counter()
-        output_size = (int(camera.width), int(camera.height))
-        draw_size = self.settings.draw_size(*output_size)
-        if draw_size != output_size:
-            camera = camera.resized(*draw_size)  # the same view, fewer pixels: upscaled after drawing
-        packed = pack_gaussians(means, cov3d, rgb, opacity)
-        rows = packed[self._sorter.order(packed, camera)]  # [n, 13] front to back
+        rows, camera, output_size = sorted_rows(self._sorter, self.settings, means, cov3d, rgb, opacity, camera)
         runs = self._plan_runs(rows, camera)
-        return PreparedSplats(rows, runs, camera, time.perf_counter() - start,
-                              output_size if draw_size != output_size else None)
+        return PreparedSplats(rows, runs, camera, time.perf_counter() - start, output_size)
 
     def draw(self, prepared: PreparedSplats, background, *, output: str = "uint8") -> np.ndarray:
         """Upload, splat and read back a prepared frame -> [H, W, 3] (see `render`)."""
