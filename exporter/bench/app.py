@@ -73,7 +73,7 @@ def renderers(
 
     if play is not None and not play.is_file():
         raise typer.BadParameter(f"{play}: no such bundle", param_hint="--play")
-    results = run_renderers_bench(gaussians, sizes, frames, rounds, threads, None) if gaussians else {}
+    results = run_renderers_bench(gaussians, sizes, frames, rounds, threads) if gaussians else {}
     if play is not None:
         results["play"] = run_play_bench(play, ["gl", "cpu"], play_size, play_rounds)
         typer.echo(json.dumps(results["play"], indent=2))

@@ -14,7 +14,6 @@ With `--play BUNDLE` it also times the whole path a user runs, per renderer, alt
 
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 import tempfile
@@ -46,9 +45,9 @@ def _splat_ms(splatter, prepared, frames: int) -> list[float]:
     return times
 
 
-def run_renderers_bench(gaussians: str, sizes: str, frames: int, rounds: int, threads: str,
-                        json_path: Path | None) -> dict:
-    """Bench GL against the CPU splatter at every (Gaussian count, size) and CPU thread count; print, write JSON."""
+def run_renderers_bench(gaussians: str, sizes: str, frames: int, rounds: int, threads: str) -> dict:
+    """Bench GL against the CPU splatter at every (Gaussian count, size) and CPU thread count; print and return
+    the results (`gt-bench renderers --json` writes them)."""
     import numba
 
     from gaussiantalker.runtime.cpu_splatter import CPUSplatter
@@ -87,9 +86,6 @@ def run_renderers_bench(gaussians: str, sizes: str, frames: int, rounds: int, th
                                                                             medians.items()) + f"; GL/CPU {ratios}")
     finally:
         gl.release()
-    if json_path is not None:
-        json_path.write_text(json.dumps(results, indent=2))
-        typer.echo(f"wrote {json_path}")
     return results
 
 
