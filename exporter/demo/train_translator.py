@@ -245,8 +245,18 @@ def train_demo_translator(
     if n_expr != model.n_expr:
         raise ValueError(f"n_expr {n_expr} does not match the translator's {model.n_expr}")
     settings = settings or TrainSettings()
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(2)  # the same float reductions on every machine: the same demo speaker everywhere
+    try:
+        return _train(model, n_expr, seconds_budget, seed, progress, settings)
+    finally:
+        torch.set_num_threads(previous_threads)
+
+
+def _train(model: MotionTranslator, n_expr: int, seconds_budget: float, seed: int, progress: bool,
+           settings: TrainSettings) -> dict:
+    """The training loop of `train_demo_translator`, at the thread count it set."""
     torch.manual_seed(seed)
-    torch.set_num_threads(2)
     spf = model.samples_per_frame
     clips = make_training_clips(settings.n_clips, settings.clip_seconds, seed, spf)
     rng = np.random.default_rng(seed)

@@ -168,10 +168,12 @@ class Preset:
     min_head_psnr_db: float | None = None  # 8-bit PSNR over the head region vs the fp32 speaker's frames
 
 
-# Buffer codecs of the reduced presets: per-Gaussian values 8-bit (barycentrics, rest sizes 16-bit), SH bands and
-# speaker blendshapes 4-bit, FLAME bases 4-bit in chunks of 128, the translator and the inpainting generator 8-bit
-# (F's codecs measured on composited frames: docs/compositing.md, "F's precision").
-_REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4", "flame": "q4/128", "translator": "q8",
+# Buffer codecs of the reduced presets: per-Gaussian values 8-bit (barycentrics, rest sizes 16-bit), SH bands 4-bit,
+# speaker blendshapes and FLAME bases 4-bit in chunks of 64, the translator and the inpainting generator 8-bit (F's
+# codecs measured on composited frames: docs/compositing.md, "F's precision"). The chunks are small because the
+# opaque demo head needs them: with blendshapes in chunks of 256 and FLAME in chunks of 128 its head region measured
+# 42.7 dB (bound 47), with both in chunks of 64 48.3 dB, for 0.18 MB more (docs/precision.md, "Presets").
+_REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4/64", "flame": "q4/64", "translator": "q8",
                    "inpaint": "q8"}
 # The reference clip's frames (`reference`; the measured table: docs/compositing.md, "The clip's codec"). Each reduced
 # preset takes the largest measured x264 CRF whose composited frames stay at least 3 dB above the preset's
@@ -188,22 +190,23 @@ _CLIP_CRF = {"balanced": "crf:20", "compact": "crf:33", "fast": "crf:38", "mobil
 PRESETS: dict[str, Preset] = {
     "quality": Preset("quality", "fp32 everything: parity with the torch speaker (>= 50 dB)", ExportSettings()),
     "balanced": Preset("balanced", "quantised buffers, nothing dropped, the clip at CRF 20: ~3x smaller with the "
-                       "demo clip (5.8x the bare head) at ~49 dB",
+                       "demo clip (5.4x the bare head) at ~49 dB",
                        ExportSettings(**_REDUCED_CODECS, reference=_CLIP_CRF["balanced"]), min_head_psnr_db=47.0),
     "compact": Preset("compact", "smallest bundle: 65% of the Gaussians, SH degree 0, rank-2 blendshapes, 4-bit "
                       "translator and inpainting generator, FLAME bases in chunks of 256, the clip at CRF 33: ~7x "
                       "smaller with the demo clip (14x the bare head) at ~36 dB on the demo speaker",
-                      ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "flame": "q4", "inpaint": "q4"},
+                      ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "blendshapes": "q4", "flame": "q4",
+                                        "inpaint": "q4"},
                                      sh_degree=0, blendshape_rank=2, gaussian_budget=0.65,
                                      reference=_CLIP_CRF["compact"]), min_head_psnr_db=35.0),
     "fast": Preset("fast", "fastest frames: 60% of the Gaussians, drawn at 3/4 size into an 8-bit framebuffer, "
-                   "16-bit depth-sort keys: ~2x the frame rate at ~35 dB",
+                   "16-bit depth-sort keys: ~2.7x the frame rate at ~41 dB",
                    ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6, reference=_CLIP_CRF["fast"]),
                    RenderSettings(render_scale=0.75, render_target="uint8", sort_key_bits=16), min_head_psnr_db=29.0),
-    "mobile": Preset("mobile", "for phones and WebGL 2 (docs/porting.md): fp16 buffers, 70% of the Gaussians, an "
+    "mobile": Preset("mobile", "for phones and WebGL 2 (docs/porting.md): fp16 buffers, 60% of the Gaussians, an "
                      "RGBA16F framebuffer (GLES 3.0's renderable float, docs/shaders.md), 16-bit depth-sort keys, one "
-                     "graph thread: ~1.3x the frame rate at ~41 dB",
-                     ExportSettings(**dict.fromkeys(CODEC_GROUPS, "fp16"), gaussian_budget=0.7,
+                     "graph thread: ~1.4x the frame rate at ~48 dB",
+                     ExportSettings(**dict.fromkeys(CODEC_GROUPS, "fp16"), gaussian_budget=0.6,
                                     reference=_CLIP_CRF["mobile"]),
                      RenderSettings(render_target="float16", sort_key_bits=16, graph_threads=1), min_head_psnr_db=39.0),
 }
