@@ -57,6 +57,8 @@ class FrameTrack(MediaStreamTrack):
         self._queue: asyncio.Queue = asyncio.Queue(QUEUE_FRAMES)
 
     def put(self, frame) -> None:
+        if self._loop.is_closed():  # the server has shut down: nobody reads the track any more
+            return
         self._loop.call_soon_threadsafe(self._put, frame)
 
     def _put(self, frame) -> None:
@@ -101,6 +103,15 @@ class Session:
         self.ready.wait()
         if self.error:
             raise RuntimeError(self.error)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """End the live session and wait for its render thread, so no frame is drawn after the server shuts down."""
+        if self._thread.ident is None:  # never started
+            return
+        self.ready.wait(timeout)
+        if self.live is not None:
+            self.live.close()
+        self._thread.join(timeout)
 
     def _run(self) -> None:
         bundle, size, lookahead_ms, renderer = self._args
@@ -230,8 +241,8 @@ def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, rendere
         session = sessions.pop(pc, None)
         for key in [key for key, value in connections.items() if value is pc]:
             del connections[key]
-        if session is not None and session.live is not None:
-            session.live.close()
+        if session is not None:
+            await asyncio.get_running_loop().run_in_executor(None, session.stop)
         await pc.close()
 
     async def leave(request: web.Request) -> web.Response:

@@ -173,10 +173,12 @@ def _rebind_onnx(proto, module, recorded_module):
 def rebinding_onnx_exports(recorded: SimpleNamespace) -> Iterator[list]:
     """Within the block, export_onnx(module, ...) returns the next recorded graph of `recorded` (a `small_export`-
     like namespace) rebound to `module`'s weights instead of running torch.onnx; so any speaker of the recorded
-    speaker's architecture exports (gt-export included). Yields the list of rebound protos handed out so far."""
+    speaker's architecture exports (gt-export included). The recorded modules are `recorded.modules` where it has
+    them, else `graph_modules(recorded.speaker)`. Yields the list of rebound protos handed out so far."""
     import gaussiantalker.exporter.export.onnx_export as onnx_export_module
 
-    queue = list(zip(recorded.protos, graph_modules(recorded.speaker), strict=True))
+    modules = getattr(recorded, "modules", None) or graph_modules(recorded.speaker)
+    queue = list(zip(recorded.protos, modules, strict=True))
     handed_out = []
 
     def rebinding(module, *args, **kwargs):
@@ -189,6 +191,25 @@ def rebinding_onnx_exports(recorded: SimpleNamespace) -> Iterator[list]:
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(onnx_export_module, "export_onnx", rebinding)
         yield handed_out
+
+
+@contextlib.contextmanager
+def rebinding_the_translator(recorded: SimpleNamespace) -> Iterator[None]:
+    """Within the block, exporting a translator of the recorded speaker's kind rebinds its recorded graph (as
+    `rebinding_onnx_exports` does); every other graph is exported by torch.onnx."""
+    import gaussiantalker.exporter.export.onnx_export as onnx_export_module
+
+    real_export_onnx = onnx_export_module.export_onnx
+    translator = recorded.speaker.translator
+
+    def export(module, *args, **kwargs):
+        if type(module) is type(translator):
+            return _rebind_onnx(recorded.protos[0], module, translator)
+        return real_export_onnx(module, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(onnx_export_module, "export_onnx", export)
+        yield
 
 
 def _export_rebound(speaker, path, recorded: SimpleNamespace, **export_kwargs) -> SimpleNamespace:
@@ -263,10 +284,49 @@ def small_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
     return export
 
 
+@pytest.fixture(scope="session")
+def inpaint_export() -> SimpleNamespace:
+    """A default-config F (seed 0) with random (non-zero) output weights, so the network's path shows in its
+    output, and its ONNX proto as the exporter makes it (`.model`, `.proto`): the session's one torch.onnx export
+    of F (~25 s); other tests rebind it to their F's weights or use it as it is."""
+    import torch
+
+    from gaussiantalker.exporter.export.inpainter_graph import inpainter_onnx
+    from gaussiantalker.exporter.model.inpainter import InpainterNet
+
+    torch.manual_seed(0)
+    model = InpainterNet()
+    with torch.no_grad():
+        torch.nn.init.normal_(model.head.weight, std=0.5)
+        torch.nn.init.normal_(model.head.bias, std=0.5)
+    model.eval()
+    return SimpleNamespace(model=model, proto=inpainter_onnx(model))
+
+
+@pytest.fixture(scope="session")
+def clip_export(small_export, inpaint_export, tmp_path_factory) -> SimpleNamespace:
+    """The small speaker with a small demo clip and a random F (tests/clip_speaker.py), saved (`.checkpoint`) and
+    exported (`.path`, `.protos`: translator, deform, inpaint): the session's recorded graphs rebound to its
+    weights, so no torch.onnx runs (the composited frames' parity checks would catch a graph that is not F's)."""
+    from clip_speaker import make_clip_speaker
+
+    from gaussiantalker.exporter.export.checkpoint import save_checkpoint
+
+    speaker, composer = make_clip_speaker(small_export.speaker)
+    folder = tmp_path_factory.mktemp("clip")
+    save_checkpoint(speaker, folder / "clip.ckpt")
+    recorded = SimpleNamespace(protos=[*small_export.protos, inpaint_export.proto],
+                               modules=[*graph_modules(small_export.speaker), inpaint_export.model])
+    protos = _export_rebound(speaker, folder / "clip.gtb", recorded).protos
+    return SimpleNamespace(speaker=speaker, composer=composer, checkpoint=folder / "clip.ckpt",
+                           path=folder / "clip.gtb", folder=folder, protos=protos)
+
+
 # Reduced bundles of the small speaker that `reduced_export` makes: the presets, and each reduced translator graph
 # precision.
 # Those marked True keep the fp32 export's graphs (only buffer codecs or the translator's precision change, which
-# happen after torch.onnx), so their exports replay the session's recorded graphs.
+# happen after torch.onnx), so their exports replay the session's recorded graphs; the others prune or truncate
+# the Gaussians, which changes the deformation graph (exported again) but not the translator's (rebound).
 REDUCED_EXPORTS = {"balanced": True, "compact": False, "fast": False, "mobile": False, "translator-fp16": True,
                "translator-int8": True}
 
@@ -285,7 +345,8 @@ def reduced_export(small_export, tmp_path_factory):
         if name not in paths:
             kwargs = ({"settings": ExportSettings(translator_precision=name.split("-")[1])}
                       if name.startswith("translator-") else {"preset": name})
-            replay = replaying_onnx_exports(small_export.protos) if REDUCED_EXPORTS[name] else contextlib.nullcontext()
+            replay = (replaying_onnx_exports(small_export.protos) if REDUCED_EXPORTS[name]
+                      else rebinding_the_translator(small_export))
             with replay:
                 export_bundle(small_export.speaker, folder / f"{name}.gtb", progress=False, **kwargs)
             paths[name] = folder / f"{name}.gtb"

@@ -116,6 +116,19 @@ def test_export_verify_play_in_process(in_process_dir):
     _check_video(work / "talk.mp4", frames=50)
 
 
+def test_export_verify_composited_in_process(clip_export, replay_onnx_exports, tmp_path, monkeypatch):
+    """A speaker with a reference clip (the session's small clip speaker): --verify adds the inpaint graph and the
+    composited frames to what it checks and reports (its recorded graphs replayed instead of torch.onnx)."""
+    from gaussiantalker.exporter.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    shutil.copy(clip_export.checkpoint, tmp_path / "speaker.ckpt")
+    replay_onnx_exports(clip_export.protos)
+    result = _invoke(app, ["speaker.ckpt", "-o", "speaker.gtb", "--verify", "--report", "report.json",
+                           "--resolution", "96", "-q"])
+    _check_verified_export(result.stdout, tmp_path, composited=True)
+
+
 def test_bad_input_gives_clear_errors_in_process(in_process_dir):
     from gaussiantalker.exporter.cli import app
 
@@ -174,10 +187,10 @@ def test_console_script_runs(tmp_path):
 @pytest.fixture(scope="module")
 def workdir(tmp_path_factory):
     work = tmp_path_factory.mktemp("cli")
-    # Untrained translator and a briefly trained F: these tests are about the command line (with a reference clip,
-    # as the README's demo makes it).
-    _run([sys.executable, str(ROOT / "samples" / "make_demo_speaker.py"), "-o", "speaker.ckpt", "--gaussians", "3000",
-          "--train-seconds", "0", "--inpaint-seconds", "3", "-q"], work)
+    # An untrained bare-head speaker: these tests are about the command line, as a user runs it (the composited
+    # --verify that a reference clip adds is test_export_verify_composited_in_process's).
+    _run([sys.executable, str(ROOT / "samples" / "make_demo_speaker.py"), "-o", "speaker.ckpt",
+          *SAMPLE_SPEAKER_ARGS, "-q"], work)
     return work
 
 
@@ -185,7 +198,7 @@ def workdir(tmp_path_factory):
 def test_export_verify_play(workdir):
     out = _run(GT_EXPORT + ["speaker.ckpt", "-o", "speaker.gtb", "--verify", "--report", "report.json",
                             "--resolution", "96", "-q"], workdir)
-    _check_verified_export(out.stdout, workdir, composited=True)
+    _check_verified_export(out.stdout, workdir)
 
     audio = _speech_clip(workdir / "speech.wav", 2.0)  # 50 frames: the whole path; long audio has tests of its own
     _run([sys.executable, str(ROOT / "samples" / "play.py"), "speaker.gtb", "--audio", str(audio), "-o", "talk.mp4",

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import copy
 import json
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
+from clip_speaker import CLIP_FRAMES, CLIP_SIZE
 
 from gaussiantalker.runtime.composite import CROP_MARGIN_PX, CROP_MULTIPLE, composite, crop_box, opencv_fallback
 from gaussiantalker.sdk.camera import Camera
@@ -26,36 +26,9 @@ from gaussiantalker.sdk.reference_clip import (
     frame_entry,
 )
 
-CLIP_FRAMES = 4
-CLIP_SIZE = (96, 112)  # width, height
-
 
 def _identity(x, mask, render):
     return x
-
-
-@pytest.fixture(scope="module")
-def clip_export(small_speaker, export_recording, tmp_path_factory) -> SimpleNamespace:
-    """The small speaker with a 4-frame 96x112 demo clip and a random F, saved and exported (its ONNX protos
-    kept: translator, deform, inpaint)."""
-    from gaussiantalker.exporter.demo.clip import ClipComposer, make_demo_clip
-    from gaussiantalker.exporter.export.checkpoint import save_checkpoint
-    from gaussiantalker.exporter.model.inpainter import InpainterNet
-
-    speaker = copy.deepcopy(small_speaker)
-    speaker.pose_track = speaker.pose_track[:CLIP_FRAMES].clone()
-    composer = ClipComposer(speaker, size=CLIP_SIZE)
-    speaker.reference = make_demo_clip(speaker, composer)
-    torch.manual_seed(0)
-    speaker.inpaint = InpainterNet().eval()
-    # An untrained F is exactly its priors (its output layer starts at zero); a random output layer makes every
-    # weight reach the composite, as a trained F's do.
-    torch.nn.init.normal_(speaker.inpaint.head.weight, std=0.1)
-    folder = tmp_path_factory.mktemp("clip")
-    save_checkpoint(speaker, folder / "clip.ckpt")
-    protos = export_recording(speaker, folder / "clip.gtb").protos
-    return SimpleNamespace(speaker=speaker, composer=composer, checkpoint=folder / "clip.ckpt",
-                           path=folder / "clip.gtb", folder=folder, protos=protos)
 
 
 # -- the clip's storage ------------------------------------------------------------------------------------------

@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.export.inpainter_graph import inpainter_onnx
 from gaussiantalker.exporter.model.inpainter import (
     CROP_MULTIPLE,
     W_LOGIT_BIAS,
@@ -80,18 +79,12 @@ def _torch_run(model: InpainterNet, inputs: dict[str, np.ndarray]) -> np.ndarray
 
 
 @pytest.fixture(scope="module")
-def exported():
-    """A default-config F with random (non-zero) head weights, so the network's path shows in the output, and
-    its ONNX session (one thread)."""
+def exported(inpaint_export):
+    """The session's default-config F with random (non-zero) head weights, so the network's path shows in the
+    output (conftest `inpaint_export`, a real torch.onnx export), and its ONNX session (one thread)."""
     import onnxruntime as ort
 
-    torch.manual_seed(0)
-    model = InpainterNet()
-    with torch.no_grad():
-        torch.nn.init.normal_(model.head.weight, std=0.5)
-        torch.nn.init.normal_(model.head.bias, std=0.5)
-    model.eval()
-    proto = inpainter_onnx(model)
+    model, proto = inpaint_export.model, inpaint_export.proto
     options = ort.SessionOptions()
     options.intra_op_num_threads = 1
     session = ort.InferenceSession(proto.SerializeToString(), options, providers=["CPUExecutionProvider"])

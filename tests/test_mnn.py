@@ -197,16 +197,15 @@ def test_mnn_frames_match_onnxruntime(mnn_export):
 
 
 @needs_mnn
-def test_mnn_inpaint_graph_sanitises_nan(tmp_path, small_export):
-    """The inpainting generator's NaN guard (x != x, MNN has no IsNaN) survives conversion: NaN in, finite out."""
+def test_mnn_inpaint_graph_sanitises_nan(tmp_path, inpaint_export):
+    """The inpainting generator's NaN guard (x != x, MNN has no IsNaN) survives conversion: NaN in, finite out
+    (the session's F graph, conftest `inpaint_export`: its weights do not matter here)."""
     import onnx
 
-    from gaussiantalker.exporter.export.inpainter_graph import inpainter_onnx
     from gaussiantalker.exporter.export.mnn_export import fold_constants
-    from gaussiantalker.exporter.model.inpainter import InpainterConfig, InpainterNet
     from gaussiantalker.runtime.mnn_backend import import_mnn
 
-    model = inpainter_onnx(InpainterNet(InpainterConfig()).eval())
+    model = inpaint_export.proto
     path = tmp_path / "inpaint.mnn"
     path.write_bytes(convert_to_mnn(mnn_compatible(fold_constants(model)), "inpaint"))
     assert not any(node.op_type == "IsNaN" for node in model.graph.node), onnx.helper.printable_graph(model.graph)
