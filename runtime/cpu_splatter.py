@@ -215,12 +215,30 @@ def _project(rows, R, t, intr, limits, width, height, params, boxes):
         an, bn, cn = a / s, b / s, c / s
         s00, s01, s11 = c00 / s, c01 / s, c11 / s
         low = _LOW_PASS / s
+        # the entries' magnitudes: the same quadratic forms over |rows| and |Sigma| (rounding_products)
+        a_xx, a_xy, a_xz, a_yy, a_yz, a_zz = abs(s_xx), abs(s_xy), abs(s_xz), abs(s_yy), abs(s_yz), abs(s_zz)
+        r00, r01, r02 = abs(n00), abs(n01), abs(n02)  # row 0 (the same in both forms)
+        t00, t01, t02 = r00 * a_xx + r01 * a_xy + r02 * a_xz, r00 * a_xy + r01 * a_yy + r02 * a_yz, \
+            r00 * a_xz + r01 * a_yz + r02 * a_zz
+        m0_mag = t00 * r00 + t01 * r01 + t02 * r02
         if use_sheared:
+            r10, r11, r12 = abs(n10), abs(n11), abs(n12)
+            t10, t11, t12 = r10 * a_xx + r11 * a_xy + r12 * a_xz, r10 * a_xy + r11 * a_yy + r12 * a_yz, \
+                r10 * a_xz + r11 * a_yz + r12 * a_zz
+            x_mag, y_mag = m0_mag / s, (t10 * r00 + t11 * r01 + t12 * r02) / s
+            z_mag = (t10 * r10 + t11 * r11 + t12 * r12) / s
             det = (s00 * s11 - s01 * s01) + low * (an + cn - low)
-            det = det if det > _DET_REL * (abs(s00 * s11) + s01 * s01) else _ZERO  # reliable
+            noise = _HALF * (x_mag * abs(s11) + abs(s00) * z_mag) + abs(s01) * y_mag
+            det = det if det > _DET_REL * noise else _ZERO  # reliable
         else:
+            r10, r11, r12 = abs(m10), abs(m11), abs(m12)
+            t10, t11, t12 = r10 * a_xx + r11 * a_xy + r12 * a_xz, r10 * a_xy + r11 * a_yy + r12 * a_yz, \
+                r10 * a_xz + r11 * a_yz + r12 * a_zz
+            x_mag, y_mag = (m0_mag + _LOW_PASS) / s, (t10 * r00 + t11 * r01 + t12 * r02) / s
+            z_mag = (t10 * r10 + t11 * r11 + t12 * r12 + _LOW_PASS) / s
             det = an * cn - bn * bn
-            det = det if det > _DET_REL * (abs(an * cn) + bn * bn) else _ZERO
+            noise = _HALF * (x_mag * abs(cn) + abs(an) * z_mag) + abs(bn) * y_mag
+            det = det if det > _DET_REL * noise else _ZERO
         if not det > _ZERO:
             continue
         # conic_from_cov2d, alpha_shape

@@ -32,10 +32,12 @@ COLOR_LIMIT = 1e30
 # culled. Only values no pixel of a 16384-px image could use come near it; it keeps per-pixel float32 math finite.
 FINITE_LIMIT = 1e30
 
-# A 2D determinant is the difference of two products (a c - b^2). Where it is below DET_MIN_RELATIVE times their
-# sum it is float32 rounding noise (its sign included), so it counts as not positive: the Gaussian is culled on
-# both sides alike. That takes a diagonal 2D covariance with lambda_max / lambda_min above ~2e6 (a sub-pixel-thin
-# needle ~5000 px long, or a near-singular covariance from huge 3D scales); the noise is ~1e-7 of the products.
+# A 2D determinant is the difference of two products (a c - b^2). Where it is below DET_MIN_RELATIVE times the
+# rounding noise those products carry (their sum, or more where a, b, c are themselves cancelling sums:
+# `rounding_products`, docs/numerics.md) it is float32 rounding noise (its sign included), so it counts as not
+# positive: the Gaussian is culled on both sides alike. That takes a diagonal 2D covariance with
+# lambda_max / lambda_min above ~2e6 (a sub-pixel-thin needle ~5000 px long, or a near-singular covariance from
+# huge 3D scales); the noise is ~1e-7 of the products.
 DET_MIN_RELATIVE = 2.0**-20
 
 # Where 0.5 (a + c) > COV2D_HUGE_PX2, the extent radius is evaluated on the 2D covariance divided by max(|a|, |c|),

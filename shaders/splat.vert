@@ -81,9 +81,16 @@ float cov2d_scale(vec3 cov2d) {
 }
 
 // Torch twin: `reliable` (exporter/model/splat_math.py).
-// det where it exceeds DET_MIN_RELATIVE * products (the sum it is the difference of), else 0: noise is culled.
+// det where it exceeds DET_MIN_RELATIVE * products (rounding_products), else 0: noise is culled.
 float reliable(float det, float products) {
     return det > DET_MIN_RELATIVE * products ? det : 0.0;
+}
+
+// Torch twin: `rounding_products` (exporter/model/splat_math.py).
+// What the rounding noise of x z - y^2 scales with, each entry computed as a sum whose terms' absolute values sum
+// to `magnitude`: (|x|bar |z| + |x| |z|bar) / 2 + |y| |y|bar; without cancellation, |x z| + y^2.
+float rounding_products(vec3 value, vec3 magnitude) {
+    return 0.5 * (magnitude.x * abs(value.z) + abs(value.x) * magnitude.z) + abs(value.y) * magnitude.y;
 }
 
 // Torch twin: `covariance_2d_determinant` (exporter/model/splat_math.py).
@@ -110,8 +117,21 @@ float covariance_2d_determinant(vec3 p_cam, vec3 cov_a, vec3 cov_b, vec3 cov2d) 
     vec3 n = sheared_cov / s;
     float low_pass = LOW_PASS_PX2 / s;
     float sheared = (n.x * n.z - n.y * n.y) + low_pass * (abc.x + abc.z - low_pass);  // det A + l (tr A + l)
-    sheared = reliable(sheared, abs(n.x * n.z) + n.y * n.y);
-    float plain = reliable(abc.x * abc.z - abc.y * abc.y, abs(abc.x * abc.z) + abc.y * abc.y);
+    // Magnitudes of both forms' entries: the quadratic forms over |rows| and |Sigma| (the plain second row as
+    // covariance_2d forms it).
+    vec3 j1_plain = vec3(0.0, u_intrinsics.y / z, -u_intrinsics.y * ratios.y / z);
+    vec3 r0 = abs(m0);
+    vec3 r1 = abs(m1);
+    vec3 r2 = abs(j1_plain * u_R);
+    mat3 sigma_abs = mat3(abs(sigma[0]), abs(sigma[1]), abs(sigma[2]));
+    vec3 w0 = sigma_abs * r0;
+    vec3 w1 = sigma_abs * r1;
+    vec3 w2 = sigma_abs * r2;
+    float m0_mag = dot(r0, w0);
+    vec3 sheared_mag = vec3(m0_mag, dot(r0, w1), dot(r1, w1)) / s;
+    vec3 plain_mag = vec3(m0_mag + LOW_PASS_PX2, dot(r0, w2), dot(r2, w2) + LOW_PASS_PX2) / s;
+    sheared = reliable(sheared, rounding_products(n, sheared_mag));
+    float plain = reliable(abc.x * abc.z - abc.y * abc.y, rounding_products(abc, plain_mag));
     return use_sheared ? sheared : plain;
 }
 

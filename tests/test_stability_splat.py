@@ -7,7 +7,8 @@ the GL context survives: after the case, a normal scene renders bit-identically 
 Each case's observed numbers go into the stability table.
 
 Bound, and why: max |torch - GL| <= ABS_TOL + c * (REL_TOL + COND_TOL * k), c the largest colour magnitude in the
-case (at least 1), k the largest a*c/det of its screen covariances (1 for a round splat; see COND_TOL).
+case (at least 1), k the largest rounding_products/det of its screen covariances (1 for a round splat; see
+COND_TOL and `conditioning`).
 Both sides evaluate the same float32 formulas in a different order (torch tensor ops vs the GLSL compiler), so
 what remains is a few float32 roundings per contribution, ~1e-7 of the colour for ordinary splats and up to 7e-6
 measured here on colours <= 1.2 (the worst: needles and grazing view angles, whose conditioning amplifies a
@@ -31,25 +32,29 @@ from hypothesis import strategies as st
 
 from gaussiantalker.exporter.model.rasterizer import render_reference
 from gaussiantalker.exporter.model.splat_math import (
+    clamped_ratios,
     cov3d_from_rotation_scale,
     covariance_2d,
     quat_to_rotmat,
+    rounding_products,
     sh_to_rgb,
+    sigma_matrix,
     world_to_camera,
 )
 from gaussiantalker.runtime.splatter import GLSplatter
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import CameraError
-from gaussiantalker.sdk.numerics import ALPHA_MAX, COLOR_LIMIT
+from gaussiantalker.sdk.numerics import ALPHA_MAX, COLOR_LIMIT, LOW_PASS_PX2
 
 BACKGROUND = (0.2, 0.4, 0.1)
 ABS_TOL = 1e-4
 REL_TOL = 1e-6
-# Both sides round a, b, c of the screen covariance to float32 (relative 6e-8, in different orders); the
-# determinant a*c - b^2 and hence the conic carry that error times a*c/det. 2^-22 (4 ulps) per unit of that
-# conditioning adds < 3e-5 for any splat with a*c/det < 100 (all ordinary ones) and bounds needles that cross the
-# screen (a*c/det ~ 1e5 gives ~2e-2; measured 7e-3 for a 1e5 m x 1 m needle, the example pinned below).
-COND_TOL = 2.0**-22
+# Both sides round a, b, c of the screen covariance to float32 in different orders, each entry to a few ulps of
+# its magnitude (the sum of its terms' absolute values, far above the entry where the terms cancel); the
+# determinant a*c - b^2 and hence the conic carry that error times k = rounding_products / det (`conditioning`).
+# 2^-24 (one ulp) per unit of k adds < 6e-6 for any splat with k < 100 (all ordinary ones) and bounds slabs seen
+# nearly edge-on (the pinned k = 5.7e5 gives 3.4e-2; measured 3.1e-3).
+COND_TOL = 2.0**-24
 FEW = settings(derandomize=True, max_examples=8, deadline=None)
 
 Scene = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # means [N, 3], cov3d [N, 6], rgb [N, 3], opacity [N]
@@ -150,16 +155,27 @@ def render_gl(splatter: GLSplatter, scene: Scene, camera: Camera) -> np.ndarray:
 
 
 def conditioning(scene: Scene, camera: Camera) -> float:
-    """Largest a*c / det of the kept Gaussians' screen covariances: how much float32 rounding of (a, b, c) is
-    amplified in the determinant and conic (1 for round splats, ~1e5 for a screen-crossing needle)."""
-    R = torch.tensor(camera.R, dtype=torch.float32)
-    t = torch.tensor(camera.t, dtype=torch.float32)
-    means, cov3d = torch.from_numpy(scene[0]), torch.from_numpy(scene[1])
+    """Largest rounding_products / det of the kept Gaussians' screen covariances (a, b, c), in float64 with the
+    entries' magnitudes (the quadratic forms over |J W| and |Sigma|): how much float32 rounding of (a, b, c) is
+    amplified in the determinant and conic (1 for round splats, ~1e5 for a screen-crossing needle, more where the
+    entries themselves cancel: a slab seen edge-on)."""
+    R = torch.tensor(camera.R, dtype=torch.float64)
+    t = torch.tensor(camera.t, dtype=torch.float64)
+    means, cov3d = torch.from_numpy(scene[0]).double(), torch.from_numpy(scene[1]).double()
     points = world_to_camera(means, R, t)
-    cov2d = covariance_2d(points, cov3d, R, camera.fx, camera.fy, camera.fov_clamp_limits()).double()
+    limits = camera.fov_clamp_limits()
+    cov2d = covariance_2d(points, cov3d, R, camera.fx, camera.fy, limits)
+    xz, yz = clamped_ratios(points, limits).unbind(-1)
+    z, zero = points[:, 2], torch.zeros_like(points[:, 2])
+    j = torch.stack([torch.stack([camera.fx / z, zero, -camera.fx * xz / z], -1),
+                     torch.stack([zero, camera.fy / z, -camera.fy * yz / z], -1)], -2)  # [N, 2, 3]
+    rows = (j @ R).abs()
+    magnitude = rows @ sigma_matrix(cov3d).abs() @ rows.transpose(-1, -2)  # [N, 2, 2]
+    magnitude = torch.stack([magnitude[:, 0, 0] + LOW_PASS_PX2, magnitude[:, 0, 1],
+                             magnitude[:, 1, 1] + LOW_PASS_PX2], -1)
     a, b, c = cov2d.unbind(-1)
-    ratio = a * c / (a * c - b * b)
-    ratio = ratio[torch.isfinite(ratio) & (ratio > 0) & (points[:, 2].double() >= camera.near)]
+    ratio = rounding_products(cov2d, magnitude) / (a * c - b * b)
+    ratio = ratio[torch.isfinite(ratio) & (ratio > 0) & (points[:, 2] >= camera.near)]
     return float(ratio.max()) if ratio.numel() else 1.0
 
 
@@ -298,7 +314,9 @@ def test_scale_and_rotation_range(splatter, baseline, stability):
     @given(st.tuples(exponent, exponent, exponent), st.tuples(unit, unit, unit, unit))
     @example((-40.0, -40.0, 19.0), (0.3, 0.5, -0.2, 0.7))  # a needle far longer than any screen, 1e-40 thin
     @example((18.0, 18.0, 18.0), (1.0, 0.0, 0.0, 0.0))  # 2D covariance near float32 max: products overflow
-    @example((5.0, 0.0, 0.0), (0.0, 0.0625, 0.0, -0.5))  # 1e5 m x 1 m needle, a*c/det = 1.9e5 (see COND_TOL)
+    @example((5.0, 0.0, 0.0), (0.0, 0.0625, 0.0, -0.5))  # 1e5 m x 1 m needle: its det is rounding noise, culled
+    @example((3.0, -1.0, 0.0), (0.0625, 1.0, 0.0, 0.25))  # a slab nearly edge-on: k = 5.7e5, error 3.1e-3
+    @example((3.5, -1.0, 0.0), (0.111328125, 0.625, 0.0, 0.3125))  # det within rounding: culled by both sides
     def cases(log_scales, quat):
         check(log_scales, quat)
 

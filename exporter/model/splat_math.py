@@ -65,6 +65,7 @@ __all__ = [
     "covariance_2d",
     "cov2d_scale",
     "reliable",
+    "rounding_products",
     "covariance_2d_determinant",
     "conic_from_cov2d",
     "alpha_shape",
@@ -267,13 +268,28 @@ def cov2d_scale(cov2d: Tensor) -> Tensor:
 
 
 def reliable(det: Tensor, products: Tensor) -> Tensor:
-    """det where it exceeds DET_MIN_RELATIVE * products (the sum it is the difference of), else 0. # [N]
+    """det where it exceeds DET_MIN_RELATIVE * products (`rounding_products`), else 0. # [N]
 
     A determinant lost in float32 rounding noise, its sign included, counts as not positive, so it is culled.
 
     GLSL twin: `reliable` in shaders/splat.vert.
     """
     return torch.where(det > DET_MIN_RELATIVE * products, det, torch.zeros_like(det))
+
+
+def rounding_products(value: Tensor, magnitude: Tensor) -> Tensor:
+    """What the rounding noise of x z - y^2 scales with, for packed (x, y, z) [N, 3] each computed as a sum whose
+    terms' absolute values sum to `magnitude` [N, 3]: (x̄ |z| + |x| z̄) / 2 + |y| ȳ. # [N]
+
+    Each entry's own float32 rounding is a few ulps of its magnitude, not of its value, which a cancelling sum
+    (a slab seen edge-on) can leave far below it. Without cancellation (magnitude = |value|) this is |x z| + y^2,
+    the two products the determinant is the difference of (docs/numerics.md, "2D determinant conditioning").
+
+    GLSL twin: `rounding_products` in shaders/splat.vert.
+    """
+    x, y, z = value.unbind(-1)
+    x_mag, y_mag, z_mag = magnitude.unbind(-1)
+    return 0.5 * (x_mag * z.abs() + x.abs() * z_mag) + y.abs() * y_mag
 
 
 def covariance_2d_determinant(
@@ -285,8 +301,9 @@ def covariance_2d_determinant(
     Replacing J's second row by its part orthogonal to the first (closed form; a shear of determinant 1, so the
     determinant is unchanged) and adding the low-pass filter as det(A + l I) = det A + l (tr A + l) avoids that.
     Both are exact maths; the form whose second diagonal entry is smaller has the smaller products (a c, b^2) and
-    so the smaller cancellation. A result lost in rounding noise (`reliable`) is returned as 0. This is the only 2D
-    determinant of the contract: culling, the conic and `alpha_shape` all use it.
+    so the smaller cancellation. A result lost in rounding noise (`reliable`, the noise measured by
+    `rounding_products` from the entries' magnitudes: the same quadratic forms over |J W| and |Sigma|) is returned
+    as 0. This is the only 2D determinant of the contract: culling, the conic and `alpha_shape` all use it.
 
     GLSL twin: `covariance_2d_determinant` in shaders/splat.vert.
     """
@@ -297,15 +314,26 @@ def covariance_2d_determinant(
     j0 = torch.stack([fx / z_div, zero, -fx * xz / z_div], dim=-1)  # [N, 3] row 0 of J
     j1 = (fy / z_div).unsqueeze(-1) * torch.stack([-(xz * g) * yz, one, -yz * g], dim=-1)  # [N, 3] row 1, sheared
     m = torch.stack([j0, j1], dim=-2) @ R  # [N, 2, 3]
-    cov = m @ sigma_matrix(cov3d) @ m.transpose(-1, -2)  # [N, 2, 2] = A in the sheared basis, no low-pass
+    sigma = sigma_matrix(cov3d)  # [N, 3, 3]
+    cov = m @ sigma @ m.transpose(-1, -2)  # [N, 2, 2] = A in the sheared basis, no low-pass
     use_sheared = cov[..., 1, 1] + LOW_PASS_PX2 < cov2d[..., 2]  # [N]
     s = cov2d_scale(cov2d)  # [N]
     a, b, c = (cov2d / s.unsqueeze(-1)).unbind(-1)  # each [N], low-pass included
     s00, s01, s11 = cov[..., 0, 0] / s, cov[..., 0, 1] / s, cov[..., 1, 1] / s
     low_pass = LOW_PASS_PX2 / s  # [N]
     sheared = (s00 * s11 - s01 * s01) + low_pass * (a + c - low_pass)  # det A + l (tr A + l)
-    sheared = reliable(sheared, (s00 * s11).abs() + s01 * s01)
-    plain = reliable(a * c - b * b, (a * c).abs() + b * b)
+    # Magnitudes of both forms' entries: the quadratic forms over |rows| and |Sigma| (rows: J W's first row, its
+    # sheared second row, its plain second row as `covariance_2d` forms it).
+    j1_plain = torch.stack([zero, fy / z_div, -fy * yz / z_div], dim=-1)  # [N, 3]
+    rows = (torch.stack([j0, j1, j1_plain], dim=-2) @ R).abs()  # [N, 3, 3]
+    spread = rows @ sigma.abs()  # [N, 3, 3]: row i is |Sigma| |row i| (Sigma is symmetric)
+    m0_mag = (rows[..., 0, :] * spread[..., 0, :]).sum(-1)  # [N]
+    sheared_mag = torch.stack([m0_mag, (rows[..., 0, :] * spread[..., 1, :]).sum(-1),
+                               (rows[..., 1, :] * spread[..., 1, :]).sum(-1)], dim=-1) / s.unsqueeze(-1)
+    plain_mag = torch.stack([m0_mag + LOW_PASS_PX2, (rows[..., 0, :] * spread[..., 2, :]).sum(-1),
+                             (rows[..., 2, :] * spread[..., 2, :]).sum(-1) + LOW_PASS_PX2], dim=-1) / s.unsqueeze(-1)
+    sheared = reliable(sheared, rounding_products(torch.stack([s00, s01, s11], dim=-1), sheared_mag))
+    plain = reliable(a * c - b * b, rounding_products(torch.stack([a, b, c], dim=-1), plain_mag))
     return torch.where(use_sheared, sheared, plain)
 
 
