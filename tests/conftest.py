@@ -322,6 +322,27 @@ def clip_export(small_export, inpaint_export, tmp_path_factory) -> SimpleNamespa
                            path=folder / "clip.gtb", folder=folder, protos=protos)
 
 
+@pytest.fixture(scope="session")
+def small_scene_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
+    """The small speaker exported for a 128x128 front scene (`.scene`, `.path`, `.result` the ExportResult with its
+    specialisation, `.protos` the graphs torch.onnx made for it)."""
+    import gaussiantalker.exporter.export.onnx_export as onnx_export_module
+    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.sdk.scene import Scene
+
+    scene, path, protos = Scene(width=128, height=128), tmp_path_factory.mktemp("scene") / "small-front.gtb", []
+    real_export_onnx = onnx_export_module.export_onnx
+
+    def recording(*args, **kwargs):
+        protos.append(real_export_onnx(*args, **kwargs))
+        return protos[-1]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(onnx_export_module, "export_onnx", recording)
+        result = export_bundle(small_speaker, path, scene=scene, progress=False)
+    return SimpleNamespace(scene=scene, path=path, result=result, protos=protos)
+
+
 # Reduced bundles of the small speaker that `reduced_export` makes: the presets, and each reduced translator graph
 # precision.
 # Those marked True keep the fp32 export's graphs (only buffer codecs or the translator's precision change, which

@@ -2,7 +2,8 @@
 
 In-process (typer's CliRunner on the gt-export app and the sample scripts' apps, the session's recorded ONNX graphs
 rebound to the exported speaker instead of torch.onnx) for the quick run, with a quick start of the installed
-`gt-export` console script; the same flow in subprocesses, as a user runs it, is marked slow.
+`gt-export` console script; the same flow in subprocesses, as a user runs it, is `heavy` (CI runs it as commands in
+.ci/runtime-only: make_demo_speaker.py, gt-export and play.py, the last in a runtime-only install).
 
 A failing --verify (exit 1, the good bundle kept, the new one as NAME.unverified.gtb) is tested in-process, with
 the ONNX export replayed, by tests/test_stability_files.py::test_failed_verify_keeps_the_real_good_bundle.
@@ -194,7 +195,8 @@ def workdir(tmp_path_factory):
     return work
 
 
-@pytest.mark.slow  # runs torch.onnx and the player in subprocesses (~20 s); test_export_verify_play_in_process
+@pytest.mark.heavy  # torch.onnx and the player in subprocesses (~40 s); test_export_verify_play_in_process and
+# .ci/runtime-only cover the same in CI
 def test_export_verify_play(workdir):
     out = _run(GT_EXPORT + ["speaker.ckpt", "-o", "speaker.gtb", "--verify", "--report", "report.json",
                             "--resolution", "96", "-q"], workdir)
@@ -206,7 +208,7 @@ def test_export_verify_play(workdir):
     _check_video(workdir / "talk.mp4", frames=50)
 
 
-@pytest.mark.slow  # three subprocesses; test_bad_input_gives_clear_errors_in_process checks the same in-process
+@pytest.mark.heavy  # three subprocesses; test_bad_input_gives_clear_errors_in_process checks the same in-process
 def test_bad_input_gives_clear_errors(workdir):
     out = _run(GT_EXPORT + ["missing.ckpt"], workdir, expect=2)
     assert "error: checkpoint missing.ckpt does not exist" in out.stderr

@@ -399,17 +399,20 @@ def test_semantic_pass_and_region_weights(clip_export):
         assert lips.max() > 0.5 and (weights.argmax(-1) == regions.names.index("skin")).sum() > 100
 
 
-def test_scene_export_leaves_the_clip_out(clip_export):
+def test_scene_export_leaves_the_clip_out(clip_export, small_scene_export, replay_onnx_exports):
+    """The clip speaker exported for the small speaker's scene: no clip, no F. Its Gaussians, translator and
+    deformation are the small speaker's, so that scene's specialisation and recorded graphs are its own (checked:
+    every buffer but the clip's equals the small speaker's scene bundle's)."""
     from gaussiantalker.exporter.export.export import export_bundle
     from gaussiantalker.sdk.bundle import Bundle
-    from gaussiantalker.sdk.scene import Scene
 
-    scene = Scene.from_dict({"camera": {"width": 64, "height": 64}, "head": {"rotation_deg": [[-5, 5]] * 3}})
     path = clip_export.folder / "scene.gtb"
-    export_bundle(clip_export.speaker, path, scene=scene, progress=False)
+    replay_onnx_exports(small_scene_export.protos)
+    export_bundle(clip_export.speaker, path, scene=small_scene_export.result.specialisation, progress=False)
     manifest = Bundle(path).manifest
     assert "scene" in manifest and "reference" not in manifest and "inpaint" not in manifest["graphs"]
     assert clip_export.speaker.reference is not None  # the caller's speaker keeps its clip
+    assert _entries(path) == _entries(small_scene_export.path)
 
 
 # -- the clip's codec knob (`ExportSettings.reference`, docs/compositing.md) -------------------------------------

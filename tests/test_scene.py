@@ -152,14 +152,12 @@ def test_latent_subspace_and_fixed_drives_are_exact_inside_the_scene(small_speak
 
 
 # -- the small speaker through the whole path ----------------------------------------------------------------
-SMALL_SCENE = Scene(width=128, height=128)
 
 
 @pytest.fixture(scope="module")
-def small_scene_bundle(small_speaker, tmp_path_factory):
-    path = tmp_path_factory.mktemp("scene") / "small-front.gtb"
-    result = export_bundle(small_speaker, path, scene=SMALL_SCENE, progress=False)
-    return path, result
+def small_scene_bundle(small_scene_export):
+    """The small speaker's 128x128 front-scene bundle and its ExportResult (conftest `small_scene_export`)."""
+    return small_scene_export.path, small_scene_export.result
 
 
 def test_small_speaker_scene_bundle_matches_the_plain_bundle(small_speaker, small_export, small_scene_bundle):
@@ -194,8 +192,9 @@ def test_drive_outside_the_scene_warns_once_and_renders(small_scene_bundle):
         TalkingHead(path, resolution=(64, 64)).close()
 
 
-def test_flame_driven_scene_has_no_translator(small_speaker, small_export, tmp_path):
-    scene = replace(SMALL_SCENE, driver="flame", expression=(0, 1, 2), joints={"jaw": ((0, 20), (0, 0), (0, 0))})
+def test_flame_driven_scene_has_no_translator(small_speaker, small_export, small_scene_export, tmp_path):
+    scene = replace(small_scene_export.scene, driver="flame", expression=(0, 1, 2),
+                    joints={"jaw": ((0, 20), (0, 0), (0, 0))})
     path = tmp_path / "flame.gtb"
     result = export_bundle(small_speaker, path, scene=scene, progress=False)
     assert "translator" not in result.graphs and "translator graph" in {r.name for r in result.specialisation.removals}

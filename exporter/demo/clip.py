@@ -103,7 +103,9 @@ def _grow_and_feather(silhouette: np.ndarray) -> np.ndarray:
     """Binary silhouette [H, W] -> mask grown by MASK_GROW_PX and blurred over ~MASK_FEATHER_PX, in [0, 1]."""
     work = torch.from_numpy(silhouette.astype(np.float32))[None, None]
     grow = 2 * MASK_GROW_PX + 1
-    work = nnf.max_pool2d(work, grow, stride=1, padding=MASK_GROW_PX)
+    # A square max filter is a row max then a column max: the same values, ~4x less work than the 2D window.
+    work = nnf.max_pool2d(work, (1, grow), stride=1, padding=(0, MASK_GROW_PX))
+    work = nnf.max_pool2d(work, (grow, 1), stride=1, padding=(MASK_GROW_PX, 0))
     blur = 2 * MASK_FEATHER_PX + 1
     work = nnf.avg_pool2d(nnf.pad(work, (MASK_FEATHER_PX,) * 4, mode="replicate"), blur, stride=1)
     return work[0, 0].numpy().clip(0.0, 1.0)

@@ -77,9 +77,23 @@ def batch_sampler(pairs: list[InpainterPair]):
     return batch
 
 
-def train_demo_inpainter(composer: ClipComposer, *, pairs: int = 96, seconds: float = 90.0, seed: int = 0,
+PAIRS = 96  # training pairs for a full training (FULL_PAIRS_SECONDS or more)
+FULL_PAIRS_SECONDS = 30.0
+MIN_PAIRS = 16
+
+
+def pairs_for(seconds: float) -> int:
+    """Training pairs worth rendering for a training of at most `seconds`: PAIRS from FULL_PAIRS_SECONDS up,
+    proportionally fewer below (at least MIN_PAIRS). Each pair costs two renders, ~0.3 s at the clip's size; a
+    brief training (a test's or CI's) draws too few patches to use them all."""
+    return max(MIN_PAIRS, min(PAIRS, round(PAIRS * seconds / FULL_PAIRS_SECONDS)))
+
+
+def train_demo_inpainter(composer: ClipComposer, *, pairs: int | None = None, seconds: float = 90.0, seed: int = 0,
                        progress: bool = True) -> tuple[InpainterNet, dict]:
-    """Render `pairs` training pairs, then train F for at most `seconds`; returns F and its training metrics."""
+    """Render `pairs` training pairs (default: `pairs_for(seconds)`), then train F for at most `seconds`; returns F
+    and its training metrics."""
+    pairs = pairs_for(seconds) if pairs is None else pairs
     rng = np.random.default_rng(seed)
     count = len(composer.track)
     start = time.perf_counter()
