@@ -57,9 +57,10 @@ class FrameTrack(MediaStreamTrack):
         self._queue: asyncio.Queue = asyncio.Queue(QUEUE_FRAMES)
 
     def put(self, frame) -> None:
-        if self._loop.is_closed():  # the server has shut down: nobody reads the track any more
-            return
-        self._loop.call_soon_threadsafe(self._put, frame)
+        try:
+            self._loop.call_soon_threadsafe(self._put, frame)
+        except RuntimeError:  # the event loop has closed (the server shut down): nobody reads the track any more
+            pass
 
     def _put(self, frame) -> None:
         if self._queue.full():

@@ -46,8 +46,9 @@ def replaying_onnx_exports(protos: Sequence) -> Iterator[list]:
         yield queue
 
 
-def _export_recording(speaker, path) -> SimpleNamespace:
-    """Export `speaker` to `path`, keeping the two ONNX protos torch.onnx made (translator, deform)."""
+def _export_recording(speaker, path, **export_kwargs) -> SimpleNamespace:
+    """Export `speaker` to `path` (with `export_kwargs`: a scene, a preset...), keeping the ONNX protos torch.onnx
+    made (translator, deform, then inpaint where the speaker has F) and the ExportResult (`.result`)."""
     import gaussiantalker.exporter.export.onnx_export as onnx_export_module
     from gaussiantalker.exporter.export.export import export_bundle
 
@@ -60,8 +61,8 @@ def _export_recording(speaker, path) -> SimpleNamespace:
 
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(onnx_export_module, "export_onnx", recording)
-        export_bundle(speaker, path, progress=False)
-    return SimpleNamespace(path=path, protos=protos, speaker=speaker)
+        result = export_bundle(speaker, path, progress=False, **export_kwargs)
+    return SimpleNamespace(path=path, protos=protos, speaker=speaker, result=result)
 
 
 def _settle_heap() -> None:
@@ -326,21 +327,12 @@ def clip_export(small_export, inpaint_export, tmp_path_factory) -> SimpleNamespa
 def small_scene_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
     """The small speaker exported for a 128x128 front scene (`.scene`, `.path`, `.result` the ExportResult with its
     specialisation, `.protos` the graphs torch.onnx made for it)."""
-    import gaussiantalker.exporter.export.onnx_export as onnx_export_module
-    from gaussiantalker.exporter.export.export import export_bundle
     from gaussiantalker.sdk.scene import Scene
 
-    scene, path, protos = Scene(width=128, height=128), tmp_path_factory.mktemp("scene") / "small-front.gtb", []
-    real_export_onnx = onnx_export_module.export_onnx
-
-    def recording(*args, **kwargs):
-        protos.append(real_export_onnx(*args, **kwargs))
-        return protos[-1]
-
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(onnx_export_module, "export_onnx", recording)
-        result = export_bundle(small_speaker, path, scene=scene, progress=False)
-    return SimpleNamespace(scene=scene, path=path, result=result, protos=protos)
+    scene = Scene(width=128, height=128)
+    export = _export_recording(small_speaker, tmp_path_factory.mktemp("scene") / "small-front.gtb", scene=scene)
+    export.scene = scene
+    return export
 
 
 # Reduced bundles of the small speaker that `reduced_export` makes: the presets, and each reduced translator graph
