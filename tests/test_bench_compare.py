@@ -13,7 +13,14 @@ from pathlib import Path
 
 import pytest
 
-from gaussiantalker.exporter.bench.compare import PACKAGES, Version, _alternating, checkout_root, this_version_root
+from gaussiantalker.exporter.bench.compare import (
+    PACKAGES,
+    Version,
+    _alternating,
+    _without_names,
+    checkout_root,
+    this_version_root,
+)
 
 
 def test_a_folder_without_the_packages_is_refused(tmp_path):
@@ -41,3 +48,31 @@ def test_each_version_imports_its_own_copy(tmp_path):
 
 def test_rounds_alternate_which_version_goes_first():
     assert list(_alternating(["a", "b"], 3)) == [(0, "a"), (0, "b"), (1, "b"), (1, "a"), (2, "a"), (2, "b")]
+
+
+def test_the_baseline_checkpoint_drops_only_the_names(small_speaker, tmp_path):
+    """Versions before named expressions reject their config keys; the copy the baseline exports lacks them and
+    holds the same speaker (every tensor equal), and a binding other than the paper's is refused, not dropped."""
+    import dataclasses
+
+    import torch
+
+    from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
+
+    original = save_checkpoint(small_speaker, tmp_path / "speaker.ckpt")
+    copy = _without_names(original)
+    config = torch.load(copy, weights_only=True)["config"]
+    assert "expression_names" not in config and "binding" not in config
+    before, after = load_checkpoint(original), load_checkpoint(copy)
+    assert len(before.config.expression_names) == before.config.n_expr  # the demo speaker names its fields
+    assert dataclasses.replace(before.config, expression_names=()) == after.config
+    for module in ("gaussians", "latent_pose", "translator"):
+        expected, actual = getattr(before, module).state_dict(), getattr(after, module).state_dict()
+        assert expected.keys() == actual.keys()
+        for name, tensor in expected.items():
+            assert torch.equal(tensor, actual[name]), (module, name)
+    payload = torch.load(original, weights_only=True)
+    payload["config"]["binding"] = "scaled_triangle"
+    torch.save(payload, tmp_path / "scaled.ckpt")
+    with pytest.raises(ValueError, match="binding is 'triangle'"):
+        _without_names(tmp_path / "scaled.ckpt")

@@ -163,9 +163,10 @@ def compare(baseline: Path, *, gaussians: list[int], sizes: list[int], seconds: 
                 bar.set_postfix_str(f"{count} Gaussians: building and exporting")
                 checkpoint = tmp / f"speaker-{count}.ckpt"
                 save_checkpoint(make_demo_speaker(count, train_seconds=0, progress=False)[0], checkpoint)
+                checkpoints = {"this": checkpoint, "baseline": _without_names(checkpoint)}
                 bundles = {label: tmp / f"{label}-{count}.gtb" for label in labels}
                 for label, version in versions.items():
-                    version.ask(op="export", checkpoint=str(checkpoint), bundle=str(bundles[label]))
+                    version.ask(op="export", checkpoint=str(checkpoints[label]), bundle=str(bundles[label]))
                     bar.update()
                 for size in sizes:
                     case = f"{count}@{size}"
@@ -183,6 +184,25 @@ def compare(baseline: Path, *, gaussians: list[int], sizes: list[int], seconds: 
             for version in versions.values():
                 version.stop()
     return result
+
+
+def _without_names(checkpoint: Path) -> Path:
+    """A copy of a demo checkpoint for the baseline, without the config entries that change no tensor.
+
+    Versions before the named expression fields and the scaled binding reject config keys they do not know; the demo
+    speaker's `expression_names` only label its coefficients and its `binding` is the paper's triangle frame (the
+    only one those versions have), so dropping them leaves the speaker, its bundle and its frames as they are.
+    """
+    import torch
+
+    payload = torch.load(checkpoint, weights_only=True)
+    if payload["config"].get("binding", "triangle") != "triangle":
+        raise ValueError(f"{checkpoint}: compare measures the demo speaker, whose binding is 'triangle'")
+    payload["config"].pop("binding", None)
+    payload["config"].pop("expression_names", None)
+    copy = checkpoint.with_name(checkpoint.stem + "-baseline.ckpt")
+    torch.save(payload, copy)
+    return copy
 
 
 def _time_players(versions: dict[str, Version], tmp: Path, count: int, seconds: float, rounds: int,
