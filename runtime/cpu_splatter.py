@@ -65,6 +65,11 @@ def _configure_numba_cache() -> None:
 
 _configure_numba_cache()
 
+# Idle OpenMP workers sleep instead of spinning (unless the user chose a policy): numba's parallel kernels share
+# the cores with onnxruntime's deformation and the compositing, and spinning workers starve them (measured:
+# docs/bench/renderers.md, "Threads that wait"). Read by the OpenMP runtime when numba first loads it.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import numba  # noqa: E402  (after the cache directory is set)
 from numba import njit, prange  # noqa: E402
 
@@ -433,16 +438,32 @@ def upscale_bilinear(image: np.ndarray, width: int, height: int) -> np.ndarray:
     """image [h, w, C] sampled bilinearly at the centres of a (width, height) grid, edges clamped: what the GL
     render-scale pass (shaders/upscale.frag, a LINEAR texture) computes."""
 
-    def axis(size_out: int, size_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def axis(size_out: int, size_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         pos = (np.arange(size_out, dtype=np.float64) + 0.5) * size_in / size_out - 0.5
         lo = np.floor(pos)
         frac = (pos - lo).astype(np.float32)
-        return np.clip(lo, 0, size_in - 1).astype(np.intp), np.clip(lo + 1, 0, size_in - 1).astype(np.intp), frac
+        return (np.clip(lo, 0, size_in - 1).astype(np.intp), np.clip(lo + 1, 0, size_in - 1).astype(np.intp),
+                1 - frac, frac)
 
-    y0, y1, fy = axis(height, image.shape[0])
-    x0, x1, fx = axis(width, image.shape[1])
-    rows = image[y0] * (1 - fy)[:, None, None] + image[y1] * fy[:, None, None]
-    return rows[:, x0] * (1 - fx)[None, :, None] + rows[:, x1] * fx[None, :, None]
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    out = np.empty((height, width, image.shape[2]), dtype=np.float32)
+    _upscale(image, *axis(height, image.shape[0]), *axis(width, image.shape[1]), out)
+    return out
+
+
+# A kernel rather than numpy's gathers: the gathered [H, W, C] temporaries cost ~20 ms a frame at 480x600 on
+# 2 cores, more than a 3/4 render scale saves in the blending (docs/bench/renderers.md).
+@njit(parallel=True, cache=True, error_model="numpy")
+def _upscale(image, y0, y1, wy0, wy1, x0, x1, wx0, wx1, out):
+    """out[y, x] = the vertical blend of rows y0/y1, then the horizontal blend of columns x0/x1 (float32)."""
+    for y in prange(out.shape[0]):
+        top, bottom, w_top, w_bottom = y0[y], y1[y], wy0[y], wy1[y]
+        for x in range(out.shape[1]):
+            left, right = x0[x], x1[x]
+            for c in range(out.shape[2]):
+                at_left = image[top, left, c] * w_top + image[bottom, left, c] * w_bottom
+                at_right = image[top, right, c] * w_top + image[bottom, right, c] * w_bottom
+                out[y, x, c] = at_left * wx0[x] + at_right * wx1[x]
 
 
 class CPUSplatter:
@@ -565,6 +586,7 @@ def warm_up() -> None:
     for output in ("uint8", "float"):
         _convert(frame, np.ones(3, dtype=np.float32), output)
     exp_approx(np.zeros(1, dtype=np.float32))
+    upscale_bilinear(frame, 4, 3)
     _WARM = True
 
 

@@ -174,6 +174,25 @@ def test_upscale_bilinear_is_exact_on_linear_ramps():
     np.testing.assert_allclose(up[:, 1:-1, 0], np.broadcast_to((np.arange(1, 15) + 0.5) / 2 - 0.5, (8, 14)), atol=1e-6)
 
 
+def test_upscale_bilinear_samples_every_channel_at_the_texel_weights():
+    """Against the sampling written out per pixel in float64 (texel centres at (i + 0.5) * in / out - 0.5, edges
+    clamped), on a random 4-channel image scaled by a non-integer factor in each axis, up and down."""
+    rng = np.random.default_rng(5)
+    image = rng.random((9, 7, 4), dtype=np.float32)
+    for width, height in ((10, 12), (5, 4)):
+        expected = np.empty((height, width, 4))
+        for y in range(height):
+            for x in range(width):
+                fy, fx = (y + 0.5) * 9 / height - 0.5, (x + 0.5) * 7 / width - 0.5
+                y0, x0 = int(np.floor(fy)), int(np.floor(fx))
+                ty, tx = fy - y0, fx - x0
+                row = [min(max(v, 0), 8) for v in (y0, y0 + 1)]
+                col = [min(max(v, 0), 6) for v in (x0, x0 + 1)]
+                expected[y, x] = ((1 - ty) * ((1 - tx) * image[row[0], col[0]] + tx * image[row[0], col[1]])
+                                  + ty * ((1 - tx) * image[row[1], col[0]] + tx * image[row[1], col[1]]))
+        np.testing.assert_allclose(upscale_bilinear(image, width, height), expected, atol=1e-6)
+
+
 def test_released_and_bad_arguments(cpu):
     other = CPUSplatter()
     other.release()
