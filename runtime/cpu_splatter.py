@@ -154,6 +154,12 @@ def _radius_of(a, b, c):
 
 
 @njit(inline="always", cache=True, error_model="numpy")
+def _times_sym(r0, r1, r2, xx, xy, xz, yy, yz, zz):
+    """The row (r0, r1, r2) times the symmetric 3x3 [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]."""
+    return r0 * xx + r1 * xy + r2 * xz, r0 * xy + r1 * yy + r2 * yz, r0 * xz + r1 * yz + r2 * zz
+
+
+@njit(inline="always", cache=True, error_model="numpy")
 def _bounded(x):
     return abs(x) < _FINITE  # NaN fails
 
@@ -193,10 +199,8 @@ def _project(rows, R, t, intr, limits, width, height, params, boxes):
         j11, j12 = fy / z, -fy * yz / z
         m00, m01, m02 = j00 * R[0, 0] + j02 * R[2, 0], j00 * R[0, 1] + j02 * R[2, 1], j00 * R[0, 2] + j02 * R[2, 2]
         m10, m11, m12 = j11 * R[1, 0] + j12 * R[2, 0], j11 * R[1, 1] + j12 * R[2, 1], j11 * R[1, 2] + j12 * R[2, 2]
-        w00, w01, w02 = m00 * s_xx + m01 * s_xy + m02 * s_xz, m00 * s_xy + m01 * s_yy + m02 * s_yz, \
-            m00 * s_xz + m01 * s_yz + m02 * s_zz
-        w10, w11, w12 = m10 * s_xx + m11 * s_xy + m12 * s_xz, m10 * s_xy + m11 * s_yy + m12 * s_yz, \
-            m10 * s_xz + m11 * s_yz + m12 * s_zz
+        w00, w01, w02 = _times_sym(m00, m01, m02, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
+        w10, w11, w12 = _times_sym(m10, m11, m12, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
         a = w00 * m00 + w01 * m01 + w02 * m02 + _LOW_PASS
         b = w00 * m10 + w01 * m11 + w02 * m12
         c = w10 * m10 + w11 * m11 + w12 * m12 + _LOW_PASS
@@ -204,46 +208,38 @@ def _project(rows, R, t, intr, limits, width, height, params, boxes):
         g = _ONE / (_ONE + xz * xz)
         f = fy / z
         k0, k1, k2 = f * (-(xz * g) * yz), f * _ONE, f * (-yz * g)
-        n00, n01, n02 = j00 * R[0, 0] + j02 * R[2, 0], j00 * R[0, 1] + j02 * R[2, 1], j00 * R[0, 2] + j02 * R[2, 2]
+        # row 0 is J R's own (m0, and m0 Sigma = w0); row 1 is the sheared one
         n10 = k0 * R[0, 0] + k1 * R[1, 0] + k2 * R[2, 0]
         n11 = k0 * R[0, 1] + k1 * R[1, 1] + k2 * R[2, 1]
         n12 = k0 * R[0, 2] + k1 * R[1, 2] + k2 * R[2, 2]
-        e00, e01, e02 = n00 * s_xx + n01 * s_xy + n02 * s_xz, n00 * s_xy + n01 * s_yy + n02 * s_yz, \
-            n00 * s_xz + n01 * s_yz + n02 * s_zz
-        e10, e11, e12 = n10 * s_xx + n11 * s_xy + n12 * s_xz, n10 * s_xy + n11 * s_yy + n12 * s_yz, \
-            n10 * s_xz + n11 * s_yz + n12 * s_zz
-        c00 = e00 * n00 + e01 * n01 + e02 * n02
-        c01 = e00 * n10 + e01 * n11 + e02 * n12
+        e10, e11, e12 = _times_sym(n10, n11, n12, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
+        c00 = w00 * m00 + w01 * m01 + w02 * m02
+        c01 = w00 * n10 + w01 * n11 + w02 * n12
         c11 = e10 * n10 + e11 * n11 + e12 * n12
         use_sheared = c11 + _LOW_PASS < c
         s = max(abs(a), abs(c))  # cov2d_scale
         an, bn, cn = a / s, b / s, c / s
         s00, s01, s11 = c00 / s, c01 / s, c11 / s
         low = _LOW_PASS / s
-        # the entries' magnitudes: the same quadratic forms over |rows| and |Sigma| (rounding_products)
+        # reliable(det, rounding_products): the entries' magnitudes are the same quadratic forms over |rows| and
+        # |Sigma|; row 0 is the same in both forms, the plain form's entries carry the low-pass
         a_xx, a_xy, a_xz, a_yy, a_yz, a_zz = abs(s_xx), abs(s_xy), abs(s_xz), abs(s_yy), abs(s_yz), abs(s_zz)
-        r00, r01, r02 = abs(n00), abs(n01), abs(n02)  # row 0 (the same in both forms)
-        t00, t01, t02 = r00 * a_xx + r01 * a_xy + r02 * a_xz, r00 * a_xy + r01 * a_yy + r02 * a_yz, \
-            r00 * a_xz + r01 * a_yz + r02 * a_zz
-        m0_mag = t00 * r00 + t01 * r01 + t02 * r02
+        r00, r01, r02 = abs(m00), abs(m01), abs(m02)
+        t00, t01, t02 = _times_sym(r00, r01, r02, a_xx, a_xy, a_xz, a_yy, a_yz, a_zz)
         if use_sheared:
             r10, r11, r12 = abs(n10), abs(n11), abs(n12)
-            t10, t11, t12 = r10 * a_xx + r11 * a_xy + r12 * a_xz, r10 * a_xy + r11 * a_yy + r12 * a_yz, \
-                r10 * a_xz + r11 * a_yz + r12 * a_zz
-            x_mag, y_mag = m0_mag / s, (t10 * r00 + t11 * r01 + t12 * r02) / s
-            z_mag = (t10 * r10 + t11 * r11 + t12 * r12) / s
+            x, y, z_entry, low_mag = s00, s01, s11, _ZERO
             det = (s00 * s11 - s01 * s01) + low * (an + cn - low)
-            noise = _HALF * (x_mag * abs(s11) + abs(s00) * z_mag) + abs(s01) * y_mag
-            det = det if det > _DET_REL * noise else _ZERO  # reliable
         else:
             r10, r11, r12 = abs(m10), abs(m11), abs(m12)
-            t10, t11, t12 = r10 * a_xx + r11 * a_xy + r12 * a_xz, r10 * a_xy + r11 * a_yy + r12 * a_yz, \
-                r10 * a_xz + r11 * a_yz + r12 * a_zz
-            x_mag, y_mag = (m0_mag + _LOW_PASS) / s, (t10 * r00 + t11 * r01 + t12 * r02) / s
-            z_mag = (t10 * r10 + t11 * r11 + t12 * r12 + _LOW_PASS) / s
+            x, y, z_entry, low_mag = an, bn, cn, _LOW_PASS
             det = an * cn - bn * bn
-            noise = _HALF * (x_mag * abs(cn) + abs(an) * z_mag) + abs(bn) * y_mag
-            det = det if det > _DET_REL * noise else _ZERO
+        t10, t11, t12 = _times_sym(r10, r11, r12, a_xx, a_xy, a_xz, a_yy, a_yz, a_zz)
+        x_mag = (t00 * r00 + t01 * r01 + t02 * r02 + low_mag) / s
+        y_mag = (t10 * r00 + t11 * r01 + t12 * r02) / s
+        z_mag = (t10 * r10 + t11 * r11 + t12 * r12 + low_mag) / s
+        noise = _HALF * (x_mag * abs(z_entry) + abs(x) * z_mag) + abs(y) * y_mag
+        det = det if det > _DET_REL * noise else _ZERO
         if not det > _ZERO:
             continue
         # conic_from_cov2d, alpha_shape
