@@ -5,16 +5,31 @@ from __future__ import annotations
 
 import pickle
 import pickletools
+import subprocess
 import sys
 
 import numpy as np
 import pytest
-from flame_pickles import UINT32_MAX, CscMatrix, FlameSpec, chumpy_class, flame_model, py2_dumps, write_flame_pickle
+from flame_fuzz import Reduced, modern_dumps, review_pickle
+from flame_fuzz import dtype as forged_dtype
+from flame_fuzz import frombuffer as forged_frombuffer
+from flame_fuzz import reconstructed as forged_reconstructed
+from flame_pickles import (
+    UINT32_MAX,
+    CscMatrix,
+    FlameSpec,
+    GlobalRef,
+    chumpy_class,
+    flame_model,
+    py2_dumps,
+    write_flame_pickle,
+)
 from typer.testing import CliRunner
 
 from gaussiantalker.exporter.import_cli import app
 from gaussiantalker.exporter.imports.flame_pkl import (
     FLAME_LAYOUT,
+    MAX_PICKLE_BYTES,
     FlameLayout,
     convert_flame_pkl,
     detect_version,
@@ -326,3 +341,118 @@ def test_cli(full_pickle, tmp_path):
         f"error: {tmp_path / 'bad.pkl'}: not a FLAME model pickle: it references os.system, which no FLAME model "
         "holds: refused, nothing from the file ran"]
     assert not (tmp_path / "bad.npz").exists()
+
+
+# ------------------------------------------------------------------------------------------------ forged numpy state
+# The review's pickle and its family (tests/flame_fuzz.py builds them): a dtype, array or number whose pickled state
+# describes more memory than the file gives it. A plain unpickler trusts that state; the reader must not.
+
+
+def test_review_pickle_reads_memory_when_trusted(tmp_path):
+    """The review's payload is real: a plain unpickler (in a child process, as it may crash) returns an array of
+    8000 bytes from an 8-byte buffer, i.e. the process's own memory."""
+    script = ("import sys, pickle; sys.path.insert(0, 'tests'); from flame_fuzz import review_pickle; "
+              "a = pickle.loads(review_pickle(1000)); print(a.nbytes, a.base is not None)")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["8000", "True"]
+
+
+@pytest.mark.parametrize("n_sub", [2, 1000, 100_000_000])
+def test_review_pickle_refused_by_the_cli(tmp_path, n_sub):
+    """`gt-import flame` on the review's pickle (100,000,000 elements: the size that crashed it): one line naming
+    the file, exit 2, no npz."""
+    path = tmp_path / "generic_model.pkl"
+    path.write_bytes(review_pickle(n_sub))
+    assert b"_codecs" in path.read_bytes() and b"_frombuffer" in path.read_bytes()
+    result = CliRunner().invoke(app, ["flame", str(path), "-o", str(tmp_path / "out.npz")])
+    assert result.exit_code == 2, result.output
+    assert result.output.strip().splitlines() == [
+        f"error: {path}: not a FLAME model pickle: numpy dtype with a subarray or fields (no FLAME array has one)"]
+    assert not (tmp_path / "out.npz").exists()
+
+
+F8_STATE = (3, "<", None, None, None, -1, -1, 0)
+
+
+@pytest.mark.parametrize(("value", "message"), [
+    (forged_dtype("f8", (3, "|", (forged_dtype("f8"), (4,)), None, None, 32, 1, 0)), "subarray or fields"),
+    (forged_dtype("V16", (3, "|", None, ("a",), {"a": (forged_dtype("f8"), 0)}, 16, 1, 0)),
+     r"numpy\.dtype of 'V16'"),
+    (forged_dtype("f8", (3, "|", None, ("a",), {"a": (forged_dtype("f8"), 0)}, 8, 1, 0)), "subarray or fields"),
+    (forged_dtype("(1000,)f8"), r"numpy\.dtype of '\(1000,\)f8', which is not a plain"),
+    (forged_dtype("f8,i4"), r"numpy\.dtype of 'f8,i4'"),
+    (forged_dtype("f8", (3, "<", None, None, None, 4096, -1, 0)), "float64 with an item size of 4096 bytes"),
+    (forged_dtype("f8", (3, "?", None, None, None, -1, -1, 0)), r"byte order '\?'"),
+    (forged_dtype("f8", (3, "<")), "not a dtype's 8- or 9-tuple"),
+    (forged_dtype("S", (3, "|", None, None, None, -8, 1, 0)), "S dtype of -8 bytes"),
+    (forged_dtype("U", (3, "<", None, None, None, 6, 4, 8)), "U dtype of 6 bytes"),
+    (forged_reconstructed((1, (1000,), forged_dtype("f8"), False, b"\0" * 8)),
+     r"8 bytes for a \[1000\] array of float64 \(8000 bytes\)"),
+    (forged_reconstructed((1, (2**62, 2**62), forged_dtype("f8"), False, b"")), r"0 bytes for a \[4611686018427387904"),
+    (forged_reconstructed((1, (-1,), forged_dtype("f8"), False, b"")), r"with shape \(-1,\)"),
+    (forged_reconstructed((1, (1,), forged_dtype("f8"), False, [1.0])), "of a list, expected bytes"),
+    (forged_reconstructed((1, (1,), "f8", False, b"\0" * 8)), r"without a plain numpy dtype \(a str\)"),
+    (forged_frombuffer(b"\0" * 8, forged_dtype("f8"), (4, 4)), r"8 bytes for a \[4, 4\] array"),
+    (forged_frombuffer(b"\0" * 8, forged_dtype("f8"), (1,), "K"), "in order 'K'"),
+    (Reduced(GlobalRef("numpy.core.multiarray", "scalar"), (forged_dtype("f8"), b"\0" * 4)), r"4 bytes for a \[\]"),
+    (Reduced(GlobalRef("numpy", "dtype"), ("f8", 0, 1), F8_STATE, None, None),  # dtype built twice, by BUILD
+     None),
+])
+def test_forged_numpy_state_refused(tmp_path, value, message):
+    """Each forged dtype, array or number (inside an otherwise valid model) is refused before any array is made
+    from it, with what is wrong; a plain dtype built once is accepted (message None)."""
+    write_flame_pickle(tmp_path / "m.pkl", SPEC, edit=lambda model: model.update(bs_style=value))
+    if message is None:
+        assert isinstance(load_flame_pickle(tmp_path / "m.pkl")["bs_style"], np.dtype)
+        return
+    with pytest.raises(ImportFormatError, match=message):
+        load_flame_pickle(tmp_path / "m.pkl")
+
+
+def test_build_on_reconstructed_values_refused(tmp_path):
+    """A second BUILD on a dtype or an array, or any BUILD on a `_frombuffer` result, is refused (only the inert
+    stand-ins take a state, once)."""
+    good = py2_dumps({"a": forged_frombuffer(b"\0" * 8, forged_dtype("f8"), (1,))})
+    assert load_flame_pickle(_write(tmp_path / "good.pkl", good))["a"].tolist() == [0.0]
+    cases = {
+        "frombuffer.pkl": (good[:-2] + b"}b" + good[-2:], "set up a value with a __setstate__ state"),
+        "dtype.pkl": (b"\x80\x02cnumpy\ndtype\nU\x02f8K\x00K\x01\x87R(K\x03U\x01<NNNJ\xff\xff\xff\xffJ\xff\xff\xff"
+                      b"\xffK\x00tb(K\x03U\x01>NNNJ\xff\xff\xff\xffJ\xff\xff\xff\xffK\x00tb.",
+                      "a numpy dtype is set up twice"),
+    }
+    for name, (data, message) in cases.items():
+        with pytest.raises(ImportFormatError, match=message):
+            load_flame_pickle(_write(tmp_path / name, data))
+
+
+def _write(path, data: bytes):
+    path.write_bytes(data)
+    return path
+
+
+@pytest.mark.parametrize("dtype", [">f8", "<f4", ">i4", "|u1", "|b1", "<c8", "|S7", ">U3", "<U2"])
+def test_plain_dtypes_round_trip(tmp_path, dtype):
+    """Every plain dtype a FLAME file may hold (either byte order, text and bytes) reads back equal, as a
+    native-memory array that owns its bytes."""
+    values = np.arange(6).reshape(2, 3).astype(dtype)
+    for protocol in (1, 2):
+        path = _write(tmp_path / f"p{protocol}.pkl", py2_dumps({"a": values}, protocol))
+        read = load_flame_pickle(path)["a"]
+        np.testing.assert_array_equal(read, values)
+        assert read.dtype == values.dtype and read.flags.owndata
+    read = load_flame_pickle(_write(tmp_path / "p5.pkl", modern_dumps({"a": values})))["a"]
+    np.testing.assert_array_equal(read, values)
+
+
+def test_lying_lengths_are_bounded_by_the_file(tmp_path):
+    """An opcode stating more bytes than the file holds is refused before the unpickler allocates for it, and a
+    file larger than any FLAME model is refused before it is read."""
+    lying = b"\x80\x05\x8e" + (2**56).to_bytes(8, "little") + b"\0" * 8 + b"."  # BINBYTES8 of 2**56 bytes
+    with pytest.raises(ImportFormatError, match=r"not a readable pickle .*expected 72057594037927936 bytes"):
+        load_flame_pickle(_write(tmp_path / "lying.pkl", lying))
+    huge = tmp_path / "huge.pkl"
+    with huge.open("wb") as handle:
+        handle.truncate(MAX_PICKLE_BYTES + 1)  # sparse: no disk used
+    with pytest.raises(ImportFormatError, match=r"huge\.pkl: 1073741825 bytes, more than any FLAME model pickle"):
+        load_flame_pickle(huge)

@@ -10,7 +10,10 @@ is ever imported.
 
 from __future__ import annotations
 
+import io
+import math
 import pickle
+import pickletools
 import re
 import time
 from collections.abc import Callable, Mapping
@@ -37,6 +40,8 @@ SPARSE_CLASSES = {
 VERSION_KEY = "flame_version"
 N_SHAPE_KEY = "n_shape"
 N_EXPR_KEY = "n_expr"
+# The largest pickle read (FLAME 2020 and 2023 are about 100 MB): the file is read whole, then checked.
+MAX_PICKLE_BYTES = 1 << 30
 # A chumpy expression deeper than this is not a stored array (and could be a reference loop).
 _MAX_DEPTH = 8
 _IDENTIFIER = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
@@ -121,6 +126,10 @@ class _Frozen:
     def __setattr__(self, name: str, value: object) -> None:
         raise PickleRefused(f"the file tries to set {name!r} on a reconstructor; refused")
 
+    def __setstate__(self, state: object) -> None:
+        raise PickleRefused(f"the file tries to set up a {type(self).__name__.strip('_').lower()} with a "
+                            "__setstate__ state; refused")
+
 
 class _Marker(_Frozen):
     """A global only ever passed as an argument (numpy.ndarray to `_reconstruct`); neither callable nor a type."""
@@ -154,40 +163,152 @@ def _stand_in(base: type[_StandIn], path: str, **attrs: object) -> type[_StandIn
     return _STAND_IN_TYPES[path]
 
 
-def _dtype(spec: object, align: object = False, copy: object = True) -> np.dtype:
-    """numpy.dtype as pickles call it, for plain (non-object) dtypes only; always a fresh copy to be set up."""
-    if not isinstance(spec, str | bytes):
-        raise PickleRefused(f"numpy.dtype of a {type(spec).__name__}")
-    dtype = np.dtype(spec.decode("latin1") if isinstance(spec, bytes) else spec, bool(align), True)
-    if dtype.hasobject:
-        raise PickleRefused(f"numpy dtype {dtype} holds Python objects; refused")
-    return dtype
+# numpy type strings a FLAME file's arrays use: booleans, integers, floats, complex, bytes and text, with an
+# optional byte order and size. Anything else (structured "f8,i4", subarray "(3,)f8", objects, datetimes, void) is
+# refused before numpy parses it.
+_TYPE_STRING = re.compile(r"[<>|=]?(?:b1|\?|[iu][1248]|f[248]|c(?:8|16)|[SU][0-9]{0,9})\Z")
+# A pickled dtype's state: (version, byte order, subarray, names, fields, elsize, alignment, flags[, metadata]).
+_DTYPE_STATE_LENGTHS = (8, 9)
+_MAX_NDIM = 32
 
 
-def _reconstruct(subtype: object, shape: object, dtype: object) -> np.ndarray:
-    """numpy's `_reconstruct`: an empty array that the pickle's BUILD fills (size bounded by the file's bytes)."""
+def _canonical_type(spec: object) -> np.dtype:
+    """A plain dtype parsed from a checked type string; bytes and text without a size stay unsized ("S", "U")."""
+    if isinstance(spec, bytes):
+        spec = spec.decode("latin1")
+    if isinstance(spec, str) and spec.lstrip("<>|=").startswith("O"):
+        raise PickleRefused(f"numpy dtype {spec} holds Python objects; refused")
+    if not isinstance(spec, str) or not _TYPE_STRING.match(spec):
+        raise PickleRefused(f"numpy.dtype of {spec!r}, which is not a plain number, byte or text type")
+    return np.dtype(spec)
+
+
+class _PickledDtype:
+    """`numpy.dtype(spec)` as a pickle builds it: the checked type string, and the byte order or size its BUILD
+    state gives. The dtype handed on is always made afresh from these (`canonical`), never from the state itself:
+    numpy trusts a dtype state's sizes, so a forged one describes more memory than its arrays own."""
+
+    def __init__(self, spec: object) -> None:
+        self.base = _canonical_type(spec)
+        self.byte_order = "="
+        self.size = self.base.itemsize
+        self.built = False
+
+    def __setstate__(self, state: object) -> None:
+        if self.built:
+            raise PickleRefused("a numpy dtype is set up twice")
+        self.built = True
+        if not isinstance(state, tuple) or len(state) not in _DTYPE_STATE_LENGTHS:
+            raise PickleRefused(f"numpy dtype state {type(state).__name__} is not a dtype's 8- or 9-tuple")
+        _version, byte_order, subarray, names, fields, elsize, _alignment, _flags = state[:8]
+        if subarray is not None or names is not None or fields is not None:
+            raise PickleRefused("numpy dtype with a subarray or fields (no FLAME array has one)")
+        if byte_order not in ("<", ">", "|", "="):
+            raise PickleRefused(f"numpy dtype byte order {byte_order!r}")
+        if not isinstance(elsize, int) or isinstance(elsize, bool):
+            raise PickleRefused(f"numpy dtype item size {elsize!r}")
+        self.byte_order = byte_order
+        if self.base.kind in "SU" and elsize != -1:
+            self.size = elsize
+        elif elsize not in (-1, self.base.itemsize):
+            raise PickleRefused(f"numpy dtype {self.base} with an item size of {elsize} bytes")
+
+    def canonical(self) -> np.dtype:
+        """The plain dtype this stands for, built from its type string, byte order and size alone."""
+        dtype = self.base
+        if dtype.kind in "SU":
+            unit = 4 if dtype.kind == "U" else 1
+            if self.size <= 0 or self.size % unit or self.size > 1 << 30:
+                raise PickleRefused(f"numpy {dtype.kind} dtype of {self.size} bytes")
+            dtype = np.dtype(f"{dtype.kind}{self.size // unit}")
+        if dtype.itemsize > 1 and self.byte_order in "<>":
+            dtype = dtype.newbyteorder(self.byte_order)
+        return dtype
+
+
+def _dtype(spec: object, align: object = False, copy: object = True) -> _PickledDtype:
+    """numpy.dtype as pickles call it: a stand-in for a plain dtype, which its BUILD may only give a byte order."""
+    return _PickledDtype(spec)
+
+
+def _plain_dtype(dtype: object, what: str) -> np.dtype:
+    """The canonical dtype of a reconstructor's dtype argument (only ever a `_PickledDtype`)."""
+    if not isinstance(dtype, _PickledDtype):
+        raise PickleRefused(f"{what} without a plain numpy dtype (a {type(dtype).__name__})")
+    return dtype.canonical()
+
+
+def _shape(shape: object, what: str) -> tuple[int, ...]:
+    """An array shape from the file: a tuple of non-negative Python ints."""
+    if isinstance(shape, int) and not isinstance(shape, bool):
+        shape = (shape,)
+    if (not isinstance(shape, tuple) or len(shape) > _MAX_NDIM
+            or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)):
+        raise PickleRefused(f"{what} with shape {shape!r}")
+    return shape
+
+
+def _array_from_bytes(raw: object, dtype: np.dtype, shape: tuple[int, ...], fortran: bool, what: str) -> np.ndarray:
+    """A copy of `raw` as an array, after checking that its bytes are exactly what the shape and dtype need."""
+    if isinstance(raw, str):  # Python 2's str arrives as latin-1 text
+        raw = raw.encode("latin1")
+    if isinstance(raw, pickle.PickleBuffer):
+        raw = raw.raw()
+    if not isinstance(raw, bytes | bytearray | memoryview):
+        raise PickleRefused(f"{what} of a {type(raw).__name__}, expected bytes")
+    needed = math.prod(shape) * dtype.itemsize  # Python ints: no overflow
+    if len(raw) != needed:
+        raise PickleRefused(f"{what}: {len(raw)} bytes for a {list(shape)} array of {dtype} ({needed} bytes)")
+    return np.frombuffer(raw, dtype=dtype).reshape(shape, order="F" if fortran else "C").copy()
+
+
+class _Value(_Frozen):
+    """An array or numpy number a reconstructor made: inert (a BUILD on it is refused), unwrapped after loading."""
+
+    __slots__ = ("value",)
+
+    def __init__(self, value: object) -> None:
+        object.__setattr__(self, "value", value)
+
+
+class _PickledArray:
+    """numpy's `_reconstruct` result, which the pickle's BUILD fills: its state is checked against its bytes."""
+
+    def __init__(self) -> None:
+        self.value: np.ndarray | None = None
+
+    def __setstate__(self, state: object) -> None:
+        if self.value is not None:
+            raise PickleRefused("a numpy array is filled twice")
+        if isinstance(state, tuple) and len(state) == 5:
+            version, *state = state
+            if version != 1:
+                raise PickleRefused(f"numpy array state version {version!r}")
+        if not isinstance(state, tuple | list) or len(state) != 4:
+            raise PickleRefused(f"numpy array state {type(state).__name__} is not an array's 4- or 5-tuple")
+        shape, dtype, fortran, raw = state
+        what = "a numpy array"
+        self.value = _array_from_bytes(raw, _plain_dtype(dtype, what), _shape(shape, what), bool(fortran), what)
+
+
+def _reconstruct(subtype: object, shape: object, dtype: object) -> _PickledArray:
+    """numpy's `_reconstruct`: an array stand-in that the pickle's BUILD fills from the file's bytes."""
     if subtype is not _NDARRAY:
         raise PickleRefused("numpy _reconstruct of something other than numpy.ndarray")
-    return np.empty(0, dtype=dtype if isinstance(dtype, np.dtype) else _dtype(dtype))
+    return _PickledArray()
 
 
-def _frombuffer(buffer: object, dtype: object, shape: object, order: object) -> np.ndarray:
+def _frombuffer(buffer: object, dtype: object, shape: object, order: object) -> _Value:
     """numpy's `_frombuffer` (protocol-5 pickles of newer numpy): a copy of the bytes as an array."""
-    if not isinstance(dtype, np.dtype) or dtype.hasobject:
-        raise PickleRefused("numpy _frombuffer without a plain dtype")
-    if not isinstance(buffer, bytes | bytearray | pickle.PickleBuffer):
-        raise PickleRefused(f"numpy _frombuffer of a {type(buffer).__name__}")
-    return np.frombuffer(buffer, dtype=dtype).reshape(shape, order="F" if order == "F" else "C").copy()
+    what = "numpy _frombuffer"
+    if order not in ("C", "F"):
+        raise PickleRefused(f"{what} in order {order!r}")
+    return _Value(_array_from_bytes(buffer, _plain_dtype(dtype, what), _shape(shape, what), order == "F", what))
 
 
-def _scalar(dtype: object, data: object = b"") -> np.generic:
+def _scalar(dtype: object, data: object = b"") -> _Value:
     """numpy's `scalar` (a pickled numpy number, e.g. a sparse shape held as numpy integers), plain dtypes only."""
-    if not isinstance(dtype, np.dtype) or dtype.hasobject:
-        raise PickleRefused("numpy scalar without a plain dtype")
-    raw = data.encode("latin1") if isinstance(data, str) else data  # Python 2's str arrives as latin-1 text
-    if not isinstance(raw, bytes) or len(raw) != dtype.itemsize:
-        raise PickleRefused(f"numpy scalar of {dtype} from {type(data).__name__} data of the wrong size")
-    return np.frombuffer(raw, dtype=dtype)[0]
+    return _Value(_array_from_bytes(data, _plain_dtype(dtype, "numpy scalar"), (), False, "numpy scalar")[()])
 
 
 def _reconstructor(cls: object, base: object, state: object) -> _StandIn:
@@ -238,26 +359,84 @@ class _FlameUnpickler(pickle.Unpickler):
 # ------------------------------------------------------------------------------------------------ reading
 
 
+# Containers deeper than this are no FLAME model (its deepest is a chumpy expression's state inside the dict).
+_MAX_NESTING = 64
+
+
+def _unwrapped(value: object, seen: dict[int, object], depth: int = 0) -> object:
+    """`value` with every array and number stand-in replaced by the plain numpy value it holds (shared and
+    self-referencing containers stay so: `seen` maps each visited container to its result)."""
+    if isinstance(value, _Value):
+        return value.value
+    if isinstance(value, _PickledArray):
+        if value.value is None:
+            raise PickleRefused("a numpy array is never filled")
+        return value.value
+    if isinstance(value, _PickledDtype):
+        return value.canonical()
+    if not isinstance(value, dict | list | tuple | set | frozenset | _StandIn):
+        return value
+    if id(value) in seen:
+        return seen[id(value)]
+    if depth > _MAX_NESTING:
+        raise PickleRefused(f"containers nested deeper than {_MAX_NESTING}")
+    inner = lambda item: _unwrapped(item, seen, depth + 1)  # noqa: E731
+    if isinstance(value, dict):
+        seen[id(value)] = value
+        items = [(inner(key), inner(item)) for key, item in value.items()]
+        value.clear()
+        value.update(items)
+        return value
+    if isinstance(value, list):
+        seen[id(value)] = value
+        value[:] = [inner(item) for item in value]
+        return value
+    if isinstance(value, _StandIn):
+        seen[id(value)] = value
+        if hasattr(value, "state"):
+            inner(value.state)
+        return value
+    result = type(value)(inner(item) for item in value)
+    seen[id(value)] = result
+    return result
+
+
+def _check_opcodes(data: bytes) -> None:
+    """Walk the pickle's opcodes without running them (pickletools' pure reader), so that every length an opcode
+    states is checked against the bytes present before the unpickler allocates for it."""
+    for _opcode, _argument, _position in pickletools.genops(data):
+        pass
+
+
 def load_flame_pickle(path: str | Path) -> dict:
     """The model dict of a FLAME pickle, its chumpy/sparse objects as inert stand-ins; ImportFormatError if not."""
     path = Path(path)
     try:
-        with path.open("rb") as handle:
-            head = handle.read(4)
-            handle.seek(0)
-            model = _FlameUnpickler(handle, encoding="latin1").load()
+        size = path.stat().st_size
+        if size > MAX_PICKLE_BYTES:
+            raise ImportFormatError(f"{path}: {size} bytes, more than any FLAME model pickle "
+                                    f"({MAX_PICKLE_BYTES >> 20} MiB at most)")
+        data = path.read_bytes()
     except OSError as exc:
         raise ImportFormatError(f"{path}: cannot read: {exc.strerror or exc}") from exc
+    try:
+        _check_opcodes(data)
+        model = _unwrapped(_FlameUnpickler(io.BytesIO(data), encoding="latin1").load(), {})
     except PickleRefused as exc:
-        raise ImportFormatError(f"{path}: not a FLAME model pickle: {exc}") from exc
+        raise ImportFormatError(_one_line(f"{path}: not a FLAME model pickle: {exc}")) from exc
     except Exception as exc:  # untrusted bytes: any failure of the unpickler means the file is unusable
-        if head.startswith(b"PK"):
+        if data.startswith(b"PK"):
             raise ImportFormatError(f"{path}: a zip/npz archive, not a pickle (a FLAME npz needs no import)") from exc
-        raise ImportFormatError(f"{path}: not a readable pickle (truncated or damaged?): "
-                                f"{type(exc).__name__}: {exc}") from exc
+        raise ImportFormatError(_one_line(f"{path}: not a readable pickle (truncated or damaged?): "
+                                          f"{type(exc).__name__}: {exc}")) from exc
     if not isinstance(model, dict):
         raise ImportFormatError(f"{path}: the pickle holds a {type(model).__name__}, expected FLAME's dict of arrays")
     return model
+
+
+def _one_line(message: str) -> str:
+    """A refusal as the one line the CLI prints (exception texts from the unpickler may hold line breaks)."""
+    return " ".join(message.split())
 
 
 def _evaluate(value: object, where: str, depth: int = 0) -> np.ndarray:
@@ -345,7 +524,7 @@ def flame_arrays_from_pickle(path: str | Path, layout: FlameLayout = FLAME_LAYOU
                                 f"(it holds {', '.join(repr(k) for k in sorted(map(str, model))[:20]) or 'nothing'})")
     arrays = {}
     for key, expected in layout.expected().items():
-        where = f"{path.name}: {key!r}"
+        where = f"{path}: {key!r}"
         value = model[key]
         if isinstance(value, _SparseMatrix):
             array = _sparse_dense(value, where, expected)
