@@ -127,7 +127,7 @@ def check_initializers(bundle: Bundle, name: str, onnx_bytes: bytes, feeds: dict
     top_level = {t.name: t for t in tensors if t.top_level}
     for tensor in tensors:
         if tensor.external and not (tensor.top_level and tensor.name in feeds):
-            raise BundleError(f"{bundle.path}: graph {name!r} tensor {tensor.name!r} wants external data the "
+            raise BundleError(f"{bundle.path}: graph {name!r} tensor {_short(tensor.name)} wants external data the "
                               f"bundle does not supply (refused: the runtime reads nothing outside the bundle)")
     for init, buffer in feeds.items():
         tensor = top_level.get(init)
@@ -139,6 +139,11 @@ def check_initializers(bundle: Bundle, name: str, onnx_bytes: bytes, feeds: dict
         if dtype != entry["dtype"] or tensor.dims != list(entry["shape"]):
             raise BundleError(f"{bundle.path}: graph {name!r} initializer {init!r} is {dtype} {tensor.dims} but "
                               f"buffer {buffer!r} is {entry['dtype']} {entry['shape']}")
+
+
+def _short(name: str) -> str:
+    """A tensor name read from a graph's bytes, quoted as an error quotes it: at most 100 characters."""
+    return f"{name[:100]!r}" + ("..." if len(name) > 100 else "")
 
 
 def check_signature(bundle: Bundle, name: str, info: dict, session: Any) -> None:

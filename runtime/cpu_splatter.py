@@ -239,9 +239,11 @@ def _project(rows, R, t, intr, limits, width, height, params, boxes):
         y_mag = (t10 * r00 + t11 * r01 + t12 * r02) / s
         z_mag = (t10 * r10 + t11 * r11 + t12 * r12 + low_mag) / s
         noise = _HALF * (x_mag * abs(z_entry) + abs(x) * z_mag) + abs(y) * y_mag
-        det = det if det > _DET_REL * noise else _ZERO
-        if not det > _ZERO:
+        threshold = _DET_REL * noise
+        if not det > threshold:  # reliable: rounding noise, culled (NaN too)
             continue
+        # reliability_fade: 1 - exp(-ALPHA_MIN (rho - 1)), rho = det / threshold; 1 where the threshold underflowed
+        fade = _ONE - np.exp(-_ALPHA_MIN * ((det - threshold) / threshold)) if threshold > _ZERO else _ONE
         # conic_from_cov2d, alpha_shape
         det_s = _safe_div(det) * s
         con_a, con_b, con_c = cn / det_s, -bn / det_s, an / det_s
@@ -253,11 +255,12 @@ def _project(rows, R, t, intr, limits, width, height, params, boxes):
         else:
             radius = _radius_of(a, b, c)
         bound = (abs(con_a) + _F(2.0) * abs(con_b) + abs(con_c)) * radius * radius  # extent_power_bound
+        # screen_bounded, and keep_mask's finite 2D covariance
         if not (_bounded(u) and _bounded(v) and _bounded(con_a) and _bounded(con_b) and _bounded(con_c)
                 and _bounded(shape_k) and _bounded(shape_q) and _bounded(radius) and _bounded(bound)
-                and _bounded(a) and _bounded(b) and _bounded(c) and math.isfinite(a) and math.isfinite(c)):
+                and math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
             continue
-        opacity = rows[i, 12]
+        opacity = rows[i, 12] * fade  # the opacity as composited
         if opacity < _ALPHA_MIN:  # alpha <= opacity (exp <= 1): no pixel can pass
             continue
         # Box: the extent square intersected with the alpha >= ALPHA_MIN ellipse of this quadratic form,

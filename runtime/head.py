@@ -122,8 +122,15 @@ class TalkingHead:
         settings = self.output_settings
         view = output_view(self.bundle, settings)
         self.camera, self.composite = view.camera, view.composite
-        self.background = np.asarray(settings.background if settings.background is not None
-                                     else manifest.get("background", (1, 1, 1)), dtype=np.float32).reshape(3)
+        background = settings.background
+        if background is None:  # the bundle's: 3 numbers finite in float32 (docs/untrusted-input.md, "Bundles")
+            background = manifest.get("background", (1, 1, 1))
+            if not (isinstance(background, list | tuple) and len(background) == 3 and all(
+                    isinstance(c, int | float) and not isinstance(c, bool) and abs(c) <= float(np.finfo(np.float32).max)
+                    for c in background)):
+                raise BundleError(f"{self.bundle.path}: manifest 'background' must be 3 finite numbers (RGB), got "
+                                  f"{repr(background)[:80]}")
+        self.background = np.asarray(background, dtype=np.float32).reshape(3)
         self.reference, self._inpaint = self._reference(settings.resolution)
         self.scene, self.scene_guard = self._scene()
         if self.scene_guard is not None:

@@ -142,6 +142,7 @@ class LiveSession:
         self._epoch = 0  # bumped by interrupt(): translator results of an older epoch are dropped
         self._flushed = False  # queued audio is complete: its last frames need no lookahead
         self._ended = self._closed = self._reading = False
+        self._error: BaseException | None = None  # what frames() or poll() raised: the session stopped on it
         self._next_index = 0
         self._last_spoken: np.ndarray | None = None
         self._frames_since_speech = 0
@@ -153,6 +154,9 @@ class LiveSession:
         bad audio, LiveError after end()/close() or when more than max_queued_s would be waiting."""
         mono, rate = as_mono(samples, sample_rate)
         with self._cond:
+            if self._error is not None:
+                raise LiveError(f"this live session stopped: making its frames raised {type(self._error).__name__}: "
+                                f"{self._error}; open a new one with head.live()") from self._error
             if self._closed or self._ended:
                 raise LiveError("this live session has " + ("been closed" if self._closed else "ended (end() was "
                                 "called)") + ": open a new one with head.live() to push more audio")
@@ -210,6 +214,21 @@ class LiveSession:
         self.close()
 
     @property
+    def error(self) -> BaseException | None:
+        """What frames() or poll() raised (a render or translator failure), which stopped the session; None while
+        it runs or after a clean end."""
+        return self._error
+
+    def _fail(self, error: BaseException) -> None:
+        """Making a frame raised: the session stops, so producers get a LiveError instead of queueing audio that
+        no frame will show (docs/live.md, "Bad input and misuse")."""
+        with self._cond:
+            if self._error is None:
+                self._error = error
+            self._closed = True
+            self._cond.notify_all()
+
+    @property
     def queued_s(self) -> float:
         """Seconds of pushed audio not yet shown."""
         with self._cond:
@@ -229,10 +248,10 @@ class LiveSession:
         try:
             anchor_time, anchor_index = time.monotonic(), self._next_index
             while True:
-                plan = self._plan(anchor_time + (self._next_index - anchor_index) / self.fps)
+                plan = self._plan_or_fail(anchor_time + (self._next_index - anchor_index) / self.fps)
                 if plan is None:
                     return
-                frame = self._render(plan)
+                frame = self._make(plan)
                 if self.paced and time.monotonic() - anchor_time - (self._next_index - anchor_index) / self.fps \
                         > MAX_LAG_FRAMES / self.fps:
                     anchor_time, anchor_index = time.monotonic(), self._next_index
@@ -245,9 +264,25 @@ class LiveSession:
         """The frames whose audio and lookahead are in now (no idle frames, no waiting): for apps that push and
         read on one thread or event loop."""
         frames = []
-        while (plan := self._plan(None)) is not None:  # _plan(None) neither waits nor idles
-            frames.append(self._render(plan))
+        while (plan := self._plan_or_fail(None)) is not None:  # _plan(None) neither waits nor idles
+            frames.append(self._make(plan))
         return frames
+
+    def _plan_or_fail(self, due: float | None) -> _Plan | None:
+        """_plan, stopping the session if it raises (the translator failed)."""
+        try:
+            return self._plan(due)
+        except Exception as error:
+            self._fail(error)
+            raise
+
+    def _make(self, plan: _Plan) -> LiveFrame:
+        """_render, stopping the session if it raises (the renderer failed)."""
+        try:
+            return self._render(plan)
+        except Exception as error:
+            self._fail(error)
+            raise
 
     def _ready_batch(self) -> int:
         """Frames that can be translated now (their audio and lookahead queued, or flushed), 0 if none."""

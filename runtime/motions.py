@@ -1,9 +1,12 @@
 """A speaker's motion from whatever the app gives (a file, a track object, an array, or nothing: the bundle's own),
-checked against the speaker's rig and resampled to its fps. docs/import.md, "Motion files"."""
+checked against the speaker's rig and resampled to its fps. docs/import.md, "Motion files"; a file is read within
+the bounds of docs/untrusted-input.md, "Motion files", and every error about it names it."""
 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +21,17 @@ from gaussiantalker.sdk.motion import MotionTrack, load_motion
 MotionSource = str | os.PathLike | MotionTrack | FlameMotion | np.ndarray | None
 
 
+@contextmanager
+def _naming(path: str | os.PathLike) -> Iterator[None]:
+    """DriveErrors raised within name the motion file they are about."""
+    try:
+        yield
+    except DriveError as exc:
+        if str(path) in str(exc):
+            raise
+        raise DriveError(f"motion file {path}: {exc}") from None
+
+
 def arkit_motion(source: MotionSource, shipped: MotionTrack | None, fps: int, where: str) -> MotionTrack:
     """An ARKit speaker's motion at `fps` (`shipped`: the bundle's motion track, used for None)."""
     if source is None:
@@ -29,7 +43,8 @@ def arkit_motion(source: MotionSource, shipped: MotionTrack | None, fps: int, wh
     elif isinstance(source, MotionTrack):
         track = source
     elif isinstance(source, (str, os.PathLike)):
-        track = load_motion(source)
+        with _naming(source):
+            return load_motion(source).at_fps(fps)
     else:
         track = MotionTrack(np.asarray(source, dtype=np.float64), fps)
     return track.at_fps(fps)
@@ -51,7 +66,8 @@ def flame_motion(source: MotionSource, shipped: FlameMotion | None, fps: int, n_
         if Path(source).suffix.lower() == ".json":
             raise DriveError(f"{source}: a JSON motion holds ARKit weights; this FLAME speaker takes a FLAME motion "
                              "npz (GaussianAvatars' flame_param.npz keys)")
-        motion = load_flame_motion(source, fps)
+        with _naming(source):
+            return load_flame_motion(source, fps).with_expressions(n_expr).at_fps(fps)
     else:
         motion = FlameMotion.from_table(np.asarray(source, dtype=np.float64), fps)
     return motion.with_expressions(n_expr).at_fps(fps)

@@ -17,6 +17,12 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+# The deepest a message may sit below the ModelProto (a graph is 1, its node 2, a node's attribute 3, a subgraph of
+# that attribute 4, ...): protobuf's own parsers, onnxruntime's included, refuse a model nested deeper, so no
+# loadable model is refused, and the walk's recursion stays bounded whatever the bytes say (docs/untrusted-input.md,
+# "Bundles").
+MAX_MESSAGE_DEPTH = 100
+
 
 @dataclass
 class TensorInfo:
@@ -92,8 +98,11 @@ def _sub_messages(data: memoryview, wanted: dict[int, str]) -> Iterator[tuple[st
             yield wanted[number], value
 
 
-def _walk(kind: str, data: memoryview, top_level: bool = False) -> Iterator[TensorInfo]:
-    """Every TensorProto reachable from a message of `kind` (model, function, graph, node, attribute, sparse)."""
+def _walk(kind: str, data: memoryview, top_level: bool = False, depth: int = 0) -> Iterator[TensorInfo]:
+    """Every TensorProto reachable from a message of `kind` (model, function, graph, node, attribute, sparse)
+    `depth` messages below the model; ValueError past MAX_MESSAGE_DEPTH."""
+    if depth > MAX_MESSAGE_DEPTH:
+        raise ValueError(f"its messages nest more than {MAX_MESSAGE_DEPTH} deep (subgraphs within subgraphs)")
     children = {"model": {7: "graph", 25: "function"}, "function": {7: "node"},
                 "graph": {1: "node", 5: "tensor", 15: "sparse"}, "node": {5: "attribute"},
                 "attribute": {5: "tensor", 6: "subgraph", 10: "tensor", 11: "subgraph", 22: "sparse", 23: "sparse"},
@@ -102,7 +111,8 @@ def _walk(kind: str, data: memoryview, top_level: bool = False) -> Iterator[Tens
         if child == "tensor":
             yield _tensor(value, top_level and kind == "graph")
         else:
-            yield from _walk("graph" if child == "subgraph" else child, value, top_level=kind == "model")
+            yield from _walk("graph" if child == "subgraph" else child, value, top_level=kind == "model",
+                             depth=depth + 1)
 
 
 def model_tensors(onnx_bytes: bytes | memoryview) -> Iterator[TensorInfo]:
@@ -110,4 +120,4 @@ def model_tensors(onnx_bytes: bytes | memoryview) -> Iterator[TensorInfo]:
     return _walk("model", memoryview(onnx_bytes))
 
 
-__all__ = ["TensorInfo", "model_tensors"]
+__all__ = ["MAX_MESSAGE_DEPTH", "TensorInfo", "model_tensors"]

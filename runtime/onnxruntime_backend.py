@@ -24,6 +24,10 @@ from .bundle_checks import (
     is_speaker_bundle,
 )
 
+# The most of onnxruntime's reason a BundleError quotes (its messages carry C++ signatures and may span lines; a
+# refusal is one line, docs/untrusted-input.md).
+MAX_REASON_CHARS = 400
+
 
 @dataclass
 class _LoadedGraph:
@@ -65,7 +69,8 @@ class OnnxRuntimeBackend:
         try:
             session = self._ort.InferenceSession(graph.onnx_bytes, options, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own untyped errors
-            raise BundleError(f"{bundle.path}: graph {name!r} cannot be loaded by onnxruntime: {exc}") from exc
+            raise BundleError(f"{bundle.path}: graph {name!r} cannot be loaded by onnxruntime: "
+                              f"{_one_line(str(exc))}") from exc
         check_signature(bundle, name, bundle.graph_info(name), session)
         return session
 
@@ -77,6 +82,16 @@ class OnnxRuntimeBackend:
                               f"{', '.join(sorted(self.sessions)) or 'no graphs'})")
         names = [o.name for o in session.get_outputs()]
         return dict(zip(names, session.run(names, inputs), strict=True))
+
+
+def _one_line(text: str, limit: int = MAX_REASON_CHARS) -> str:
+    """onnxruntime's reason on one line (whitespace collapsed), at most `limit` characters: its start and its end,
+    where the cause is named after the C++ location it was raised at."""
+    text = " ".join(text.split())
+    if len(text) <= limit:
+        return text
+    head = limit // 3
+    return f"{text[:head]} ... {text[len(text) - (limit - head - 5):]}"
 
 
 def _load_graph(bundle: Bundle, name: str) -> _LoadedGraph:

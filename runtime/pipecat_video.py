@@ -8,7 +8,10 @@ queued with that audio (`sync_with_audio`), so the output transport plays voice 
 reply (TTSStoppedFrame) flushes the session, an interruption is a barge-in, and the face idles between turns.
 
 The session runs on a render thread of its own, which owns the TalkingHead and its GL context; its frames reach
-the pipeline's event loop through a queue drained by one task, so they keep their order.
+the pipeline's event loop through a queue drained by one task, so they keep their order. A session that fails (the
+head cannot load, or a frame raises) ends: the error goes upstream once as an ErrorFrame that marks the processor
+unusable (the pipeline worker's ProcessorUnusablePolicy decides what follows), the render thread exits, and
+text-to-speech audio then passes on unchanged, the voice without the face (docs/live.md, "Pipecat").
 """
 
 from __future__ import annotations
@@ -34,6 +37,8 @@ try:
 except ImportError as exc:  # an optional extra: the runtime does not need it
     raise ImportError(f"TalkingHeadVideo needs Pipecat: pip install 'gaussiantalker-sdk[pipecat]' ({exc})") from None
 
+from gaussiantalker.sdk.errors import LiveError
+
 from .head import TalkingHead
 from .live import LiveFrame
 
@@ -48,6 +53,7 @@ class TalkingHeadVideo(FrameProcessor):
         super().__init__(**kwargs)
         self._bundle, self._resolution, self._lookahead_ms, self._idle = bundle, resolution, lookahead_ms, idle
         self._live = None
+        self._failed = False  # the session failed and its error went upstream: frames pass on unchanged
         self._audio_rate = 16000
         self._ready = threading.Event()
         self._error: BaseException | None = None
@@ -66,14 +72,20 @@ class TalkingHeadVideo(FrameProcessor):
             await self.push_frame(frame, direction)
             await self._start(self._audio_rate)
             return
-        if isinstance(frame, TTSAudioRawFrame):
+        live = None if self._failed else self._live
+        if isinstance(frame, TTSAudioRawFrame) and live is not None:
             pcm = np.frombuffer(frame.audio, np.int16).reshape(-1, frame.num_channels)
-            self._live.push(pcm, frame.sample_rate)
-            return  # its samples go on with the frames that show them
-        if isinstance(frame, TTSStoppedFrame):
-            self._live.flush()
-        elif isinstance(frame, InterruptionFrame):
-            self._live.interrupt()
+            try:
+                live.push(pcm, frame.sample_rate)
+                return  # its samples go on with the frames that show them
+            except LiveError:
+                if live.error is None:
+                    raise
+                # The session has just failed: its error is on its way upstream; the voice goes on without a face.
+        elif isinstance(frame, TTSStoppedFrame) and live is not None:
+            live.flush()
+        elif isinstance(frame, InterruptionFrame) and live is not None:
+            live.interrupt()
         elif isinstance(frame, (EndFrame, CancelFrame)):
             await self._stop(drain=isinstance(frame, EndFrame))
         await self.push_frame(frame, direction)
@@ -86,12 +98,13 @@ class TalkingHeadVideo(FrameProcessor):
         self._thread.start()
         await loop.run_in_executor(None, self._ready.wait)
         if self._error is not None:
-            raise self._error
+            await self._report(self._error, "its live session could not start")
+            return
         self._sender = self.create_task(self._send())
 
     async def _stop(self, drain: bool) -> None:
         """EndFrame: the session ends, its last frames go out first. CancelFrame: close at once."""
-        if self._live is None:
+        if self._live is None or self._sender is None:
             return
         if drain:
             self._live.end()
@@ -99,17 +112,30 @@ class TalkingHeadVideo(FrameProcessor):
             self._live.close()
         await asyncio.get_running_loop().run_in_executor(None, self._thread.join)
         if drain:
-            await self._sender  # every frame the session made is pushed before the EndFrame
+            await self._sender  # every frame the session made is pushed before the EndFrame (the thread's end
+            # marker, queued however it ended, lets it return)
         else:
             await self.cancel_task(self._sender)
-        self._live = None
+        self._live = self._sender = None
+
+    async def _report(self, error: BaseException, what: str) -> None:
+        """The session failed: tell the pipeline once (an ErrorFrame upstream, which Pipecat logs), and let the
+        frames that follow pass on unchanged."""
+        if self._failed:
+            return
+        self._failed = True
+        await self.push_error(f"{what}: {type(error).__name__}: {error}", exception=error,
+                              force_treat_as_permanent=True)
 
     async def _send(self) -> None:
         """Push the session's frames downstream in order: the audio they show, then the picture, queued with it."""
         while True:
-            frame: LiveFrame | None = await self._queue.get()
+            frame: LiveFrame | BaseException | None = await self._queue.get()
             if frame is None:
                 return
+            if isinstance(frame, BaseException):
+                await self._report(frame, "its live session ended: rendering a frame raised")
+                continue
             pcm = np.clip(np.round(frame.audio * 32768.0), -32768, 32767).astype(np.int16).tobytes()  # int16 exact
             await self.push_frame(OutputAudioRawFrame(audio=pcm, sample_rate=frame.sample_rate, num_channels=1))
             height, width = frame.image.shape[:2]
@@ -120,19 +146,31 @@ class TalkingHeadVideo(FrameProcessor):
 
     # -- the render thread ---------------------------------------------------------------------------------------
     def _render(self, loop: asyncio.AbstractEventLoop, audio_rate: int) -> None:
+        """Load the head, then queue the session's frames; a failure is queued for the pipeline's side to report,
+        and the end marker always follows, so draining at EndFrame never waits on a thread that died."""
+        started = False
         try:
-            head = TalkingHead(self._bundle, resolution=self._resolution, composite=False)
-            live = head.live(lookahead_ms=self._lookahead_ms, audio_rate=audio_rate, idle=self._idle)
-        except BaseException as exc:  # reported on the pipeline's side, by _start
-            self._error = exc
+            with TalkingHead(self._bundle, resolution=self._resolution, composite=False) as head, \
+                    head.live(lookahead_ms=self._lookahead_ms, audio_rate=audio_rate, idle=self._idle) as live:
+                self._live, started = live, True
+                self._ready.set()
+                for frame in live.frames():
+                    self._queue_from_thread(loop, frame)
+        except Exception as exc:
+            if started:  # a frame raised: the session has stopped (LiveSession.error)
+                self._queue_from_thread(loop, exc)
+            else:  # the head or its session could not be made: reported by _start
+                self._error = exc
+        finally:
             self._ready.set()
-            return
-        with head, live:
-            self._live = live
-            self._ready.set()
-            for frame in live.frames():
-                loop.call_soon_threadsafe(self._queue.put_nowait, frame)
-        loop.call_soon_threadsafe(self._queue.put_nowait, None)
+            if started:
+                self._queue_from_thread(loop, None)
+
+    def _queue_from_thread(self, loop: asyncio.AbstractEventLoop, item) -> None:
+        try:
+            loop.call_soon_threadsafe(self._queue.put_nowait, item)
+        except RuntimeError:  # the pipeline's loop has closed: nobody drains the queue any more
+            pass
 
 
 __all__ = ["TalkingHeadVideo"]

@@ -2,12 +2,12 @@
 
 It follows the numerics contract of docs/numerics.md. The per-Gaussian maths lives in shaders/splat.vert
 (`world_to_camera`, `camera_to_pixel`, `clamped_ratios`, `sigma_matrix`, `covariance_2d`, `cov2d_scale`,
-`reliable`, `covariance_2d_determinant`, `conic_from_cov2d`, `alpha_shape`, `radius_of`, `extent_radius`,
-`extent_power_bound`, `screen_bounded`) and shaders/splat.frag (`splat_color`, `splat_alpha`); each of these GLSL
-functions has a torch twin of the same name and arguments in exporter/model/splat_math.py. The shaders' other
-functions only decide where to rasterise (`NON_CONTRACT_GLSL_FUNCTIONS`). Numpy does the rest: the near-plane
-and non-finite-input culling with the depth order (runtime/depth_sort.py: `view_depth`, `depth_order`), and the
-final 8-bit conversion (`to_uint8`).
+`reliable`, `rounding_products`, `determinant_and_noise`, `covariance_2d_determinant`, `reliability_fade`,
+`conic_from_cov2d`, `alpha_shape`, `radius_of`, `extent_radius`, `extent_power_bound`, `screen_bounded`) and
+shaders/splat.frag (`splat_color`, `splat_alpha`); each of these GLSL functions has a torch twin of the same name
+and arguments in exporter/model/splat_math.py. The shaders' other functions only decide where to rasterise
+(`NON_CONTRACT_GLSL_FUNCTIONS`). Numpy does the rest: the near-plane and non-finite-input culling with the depth
+order (runtime/depth_sort.py: `view_depth`, `depth_order`), and the final 8-bit conversion (`to_uint8`).
 
 Primitives
 ----------

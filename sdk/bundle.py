@@ -159,6 +159,21 @@ class _Manifest(dict):
         raise BundleError(f"{self.path}: manifest has no {key!r} section")
 
 
+def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    """A JSON object's pairs as a dict; a key given twice is refused (two readers could take different values)."""
+    data = dict(pairs)
+    if len(data) != len(pairs):
+        seen: set[str] = set()
+        key = next(k for k, _ in pairs if k in seen or seen.add(k))
+        raise ValueError(f"key {key[:80]!r} appears twice in one object")
+    return data
+
+
+def _label(kind: str, name: str) -> str:
+    """How an entry is named in errors (a name the manifest made long is cut short)."""
+    return f"{kind} {name[:100]!r}" + ("..." if len(name) > 100 else "")
+
+
 def _codec_params(codec: dict) -> dict:
     """A manifest codec entry's parameters (everything but its name)."""
     return {k: v for k, v in codec.items() if k != "name"}
@@ -201,9 +216,10 @@ class Bundle:
         if hashlib.sha256(manifest_bytes).digest() != digest:
             raise BundleError(f"{self.path}: manifest checksum mismatch (corrupt manifest or header)")
         try:
-            manifest = json.loads(manifest_bytes.decode("utf-8"))
+            manifest = json.loads(manifest_bytes.decode("utf-8"), object_pairs_hook=_unique_keys)
         except (UnicodeDecodeError, ValueError, RecursionError) as exc:
-            raise BundleError(f"{self.path}: manifest is not valid JSON: {str(exc)[:200]}") from None
+            detail = "it nests too deep" if isinstance(exc, RecursionError) else " ".join(str(exc).split())[:200]
+            raise BundleError(f"{self.path}: manifest is not valid JSON: {detail}") from None
         if not isinstance(manifest, dict) or manifest.get("format") != "gaussiantalker-bundle":
             raise BundleError(f"{self.path}: manifest does not describe a gaussiantalker-bundle")
         if manifest.get("version") != [major, minor]:
@@ -246,7 +262,7 @@ class Bundle:
         for kind in ("graphs", "buffers"):
             if not isinstance(self.manifest.get(kind), dict):
                 raise BundleError(f"{self.path}: manifest has no {kind!r} table")
-        labelled = [(f"{kind[:-1]} {name!r}", entry) for kind in ("buffers", "graphs")
+        labelled = [(_label(kind[:-1], name), entry) for kind in ("buffers", "graphs")
                     for name, entry in self.manifest[kind].items()]
         for label, entry in labelled:
             self._check_entry(label, entry, payload_size)
@@ -288,34 +304,34 @@ class Bundle:
         shape, dtype, codec = entry.get("shape"), entry.get("dtype"), entry.get("codec")
         if not (isinstance(shape, list) and all(_is_int(d) for d in shape) and isinstance(dtype, str)
                 and isinstance(codec, dict) and isinstance(codec.get("name"), str)):
-            raise BundleError(f"{self.path}: buffer {name!r} has a malformed dtype, shape or codec "
-                              f"({dtype!r}, {shape!r}, {codec!r})")
+            raise BundleError(f"{self.path}: {_label('buffer', name)} has a malformed dtype, shape or codec "
+                              f"({repr(dtype)[:40]}, {repr(shape)[:80]}, {repr(codec)[:80]})")
         try:
             wanted = expected_nbytes(codec["name"], dtype, tuple(shape), _codec_params(codec))
         except BundleError as exc:
-            raise BundleError(f"{self.path}: buffer {name!r}: {exc}") from None
+            raise BundleError(f"{self.path}: {_label('buffer', name)}: {exc}") from None
         if wanted != entry["nbytes"]:
-            raise BundleError(f"{self.path}: buffer {name!r} declares dtype {dtype} shape {shape} ({wanted} bytes) "
-                              f"but stores {entry['nbytes']} bytes")
+            raise BundleError(f"{self.path}: {_label('buffer', name)} declares dtype {dtype} shape {shape} ({wanted} "
+                              f"bytes) but stores {entry['nbytes']} bytes")
 
     def _check_graph(self, name: str, entry: dict) -> None:
         """Declared inputs/outputs are well-formed; every initializer maps to a buffer the bundle holds."""
         initializers = entry.get("initializers", {})
         if not (isinstance(initializers, dict) and all(isinstance(v, str) for v in initializers.values())):
-            raise BundleError(f"{self.path}: graph {name!r} has a malformed initializers table")
+            raise BundleError(f"{self.path}: {_label('graph', name)} has a malformed initializers table")
         for buffer_name in initializers.values():
             if buffer_name not in self.manifest["buffers"]:
-                raise BundleError(f"{self.path}: graph {name!r} needs unknown buffer {buffer_name!r}")
+                raise BundleError(f"{self.path}: {_label('graph', name)} needs unknown {_label('buffer', buffer_name)}")
         for kind in ("inputs", "outputs"):
-            _check_tensor_list(f"{self.path}: graph {name!r} {kind}", entry.get(kind))
+            _check_tensor_list(f"{self.path}: {_label('graph', name)} {kind}", entry.get(kind))
         compression = entry.get("compression")
         if compression is not None:
             raw = entry.get("raw_nbytes")
             if compression not in GRAPH_COMPRESSIONS:
-                raise BundleError(f"{self.path}: graph {name!r} has unknown compression {compression!r} (this "
-                                  f"runtime reads: {', '.join(GRAPH_COMPRESSIONS)})")
+                raise BundleError(f"{self.path}: {_label('graph', name)} has unknown compression "
+                                  f"{str(compression)[:40]!r} (this runtime reads: {', '.join(GRAPH_COMPRESSIONS)})")
             if not (_is_int(raw) and 0 <= raw <= MAX_GRAPH_BYTES):
-                raise BundleError(f"{self.path}: graph {name!r} has an invalid raw_nbytes {raw!r}")
+                raise BundleError(f"{self.path}: {_label('graph', name)} has an invalid raw_nbytes {repr(raw)[:40]}")
 
     @property
     def version(self) -> tuple[int, int]:
@@ -342,25 +358,25 @@ class Bundle:
         """Decode buffer `name` to a numpy array of its declared dtype and shape."""
         entry = self.manifest["buffers"].get(name)
         if entry is None:
-            raise BundleError(f"{self.path}: bundle has no buffer {name!r}")
-        data = self._read_entry(f"buffer {name!r}", entry)
+            raise BundleError(f"{self.path}: bundle has no {_label('buffer', name)}")
+        data = self._read_entry(_label("buffer", name), entry)
         codec = entry["codec"]
         try:
             return get_codec(codec["name"]).decode(data, entry["dtype"], tuple(entry["shape"]), _codec_params(codec))
         except BundleError as exc:
-            raise BundleError(f"{self.path}: buffer {name!r}: {exc}") from None
+            raise BundleError(f"{self.path}: {_label('buffer', name)}: {exc}") from None
 
     def graph_info(self, name: str) -> dict:
         entry = self.manifest["graphs"].get(name)
         if entry is None:
-            raise BundleError(f"{self.path}: bundle has no graph {name!r} (it holds: "
+            raise BundleError(f"{self.path}: bundle has no {_label('graph', name)} (it holds: "
                               f"{', '.join(self.graph_names()) or 'no graphs'})")
         return entry
 
     def graph_bytes(self, name: str) -> bytes:
         """The graph's ONNX bytes (checksummed, inflated if stored compressed)."""
         entry = self.graph_info(name)
-        data = self._read_entry(f"graph {name!r}", entry)
+        data = self._read_entry(_label("graph", name), entry)
         if entry.get("compression") is None:
             return data
         raw = entry["raw_nbytes"]
@@ -368,9 +384,9 @@ class Bundle:
         try:
             onnx_bytes = inflater.decompress(data, raw)  # never more than the declared size
         except zlib.error as exc:
-            raise BundleError(f"{self.path}: graph {name!r} does not inflate ({exc})") from None
+            raise BundleError(f"{self.path}: {_label('graph', name)} does not inflate ({exc})") from None
         if len(onnx_bytes) != raw or not inflater.eof or inflater.unconsumed_tail:
-            raise BundleError(f"{self.path}: graph {name!r} does not inflate to its declared {raw} bytes")
+            raise BundleError(f"{self.path}: {_label('graph', name)} does not inflate to its declared {raw} bytes")
         return onnx_bytes
 
     def verify_all(self) -> None:

@@ -19,6 +19,53 @@ MAX_IMAGE_SIDE = 16384
 # focal lengths at least the smallest normal float32 (below it fx would become 0 or lose its precision on a GPU).
 FLOAT32_MAX = float(np.finfo(np.float32).max)
 MIN_FOCAL_PX = float(np.finfo(np.float32).tiny)
+# The most characters of a value a CameraError quotes: a camera may come from a file, and a refusal is one short line
+# (docs/untrusted-input.md); arrays are described by their shape and first offending entry instead.
+MAX_QUOTE = 80
+
+
+def _line(text: str, limit: int = MAX_QUOTE) -> str:
+    """`text` on one line (whitespace collapsed), cut to `limit` characters."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _quote(value) -> str:
+    """`value` as a CameraError quotes it: its repr on one line, cut to MAX_QUOTE characters."""
+    return _line(repr(value))
+
+
+def _numbers(array: np.ndarray) -> str:
+    """A small float array as nested lists of short numbers (`[[1, 0, 0], ...]`), one line."""
+    if array.ndim == 0:
+        return f"{float(array):.6g}"
+    return "[" + ", ".join(_numbers(row) for row in array) + "]"
+
+
+def _is_real(value) -> bool:
+    if isinstance(value, str | bytes):
+        return False
+    try:
+        float(value)
+    except (TypeError, ValueError, OverflowError):
+        return False
+    return True
+
+
+def _describe(value) -> str:
+    """An array-like that is not an array of real numbers, in a few words: its type and shape, and its first entry
+    that is not a real number."""
+    try:
+        array = np.asarray(value, dtype=object)
+    except (TypeError, ValueError):
+        return f"a ragged {type(value).__name__}"  # numpy refused even an object array
+    if array.ndim == 0:
+        return _quote(value)
+    for index in np.ndindex(array.shape):
+        if not _is_real(array[index]):
+            return (f"{type(value).__name__} of shape {array.shape} whose entry {list(index)} is "
+                    f"{_quote(array[index])}")
+    return f"{type(value).__name__} of shape {array.shape}"
 
 
 def _image_side(name: str, value) -> int:
@@ -28,26 +75,29 @@ def _image_side(name: str, value) -> int:
     except (TypeError, ValueError, OverflowError):
         valid = False
     if not valid:
-        raise CameraError(f"camera {name} must be an integer in 1..{MAX_IMAGE_SIDE}, got {value!r}")
+        raise CameraError(f"camera {name} must be an integer in 1..{MAX_IMAGE_SIDE}, got {_quote(value)}")
     return int(value)
 
 
 def _real(name: str, value) -> float:
     """A real number as float, or CameraError naming it (None, strings, complex)."""
     if isinstance(value, str | bytes):
-        raise CameraError(f"camera {name} must be a real number, got {value!r}")
+        raise CameraError(f"camera {name} must be a real number, got {_quote(value)}")
     try:
         return float(value)
-    except (TypeError, ValueError) as exc:
-        raise CameraError(f"camera {name} must be a real number, got {value!r}") from exc
+    except OverflowError:
+        raise CameraError(f"camera {name} must be a real number within float range, got {_quote(value)}") from None
+    except (TypeError, ValueError):
+        raise CameraError(f"camera {name} must be a real number, got {_describe(value)}") from None
 
 
 def _matrix(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
     """A float64 array of exactly `shape`, or CameraError naming it."""
     try:
         array = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise CameraError(f"camera {name} must be a {shape} array of real numbers, got {value!r}") from exc
+    except (TypeError, ValueError, OverflowError):
+        raise CameraError(f"camera {name} must be a {shape} array of real numbers within float range, got "
+                          f"{_describe(value)}") from None
     if array.size != int(np.prod(shape)):
         raise CameraError(f"camera {name} must have shape {shape}, got {array.shape}")
     return array.reshape(shape)
@@ -101,11 +151,15 @@ class Camera:
             raise CameraError(f"camera near plane must be finite and > 0 (float32), got {self.near!r}")
         for name in ("R", "t"):
             value = getattr(self, name)
-            if not np.all(np.abs(value) <= FLOAT32_MAX):
-                raise CameraError(f"camera extrinsics {name} must be finite (float32), got {value.tolist()}")
+            bad = np.argwhere(~(np.abs(value) <= FLOAT32_MAX))
+            if bad.size:
+                where = ", ".join(map(str, bad[0]))
+                raise CameraError(f"camera extrinsics {name} must be finite (float32), got {name}[{where}] = "
+                                  f"{float(value[tuple(bad[0])])!r}")
         if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-5) or np.linalg.det(self.R) < 0:
-            raise CameraError("camera R must be a proper rotation (orthonormal to 1e-5, det +1), "
-                              f"got {self.R.tolist()!r}")
+            error = float(np.abs(self.R @ self.R.T - np.eye(3)).max())
+            raise CameraError("camera R must be a proper rotation (orthonormal to 1e-5, det +1), got "
+                              f"{_numbers(self.R)} (|R R^T - I| up to {error:.3g}, det {np.linalg.det(self.R):.3g})")
 
     @property
     def center(self) -> np.ndarray:
@@ -147,8 +201,8 @@ class Camera:
             return cls(int(data["width"]), int(data["height"]), float(data["fx"]), float(data["fy"]),
                        float(data["cx"]), float(data["cy"]), np.asarray(data["R"]), np.asarray(data["t"]),
                        float(data.get("near", DEFAULT_NEAR)))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise CameraError(f"camera description is incomplete or malformed: {exc}") from exc
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
+            raise CameraError(f"camera description is incomplete or malformed: {_line(str(exc), 200)}") from exc
 
     def orbited(self, yaw_deg: float, pitch_deg: float, target) -> Camera:
         """This camera swung around `target` [3]: by yaw about its own up axis, then by pitch about its right axis
@@ -170,13 +224,13 @@ class Camera:
             raise CameraError(f"camera fov_y_deg must be in (0, 180) degrees, got {fov_y_deg!r}")
         forward = target - eye
         if not np.linalg.norm(forward) > 0:
-            raise CameraError(f"camera eye and target must differ (and be finite), got eye {eye.tolist()}, "
-                              f"target {target.tolist()}")
+            raise CameraError(f"camera eye and target must differ (and be finite), got eye {_numbers(eye)}, "
+                              f"target {_numbers(target)}")
         forward /= np.linalg.norm(forward)
         right = np.cross(forward, up)
         if not np.linalg.norm(right) > 1e-9 * np.linalg.norm(up):
-            raise CameraError(f"camera up {up.tolist()} must not be parallel to the view direction "
-                              f"{forward.tolist()} (nor zero or non-finite)")
+            raise CameraError(f"camera up {_numbers(up)} must not be parallel to the view direction "
+                              f"{_numbers(forward)} (nor zero or non-finite)")
         right /= np.linalg.norm(right)
         down = np.cross(forward, right)
         R = np.stack([right, down, forward])  # rows: camera x, y, z axes in world coordinates

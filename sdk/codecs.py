@@ -45,6 +45,9 @@ FP16_MAX = 65504.0
 # Values per quantisation chunk unless the encoder is told otherwise; the largest a manifest may declare.
 DEFAULT_CHUNK = 256
 MAX_CHUNK = 1 << 20
+# The most dimensions a buffer may have, and the bound on its element count (numpy's limits, with margin).
+MAX_NDIM = 32
+MAX_ELEMENTS = 1 << 56
 # Unsigned types the `index` codec may store, smallest first.
 INDEX_TYPES = ("uint8", "uint16", "uint32")
 # What a decoded float32 value may reach: a quantised chunk whose minimum + step * max code exceeds it is damaged.
@@ -241,7 +244,15 @@ def expected_nbytes(codec_name: str, dtype: str, shape: tuple[int, ...], params:
         raise BundleError(f"codec {codec_name!r} cannot decode to dtype {dtype!r} (integers only)")
     for dim in shape:
         if not isinstance(dim, int | np.integer) or isinstance(dim, bool) or dim < 0:
-            raise BundleError(f"invalid buffer shape {list(shape)}")
+            raise BundleError(f"invalid buffer shape {str(list(shape))[:120]}")
+    # A shape numpy cannot make is damage even when a zero dimension leaves nothing to store: at most MAX_NDIM
+    # dimensions, whose product (zeros aside) stays below MAX_ELEMENTS.
+    spread = 1
+    for dim in shape:
+        spread *= max(int(dim), 1)
+    if len(shape) > MAX_NDIM or spread >= MAX_ELEMENTS:
+        raise BundleError(f"invalid buffer shape {str(list(shape))[:120]} (at most {MAX_NDIM} dimensions, fewer "
+                          f"than {MAX_ELEMENTS} elements)")
     return codec.stored_nbytes(dtype, tuple(int(d) for d in shape), params or {})
 
 

@@ -9,7 +9,6 @@ right), beside per-avatar entries (`shape`, `static_offset`, ...) that a motion 
 from __future__ import annotations
 
 import os
-import zipfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +19,7 @@ from .config import POSE_DIM
 from .drive import MAX_DRIVE_MAGNITUDE, FrameDrive, HeadPose
 from .errors import DriveError
 from .motion import resample_at_fps
+from .zip_reader import read_npz as _read_npz
 
 # The npz keys of a FLAME motion and their widths (None: the expression count); flame_pose is their concatenation
 # rotation | neck | jaw | eyes, in FLAME_JOINTS order.
@@ -102,10 +102,12 @@ class FlameMotion:
 
 def _table(name: str, value: object, count: int, width: int | None, where: str) -> np.ndarray:
     """A finite float32 [count, width] table (width None: any >= 1); DriveError naming `name` otherwise."""
+    if isinstance(value, np.ndarray) and value.dtype.kind not in "biuf":
+        raise DriveError(f"{where}: {name!r} holds {value.dtype.str} values, not numbers")
     try:
         array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise DriveError(f"{where}: {name!r} must be numbers: {exc}") from None
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise DriveError(f"{where}: {name!r} must be numbers: {' '.join(str(exc).split())[:120]}") from None
     expected = f"[{count or 'T >= 1'}, {width if width is not None else 'E'}]"
     if array.ndim != 2 or array.shape[0] < 1 or (count and array.shape[0] != count) or \
             (width is not None and array.shape[1] != width) or array.shape[1] < 1:
@@ -131,24 +133,18 @@ def parse_flame_motion(arrays: Mapping[str, np.ndarray], fps: float, where: str 
     return FlameMotion(expr, pose, parts["translation"], fps)
 
 
-def read_npz(path: Path, error: type[Exception], what: str) -> dict[str, np.ndarray]:
-    """Every array of an npz file, never unpickling; `error` naming the file and `what` it should be otherwise."""
-    try:
-        data = np.load(path, allow_pickle=False)
-        if not isinstance(data, np.lib.npyio.NpzFile):
-            raise error(f"{path} is one array, not {what}")
-        with data:
-            return {key: data[key] for key in data.files}
-    except FileNotFoundError:
-        raise error(f"{path} does not exist") from None
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise error(f"cannot read {path} ({what}): {exc}") from None
+def read_npz(path: Path, error: type[Exception], what: str, keys: tuple[str, ...] | None = None
+             ) -> dict[str, np.ndarray]:
+    """The arrays of an npz file (only `keys`, when given), never unpickling, every member's size checked before
+    it is read (sdk/zip_reader.py); `error` naming the file and `what` it should be otherwise."""
+    return _read_npz(path, error, what, keys)
 
 
 def load_flame_motion(path: str | os.PathLike, fps: float) -> FlameMotion:
     """Read a FLAME motion npz (GaussianAvatars' `flame_param.npz` or one with the same keys), never unpickling;
-    `fps` is its frame rate (the file does not record one)."""
-    arrays = read_npz(Path(path), DriveError, "an npz of per-frame FLAME parameters")
+    `fps` is its frame rate (the file does not record one). Only the motion's keys are read (a tracked sequence's
+    npz also holds per-vertex offsets per frame, which a motion does not use)."""
+    arrays = read_npz(Path(path), DriveError, "an npz of per-frame FLAME parameters", tuple(k for k, _ in MOTION_KEYS))
     return parse_flame_motion(arrays, fps, str(path))
 
 

@@ -4,7 +4,8 @@ Two kinds are read, both JSON with "names" (the blendshape of each weight column
 {"weights": [...], "time": seconds} per frame): LAM_WebRender's sample motion (30 fps, with a "head_pose" list)
 and LAM's audio-to-expression output `bsData.json` (with "metadata": {"fps": ...}). The per-frame "rotation" and
 "head_pose" entries are not used, as LAM's web renderer does not use them. A frame may also be a {name: weight}
-object. Columns are reordered to ARKIT_BLENDSHAPES; names a file lacks are 0.
+object. Columns are reordered to ARKIT_BLENDSHAPES; names a file lacks are 0. A motion file is the user's
+(docs/untrusted-input.md, "Motion files"): its size, nesting, numbers and frame rate are bounded before use.
 """
 
 from __future__ import annotations
@@ -22,6 +23,11 @@ from .rig import ARKIT_BLENDSHAPES
 
 # A motion file whose frames give no rate (no metadata fps, fewer than two times) plays at LAM's 30 fps.
 DEFAULT_MOTION_FPS = 30.0
+# The most frames a motion may have once resampled to a speaker's rate (4.9 hours at 30 fps): a rate read from a
+# file (a tiny fps, or times a day apart) must not make a table of billions of rows.
+MAX_MOTION_FRAMES = 1 << 19
+# The largest motion file read: JSON of MAX_MOTION_FRAMES frames of 52 weights fits.
+MAX_MOTION_FILE_BYTES = 512 << 20
 
 
 @dataclass(frozen=True)
@@ -57,8 +63,13 @@ class MotionTrack:
 
 def resample_at_fps(rows: np.ndarray, fps: float, new_fps: float) -> np.ndarray:
     """Per-frame rows [T, D] at `fps` resampled linearly in time to `new_fps`, covering the same duration
-    (round(T * new_fps / fps) rows, at least one; the last row holds past the end). float64."""
-    count = max(1, int(round(rows.shape[0] * new_fps / fps)))
+    (round(T * new_fps / fps) rows, at least one; the last row holds past the end). float64. DriveError when that
+    is over MAX_MOTION_FRAMES rows."""
+    wanted = rows.shape[0] * float(new_fps) / float(fps)
+    if not wanted <= MAX_MOTION_FRAMES:
+        raise DriveError(f"a motion of {rows.shape[0]} frames at {fps:g} fps would be {wanted:.4g} frames at "
+                         f"{new_fps:g} fps, over the {MAX_MOTION_FRAMES} frame limit")
+    count = max(1, int(round(wanted)))
     source = np.arange(rows.shape[0]) / fps
     target = np.minimum(np.arange(count) / new_fps, source[-1])
     return np.stack([np.interp(target, source, rows[:, k]) for k in range(rows.shape[1])], axis=1)
@@ -78,15 +89,26 @@ def _frame_weights(frame, names: list[str], index: int, where: str) -> list[floa
     return weights
 
 
+def _number(value) -> float | None:
+    """A JSON number as a finite float, None for anything else (bools, strings, numbers past float's range)."""
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return None
+    try:
+        number = float(value)
+    except OverflowError:
+        return None
+    return number if np.isfinite(number) else None
+
+
 def _frame_rate(data: dict, frames: list) -> float:
     """metadata.fps, else the median step of the frames' times, else DEFAULT_MOTION_FPS."""
-    fps = (data.get("metadata") or {}).get("fps") if isinstance(data.get("metadata"), dict) else None
-    if isinstance(fps, int | float) and fps > 0:
-        return float(fps)
-    times = [f.get("time") for f in frames if isinstance(f, dict)]
-    if len(times) >= 2 and all(isinstance(t, int | float) for t in times):
+    fps = _number(data["metadata"].get("fps")) if isinstance(data.get("metadata"), dict) else None
+    if fps is not None and fps > 0:
+        return fps
+    times = [_number(f.get("time")) for f in frames if isinstance(f, dict)]
+    if len(times) >= 2 and all(t is not None for t in times):
         step = float(np.median(np.diff(np.asarray(times, np.float64))))
-        if step > 0:
+        if step > 0 and np.isfinite(1.0 / step):
             return 1.0 / step
     return DEFAULT_MOTION_FPS
 
@@ -98,8 +120,9 @@ def parse_motion(data: object, where: str = "motion") -> MotionTrack:
     frames = data["frames"]
     if not frames:
         raise DriveError(f"{where}: 'frames' is empty")
-    names = data.get("names") or (data.get("metadata") or {}).get("blendshape_names")
-    if names is None and isinstance(frames[0], dict) and "weights" not in frames[0]:
+    metadata = data.get("metadata") if isinstance(data.get("metadata"), dict) else {}
+    names = data.get("names") or metadata.get("blendshape_names")
+    if names is None and all(isinstance(frame, dict) and "weights" not in frame for frame in frames):
         names = sorted({key for frame in frames for key in frame})
     if names is None:
         names = list(ARKIT_BLENDSHAPES)  # bare weight lists: the ARKit order
@@ -107,28 +130,39 @@ def parse_motion(data: object, where: str = "motion") -> MotionTrack:
         raise DriveError(f"{where}: 'names' must be a list of blendshape names")
     unknown = [n for n in names if n not in ARKIT_BLENDSHAPES]
     if unknown:
-        raise DriveError(f"{where}: unknown blendshape name {unknown[0]!r} in 'names' (ARKit names only, "
+        raise DriveError(f"{where}: unknown blendshape name {unknown[0][:40]!r} in 'names' (ARKit names only, "
                          "gaussiantalker.sdk.rig.ARKIT_BLENDSHAPES)")
+    if len(set(names)) != len(names):
+        raise DriveError(f"{where}: 'names' lists a blendshape twice")
     rows = [_frame_weights(frame, names, i, where) for i, frame in enumerate(frames)]
     try:
         table = np.asarray(rows, np.float64)
-    except (TypeError, ValueError) as exc:
-        raise DriveError(f"{where}: frame weights must be numbers: {exc}") from None
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise DriveError(f"{where}: frame weights must be numbers: {' '.join(str(exc).split())[:120]}") from None
+    if table.shape != (len(rows), len(names)):
+        raise DriveError(f"{where}: frame weights must be numbers, one per name")
     weights = np.zeros((len(rows), len(ARKIT_BLENDSHAPES)))
     weights[:, [ARKIT_BLENDSHAPES.index(n) for n in names]] = table
-    return MotionTrack(weights, _frame_rate(data, frames))
+    try:
+        return MotionTrack(weights, _frame_rate(data, frames))
+    except DriveError as exc:
+        raise DriveError(f"{where}: {exc}") from None
 
 
 def load_motion(path: str | os.PathLike) -> MotionTrack:
     """Read an ARKit motion JSON file (LAM's kinds); DriveError naming the file and what is wrong."""
     path = Path(path)
     try:
+        size = path.stat().st_size
+        if size > MAX_MOTION_FILE_BYTES:
+            raise DriveError(f"motion file {path} is {size} bytes, over the {MAX_MOTION_FILE_BYTES} byte limit")
         data = json.loads(path.read_text(encoding="utf-8"))
     except OSError as exc:
         raise DriveError(f"cannot read motion file {path}: {exc.strerror or exc}") from None
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DriveError(f"motion file {path} is not JSON: {exc}") from None
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        detail = "it nests too deep" if isinstance(exc, RecursionError) else " ".join(str(exc).split())[:200]
+        raise DriveError(f"motion file {path} is not JSON: {detail}") from None
     return parse_motion(data, str(path))
 
 
-__all__ = ["DEFAULT_MOTION_FPS", "MotionTrack", "load_motion", "parse_motion", "resample_at_fps"]
+__all__ = ["DEFAULT_MOTION_FPS", "MAX_MOTION_FRAMES", "MotionTrack", "load_motion", "parse_motion", "resample_at_fps"]

@@ -37,7 +37,9 @@ FINITE_LIMIT = 1e30
 # `rounding_products`, docs/numerics.md) it is float32 rounding noise (its sign included), so it counts as not
 # positive: the Gaussian is culled on both sides alike. That takes a diagonal 2D covariance with
 # lambda_max / lambda_min above ~2e6 (a sub-pixel-thin needle ~5000 px long, or a near-singular covariance from
-# huge 3D scales); the noise is ~1e-7 of the products.
+# huge 3D scales); the noise is ~1e-7 of the products. Just above the cut the opacity is faded in
+# (`reliability_fade`: 1 - exp(-ALPHA_MIN (rho - 1)), rho the determinant in units of the cut), so no alpha reaches
+# ALPHA_MIN there: sides that round the determinant differently, one culling and another not, draw the same pixels.
 DET_MIN_RELATIVE = 2.0**-20
 
 # Where 0.5 (a + c) > COV2D_HUGE_PX2, the extent radius is evaluated on the 2D covariance divided by max(|a|, |c|),

@@ -30,6 +30,8 @@ DEFAULT_EXPRESSION_SIGMA = 3.0
 RANGE_SLACK = 1e-5
 # Camera fields count as the scene's when within this relative difference.
 CAMERA_RTOL = 1e-6
+# The most characters of a value a SceneError quotes: a refusal is one short line (docs/untrusted-input.md).
+MAX_QUOTE = 80
 
 
 class SceneError(GaussianTalkerError):
@@ -43,15 +45,26 @@ class SceneRangeWarning(UserWarning):
 Range3 = tuple[tuple[float, float], tuple[float, float], tuple[float, float]]
 
 
+def _line(text: str, limit: int = MAX_QUOTE) -> str:
+    """`text` on one line (whitespace collapsed), cut to `limit` characters."""
+    text = " ".join(text.split())
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _quote(value) -> str:
+    """`value` as a SceneError quotes it: its repr on one line, at most MAX_QUOTE characters."""
+    return _line(repr(value))
+
+
 def _range3(name: str, value, *, unit: str) -> Range3:
     """Three (lo, hi) pairs with lo <= hi, finite, or SceneError naming the field."""
     try:
         array = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         array = None
     if array is None or array.shape != (3, 2) or not np.all(np.isfinite(array)):
         raise SceneError(f"scene {name} must be three [lo, hi] pairs of finite numbers ({unit}, x y z), "
-                         f"got {value!r}")
+                         f"got {_quote(value)}")
     for axis, (lo, hi) in zip("xyz", array, strict=True):
         if lo > hi:
             raise SceneError(f"scene {name} {axis}: lo {lo:g} is above hi {hi:g}")
@@ -64,7 +77,7 @@ def _no_unknown(section: str, data: dict, known: tuple[str, ...]) -> None:
     unknown = sorted(set(data) - set(known))
     if unknown:
         raise SceneError(f"scene [{section}] has unknown field{'s' if len(unknown) > 1 else ''} "
-                         f"{', '.join(map(repr, unknown))} (known: {', '.join(known)})")
+                         f"{_line(', '.join(map(repr, unknown)))} (known: {', '.join(known)})")
 
 
 @dataclass(frozen=True)
@@ -91,20 +104,22 @@ class Scene:
         for name in ("width", "height"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 16384:
-                raise SceneError(f"scene camera.{name} must be an integer in 1..16384, got {value!r}")
+                raise SceneError(f"scene camera.{name} must be an integer in 1..16384, got {_quote(value)}")
+        if not isinstance(self.camera, dict):
+            raise SceneError(f"scene [camera] must be a table, got {type(self.camera).__name__}")
         unknown = sorted(set(self.camera) - set(CAMERA_FIELDS))
         if unknown:
-            raise SceneError(f"scene [camera] has unknown field(s) {', '.join(map(repr, unknown))} "
+            raise SceneError(f"scene [camera] has unknown field(s) {_line(', '.join(map(repr, unknown)))} "
                              f"(known: width, height, {', '.join(CAMERA_FIELDS)})")
         object.__setattr__(self, "rotation_deg", _range3("head.rotation_deg", self.rotation_deg, unit="degrees"))
         object.__setattr__(self, "translation_m", _range3("head.translation_m", self.translation_m, unit="metres"))
         if self.driver not in DRIVERS:
-            raise SceneError(f"scene drive.driver must be one of {', '.join(DRIVERS)}, got {self.driver!r}")
+            raise SceneError(f"scene drive.driver must be one of {', '.join(DRIVERS)}, got {_quote(self.driver)}")
         if not isinstance(self.joints, dict):
-            raise SceneError(f"scene [drive.joints] must be a table of joint = ranges, got {self.joints!r}")
+            raise SceneError(f"scene [drive.joints] must be a table of joint = ranges, got {_quote(self.joints)}")
         bad = sorted(set(self.joints) - set(MOVABLE_JOINTS))
         if bad:
-            raise SceneError(f"scene drive.joints names unknown joint(s) {', '.join(map(repr, bad))} (movable: "
+            raise SceneError(f"scene drive.joints names unknown joint(s) {_line(', '.join(map(repr, bad)))} (movable: "
                              f"{', '.join(MOVABLE_JOINTS)}; the global rotation is [head] rotation_deg)")
         joints = {name: _range3(f"drive.joints.{name}", value, unit="degrees")
                   for name, value in sorted(self.joints.items(), key=lambda kv: MOVABLE_JOINTS.index(kv[0]))}
@@ -113,22 +128,22 @@ class Scene:
             raise SceneError("scene drive.joints must include 'jaw' for driver = \"audio\" (the translator moves it)")
         if self.expression is not None:
             ids = self.expression
-            if isinstance(ids, str) or not all(isinstance(i, int) and not isinstance(i, bool) and i >= 0
-                                               for i in ids):
+            if isinstance(ids, str) or not isinstance(ids, list | tuple | set | frozenset | range) or not all(
+                    isinstance(i, int) and not isinstance(i, bool) and i >= 0 for i in ids):
                 raise SceneError(f"scene drive.expression must be \"all\" or a list of coefficient indices >= 0, "
-                                 f"got {ids!r}")
+                                 f"got {_quote(ids)}")
             object.__setattr__(self, "expression", tuple(sorted(set(ids))))
         if not (isinstance(self.expression_sigma, int | float) and 0 < self.expression_sigma < 1e4):
             raise SceneError(f"scene drive.expression_sigma must be a number in (0, 1e4), got "
-                             f"{self.expression_sigma!r}")
+                             f"{_quote(self.expression_sigma)}")
         if self.background not in BACKGROUND_MODES:
             raise SceneError(f"scene background.mode must be one of {', '.join(BACKGROUND_MODES)}, got "
-                             f"{self.background!r}")
+                             f"{_quote(self.background)}")
         if self.background_color is not None:
             color = np.asarray(self.background_color, dtype=np.float64) if _numeric(self.background_color) else None
             if color is None or color.shape != (3,) or not np.all((color >= 0) & (color <= 1)):
                 raise SceneError(f"scene background.color must be three numbers in [0, 1], got "
-                                 f"{self.background_color!r}")
+                                 f"{_quote(self.background_color)}")
             object.__setattr__(self, "background_color", tuple(float(c) for c in color))
 
     # -- reading and writing -------------------------------------------------------------------------
@@ -136,8 +151,8 @@ class Scene:
     def from_dict(cls, data: dict) -> Scene:
         """A scene from its file layout ([camera], [head], [drive], [drive.joints], [background])."""
         _no_unknown("scene", data, ("camera", "head", "drive", "background"))
+        _no_unknown("camera", data.get("camera", {}), ("width", "height", *CAMERA_FIELDS))
         camera = dict(data.get("camera", {}))
-        _no_unknown("camera", camera, ("width", "height", *CAMERA_FIELDS))
         for name in ("width", "height"):
             if name not in camera:
                 raise SceneError(f"scene [camera] needs {name} (pixels)")
@@ -151,11 +166,11 @@ class Scene:
         if expression == "all":
             expression = None
         elif isinstance(expression, str):
-            raise SceneError(f"scene drive.expression must be \"all\" or a list of indices, got {expression!r}")
+            raise SceneError(f"scene drive.expression must be \"all\" or a list of indices, got {_quote(expression)}")
         defaults = cls(width=1, height=1)
         from_track = head.get("from_track", False)
         if not isinstance(from_track, bool):
-            raise SceneError(f"scene head.from_track must be true or false, got {from_track!r}")
+            raise SceneError(f"scene head.from_track must be true or false, got {_quote(from_track)}")
         return cls(
             width=camera.pop("width"), height=camera.pop("height"), camera=camera,
             rotation_deg=head.get("rotation_deg", defaults.rotation_deg),
@@ -224,7 +239,7 @@ class Scene:
 def _numeric(value) -> bool:
     try:
         np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return False
     return True
 
@@ -240,15 +255,19 @@ def load_scene(path: str | Path) -> Scene:
     except ModuleNotFoundError:  # Python 3.10: the same parser as a package (a dependency there)
         import tomli as tomllib
     path = Path(path)
+    kind = "JSON" if path.suffix.lower() == ".json" else "TOML"
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise SceneError(f"cannot read scene file {path}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"scene file {path} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     try:
-        data = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
-    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise SceneError(f"scene file {path} is not valid {'JSON' if path.suffix.lower() == '.json' else 'TOML'}: "
-                         f"{exc}") from None
+        data = json.loads(text) if kind == "JSON" else tomllib.loads(text)
+    except RecursionError:  # both parsers recurse on nested arrays and tables
+        raise SceneError(f"scene file {path} is not valid {kind}: it nests too deep") from None
+    except ValueError as exc:  # a decode error, or an integer past Python's 4,300-digit limit
+        raise SceneError(f"scene file {path} is not valid {kind}: {_line(str(exc), 200)}") from None
     try:
         return Scene.from_dict(data)
     except SceneError as exc:

@@ -26,7 +26,7 @@ in vec4 in_rgba;     // [N, 4] colour rgb, opacity
 flat out vec2 v_center;   // projected centre, continuous pixel coordinates (+y down)
 flat out vec3 v_shape;    // inverse 2D covariance in completed-square form (A, k, q): see alpha_shape
 flat out float v_radius;  // extent radius r in pixels
-flat out vec4 v_rgba;     // colour, opacity
+flat out vec4 v_rgba;     // colour, opacity times reliability_fade
 
 // Torch twin: `world_to_camera` (exporter/model/splat_math.py).
 // Camera-space position p = R * mean + t of a world position (docs/numerics.md, "Camera and pixel centres").
@@ -93,13 +93,14 @@ float rounding_products(vec3 value, vec3 magnitude) {
     return 0.5 * (magnitude.x * abs(value.z) + abs(value.x) * magnitude.z) + abs(value.y) * magnitude.y;
 }
 
-// Torch twin: `covariance_2d_determinant` (exporter/model/splat_math.py).
-// det of covariance_2d (its (a, b, c) passed in) / cov2d_scale^2, in the least-cancelling of two forms
-// (docs/numerics.md, "2D determinant conditioning").
+// Torch twin: `determinant_and_noise` (exporter/model/splat_math.py).
+// (det, noise): det of covariance_2d (its (a, b, c) passed in) / cov2d_scale^2 in the least-cancelling of two
+// forms, and the rounding_products its float32 rounding noise scales with (docs/numerics.md, "2D determinant
+// conditioning").
 // a c - b^2 cancels badly where J's rows are nearly parallel (grazing view angles). Replacing J's second row by its
 // part orthogonal to the first (closed form; a shear of determinant 1) and adding the low-pass filter as
 // det(A + l I) = det A + l (tr A + l) avoids that; the form with the smaller second diagonal entry is used.
-float covariance_2d_determinant(vec3 p_cam, vec3 cov_a, vec3 cov_b, vec3 cov2d) {
+vec2 determinant_and_noise(vec3 p_cam, vec3 cov_a, vec3 cov_b, vec3 cov2d) {
     float z = p_cam.z;
     vec2 ratios = clamped_ratios(p_cam);
     float g = 1.0 / (1.0 + ratios.x * ratios.x);
@@ -130,9 +131,32 @@ float covariance_2d_determinant(vec3 p_cam, vec3 cov_a, vec3 cov_b, vec3 cov2d) 
     float m0_mag = dot(r0, w0);
     vec3 sheared_mag = vec3(m0_mag, dot(r0, w1), dot(r1, w1)) / s;
     vec3 plain_mag = vec3(m0_mag + LOW_PASS_PX2, dot(r0, w2), dot(r2, w2) + LOW_PASS_PX2) / s;
-    sheared = reliable(sheared, rounding_products(n, sheared_mag));
-    float plain = reliable(abc.x * abc.z - abc.y * abc.y, rounding_products(abc, plain_mag));
-    return use_sheared ? sheared : plain;
+    return use_sheared ? vec2(sheared, rounding_products(n, sheared_mag))
+                       : vec2(abc.x * abc.z - abc.y * abc.y, rounding_products(abc, plain_mag));
+}
+
+// Torch twin: `covariance_2d_determinant` (exporter/model/splat_math.py).
+// det of covariance_2d (its (a, b, c) passed in) / cov2d_scale^2 from determinant_and_noise, 0 where it is lost in
+// rounding noise (reliable): the only 2D determinant of the contract.
+float covariance_2d_determinant(vec3 p_cam, vec3 cov_a, vec3 cov_b, vec3 cov2d) {
+    vec2 det_noise = determinant_and_noise(p_cam, cov_a, cov_b, cov2d);
+    return reliable(det_noise.x, det_noise.y);
+}
+
+// Torch twin: `reliability_fade` (exporter/model/splat_math.py).
+// The factor in [0, 1] the opacity is multiplied by: 1 - exp(-ALPHA_MIN (rho - 1)), 0 for rho <= 1, with rho = det /
+// (DET_MIN_RELATIVE noise) of determinant_and_noise: no alpha reaches ALPHA_MIN just above the cut, so a rounding
+// difference in rho there changes no pixel, and further up the frame moves continuously (docs/numerics.md,
+// "Reliability fade"). main calls it and covariance_2d_determinant on the same arguments: one
+// determinant_and_noise after inlining.
+float reliability_fade(vec3 p_cam, vec3 cov_a, vec3 cov_b, vec3 cov2d) {
+    vec2 det_noise = determinant_and_noise(p_cam, cov_a, cov_b, cov2d);
+    float threshold = DET_MIN_RELATIVE * det_noise.y;
+    if (!(det_noise.x > threshold)) {
+        return 0.0;
+    }
+    // threshold == 0 with det > 0 (the noise underflowed) is a fully reliable det, as det / 0 = inf would say.
+    return threshold > 0.0 ? 1.0 - exp(-ALPHA_MIN * ((det_noise.x - threshold) / threshold)) : 1.0;
 }
 
 // Torch twin: `conic_from_cov2d` (exporter/model/splat_math.py).
@@ -266,7 +290,9 @@ void main() {
         cull();
         return;
     }
-    vec4 box = pixel_box(center, cov2d, radius, in_rgba.a);
+    // contract: the opacity as composited, faded where the determinant is near its noise
+    float opacity = in_rgba.a * reliability_fade(p_cam, in_cov_a, in_cov_b, cov2d);
+    vec4 box = pixel_box(center, cov2d, radius, opacity);
     if (!(box.z > box.x && box.w > box.y)) {  // off screen, or no pixel can reach ALPHA_MIN
         cull();
         return;
@@ -289,5 +315,5 @@ void main() {
     v_center = center;
     v_shape = shape;
     v_radius = radius;
-    v_rgba = in_rgba;
+    v_rgba = vec4(in_rgba.rgb, opacity);
 }

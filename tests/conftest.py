@@ -22,7 +22,7 @@ def demo_speaker(small_speaker):
     checked by test_demo_motion's heavy test and measured by `make_demo_speaker.py` (docs/demo-speaker.md)."""
     from gaussiantalker.exporter.demo.speaker import make_demo_speaker
 
-    speaker, metrics = make_demo_speaker(progress=False, train_seconds=0)
+    speaker, metrics = make_demo_speaker(progress=False, train_steps=0)
     speaker.translator.load_state_dict(small_speaker.translator.state_dict())
     speaker.metrics = {**metrics, **small_speaker.metrics}
     return speaker.eval()
@@ -268,7 +268,7 @@ def small_speaker():
     from gaussiantalker.exporter.demo.speaker import make_demo_speaker
     from gaussiantalker.exporter.demo.train_translator import TrainSettings, train_demo_translator
 
-    speaker, metrics = make_demo_speaker(n_gaussians=2000, seed=3, train_seconds=0, progress=False)
+    speaker, metrics = make_demo_speaker(n_gaussians=2000, seed=3, train_steps=0, progress=False)
     metrics.update(train_demo_translator(speaker.translator, speaker.config.n_expr, seed=3, progress=False,
                                          seconds_budget=float("inf"), settings=TrainSettings(max_steps=100)))
     assert metrics["heldout_jaw_loudness_corr"] > 0.98, metrics  # the audio tests need a jaw that follows speech

@@ -175,3 +175,38 @@ def test_graphs_are_stored_compressed_and_damage_is_named(tmp_path):
         writer.write(tmp_path / "d.gtb")
         with pytest.raises(BundleError, match=message):
             Bundle(tmp_path / "d.gtb").graph_bytes("g")
+
+
+def _rewrite_manifest_text(path, edit_text):
+    """Re-encode the manifest text after `edit_text(text)` with a valid checksum (text-level lies: repeated keys)."""
+    import hashlib
+
+    from gaussiantalker.sdk.bundle import _HEADER, _align
+
+    data = path.read_bytes()
+    magic, major, minor, reserved, length, _ = _HEADER.unpack_from(data)
+    raw = edit_text(data[HEADER_SIZE: HEADER_SIZE + length].decode()).encode()
+    header = _HEADER.pack(MAGIC, major, minor, reserved, len(raw), hashlib.sha256(raw).digest())
+    header += b"\0" * (HEADER_SIZE - len(header))
+    path.write_bytes(header + raw + b"\0" * (_align(len(raw)) - len(raw)) + data[HEADER_SIZE + _align(length):])
+
+
+def test_manifest_repeating_a_key_is_refused(tmp_path):
+    """Two readers could take different values of a repeated key (json keeps the last, others the first)."""
+    path = _write(tmp_path / "a.gtb")
+    _rewrite_manifest_text(path, lambda text: text[:-1] + ', "payload_size": 0}')
+    with pytest.raises(BundleError, match="key 'payload_size' appears twice"):
+        Bundle(path)
+
+
+def test_shape_numpy_cannot_make_is_refused_at_open(tmp_path):
+    """An empty buffer claiming a dimension of 2^62 stores 0 bytes, as declared, but no array has that shape."""
+    writer = BundleWriter()
+    writer.add_buffer("empty", np.zeros((0, 3), np.float32))
+    path = tmp_path / "e.gtb"
+    writer.write(path)
+    Bundle(path).buffer("empty")
+    for shape in ([0, 2**62], [0, 10**30], [1] * 33):
+        _rewrite_manifest(path, lambda m, shape=shape: m["buffers"]["empty"].update(shape=shape))
+        with pytest.raises(BundleError, match="invalid buffer shape"):
+            Bundle(path)

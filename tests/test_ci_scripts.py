@@ -1,11 +1,13 @@
 """The CI scripts on a bare machine, without touching this one.
 
-`.ci/install` and `.ci/runtime-only` run with a PATH of stubs: `apt-get`, `sudo`, `ldconfig`, `ls`, `id`, `python`
-and the commands `.ci/runtime-only` calls record their arguments (and the environment variable apt-get needs);
-everything else on that PATH is a link to the real tool. `glslangValidator` and `shellcheck` are missing, `ldconfig`
-lists no libEGL and `ls` finds no DRI driver, so the install must ask apt-get for every Debian package, as root
-and through sudo as another user. shellcheck lints every script in `.ci/` (CI installs it; elsewhere that test
-skips).
+`.ci/install`, `.ci/runtime-only`, `.ci/browser` and `.ci/run` run with a PATH of stubs: `apt-get`, `sudo`,
+`ldconfig`, `ls`, `id`, `python` and the commands the scripts call record their arguments (and the environment
+variables apt-get and the test run need); everything else on that PATH is a link to the real tool.
+`glslangValidator`, `shellcheck`, `chromium` and `npm` are missing, `ldconfig` lists no libEGL and `ls` finds no
+DRI driver, so the install must ask apt-get for every Debian package, as root and through sudo as another user.
+Where `.ci/browser` fails, `.ci/run` must still run the suite with CI set and then fail; and the browser tests
+themselves, run in a fresh pytest without chromium (or without the npm renderer), must fail with CI set and skip
+without it. shellcheck lints every script in `.ci/` (CI installs it; elsewhere that test skips).
 """
 
 from __future__ import annotations
@@ -13,9 +15,12 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
+import sys
 from pathlib import Path
+from xml.etree import ElementTree
 
 import pytest
+from ci_tools import BROWSER_INSTALL, need
 
 ROOT = Path(__file__).resolve().parent.parent
 CI_DIR = ROOT / ".ci"
@@ -38,6 +43,7 @@ STUBS = {
     "python": RECORD + """\
 case "$1 $2" in
   "-c import cv2"|"-c import torch") exit 1 ;;
+  "-m pytest") echo "pytest-ci	${CI-unset}" >>"$STUB_LOG" ;;  # the test run: is CI set for it?
   "-m venv") mkdir -p "$3/bin"
              for tool in python gt-export gt-bench; do ln -s "$STUB_DIR/$tool" "$3/bin/$tool"; done ;;
 esac
@@ -51,7 +57,9 @@ case "$0" in
 esac
 while [ $# -gt 0 ]; do [ "$1" = "-o" ] && echo stub >"$2"; shift; done
 """,
-    "gt-bench": RECORD + """echo "gt-bench: needs the 'export' extra (torch not installed): pip install ..." >&2
+    # gt-bench: `lam-web --install` (.ci/browser's npm install) exits $STUB_NPM_RC; the rest refuses as without torch.
+    "gt-bench": RECORD + """[ "$1" = lam-web ] && exit "${STUB_NPM_RC:-0}"
+echo "gt-bench: needs the 'export' extra (torch not installed): pip install ..." >&2
 exit 2
 """,
 }
@@ -138,12 +146,120 @@ def test_runtime_only_fails_when_the_virtualenv_has_torch(tmp_path):
     assert result.returncode == 1 and "torch is importable" in result.stderr
 
 
+@pytest.mark.parametrize("uid", [0, 1000], ids=["root", "sudo-user"])
+def test_browser_installs_chromium_and_the_npm_renderer(tmp_path, uid):
+    env, log = _stub_path(tmp_path, uid)
+    result = _run("browser", env)
+    assert result.returncode == 0, result.stdout + result.stderr
+    calls = _calls(log)
+    apt = [call for call in calls if call[0] == "apt-get"]
+    assert [call[1] for call in apt] == ["update", "install"] and {"chromium", "npm"} <= set(apt[1]), calls
+    assert ["gt-bench", "lam-web", "--install"] in calls
+    assert len([call for call in calls if call[0] == "sudo"]) == (0 if uid == 0 else 2), calls
+    env["STUB_NPM_RC"] = "1"  # the npm renderer cannot be installed (no registry, a broken package)
+    assert _run("browser", env).returncode != 0
+
+
+@pytest.mark.parametrize("npm_rc", [0, 1], ids=["browser-ok", "browser-fails"])
+def test_run_sets_ci_for_the_suite_and_fails_where_the_browser_tools_did(tmp_path, npm_rc):
+    """.ci/run on a bare machine: install, browser tools, runtime-only, then the suite with CI set (so tests that
+    need a CI-installed tool fail instead of skipping). Where .ci/browser fails, the suite still runs (the browser
+    tests fail in it: test_browser_tests_fail_under_ci_without_their_tools) and .ci/run fails."""
+    env, log = _stub_path(tmp_path, 0)
+    env["STUB_NPM_RC"] = str(npm_rc)
+    result = subprocess.run(["bash", str(CI_DIR / "run")], env=env, capture_output=True, text=True, timeout=120,
+                            executable=shutil.which("bash"))
+    calls = _calls(log)
+    assert ["python", "-m", "pytest", "-q"] in calls and ["pytest-ci", "true"] in calls, calls
+    assert ["gt-bench", "lam-web", "--install"] in calls
+    if npm_rc == 0:
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert "could not be installed" not in result.stderr
+    else:
+        assert result.returncode == 1, result.stdout + result.stderr
+        assert "the browser tests (tests/test_lam_web.py, tests/test_live_browser.py) fail" in result.stderr
+
+
+# Loaded into the fresh pytest below (-p): Chromium's fixed path becomes $STUB_CHROMIUM, missing or a stub.
+STUB_BROWSER_PLUGIN = """\
+import os
+from gaussiantalker.exporter.bench import chromium
+chromium.CHROMIUM = os.environ["STUB_CHROMIUM"]
+"""
+BROWSER_MODULES = ("tests/test_lam_web.py", "tests/test_live_browser.py")
+# Browser tests that need only chromium, and some that need the npm renderer as well.
+NEEDS_CHROMIUM = {"test_headless_chromium_has_webgl2_with_our_flags",
+                  "test_browser_receives_the_head_talking_with_its_microphone",
+                  "test_a_page_that_leaves_mid_reply_ends_its_session"}
+NEEDS_RENDERER = {"test_harness_page_imports_the_installed_renderer", "test_cli_writes_frames_cameras_and_weights",
+                  "test_runtime_frames_match_the_web_renderer", "test_synthetic_background_is_the_clear_colour",
+                  "test_synthetic_splats_land_where_our_camera_projects_them"}
+# Skips that stay under CI: opt-ins, not tools CI installs.
+OPT_IN_SKIPS = ("GT_LAM_AVATAR", "GT_HEAVY")
+
+
+def _browser_outcomes(tmp_path: Path, ci: bool, chromium: bool, *args: str) -> dict[str, tuple[str, str]]:
+    """Run the browser test modules in a fresh pytest, chromium missing (or a stub that is never started) and the
+    npm renderer's cache empty: {test name: (passed | failed | error | skipped, message)}."""
+    plugin_dir = tmp_path / "plugin"
+    plugin_dir.mkdir()
+    (plugin_dir / "stub_browser.py").write_text(STUB_BROWSER_PLUGIN)
+    stub = tmp_path / "chromium"
+    if chromium:
+        stub.write_text("#!/bin/sh\nexit 1\n")
+        stub.chmod(0o755)
+    env = {key: value for key, value in os.environ.items()
+           if key not in ("CI", "GT_HEAVY", "GT_LAM_AVATAR", "PYTEST_ADDOPTS")}
+    env.update(STUB_CHROMIUM=str(stub), GT_LAM_WEB_CACHE=str(tmp_path / "empty-npm-cache"),
+               PYTHONPATH=os.pathsep.join(filter(None, [str(plugin_dir), os.environ.get("PYTHONPATH")])))
+    if ci:
+        env["CI"] = "true"
+    report = tmp_path / "report.xml"
+    result = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-p", "stub_browser",
+                             "-o", "addopts=", f"--junitxml={report}", *args, *BROWSER_MODULES], cwd=ROOT, env=env,
+                            capture_output=True, text=True, timeout=300)
+    assert report.exists(), result.stdout[-3000:] + result.stderr[-3000:]
+    outcomes = {}
+    for case in ElementTree.parse(report).getroot().iter("testcase"):
+        name = case.get("name").split("[")[0]
+        results = [child for child in case if child.tag in ("failure", "error", "skipped")]
+        outcome = (results[-1].tag, results[-1].get("message", "")) if results else ("passed", "")
+        if outcomes.get(name, ("passed",))[0] == "passed":  # parametrized: the first non-pass stands for all
+            outcomes[name] = outcome
+    return outcomes
+
+
+@pytest.mark.parametrize("ci", [True, False], ids=["CI", "no-CI"])
+def test_browser_tests_fail_under_ci_without_chromium(tmp_path, ci):
+    """Without chromium every browser test fails where CI is set (naming it and .ci/browser), and skips
+    elsewhere; the tests that need no browser pass either way, and only opt-in tests skip under CI."""
+    outcomes = _browser_outcomes(tmp_path, ci, chromium=False)
+    browser = {name: outcome for name, outcome in outcomes.items() if "Chromium not found" in outcome[1]}
+    assert NEEDS_CHROMIUM | NEEDS_RENDERER <= set(browser), sorted(outcomes)
+    for name, (kind, message) in browser.items():
+        assert kind in (("failure", "error") if ci else ("skipped",)), (name, kind, message)
+        assert (BROWSER_INSTALL in message) == ci, (name, message)
+    others = {name: outcome for name, outcome in outcomes.items() if name not in browser}
+    assert {kind for kind, _ in others.values()} <= {"passed", "skipped"}, others
+    assert all(any(opt_in in message for opt_in in OPT_IN_SKIPS) for kind, message in others.values()
+               if kind == "skipped"), others
+    assert sum(kind == "passed" for kind, _ in others.values()) >= 10, others  # the camera maths, the CLI...
+
+
+def test_browser_tests_fail_under_ci_without_the_npm_renderer(tmp_path):
+    """Chromium there but the npm renderer not (`npm install` failed): the renderer's tests fail where CI is set,
+    naming the npm package and .ci/browser (without CI they skip through the same helper as above)."""
+    outcomes = _browser_outcomes(tmp_path, True, True, "-k", " or ".join(sorted(NEEDS_RENDERER)))
+    assert set(outcomes) == NEEDS_RENDERER, sorted(outcomes)
+    for name, (kind, message) in outcomes.items():
+        assert kind in ("failure", "error"), (name, kind, message)
+        assert "gaussian-splat-renderer-for-lam" in message and BROWSER_INSTALL in message, (name, message)
+
+
 def test_ci_scripts_pass_shellcheck():
     shellcheck = shutil.which("shellcheck")
-    if shellcheck is None:
-        if os.environ.get("CI"):
-            pytest.fail("shellcheck is not on PATH but CI is set: .ci/install installs it (Debian package shellcheck)")
-        pytest.skip("shellcheck not installed (Debian: apt-get install shellcheck); CI requires it")
+    need(None if shellcheck else "shellcheck is not installed (Debian: apt-get install shellcheck)",
+         ".ci/install (Debian package shellcheck)")
     scripts = sorted(str(path) for path in CI_DIR.iterdir() if path.is_file())
     result = subprocess.run([shellcheck, "--shell=bash", *scripts], capture_output=True, text=True)
     assert result.returncode == 0, result.stdout

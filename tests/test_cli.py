@@ -28,7 +28,7 @@ from gaussiantalker.sdk.video import probe_video
 ROOT = Path(__file__).resolve().parents[1]
 GT_EXPORT = [sys.executable, "-m", "gaussiantalker.exporter.cli"]
 # An untrained 2k-Gaussian demo speaker: another speaker of the session's small speaker's architecture.
-SAMPLE_SPEAKER_ARGS = ["--gaussians", "2000", "--seed", "5", "--train-seconds", "0", "--no-reference"]
+SAMPLE_SPEAKER_ARGS = ["--gaussians", "2000", "--seed", "5", "--train-steps", "0", "--no-reference"]
 
 
 def _run(args, cwd, expect=0, env=None):

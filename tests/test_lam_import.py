@@ -3,9 +3,7 @@ torch reference against the format's own maths, its bundle against the torch spe
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import os
 import sys
 import zipfile
 from pathlib import Path
@@ -13,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from ci_tools import need_module
 from lam_avatars import AvatarSpec, expected_centres, gaussians, motion_json, write_avatar_zip
 from typer.testing import CliRunner
 
@@ -280,10 +279,7 @@ def test_mnn_graphs_and_scene_refusal(avatar, tmp_path):
     from gaussiantalker.sdk.errors import BundleError
     from gaussiantalker.sdk.scene import load_scene
 
-    if importlib.util.find_spec("MNN") is None:
-        if os.environ.get("CI"):
-            pytest.fail("CI must install the mnn extra (.ci/install) so that the MNN backend is tested")
-        pytest.skip("the mnn extra is not installed")
+    need_module("MNN", "mnn")
     path = tmp_path / "mnn.gtb"
     export_bundle(avatar, path, progress=False, mnn=True)
     report = verify_bundle(avatar, path, frames=2, resolution=(48, 48), progress=False)

@@ -1,5 +1,7 @@
 """The LAM web harness (docs/lam-web.md): camera conversion to three.js, the driver's pure parts, and, where
-Debian's chromium and the npm renderer are installed, the browser itself (the avatar tests need GT_LAM_AVATAR)."""
+Debian's chromium and the npm renderer are installed, the browser itself (the avatar tests need GT_LAM_AVATAR).
+Without chromium or the npm renderer the browser tests skip, except where CI is set: there .ci/browser installs
+them, and they fail (tests/ci_tools.py)."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ci_tools import need_chromium, need_lam_renderer
 
 from gaussiantalker.exporter.bench import lam_web, lam_web_camera
 from gaussiantalker.exporter.bench.chromium import Chromium, ChromiumMissing, chromium_path
@@ -161,12 +164,15 @@ def test_frame_list():
         parse_frames("2", 2)
 
 
-def test_missing_installs_say_how_to_install(tmp_path):
+def test_missing_installs_say_how_to_install(tmp_path, monkeypatch):
     with pytest.raises(lam_web.LamWebMissing, match="npm install --prefix .* gaussian-splat-renderer-for-lam@0.0.8"):
         lam_web.renderer_dir(tmp_path)
     with pytest.raises(ChromiumMissing, match="apt-get install -y chromium"):
         chromium_path(tmp_path / "no-chromium")
+    monkeypatch.setattr(lam_web, "chromium_path", lambda: tmp_path)  # chromium there or not, on this machine
     assert "npm install" in lam_web.check_installed(tmp_path)
+    monkeypatch.setattr(lam_web, "chromium_path", lambda: chromium_path(tmp_path / "no-chromium"))
+    assert "apt-get install -y chromium" in lam_web.check_installed(tmp_path)
 
 
 def test_server_serves_its_routes_only(tmp_path):
@@ -217,10 +223,8 @@ def test_cli_refuses_an_off_centre_camera_before_starting_a_browser(tmp_path):
 # --- the browser: needs Debian's chromium (and for the renderer, the npm cache) --------------------------------
 
 def _skip_without_chromium() -> None:
-    try:
-        chromium_path()
-    except ChromiumMissing as exc:
-        pytest.skip(str(exc))
+    """Skip without chromium; where CI is set, fail (tests/ci_tools.py: .ci/browser installs it there)."""
+    need_chromium()
 
 
 def test_headless_chromium_has_webgl2_with_our_flags():
@@ -254,10 +258,8 @@ def test_harness_page_imports_the_installed_renderer():
 
 
 def _skip_without_renderer() -> None:
-    _skip_without_chromium()
-    reason = lam_web.check_installed()
-    if reason:
-        pytest.skip(reason)
+    """Skip without chromium or the npm renderer; where CI is set, fail (tests/ci_tools.py)."""
+    need_lam_renderer()
 
 
 @pytest.fixture(scope="module")

@@ -1,12 +1,12 @@
 """The live sample in a real browser (samples/live_server.py, docs/live.md "WebRTC sample"): Debian's chromium,
 headless, with a fake microphone fed from a wav file, connects over WebRTC; the page must receive video at the
 session's size and rate and an audio track carrying sound, and the server's session must move the mouth with the
-speech it hears. Skips without chromium (.ci/browser installs it; its failure does not stop CI)."""
+speech it hears. Skips without chromium or the live extra, except where CI is set: there .ci/browser and
+.ci/install install them, and the tests fail (tests/ci_tools.py)."""
 
 from __future__ import annotations
 
 import json
-import os
 import socket
 import subprocess
 import sys
@@ -15,8 +15,9 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+from ci_tools import need_chromium, need_module
 
-from gaussiantalker.exporter.bench.chromium import Chromium, ChromiumMissing, chromium_path
+from gaussiantalker.exporter.bench.chromium import Chromium
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 64
@@ -28,12 +29,15 @@ MEDIA_FLAGS = ("--use-fake-ui-for-media-stream", "--use-fake-device-for-media-st
 
 
 def _requirements() -> None:
-    try:
-        chromium_path()
-    except ChromiumMissing as exc:
-        pytest.skip(str(exc))
-    if not os.environ.get("CI"):
-        pytest.importorskip("aiortc", reason="the live extra is not installed: pip install '.[live]'")
+    """Skip without chromium or the live extra; where CI is set, fail (tests/ci_tools.py)."""
+    need_chromium()
+    need_module("aiortc", "live")
+
+
+@pytest.fixture(scope="session")
+def browser_tools() -> None:
+    """_requirements as a fixture: named before small_export, it skips (or fails) before the speaker is made."""
+    _requirements()
 
 
 def _free_port() -> int:
@@ -42,10 +46,12 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
-def _server(bundle: Path, port: int) -> subprocess.Popen:
-    process = subprocess.Popen([sys.executable, str(ROOT / "samples" / "live_server.py"), str(bundle), "--port",
-                                str(port), "--size", str(SIZE)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                               text=True)
+def _server(bundle: Path, port: int, python: tuple[str, ...] = ()) -> subprocess.Popen:
+    """live_server.py serving `bundle` on `port`, once it answers; `python`: arguments before the script's path
+    (a `-c` program that runs it, as the failure tests do)."""
+    process = subprocess.Popen([sys.executable, *python, str(ROOT / "samples" / "live_server.py"), str(bundle),
+                                "--port", str(port), "--size", str(SIZE)], stdout=subprocess.PIPE,
+                               stderr=subprocess.STDOUT, text=True)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         try:
@@ -84,8 +90,7 @@ def _seconds_until_closed(port: int, timeout: float) -> float:
     raise AssertionError(f"the session outlived its browser by {timeout} s: {_get(port, '/health')}")
 
 
-def test_browser_receives_the_head_talking_with_its_microphone(small_export):
-    _requirements()
+def test_browser_receives_the_head_talking_with_its_microphone(browser_tools, small_export):
     port = _free_port()
     server = _server(small_export.path, port)
     try:
@@ -133,7 +138,7 @@ def _leave_mid_reply(small_export, leave) -> float:
 
 
 @pytest.mark.slow
-def test_a_page_that_leaves_mid_reply_ends_its_session(small_export):
+def test_a_page_that_leaves_mid_reply_ends_its_session(browser_tools, small_export):
     """Mid-reply (the sample speech still being pushed), a page that navigates away ends its session at once (its
     beacon), the session's render thread ends, the server logs no error and serves the next page."""
 
@@ -151,7 +156,7 @@ def test_a_page_that_leaves_mid_reply_ends_its_session(small_export):
 
 
 @pytest.mark.heavy
-def test_a_browser_killed_mid_reply_ends_its_session(small_export):
+def test_a_browser_killed_mid_reply_ends_its_session(browser_tools, small_export):
     """A browser killed outright says nothing: WebRTC's consent checks notice (~30 s, aioice's fixed schedule, so
     this case is `heavy`), and the session and its render thread end as cleanly as when a page leaves."""
 
@@ -163,3 +168,69 @@ def test_a_browser_killed_mid_reply_ends_its_session(small_export):
 
     seconds = _leave_mid_reply(small_export, leave)
     print(f"closed {seconds:.1f} s after the browser was killed")
+
+
+# live_server.py with failures injected by session, in the order the sessions start (FAILURES): a number N makes
+# rendering raise from frame N on (0: the first frame), "start" makes the head's live session fail to be made (an
+# error other than the SDK's own), None leaves the session alone.
+FAILURES = (25, 0, "start", None)
+FAILING_SERVER = f"""
+import itertools, runpy, sys
+from gaussiantalker.runtime.head import TalkingHead
+plans, live = iter({FAILURES!r}), TalkingHead.live
+def failing_live(self, **kwargs):
+    plan = next(plans, None)
+    if plan == "start":
+        raise RuntimeError("injected start-up failure")
+    if plan is not None:
+        render, calls = self.render, itertools.count()
+        def failing_render(*args, **kwargs):
+            if next(calls) >= plan:
+                raise RuntimeError(f"injected render failure from frame {{plan}}")
+            return render(*args, **kwargs)
+        self.render = failing_render
+    return live(self, **kwargs)
+TalkingHead.live = failing_live
+sys.argv = sys.argv[1:]
+runpy.run_path(sys.argv[0], run_name="__main__")
+"""
+
+
+def _wait_failed(browser: Chromium, timeout: float = 30.0) -> dict:
+    """The page's liveStats once it has failed (or timed out)."""
+    deadline, stats = time.monotonic() + timeout, {}
+    while time.monotonic() < deadline:
+        stats = browser.evaluate("window.liveStats") or {}
+        if stats.get("state") == "failed":
+            break
+        time.sleep(0.2)
+    return stats
+
+
+def test_a_session_that_fails_is_logged_once_told_to_the_page_and_closed(browser_tools, small_export):
+    """Rendering that raises mid-reply (frame 25) or on the first frame, and a head whose live session cannot be
+    made: each is logged once, the page is told (the data channel's error, or the offer's answer) and leaves, the
+    session and its render thread are gone within 10 s, and the server then serves a page that works."""
+    port = _free_port()
+    server = _server(small_export.path, port, ("-c", FAILING_SERVER))
+    page = f"http://127.0.0.1:{port}/?source=file&autostart=1"
+    messages = ["injected render failure from frame 25", "injected render failure from frame 0",
+                "injected start-up failure"]
+    try:
+        with Chromium(extra_flags=MEDIA_FLAGS) as browser:
+            for message in messages:
+                browser.navigate(page)
+                stats = _wait_failed(browser)
+                assert stats.get("state") == "failed" and message in (stats.get("error") or ""), (message, stats)
+                # Told, the page leaves at once (its beacon); 10 s allows for a loaded machine.
+                _seconds_until_closed(port, 10.0)
+            browser.navigate(page)
+            stats = _wait_frames(browser, 25)
+            assert stats.get("frames", 0) >= 25 and not stats.get("error"), stats
+    finally:
+        server.terminate()
+        log = server.communicate(timeout=30)[0]
+    for message in messages:
+        assert log.count(message) == 1, (message, log[-5000:])  # each failure logged once, with its traceback
+    assert log.count("Traceback") == len(messages), log[-5000:]
+    assert "never retrieved" not in log, log[-3000:]

@@ -5,20 +5,19 @@ the pipecat extra is not installed (`pip install ".[pipecat]"`), except in CI, w
 from __future__ import annotations
 
 import asyncio
-import importlib.util
-import os
+import itertools
+import threading
 
 import numpy as np
 import pytest
+from ci_tools import need_module
 
 from gaussiantalker.sdk.audio import load_audio, resample
 
-if importlib.util.find_spec("pipecat") is None:
-    if os.environ.get("CI"):
-        raise RuntimeError("CI must install the pipecat extra (.ci/install) so that the Pipecat adapter is tested")
-    pytest.skip("the pipecat extra is not installed: pip install '.[pipecat]'", allow_module_level=True)
+need_module("pipecat", "pipecat", module_level=True)  # skips the module; fails it where CI is set
 
 from pipecat.frames.frames import (  # noqa: E402
+    ErrorFrame,
     InterruptionFrame,
     OutputAudioRawFrame,
     OutputImageRawFrame,
@@ -28,6 +27,8 @@ from pipecat.frames.frames import (  # noqa: E402
 )
 from pipecat.tests.utils import SleepFrame, run_test  # noqa: E402
 
+from gaussiantalker.runtime import IdleMotion, TalkingHead  # noqa: E402
+from gaussiantalker.runtime.idle import IdleTrack  # noqa: E402
 from gaussiantalker.runtime.pipecat_video import TalkingHeadVideo  # noqa: E402
 
 SIZE = 48
@@ -75,8 +76,12 @@ def test_tts_audio_becomes_frames_with_the_same_audio_in_sync(small_export):
 
 
 def test_interruption_cuts_the_reply_and_eases_to_idle(small_export):
+    """A barge-in drops the rest of the reply; the pictures ease from the last spoken face to the idle one over
+    IdleMotion.ease_ms (strictly closer to it each frame), then are exactly the idle face a session draws for
+    those frames (blinks off, so idle is the neutral face on the speaker's pose track)."""
     sent, pcm = _tts_frames(3.0)
-    processor = TalkingHeadVideo(small_export.path, resolution=(SIZE, SIZE), lookahead_ms=80)
+    idle = IdleMotion(blink_ms=0)
+    processor = TalkingHeadVideo(small_export.path, resolution=(SIZE, SIZE), lookahead_ms=80, idle=idle)
     frames = [*sent[:-1], SleepFrame(1.0), InterruptionFrame(), SleepFrame(0.5)]
     down, _ = asyncio.run(run_test(processor, frames_to_send=frames, start_timeout=60.0))
     audio, images = _outputs(down)
@@ -85,3 +90,109 @@ def test_interruption_cuts_the_reply_and_eases_to_idle(small_export):
     spoken = np.count_nonzero(np.abs(played) > 0)
     assert 0 < spoken < np.count_nonzero(pcm)  # part of the reply was shown, the rest dropped
     assert not played[-(TTS_RATE // 5):].any()  # after the barge-in only silence goes out
+    # The last frame carrying voice is the last spoken one (no 40 ms of the sample speech is digital silence).
+    last = max(index for index, f in enumerate(audio) if np.frombuffer(f.audio, np.int16).any())
+    with TalkingHead(small_export.path, resolution=(SIZE, SIZE), composite=False) as head, \
+            head.live(paced=False, idle=idle) as reference:  # no audio: idle frames, frame by frame
+        neutral = [f.image for f in itertools.islice(reference.frames(), len(images))]
+        fps = head.fps
+    ease = IdleTrack(idle, fps).ease_frames
+    assert ease == 3 and len(images) >= last + ease + 2, (last, len(images))  # 120 ms at 25 fps
+    assert [f.pts for f in images] == [round(index / fps * 1e9) for index in range(len(images))]
+    pictures = [np.frombuffer(f.image, np.uint8).reshape(SIZE, SIZE, 3) for f in images]
+    distance = [float(np.abs(pictures[i].astype(int) - neutral[i]).mean()) for i in range(last, len(images))]
+    # distance[k]: k frames after the last spoken one. Closer each frame, no snap, idle from the ease's end on.
+    assert all(distance[k] > distance[k + 1] > 0 for k in range(ease - 1)), distance
+    for index in range(last + ease, len(images)):
+        np.testing.assert_array_equal(pictures[index], neutral[index], err_msg=f"frame {index} is not idle")
+
+
+# -- a session that fails (docs/live.md, "Pipecat") ---------------------------------------------------------------
+RENDER_THREAD = "gt-pipecat-render"
+RUN_TIMEOUT_S = 60.0  # a whole pipeline run at most: the runs take ~2 s
+
+
+def _fail_render(monkeypatch, after: int) -> str:
+    """Make TalkingHead.render raise from its (after + 1)-th call on; returns the error's message."""
+    from gaussiantalker.runtime.head import TalkingHead
+
+    original, calls = TalkingHead.render, itertools.count()
+    message = f"injected render failure after {after} frames"
+
+    def render(self, *args, **kwargs):
+        if next(calls) >= after:
+            raise RuntimeError(message)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(TalkingHead, "render", render)
+    return message
+
+
+def _run_logged(processor, frames: list) -> tuple[list, list, list[str]]:
+    """run_test with its EndFrame, bounded (a hang fails the test instead of stalling the run); returns the frames
+    down and up and the messages Pipecat logged at ERROR or above."""
+    from loguru import logger
+
+    errors: list[str] = []
+    sink = logger.add(lambda message: errors.append(message.record["message"]), level="ERROR")
+    try:
+        down, up = _run_bounded(run_test(processor, frames_to_send=frames, start_timeout=60.0), RUN_TIMEOUT_S)
+    finally:
+        logger.remove(sink)
+    return list(down), list(up), errors
+
+
+def _run_bounded(coroutine, timeout: float):
+    """Run `coroutine` on a fresh event loop for at most `timeout` s. Not asyncio.run(wait_for(...)): a pipeline
+    whose processor hangs at its EndFrame never finishes cancelling either, and would stall the test run."""
+    loop = asyncio.new_event_loop()
+    task = loop.create_task(coroutine)
+    done, _ = loop.run_until_complete(asyncio.wait({task}, timeout=timeout))
+    if not done:
+        task.cancel()  # not awaited, for the same reason
+        raise AssertionError(f"the pipeline did not end within {timeout:g} s: the EndFrame hangs")
+    loop.run_until_complete(loop.shutdown_default_executor())
+    loop.close()
+    return task.result()
+
+
+def _assert_failed_once(processor, up: list, errors: list[str], message: str) -> None:
+    reported = [f for f in up if isinstance(f, ErrorFrame)]
+    assert len(reported) == 1 and message in reported[0].error, up  # the pipeline is told once, upstream
+    assert reported[0].processor is processor and not processor.is_usable
+    assert sum(message in line for line in errors) == 1, errors  # logged once (by push_error)
+    assert not [t for t in threading.enumerate() if t.name == RENDER_THREAD]  # the render thread has ended
+
+
+@pytest.mark.parametrize("after", [0, 10], ids=["first-frame", "after-10-frames"])
+def test_a_render_error_ends_the_session_once_and_end_frame_passes(small_export, monkeypatch, after):
+    """A frame that raises (the first, or the 11th mid-reply) ends the session: one ErrorFrame upstream, logged
+    once, the render thread gone, the EndFrame through in bounded time; the voice then passes on unchanged."""
+    message = _fail_render(monkeypatch, after)
+    sent, _ = _tts_frames(1.0)
+    processor = TalkingHeadVideo(small_export.path, resolution=(SIZE, SIZE), lookahead_ms=80)
+    down, up, errors = _run_logged(processor, [SleepFrame(0.3), *sent, SleepFrame(1.0), *sent, SleepFrame(0.2)])
+    _assert_failed_once(processor, up, errors, message)
+    _, images = _outputs(down)
+    assert len(images) == after  # the frames made before the failure went out, none after
+    passed = [f for f in down if isinstance(f, TTSAudioRawFrame)]
+    assert len(passed) >= len(sent) - 2  # the second reply (at least) reached the transport as it came
+
+
+def test_a_session_that_cannot_start_reports_once_and_passes_audio_on(small_export, monkeypatch):
+    """A head whose live session cannot be made (an error other than the SDK's own) is reported once at the
+    StartFrame; no render thread stays, and text-to-speech audio passes on unchanged."""
+    from gaussiantalker.runtime.head import TalkingHead
+
+    message = "injected start-up failure"
+
+    def live(self, **kwargs):
+        raise RuntimeError(message)
+
+    monkeypatch.setattr(TalkingHead, "live", live)
+    sent, _ = _tts_frames(0.5)
+    processor = TalkingHeadVideo(small_export.path, resolution=(SIZE, SIZE), lookahead_ms=80)
+    down, up, errors = _run_logged(processor, [*sent, SleepFrame(0.2)])
+    _assert_failed_once(processor, up, errors, message)
+    assert [f for f in down if isinstance(f, TTSAudioRawFrame)] == [f for f in sent if isinstance(f, TTSAudioRawFrame)]
+    assert not _outputs(down)[1]

@@ -13,7 +13,6 @@ uint8 frames drawn with the GLSL ES shaders against float32 frames).
 
 from __future__ import annotations
 
-import os
 import re
 import shutil
 import subprocess
@@ -22,6 +21,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from ci_tools import need
 from test_splatter import BACKGROUND, make_camera, random_scene
 
 from gaussiantalker.runtime import programs as programs_module
@@ -54,11 +54,7 @@ VALIDATOR_TIMEOUT_S = 60
 def validator() -> str:
     """Path of glslangValidator; skip without it, fail without it where CI is set (CI installs it)."""
     path = shutil.which(VALIDATOR)
-    if path is None:
-        if os.environ.get("CI"):
-            pytest.fail(f"{VALIDATOR} is not on PATH but CI is set: .ci/install installs it (Debian package "
-                        "glslang-tools); the shader variants must be validated in CI")
-        pytest.skip(f"{VALIDATOR} not installed (Debian: apt-get install glslang-tools); CI requires it")
+    need(None if path else f"{VALIDATOR} is not on PATH (Debian: apt-get install glslang-tools)", ".ci/install")
     return path
 
 

@@ -4,6 +4,10 @@ Renders the frames once (the speaker talking to the demo speech), then encodes t
 rounds and prints a markdown table: start-up (writer opened, encoder checked), median ms per frame, bytes per
 second of video. The first row pipes the same frames to an ffmpeg process through imageio-ffmpeg (the previous
 writer), for the library comparison.
+
+The frames are the bare head's (RGBA, so the alpha outputs have their alpha), also for a bundle with a reference
+clip; `composite=True` measures such a bundle's composited frames instead: opaque RGB at the clip's aspect, so the
+alpha outputs are left out. The table's first line says which.
 """
 
 from __future__ import annotations
@@ -62,12 +66,28 @@ def _size(path: Path) -> int:
     return sum(p.stat().st_size for p in path.parent.iterdir()) if "%" in path.name else path.stat().st_size
 
 
-def run_video_bench(bundle: Path, size: int = 512, frames: int = 50, rounds: int = 3) -> None:
-    """Print the encoding table for BUNDLE's frames at SIZE x SIZE."""
-    with TalkingHead(bundle, resolution=(size, size)) as head:
+def _frame_source(bundle: Path, size: int, composite: bool) -> tuple[tuple[int, int], str, str]:
+    """(resolution, output, what the frames are) for the bench's frames of `bundle`."""
+    view = TalkingHead.output_view(bundle)
+    if not composite:
+        note = " (its reference clip unused: composite=True measures the composited frames)" if view.composite else ""
+        return (size, size), "rgba", f"the bare head, RGBA{note}"
+    if not view.composite:
+        raise ValueError(f"{bundle}: composite=True needs a bundle with a reference clip")
+    width, height = view.size
+    resolution = (max(2, 2 * round(size * width / height / 2)), size)  # the clip's aspect, an even width
+    return resolution, "uint8", "composited into the reference clip, RGB (a composited frame is opaque: no alpha rows)"
+
+
+def run_video_bench(bundle: Path, size: int = 512, frames: int = 50, rounds: int = 3, composite: bool = False) -> None:
+    """Print the encoding table for BUNDLE's frames, SIZE high: the bare head's at SIZE x SIZE (every output), or with
+    `composite` the frames composited into the bundle's reference clip at its aspect (the outputs without alpha)."""
+    resolution, output, what = _frame_source(bundle, size, composite)
+    with TalkingHead(bundle, resolution=resolution, composite=composite) as head:
         audio = head.load_audio(ROOT / "samples" / "demo_speech.wav")[: frames * head.config.samples_per_frame]
-        rendered = list(head.frames(audio, head.config.sample_rate, output="rgba"))
-    rows = [("mp4 h264 via imageio-ffmpeg (ffmpeg process)", "b.mp4", None), *OUTPUTS]
+        rendered = list(head.frames(audio, head.config.sample_rate, output=output))
+    outputs = OUTPUTS if output == "rgba" else [row for row in OUTPUTS if not row[2].get("alpha")]
+    rows = [("mp4 h264 via imageio-ffmpeg (ffmpeg process)", "b.mp4", None), *outputs]
     results: dict[str, list[tuple[float, float, int]]] = {label: [] for label, _, _ in rows}
     work = Path(tempfile.mkdtemp(prefix="gt-bench-video-"))
     try:
@@ -83,7 +103,7 @@ def run_video_bench(bundle: Path, size: int = 512, frames: int = 50, rounds: int
     finally:
         shutil.rmtree(work, ignore_errors=True)
     seconds = frames / 25
-    print(f"{frames} frames at {size}x{size}, {rounds} alternating rounds, medians")
+    print(f"{frames} frames of {what} at {resolution[0]}x{resolution[1]}, {rounds} alternating rounds, medians")
     print("| output | start-up ms | ms per frame | kB per second |")
     print("|---|---|---|---|")
     for label, runs in results.items():

@@ -19,7 +19,8 @@ from gaussiantalker.sdk.numerics import SH_C0
 from ..model.flame import FlameArrays
 from ..model.speaker import Speaker
 from .head import EXPRESSION_FIELDS, REGION_COLORS, make_demo_head
-from .train_translator import train_demo_translator
+from .steps import INPAINT_STEPS, training_steps
+from .train_translator import TrainSettings, train_demo_translator
 
 DEMO_BACKGROUND = (0.93, 0.93, 0.95)
 POSE_TRACK_FRAMES = 150
@@ -117,14 +118,23 @@ def _init_gaussians(speaker: Speaker, head: FlameArrays, parent: np.ndarray, rng
     g.w_color.copy_(torch.from_numpy(rng.normal(0.0, 0.02, (n, 3, d)).astype(np.float32)))
 
 
-def make_demo_speaker(n_gaussians: int = 20_000, seed: int = 0, train_seconds: float = 150.0,
+def make_demo_speaker(n_gaussians: int = 20_000, seed: int = 0, train_seconds: float | None = None,
                       progress: bool = True, config: SpeakerConfig | None = None,
-                      reference_clip: bool = False, inpaint_seconds: float = 60.0) -> tuple[Speaker, dict]:
-    """Build the demo speaker; returns it with the translator's training metrics. `reference_clip`: also its
-    procedural reference video and masks (exporter/demo/clip.py), and an inpainting generator F trained on it for
-    at most `inpaint_seconds` (0: none, so the runtime uses the OpenCV fallback); needs OpenGL."""
+                      reference_clip: bool = False, inpaint_seconds: float | None = None, *,
+                      train_steps: int | None = None, inpaint_steps: int | None = None) -> tuple[Speaker, dict]:
+    """Build the demo speaker; returns it with the translator's training metrics. `train_steps`: the translator's
+    training steps at most (default TrainSettings.max_steps; 0: untrained). `reference_clip`: also its procedural
+    reference video and masks (exporter/demo/clip.py), and an inpainting generator F trained on it for
+    `inpaint_steps` (default INPAINT_STEPS; 0: none, so the runtime uses the OpenCV fallback); needs OpenGL. The
+    same arguments give the same speaker on any machine: `train_seconds` and `inpaint_seconds`, the former time
+    budgets, are read as step counts (exporter/demo/steps.py)."""
     if n_gaussians < 1:
         raise ValueError(f"a speaker needs at least one Gaussian, got {n_gaussians}")
+    max_steps = TrainSettings().max_steps
+    train_steps = training_steps(train_steps, train_seconds, max_steps, names=("train_steps", "train_seconds"),
+                                 cap=max_steps)
+    inpaint_steps = training_steps(inpaint_steps, inpaint_seconds, INPAINT_STEPS,
+                                   names=("inpaint_steps", "inpaint_seconds"))
     config = config or SpeakerConfig()
     if not config.expression_names:  # the named fields, then the random local bumps (exporter/demo/head.py)
         names = EXPRESSION_FIELDS + tuple(f"bump_{k}" for k in range(len(EXPRESSION_FIELDS), config.n_expr))
@@ -139,25 +149,25 @@ def make_demo_speaker(n_gaussians: int = 20_000, seed: int = 0, train_seconds: f
                       DEMO_BACKGROUND, torch.from_numpy(demo_pose_track()))
     _init_gaussians(speaker, head, parent, rng)
     metrics = {"gaussians": n_gaussians, "vertices": head.n_vertices, "faces": head.n_faces}
-    if train_seconds > 0:
-        metrics.update(train_demo_translator(speaker.translator, config.n_expr, seconds_budget=train_seconds,
-                                             seed=seed, progress=progress))
+    if train_steps > 0:
+        metrics.update(train_demo_translator(speaker.translator, config.n_expr, seed=seed, progress=progress,
+                                             settings=TrainSettings(max_steps=train_steps)))
     if reference_clip:
-        metrics.update(_add_reference(speaker.eval(), inpaint_seconds, seed, progress))
+        metrics.update(_add_reference(speaker.eval(), inpaint_steps, seed, progress))
     return speaker.eval(), metrics
 
 
-def _add_reference(speaker: Speaker, inpaint_seconds: float, seed: int, progress: bool) -> dict:
-    """Attach the procedural reference clip and (if `inpaint_seconds` > 0) a trained F; returns their metrics."""
+def _add_reference(speaker: Speaker, inpaint_steps: int, seed: int, progress: bool) -> dict:
+    """Attach the procedural reference clip and (if `inpaint_steps` > 0) a trained F; returns their metrics."""
     from .clip import ClipComposer, make_demo_clip
     from .train_inpainter import train_demo_inpainter
 
     composer = ClipComposer(speaker)
     speaker.reference = make_demo_clip(speaker, composer)
     metrics = {"reference_frames": speaker.reference.layout.count, "reference_mb": speaker.reference.nbytes / 1e6}
-    if inpaint_seconds > 0:
-        speaker.inpaint, inpainter_metrics = train_demo_inpainter(composer, seconds=inpaint_seconds, seed=seed,
-                                                              progress=progress)
+    if inpaint_steps > 0:
+        speaker.inpaint, inpainter_metrics = train_demo_inpainter(composer, steps=inpaint_steps, seed=seed,
+                                                                  progress=progress)
         metrics.update(inpainter_metrics)
     composer.splatter.release()
     return metrics

@@ -4,10 +4,15 @@ A training pair is a clip frame re-rendered with another jaw: F's input is that 
 frame by the formula's x = I_gau + (1 - M) I_ori, its target the frame the clip would have held with that jaw
 (the demo clip's composer draws both). F is fully convolutional, so it trains on patches: most centred on the
 mask's edge, where it has to fill and blend, the rest anywhere in the crop, where it must leave the face alone.
+
+Deterministic for a seed: the pairs, the patches and F's initial weights come from the seed, torch runs on a fixed
+thread count, and training stops after a fixed number of steps, never on the wall clock (docs/demo-speaker.md,
+"Identical builds").
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -20,6 +25,7 @@ from gaussiantalker.sdk.progress import progress_bar
 
 from ..model.inpainter import InpainterNet, train_inpainter
 from .clip import JAW_OPEN_MAX, ClipComposer
+from .steps import INPAINT_STEPS, training_steps
 
 PATCH = 96  # training patch side (a multiple of the generator's CROP_MULTIPLE)
 BATCH = 8
@@ -77,31 +83,44 @@ def batch_sampler(pairs: list[InpainterPair]):
     return batch
 
 
-PAIRS = 96  # training pairs for a full training (FULL_PAIRS_SECONDS or more)
-FULL_PAIRS_SECONDS = 30.0
+PAIRS = 96  # training pairs for a full training (FULL_PAIRS_STEPS or more)
+FULL_PAIRS_STEPS = 300
 MIN_PAIRS = 16
+TORCH_THREADS = 2  # a fixed thread count: the same float reductions however many cores the machine has
 
 
-def pairs_for(seconds: float) -> int:
-    """Training pairs worth rendering for a training of at most `seconds`: PAIRS from FULL_PAIRS_SECONDS up,
-    proportionally fewer below (at least MIN_PAIRS). Each pair costs two renders, ~0.3 s at the clip's size; a
-    brief training (a test's or CI's) draws too few patches to use them all."""
-    return max(MIN_PAIRS, min(PAIRS, round(PAIRS * seconds / FULL_PAIRS_SECONDS)))
+def pairs_for(steps: int) -> int:
+    """Training pairs worth rendering for a training of `steps`: PAIRS from FULL_PAIRS_STEPS up, proportionally
+    fewer below (at least MIN_PAIRS). Each pair costs two renders, ~0.3 s at the clip's size; a brief training (a
+    test's or CI's) draws too few patches to use them all."""
+    return max(MIN_PAIRS, min(PAIRS, round(PAIRS * steps / FULL_PAIRS_STEPS)))
 
 
-def train_demo_inpainter(composer: ClipComposer, *, pairs: int | None = None, seconds: float = 90.0, seed: int = 0,
-                       progress: bool = True) -> tuple[InpainterNet, dict]:
-    """Render `pairs` training pairs (default: `pairs_for(seconds)`), then train F for at most `seconds`; returns F
-    and its training metrics."""
-    pairs = pairs_for(seconds) if pairs is None else pairs
+def train_demo_inpainter(composer: ClipComposer, *, pairs: int | None = None, steps: int | None = None,
+                         seconds: float | None = None, seed: int = 0, progress: bool = True
+                         ) -> tuple[InpainterNet, dict]:
+    """Render `pairs` training pairs (default: `pairs_for(steps)`), then train F for `steps` (default INPAINT_STEPS;
+    `seconds`, the former time budget, is read as a step count: exporter/demo/steps.py); returns F and its
+    training metrics. The same seed and steps give the same F."""
+    steps = training_steps(steps, seconds, INPAINT_STEPS, names=("steps", "seconds"))
+    if steps < 1:
+        raise ValueError("training F takes at least one step")
+    pairs = pairs_for(steps) if pairs is None else pairs
     rng = np.random.default_rng(seed)
     count = len(composer.track)
     start = time.perf_counter()
     data = [make_pair(composer, int(rng.integers(count)), float(rng.uniform(0.0, NEW_JAW_MAX)))
             for _ in progress_bar(range(pairs), desc="inpaint pairs", unit="pair", disable=not progress)]
     render_seconds = time.perf_counter() - start
-    model = InpainterNet()
-    losses = train_inpainter(model, batch_sampler(data), seconds=seconds, seed=seed, progress=progress)
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(TORCH_THREADS)
+    try:
+        torch.manual_seed(seed)  # F's initial weights, whatever ran before
+        model = InpainterNet()
+        losses = train_inpainter(model, batch_sampler(data), seconds=math.inf, max_steps=steps, seed=seed,
+                                 progress=progress)
+    finally:
+        torch.set_num_threads(previous_threads)
     head = float(np.mean(losses[:20])) if losses else float("nan")
     tail = float(np.mean(losses[-20:])) if losses else float("nan")
     return model.eval(), {"inpaint_pairs": pairs, "inpaint_pair_seconds": round(render_seconds, 1),

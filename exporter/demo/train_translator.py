@@ -10,12 +10,13 @@ Loss: the paper's reconstruction MSE over all parameters + its lip-motion smooth
 
 Deterministic for a seed: clips and crops come from the seed (the initial weights are the caller's: build the
 model after torch.manual_seed), and training stops at a fixed step count or a deterministic plateau test on a
-fixed validation batch. `seconds_budget` is only a safety cap:
-if it is what stops training, the result depends on the machine's speed (reported as stop_reason).
+fixed validation batch (docs/demo-speaker.md, "Identical builds"). `seconds_budget` is an optional wall-clock cap,
+off by default: if it is what stops training, the result depends on the machine's speed (reported as stop_reason).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -231,7 +232,7 @@ def heldout_metrics(model: MotionTranslator, seed: int, seconds: float = 8.0) ->
 def train_demo_translator(
     model: MotionTranslator,
     n_expr: int,
-    seconds_budget: float = 150,
+    seconds_budget: float = math.inf,
     seed: int = 0,
     progress: bool = True,
     settings: TrainSettings | None = None,

@@ -57,9 +57,36 @@ def audio_model_from(path: Path, payload: dict) -> bytes | None:
     return model.numpy().tobytes()
 
 
+# How deep a plain entry (config, camera, source, ...) may nest: theirs are two or three levels deep.
+MAX_PLAIN_DEPTH = 16
+
+
+def plain_entry(path: Path, label: str, value: object) -> object:
+    """`value` if it is plain data (None, bools, numbers, strings, and lists, tuples and dicts of them, at most
+    MAX_PLAIN_DEPTH deep), else CheckpointError: a tensor where a number belongs would fail later, deep inside a
+    comparison (docs/untrusted-input.md, "Checkpoints")."""
+    stack = [(value, 0)]
+    while stack:
+        item, depth = stack.pop()
+        if depth > MAX_PLAIN_DEPTH:
+            raise CheckpointError(f"checkpoint {path}: {label} nests over {MAX_PLAIN_DEPTH} levels deep")
+        if isinstance(item, dict):
+            if not all(isinstance(key, str | int) for key in item):
+                raise CheckpointError(f"checkpoint {path}: {label} has a key that is not a string")
+            stack += [(v, depth + 1) for v in item.values()]
+        elif isinstance(item, list | tuple):
+            stack += [(v, depth + 1) for v in item]
+        elif not (item is None or isinstance(item, bool | int | float | str)):
+            raise CheckpointError(f"checkpoint {path}: {label} holds a {type(item).__name__} where plain numbers, "
+                                  "strings, lists and dicts belong")
+    return value
+
+
 def source_from(path: Path, payload: dict) -> dict:
     """Where an imported speaker came from (a plain dict; empty when absent); CheckpointError if not a dict."""
-    source = payload.get("source") or {}
+    source = plain_entry(path, "'source'", payload.get("source"))
+    if source is None:
+        return {}
     if not isinstance(source, dict):
         raise CheckpointError(f"checkpoint {path}: 'source' must be a dict")
     return source
@@ -136,4 +163,4 @@ def load_arkit_payload(path: Path, payload: dict) -> ArkitSpeaker:
 
 
 __all__ = ["arkit_payload", "audio_model_entry", "audio_model_from", "load_arkit_payload", "optional_track",
-           "source_from"]
+           "plain_entry", "source_from"]

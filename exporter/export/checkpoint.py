@@ -6,11 +6,15 @@ refuses (custom classes, `__reduce__` payloads) and reports which entries are mi
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import pickle
+import zipfile
+from collections.abc import Callable
 from dataclasses import fields
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -20,6 +24,7 @@ from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.errors import CameraError, CheckpointError
 from gaussiantalker.sdk.files import atomic_write
 from gaussiantalker.sdk.rig import RIGS
+from gaussiantalker.sdk.zip_reader import READ_ERRORS, check_member
 
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.flame import FlameArrays
@@ -30,6 +35,7 @@ from .arkit_checkpoint import (
     audio_model_from,
     load_arkit_payload,
     optional_track,
+    plain_entry,
     source_from,
 )
 from .compositing_payload import inpainter_from_payload, inpainter_payload, reference_from_payload, reference_payload
@@ -42,6 +48,11 @@ REQUIRED_KEYS = ("format", "version", "config", "flame", "shape", "parent", "tra
                  "gaussians", "camera", "background")
 _FLAME_FLOAT_KEYS = ("v_template", "shapedirs", "exprdirs", "posedirs", "J_regressor", "lbs_weights")
 _FLAME_INT_KEYS = ("faces", "teeth_anchors", "regions")
+# Entries of plain data (no tensors), checked so before any is compared or converted.
+PLAIN_KEYS = ("format", "version", "rig", "config", "camera", "background", "source", "sh_degree")
+# The most a checkpoint's records may state uncompressed, together (a 100k-Gaussian avatar's is ~0.2 GB).
+MAX_CHECKPOINT_BYTES = 16 << 30
+T = TypeVar("T")
 
 
 def _flame_to_dict(arrays: FlameArrays) -> dict:
@@ -65,6 +76,8 @@ def _flame_from_dict(path: Path, data: object) -> FlameArrays:
         return FlameArrays.from_dict({k: v.numpy() if isinstance(v, torch.Tensor) else v for k, v in data.items()})
     except (TypeError, ValueError) as exc:
         raise CheckpointError(f"checkpoint {path}: FLAME model is malformed: {exc}") from exc
+    except CheckpointError as exc:  # FlameArrays' own checks, told with the file
+        raise CheckpointError(f"checkpoint {path}: {exc}") from None
 
 
 def _tensor_entry(path: Path, label: str, value: object, floating: bool) -> torch.Tensor:
@@ -165,6 +178,43 @@ def _unpickler_reason(exc: Exception) -> str:
     return lines[0] if lines else type(exc).__name__
 
 
+def _check_archive(path: Path) -> None:
+    """A torch.save zip's members checked before torch reads them (docs/untrusted-input.md, "Checkpoints"): torch
+    sizes each record by the uncompressed size the zip states, so a member stating more than its compressed bytes
+    can hold (a bomb or a lying header), an encrypted one or one of an unknown method is refused here, by name."""
+    if not zipfile.is_zipfile(path):
+        return  # not a zip: torch.load reads (and refuses) it
+    budget = MAX_CHECKPOINT_BYTES
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for info in archive.infolist():
+                check_member(info, f"checkpoint {path}: record {info.filename[:80]}", CheckpointError, budget)
+                budget -= info.file_size
+    except READ_ERRORS as exc:
+        raise CheckpointError(f"cannot read checkpoint {path}: truncated or not a torch.save file "
+                              f"({' '.join(str(exc).split())[:120]})") from None
+
+
+# Longest error message: a mis-shaped entry's message may quote a tensor or torch's list of every mismatch.
+MAX_MESSAGE = 400
+
+
+def _one_line_errors(function: Callable[[str | os.PathLike], T]) -> Callable[[str | os.PathLike], T]:
+    """`function` with its CheckpointErrors told in one line of at most MAX_MESSAGE characters."""
+    @functools.wraps(function)
+    def wrapped(path: str | os.PathLike) -> T:
+        try:
+            return function(path)
+        except CheckpointError as exc:
+            text = " ".join(str(exc).split())
+            if text == str(exc) and len(text) <= MAX_MESSAGE:
+                raise
+            raise CheckpointError(text[:MAX_MESSAGE] + ("..." if len(text) > MAX_MESSAGE else "")) \
+                from exc.__cause__
+    return wrapped
+
+
+@_one_line_errors
 def read_checkpoint(path: str | os.PathLike) -> dict:
     """torch.load with weights_only=True; CheckpointError for unsafe, unreadable or incomplete files."""
     path = Path(path)
@@ -172,6 +222,7 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
         raise CheckpointError(f"checkpoint {path} does not exist")
     if path.stat().st_size == 0:
         raise CheckpointError(f"checkpoint {path} is empty (0 bytes)")
+    _check_archive(path)
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as exc:
@@ -183,6 +234,8 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
         raise CheckpointError(f"cannot read checkpoint {path}: truncated or not a torch.save file ({detail})") from exc
     if not isinstance(payload, dict):
         raise CheckpointError(f"checkpoint {path} holds a {type(payload).__name__}, not a speaker dict")
+    for key in PLAIN_KEYS:
+        plain_entry(path, repr(key), payload.get(key))
     rig = payload.get("rig", "flame")
     if rig not in RIGS:
         raise CheckpointError(f"checkpoint {path} has rig {rig!r}; this SDK reads {', '.join(RIGS)}")
@@ -195,10 +248,16 @@ def read_checkpoint(path: str | os.PathLike) -> dict:
     return payload
 
 
+@_one_line_errors
 def load_checkpoint(path: str | os.PathLike) -> Speaker | ArkitSpeaker:
     """Rebuild the torch speaker (a FLAME Speaker, or an ArkitSpeaker for "rig": "arkit") from a checkpoint;
-    every entry's type, dtype and shape is checked."""
-    path = Path(path)
+    every entry's type, dtype and shape is checked. A checkpoint is the user's file (docs/untrusted-input.md,
+    "Checkpoints"): every refusal is one CheckpointError of one line naming it."""
+    return _load_checkpoint(Path(path))
+
+
+def _load_checkpoint(path: Path) -> Speaker | ArkitSpeaker:
+    """load_checkpoint's work (its messages may quote tensors over several lines)."""
     payload = read_checkpoint(path)
     if payload.get("rig") == "arkit":
         return load_arkit_payload(path, payload)

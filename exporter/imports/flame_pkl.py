@@ -24,6 +24,7 @@ import numpy as np
 
 from gaussiantalker.sdk.errors import CheckpointError, ImportFormatError
 from gaussiantalker.sdk.files import atomic_path
+from gaussiantalker.sdk.zip_reader import read_npz
 
 from ..model.flame import FLAME_NPZ_KEYS, FLAME_SHAPE_COLUMNS, N_JOINTS, POSE_FEATURE_DIM, load_flame_npz
 
@@ -578,5 +579,6 @@ def convert_flame_pkl(source: str | Path, output: str | Path, *, layout: FlameLa
 
 def read_flame_npz_info(path: str | Path) -> Mapping[str, object]:
     """The version and column counts `convert_flame_pkl` recorded in an npz (empty for other npz files)."""
-    with np.load(path, allow_pickle=False) as data:
-        return {key: data[key].item() for key in (VERSION_KEY, N_SHAPE_KEY, N_EXPR_KEY) if key in data.files}
+    keys = (VERSION_KEY, N_SHAPE_KEY, N_EXPR_KEY)
+    arrays = read_npz(path, ImportFormatError, "a FLAME npz", keys=keys)  # bounded by its bytes, never unpickled
+    return {key: arrays[key].item() for key in keys if key in arrays and arrays[key].size == 1}

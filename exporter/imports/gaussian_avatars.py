@@ -20,8 +20,9 @@ import torch
 
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.config import DEFAULT_FPS, SpeakerConfig
-from gaussiantalker.sdk.errors import DriveError, ImportFormatError
-from gaussiantalker.sdk.flame_motion import FlameMotion, parse_flame_motion, read_npz
+from gaussiantalker.sdk.drive import MAX_DRIVE_MAGNITUDE
+from gaussiantalker.sdk.errors import CameraError, DriveError, ImportFormatError
+from gaussiantalker.sdk.flame_motion import MOTION_KEYS, FlameMotion, parse_flame_motion, read_npz
 from gaussiantalker.sdk.numerics import sh_coeff_count
 from gaussiantalker.sdk.rig import SCALED_TRIANGLE_BINDING
 
@@ -80,10 +81,16 @@ def find_avatar(path: str | os.PathLike, iteration: int | None = None) -> Path:
 def read_bound_gaussians(path: Path, n_faces: int):
     """The PLY's Gaussians and each one's triangle (`binding_0`, stored as float): ImportFormatError naming the
     field when it is missing, not a whole number, or outside the mesh's [0, n_faces)."""
-    cloud = read_gaussian_ply(path.read_bytes(), str(path))
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ImportFormatError(f"{path}: cannot read the PLY: {exc.strerror or exc}") from None
+    cloud = read_gaussian_ply(data, str(path))
     if "binding_0" not in cloud.extra:
         raise ImportFormatError(f"{path}: the PLY's vertex element lacks field binding_0 (each Gaussian's FLAME "
                                 "triangle); a plain 3DGS PLY is not a GaussianAvatars avatar")
+    if cloud.extra["binding_0"].dtype.kind not in "biuf":
+        raise ImportFormatError(f"{path}: the PLY's binding_0 must be numbers (each Gaussian's triangle)")
     raw = np.asarray(cloud.extra["binding_0"], np.float64)
     bad = np.flatnonzero(~np.isfinite(raw) | (raw != np.round(raw)) | (raw < 0) | (raw >= n_faces))
     if bad.size:
@@ -101,15 +108,23 @@ def read_flame_params(path: Path, n_vertices: int, fps: float) -> tuple[np.ndarr
     if not path.is_file():
         raise ImportFormatError(f"{path.parent}: {PARAMS_NAME} is missing (GaussianAvatars saves it beside "
                                 f"{PLY_NAME})")
-    arrays = read_npz(path, ImportFormatError, "an npz of FLAME parameters")
+    arrays = read_npz(path, ImportFormatError, "an npz of FLAME parameters",
+                      ("shape", "static_offset", *(key for key, _ in MOTION_KEYS)))
+    for key in ("shape", "static_offset"):
+        if key in arrays and arrays[key].dtype.kind not in "biuf":
+            raise ImportFormatError(f"{path}: '{key}' holds {arrays[key].dtype.str} values, not numbers")
     shape = np.asarray(arrays.get("shape", np.zeros(0)), np.float64).reshape(-1)
     if "shape" not in arrays or shape.shape != (GA_N_SHAPE,) or not np.isfinite(shape).all():
         got = list(np.shape(arrays["shape"])) if "shape" in arrays else "missing"
         raise ImportFormatError(f"{path}: 'shape' must be {GA_N_SHAPE} finite FLAME shape coefficients, got {got}")
+    if not _bounded(shape):
+        raise ImportFormatError(f"{path}: 'shape' holds {np.abs(shape).max():g}; FLAME shape coefficients lie "
+                                f"within {MAX_DRIVE_MAGNITUDE:g}")
     offset = np.asarray(arrays.get("static_offset", np.zeros((1, n_vertices, 3))), np.float64)
-    if offset.reshape(-1, 3).shape != (n_vertices, 3) or offset.ndim not in (2, 3) or not np.isfinite(offset).all():
+    if offset.ndim not in (2, 3) or offset.shape[-1] != 3 or offset.size != 3 * n_vertices or not _bounded(offset):
         raise ImportFormatError(f"{path}: 'static_offset' has shape {list(offset.shape)}, expected [1, {n_vertices}, "
-                                f"3] (FLAME's 5023 vertices and GaussianAvatars' 120 teeth vertices), all finite")
+                                f"3] (FLAME's 5023 vertices and GaussianAvatars' 120 teeth vertices), finite within "
+                                f"{MAX_DRIVE_MAGNITUDE:g} m")
     try:
         motion = parse_flame_motion(arrays, fps, str(path))
     except DriveError as exc:
@@ -118,6 +133,11 @@ def read_flame_params(path: Path, n_vertices: int, fps: float) -> tuple[np.ndarr
         raise ImportFormatError(f"{path}: 'expr' has {motion.n_expr} coefficients per frame; GaussianAvatars tracks "
                                 f"{GA_N_EXPR}")
     return shape.astype(np.float32), offset.reshape(n_vertices, 3), motion
+
+
+def _bounded(values: np.ndarray) -> bool:
+    """Whether every value is finite and within MAX_DRIVE_MAGNITUDE, the bound on every FLAME parameter."""
+    return bool(np.isfinite(values).all() and (values.size == 0 or np.abs(values).max() <= MAX_DRIVE_MAGNITUDE))
 
 
 def avatar_camera(speaker: Speaker, resolution: int) -> Camera:
@@ -155,7 +175,10 @@ def import_gaussian_avatars(path: str | os.PathLike, flame: str | os.PathLike | 
                       options.background, torch.from_numpy(pose_track), translator=False,
                       motion_track=torch.from_numpy(motion.table))
     _set_gaussians(speaker, cloud)
-    speaker.camera = avatar_camera(speaker, options.resolution)
+    try:
+        speaker.camera = avatar_camera(speaker, options.resolution)
+    except CameraError as exc:
+        raise ImportFormatError(f"{folder}: no default camera frames the first tracked frame's head ({exc})") from None
     speaker.source = {"format": "gaussian-avatars", "iteration": folder.name, "motion_fps": float(options.fps),
                       "motion_frames": len(motion)}
     return speaker.eval()

@@ -10,13 +10,13 @@ triangle frame depends on it). The model file is the user's own: a FLAME pickle 
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from gaussiantalker.sdk.errors import CheckpointError, ImportFormatError
+from gaussiantalker.sdk.zip_reader import npz_shape, read_npz
 
 from ..model.flame import (
     BASE_REGION,
@@ -177,7 +177,10 @@ def load_gaussian_avatars_flame(path: str | Path) -> FlameArrays:
     except OSError as exc:
         raise ImportFormatError(f"{path}: cannot read the FLAME model: {exc.strerror or exc}") from exc
     arrays = _load_npz(path) if head.startswith(b"PK") else _load_pickle(path)
-    return add_gaussian_avatars_teeth(arrays)
+    try:
+        return add_gaussian_avatars_teeth(arrays)
+    except CheckpointError as exc:  # the layout checks, told with the file they are about
+        raise CheckpointError(f"{path}: {exc}") from None
 
 
 def _refuse_older_release(path: Path, version: str, where: str) -> None:
@@ -222,24 +225,22 @@ def _load_npz(path: Path) -> FlameArrays:
 
 def _npz_member_shape(path: Path, key: str) -> tuple[int, ...]:
     """The shape of one array of an npz from its header, without reading the array."""
-    try:
-        with zipfile.ZipFile(path) as archive, archive.open(f"{key}.npy") as member:
-            version = np.lib.format.read_magic(member)
-            read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
-            return tuple(int(n) for n in read(member)[0])
-    except KeyError as exc:
-        raise ImportFormatError(f"{path}: not a FLAME npz: no '{key}'") from exc
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise ImportFormatError(f"{path}: cannot read the FLAME npz: {exc}") from exc
+    shape = npz_shape(path, key, ImportFormatError, "a FLAME model npz")
+    if shape is None:
+        raise ImportFormatError(f"{path}: not a FLAME npz: no '{key}'")
+    return shape
 
 
 def _npz_info(path: Path) -> dict[str, object]:
-    """The version and column counts `gt-import flame` records (absent in other FLAME npz files)."""
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {key: data[key].item() for key in (VERSION_KEY, N_SHAPE_KEY, N_EXPR_KEY) if key in data.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise ImportFormatError(f"{path}: cannot read the FLAME npz: {exc}") from exc
+    """The version and column counts `gt-import flame` records (absent in other FLAME npz files): a string and
+    two whole numbers, each one value."""
+    info = read_npz(path, ImportFormatError, "a FLAME model npz", (VERSION_KEY, N_SHAPE_KEY, N_EXPR_KEY))
+    for key, value in info.items():
+        kinds = "US" if key == VERSION_KEY else "iu"
+        if value.size != 1 or value.dtype.kind not in kinds:
+            raise ImportFormatError(f"{path}: '{key}' must be one {'string' if kinds == 'US' else 'whole number'}, "
+                                    f"got {value.dtype.str} {list(value.shape)}")
+    return {key: value.item() for key, value in info.items()}
 
 
 def _f32(array: np.ndarray) -> np.ndarray:

@@ -5,6 +5,9 @@ Written here rather than taken from a library: pygltflib parses a LAM animation.
 through its dataclass decoding and neither decodes accessors nor samples animations; trimesh drops sparse morph
 targets. A .glb is a JSON chunk and a binary chunk, so the file is read as plain dicts. Only what the importer
 needs is supported: numeric accessors, LINEAR and STEP interpolation.
+
+The file is the user's (docs/untrusted-input.md, "glTF"): every index, count, offset and stride is checked against
+the document and the bytes of the binary chunk before any array is made, every JSON value's type before it is used.
 """
 
 from __future__ import annotations
@@ -19,6 +22,38 @@ from gaussiantalker.sdk.errors import ImportFormatError
 
 GLB_MAGIC = b"glTF"
 _JSON_CHUNK, _BIN_CHUNK = 0x4E4F534A, 0x004E4942
+# The deepest node a transform is computed for (a skeleton is a few bones deep; each level costs a matrix product
+# per sampled frame).
+MAX_DEPTH = 256
+# An accessor without a bufferView (all zeros, or sparse over zeros) is allocated from its count alone, so it may
+# hold at most as many values as the binary chunk has bytes, or this many.
+MIN_ZERO_VALUES = 4096
+
+
+def parse_json(data: bytes, member: str) -> object:
+    """A JSON document's bytes parsed; ImportFormatError naming `member` when it is not UTF-8 JSON, nests too deep
+    or holds a number Python refuses to read (over 4300 digits)."""
+    try:
+        return json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        detail = "it nests too deep" if isinstance(exc, RecursionError) else " ".join(str(exc).split())[:200]
+        raise ImportFormatError(f"{member} is not JSON: {detail}") from None
+
+
+def as_dict(value, what: str, member: str) -> dict:
+    """`value` if it is a JSON object, else ImportFormatError naming `what`."""
+    if not isinstance(value, dict):
+        raise ImportFormatError(f"{member}: glTF {what} must be an object, got {type(value).__name__}")
+    return value
+
+
+def as_list(value, what: str, member: str) -> list:
+    """`value` if it is a JSON array (None: empty), else ImportFormatError naming `what`."""
+    if value is None:
+        return []
+    if not isinstance(value, list):
+        raise ImportFormatError(f"{member}: glTF {what} must be a list, got {type(value).__name__}")
+    return value
 
 
 @dataclass
@@ -39,9 +74,14 @@ class Gltf:
     def item(self, key: str, index) -> dict:
         """Entry `index` of list `key`, ImportFormatError if it does not exist."""
         items = self.items(key)
-        if not isinstance(index, int) or not 0 <= index < len(items) or not isinstance(items[index], dict):
-            raise ImportFormatError(f"{self.member}: glTF {key} {index!r} does not exist")
+        if not _is_int(index) or not 0 <= index < len(items) or not isinstance(items[index], dict):
+            raise ImportFormatError(f"{self.member}: glTF {key} {str(index)[:40]} does not exist")
         return items[index]
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
 
 _COMPONENT_DTYPES = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32,
                      5126: np.float32}
@@ -59,14 +99,15 @@ def load_glb(data: bytes, member: str) -> Gltf:
     chunks, offset = {}, 12
     while offset + 8 <= length:
         size, kind = struct.unpack_from("<II", data, offset)
-        chunks.setdefault(kind, data[offset + 8: offset + 8 + size])
+        if offset + 8 + size > length:
+            raise ImportFormatError(f"{member}: a glTF chunk of {size} bytes at byte {offset} runs past the file's "
+                                    f"length {length} (truncated or damaged file)")
+        if kind not in chunks:
+            chunks[kind] = data[offset + 8: offset + 8 + size]
         offset += 8 + size + (-size % 4)
     if _JSON_CHUNK not in chunks:
         raise ImportFormatError(f"{member}: the glTF file has no JSON chunk")
-    try:
-        doc = json.loads(chunks[_JSON_CHUNK].decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ImportFormatError(f"{member}: the glTF JSON chunk is not JSON: {exc}") from None
+    doc = parse_json(chunks[_JSON_CHUNK], f"{member}: the glTF JSON chunk")
     if not isinstance(doc, dict):
         raise ImportFormatError(f"{member}: the glTF JSON chunk is not an object")
     return Gltf(doc, chunks.get(_BIN_CHUNK, b""), member)
@@ -75,8 +116,8 @@ def load_glb(data: bytes, member: str) -> Gltf:
 def _int(value, what: str, member: str, default: int | None = None) -> int:
     if value is None and default is not None:
         return default
-    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-        raise ImportFormatError(f"{member}: {what} must be a non-negative integer, got {value!r}")
+    if not _is_int(value) or value < 0:
+        raise ImportFormatError(f"{member}: {what} must be a non-negative integer, got {str(value)[:40]}")
     return value
 
 
@@ -89,6 +130,9 @@ def _view_array(gltf: Gltf, view_index, byte_offset, dtype, count: int, componen
     start = view_start + _int(byte_offset, "accessor byteOffset", member, 0)
     item = np.dtype(dtype).itemsize * components
     stride = _int(view.get("byteStride"), "bufferView byteStride", member, 0) or item
+    if stride < item:
+        raise ImportFormatError(f"{member}: bufferView {view_index} has byteStride {stride}, less than its "
+                                f"{item}-byte elements")
     end = start + stride * (count - 1) + item if count else start
     if end > view_start + view_length or end > len(gltf.blob):
         raise ImportFormatError(f"{member}: accessor data runs past bufferView {view_index} or the binary chunk")
@@ -103,21 +147,25 @@ def read_accessor(gltf: Gltf, index) -> np.ndarray:
     """Accessor `index` as [count, components] (its own dtype); sparse values applied over the base values."""
     accessor = gltf.item("accessors", index)
     member = gltf.member
-    dtype = _COMPONENT_DTYPES.get(accessor.get("componentType"))
-    components = _TYPE_SIZES.get(accessor.get("type"))
+    dtype = _table_get(_COMPONENT_DTYPES, accessor.get("componentType"))
+    components = _table_get(_TYPE_SIZES, accessor.get("type"))
     if dtype is None or components is None:
         raise ImportFormatError(f"{member}: accessor {index} has an unsupported type "
-                                f"({accessor.get('componentType')}, {accessor.get('type')})")
+                                f"({str(accessor.get('componentType'))[:20]}, {str(accessor.get('type'))[:20]})")
     count = _int(accessor.get("count"), f"accessor {index} count", member)
     if accessor.get("bufferView") is None:
+        if count * components > max(len(gltf.blob), MIN_ZERO_VALUES):
+            raise ImportFormatError(f"{member}: accessor {index} claims {count} rows without a bufferView, more "
+                                    f"than the file's {len(gltf.blob)}-byte binary chunk could describe")
         values = np.zeros((count, components), dtype)
     else:
         values = _view_array(gltf, accessor["bufferView"], accessor.get("byteOffset"), dtype, count, components)
     sparse = accessor.get("sparse")
-    if isinstance(sparse, dict) and sparse.get("count"):
+    if sparse is not None and as_dict(sparse, f"accessor {index} sparse", member).get("count"):
         changed = _int(sparse.get("count"), f"accessor {index} sparse count", member)
-        indices, data = sparse.get("indices") or {}, sparse.get("values") or {}
-        index_dtype = _COMPONENT_DTYPES.get(indices.get("componentType"))
+        indices = as_dict(sparse.get("indices") or {}, f"accessor {index} sparse indices", member)
+        data = as_dict(sparse.get("values") or {}, f"accessor {index} sparse values", member)
+        index_dtype = _table_get(_COMPONENT_DTYPES, indices.get("componentType"))
         if index_dtype is None:
             raise ImportFormatError(f"{member}: sparse accessor {index} has no valid indices componentType")
         rows = _view_array(gltf, indices.get("bufferView"), indices.get("byteOffset"), index_dtype, changed,
@@ -127,6 +175,11 @@ def read_accessor(gltf: Gltf, index) -> np.ndarray:
         values[rows] = _view_array(gltf, data.get("bufferView"), data.get("byteOffset"), dtype, changed,
                                    components)
     return values
+
+
+def _table_get(table: dict, key):
+    """table[key], None for a missing or unhashable key (a JSON list or object where a name belongs)."""
+    return table.get(key) if isinstance(key, int | str) else None
 
 
 def quaternion_matrix(q: np.ndarray) -> np.ndarray:
@@ -146,40 +199,70 @@ def trs_matrix(translation, rotation, scale) -> np.ndarray:
     return matrix
 
 
+def _numbers(value, size: int, default: tuple, what: str, member: str) -> np.ndarray:
+    """A JSON list of `size` finite numbers as float64 (`default` when absent); ImportFormatError otherwise."""
+    if value is None:
+        return np.asarray(default, np.float64)
+    ok = isinstance(value, list) and len(value) == size and all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    try:
+        array = np.asarray(value, np.float64) if ok else None
+    except OverflowError:
+        array = None
+    if array is None or not np.isfinite(array).all():
+        raise ImportFormatError(f"{member}: {what} must be {size} finite numbers, got {str(value)[:60]}")
+    return array
+
+
 def node_trs(gltf: Gltf, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Node `index`'s rest (translation, rotation, scale), glTF's defaults filled in (a `matrix` is refused)."""
     node = gltf.item("nodes", index)
+    label = f"node {index}"
     matrix = node.get("matrix")
-    if matrix is not None and not np.allclose(np.asarray(matrix, np.float64), np.eye(4).ravel()):
-        raise ImportFormatError(f"{gltf.member}: node {node.get('name', index)!r} stores a matrix, not "
+    if matrix is not None and not np.array_equal(_numbers(matrix, 16, (), f"{label} matrix", gltf.member),
+                                                 np.eye(4).ravel()):
+        raise ImportFormatError(f"{gltf.member}: {label} ({str(node.get('name'))[:40]}) stores a matrix, not "
                                 "translation/rotation/scale; the importer needs TRS nodes")
-    try:
-        return (np.asarray(node.get("translation", (0.0, 0.0, 0.0)), np.float64).reshape(3),
-                np.asarray(node.get("rotation", (0.0, 0.0, 0.0, 1.0)), np.float64).reshape(4),
-                np.asarray(node.get("scale", (1.0, 1.0, 1.0)), np.float64).reshape(3))
-    except (TypeError, ValueError):
-        raise ImportFormatError(f"{gltf.member}: node {node.get('name', index)!r} has a malformed "
-                                "translation/rotation/scale") from None
+    rotation = _numbers(node.get("rotation"), 4, (0.0, 0.0, 0.0, 1.0), f"{label} rotation", gltf.member)
+    if not np.linalg.norm(rotation) > 0:
+        raise ImportFormatError(f"{gltf.member}: {label} rotation is the zero quaternion")
+    return (_numbers(node.get("translation"), 3, (0.0, 0.0, 0.0), f"{label} translation", gltf.member), rotation,
+            _numbers(node.get("scale"), 3, (1.0, 1.0, 1.0), f"{label} scale", gltf.member))
 
 
 def node_names(gltf: Gltf) -> list:
-    """Each node's name (None when unnamed)."""
-    return [node.get("name") if isinstance(node, dict) else None for node in gltf.items("nodes")]
+    """Each node's name (None when unnamed or not a string)."""
+    return [node.get("name") if isinstance(node, dict) and isinstance(node.get("name"), str) else None
+            for node in gltf.items("nodes")]
 
 
 def parents(gltf: Gltf) -> dict[int, int]:
-    """Child node index -> parent node index."""
-    return {child: index for index, node in enumerate(gltf.items("nodes")) for child in node.get("children", [])}
+    """Child node index -> parent node index; ImportFormatError for a child that is not a node or has two parents."""
+    nodes = gltf.items("nodes")
+    up: dict[int, int] = {}
+    for index, node in enumerate(nodes):
+        children = as_list(as_dict(node, f"node {index}", gltf.member).get("children"), f"node {index} children",
+                           gltf.member)
+        for child in children:
+            if not _is_int(child) or not 0 <= child < len(nodes):
+                raise ImportFormatError(f"{gltf.member}: node {index} has a child {str(child)[:40]} that is not a node")
+            if child in up:
+                raise ImportFormatError(f"{gltf.member}: node {child} has two parents ({up[child]} and {index})")
+            up[child] = index
+    return up
 
 
 def chain(gltf: Gltf, node: int) -> list[int]:
     """`node` and its ancestors up to the root, child first; ImportFormatError on a cycle."""
-    up, out = parents(gltf), []
+    up, out, seen = parents(gltf), [], set()
     current = node
     while current is not None:
-        if current in out:
+        if current in seen:
             raise ImportFormatError(f"{gltf.member}: the glTF node tree has a cycle through node {current}")
+        seen.add(current)
         out.append(current)
+        if len(out) > MAX_DEPTH:
+            raise ImportFormatError(f"{gltf.member}: node {node} lies over {MAX_DEPTH} levels deep in the node tree")
         current = up.get(current)
     return out
 
@@ -215,6 +298,16 @@ def sample_channel(times: np.ndarray, values: np.ndarray, interpolation: str, pa
         raise ImportFormatError(f"{member}: an animation sampler has {times.size} key times and "
                                 f"{values.shape[0]} values")
     values = np.asarray(values, np.float64).reshape(times.shape[0], -1)
+    width = {"translation": 3, "rotation": 4, "scale": 3}.get(path)
+    if width is not None and values.shape[1] != width:
+        raise ImportFormatError(f"{member}: an animation sampler of {path} holds {values.shape[1]} values per key, "
+                                f"not {width}")
+    if not (np.isfinite(times).all() and np.isfinite(values).all()):
+        raise ImportFormatError(f"{member}: an animation sampler holds non-finite key times or values")
+    if np.any(np.diff(times) <= 0):
+        raise ImportFormatError(f"{member}: an animation sampler's key times do not increase")
+    if path == "rotation" and not np.all(np.linalg.norm(values, axis=1) > 0):
+        raise ImportFormatError(f"{member}: an animation sampler of rotation holds a zero quaternion")
     if interpolation not in ("LINEAR", "STEP"):
         raise ImportFormatError(f"{member}: animation interpolation {interpolation!r} is not supported (LINEAR "
                                 "and STEP are)")
@@ -234,13 +327,23 @@ def sample_channel(times: np.ndarray, values: np.ndarray, interpolation: str, pa
 
 def animation_names(gltf: Gltf) -> list[str]:
     """The clip names of a glTF file, in file order (unnamed clips as "animation_K")."""
-    return [a.get("name") or f"animation_{k}" for k, a in enumerate(gltf.items("animations"))]
+    clips = [as_dict(a, f"animation {k}", gltf.member) for k, a in enumerate(gltf.items("animations"))]
+    return [a["name"] if isinstance(a.get("name"), str) and a["name"] else f"animation_{k}"
+            for k, a in enumerate(clips)]
+
+
+def _samplers(gltf: Gltf, clip: int) -> list[dict]:
+    """Clip `clip`'s samplers, each an object."""
+    samplers = as_list(gltf.item("animations", clip).get("samplers"), f"animation {clip} samplers", gltf.member)
+    return [as_dict(s, f"animation {clip} sampler {k}", gltf.member) for k, s in enumerate(samplers)]
 
 
 def clip_duration(gltf: Gltf, clip: int) -> float:
     """Last key time of clip `clip`."""
-    samplers = gltf.item("animations", clip).get("samplers", [])
-    return max((float(read_accessor(gltf, s.get("input")).max(initial=0.0)) for s in samplers), default=0.0)
+    times = [read_accessor(gltf, s.get("input")) for s in _samplers(gltf, clip)]
+    if not all(np.isfinite(t).all() for t in times):
+        raise ImportFormatError(f"{gltf.member}: animation {clip} holds non-finite key times")
+    return max((float(t.max(initial=0.0)) for t in times), default=0.0)
 
 
 def sampled_world(skin: Gltf, node: int, animation: Gltf, clip: int, at: np.ndarray) -> np.ndarray:
@@ -251,27 +354,42 @@ def sampled_world(skin: Gltf, node: int, animation: Gltf, clip: int, at: np.ndar
     animated: dict[tuple[int, str], np.ndarray] = {}
     source_names = node_names(animation)
     entry = animation.item("animations", clip)
-    samplers = entry.get("samplers", [])
-    for channel in entry.get("channels", []):
-        target = channel.get("target") or {}
-        name = source_names[target["node"]] if isinstance(target.get("node"), int) and \
-            0 <= target["node"] < len(source_names) else None
+    samplers = _samplers(animation, clip)
+    member = animation.member
+    chosen: dict[tuple[int, str], int] = {}  # (skin node, path) -> sampler; a later channel wins, as before
+    for k, channel in enumerate(as_list(entry.get("channels"), f"animation {clip} channels", member)):
+        target = as_dict(as_dict(channel, f"animation {clip} channel {k}", member).get("target") or {},
+                         f"animation {clip} channel {k} target", member)
+        source = target.get("node")
+        name = source_names[source] if _is_int(source) and 0 <= source < len(source_names) else None
         path = target.get("path")
         if name in names and names[name] in ancestors and path in ("translation", "rotation", "scale"):
-            sampler = samplers[_int(channel.get("sampler"), "channel sampler", animation.member)]
-            animated[(names[name], path)] = sample_channel(
-                read_accessor(animation, sampler.get("input")), read_accessor(animation, sampler.get("output")),
-                sampler.get("interpolation", "LINEAR"), path, at, animation.member)
-    rest = {index: node_trs(skin, index) for index in ancestors}
-    out = np.empty((at.shape[0], 4, 4))
-    for frame in range(at.shape[0]):
-        matrix = np.eye(4)
-        for index in ancestors:
-            local = tuple(animated[(index, path)][frame] if (index, path) in animated else rest[index][k]
-                          for k, path in enumerate(("translation", "rotation", "scale")))
-            matrix = trs_matrix(*local) @ matrix
-        out[frame] = matrix
-    return out
+            index = _int(channel.get("sampler"), "channel sampler", member)
+            if index >= len(samplers):
+                raise ImportFormatError(f"{member}: animation {clip} channel {k} uses sampler {index}, which does "
+                                        "not exist")
+            chosen[(names[name], path)] = index
+    for (bone, path), index in chosen.items():  # each sampled once, however many channels name it
+        sampler = samplers[index]
+        animated[(bone, path)] = sample_channel(
+            read_accessor(animation, sampler.get("input")), read_accessor(animation, sampler.get("output")),
+            sampler.get("interpolation", "LINEAR"), path, at, member)
+    out = np.broadcast_to(np.eye(4), (at.shape[0], 4, 4))
+    for index in ancestors:
+        rest = node_trs(skin, index)
+        local = [animated.get((index, path), rest[k][None]) for k, path in enumerate(("translation", "rotation",
+                                                                                       "scale"))]
+        out = _trs_matrices(*local, at.shape[0]) @ out
+    return np.ascontiguousarray(out)
+
+
+def _trs_matrices(translation: np.ndarray, rotation: np.ndarray, scale: np.ndarray, count: int) -> np.ndarray:
+    """[count, 4, 4] T * R * S from per-frame (or one, [1, ...]) translations, xyzw quaternions and scales."""
+    matrices = np.zeros((count, 4, 4))
+    matrices[:, :3, :3] = quaternion_matrix(rotation) * scale[:, None, :]
+    matrices[:, :3, 3] = translation
+    matrices[:, 3, 3] = 1.0
+    return matrices
 
 
 __all__ = ["Gltf", "animation_names", "chain", "clip_duration", "load_glb", "node_names", "node_trs", "parents",

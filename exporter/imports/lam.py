@@ -9,7 +9,6 @@ weights before use (LAM_WEIGHT_SCALE): folded into the morph targets, so the sam
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +17,7 @@ import numpy as np
 import torch
 
 from gaussiantalker.sdk.camera import Camera
-from gaussiantalker.sdk.errors import ImportFormatError
+from gaussiantalker.sdk.errors import CameraError, DriveError, ImportFormatError
 from gaussiantalker.sdk.motion import parse_motion
 from gaussiantalker.sdk.numerics import SH_C0
 from gaussiantalker.sdk.progress import progress_bar
@@ -29,7 +28,19 @@ from ..model.blendshape_rig import BlendshapeRig
 from ..model.vertex_binding import VertexBoundGaussians
 from .avatar_zip import read_avatar_zip
 from .gaussian_ply import read_gaussian_ply
-from .gltf import Gltf, animation_names, clip_duration, load_glb, node_names, read_accessor, sampled_world, world_matrix
+from .gltf import (
+    Gltf,
+    animation_names,
+    as_dict,
+    as_list,
+    clip_duration,
+    load_glb,
+    node_names,
+    parse_json,
+    read_accessor,
+    sampled_world,
+    world_matrix,
+)
 
 REQUIRED_MEMBERS = ("skin.glb", "offset.ply")
 OPTIONAL_MEMBERS = ("animation.glb", "vertex_order.json", "bsData.json")
@@ -54,6 +65,12 @@ LAM_REFERENCE_HEIGHT = 0.2936
 OPACITY_ZERO_LOGIT = -20.0
 # The bind pose must be the rest pose: head bone world x inverse bind = identity to this tolerance.
 BIND_TOLERANCE = 1e-4
+# Bounds on what a (possibly hostile) avatar may ask of the importer (docs/untrusted-input.md, "LAM avatars"): the
+# head mesh's vertices (its morph targets take 52 x 24 bytes per vertex), coordinates in metres (mesh, morphs,
+# offsets), and the head-pose clip's length (sampled at 30 fps, frame by frame).
+MAX_VERTICES = 1 << 20
+MAX_COORDINATE = 1e4
+MAX_CLIP_SECONDS = 600.0
 
 
 @dataclass
@@ -110,8 +127,11 @@ def lam_camera(center: np.ndarray, height: float, width_px: int = 512, height_px
 
 def _mesh_primitive(gltf: Gltf) -> tuple[dict, dict]:
     """The one mesh primitive with morph targets (LAM's head mesh), and its mesh."""
-    found = [(mesh, primitive) for mesh in gltf.items("meshes") for primitive in mesh.get("primitives", [])
-             if primitive.get("targets")]
+    member = gltf.member
+    meshes = [as_dict(mesh, f"mesh {k}", member) for k, mesh in enumerate(gltf.items("meshes"))]
+    found = [(mesh, as_dict(primitive, f"mesh {k} primitive", member)) for k, mesh in enumerate(meshes)
+             for primitive in as_list(mesh.get("primitives"), f"mesh {k} primitives", member)]
+    found = [(mesh, primitive) for mesh, primitive in found if primitive.get("targets")]
     if not found:
         raise ImportFormatError(f"{gltf.member}: no mesh has morph targets (a LAM skin.glb's head mesh holds the "
                                 "ARKit blendshapes as morph targets)")
@@ -122,13 +142,15 @@ def _mesh_primitive(gltf: Gltf) -> tuple[dict, dict]:
 
 def _target_names(gltf: Gltf, mesh: dict, count: int) -> list[str]:
     """The morph targets' ARKit names (mesh.extras.targetNames), checked."""
-    names = (mesh.get("extras") or {}).get("targetNames")
+    extras = mesh.get("extras")
+    names = extras.get("targetNames") if isinstance(extras, dict) else None
     if not isinstance(names, list) or len(names) != count:
         raise ImportFormatError(f"{gltf.member}: the head mesh's extras.targetNames must name each of its {count} "
                                 f"morph targets, got {str(names)[:80]}")
     unknown = [n for n in names if n not in ARKIT_BLENDSHAPES]
     if unknown:
-        raise ImportFormatError(f"{gltf.member}: morph target name(s) {', '.join(map(repr, unknown[:3]))} are not "
+        raise ImportFormatError(f"{gltf.member}: morph target name(s) "
+                                f"{', '.join(repr(n)[:40] for n in unknown[:3])} are not "
                                 "ARKit blendshape names (gaussiantalker.sdk.rig.ARKIT_BLENDSHAPES)")
     if len(set(names)) != len(names):
         raise ImportFormatError(f"{gltf.member}: morph target names repeat")
@@ -141,45 +163,63 @@ def _head_joint(gltf: Gltf, bone: str) -> tuple[int, np.ndarray]:
     if not skins:
         raise ImportFormatError(f"{gltf.member}: no skin (skeleton): a LAM skin.glb carries the head with its "
                                 f"{bone!r} bone")
-    joints = skins[0].get("joints", [])
+    skin = as_dict(skins[0], "skin 0", gltf.member)
+    joints = as_list(skin.get("joints"), "skin 0 joints", gltf.member)
     names = node_names(gltf)
-    joint_names = [names[j] if isinstance(j, int) and 0 <= j < len(names) else None for j in joints]
+    joint_names = [names[j] if isinstance(j, int) and not isinstance(j, bool) and 0 <= j < len(names) else None
+                   for j in joints]
     if bone not in joint_names:
         raise ImportFormatError(f"{gltf.member}: the skin has no joint named {bone!r} (joints: "
                                 f"{', '.join(map(str, joint_names[:6]))}, ...)")
     index = joint_names.index(bone)
     world = world_matrix(gltf, joints[index])
-    if skins[0].get("inverseBindMatrices") is not None:
-        inverse_bind = read_accessor(gltf, skins[0]["inverseBindMatrices"]).reshape(-1, 4, 4)
+    if not (np.isfinite(world).all() and np.abs(world).max() <= MAX_COORDINATE
+            and abs(np.linalg.det(world[:3, :3])) > 1e-12):
+        raise ImportFormatError(f"{gltf.member}: the {bone!r} bone's rest transform is degenerate or not finite")
+    if skin.get("inverseBindMatrices") is not None:
+        inverse_bind = read_accessor(gltf, skin["inverseBindMatrices"])
+        if inverse_bind.shape[1] != 16:
+            raise ImportFormatError(f"{gltf.member}: the skin's inverseBindMatrices must be MAT4, got "
+                                    f"{inverse_bind.shape[1]} values per joint")
+        inverse_bind = inverse_bind.reshape(-1, 4, 4).astype(np.float64)
         if inverse_bind.shape[0] != len(joints):
             raise ImportFormatError(f"{gltf.member}: the skin has {len(joints)} joints but "
                                     f"{inverse_bind.shape[0]} inverse bind matrices")
-        if np.abs(world @ inverse_bind[index].T - np.eye(4)).max() > BIND_TOLERANCE:
+        if not np.abs(world @ inverse_bind[index].T - np.eye(4)).max() <= BIND_TOLERANCE:
             raise ImportFormatError(f"{gltf.member}: the {bone!r} bone's rest transform times its inverse bind "
                                     "matrix is not the identity: the mesh is not bound in its rest pose")
     return joints[index], world
+
+
+def _coordinates(values: np.ndarray) -> bool:
+    """Whether every value is finite and within MAX_COORDINATE (metres)."""
+    return bool(np.isfinite(values).all() and (values.size == 0 or np.abs(values).max() <= MAX_COORDINATE))
 
 
 def read_rig(data: bytes, options: LamOptions, member: str = "skin.glb"):
     """(gltf, rest [V, 3], morphs [52, V, 3] in ARKIT_BLENDSHAPES order, pivot [3], head node, target names)."""
     gltf = load_glb(data, member)
     mesh, primitive = _mesh_primitive(gltf)
-    position = (primitive.get("attributes") or {}).get("POSITION")
+    position = as_dict(primitive.get("attributes") or {}, "primitive attributes", member).get("POSITION")
     if position is None:
         raise ImportFormatError(f"{member}: the head mesh has no POSITION attribute")
     rest = read_accessor(gltf, position).astype(np.float64)
-    if rest.ndim != 2 or rest.shape[1] != 3 or not np.isfinite(rest).all():
-        raise ImportFormatError(f"{member}: the head mesh's POSITION must be finite VEC3 values")
-    targets = primitive["targets"]
+    if rest.ndim != 2 or rest.shape[1] != 3 or not _coordinates(rest):
+        raise ImportFormatError(f"{member}: the head mesh's POSITION must be VEC3 values, finite within "
+                                f"{MAX_COORDINATE:g} m")
+    if not 1 <= rest.shape[0] <= MAX_VERTICES:
+        raise ImportFormatError(f"{member}: the head mesh has {rest.shape[0]} vertices; the importer reads 1 to "
+                                f"{MAX_VERTICES}")
+    targets = as_list(primitive["targets"], "primitive targets", member)
     names = _target_names(gltf, mesh, len(targets))
     morphs = np.zeros((len(ARKIT_BLENDSHAPES), *rest.shape))
     for name, target in zip(names, targets, strict=True):
         if not isinstance(target, dict) or target.get("POSITION") is None:
             raise ImportFormatError(f"{member}: morph target {name} has no POSITION")
         delta = read_accessor(gltf, target["POSITION"]).astype(np.float64)
-        if delta.shape != rest.shape or not np.isfinite(delta).all():
-            raise ImportFormatError(f"{member}: morph target {name} must hold {rest.shape[0]} finite VEC3 rows, "
-                                    f"got {delta.shape[0]}")
+        if delta.shape != rest.shape or not _coordinates(delta):
+            raise ImportFormatError(f"{member}: morph target {name} must hold {rest.shape[0]} VEC3 rows, finite "
+                                    f"within {MAX_COORDINATE:g} m, got {delta.shape[0]} rows")
         scale = LAM_WEIGHT_SCALE.get(name, 1.0) if options.renderer_weight_scale else 1.0
         morphs[ARKIT_BLENDSHAPES.index(name)] = delta * scale
     head, world = _head_joint(gltf, options.head_bone)
@@ -200,11 +240,20 @@ def head_pose_track(skin: Gltf, head: int, data: bytes, options: LamOptions, fps
         clip = names.index(options.clip)
     else:
         clip = next((k for k, name in enumerate(names) if "idle" in name.lower()), 0)
-    times = np.arange(int(np.floor(clip_duration(gltf, clip) * fps + 1e-6)) + 1) / fps
+    duration = clip_duration(gltf, clip)
+    if not duration <= MAX_CLIP_SECONDS:
+        raise ImportFormatError(f"{member}: clip {names[clip]!r} lasts {duration:g} s; the importer samples clips of "
+                                f"up to {MAX_CLIP_SECONDS:g} s")
+    times = np.arange(int(np.floor(duration * fps + 1e-6)) + 1) / fps
     rest = world_matrix(skin, head)
     pivot = rest[:3, 3]
     track = np.zeros((times.shape[0], 6))
-    for frame, current in enumerate(sampled_world(skin, head, gltf, clip, times)):
+    sampled = sampled_world(skin, head, gltf, clip, times)
+    if not (np.isfinite(sampled).all() and np.abs(sampled).max() <= MAX_COORDINATE
+            and np.all(np.abs(np.linalg.det(sampled[:, :3, :3])) > 1e-12)):
+        raise ImportFormatError(f"{member}: clip {names[clip]!r} moves the head bone through a degenerate or "
+                                "non-finite transform")
+    for frame, current in enumerate(sampled):
         motion = current @ np.linalg.inv(rest)  # the bone's world motion since rest: x -> R x + m
         rotation = motion[:3, :3]
         track[frame, :3] = rotation_vector(rotation)
@@ -216,15 +265,11 @@ def _vertex_order(data: bytes | None, count: int) -> None:
     """vertex_order.json, if present, must list `count` vertex indices (the renderer does not use it)."""
     if data is None:
         return
-    try:
-        order = json.loads(data.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ImportFormatError(f"vertex_order.json is not JSON: {exc}") from None
+    order = parse_json(data, "vertex_order.json")
     if not isinstance(order, list) or len(order) != count:
         raise ImportFormatError(f"vertex_order.json lists {len(order) if isinstance(order, list) else 'no'} "
                                 f"entries; the avatar has {count} vertices and Gaussians")
-    array = np.asarray(order)
-    if array.dtype.kind not in "iu" or array.min() < 0 or array.max() >= count:
+    if not all(type(index) is int and 0 <= index < count for index in order):
         raise ImportFormatError(f"vertex_order.json must hold vertex indices in [0, {count})")
 
 
@@ -236,28 +281,39 @@ def import_lam(path: str | os.PathLike, options: LamOptions | None = None, progr
         steps.set_postfix_str("reading zip")
         members = read_avatar_zip(path, REQUIRED_MEMBERS, OPTIONAL_MEMBERS)
         steps.update()
-        steps.set_postfix_str("skin.glb")
-        skin, rest, morphs, pivot, head, target_names = read_rig(members["skin.glb"], options)
-        steps.update()
-        steps.set_postfix_str("offset.ply")
-        cloud = read_gaussian_ply(members["offset.ply"], "offset.ply")
-        if cloud.count != rest.shape[0]:
-            raise ImportFormatError(f"offset.ply holds {cloud.count} Gaussians but skin.glb's head mesh has "
-                                    f"{rest.shape[0]} vertices (LAM binds Gaussian i to vertex i)")
-        _vertex_order(members.get("vertex_order.json"), rest.shape[0])
-        steps.update()
-        steps.set_postfix_str("motion")
-        pose_track, clip = (None, None)
-        if "animation.glb" in members:
-            pose_track, clip = head_pose_track(skin, head, members["animation.glb"], options, LAM_FPS)
-        motion = None
-        if "bsData.json" in members:
-            try:
-                data = json.loads(members["bsData.json"].decode("utf-8"))
-            except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise ImportFormatError(f"bsData.json is not JSON: {exc}") from None
-            motion = parse_motion(data, "bsData.json").at_fps(LAM_FPS).weights
-        steps.update()
+        try:
+            return _import_members(path, members, options, steps)
+        except ImportFormatError as exc:  # a member's error, told with the zip it came from
+            raise ImportFormatError(f"avatar {path}: {exc}") from None
+
+
+def _import_members(path: str | os.PathLike, members: dict[str, bytes], options: LamOptions, steps
+                    ) -> ArkitSpeaker:
+    """import_lam's work on the zip's members (ImportFormatError naming the member and field)."""
+    steps.set_postfix_str("skin.glb")
+    skin, rest, morphs, pivot, head, target_names = read_rig(members["skin.glb"], options)
+    steps.update()
+    steps.set_postfix_str("offset.ply")
+    cloud = read_gaussian_ply(members["offset.ply"], "offset.ply")
+    if cloud.count != rest.shape[0]:
+        raise ImportFormatError(f"offset.ply holds {cloud.count} Gaussians but skin.glb's head mesh has "
+                                f"{rest.shape[0]} vertices (LAM binds Gaussian i to vertex i)")
+    if not _coordinates(cloud.xyz):
+        raise ImportFormatError(f"offset.ply: the Gaussians' offsets must be finite within {MAX_COORDINATE:g} m")
+    _vertex_order(members.get("vertex_order.json"), rest.shape[0])
+    steps.update()
+    steps.set_postfix_str("motion")
+    pose_track, clip = (None, None)
+    if "animation.glb" in members:
+        pose_track, clip = head_pose_track(skin, head, members["animation.glb"], options, LAM_FPS)
+    motion = None
+    if "bsData.json" in members:
+        try:
+            motion = parse_motion(parse_json(members["bsData.json"], "bsData.json"), "bsData.json")
+            motion = motion.at_fps(LAM_FPS).weights
+        except DriveError as exc:
+            raise ImportFormatError(str(exc)) from None
+    steps.update()
     return _speaker(cloud, rest, morphs, pivot, options, pose_track, motion, {
         "format": "lam", "file": Path(path).name, "morph_targets": target_names, "pose_clip": clip,
         "renderer_weight_scale": LAM_WEIGHT_SCALE if options.renderer_weight_scale else None,
@@ -279,7 +335,10 @@ def _speaker(cloud, rest, morphs, pivot, options: LamOptions, pose_track, motion
         gaussians.sh.copy_(torch.from_numpy((rgb - 0.5) / SH_C0)[:, None, :])
     centres = rest + cloud.xyz
     low, high = np.percentile(centres, 1, axis=0), np.percentile(centres, 99, axis=0)
-    camera = lam_camera((low + high) / 2.0, float(high[1] - low[1]))
+    try:
+        camera = lam_camera((low + high) / 2.0, float(high[1] - low[1]))
+    except CameraError as exc:
+        raise ImportFormatError(f"skin.glb, offset.ply: no default camera frames the Gaussians ({exc})") from None
     return ArkitSpeaker(config, rig, gaussians, camera, (1.0, 1.0, 1.0), None if pose_track is None else
                         torch.from_numpy(pose_track), None if motion is None else torch.from_numpy(motion),
                         source).eval()

@@ -11,7 +11,6 @@ The torch side (`rodrigues`, `lbs`, `FlameLayer`) is a pure function of tensors 
 
 from __future__ import annotations
 
-import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -22,6 +21,7 @@ from torch import nn
 
 from gaussiantalker.sdk.config import FLAME_JOINTS, FLAME_PARENTS
 from gaussiantalker.sdk.errors import CheckpointError
+from gaussiantalker.sdk.zip_reader import read_npz
 
 N_JOINTS = len(FLAME_JOINTS)
 POSE_FEATURE_DIM = 9 * (N_JOINTS - 1)  # (R_j - I) flattened for neck, jaw, left_eye, right_eye
@@ -32,6 +32,9 @@ WEIGHT_SUM_TOL = 1e-3
 
 # Keys of a real FLAME model saved as npz (generic_model.pkl converted with dense J_regressor).
 FLAME_NPZ_KEYS = ("v_template", "f", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table")
+# The largest magnitude a FLAME npz's float arrays may hold (metres, bases, weights: real values are below 10), so
+# that nothing overflows float32 or the checks' sums.
+NPZ_VALUE_LIMIT = 1e6
 # FLAME's shapedirs hold 300 identity-shape columns followed by the expression columns.
 FLAME_SHAPE_COLUMNS = 300
 
@@ -167,48 +170,50 @@ def _check_array(key: str, value: object, dtype: type, shape: tuple[int | None, 
 def load_flame_npz(
     path: str | Path, n_shape: int, n_expr: int, *, shape_columns: int = FLAME_SHAPE_COLUMNS
 ) -> FlameArrays:
-    """Load a real FLAME model saved as npz (standard keys), never unpickling, truncated to n_shape/n_expr."""
-    raw = _read_npz(Path(path))
+    """Load a real FLAME model saved as npz (standard keys), never unpickling, truncated to n_shape/n_expr. The file
+    is the user's: its members' sizes are checked before they are read, and every array must be numbers
+    (docs/untrusted-input.md, "FLAME npz")."""
+    raw = read_npz(Path(path), CheckpointError, "a FLAME model npz", FLAME_NPZ_KEYS)
     missing = [key for key in FLAME_NPZ_KEYS if key not in raw]
     if missing:
         raise CheckpointError(f"FLAME npz {path} is missing keys: {missing}")
+    for key, value in raw.items():
+        whole = key in ("f", "kintree_table")
+        if value.dtype.kind not in "biuf":
+            raise CheckpointError(f"FLAME npz {path}: {key!r} holds {value.dtype.str} values, not numbers")
+        if value.dtype.kind == "f" and value.size and not (
+                np.isfinite(value).all() and float(np.abs(value).max()) <= (2.0**53 if whole else NPZ_VALUE_LIMIT)
+                and (not whole or np.array_equal(value, np.round(value)))):
+            raise CheckpointError(f"FLAME npz {path}: {key!r} must hold finite "
+                                  f"{'whole numbers' if whole else f'numbers within {NPZ_VALUE_LIMIT:g}'}")
     dirs = raw["shapedirs"]
     if dirs.ndim != 3 or dirs.shape[1] != 3:
-        raise CheckpointError(f"FLAME npz 'shapedirs' has shape {list(dirs.shape)}, expected [V, 3, K]")
+        raise CheckpointError(f"FLAME npz {path}: 'shapedirs' has shape {list(dirs.shape)}, expected [V, 3, K]")
     n_expr_avail = dirs.shape[2] - shape_columns
     if not (0 <= n_shape <= shape_columns and 0 <= n_expr <= n_expr_avail):
         raise CheckpointError(
-            f"FLAME npz 'shapedirs' has {shape_columns} shape / {n_expr_avail} expression columns; "
+            f"FLAME npz {path}: 'shapedirs' has {shape_columns} shape / {n_expr_avail} expression columns; "
             f"asked for {n_shape} / {n_expr}"
         )
     posedirs = raw["posedirs"]
     if posedirs.ndim != 3 or posedirs.shape[1:] != (3, POSE_FEATURE_DIM):
-        raise CheckpointError(f"FLAME npz 'posedirs' has shape {list(posedirs.shape)}, expected [V, 3, 36]")
-    return FlameArrays(
-        v_template=_f32(raw["v_template"]),
-        shapedirs=_f32(dirs[:, :, :n_shape]),
-        exprdirs=_f32(dirs[:, :, shape_columns : shape_columns + n_expr]),
-        posedirs=_f32(posedirs.reshape(-1, POSE_FEATURE_DIM).T),  # [36, V*3], as smplx does
-        J_regressor=_f32(raw["J_regressor"]),
-        lbs_weights=_f32(raw["weights"]),
-        faces=np.ascontiguousarray(raw["f"], dtype=np.int64),
-        parents=_parents_from_kintree(raw["kintree_table"]),
-    ).validate()
-
-
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    """Read every array of an npz archive with allow_pickle=False; CheckpointError on any failure."""
+        raise CheckpointError(f"FLAME npz {path}: 'posedirs' has shape {list(posedirs.shape)}, expected [V, 3, 36]")
+    if raw["kintree_table"].shape != (2, N_JOINTS):
+        raise CheckpointError(f"FLAME npz {path}: 'kintree_table' has shape {list(raw['kintree_table'].shape)}, "
+                              f"expected [2, {N_JOINTS}]")
     try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:  # missing, corrupt, or a pickle file
-        raise CheckpointError(f"cannot read FLAME npz {path}: {exc}") from exc
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise CheckpointError(f"FLAME model {path} is not an npz archive (a single .npy array)")
-    try:
-        with data:
-            return {key: data[key] for key in data.files}
-    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:  # corrupt member, pickled array
-        raise CheckpointError(f"cannot read FLAME npz {path}: {exc}") from exc
+        return FlameArrays(
+            v_template=_f32(raw["v_template"]),
+            shapedirs=_f32(dirs[:, :, :n_shape]),
+            exprdirs=_f32(dirs[:, :, shape_columns : shape_columns + n_expr]),
+            posedirs=_f32(posedirs.reshape(-1, POSE_FEATURE_DIM).T),  # [36, V*3], as smplx does
+            J_regressor=_f32(raw["J_regressor"]),
+            lbs_weights=_f32(raw["weights"]),
+            faces=np.ascontiguousarray(raw["f"], dtype=np.int64),
+            parents=_parents_from_kintree(raw["kintree_table"]),
+        ).validate()
+    except CheckpointError as exc:  # the layout checks, told with the file they are about
+        raise CheckpointError(f"FLAME npz {path}: {exc}") from None
 
 
 def _f32(array: np.ndarray) -> np.ndarray:

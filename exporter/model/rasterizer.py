@@ -34,6 +34,7 @@ from .splat_math import (
     covariance_2d_determinant,
     extent_radius,
     keep_mask,
+    reliability_fade,
     splat_color,
     world_to_camera,
 )
@@ -65,7 +66,7 @@ class _Splats:
     xy: Tensor  # [M, 2]
     shape: Tensor  # [M, 3] alpha_shape (A, k, q)
     radius: Tensor  # [M]
-    opacity: Tensor  # [M]
+    opacity: Tensor  # [M] times reliability_fade
     rgb: Tensor  # [M, 3]
     index: Tensor  # [M] each kept splat's index among the input Gaussians
 
@@ -198,12 +199,16 @@ def _prepare_splats(means: Tensor, cov3d: Tensor, rgb: Tensor, opacity: Tensor, 
         keep = keep_mask(points, xy, cov2d, det, conic, shape, radius, float(camera.near), rgb, opacity, cov3d)
         index = torch.nonzero(keep).squeeze(1)  # [M], ascending
         index = index[torch.sort(points[index, 2], stable=True).indices]  # front to back, ties in index order
+        # The opacity as composited is faded where the determinant is near its noise (docs/numerics.md,
+        # "Reliability fade"). Without gradient, like the radius: the factor is exactly 1 for ordinary splats, and
+        # its derivative near the cut divides by the noise.
+        fade = reliability_fade(points[index], cov3d[index], cov2d[index], R, intrinsics[0], intrinsics[1], limits)
     needs_grad = torch.is_grad_enabled() and any(x.requires_grad for x in (means, cov3d, rgb, opacity))
     if needs_grad:
         xy_kept, _, _, _, shape_kept = screen_space(means[index], cov3d[index])
     else:
         xy_kept, shape_kept = xy[index], shape[index]
-    return _Splats(xy_kept, shape_kept, radius[index], opacity[index], splat_color(rgb[index]), index)
+    return _Splats(xy_kept, shape_kept, radius[index], opacity[index] * fade, splat_color(rgb[index]), index)
 
 
 def _tile_rects(splats: _Splats, grid: _Grid) -> _Rects:

@@ -66,7 +66,9 @@ __all__ = [
     "cov2d_scale",
     "reliable",
     "rounding_products",
+    "determinant_and_noise",
     "covariance_2d_determinant",
+    "reliability_fade",
     "conic_from_cov2d",
     "alpha_shape",
     "radius_of",
@@ -292,20 +294,21 @@ def rounding_products(value: Tensor, magnitude: Tensor) -> Tensor:
     return 0.5 * (x_mag * z.abs() + x.abs() * z_mag) + y.abs() * y_mag
 
 
-def covariance_2d_determinant(
+def determinant_and_noise(
     p_cam: Tensor, cov3d: Tensor, cov2d: Tensor, R: Tensor, fx: float, fy: float, limits: Sequence[float]
 ) -> Tensor:
-    """det of `covariance_2d` (its (a, b, c) [N, 3] passed in) / `cov2d_scale`^2, least-cancelling form. # [N]
+    """(det, noise) [N, 2]: det of `covariance_2d` (its (a, b, c) [N, 3] passed in) / `cov2d_scale`^2 in the
+    least-cancelling form, and the `rounding_products` its float32 rounding noise scales with.
 
     det = a c - b^2 cancels badly where J's rows are nearly parallel (grazing view angles: all of it is lost).
     Replacing J's second row by its part orthogonal to the first (closed form; a shear of determinant 1, so the
     determinant is unchanged) and adding the low-pass filter as det(A + l I) = det A + l (tr A + l) avoids that.
     Both are exact maths; the form whose second diagonal entry is smaller has the smaller products (a c, b^2) and
-    so the smaller cancellation. A result lost in rounding noise (`reliable`, the noise measured by
-    `rounding_products` from the entries' magnitudes: the same quadratic forms over |J W| and |Sigma|) is returned
-    as 0. This is the only 2D determinant of the contract: culling, the conic and `alpha_shape` all use it.
+    so the smaller cancellation. The noise is measured from the entries' magnitudes: the same quadratic forms over
+    |J W| and |Sigma|. `covariance_2d_determinant` and `reliability_fade` both read it (docs/numerics.md, "2D
+    determinant conditioning").
 
-    GLSL twin: `covariance_2d_determinant` in shaders/splat.vert.
+    GLSL twin: `determinant_and_noise` in shaders/splat.vert.
     """
     z_div = _safe_divisor(p_cam[..., 2])  # [N]
     xz, yz = clamped_ratios(p_cam, limits).unbind(-1)  # each [N]
@@ -332,9 +335,47 @@ def covariance_2d_determinant(
                                (rows[..., 1, :] * spread[..., 1, :]).sum(-1)], dim=-1) / s.unsqueeze(-1)
     plain_mag = torch.stack([m0_mag + LOW_PASS_PX2, (rows[..., 0, :] * spread[..., 2, :]).sum(-1),
                              (rows[..., 2, :] * spread[..., 2, :]).sum(-1) + LOW_PASS_PX2], dim=-1) / s.unsqueeze(-1)
-    sheared = reliable(sheared, rounding_products(torch.stack([s00, s01, s11], dim=-1), sheared_mag))
-    plain = reliable(a * c - b * b, rounding_products(torch.stack([a, b, c], dim=-1), plain_mag))
-    return torch.where(use_sheared, sheared, plain)
+    sheared_noise = rounding_products(torch.stack([s00, s01, s11], dim=-1), sheared_mag)
+    plain_noise = rounding_products(torch.stack([a, b, c], dim=-1), plain_mag)
+    return torch.where(use_sheared.unsqueeze(-1), torch.stack([sheared, sheared_noise], dim=-1),
+                       torch.stack([a * c - b * b, plain_noise], dim=-1))  # [N, 2]
+
+
+def covariance_2d_determinant(
+    p_cam: Tensor, cov3d: Tensor, cov2d: Tensor, R: Tensor, fx: float, fy: float, limits: Sequence[float]
+) -> Tensor:
+    """det of `covariance_2d` (its (a, b, c) [N, 3] passed in) / `cov2d_scale`^2, 0 where unreliable. # [N]
+
+    `determinant_and_noise`'s det, returned as 0 where it is lost in rounding noise (`reliable`). This is the only
+    2D determinant of the contract: culling, the conic and `alpha_shape` all use it.
+
+    GLSL twin: `covariance_2d_determinant` in shaders/splat.vert.
+    """
+    det, noise = determinant_and_noise(p_cam, cov3d, cov2d, R, fx, fy, limits).unbind(-1)
+    return reliable(det, noise)
+
+
+def reliability_fade(
+    p_cam: Tensor, cov3d: Tensor, cov2d: Tensor, R: Tensor, fx: float, fy: float, limits: Sequence[float]
+) -> Tensor:
+    """The factor in [0, 1] a Gaussian's opacity is multiplied by: 1 - exp(-ALPHA_MIN (rho - 1)), 0 for rho <= 1. # [N]
+
+    rho = det / (DET_MIN_RELATIVE noise) of `determinant_and_noise`, so `reliable` culls rho <= 1. Sides that round
+    the determinant differently disagree on rho by a few sixteenths. Just above the cut the factor grows by
+    ALPHA_MIN per unit of rho, so no alpha there reaches ALPHA_MIN on any side (rho < 1 + 1 / opacity): the cut
+    changes no pixel. Further up it saturates, so its change for a rounding difference stays within the
+    conditioning bound, and from rho ~ 4400 on it is exactly 1 in float32: splats whose screen axes are less than
+    ~20:1 apart (and whose entries do not cancel) are never faded (docs/numerics.md, "Reliability fade").
+
+    GLSL twin: `reliability_fade` in shaders/splat.vert.
+    """
+    det, noise = determinant_and_noise(p_cam, cov3d, cov2d, R, fx, fy, limits).unbind(-1)
+    threshold = DET_MIN_RELATIVE * noise  # [N]
+    excess = (det - threshold) / _safe_divisor(threshold)  # [N] rho - 1 where threshold > 0
+    fade = 1.0 - torch.exp(-ALPHA_MIN * torch.clamp_min(excess, 0.0))
+    # threshold == 0 with det > 0 (the noise underflowed) is a fully reliable det, as det / 0 = inf would say.
+    return torch.where(det > threshold, torch.where(threshold > 0, fade, torch.ones_like(fade)),
+                       torch.zeros_like(fade))
 
 
 def conic_from_cov2d(cov2d: Tensor, det: Tensor) -> Tensor:
