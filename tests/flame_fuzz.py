@@ -85,17 +85,17 @@ def frombuffer(raw: object, dtype_: object, shape: object, order: object = "C") 
     return Reduced(GlobalRef("numpy._core.numeric", "_frombuffer"), (raw, dtype_, shape, order))
 
 
-def review_value(n_sub: int = 100_000_000, item_size: int = 8) -> Reduced:
-    """The review's attack: a float64 dtype whose BUILD state gives it an `n_sub`-element subarray but an item size
+def subarray_attack_value(n_sub: int = 100_000_000, item_size: int = 8) -> Reduced:
+    """The subarray attack: a float64 dtype whose BUILD state gives it an `n_sub`-element subarray but an item size
     of `item_size` bytes, then `_frombuffer` of `item_size` bytes as that dtype in shape (1, n_sub), so a reader
     that trusts the dtype views `n_sub * 8` bytes of memory through an `item_size`-byte buffer."""
     forged = dtype("f8", (3, "|", (dtype("f8"), (n_sub,)), None, None, item_size, 1, 0))
     return frombuffer(b"A" * item_size, forged, (1, n_sub))
 
 
-def review_pickle(n_sub: int = 100_000_000, item_size: int = 8) -> bytes:
-    """`review_value` alone, pickled the way Python 3 pickles bytes at protocol 2 (by `_codecs.encode`)."""
-    return modern_dumps_protocol(review_value(n_sub, item_size), 2)
+def subarray_attack_pickle(n_sub: int = 100_000_000, item_size: int = 8) -> bytes:
+    """`subarray_attack_value` alone, pickled the way Python 3 pickles bytes at protocol 2 (by `_codecs.encode`)."""
+    return modern_dumps_protocol(subarray_attack_value(n_sub, item_size), 2)
 
 
 class ModernPickler(pickle._Pickler):
@@ -197,8 +197,8 @@ def _value_edit(rng: np.random.Generator) -> Callable[[dict], None]:
                 target.x = forged
             else:
                 model[key] = forged
-        elif kind == 2:  # the review's pickle inside a model
-            model[key] = review_value(int(rng.choice([2, 1000, 10**8])), int(rng.choice([1, 8, 16])))
+        elif kind == 2:  # the subarray attack inside a model
+            model[key] = subarray_attack_value(int(rng.choice([2, 1000, 10**8])), int(rng.choice([1, 8, 16])))
         elif kind == 3:  # broken chumpy expressions
             select = chumpy_class("chumpy.reordering.Select")
             reshape = chumpy_class("chumpy.reordering.Reshape")

@@ -10,7 +10,7 @@ import sys
 
 import numpy as np
 import pytest
-from flame_fuzz import Reduced, modern_dumps, review_pickle
+from flame_fuzz import Reduced, modern_dumps, subarray_attack_pickle
 from flame_fuzz import dtype as forged_dtype
 from flame_fuzz import frombuffer as forged_frombuffer
 from flame_fuzz import reconstructed as forged_reconstructed
@@ -344,26 +344,26 @@ def test_cli(full_pickle, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------ forged numpy state
-# The review's pickle and its family (tests/flame_fuzz.py builds them): a dtype, array or number whose pickled state
-# describes more memory than the file gives it. A plain unpickler trusts that state; the reader must not.
+# The subarray attack and its family (tests/flame_fuzz.py builds them): a dtype, array or number whose pickled
+# state describes more memory than the file gives it. A plain unpickler trusts that state; the reader must not.
 
 
-def test_review_pickle_reads_memory_when_trusted(tmp_path):
-    """The review's payload is real: a plain unpickler (in a child process, as it may crash) returns an array of
+def test_subarray_attack_pickle_reads_memory_when_trusted(tmp_path):
+    """The subarray attack is real: a plain unpickler (in a child process, as it may crash) returns an array of
     8000 bytes from an 8-byte buffer, i.e. the process's own memory."""
-    script = ("import sys, pickle; sys.path.insert(0, 'tests'); from flame_fuzz import review_pickle; "
-              "a = pickle.loads(review_pickle(1000)); print(a.nbytes, a.base is not None)")
+    script = ("import sys, pickle; sys.path.insert(0, 'tests'); from flame_fuzz import subarray_attack_pickle; "
+              "a = pickle.loads(subarray_attack_pickle(1000)); print(a.nbytes, a.base is not None)")
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["8000", "True"]
 
 
 @pytest.mark.parametrize("n_sub", [2, 1000, 100_000_000])
-def test_review_pickle_refused_by_the_cli(tmp_path, n_sub):
-    """`gt-import flame` on the review's pickle (100,000,000 elements: the size that crashed it): one line naming
-    the file, exit 2, no npz."""
+def test_subarray_attack_pickle_refused_by_the_cli(tmp_path, n_sub):
+    """`gt-import flame` on the subarray attack (100,000,000 elements: a size that crashes a trusting reader): one
+    line naming the file, exit 2, no npz."""
     path = tmp_path / "generic_model.pkl"
-    path.write_bytes(review_pickle(n_sub))
+    path.write_bytes(subarray_attack_pickle(n_sub))
     assert b"_codecs" in path.read_bytes() and b"_frombuffer" in path.read_bytes()
     result = CliRunner().invoke(app, ["flame", str(path), "-o", str(tmp_path / "out.npz")])
     assert result.exit_code == 2, result.output
