@@ -71,6 +71,17 @@ class Case:
     label: str  # what the error message must name (the file's path or the member)
 
 
+def _mutated_npz(params: dict, rng: np.random.Generator, arrays_below: float, zip_below: float) -> tuple[bytes, str]:
+    """An npz of `params` mutated at one level, chosen by one draw: its arrays (below `arrays_below`), a zip header
+    field (below `zip_below`), or its bytes."""
+    choice = rng.random()
+    if choice < arrays_below:
+        return mutate_npz_arrays(params, rng)
+    if choice < zip_below:
+        return mutate_zip_field(npz_bytes(params), rng)
+    return mutate_bytes(npz_bytes(params), rng)
+
+
 def fuzz(reader: Callable[[object], object], make_case: Callable[[np.random.Generator, int], Case], count: int,
          seed: int, error: type[Exception] = GaussianTalkerError, must_load: bool = True) -> Counter:
     """Run `count` cases; every case loads or raises `error` in one line naming its label. Returns the counts."""
@@ -355,13 +366,7 @@ def test_fuzz_gaussian_avatars_folder(ga_avatar, tmp_path, heavy, seed):
             changed, what = _ply_header_mutation(ply, rng) if rng.random() < 0.5 else mutate_bytes(ply, rng)
         else:
             path = tmp_path / "flame_param.npz"
-            choice = rng.random()
-            if choice < 0.6:
-                changed, what = mutate_npz_arrays(params, rng)
-            elif choice < 0.8:
-                changed, what = mutate_zip_field(npz_bytes(params), rng)
-            else:
-                changed, what = mutate_bytes(npz_bytes(params), rng)
+            changed, what = _mutated_npz(params, rng, arrays_below=0.6, zip_below=0.8)
         path.write_bytes(changed)
         return Case(what, path, str(path))
 
@@ -531,13 +536,7 @@ def test_fuzz_flame_motion_npz(ga_avatar, tmp_path, heavy, seed):
 
     def make(rng: np.random.Generator, index: int) -> Case:
         path = tmp_path / "motion.npz"
-        choice = rng.random()
-        if choice < 0.7:
-            changed, what = mutate_npz_arrays(params, rng)
-        elif choice < 0.85:
-            changed, what = mutate_zip_field(npz_bytes(params), rng)
-        else:
-            changed, what = mutate_bytes(npz_bytes(params), rng)
+        changed, what = _mutated_npz(params, rng, arrays_below=0.7, zip_below=0.85)
         path.write_bytes(changed)
         return Case(what, path, str(path))
 
