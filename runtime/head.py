@@ -254,7 +254,7 @@ class TalkingHead:
             raise BundleError(f"{self.bundle.path}: this bundle {why} and has no translator graph, so it cannot turn "
                               "audio into frames: drive it with render_params(), render() or motion_frames() (a "
                               "motion file), or re-export it without --scene / attach an audio model "
-                              "(docs/import.md)")
+                              "(gt-import voice CHECKPOINT --bundle BUNDLE; docs/voice.md)")
         start = time.perf_counter()
         out = self.graphs.run("translator", {"audio": chunk[None]})
         self._record("translator", time.perf_counter() - start)
@@ -267,7 +267,8 @@ class TalkingHead:
             if not self.has_translator:
                 raise DriveError(f"{self.bundle.path}: this ARKit speaker has no audio model attached, so it cannot "
                                  "turn audio into frames: drive it with render_blendshapes(), motion_frames() or a "
-                                 "motion file, or attach one (gt-import lam --audio-model; docs/import.md)")
+                                 "motion file, or attach one (gt-import voice CHECKPOINT --bundle BUNDLE; "
+                                 "docs/voice.md)")
             return iter_translate(self._run_translator, audio, self.sample_rate / self.fps,
                                   silence_gate_dbfs=self.silence_gate_dbfs, params_of=blendshape_params)
         return iter_translate(self._run_translator, audio, self.config.samples_per_frame,

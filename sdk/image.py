@@ -1,7 +1,11 @@
-"""Frame conversions and the error metrics used by every parity check (PSNR, max pixel error)."""
+"""Frame conversions, PNG files, and the error metrics used by every parity check (PSNR, max pixel error)."""
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
+import av
 import numpy as np
 
 
@@ -12,6 +16,25 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     work += np.float32(0.5)
     np.floor(work, out=work)
     return work.astype(np.uint8)
+
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    """uint8 [H, W, 3] RGB -> an 8-bit RGB PNG file's bytes (PyAV's PNG encoder: no extra dependency)."""
+    rgb = np.ascontiguousarray(rgb)
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3 or 0 in rgb.shape:
+        raise ValueError(f"a PNG image must be uint8 [H, W, 3], got {rgb.dtype} {list(rgb.shape)}")
+    context = av.CodecContext.create("png", "w")
+    context.width, context.height, context.pix_fmt = rgb.shape[1], rgb.shape[0], "rgb24"
+    frame = av.VideoFrame.from_ndarray(rgb, format="rgb24")
+    return b"".join(bytes(packet) for packet in context.encode(frame) + context.encode(None))
+
+
+def write_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
+    """Write uint8 [H, W, 3] RGB as a PNG file (its folder made if missing); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(png_bytes(rgb))
+    return path
 
 
 def straight_rgba(premultiplied: np.ndarray, background) -> np.ndarray:

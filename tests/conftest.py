@@ -286,6 +286,22 @@ def small_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
 
 
 @pytest.fixture(scope="session")
+def lam_voice_bundle(tmp_path_factory):
+    """A small synthetic LAM avatar (tests/lam_avatars.py) imported as `gt-import lam` does by default, the built-in
+    voice driver attached (docs/voice.md), exported as an fp32 bundle: an ARKit speaker that audio drives at 30 fps."""
+    from lam_avatars import write_avatar_zip
+
+    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.imports.lam import import_lam
+    from gaussiantalker.exporter.voice.attach import builtin_audio_model
+
+    folder = tmp_path_factory.mktemp("lam_voice")
+    speaker = import_lam(write_avatar_zip(folder / "avatar.zip"), progress=False)
+    speaker.audio_model = builtin_audio_model(speaker)
+    return export_bundle(speaker, folder / "avatar.gtb", progress=False).path
+
+
+@pytest.fixture(scope="session")
 def inpaint_export() -> SimpleNamespace:
     """A default-config F (seed 0) with random (non-zero) output weights, so the network's path shows in its
     output, and its ONNX proto as the exporter makes it (`.model`, `.proto`): the session's one torch.onnx export

@@ -251,6 +251,30 @@ def test_cli_import_export_verify_play_and_audio_model(avatar_dir, tmp_path):
         assert len(frames) == 38 and not np.array_equal(frames[0], frames[30])
 
 
+def test_cli_import_attaches_the_builtin_voice(avatar_dir, tmp_path):
+    """Without --audio-model, gt-import gaussian-avatars attaches the built-in FLAME voice driver, its expressions
+    fitted on the user's FLAME (docs/voice.md): speech opens the jaw and moves the expression, silence does not."""
+    from gaussiantalker.exporter.cli import app as export_app
+    from gaussiantalker.exporter.import_cli import app as import_app
+    from gaussiantalker.sdk.audio import load_audio
+
+    folder, _ = avatar_dir
+    runner = CliRunner()
+    checkpoint, bundle = tmp_path / "a.ckpt", tmp_path / "a.gtb"
+    result = runner.invoke(import_app, ["gaussian-avatars", str(folder / "avatar"), "--flame",
+                                        str(folder / "flame.npz"), "-o", str(checkpoint)])
+    assert result.exit_code == 0 and "built-in voice driver attached" in result.output, result.output
+    result = runner.invoke(export_app, [str(checkpoint), "-o", str(bundle), "-q"])
+    assert result.exit_code == 0, result.output
+    speech = load_audio(ROOT / "tests" / "data" / "voice_heldout.wav", 16000)
+    audio = np.concatenate([np.zeros(16000, np.float32), speech])  # 1 s of silence, then the sentence
+    with TalkingHead(bundle, resolution=(48, 48)) as head:
+        expression, jaw = head.translate(audio)
+        assert expression.shape == (len(audio) // 640 + (len(audio) % 640 > 0), 100)
+        assert np.abs(jaw[:20]).max() < 0.02 and jaw[25:, 0].max() > 0.1  # radians: the jaw opens with speech
+        assert np.abs(expression[:20]).max() < 0.1 and np.abs(expression[25:]).max() > 0.1
+
+
 @pytest.mark.parametrize("case, words", [
     ("no_binding", "lacks field binding_0"),
     ("binding_outside", "binding_0 of Gaussian 0 is 10144.0, not a triangle of the mesh [0, 10144)"),

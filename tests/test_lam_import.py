@@ -202,7 +202,8 @@ def test_motion_frames_and_drive_mismatch(avatar_bundle, small_export, tmp_path)
 
 
 def test_cli_import_export_verify_play(avatar_zip, tmp_path):
-    """gt-import lam, gt-export --verify --preset balanced, then play.py --motion: the user's path."""
+    """gt-import lam (the built-in voice attached by default), gt-export --verify --preset balanced, then play.py
+    --motion and --audio: the user's path; --no-voice imports without an audio model."""
     from gaussiantalker.exporter.cli import app as export_app
     from gaussiantalker.exporter.import_cli import app as import_app
 
@@ -211,11 +212,12 @@ def test_cli_import_export_verify_play(avatar_zip, tmp_path):
     result = runner.invoke(import_app, ["lam", str(avatar_zip), "-o", str(checkpoint), "-q"])
     assert result.exit_code == 0, result.output
     assert "imported 96 Gaussians, 4 morph targets" in result.output
+    assert "built-in voice driver attached" in result.output
     bundle = tmp_path / "avatar.gtb"
     result = runner.invoke(export_app, [str(checkpoint), "-o", str(bundle), "--verify", "--frames", "3",
                                         "--resolution", "64", "--preset", "balanced", "-q"])
     assert result.exit_code == 0, result.output
-    assert "not compared: an imported speaker without an audio model" in result.output
+    assert "not compared" not in result.output  # the attached voice model is verified like any translator
     assert "verification PASSED" in result.output
     sys.path.insert(0, str(ROOT / "samples"))
     try:
@@ -226,6 +228,17 @@ def test_cli_import_export_verify_play(avatar_zip, tmp_path):
     result = runner.invoke(play_app, [str(bundle), "-o", str(video), "-r", "64", "-q"])
     assert result.exit_code == 0, result.output
     assert "12 frames, 0.4 s, no audio" in result.output and video.stat().st_size > 0
+    result = runner.invoke(play_app, [str(bundle), "-o", str(video), "-r", "48", "-q", "--audio",
+                                      str(ROOT / "tests" / "data" / "voice_heldout.wav")])
+    assert result.exit_code == 0, result.output
+    assert "141 frames, 4.7 s" in result.output and video.stat().st_size > 0, result.output
+    bare = tmp_path / "bare.ckpt"
+    result = runner.invoke(import_app, ["lam", str(avatar_zip), "-o", str(bare), "-q", "--no-voice"])
+    assert result.exit_code == 0 and "no audio model (--no-voice)" in result.output, result.output
+    assert load_checkpoint(bare).audio_model is None
+    result = runner.invoke(import_app, ["lam", str(avatar_zip), "-o", str(bare), "--no-voice", "--audio-model",
+                                        str(bare)])
+    assert result.exit_code == 2 and "not both" in result.output
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"names": ["jawOpen", "smile"], "frames": [{"weights": [0, 1]}]}))
     result = runner.invoke(play_app, [str(bundle), "-o", str(video), "--motion", str(bad), "-q"])

@@ -1,8 +1,8 @@
 """Import floors, read from the installed package's source: every `import` and `from` statement (inside functions
 and TYPE_CHECKING blocks too, relative ones resolved), so a lazy import cannot hide a wrong dependency.
 
-The exporter's floors import only downwards: model < export < verify < demo | bench | imports < the console scripts
-(exporter/__init__.py says what each holds). No two modules of the exporter, the sdk or the runtime import each
+The exporter's floors import only downwards: model < export < verify < demo | bench | imports | voice < the console
+scripts (exporter/__init__.py says what each holds). No two modules of the exporter, the sdk or the runtime import each
 other, directly or around a longer loop.
 """
 
@@ -18,14 +18,17 @@ import pytest
 EXPORTER = "gaussiantalker.exporter"
 # Rank of each exporter floor (its sub-package; "" is the top level: cli.py, entry.py): a module may import modules
 # of its own rank or below. demo and bench share a rank (bench builds demo speakers; NEVER_IMPORTS keeps demo off
-# bench).
-FLOORS = {"model": 0, "export": 1, "verify": 2, "demo": 3, "bench": 3, "imports": 3, "": 4}
+# bench); so do imports and voice (the voice driver uses the importer's audio-model checks, never the reverse).
+FLOORS = {"model": 0, "export": 1, "verify": 2, "demo": 3, "bench": 3, "imports": 3, "voice": 3, "": 4}
 # (importer, imported) prefixes that must never meet, whatever the ranks say.
 NEVER_IMPORTS = [
     (f"{EXPORTER}.export", f"{EXPORTER}.verify"),  # export never verifies (verify drives export's probes)
     (f"{EXPORTER}.demo", f"{EXPORTER}.bench"),
     (f"{EXPORTER}.imports", f"{EXPORTER}.bench"),
     (f"{EXPORTER}.imports", f"{EXPORTER}.demo"),
+    (f"{EXPORTER}.imports", f"{EXPORTER}.voice"),
+    (f"{EXPORTER}.voice", f"{EXPORTER}.bench"),
+    (f"{EXPORTER}.voice", f"{EXPORTER}.demo"),
     ("gaussiantalker.sdk", "gaussiantalker.runtime"),
     ("gaussiantalker.sdk", "gaussiantalker.exporter"),
     ("gaussiantalker.runtime", "gaussiantalker.exporter"),

@@ -75,6 +75,25 @@ def test_tts_audio_becomes_frames_with_the_same_audio_in_sync(small_export):
     assert speech_change > idle_change + 20, (idle_change, speech_change)  # the mouth moves with the reply
 
 
+def test_a_lam_bundle_speaks_through_the_builtin_voice(lam_voice_bundle):
+    """An imported LAM avatar with the built-in voice driver (30 fps) in the adapter: TTS audio in, one 1/30 s
+    audio frame per picture out, the voice unchanged, and the mouth moving with the reply."""
+    sent, pcm = _tts_frames(2.0)
+    processor = TalkingHeadVideo(lam_voice_bundle, resolution=(SIZE, SIZE), lookahead_ms=160)
+    down, _ = asyncio.run(run_test(processor, frames_to_send=[SleepFrame(0.3), *sent, SleepFrame(0.5)],
+                                   start_timeout=60.0))
+    audio, images = _outputs(down)
+    assert len(audio) == len(images) > 60
+    assert {len(f.audio) for f in audio} == {2 * TTS_RATE // 30}  # 1/30 s of int16 per frame
+    played = np.concatenate([np.frombuffer(f.audio, np.int16) for f in audio])
+    start = int(np.flatnonzero(played)[0])
+    np.testing.assert_array_equal(played[start:start + pcm.shape[0]], pcm)
+    first = start // (TTS_RATE // 30)
+    pictures = [np.frombuffer(f.image, np.uint8).astype(int) for f in images]
+    speech_change = max(np.abs(p - pictures[first]).max() for p in pictures[first:first + 60])
+    assert speech_change > 20, speech_change
+
+
 def test_interruption_cuts_the_reply_and_eases_to_idle(small_export):
     """A barge-in drops the rest of the reply; the pictures ease from the last spoken face to the idle one over
     IdleMotion.ease_ms (strictly closer to it each frame), then are exactly the idle face a session draws for

@@ -1,0 +1,137 @@
+"""What the voice drivers train and are measured on: random sentences in several languages, spoken by espeak-ng
+voices at random rates and pitches (docs/voice.md, "Training data").
+
+Sentences are drawn from small word lists (common words rich in the phonemes lips show, written here so nothing is
+downloaded) mixed with pseudo-words (the language's spelling of random syllables, for phoneme combinations the
+lists lack), with commas, full stops, questions and exclamations for phrase rhythm. Training and held-out sets
+come from disjoint seed streams and disjoint voices; `heldout_specs` also checks that none of its sentences is a
+training sentence.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+WORDS = {
+    "en": ("people", "maybe", "about", "problem", "simple", "bring", "number", "morning", "power", "member",
+           "move", "be", "my", "me", "put", "back", "big", "more", "much", "both", "open", "paper", "happy",
+           "before", "remember", "tomorrow", "everybody", "thank", "you", "very", "would", "what", "where", "who",
+           "should", "sure", "shoe", "choose", "judge", "thing", "this", "that", "those", "with", "view", "fine",
+           "five", "water", "world", "word", "sleep", "see", "say", "zero", "keep", "car", "go", "good", "look",
+           "book", "rule", "room", "food", "two", "new", "now", "how", "out", "boy", "joy", "light", "night",
+           "help", "hope", "home", "phone", "music", "voice", "question", "answer", "little", "bottle", "apple"),
+    "de": ("bitte", "danke", "Morgen", "Abend", "immer", "mehr", "Mann", "Mutter", "Vater", "Bruder", "Baum",
+           "Blume", "bleiben", "Brot", "Milch", "Wasser", "Schule", "schön", "Frühling", "für", "über", "Tür",
+           "müde", "Hund", "Katze", "Zeit", "zwei", "drei", "vier", "fünf", "Pferd", "Apfel", "Kopf", "Haus",
+           "Mädchen", "ich", "du", "wir", "sprechen", "machen", "Buch", "Woche", "Vogel", "Öl", "böse", "Frau",
+           "heute", "morgen", "gestern", "Stadt", "Straße", "Platz", "mit", "ohne", "warum", "wo", "wie"),
+    "fr": ("bonjour", "merci", "beaucoup", "peut-être", "maman", "papa", "pomme", "pain", "beau", "belle",
+           "bien", "même", "moi", "toi", "vous", "nous", "tout", "rouge", "bleu", "feu", "fleur", "heure", "sœur",
+           "lune", "plume", "jupe", "chose", "chemin", "jamais", "toujours", "pourquoi", "comment", "voiture",
+           "maison", "monde", "ombre", "pluie", "soleil", "oui", "non", "midi", "minuit", "parler", "manger",
+           "boire", "partir", "vouloir", "pouvoir", "petit", "grand", "bonne", "nuit", "deux", "cinq"),
+    "es": ("hola", "gracias", "por", "favor", "buenos", "días", "mamá", "papá", "mucho", "poco", "bueno",
+           "malo", "bonito", "playa", "pueblo", "mundo", "muy", "mesa", "boca", "mano", "perro", "gato", "agua",
+           "fuego", "tiempo", "siempre", "nunca", "mañana", "noche", "chico", "chica", "queso", "zapato", "cielo",
+           "camino", "pájaro", "mariposa", "puerta", "ventana", "hablar", "comer", "beber", "vivir", "amigo"),
+    "it": ("ciao", "grazie", "prego", "bambino", "bello", "bella", "buono", "mamma", "papà", "pane", "pasta",
+           "pomodoro", "mela", "molto", "poco", "sempre", "mai", "oggi", "domani", "sole", "luna", "mare",
+           "montagna", "piazza", "città", "chiesa", "gnocchi", "figlio", "famiglia", "perché", "come", "dove",
+           "parlare", "mangiare", "bere", "dormire", "vivere", "amore", "tempo", "mondo", "uomo", "donna"),
+    "pt": ("olá", "obrigado", "bom", "dia", "boa", "noite", "mãe", "pai", "muito", "pouco", "bonito", "pão",
+           "peixe", "praia", "mundo", "sempre", "nunca", "amanhã", "hoje", "chuva", "sol", "mar", "casa",
+           "cidade", "porta", "janela", "falar", "comer", "beber", "viver", "amigo", "amor", "tempo", "coração",
+           "palavra", "menino", "menina", "bem", "mal", "por", "favor", "quem", "onde", "porque"),
+    "nl": ("hallo", "dank", "je", "wel", "goedemorgen", "mooi", "moeder", "vader", "broer", "boom", "bloem",
+           "brood", "melk", "water", "school", "huis", "muis", "fiets", "prachtig", "misschien", "morgen",
+           "vandaag", "gisteren", "waarom", "waar", "hoe", "praten", "eten", "drinken", "lopen", "kopen",
+           "boek", "week", "maan", "zon", "zee", "meisje", "jongen", "mensen", "geluk", "liefde", "tijd"),
+    "pl": ("dzień", "dobry", "proszę", "dziękuję", "mama", "tata", "bardzo", "pięknie", "miasto", "morze",
+           "ptak", "babcia", "dziadek", "mleko", "woda", "chleb", "książka", "szkoła", "przyjaciel", "pies",
+           "kot", "dom", "okno", "drzwi", "może", "zawsze", "nigdy", "jutro", "dzisiaj", "mówić", "pić", "jeść",
+           "być", "mieć", "czas", "miłość", "słońce", "księżyc", "góra", "rzeka"),
+}
+# Latin-letter syllables every language here spells: each language says them its own way.
+ONSETS = ("p", "b", "m", "f", "v", "t", "d", "n", "s", "z", "k", "g", "l", "r", "h", "w", "j", "ch", "sh", "pr",
+          "bl", "pl", "br", "st", "tr", "sp", "mp", "")
+NUCLEI = ("a", "e", "i", "o", "u", "a", "o", "ou", "ai", "ei", "au")
+CODAS = ("", "", "", "m", "n", "s", "p", "t", "l", "r", "k")
+
+# espeak-ng voice (language) per word list; the variants are voices (timbre, pitch, rhythm).
+LANGUAGES = {"en": ("en-us", "en"), "de": ("de",), "fr": ("fr",), "es": ("es",), "it": ("it",),
+             "pt": ("pt-br", "pt"), "nl": ("nl",), "pl": ("pl",)}
+TRAIN_LANGUAGES = ("en", "de", "fr", "es", "it", "pt", "nl")
+UNSEEN_LANGUAGES = ("pl",)  # measured apart: a language the drivers never heard
+TRAIN_VARIANTS = ("m1", "m2", "m3", "m4", "m5", "m6", "f1", "f2", "f3", "klatt", "klatt2", "klatt3", "adam",
+                  "Andy", "Annie", "steph", "max", "paul", "robert", "linda", "antonio", "Alicia", "benjamin",
+                  "iven", "Lee", "quincy")
+HELDOUT_VARIANTS = ("m7", "f4", "f5", "klatt4", "michel", "belinda")
+RATE_WPM = (130, 215)
+PITCH = (25, 75)
+PITCH_RANGE = (20, 90)
+WORD_GAP = (0, 3)
+
+TRAIN_STREAM, HELDOUT_STREAM = 1, 2  # seed streams: a seed of one stream never draws a sentence of the other
+
+
+@dataclass(frozen=True)
+class Spec:
+    """One utterance to synthesise: its text and how it is spoken."""
+
+    text: str
+    language: str
+    voice: str
+    rate: int
+    pitch: int
+    pitch_range: int
+    word_gap: int
+
+
+def pseudo_word(rng: np.random.Generator) -> str:
+    """A random word of 1-3 syllables."""
+    return "".join(str(rng.choice(ONSETS)) + str(rng.choice(NUCLEI)) + str(rng.choice(CODAS))
+                   for _ in range(int(rng.integers(1, 4))))
+
+
+def sentence(language: str, rng: np.random.Generator, pseudo_share: float = 0.3) -> str:
+    """One or two random sentences in `language`: 3-9 words each, commas inside, . ? or ! at the end."""
+    out = []
+    for _ in range(int(rng.integers(1, 3))):
+        words = [pseudo_word(rng) if rng.random() < pseudo_share else str(rng.choice(WORDS[language]))
+                 for _ in range(int(rng.integers(3, 10)))]
+        text = words[0][:1].upper() + words[0][1:]
+        for k, word in enumerate(words[1:], 1):
+            text += ("," if k > 1 and rng.random() < 0.18 else "") + " " + word
+        out.append(text + str(rng.choice([".", ".", "?", "!"])))
+    return " ".join(out)
+
+
+def _spec(language: str, variants: tuple[str, ...], rng: np.random.Generator) -> Spec:
+    voice = f"{rng.choice(LANGUAGES[language])}+{rng.choice(variants)}"
+    return Spec(sentence(language, rng), language, voice, int(rng.integers(*RATE_WPM)), int(rng.integers(*PITCH)),
+                int(rng.integers(*PITCH_RANGE)), int(rng.integers(WORD_GAP[0], WORD_GAP[1] + 1)))
+
+
+def training_specs(count: int, seed: int) -> list[Spec]:
+    """`count` training utterances: the training languages in turn, training voices."""
+    rng = np.random.default_rng([TRAIN_STREAM, seed])
+    return [_spec(TRAIN_LANGUAGES[i % len(TRAIN_LANGUAGES)], TRAIN_VARIANTS, rng) for i in range(count)]
+
+
+def heldout_specs(count: int, seed: int, languages: tuple[str, ...] = TRAIN_LANGUAGES,
+                  training: list[Spec] | None = None) -> list[Spec]:
+    """`count` held-out utterances: held-out voices, sentences from the held-out stream (ValueError if one of
+    them is also a sentence of `training`)."""
+    rng = np.random.default_rng([HELDOUT_STREAM, seed])
+    specs = [_spec(languages[i % len(languages)], HELDOUT_VARIANTS, rng) for i in range(count)]
+    seen = {spec.text for spec in training or ()}
+    repeated = [spec.text for spec in specs if spec.text in seen]
+    if repeated:
+        raise ValueError(f"held-out sentences also in training: {repeated[:3]}")
+    return specs
+
+
+__all__ = ["HELDOUT_VARIANTS", "LANGUAGES", "Spec", "TRAIN_LANGUAGES", "TRAIN_VARIANTS", "UNSEEN_LANGUAGES",
+           "WORDS", "heldout_specs", "pseudo_word", "sentence", "training_specs"]
