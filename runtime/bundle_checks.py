@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from gaussiantalker.sdk.bundle import Bundle
+from gaussiantalker.sdk.bundle import FLAME_DRIVER, Bundle
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.codecs import ONNX_DTYPES, ORT_DTYPES
 from gaussiantalker.sdk.config import SpeakerConfig
@@ -22,9 +22,6 @@ from .onnx_wire import model_tensors
 
 # What a speaker bundle (one whose manifest has a 'speaker' section) must hold for TalkingHead.
 SPEAKER_GRAPHS = ("translator", "deform")
-# The manifest's "driver" of a FLAME speaker bundle without a translator graph (an imported avatar driven by FLAME
-# parameters and its motion track; docs/bundle-format.md).
-FLAME_DRIVER = "flame"
 POSE_TRACK_WIDTH = 6
 
 

@@ -15,11 +15,8 @@ import numpy as np
 
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import to_uint8
+from gaussiantalker.sdk.reference_clip import CROP_MARGIN_PX, CROP_MULTIPLE
 
-# Pixels of context F sees around the mask's support on every side (its receptive field at half resolution).
-CROP_MARGIN_PX = 16
-# Crop sides are multiples of this (the generator pools by 2 and has up to 3 stride-2 levels).
-CROP_MULTIPLE = 16
 # The fallback fills what lies behind the face at this fraction of the crop's size (cv2.inpaint's cost grows with
 # the hole's area; the fill is smooth anyway), with this neighbourhood radius (pixels at that size).
 FALLBACK_SCALE = 0.25

@@ -41,7 +41,7 @@ from gaussiantalker.sdk.image import straight_rgba
 from gaussiantalker.sdk.render_settings import RenderSettings
 
 from .depth_sort import DepthSorter
-from .splatter import FRAME_OUTPUTS, STAGES, PreparedSplats, _background_rgb, sorted_rows
+from .splatter import FRAME_OUTPUTS, STAGES, PreparedSplats, background_rgb, sorted_rows
 
 logger = logging.getLogger("gaussiantalker.runtime")
 
@@ -500,7 +500,7 @@ class CPUSplatter:
             raise RenderError("this CPUSplatter has been released")
         if output not in FRAME_OUTPUTS:
             raise RenderError(f"output must be one of {', '.join(map(repr, FRAME_OUTPUTS))}, got {output!r}")
-        background = np.asarray(_background_rgb(background), dtype=np.float32)
+        background = np.asarray(background_rgb(background), dtype=np.float32)
         timings = dict.fromkeys(STAGES, 0.0)
         timings["sort"] = prepared.seconds
         previous = numba.get_num_threads()

@@ -246,8 +246,9 @@ class TalkingHead:
             raise AudioError("an audio array needs its sample_rate")
         return prepare_audio(audio, sample_rate, self.sample_rate)
 
-    def _run_translator(self, chunk: np.ndarray) -> dict:
-        """One translator window through the graph (timed)."""
+    def run_translator(self, chunk: np.ndarray) -> dict:
+        """One translator window through the bundle's translator graph (timed): mono float32 audio at the speaker's
+        rate -> the graph's outputs by name. `translate` and live sessions window long audio through it."""
         if not self.has_translator:
             why = ("was specialised for a flame-driven scene" if self.scene is not None else
                    "holds an imported avatar without an audio model")
@@ -269,9 +270,9 @@ class TalkingHead:
                                  "turn audio into frames: drive it with render_blendshapes(), motion_frames() or a "
                                  "motion file, or attach one (gt-import voice CHECKPOINT --bundle BUNDLE; "
                                  "docs/voice.md)")
-            return iter_translate(self._run_translator, audio, self.sample_rate / self.fps,
+            return iter_translate(self.run_translator, audio, self.sample_rate / self.fps,
                                   silence_gate_dbfs=self.silence_gate_dbfs, params_of=blendshape_params)
-        return iter_translate(self._run_translator, audio, self.config.samples_per_frame,
+        return iter_translate(self.run_translator, audio, self.config.samples_per_frame,
                               silence_gate_dbfs=self.silence_gate_dbfs)
 
     def translate(self, audio: np.ndarray) -> tuple[np.ndarray, np.ndarray] | np.ndarray:

@@ -117,7 +117,7 @@ class LiveSession:
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise LiveError(f"{name} must be a finite number >= 0, got {value!r}")
         if not head.has_translator:
-            head._run_translator(np.zeros(1, np.float32))  # raises the BundleError that says why and what instead
+            head.run_translator(np.zeros(1, np.float32))  # raises the BundleError that says why and what instead
         self.head, self.paced, self.output = head, bool(paced), output
         self.fps = float(head.fps)
         self.lookahead_frames = math.ceil(lookahead_ms * self.fps / 1000.0 - 1e-9)
@@ -354,7 +354,7 @@ class LiveSession:
     def _translate(self, window: np.ndarray, count: int, shown: list, late: bool, epoch: int) -> None:
         """Run the translator on a window outside the lock; keep the batch's frames unless interrupted meanwhile."""
         frames = self.context_frames + count + self.lookahead_frames
-        params = self._params_of(self.head._run_translator(window), frames) * np.float32(
+        params = self._params_of(self.head.run_translator(window), frames) * np.float32(
             silence_gain(window, self.head.silence_gate_dbfs))
         with self._cond:
             self.stats.translator_calls += 1

@@ -164,7 +164,7 @@ def pack_gaussians(means, cov3d, rgb, opacity) -> np.ndarray:
     return packed
 
 
-def _background_rgb(background) -> tuple[float, float, float]:
+def background_rgb(background) -> tuple[float, float, float]:
     """Three finite floats, or RenderError."""
     values = np.asarray(background, dtype=np.float64).reshape(-1)
     if values.shape != (3,) or not np.all(np.isfinite(values)):
@@ -336,7 +336,7 @@ class GLSplatter:
 
     # -- per frame ------------------------------------------------------------------------------------------
 
-    def _plan_runs(self, rows: np.ndarray, camera: Camera) -> list[tuple[int, int, bool]]:
+    def plan_runs(self, rows: np.ndarray, camera: Camera) -> list[tuple[int, int, bool]]:
         """Draw runs for the sorted rows: points where the box surely fits a point sprite, quads elsewhere."""
         n = len(rows)
         if n == 0:
@@ -416,7 +416,7 @@ class GLSplatter:
         """Validate, pack, depth-sort and plan draw runs (numpy only, no GL: safe on a worker thread)."""
         start = time.perf_counter()
         rows, camera, output_size = sorted_rows(self._sorter, self.settings, means, cov3d, rgb, opacity, camera)
-        runs = self._plan_runs(rows, camera)
+        runs = self.plan_runs(rows, camera)
         return PreparedSplats(rows, runs, camera, time.perf_counter() - start, output_size)
 
     def draw(self, prepared: PreparedSplats, background, *, output: str = "uint8") -> np.ndarray:
@@ -425,7 +425,7 @@ class GLSplatter:
             raise RenderError("this GLSplatter has been released")
         if output not in FRAME_OUTPUTS:
             raise RenderError(f"output must be one of {', '.join(map(repr, FRAME_OUTPUTS))}, got {output!r}")
-        background = _background_rgb(background)
+        background = background_rgb(background)
         timings = dict.fromkeys(STAGES, 0.0)
         timings["sort"] = prepared.seconds
         try:

@@ -40,6 +40,9 @@ MAX_MANIFEST_BYTES = 16 * 1024 * 1024
 # Largest graph a compressed entry may inflate to (protobuf's own 2 GiB limit): checked before inflating.
 MAX_GRAPH_BYTES = 2**31 - 1
 GRAPH_COMPRESSIONS = ("zlib",)
+# The manifest's "driver" of a FLAME speaker that only FLAME parameters drive (no translator graph: an imported
+# avatar without an audio model, or a scene specialised for FLAME drives; docs/bundle-format.md).
+FLAME_DRIVER = "flame"
 _HEADER = struct.Struct("<8sHHIQ32s")
 
 

@@ -39,6 +39,11 @@ H264_COLOUR_TAGS = "colorprim=bt709:transfer=iec61966-2-1:colormatrix=bt470bg:ra
 MAX_CLIP_FRAMES = 100_000
 # A mask must have at least this many pixels at M >= 0.5: a clip "with no face in the mask" is refused.
 MIN_FACE_PIXELS = 16
+# The crop the inpainting generator F sees (the bundle records both; docs/compositing.md): pixels of context around
+# the mask's support on every side (its receptive field at half resolution), and the multiple every crop side is
+# padded to (the generator pools by 2 and has up to 3 stride-2 levels).
+CROP_MARGIN_PX = 16
+CROP_MULTIPLE = 16
 _MASK_LEVELS = 255.0
 
 

@@ -16,8 +16,8 @@ import pytest
 from gaussiantalker.exporter.bench.compare import (
     PACKAGES,
     Version,
-    _alternating,
     _without_names,
+    alternating,
     checkout_root,
     this_version_root,
 )
@@ -47,7 +47,7 @@ def test_each_version_imports_its_own_copy(tmp_path):
 
 
 def test_rounds_alternate_which_version_goes_first():
-    assert list(_alternating(["a", "b"], 3)) == [(0, "a"), (0, "b"), (1, "b"), (1, "a"), (2, "a"), (2, "b")]
+    assert list(alternating(["a", "b"], 3)) == [(0, "a"), (0, "b"), (1, "b"), (1, "a"), (2, "a"), (2, "b")]
 
 
 def test_the_baseline_checkpoint_drops_only_the_names(small_speaker, tmp_path):

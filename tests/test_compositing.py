@@ -211,7 +211,7 @@ def test_fallback_without_opencv_says_what_to_install(monkeypatch):
 # -- the runtime -------------------------------------------------------------------------------------------------
 
 def test_head_composites_into_the_clip_following_its_track(clip_export, tmp_path):
-    from gaussiantalker.exporter.model.compositing import composite_reference
+    from gaussiantalker.exporter.verify.compositing import composite_reference
     from gaussiantalker.runtime import TalkingHead
 
     with TalkingHead(clip_export.path) as head:

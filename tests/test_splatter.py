@@ -233,10 +233,10 @@ def test_points_and_quads_give_identical_pixels(splatter, monkeypatch):
         # A point-size limit in the middle of the splat sizes: many alternating point/quad runs.
         monkeypatch.setattr(splatter, "max_point_size", float(np.median(2 * extent_radius_bound(rows, camera))))
         monkeypatch.setattr(splatter_module, "RUN_COST_IN_SPLATS", 0)
-        assert len(splatter._plan_runs(rows, camera)) > 4
+        assert len(splatter.plan_runs(rows, camera)) > 4
         np.testing.assert_array_equal(splatter.render(*scene, camera, BACKGROUND, output="float"), expected)
         monkeypatch.setattr(splatter_module, "RUN_COST_IN_SPLATS", 1000)  # runs too costly: quads only
-        assert splatter._plan_runs(rows, camera) == [(0, len(rows), True)]
+        assert splatter.plan_runs(rows, camera) == [(0, len(rows), True)]
         np.testing.assert_array_equal(splatter.render(*scene, camera, BACKGROUND, output="float"), expected)
     finally:
         quads_only.release()

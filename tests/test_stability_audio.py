@@ -457,7 +457,7 @@ def test_window_joins_have_no_visible_seam(head, stability):
     well below the natural frame-to-frame change of speech. First found: a hard cut between windows added up to
     ~half a median step in one frame; joins are now a 20-frame cross-fade."""
     audio = synth_speech(30.0, seed=8)
-    run = head._run_translator
+    run = head.run_translator
     out = run(audio)
     one_shot = np.concatenate([out["expression"][0], out["jaw_pose"][0]], axis=1)
     windowed, cut = _params(run, audio), _params(run, audio, crossfade_frames=0)
@@ -486,7 +486,7 @@ def test_lazy_translation_runs_one_window_at_a_time(head):
 
     def run(chunk: np.ndarray) -> dict:
         calls.append(chunk.shape[0] // SPF)
-        return head._run_translator(chunk)
+        return head.run_translator(chunk)
 
     blocks = iter_translate(run, np.zeros(SPF * 3 * WINDOW_FRAMES, np.float32), SPF)
     first = next(blocks)
@@ -506,11 +506,11 @@ def _torch_run(speaker):
 def test_silence_gate_closes_the_mouth_on_low_level_noise(head, speaker, stability):
     """Per-window normalisation amplifies low-level noise: ungated the jaw opens ~0.23 rad with no speech."""
     noise = RNG.standard_normal(3 * SR).astype(np.float32)
-    runs = {"runtime": head._run_translator, "torch": _torch_run(speaker)}
+    runs = {"runtime": head.run_translator, "torch": _torch_run(speaker)}
     for level in (-80.0, SILENCE_GATE_DBFS - SILENCE_GATE_RAMP_DB / 2, -40.0):
         quiet = noise * np.float32(10 ** (level / 20))
         gated = {side: _params(run, quiet)[:, -3] for side, run in runs.items()}
-        ungated = _params(head._run_translator, quiet, silence_gate_dbfs=None)[:, -3]
+        ungated = _params(head.run_translator, quiet, silence_gate_dbfs=None)[:, -3]
         measured_db = 10 * np.log10(np.var(quiet.astype(np.float64)))  # one window: 75 frames, no padding
         expected_gain = float(np.clip((measured_db - SILENCE_GATE_DBFS) / SILENCE_GATE_RAMP_DB + 1, 0, 1))
         assert np.abs(gated["runtime"] - expected_gain * ungated).max() < 1e-4
@@ -521,7 +521,7 @@ def test_silence_gate_closes_the_mouth_on_low_level_noise(head, speaker, stabili
                          f"torch path {gated['torch'].mean():.3f}")
     for level in (-20.0, -50.0):  # speech at normal and low level: the gate leaves it alone
         speech = SPEECH * np.float32(10 ** (level / 20) / np.sqrt(np.mean(SPEECH**2)))
-        gated, ungated = _params(head._run_translator, speech), _params(head._run_translator, speech,
+        gated, ungated = _params(head.run_translator, speech), _params(head.run_translator, speech,
                                                                          silence_gate_dbfs=None)
         np.testing.assert_array_equal(gated, ungated)
         assert gated[:, -3].max() > 0.1

@@ -128,7 +128,7 @@ class Comparison:
         return out
 
 
-def _alternating(labels: list[str], rounds: int):
+def alternating(labels: list[str], rounds: int):
     """(round, label) pairs with the order reversed every other round: A B, B A, A B, ..."""
     for r in range(rounds):
         for label in (labels if r % 2 == 0 else labels[::-1]):
@@ -171,7 +171,7 @@ def compare(baseline: Path, *, gaussians: list[int], sizes: list[int], seconds: 
                 for size in sizes:
                     case = f"{count}@{size}"
                     result.cases[case] = {label: [] for label in labels}
-                    for _, label in _alternating(labels, rounds):
+                    for _, label in alternating(labels, rounds):
                         bar.set_postfix_str(f"{case}: {label}")
                         result.cases[case][label].append(versions[label].ask(
                             op="frames", bundle=str(bundles[label]), size=size, audio=str(audio), warmup=warmup))
@@ -214,7 +214,7 @@ def _time_players(versions: dict[str, Version], tmp: Path, count: int, seconds: 
 
     audio = tmp / "play.wav"
     write_wav(audio, synth_speech(seconds, seed=11))
-    for _, label in _alternating(list(versions), rounds):
+    for _, label in alternating(list(versions), rounds):
         version = versions[label]
         player = _player(version.root)
         if player is None:

@@ -35,8 +35,8 @@ from ..export.checkpoint import load_checkpoint
 from ..export.export import export_bundle
 from ..export.presets import ExportSettings
 from ..export.speech import synth_speech
-from ..model.compositing import torch_inpainter
 from ..model.speaker import Speaker
+from ..verify.compositing import torch_inpainter
 
 MIN_JAW_CHANGE = 0.1  # radians between the re-rendered jaw and the clip frame's own
 F_CODECS = ("raw", "fp16", "q8", "q4")  # the inpaint codec knob's values measured (raw: the reference)

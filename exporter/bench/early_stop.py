@@ -49,7 +49,7 @@ def splat_inputs(speaker, size: int, pose_frame: int | None = None) -> tuple:
 def prefix(splatter: GLSplatter, prepared: PreparedSplats, count: int) -> PreparedSplats:
     """The prepared frame cut to its first `count` depth-sorted Gaussians."""
     rows = prepared.rows[:count]
-    return dataclasses.replace(prepared, rows=rows, runs=splatter._plan_runs(rows, prepared.camera))
+    return dataclasses.replace(prepared, rows=rows, runs=splatter.plan_runs(rows, prepared.camera))
 
 
 def saturation(splatter: GLSplatter, inputs: tuple, fractions=SATURATION_FRACTIONS) -> dict:

@@ -24,7 +24,7 @@ from gaussiantalker.sdk.progress import progress_bar
 from gaussiantalker.sdk.render_settings import RenderSettings
 
 from ..export.presets import PRESETS, ExportSettings
-from .compare import Version, _alternating, this_version_root
+from .compare import Version, alternating, this_version_root
 from .quality import clip_quality, reference_clip
 from .worker import STAGES
 
@@ -166,7 +166,7 @@ def sweep_speaker(name: str, speaker, cases: list[SweepCase], *, sizes: list[int
                 worker.start(tmp)
             for size in sizes:
                 runs: dict[str, list[dict]] = {label: [] for label in labels}
-                for round_index, label in _alternating(labels, rounds):
+                for round_index, label in alternating(labels, rounds):
                     bar.set_postfix_str(f"{size}² round {round_index + 1}: {label}")
                     save = str(tmp / f"frames-{labels.index(label)}-{size}.npy") if round_index == 0 else None
                     runs[label].append(workers[label].ask(

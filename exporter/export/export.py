@@ -12,15 +12,13 @@ import onnx
 import torch
 from tqdm import tqdm
 
-from gaussiantalker.runtime.bundle_checks import FLAME_DRIVER
-from gaussiantalker.runtime.composite import CROP_MARGIN_PX, CROP_MULTIPLE
 from gaussiantalker.sdk import __version__ as sdk_version
-from gaussiantalker.sdk.bundle import BundleWriter
+from gaussiantalker.sdk.bundle import FLAME_DRIVER, BundleWriter
 from gaussiantalker.sdk.config import POSE_DIM
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.files import StagedFile
 from gaussiantalker.sdk.progress import progress_bar
-from gaussiantalker.sdk.reference_clip import ReferenceClipError, frame_entry, mask_entry
+from gaussiantalker.sdk.reference_clip import CROP_MARGIN_PX, CROP_MULTIPLE, ReferenceClipError, frame_entry, mask_entry
 from gaussiantalker.sdk.scene import Scene
 
 from ..model.arkit_speaker import ArkitSpeaker

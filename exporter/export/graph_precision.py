@@ -19,7 +19,7 @@ from pathlib import Path
 
 import onnx
 
-from .onnx_export import _quiet_logger
+from .onnx_export import quiet_logger
 from .presets import TRANSLATOR_PRECISIONS
 
 
@@ -43,7 +43,7 @@ def _quantize_int8(model: onnx.ModelProto) -> onnx.ModelProto:
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     # The quantisation tools read and write files.
-    with tempfile.TemporaryDirectory(prefix="gt-int8-") as tmp, _quiet_logger("root"), \
+    with tempfile.TemporaryDirectory(prefix="gt-int8-") as tmp, quiet_logger("root"), \
             contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
         warnings.simplefilter("ignore")
         source, prepared, quantised = (Path(tmp) / name for name in ("model.onnx", "prepared.onnx", "int8.onnx"))

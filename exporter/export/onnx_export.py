@@ -23,7 +23,7 @@ EXTERNALIZE_MIN_BYTES = 1024
 
 
 @contextlib.contextmanager
-def _quiet_logger(name: str) -> Iterator[None]:
+def quiet_logger(name: str) -> Iterator[None]:
     """Raise one logger's level to ERROR for the duration of a call, then restore it (global state untouched)."""
     logger = logging.getLogger(name)
     previous = logger.level
@@ -43,7 +43,7 @@ def export_onnx(module: torch.nn.Module, args: tuple, input_names: list[str], ou
     zero rotation into NaN. onnxruntime constant-folds and fuses the graph itself when it loads it.
     """
     module.eval()
-    with _quiet_logger("torch.onnx"), warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), \
+    with quiet_logger("torch.onnx"), warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), \
             torch.no_grad():
         warnings.simplefilter("ignore")
         program = torch.onnx.export(module, args, dynamo=True, input_names=input_names,

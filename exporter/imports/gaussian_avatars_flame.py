@@ -22,8 +22,8 @@ from ..model.flame import (
     BASE_REGION,
     TEETH_REGION,
     FlameArrays,
-    _parents_from_kintree,
     load_flame_npz,
+    parents_from_kintree,
 )
 from .flame_pkl import FLAME_LAYOUT, N_EXPR_KEY, N_SHAPE_KEY, VERSION_KEY, detect_version, flame_arrays_from_pickle
 
@@ -204,7 +204,7 @@ def _load_pickle(path: Path) -> FlameArrays:
         J_regressor=_f32(raw["J_regressor"]),
         lbs_weights=_f32(raw["weights"]),
         faces=np.ascontiguousarray(raw["f"], dtype=np.int64),
-        parents=_parents_from_kintree(raw["kintree_table"]),
+        parents=parents_from_kintree(raw["kintree_table"]),
     ).validate()
 
 

@@ -210,7 +210,7 @@ def load_flame_npz(
             J_regressor=_f32(raw["J_regressor"]),
             lbs_weights=_f32(raw["weights"]),
             faces=np.ascontiguousarray(raw["f"], dtype=np.int64),
-            parents=_parents_from_kintree(raw["kintree_table"]),
+            parents=parents_from_kintree(raw["kintree_table"]),
         ).validate()
     except CheckpointError as exc:  # the layout checks, told with the file they are about
         raise CheckpointError(f"FLAME npz {path}: {exc}") from None
@@ -220,7 +220,7 @@ def _f32(array: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(array, dtype=np.float32)
 
 
-def _parents_from_kintree(kintree: np.ndarray) -> tuple[int, ...]:
+def parents_from_kintree(kintree: np.ndarray) -> tuple[int, ...]:
     """Parent index per joint from FLAME's [2, 5] kintree_table (root parent stored as uint32 max)."""
     if kintree.shape != (2, N_JOINTS) or list(kintree[1]) != list(range(N_JOINTS)):
         raise CheckpointError(f"FLAME npz 'kintree_table' {kintree.tolist()} is not a 5-joint FLAME tree")

@@ -45,8 +45,8 @@ from gaussiantalker.sdk.progress import progress_bar
 from ..export.probes import driven_clip, motion_clip, plays_audio, speech_clip
 from ..export.speech import synth_speech
 from ..model.arkit_speaker import ArkitSpeaker
-from ..model.compositing import composite_reference
 from ..model.speaker import Speaker
+from .compositing import composite_reference
 from .probes import random_blendshape_drives, random_crops, random_drives
 
 GRAPH_RTOL = 1e-4

@@ -179,7 +179,7 @@ class _StubHead:
     def __init__(self, sess: ort.InferenceSession, fps: int) -> None:
         self.sess, self.fps = sess, fps
 
-    def _run_translator(self, chunk: np.ndarray) -> dict:
+    def run_translator(self, chunk: np.ndarray) -> dict:
         return {"blendshapes": self.sess.run(["blendshapes"], {"audio": chunk[None]})[0]}
 
     def blendshape_drive(self, weights, head_pose=None) -> np.ndarray:
@@ -191,7 +191,7 @@ class _StubHead:
 
 def offline_frames(sess: ort.InferenceSession, audio: np.ndarray, fps: int) -> np.ndarray:
     """The runtime's offline path: windows, cross-fades and the silence gate (runtime/translate.py)."""
-    run = _StubHead(sess, fps)._run_translator
+    run = _StubHead(sess, fps).run_translator
     return np.concatenate(list(iter_translate(run, audio, SAMPLE_RATE / fps, params_of=blendshape_params)))
 
 

@@ -8,7 +8,7 @@ import torch
 
 from gaussiantalker.runtime.composite import Inpainter, composite, opencv_fallback
 
-from .inpainter import InpainterNet
+from ..model.inpainter import InpainterNet
 
 
 def torch_inpainter(model: InpainterNet | None) -> Inpainter:
