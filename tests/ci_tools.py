@@ -9,7 +9,7 @@ import os
 import pytest
 
 # What installs each tool in CI, named in the failure.
-BROWSER_INSTALL = ".ci/browser (Debian's chromium and LAM's npm renderer)"
+BROWSER_INSTALL = ".ci/browser (Debian's chromium, LAM's npm renderer and web/'s npm install)"
 
 
 def need(missing: str | None, installed_by: str, *, module_level: bool = False) -> None:
@@ -33,8 +33,9 @@ def need_module(module: str, extra: str, *, module_level: bool = False) -> None:
 
 
 def need_chromium() -> None:
-    """`need` for Debian's chromium (the browser tests: tests/test_lam_web.py, tests/test_live_browser.py)."""
-    from gaussiantalker.exporter.bench.chromium import ChromiumMissing, chromium_path
+    """`need` for Debian's chromium (the browser tests: tests/test_lam_web.py, tests/test_live_browser.py,
+    tests/test_web_player.py)."""
+    from gaussiantalker.runtime.chromium import ChromiumMissing, chromium_path
 
     try:
         chromium_path()

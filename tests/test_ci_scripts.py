@@ -178,20 +178,22 @@ def test_run_sets_ci_for_the_suite_and_fails_where_the_browser_tools_did(tmp_pat
         assert "could not be installed" not in result.stderr
     else:
         assert result.returncode == 1, result.stdout + result.stderr
-        assert "the browser tests (tests/test_lam_web.py, tests/test_live_browser.py) fail" in result.stderr
+        assert "the browser tests (tests/test_lam_web.py, tests/test_live_browser.py, tests/test_web_player.py) " \
+            "fail" in result.stderr
 
 
 # Loaded into the fresh pytest below (-p): Chromium's fixed path becomes $STUB_CHROMIUM, missing or a stub.
 STUB_BROWSER_PLUGIN = """\
 import os
-from gaussiantalker.exporter.bench import chromium
+from gaussiantalker.runtime import chromium
 chromium.CHROMIUM = os.environ["STUB_CHROMIUM"]
 """
-BROWSER_MODULES = ("tests/test_lam_web.py", "tests/test_live_browser.py")
+BROWSER_MODULES = ("tests/test_lam_web.py", "tests/test_live_browser.py", "tests/test_web_player.py")
 # Browser tests that need only chromium, and some that need the npm renderer as well.
 NEEDS_CHROMIUM = {"test_headless_chromium_has_webgl2_with_our_flags",
                   "test_browser_receives_the_head_talking_with_its_microphone",
-                  "test_a_page_that_leaves_mid_reply_ends_its_session"}
+                  "test_a_page_that_leaves_mid_reply_ends_its_session", "test_a_wrong_magic_is_refused",
+                  "test_sample_page_plays_a_bundle_with_its_audio"}
 NEEDS_RENDERER = {"test_harness_page_imports_the_installed_renderer", "test_cli_writes_frames_cameras_and_weights",
                   "test_runtime_frames_match_the_web_renderer", "test_synthetic_background_is_the_clear_colour",
                   "test_synthetic_splats_land_where_our_camera_projects_them"}

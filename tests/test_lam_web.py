@@ -19,7 +19,6 @@ import pytest
 from ci_tools import need_chromium, need_lam_renderer
 
 from gaussiantalker.exporter.bench import lam_web, lam_web_camera
-from gaussiantalker.exporter.bench.chromium import Chromium, ChromiumMissing, chromium_path
 from gaussiantalker.exporter.bench.lam_web_camera import (
     ThreeCamera,
     from_three,
@@ -32,6 +31,7 @@ from gaussiantalker.exporter.bench.lam_web_camera import (
 )
 from gaussiantalker.exporter.bench.lam_web_run import parse_frames, write_png
 from gaussiantalker.exporter.bench.lam_web_synthetic import default_splats, write_synthetic_avatar
+from gaussiantalker.runtime.chromium import Chromium, ChromiumMissing, chromium_path
 from gaussiantalker.sdk.camera import Camera
 
 

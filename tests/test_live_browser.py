@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from ci_tools import need_chromium, need_module
 
-from gaussiantalker.exporter.bench.chromium import Chromium
+from gaussiantalker.runtime.chromium import Chromium
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 64

@@ -22,10 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
+from gaussiantalker.runtime.chromium import INSTALL_CHROMIUM, Chromium, chromium_path
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
 
-from .chromium import INSTALL_CHROMIUM, Chromium, chromium_path
 from .lam_web_camera import lam_default_camera, to_three
 
 PACKAGE = "gaussian-splat-renderer-for-lam"

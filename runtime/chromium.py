@@ -1,6 +1,7 @@
 """Headless Debian Chromium driven over the DevTools protocol on a pipe: no browser download, no extra package.
 
-The LAM web harness (docs/lam-web.md) uses it to run the original web renderer; Chromium reaches only 127.0.0.1.
+The browser player's harness (`gt-web`, docs/web.md) and the LAM web harness (docs/lam-web.md) use it; Chromium
+reaches only 127.0.0.1. It needs nothing but the standard library, so the runtime carries it.
 """
 
 from __future__ import annotations

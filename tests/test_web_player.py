@@ -1,0 +1,338 @@
+"""The browser player (web/, docs/web.md) against the Python runtime, in headless Debian chromium.
+
+Fidelity: frames of the web player (onnxruntime-web's wasm backend, WebGL2 on SwiftShader) against TalkingHead's
+GL frames (llvmpipe) of the same bundle, drive and camera, at 8 bit. Tolerance: PSNR >= 40 dB (RMS error 2.55
+levels). Both sides run the same graphs, the same GLSL and the same draw plan, but not the same float32 maths:
+onnxruntime-web's kernels may sum in another order than native onnxruntime's (graph outputs ~1e-7 apart),
+SwiftShader rounds exp, division and fused multiply-adds in the shaders its own way, and Gaussians whose depths
+come out a few ulps apart may swap order. Each of these moves a few pixels by a level or so (measured: 97-99 dB,
+at most 1 level, on these bundles); any real disagreement (a convention, an axis, a missing group of Gaussians,
+a wrong drive row) costs far more than 40 dB. The translator rows are held to docs/porting.md's bound for graph
+outputs (1e-4 of max(1, max |reference|)).
+
+Rejection: damaged files are refused by the player with the Python reader's message (the file's name for its path).
+
+The browser tests skip without chromium or the player's npm install, except where CI is set: there .ci/browser
+installs both, and they fail (tests/ci_tools.py). The rest (generated assets, the CLI's argument checks) always runs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ci_tools import BROWSER_INSTALL, need, need_chromium
+from typer.testing import CliRunner
+
+from gaussiantalker.runtime import web_assets
+from gaussiantalker.runtime.web_cli import app, parse_size
+from gaussiantalker.runtime.web_harness import check_web_player
+from gaussiantalker.sdk.bundle import Bundle, BundleWriter
+from gaussiantalker.sdk.errors import BundleError
+from gaussiantalker.sdk.image import psnr_db
+
+ROOT = Path(__file__).resolve().parents[1]
+MIN_PSNR_DB = 40.0
+SIZE = (128, 128)
+
+
+# -- no browser ----------------------------------------------------------------------------------------------
+
+
+def test_generated_module_matches_the_shaders_and_constants():
+    """web/src/generated.js is what the runtime generates now (shaders/ and the constants have one source)."""
+    assert web_assets.stale_message() is None
+
+
+def test_package_pins_onnxruntime_web_exactly():
+    package = json.loads((ROOT / "web" / "package.json").read_text())
+    lock = json.loads((ROOT / "web" / "package-lock.json").read_text())
+    version = package["dependencies"]["onnxruntime-web"]
+    assert version[0].isdigit(), "an exact version, not a range"
+    assert lock["packages"]["node_modules/onnxruntime-web"]["version"] == version
+
+
+def test_cli_checks_its_arguments_before_starting_a_browser(tmp_path):
+    bundle = tmp_path / "x.gtb"
+    bundle.write_bytes(b"")
+    runner = CliRunner()
+    result = runner.invoke(app, ["render", str(bundle), "-o", str(tmp_path / "out")])
+    assert result.exit_code == 2 and "exactly one of --audio and --motion" in result.output
+    assert parse_size("96x64") == (96, 64) and parse_size("80") == (80, 80)
+    result = runner.invoke(app, ["render", str(bundle), "--motion", str(bundle), "--size", "0x9", "-o", str(tmp_path)])
+    assert result.exit_code == 2 and "WIDTHxHEIGHT" in result.output
+
+
+# -- in the browser ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="session")
+def player_ready() -> None:
+    """Chromium and the player's npm install, checked before any bundle is built (first in each browser test's
+    arguments: a skip, or a failure under CI, costs no speaker training)."""
+    need_chromium()
+    need(check_web_player(), BROWSER_INSTALL)
+
+
+@pytest.fixture(scope="module")
+def page(player_ready):
+    """One headless chromium with the player's harness page, for the whole module."""
+    from gaussiantalker.runtime.web_harness import WebPlayerPage
+
+    with WebPlayerPage() as page:
+        yield page
+
+
+@pytest.fixture(scope="module")
+def speech_wav(tmp_path_factory) -> Path:
+    """12 s of the demo speech (16 kHz): 300 frames, so the translator runs two windows with a cross-fade."""
+    from gaussiantalker.sdk.audio import load_audio, write_wav
+
+    speech = load_audio(ROOT / "samples" / "demo_speech.wav")
+    path = tmp_path_factory.mktemp("web_audio") / "speech12.wav"
+    write_wav(path, np.concatenate([speech, speech[: 2 * 16000]]))
+    return path
+
+
+@pytest.fixture(scope="module")
+def lam_bundle(tmp_path_factory) -> tuple[Path, Path]:
+    """A small synthetic LAM avatar (tests/lam_avatars.py) imported and exported, and a motion file for it."""
+    from lam_avatars import motion_json, write_avatar_zip
+
+    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.imports.lam import import_lam
+
+    folder = tmp_path_factory.mktemp("web_lam")
+    path = folder / "avatar.gtb"
+    export_bundle(import_lam(write_avatar_zip(folder / "avatar.zip"), progress=False), path, progress=False)
+    motion = folder / "bsData.json"
+    motion.write_text(json.dumps(motion_json()))
+    return path, motion
+
+
+def _python_frames(bundle: Path, indexes: list[int], audio: Path | None = None, motion: Path | None = None,
+                   camera=None) -> tuple[list[np.ndarray], np.ndarray]:
+    """TalkingHead's GL frames at `indexes` and its drive rows (FLAME: expression then jaw; ARKit: weights)."""
+    from gaussiantalker.runtime import TalkingHead
+
+    extra = {"camera": camera} if camera is not None else {}
+    with TalkingHead(bundle, resolution=SIZE, renderer="gl", composite=False, **extra) as head:
+        drives = list(head.drives(audio) if audio else head.motion_drives(motion))
+        frames = [head.render(drives[i]) for i in indexes]
+    if audio:
+        rows = np.stack([np.concatenate([d.expression, d.flame_pose[6:9]]) for d in drives])
+    else:
+        rows = np.stack([d.blendshapes for d in drives])
+    return frames, rows
+
+
+def _check_frames(page, python_frames: list[np.ndarray], indexes: list[int]) -> list[float]:
+    scores = []
+    for index, reference in zip(indexes, python_frames, strict=True):
+        frame, timings = page.render(index)
+        assert frame.shape == reference.shape
+        scores.append(psnr_db(reference, frame))
+        assert scores[-1] >= MIN_PSNR_DB, (index, scores[-1], timings)
+    return scores
+
+
+def test_flame_speaker_from_audio_matches_the_python_runtime(player_ready, page, small_export, speech_wav):
+    """The small FLAME speaker: audio decoded and translated in the browser (two windows, a cross-fade), frames
+    across the join."""
+    indexes = [0, 120, 250, 299]
+    info = page.load(small_export.path, size=SIZE)
+    assert info["rig"] == "flame" and info["precision"] == "float32" and info["fallback"] is None
+    assert page.drive(audio=speech_wav)["frames"] == 300
+    python_frames, python_rows = _python_frames(small_export.path, indexes, audio=speech_wav)
+    rows = page.drive_rows()
+    assert rows.shape == python_rows.shape
+    bound = 1e-4 * max(1.0, float(np.abs(python_rows).max()))
+    assert float(np.abs(rows - python_rows).max()) <= bound
+    _check_frames(page, python_frames, indexes)
+
+
+def test_novel_camera_matches_the_python_runtime(player_ready, page, small_export, speech_wav):
+    from gaussiantalker.sdk.camera import Camera
+
+    camera = Camera.from_dict(Bundle(small_export.path).manifest["camera"]).resized(*SIZE)
+    target = camera.center + camera.R[2] * float(np.linalg.norm(camera.center))
+    novel = camera.orbited(25.0, 10.0, target)
+    page.load(small_export.path, size=SIZE, camera=novel.to_dict())
+    page.drive(audio=speech_wav)
+    python_frames, _ = _python_frames(small_export.path, [40], audio=speech_wav, camera=novel)
+    _check_frames(page, python_frames, [40])
+
+
+def test_arkit_avatar_from_a_motion_file_matches_the_python_runtime(player_ready, page, lam_bundle):
+    bundle, motion = lam_bundle
+    indexes = [0, 3, 11]
+    info = page.load(bundle, size=SIZE)
+    assert info["rig"] == "arkit"
+    assert page.drive(motion=motion)["frames"] == 12
+    python_frames, python_rows = _python_frames(bundle, indexes, motion=motion)
+    assert np.array_equal(page.drive_rows(), python_rows)
+    _check_frames(page, python_frames, indexes)
+    assert page.drive(weights=python_rows, fps=info["fps"])["frames"] == 12  # the same weights given directly
+    assert np.array_equal(page.drive_rows(), python_rows)
+    _check_frames(page, python_frames[-1:], indexes[-1:])
+    page.drive(weights=python_rows[::2], fps=info["fps"] / 2)  # at half the rate: resampled to the speaker's
+    assert page.drive_rows().shape == python_rows.shape
+
+
+# -- bundle reading and rejection ----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def tiny_bundle(tmp_path_factory) -> Path:
+    """A bundle of one buffer per codec (and a stand-in graph): what the reader checks needs no real graphs."""
+    rng = np.random.default_rng(0)
+    writer = BundleWriter({"note": "codecs"})
+    values = rng.normal(size=(7, 37)).astype(np.float32)
+    for codec in ("raw", "fp16", "q16", "q8", "q4"):
+        writer.add_buffer(f"values/{codec}", values, codec, chunk=16 if codec.startswith("q") else None)
+    writer.add_buffer("values/half", values.astype(np.float16), "q8", chunk=32)
+    writer.add_buffer("faces", rng.integers(0, 3000, size=(50, 3)).astype(np.int64), "index")
+    writer.add_buffer("pose_track", rng.normal(size=(5, 6)).astype(np.float32))
+    writer.add_graph("stand_in", b"not an onnx model, never run" * 40, inputs=[], outputs=[])
+    path = tmp_path_factory.mktemp("web_bundle") / "tiny.gtb"
+    writer.write(path)
+    return path
+
+
+def test_buffers_decode_bit_for_bit_as_in_python(page, tiny_bundle):
+    bundle = Bundle(tiny_bundle)
+    for name in bundle.manifest["buffers"]:
+        decoded = page.decode(tiny_bundle, name)
+        expected = bundle.buffer(name)
+        assert decoded.dtype == expected.dtype and decoded.tobytes() == expected.tobytes(), name
+    assert page.check(tiny_bundle) is None
+
+
+def _python_message(path: Path) -> str:
+    """The Python reader's refusal, with the file's name for its path (as the player names it)."""
+    with pytest.raises(BundleError) as caught:
+        Bundle(path).verify_all()
+    return f"BundleError: {str(caught.value).replace(str(path), path.name)}"
+
+
+def _entry_start(path: Path, name: str) -> int:
+    bundle = Bundle(path)
+    return bundle.payload_start + bundle.manifest["buffers"][name]["offset"]
+
+
+def test_a_flipped_byte_is_refused_naming_the_entry(page, tiny_bundle, tmp_path):
+    data = bytearray(tiny_bundle.read_bytes())
+    data[_entry_start(tiny_bundle, "pose_track") + 5] ^= 0x40
+    bad = tmp_path / "flipped.gtb"
+    bad.write_bytes(bytes(data))
+    message = page.check(bad)
+    assert message == "BundleError: flipped.gtb: checksum mismatch in buffer 'pose_track' (the file is corrupt)"
+    assert message == _python_message(bad)
+
+
+def test_a_truncated_file_is_refused_naming_the_entry_cut_short(page, tiny_bundle, tmp_path):
+    start = _entry_start(tiny_bundle, "faces")
+    bad = tmp_path / "cut.gtb"
+    bad.write_bytes(tiny_bundle.read_bytes()[: start + 10])
+    nbytes = Bundle(tiny_bundle).manifest["buffers"]["faces"]["nbytes"]
+    message = page.check(bad)
+    assert message == (f"BundleError: cut.gtb: truncated inside buffer 'faces': it needs bytes {start}.."
+                       f"{start + nbytes}, the file ends at {start + 10}")
+    assert message == _python_message(bad)
+    header_only = tmp_path / "header.gtb"
+    header_only.write_bytes(tiny_bundle.read_bytes()[:40])
+    assert page.check(header_only) == "BundleError: header.gtb: truncated inside the header (40 of 64 bytes)"
+
+
+def test_a_wrong_magic_is_refused(page, tiny_bundle, tmp_path):
+    bad = tmp_path / "magic.gtb"
+    bad.write_bytes(b"GTBUNDLX" + tiny_bundle.read_bytes()[8:])
+    message = page.check(bad)
+    assert message == "BundleError: magic.gtb: not a GaussianTalker bundle (bad magic b'GTBUNDLX')"
+    assert message == _python_message(bad)
+
+
+def test_a_lying_manifest_is_refused(page, tiny_bundle, tmp_path):
+    """A manifest whose digest is right but whose buffer claims a huge shape: refused from the manifest alone,
+    before anything is allocated; and a manifest whose digest is wrong."""
+    data = tiny_bundle.read_bytes()
+    length = struct.unpack_from("<Q", data, 16)[0]
+    manifest = json.loads(data[64:64 + length])
+    manifest["buffers"]["pose_track"]["shape"] = [2**30, 2**20]
+    text = json.dumps(manifest, sort_keys=True).encode()
+    header = data[:16] + struct.pack("<Q", len(text)) + hashlib.sha256(text).digest() + bytes(8)
+    padded = text + bytes(-len(text) % 64)
+    bad = tmp_path / "shape.gtb"
+    bad.write_bytes(header + padded + data[64 + length + (-length % 64):])
+    message = page.check(bad)
+    assert message.startswith("BundleError: shape.gtb: buffer 'pose_track' declares dtype float32 shape "
+                              "[1073741824, 1048576] (4503599627370496 bytes) but stores 120 bytes")
+    assert message == _python_message(bad)
+    digest = bytearray(data)
+    digest[30] ^= 1
+    bad.write_bytes(bytes(digest))
+    assert page.check(bad) == "BundleError: shape.gtb: manifest checksum mismatch (corrupt manifest or header)"
+
+
+# Render settings (docs/precision.md) as the player names them, and as RenderSettings does.
+SETTINGS = [
+    ({"renderTarget": "float16"}, {"render_target": "float16"}),
+    ({"renderTarget": "uint8"}, {"render_target": "uint8"}),
+    ({"renderScale": 0.5, "sortKeyBits": 16}, {"render_scale": 0.5, "sort_key_bits": 16}),
+    ({"sortInterval": 3}, {"sort_interval": 3}),
+]
+
+
+@pytest.mark.parametrize("web_settings, python_settings", SETTINGS, ids=["float16", "uint8", "scale-16bit", "interval"])
+def test_render_settings_match_the_python_runtime(player_ready, page, small_export, speech_wav, web_settings,
+                                                   python_settings):
+    """The framebuffer tiers, the render scale with 16-bit depth keys and the sort interval, frame for frame (in
+    frame order, as a sort interval needs)."""
+    from gaussiantalker.runtime import TalkingHead
+    from gaussiantalker.sdk.render_settings import RenderSettings
+
+    indexes = [0, 1, 2, 3, 4]
+    info = page.load(small_export.path, size=SIZE, settings=web_settings)
+    assert info["precision"] == python_settings.get("render_target", "float32")
+    page.drive(audio=speech_wav)
+    render = RenderSettings(**python_settings)
+    with TalkingHead(small_export.path, resolution=SIZE, renderer="gl", render=render) as head:
+        drives = list(head.drives(speech_wav))[: len(indexes)]
+        python_frames = [head.render(drive) for drive in drives]
+    _check_frames(page, python_frames, indexes)
+
+
+def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export):
+    """samples/web/index.html: a bundle and a WAV by URL, the first frame on its canvas, and playback on the
+    audio clock drawing frames (WebAudio allowed to start without a gesture, as a click would)."""
+    import time
+
+    from gaussiantalker.runtime.chromium import Chromium
+    from gaussiantalker.runtime.web_harness import HarnessServer
+
+    server = HarnessServer(ROOT, {})
+    try:
+        bundle = server.add("small.gtb", small_export.path)
+        audio = server.add("speech.wav", ROOT / "samples" / "demo_speech.wav")
+        with Chromium(window=(640, 720), extra_flags=("--autoplay-policy=no-user-gesture-required",)) as browser:
+            browser.navigate(f"{server.url}/web/samples/web/index.html?bundle={bundle}&audio={audio}")
+            browser.evaluate("new Promise((resolve) => { (function poll() { if (window.gtSampleReady) resolve(1); "
+                             "else setTimeout(poll, 50); })(); })", timeout=120)
+            status = browser.evaluate("document.getElementById('status').textContent")
+            assert status.endswith("ready: 250 frames"), status
+            browser.evaluate("window.gtSample.play()")
+            time.sleep(1.5)
+            playing = browser.evaluate("[window.gtSample.state.playing, window.gtSample.state.context.currentTime]")
+            red = browser.evaluate("(() => { const c = document.getElementById('view'); const d = c.getContext('2d')"
+                                   ".getImageData(0, 0, c.width, c.height).data; let lo = 255, hi = 0; "
+                                   "for (let i = 0; i < d.length; i += 4) { lo = Math.min(lo, d[i]); "
+                                   "hi = Math.max(hi, d[i]); } return [lo, hi]; })()")
+            browser.evaluate("window.gtSample.stop()")
+    finally:
+        server.close()
+    assert playing[0] and playing[1] > 1.0, playing
+    assert red[0] < 200 < red[1], f"the canvas shows a head over the background (red channel {red})"

@@ -1,0 +1,77 @@
+// What `gt-web` (runtime/web_harness.py) drives over the DevTools protocol: window.gtWeb loads a bundle into the
+// player, makes a drive from an audio or motion URL, and renders frames, returning their RGB bytes as base64.
+
+import { readBundle } from '../src/bundle.js';
+import { Player } from '../src/player.js';
+
+let player = null;
+let drive = null;
+
+async function fetchBytes(url) {
+  const response = await fetch(url);
+  if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
+  return new Uint8Array(await response.arrayBuffer());
+}
+
+function base64(bytes) {
+  let text = '';
+  for (let i = 0; i < bytes.length; i += 0x8000) text += String.fromCharCode(...bytes.subarray(i, i + 0x8000));
+  return btoa(text);
+}
+
+window.gtWeb = {
+  /** Read and check a bundle only: null when it is accepted, else the error's message. */
+  async check(url, name) {
+    try {
+      await readBundle(await fetchBytes(url), { name });
+      return null;
+    } catch (error) {
+      return `${error.name}: ${error.message}`;
+    }
+  },
+
+  /** Buffer `buffer` of the bundle at `url` decoded by the player's codecs: {dtype, shape, data (base64)}. */
+  async decode(url, name, buffer) {
+    const bundle = await readBundle(await fetchBytes(url), { name });
+    const { dtype, shape, data } = bundle.buffer(buffer);
+    return { dtype, shape, data: base64(new Uint8Array(data.buffer, data.byteOffset, data.byteLength)) };
+  },
+
+  async load({ url, name, width, height, camera, background, threads, settings }) {
+    if (player) await player.release();
+    player = await Player.load(await fetchBytes(url), { name, width, height, camera: camera ?? undefined,
+      background: background ?? undefined, threads: threads ?? 1, ...(settings ?? {}) });
+    const gl = player.splatter;
+    return { rig: player.rig.kind, fps: player.fps, sampleRate: player.sampleRate, size: player.frameSize,
+      gaussians: player.bundle.manifest.gaussians ?? null, precision: gl.precision, fallback: gl.fallback,
+      renderer: gl.renderer, maxPointSize: gl.maxPointSize, extensions: gl.extensions, load: player.loadTimings,
+      settings: player.settings };
+  },
+
+  async drive({ audio, motion, weights }) {
+    if (audio) drive = await player.driveFromAudioFile(await fetchBytes(audio));
+    else if (weights) drive = player.driveFromWeights(weights.rows, weights.fps);
+    else drive = player.driveFromMotion(motion ? await fetchBytes(motion) : null, motion ?? 'motion');
+    return { frames: drive.frames, translate: player.translateSeconds ?? null };
+  },
+
+  /** The drive's rows (FLAME: expression then jaw; ARKit: weights) as float32 base64, [frames, width]. */
+  driveRows() {
+    const rows = drive.rows;
+    return { frames: drive.frames, width: drive.width,
+      data: base64(new Uint8Array(rows.buffer, rows.byteOffset, rows.byteLength)) };
+  },
+
+  setCamera(camera) {
+    player.setCamera(camera);
+    return player.frameSize;
+  },
+
+  async render(index, output = 'uint8') {
+    const frame = await player.renderFrame(drive, index, { output });
+    const bytes = new Uint8Array(frame.pixels.buffer, frame.pixels.byteOffset, frame.pixels.byteLength);
+    return { width: frame.width, height: frame.height, data: base64(bytes), timings: frame.timings,
+      splats: frame.splats };
+  },
+};
+window.gtWebReady = true;

@@ -1,0 +1,180 @@
+// Buffer codecs of a .gtb bundle: the stored size each implies (checked before anything is read) and decoding.
+// The same codecs, parameters and arithmetic as sdk/codecs.py (docs/bundle-format.md, "Codecs"): quantised values
+// are computed in double precision and rounded once to the dtype, so the decoded weights equal the Python
+// runtime's bit for bit.
+
+export class BundleError extends Error {
+  constructor(message) {
+    super(message);
+    this.name = 'BundleError';
+  }
+}
+
+// dtype -> [ONNX TensorProto.DataType, bytes per element, typed array constructor]
+export const DTYPES = {
+  float32: [1, 4, Float32Array],
+  float16: [10, 2, Uint16Array], // raw half-float bits (JS has no portable Float16Array yet)
+  int32: [6, 4, Int32Array],
+  int64: [7, 8, BigInt64Array],
+  int8: [3, 1, Int8Array],
+  uint8: [2, 1, Uint8Array],
+  uint16: [4, 2, Uint16Array],
+  uint32: [12, 4, Uint32Array],
+};
+export const ONNX_DTYPES = Object.fromEntries(Object.entries(DTYPES).map(([name, [code]]) => [code, name]));
+export const MAX_CHUNK = 1 << 20;
+export const MAX_NDIM = 32;
+export const MAX_ELEMENTS = 1n << 56n;
+const INDEX_TYPES = { uint8: [1, Uint8Array], uint16: [2, Uint16Array], uint32: [4, Uint32Array] };
+const INTEGER_MAX = { int32: 2 ** 31 - 1, int64: Number.MAX_SAFE_INTEGER, int8: 127, uint8: 255, uint16: 65535,
+  uint32: 2 ** 32 - 1 };
+const FLOAT32_MAX = 3.4028234663852886e38;
+const QUANT_BITS = { q16: 16, q8: 8, q4: 4 };
+
+const isFloat = (dtype) => dtype.startsWith('float');
+
+function chunkParam(params, codec) {
+  const chunk = params.chunk;
+  if (!Number.isInteger(chunk) || chunk < 1 || chunk > MAX_CHUNK) {
+    throw new BundleError(`codec '${codec}' needs an integer chunk in 1..${MAX_CHUNK}, got ${JSON.stringify(chunk)}`);
+  }
+  return chunk;
+}
+
+function indexType(params) {
+  if (!Object.hasOwn(INDEX_TYPES, params.stored)) {
+    throw new BundleError(`codec 'index' needs stored in uint8, uint16, uint32, got ${JSON.stringify(params.stored)}`);
+  }
+  return params.stored;
+}
+
+/** Element count of a shape as a BigInt (a huge claimed shape is a big number, never an allocation). */
+function count(shape) {
+  return shape.reduce((n, d) => n * BigInt(d), 1n);
+}
+
+/** Stored bytes implied by codec, dtype, shape and parameters (a BigInt), or BundleError: sdk/codecs.py
+ * `expected_nbytes`, checked against the entry's nbytes before anything is allocated. */
+export function expectedNbytes(codec, dtype, shape, params) {
+  if (!Object.hasOwn(DTYPES, dtype)) {
+    throw new BundleError(`unsupported buffer dtype '${dtype}' (supported: ${Object.keys(DTYPES).join(', ')})`);
+  }
+  if (!['raw', 'fp16', 'q16', 'q8', 'q4', 'index'].includes(codec)) {
+    throw new BundleError(`unknown buffer codec '${codec}' (known: raw, fp16, q16, q8, q4, index)`);
+  }
+  const floatOnly = codec === 'fp16' || codec in QUANT_BITS;
+  if (floatOnly && !isFloat(dtype)) {
+    throw new BundleError(`codec '${codec}' cannot decode to dtype '${dtype}' (floating-point only)`);
+  }
+  if (codec === 'index' && isFloat(dtype)) {
+    throw new BundleError(`codec '${codec}' cannot decode to dtype '${dtype}' (integers only)`);
+  }
+  const spread = shape.reduce((n, d) => n * BigInt(Math.max(d, 1)), 1n);
+  if (shape.length > MAX_NDIM || spread >= MAX_ELEMENTS) {
+    throw new BundleError(`invalid buffer shape ${`[${shape.join(', ')}]`.slice(0, 120)} (at most ${MAX_NDIM} dimensions, `
+      + `fewer than ${MAX_ELEMENTS} elements)`);
+  }
+  const n = count(shape);
+  if (codec === 'raw') return n * BigInt(DTYPES[dtype][1]);
+  if (codec === 'fp16') return 2n * n;
+  if (codec === 'index') return n * BigInt(INDEX_TYPES[indexType(params)][0]);
+  const bits = BigInt(QUANT_BITS[codec]);
+  const chunk = BigInt(chunkParam(params, codec));
+  return 8n * ((n + chunk - 1n) / chunk) + (n * bits + 7n) / 8n;
+}
+
+/** IEEE binary16 bits -> number. */
+export function halfToFloat(h) {
+  const sign = h & 0x8000 ? -1 : 1;
+  const exponent = (h >> 10) & 0x1f;
+  const fraction = h & 0x3ff;
+  if (exponent === 0) return sign * fraction * 2 ** -24;
+  if (exponent === 31) return fraction ? NaN : sign * Infinity;
+  return sign * (1 + fraction / 1024) * 2 ** (exponent - 15);
+}
+
+/** A number -> IEEE binary16 bits, rounded to nearest even as numpy's astype(float16). */
+export function floatToHalf(value) {
+  if (Number.isNaN(value)) return 0x7e00;
+  const sign = value < 0 || Object.is(value, -0) ? 0x8000 : 0;
+  const a = Math.abs(value);
+  if (a >= 65520) return sign | 0x7c00; // rounds past the largest half: infinity
+  if (a < 2 ** -14) { // subnormal (or zero): units of 2^-24
+    return sign | roundEven(a * 2 ** 24);
+  }
+  let exponent = Math.floor(Math.log2(a));
+  if (2 ** exponent > a) exponent -= 1; // log2 rounding
+  if (2 ** (exponent + 1) <= a) exponent += 1;
+  const mantissa = roundEven((a / 2 ** exponent - 1) * 1024);
+  return sign | ((((exponent + 15) << 10) + mantissa) & 0xffff); // a mantissa of 1024 carries into the exponent
+}
+
+function roundEven(x) {
+  const floor = Math.floor(x);
+  const rest = x - floor;
+  if (rest > 0.5 || (rest === 0.5 && floor % 2 === 1)) return floor + 1;
+  return floor;
+}
+
+/** Numbers (already rounded as float32 or exact) -> the typed array of `dtype`. */
+function fromNumbers(values, dtype) {
+  if (dtype === 'float32') return Float32Array.from(values);
+  if (dtype === 'float16') return Uint16Array.from(values, floatToHalf);
+  throw new BundleError(`cannot store numbers as ${dtype}`);
+}
+
+/** Copy of `bytes` as a typed array of `Type` (the copy makes it aligned). */
+function view(bytes, Type) {
+  const copy = bytes.slice();
+  return new Type(copy.buffer, copy.byteOffset, copy.byteLength / Type.BYTES_PER_ELEMENT);
+}
+
+function decodeQuantised(bytes, dtype, n, params, codec) {
+  const bits = QUANT_BITS[codec];
+  const levels = 2 ** bits - 1;
+  const chunk = chunkParam(params, codec);
+  const chunks = Math.ceil(n / chunk);
+  const data = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+  const low = new Float64Array(chunks);
+  const step = new Float64Array(chunks);
+  for (let c = 0; c < chunks; c++) {
+    low[c] = data.getFloat32(4 * c, true);
+    step[c] = data.getFloat32(4 * (chunks + c), true);
+    if (!(Number.isFinite(low[c]) && Number.isFinite(step[c]) && step[c] >= 0 && Math.abs(low[c]) <= FLOAT32_MAX
+          && low[c] + step[c] * levels <= FLOAT32_MAX)) {
+      throw new BundleError(`codec q${bits}: damaged chunk parameters (a minimum or step is not finite, a step `
+        + 'is negative, or a chunk\'s range exceeds float32)');
+    }
+  }
+  const base = 8 * chunks;
+  const values = new Float64Array(n);
+  for (let i = 0; i < n; i++) {
+    let code;
+    if (bits === 16) code = data.getUint16(base + 2 * i, true);
+    else if (bits === 8) code = bytes[base + i];
+    else code = i % 2 === 0 ? bytes[base + (i >> 1)] & 0x0f : bytes[base + (i >> 1)] >> 4;
+    const c = Math.floor(i / chunk);
+    values[i] = low[c] + code * step[c]; // double precision, rounded once below (docs/bundle-format.md)
+  }
+  return fromNumbers(values, dtype);
+}
+
+/** Decode one buffer's stored bytes (length already checked) -> typed array of its dtype (int64: BigInt64Array,
+ * float16: Uint16Array of half bits). */
+export function decodeBuffer(bytes, codec, dtype, shape, params) {
+  const n = Number(count(shape));
+  if (codec === 'raw') return view(bytes, DTYPES[dtype][2]);
+  if (codec === 'fp16') {
+    const halves = view(bytes, Uint16Array);
+    return dtype === 'float16' ? halves : Float32Array.from(halves, halfToFloat);
+  }
+  if (codec in QUANT_BITS) return decodeQuantised(bytes, dtype, n, params, codec);
+  const stored = view(bytes, INDEX_TYPES[indexType(params)][1]);
+  let largest = 0;
+  for (const v of stored) largest = v > largest ? v : largest;
+  if (largest > INTEGER_MAX[dtype]) {
+    throw new BundleError(`codec index: stored value ${largest} does not fit dtype ${dtype}`);
+  }
+  if (dtype === 'int64') return BigInt64Array.from(stored, (v) => BigInt(v));
+  return DTYPES[dtype][2].from(stored);
+}

@@ -1,0 +1,291 @@
+// The browser player's public API: a bundle in, frames out, the stages of the Python runtime's TalkingHead
+// (docs/web.md):
+//
+//   const player = await Player.load(bytes, { name: 'speaker.gtb', width: 512, height: 512 });
+//   const drive = await player.driveFromAudioFile(wavBytes);      // or driveFromMotion(json), driveFromAudio(...)
+//   const frame = await player.renderFrame(drive, 0);             // {pixels: Uint8Array RGB, width, height, timings}
+//   await player.renderToCanvas(drive, 0, canvas);                 // the same frame drawn on a 2D canvas
+//   player.release();
+//
+// Per frame: the deform graph (onnxruntime-web) -> pack, cull, depth sort and draw runs in a Worker
+// (sort_worker.js) -> WebGL2 splatting (splat.js) -> read back. What is not done yet: docs/web.md.
+
+import { BundleError, readBundle } from './bundle.js';
+import { Camera } from './camera.js';
+import {
+  AudioError, blendshapeParams, decodeAudio, Drive, DriveError, flameParams, motionAtFps, readMotion, parseMotion,
+  resampleAudio, translateAudio,
+} from './drive.js';
+import { ARKIT_BLENDSHAPES } from './generated.js';
+import { GraphSessions } from './graphs.js';
+import { RenderError, WebGLSplatter } from './splat.js';
+
+export { AudioError, BundleError, Camera, DriveError, RenderError };
+
+const FEATURES_PER_FRAME = 2; // the translator's audio features per video frame (sdk/config.py)
+
+/** Python's round() for the draw size: halves to even. */
+function roundHalfEven(x) {
+  const r = Math.round(x);
+  return Math.abs(x % 1) === 0.5 && r % 2 !== 0 ? r - 1 : r;
+}
+
+/** The rig and timing of a bundle: FLAME speaker ('speaker') or ARKit speaker ('rig'). */
+function rigOf(bundle) {
+  const m = bundle.manifest;
+  if (m.rig !== undefined) {
+    const rig = m.rig;
+    const names = rig?.blendshapes ?? ARKIT_BLENDSHAPES;
+    if (!(rig && rig.kind === 'arkit' && Array.isArray(names) && Number.isInteger(rig.fps) && rig.fps > 0
+          && Number.isInteger(rig.sample_rate) && rig.sample_rate > 0)) {
+      throw new BundleError(`${bundle.name}: manifest has no valid rig`);
+    }
+    const sameOrder = names.length === ARKIT_BLENDSHAPES.length && names.every((n, i) => n === ARKIT_BLENDSHAPES[i]);
+    return { kind: 'arkit', fps: rig.fps, sampleRate: rig.sample_rate, samplesPerFrame: rig.sample_rate / rig.fps,
+      names: sameOrder ? ARKIT_BLENDSHAPES : names };
+  }
+  const speaker = m.speaker;
+  const strides = speaker?.translator?.conv_strides ?? [5, 2, 2, 2, 2, 2, 2];
+  const samplesPerFrame = strides.reduce((a, b) => a * b, 1) * FEATURES_PER_FRAME;
+  if (!(speaker && Number.isInteger(speaker.fps) && Number.isInteger(speaker.sample_rate)
+        && Number.isInteger(speaker.n_expr))) {
+    throw new BundleError(`${bundle.name}: manifest has no valid speaker config`);
+  }
+  if (speaker.sample_rate !== samplesPerFrame * speaker.fps) {
+    throw new BundleError(`${bundle.name}: manifest has no valid speaker config: sample_rate ${speaker.sample_rate} `
+      + `must be ${samplesPerFrame} x fps ${speaker.fps}`);
+  }
+  return { kind: 'flame', fps: speaker.fps, sampleRate: speaker.sample_rate, samplesPerFrame, nExpr: speaker.n_expr };
+}
+
+/** The bundle's runtime_defaults as the player uses them (sdk/render_settings.py names and defaults). */
+function renderSettings(bundle, overrides) {
+  const d = { render_scale: 1.0, render_target: 'float32', sort_interval: 1, sort_key_bits: 32,
+    ...(bundle.manifest.runtime_defaults ?? {}), ...overrides };
+  if (!(d.render_scale >= 0.1 && d.render_scale <= 1) || !['float32', 'float16', 'uint8'].includes(d.render_target)
+      || ![16, 32].includes(d.sort_key_bits) || !(Number.isInteger(d.sort_interval) && d.sort_interval >= 1
+      && d.sort_interval <= 60)) {
+    throw new BundleError(`${bundle.name}: manifest 'runtime_defaults' is invalid: ${JSON.stringify(d).slice(0, 200)}`);
+  }
+  return d;
+}
+
+/** Depth sorts on a module Worker, one frame at a time. */
+class SortWorker {
+  constructor() {
+    this.worker = new Worker(new URL('./sort_worker.js', import.meta.url), { type: 'module' });
+    this.pending = new Map();
+    this.next = 0;
+    this.worker.onmessage = ({ data }) => {
+      const { resolve, reject } = this.pending.get(data.id);
+      this.pending.delete(data.id);
+      if (data.error) reject(new RenderError(`depth sort failed: ${data.error}`));
+      else resolve(data);
+    };
+    this.worker.onerror = (event) => {
+      for (const { reject } of this.pending.values()) reject(new RenderError(`the sort worker failed: ${event.message}`));
+      this.pending.clear();
+    };
+  }
+
+  prepare(gaussians, camera, maxPointSize, keyBits, interval) {
+    const id = this.next++;
+    const plain = { R: camera.R, t: camera.t, fx: camera.fx, fy: camera.fy, width: camera.width, height: camera.height,
+      near: camera.near };
+    const transfer = Object.values(gaussians).map((a) => a.buffer);
+    return new Promise((resolve, reject) => {
+      this.pending.set(id, { resolve, reject });
+      this.worker.postMessage({ id, gaussians, camera: plain, limits: camera.fovClampLimits(), maxPointSize, keyBits,
+        interval }, transfer);
+    });
+  }
+
+  terminate() {
+    this.worker.terminate();
+  }
+}
+
+export class Player {
+  constructor(fields) {
+    Object.assign(this, fields);
+  }
+
+  /**
+   * Load a bundle (ArrayBuffer, Uint8Array, or a URL to fetch) and make it ready to draw. Options: `name` (labels
+   * errors), `width`/`height` (the output size; the bundle camera is resized to it), `camera` (a Camera or its
+   * dict, replacing the bundle's), `background` ([r, g, b]), `renderTarget`/`renderScale`/`sortKeyBits`/
+   * `sortInterval` (override the bundle's runtime_defaults, docs/precision.md), `pointSprites` (false: quads only),
+   * `canvas` (the WebGL2 canvas; default an OffscreenCanvas), and the graph options of GraphSessions.open
+   * (`threads`, `executionProviders`, `ort`).
+   */
+  static async load(source, options = {}) {
+    const timings = {};
+    let start = performance.now();
+    let bytes = source;
+    let name = options.name;
+    if (typeof source === 'string' || source instanceof URL) {
+      const response = await fetch(source);
+      if (!response.ok) throw new BundleError(`${source}: cannot fetch the bundle (HTTP ${response.status})`);
+      bytes = await response.arrayBuffer();
+      name = name ?? String(source).split('/').pop();
+    }
+    const bundle = await readBundle(bytes, { name: name ?? 'bundle' });
+    timings.read = (performance.now() - start) / 1000;
+    const rig = rigOf(bundle);
+    start = performance.now();
+    const graphs = await GraphSessions.open(bundle, options);
+    timings.graphs = (performance.now() - start) / 1000;
+    if (!graphs.has('deform')) throw new BundleError(`${bundle.name}: bundle lacks the 'deform' graph`);
+    const track = (bufferName) => {
+      if (!bundle.hasBuffer(bufferName)) return null;
+      const { dtype, shape, data } = bundle.buffer(bufferName);
+      if (dtype !== 'float32' || shape.length !== 2 || shape[0] < 1) {
+        throw new BundleError(`${bundle.name}: buffer '${bufferName}' is ${dtype} [${shape.join(', ')}], expected float32 [T >= 1, D]`);
+      }
+      return { data, rows: shape[0], width: shape[1] };
+    };
+    const poseTrack = track('pose_track');
+    if (poseTrack && poseTrack.width !== 6) throw new BundleError(`${bundle.name}: buffer 'pose_track' is not [T, 6]`);
+    const settings = renderSettings(bundle, Object.fromEntries(Object.entries({
+      render_target: options.renderTarget, render_scale: options.renderScale, sort_key_bits: options.sortKeyBits,
+      sort_interval: options.sortInterval,
+    }).filter(([, v]) => v !== undefined)));
+    const background = options.background ?? bundle.manifest.background ?? [1, 1, 1];
+    if (!(Array.isArray(background) && background.length === 3 && background.every(Number.isFinite))) {
+      throw new BundleError(`${bundle.name}: manifest 'background' must be 3 finite numbers (RGB)`);
+    }
+    const splatter = new WebGLSplatter({ canvas: options.canvas ?? null, renderTarget: settings.render_target,
+      pointSprites: options.pointSprites ?? true });
+    const player = new Player({ bundle, rig, graphs, poseTrack, motionTrack: track('motion_track'), settings,
+      background, splatter, sorter: new SortWorker(), loadTimings: timings, lastTimings: null });
+    player.setCamera(options.camera ?? Camera.fromDict(bundle.manifest.camera), options.width, options.height);
+    return player;
+  }
+
+  get fps() { return this.rig.fps; }
+
+  get sampleRate() { return this.rig.sampleRate; }
+
+  /** [width, height] of this player's frames. */
+  get frameSize() { return [this.camera.width, this.camera.height]; }
+
+  /** Draw through `camera` (a Camera or its dict), resized to width x height when given. */
+  setCamera(camera, width, height) {
+    let c = camera instanceof Camera ? camera : Camera.fromDict(camera);
+    if (width !== undefined || height !== undefined) c = c.resized(width ?? c.width, height ?? c.height);
+    this.camera = c;
+  }
+
+  /** The drive of an audio clip: mono float32 `samples` at `sampleRate` (resampled to the speaker's rate). */
+  async driveFromAudio(samples, sampleRate) {
+    const audio = await resampleAudio(samples, sampleRate, this.sampleRate);
+    return this._translate(audio);
+  }
+
+  /** The drive of an encoded audio file (WAV, MP3, ...: what the browser decodes), at the speaker's rate. */
+  async driveFromAudioFile(bytes) {
+    return this._translate(await decodeAudio(bytes, this.sampleRate));
+  }
+
+  async _translate(audio) {
+    if (!this.graphs.has('translator')) {
+      throw new DriveError(`${this.bundle.name}: this bundle has no translator graph (an avatar without an audio `
+        + 'model), so it cannot turn audio into frames: drive it with a motion');
+    }
+    const start = performance.now();
+    const run = (chunk) => this.graphs.run('translator', { audio: { data: chunk, dims: [1, chunk.length] } });
+    const paramsOf = this.rig.kind === 'arkit' ? blendshapeParams : flameParams;
+    const { rows, width, frames } = await translateAudio(run, audio, this.rig.samplesPerFrame, { paramsOf });
+    this.translateSeconds = (performance.now() - start) / 1000;
+    return this._drive(rows, width, frames);
+  }
+
+  /** The drive of an ARKit speaker's motion: motion file text/bytes, its parsed JSON, or null (the bundle's own
+   * motion track). */
+  driveFromMotion(motion = null, where = 'motion file') {
+    if (this.rig.kind !== 'arkit') {
+      throw new DriveError('the web player drives FLAME speakers from audio only for now (FLAME motion files are '
+        + 'not read yet)');
+    }
+    let parsed;
+    if (motion === null) {
+      if (!this.motionTrack) throw new DriveError(`${this.bundle.name}: the avatar ships no motion track; give a motion file`);
+      parsed = { weights: Float32Array.from(this.motionTrack.data), frames: this.motionTrack.rows, fps: this.fps };
+      if (this.motionTrack.width !== ARKIT_BLENDSHAPES.length) throw new DriveError('motion_track is not [T, 52]');
+    } else if (typeof motion === 'string' || motion instanceof Uint8Array || motion instanceof ArrayBuffer) {
+      parsed = readMotion(motion instanceof ArrayBuffer ? new Uint8Array(motion) : motion, where);
+    } else {
+      parsed = parseMotion(motion, where);
+    }
+    const { weights, frames } = motionAtFps(parsed, this.fps);
+    return this._drive(weights, ARKIT_BLENDSHAPES.length, frames);
+  }
+
+  /** The drive of ARKit weights given directly: `weights` [frames * 52] in ARKIT_BLENDSHAPES order (an array, or
+   * a list of 52-value rows) at `fps` (default the speaker's), resampled to the speaker's fps. */
+  driveFromWeights(weights, fps = this.fps) {
+    const rows = Array.isArray(weights) && Array.isArray(weights[0]) ? weights : null;
+    const frames = rows ? rows.map((w) => ({ weights: w })) : [];
+    if (!rows) {
+      const flat = Array.from(weights);
+      if (flat.length === 0 || flat.length % ARKIT_BLENDSHAPES.length) {
+        throw new DriveError(`weights must be frames x ${ARKIT_BLENDSHAPES.length} ARKit values, got ${flat.length}`);
+      }
+      for (let i = 0; i < flat.length; i += ARKIT_BLENDSHAPES.length) {
+        frames.push({ weights: flat.slice(i, i + ARKIT_BLENDSHAPES.length) });
+      }
+    }
+    return this.driveFromMotion({ names: ARKIT_BLENDSHAPES, metadata: { fps }, frames }, 'weights');
+  }
+
+  _drive(rows, width, frames) {
+    return new Drive({ rig: this.rig.kind, rows, width, frames, poseTrack: this.poseTrack?.data ?? null,
+      rigNames: this.rig.names ?? ARKIT_BLENDSHAPES });
+  }
+
+  /** Frame `index` of `drive` -> {pixels, width, height, timings} (`output` as WebGLSplatter.draw: 'uint8' RGB
+   * top row first, 'float', 'rgba_float'). timings: graphs, sort, upload, draw, readback in seconds. */
+  async renderFrame(drive, index, { output = 'uint8' } = {}) {
+    const timings = {};
+    let start = performance.now();
+    const out = await this.graphs.run('deform', drive.graphInputs(index, this.camera.center()));
+    timings.graphs = (performance.now() - start) / 1000;
+    const [width, height] = this.frameSize;
+    const scale = this.settings.render_scale;
+    const drawSize = [Math.max(1, roundHalfEven(width * scale)), Math.max(1, roundHalfEven(height * scale))];
+    const camera = drawSize[0] === width && drawSize[1] === height ? this.camera : this.camera.resized(...drawSize);
+    start = performance.now();
+    // Copies the worker may own (onnxruntime-web's output tensors are views into its wasm memory).
+    const gaussians = { means: out.means.data.slice(), cov3d: out.cov3d.data.slice(), rgb: out.rgb.data.slice(),
+      opacity: out.opacity.data.slice() };
+    const prepared = await this.sorter.prepare(gaussians, camera, this.splatter.maxPointSize,
+      this.settings.sort_key_bits, this.settings.sort_interval);
+    timings.sort = (performance.now() - start) / 1000;
+    const frame = await this.splatter.draw(prepared, camera, this.background, { output, outputSize: [width, height] });
+    Object.assign(timings, frame.timings);
+    this.lastTimings = timings;
+    return { ...frame, timings, splats: prepared.rows.length / 13 };
+  }
+
+  /** Frame `index` of `drive` drawn on a 2D `canvas` (resized to the frame). */
+  async renderToCanvas(drive, index, canvas) {
+    const frame = await this.renderFrame(drive, index);
+    const rgba = new Uint8ClampedArray(frame.width * frame.height * 4);
+    for (let i = 0, j = 0; j < frame.pixels.length; i += 4, j += 3) {
+      rgba[i] = frame.pixels[j];
+      rgba[i + 1] = frame.pixels[j + 1];
+      rgba[i + 2] = frame.pixels[j + 2];
+      rgba[i + 3] = 255;
+    }
+    canvas.width = frame.width;
+    canvas.height = frame.height;
+    canvas.getContext('2d').putImageData(new ImageData(rgba, frame.width, frame.height), 0, 0);
+    return frame;
+  }
+
+  release() {
+    this.sorter.terminate();
+    this.splatter.release();
+    return this.graphs.release();
+  }
+}
