@@ -53,7 +53,7 @@ def gt_import() -> None:
 # `gt-bench`'s subcommands (bench/app.py), and the mode flags of the single command they replaced, in the order it
 # checked them, each with the subcommand it is now and the options that mode read (the others it ignored).
 BENCH_COMMANDS = ("frames", "sweep", "compare", "composite", "backends", "video", "clip-codecs", "clip-crf", "lam-web",
-                  "avatar", "surface", "early-stop", "live", "renderers")
+                  "avatar", "surface", "early-stop", "live", "live-clients", "renderers", "pipeline")
 LEGACY_BENCH_MODES = (
     ("--backends", "backends", ("--checkpoint", "--sizes", "--seconds", "--rounds", "--out")),
     ("--composite", "composite", ("--checkpoint", "--seconds", "--rounds", "--out")),

@@ -21,7 +21,9 @@ tried (a superset of those that can pass), as in the torch reference and the GL 
 It is hand-written because no library does it: the CPU 3DGS rasterizers that exist are the torch reference's kind
 (tensor-batched, autograd) or CUDA kernels; numba's parallel loops give per-tile register/cache accumulation
 without a C extension to build. Kernels are compiled once, at construction, and cached on disk (`cache_dir`), so
-a warm start loads machine code instead of compiling; a render loop never compiles.
+a warm start loads machine code instead of compiling; a render loop never compiles. The kernels release the GIL
+(`nogil`), so a pipelined frame loop's other threads (the next frame's deformation and sort, the compositing, the
+encoder: runtime/pipeline.py) run their Python while a frame is drawn instead of waiting for the draw to end.
 """
 
 from __future__ import annotations
@@ -173,7 +175,7 @@ def _pixel_span(center, reach, size):
     return int(min(max(lo, 0.0), size - 1.0)), int(min(max(hi, 0.0), size - 1.0)), ok
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
 def _project(rows, R, t, intr, limits, width, height, params, boxes):
     """Contract steps of each sorted Gaussian (float32, as exporter/model/splat_math.py computes them):
     params [n, _PARAMS] as `_PARAMS` lists, boxes [n, 4] (x0, x1, y0, y1) of pixels that can reach ALPHA_MIN,
@@ -286,7 +288,7 @@ def _project(rows, R, t, intr, limits, width, height, params, boxes):
 _BIN_CHUNKS = 8  # contiguous slices of the sorted list that `_bin` counts and fills in parallel
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
 def _bin(boxes, tiles_x, tiles_y):
     """Per-tile lists of Gaussian indices (each front to back): (start [tiles + 1], list [pairs]). The sorted list
     is cut into _BIN_CHUNKS contiguous slices, each counted and then written by one thread; a tile's entries from
@@ -323,7 +325,7 @@ def _bin(boxes, tiles_x, tiles_y):
     return start, lists
 
 
-@njit(parallel=True, cache=True, error_model="numpy", fastmath={"contract"})
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy", fastmath={"contract"})
 def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
     """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99 clamp,
     skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN."""
@@ -452,7 +454,7 @@ def upscale_bilinear(image: np.ndarray, width: int, height: int) -> np.ndarray:
 
 # A kernel rather than numpy's gathers: the gathered [H, W, C] temporaries cost ~20 ms a frame at 480x600 on
 # 2 cores, more than a 3/4 render scale saves in the blending (docs/bench/renderers.md).
-@njit(parallel=True, cache=True, error_model="numpy")
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
 def _upscale(image, y0, y1, wy0, wy1, x0, x1, wx0, wx1, out):
     """out[y, x] = the vertical blend of rows y0/y1, then the horizontal blend of columns x0/x1 (float32)."""
     for y in prange(out.shape[0]):
@@ -536,7 +538,7 @@ class CPUSplatter:
         self.release()
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
 def _over_background(frame, background, out, as_bytes):
     """out = C + T * background (float32 [H, W, 3]) or, for a uint8 `out`, `to_uint8` of it: floor(clamp(v, 0, 1)
     * 255 + 0.5) in float32, NaN as 0."""

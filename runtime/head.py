@@ -25,8 +25,7 @@ import os
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
-from itertools import chain
+from contextlib import closing
 from pathlib import Path
 from typing import Literal
 
@@ -51,6 +50,7 @@ from .backend import GraphBackend, open_backend
 from .composite import Inpainter, composite, graph_inpainter, opencv_fallback
 from .motions import MotionSource, arkit_motion, flame_motion
 from .output import COMPOSITE_ALPHA_MESSAGE, OutputView, output_view
+from .pipeline import Ahead, Sink, in_order
 from .renderer import make_splatter
 from .semantic import Regions
 from .settings import BackendSettings, OutputSettings, merged_backend, merged_output, merged_render
@@ -61,6 +61,11 @@ AudioSource = str | os.PathLike | np.ndarray
 # Per-stage timings kept per TalkingHead: at most this many recent calls (then trimmed to the newest half), so a
 # long-running head's bookkeeping does not grow with the number of frames it has rendered.
 MAX_TIMINGS_PER_STAGE = 10_000
+# Pipelined frame loops (runtime/pipeline.py): frames prepared (deformed and sorted) ahead of the draw, and
+# frames queued for the encoder. Each prepared frame holds its sorted rows (52 bytes a Gaussian), each queued frame
+# its pixels, so these bound the memory the overlap costs.
+PREPARED_AHEAD = 2
+ENCODE_AHEAD = 2
 HeadPoseSource = Callable[[int], HeadPose] | np.ndarray | HeadPose | None
 # What a frame is returned as: "uint8" [H, W, 3] (converted once, at the end; the composited frame when
 # compositing), "float" float32 [H, W, 3] (C + T * background, unclamped), "rgba" uint8 [H, W, 4]: straight colour
@@ -90,7 +95,7 @@ class TalkingHead:
                  resolution: tuple[int, int] | None = None, camera: Camera | None = None, background=None,
                  composite: bool | None = None, threads: int | None = None, shader_target: str | None = None,
                  renderer: str | None = None, render_scale: float | None = None, render_target: str | None = None,
-                 sort_interval: int | None = None, sort_key_bits: int | None = None,
+                 sort_interval: int | None = None, sort_key_bits: int | None = None, pipeline: bool | None = None,
                  gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS) -> None:
         """Settings come in three groups (docs/embedding.md), each None for the bundle's defaults:
         `render` (RenderSettings: render scale, framebuffer precision, sort interval and key bits, graph threads;
@@ -100,7 +105,8 @@ class TalkingHead:
         "onnxruntime" or "mnn" (docs/mnn.md), or BackendSettings: name, threads, shader_target, renderer).
 
         The keywords resolution, camera, background, composite (output), threads, shader_target, renderer (backend:
-        "gl", "cpu" or "auto", docs/embedding.md; `head.renderer` says which one draws) and
+        "gl", "cpu" or "auto", docs/embedding.md; `head.renderer` says which one draws), pipeline (backend: the
+        frame loops overlap neighbouring frames' stages on worker threads, None: on; docs/speed.md) and
         render_scale, render_target, sort_interval, sort_key_bits (render) are shortcuts for a group's field: one
         given both ways with two values is a SettingsError naming both. `gl_context`: a moderngl context to draw
         in (None: a headless one of its own). `silence_gate_dbfs`: audio windows quieter than this (RMS, dBFS) fade
@@ -109,7 +115,8 @@ class TalkingHead:
         manifest = self.bundle.manifest
         self.output_settings = merged_output(output, resolution=resolution, camera=camera, background=background,
                                              composite=composite)
-        backend_settings = merged_backend(backend, threads=threads, shader_target=shader_target, renderer=renderer)
+        backend_settings = merged_backend(backend, threads=threads, shader_target=shader_target, renderer=renderer,
+                                          pipeline=pipeline)
         threads_label = "backend.threads" if isinstance(backend, BackendSettings) and threads is None else "threads"
         self.render_settings = _render_settings(self.bundle, render, backend_settings.threads, threads_label,
                                                 render_scale=render_scale, render_target=render_target,
@@ -157,6 +164,12 @@ class TalkingHead:
         except (TypeError, ValueError, AttributeError) as exc:
             raise BundleError(f"{self.bundle.path}: manifest has no valid speaker config: {exc}") from exc
         return kind, config, None
+
+    @property
+    def pipelined(self) -> bool:
+        """Whether `frames`, `motion_frames` and `write_video` overlap neighbouring frames' stages on worker threads
+        (runtime/pipeline.py); the frames are the same either way."""
+        return self.backend_settings.pipeline is not False
 
     @property
     def fps(self) -> int:
@@ -445,8 +458,10 @@ class TalkingHead:
                output: FrameOutput = "uint8") -> Iterator[np.ndarray]:
         """Frames for an audio clip at the speaker's fps, yielded one at a time (never all held in memory).
 
-        Frame t+1 is prepared (deformation graph, depth sort) on a worker thread while the GL splatter draws
-        frame t (onnxruntime and numpy release the GIL), so the two stages overlap instead of adding up.
+        Pipelined (the default; `pipeline=False` turns it off, the frames are the same): the next frames are
+        prepared (translator, deformation graph, depth sort) on a worker thread while this thread draws frame t
+        (onnxruntime, numpy and the CPU splatter's kernels release the GIL), so the stages overlap instead of
+        adding up (runtime/pipeline.py, docs/speed.md).
         When compositing, each frame goes into the reference clip's picture at the same index as its pose.
         """
         if not self.composite:
@@ -459,34 +474,29 @@ class TalkingHead:
         yield from self._composited_frames(self.drives(audio, sample_rate))
 
     def _bare_frames(self, drives: Iterator[FrameDrive], output: FrameOutput) -> Iterator[np.ndarray]:
-        """Two overlapping stages: frame t+1 prepared on a worker thread while frame t is drawn."""
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-deform") as pool:
-            prepared = None
-            # The trailing None flushes the last prepared frame; the next frame is submitted before one is drawn.
-            for upcoming in chain((pool.submit(self.prepare, drive) for drive in drives), [None]):
-                if prepared is not None:
-                    yield self.draw(prepared.result(), output)
-                prepared = upcoming
+        """Two overlapping stages when pipelined: the next frames' drives, deformation and sort on a worker thread
+        (up to PREPARED_AHEAD frames ahead) while this thread draws (a GL context is bound to the thread that
+        made it)."""
+        if not self.pipelined:
+            for drive in drives:
+                yield self.draw(self.prepare(drive), output)
+            return
+        with Ahead((self.prepare(drive) for drive in drives), PREPARED_AHEAD, "gt-prepare") as prepared:
+            for splats in prepared:
+                yield self.draw(splats, output)
 
     def _composited_frames(self, drives: Iterator[FrameDrive]) -> Iterator[np.ndarray]:
-        """Three overlapping stages: frame t+1 prepared with its reference picture decoded, frame t drawn, frame
-        t-1 composited (F and the blend), each on its own thread, so the composite costs no frame time when the
-        machine has cores to spare."""
-        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-deform") as prepare_pool, \
-                ThreadPoolExecutor(max_workers=1, thread_name_prefix="gt-composite") as composite_pool:
-            prepared = composited = None
-            submitted = (prepare_pool.submit(self._prepare_composited, drive, index)
-                         for index, drive in enumerate(drives))
-            for upcoming in chain(submitted, [None]):
-                if prepared is not None:
-                    splats, picture, mask = prepared.result()
-                    drawn = composite_pool.submit(self._composite, self.draw(splats, "rgba_float"), picture, mask)
-                    if composited is not None:
-                        yield composited.result()
-                    composited = drawn
-                prepared = upcoming
-            if composited is not None:
-                yield composited.result()
+        """Three overlapping stages when pipelined: the next frames prepared with their reference pictures decoded,
+        frame t drawn on this thread, frame t-1 composited (F and the blend), each on its own thread, so the
+        composite costs no frame time when the machine has cores to spare."""
+        prepared = (self._prepare_composited(drive, index) for index, drive in enumerate(drives))
+        if not self.pipelined:
+            for splats, picture, mask in prepared:
+                yield self._composite(self.draw(splats, "rgba_float"), picture, mask)
+            return
+        with Ahead(prepared, PREPARED_AHEAD, "gt-prepare") as ahead:
+            drawn = ((self.draw(splats, "rgba_float"), picture, mask) for splats, picture, mask in ahead)
+            yield from in_order(self._composite, drawn, 1, "gt-composite")
 
     def _reference_picture(self, index: int) -> tuple[np.ndarray, np.ndarray]:
         """The reference frame and mask video frame `index` is composited into (the clip forth and back), timed."""
@@ -561,12 +571,22 @@ class TalkingHead:
         else:
             frames = self.frames(samples, self.sample_rate, head_pose, output=output)
             total = self.frame_count(samples.shape[0])
-        with VideoWriter(plan.path, self.fps, plan.size, audio=samples, sample_rate=self.sample_rate,
-                         plan=plan) as out:
-            for frame in progress_bar(frames, total=total, unit="frame", disable=not progress, desc="rendering"):
-                out.write(frame)
-                if on_frame is not None:
-                    on_frame(frame)
+        # closing: a failed write stops the frame loop's worker threads at once, not when the generator is collected
+        with closing(frames), VideoWriter(plan.path, self.fps, plan.size, audio=samples,
+                                          sample_rate=self.sample_rate, plan=plan) as out:
+            if not self.pipelined:
+                for frame in progress_bar(frames, total=total, unit="frame", disable=not progress, desc="rendering"):
+                    out.write(frame)
+                    if on_frame is not None:
+                        on_frame(frame)
+                return plan.path
+            # Encoding on its own thread (PyAV releases the GIL) while the next frame is made; `on_frame` may
+            # change its frame, so the encoder gets its own copy then.
+            with Sink(out.write, ENCODE_AHEAD, "gt-encode") as encoder:
+                for frame in progress_bar(frames, total=total, unit="frame", disable=not progress, desc="rendering"):
+                    encoder.put(frame if on_frame is None else frame.copy())
+                    if on_frame is not None:
+                        on_frame(frame)
         return plan.path
 
     def _video_plan(self, path: str | os.PathLike | VideoPlan, *, alpha: bool | None, **options) -> VideoPlan:

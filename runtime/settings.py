@@ -91,12 +91,15 @@ class BackendSettings:
     (None: the bundle's preset, else every core for onnxruntime, one for MNN), the GLSL variant compiled,
     `shader_target` ("330", "410", "300es"; the same pixels, docs/shaders.md), and the `renderer` that splats:
     "gl", "cpu" (the numba tile splatter, the `cpu` extra) or "auto" (cpu where the GL is a software rasterizer
-    and numba is installed, else gl)."""
+    and numba is installed, else gl), and whether the frame loops `pipeline` their stages across frames on worker
+    threads (runtime/pipeline.py; the same frames either way; None: on, False: one stage after another on the
+    caller's thread)."""
 
     name: str = "onnxruntime"
     threads: int | None = None
     shader_target: str = "330"
     renderer: str = "gl"
+    pipeline: bool | None = None
 
     def __post_init__(self) -> None:
         try:
@@ -114,6 +117,10 @@ class BackendSettings:
             raise SettingsError(str(exc)) from None
         if self.renderer not in RENDERERS:
             raise SettingsError(f"renderer must be one of {', '.join(map(repr, RENDERERS))}, got {self.renderer!r}")
+        if self.pipeline is not None:
+            if not isinstance(self.pipeline, bool | np.bool_):
+                raise SettingsError(f"backend pipeline must be True, False or None, got {self.pipeline!r}")
+            object.__setattr__(self, "pipeline", bool(self.pipeline))
 
 
 def _same(a: Any, b: Any) -> bool:
@@ -150,12 +157,13 @@ def merged_output(output: OutputSettings | None, **shortcuts: Any) -> OutputSett
 
 
 def merged_backend(backend: str | BackendSettings, threads: int | None = None,
-                   shader_target: str | None = None, renderer: str | None = None) -> BackendSettings:
-    """The backend group from `backend=` (a name or a BackendSettings) and the threads, shader_target, renderer
-    shortcuts."""
+                   shader_target: str | None = None, renderer: str | None = None,
+                   pipeline: bool | None = None) -> BackendSettings:
+    """The backend group from `backend=` (a name or a BackendSettings) and the threads, shader_target, renderer,
+    pipeline shortcuts."""
     if isinstance(backend, str):
         return BackendSettings(backend, threads, "330" if shader_target is None else shader_target,
-                               BackendSettings.renderer if renderer is None else renderer)
+                               BackendSettings.renderer if renderer is None else renderer, pipeline)
     if not isinstance(backend, BackendSettings):
         raise SettingsError(f"backend= must be a backend name ({', '.join(GRAPH_BACKENDS)}) or a BackendSettings, "
                             f"got {type(backend).__name__}")
@@ -163,7 +171,9 @@ def merged_backend(backend: str | BackendSettings, threads: int | None = None,
         backend, threads=_one_value("threads", {"threads": threads, "backend.threads": backend.threads}),
         shader_target=_one_value("shader_target", {"shader_target": shader_target,
                                                    "backend.shader_target": backend.shader_target}),
-        renderer=_one_value("renderer", {"renderer": renderer, "backend.renderer": backend.renderer}))
+        renderer=_one_value("renderer", {"renderer": renderer, "backend.renderer": backend.renderer}),
+        pipeline=_one_value("pipeline", {"pipeline": None if pipeline is None else BackendSettings(
+            pipeline=pipeline).pipeline, "backend.pipeline": backend.pipeline}))
 
 
 def merged_render(preset: RenderSettings, render: RenderSettings | None, threads: int | None,

@@ -168,13 +168,14 @@ def render(
 
 @app.command()
 def install() -> None:
-    """Install the player's npm dependencies (npm ci in web/, the versions web/package-lock.json pins)."""
+    """Install the player's npm dependencies (npm ci in web/, the versions web/package-lock.json pins; no package
+    install scripts run: the player needs none)."""
     npm = shutil.which("npm")
     if npm is None:
         typer.echo("gt-web: npm is not installed: `apt-get install -y npm`", err=True)
         raise typer.Exit(2)
     root = web_root()
-    result = subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=root, check=False)
+    result = subprocess.run([npm, "ci", "--ignore-scripts", "--no-audit", "--no-fund"], cwd=root, check=False)
     if result.returncode != 0:
         typer.echo(f"gt-web: `npm ci` in {root} failed", err=True)
         raise typer.Exit(1)

@@ -17,6 +17,12 @@ A session that fails is logged once and the page is told: a head that cannot sta
 (HTTP 500 and its message); a frame that raises mid-session ends the session, and the error goes to the page as
 `{"error": ...}` on its "control" data channel, after which the page leaves (or the server closes the session
 ERROR_GRACE_S later).
+
+`--client-render`: the browser renders the head itself (samples/web/live.html with the web player, docs/web.md).
+One TalkingHead runs the driver of every session (`live(output=None)`: no image is made); each frame's drive goes
+to the page on its unordered "drives" data channel in the binary format of `encode_drive` (docs/live.md, "Live,
+rendered by the client"), stamped with its pts, beside the audio track. `GET /bundle` serves the bundle to the page,
+`POST /interrupt` (the session id) is a barge-in.
 """
 
 from __future__ import annotations
@@ -25,7 +31,9 @@ import asyncio
 import fractions
 import json
 import logging
+import math
 import shutil
+import struct
 import subprocess
 import threading
 import time
@@ -57,6 +65,71 @@ QUEUE_FRAMES = 50  # frames waiting for a track, at most (2 s): a reader that st
 # enough for a page whose first frame failed to finish connecting and open its control channel.
 ERROR_GRACE_S = 10.0
 log = logging.getLogger("live_server")
+WEB_PAGE = Path(__file__).with_name("web") / "live.html"
+WEB_ROOT = Path(__file__).resolve().parents[1] / "web"
+
+# -- the drive wire format (client-render mode) ----------------------------------------------------------------
+# One data-channel message per frame, little-endian: a 28-byte header, then `count` float32 values.
+#   0  4s   magic b"GTLD"
+#   4  u8   version (1)
+#   5  u8   rig: 0 FLAME (values: expression[split], flame_pose[15], head_translation[3]),
+#                1 ARKit (values: blendshapes[split] in ARKIT_BLENDSHAPES order, head_rotation[3], head_translation[3])
+#   6  u8   flags: bit 0 speaking
+#   7  u8   dtype: 0 float32 (the only one written)
+#   8  u32  frame index
+#   12 u32  epoch: barge-ins so far; drives of an older epoch at or past the first index of a newer one are stale
+#   16 f64  pts (seconds on the session's audio clock, index / fps)
+#   24 u16  count of values
+#   26 u16  split: where the expression (FLAME) or the weights (ARKit) end; count - split is the pose (18 or 6)
+# The small demo speaker (20 expression coefficients): 28 + 38 * 4 = 180 bytes a frame, 4.5 kB/s at 25 fps.
+DRIVE_MAGIC = b"GTLD"
+DRIVE_VERSION = 1
+DRIVE_HEADER = struct.Struct("<4sBBBBIIdHH")
+POSE_VALUES = {0: 18, 1: 6}  # values after `split`: FLAME flame_pose + translation, ARKit rotation + translation
+
+
+class DriveFormatError(ValueError):
+    """A drive message that is not one: truncated, lying about its count, or of an unknown kind."""
+
+
+def encode_drive(index: int, pts: float, drive, speaking: bool, epoch: int = 0) -> bytes:
+    """One frame's drive (a FrameDrive or BlendshapeDrive) as a drive message."""
+    if hasattr(drive, "blendshapes"):
+        rig, parts = 1, (drive.blendshapes, drive.head_rotation, drive.head_translation)
+    else:
+        rig, parts = 0, (drive.expression, drive.flame_pose, drive.head_translation)
+    values = np.concatenate(parts).astype("<f4")
+    header = DRIVE_HEADER.pack(DRIVE_MAGIC, DRIVE_VERSION, rig, int(bool(speaking)), 0, index, epoch, float(pts),
+                               values.size, parts[0].size)
+    return header + values.tobytes()
+
+
+def decode_drive(message: bytes) -> dict:
+    """A drive message -> {index, pts, epoch, speaking, rig ("flame"/"arkit"), values float32 [count], split};
+    DriveFormatError naming what is wrong. Every count is checked against the bytes present."""
+    data = bytes(message)
+    if len(data) < DRIVE_HEADER.size:
+        raise DriveFormatError(f"drive message truncated: {len(data)} bytes, the header alone is {DRIVE_HEADER.size}")
+    magic, version, rig, flags, dtype, index, epoch, pts, count, split = DRIVE_HEADER.unpack_from(data)
+    if magic != DRIVE_MAGIC:
+        raise DriveFormatError(f"not a drive message (magic {magic!r}, expected {DRIVE_MAGIC!r})")
+    if version != DRIVE_VERSION or dtype != 0:
+        raise DriveFormatError(f"drive message version {version} dtype {dtype}: only version {DRIVE_VERSION} "
+                               "float32 is read")
+    if rig not in POSE_VALUES:
+        raise DriveFormatError(f"drive message has unknown rig code {rig}")
+    body = len(data) - DRIVE_HEADER.size
+    if count * 4 != body:
+        raise DriveFormatError(f"drive message claims {count} values ({count * 4} bytes) but carries {body} bytes")
+    if split + POSE_VALUES[rig] != count:
+        raise DriveFormatError(f"drive message splits {count} values at {split}: the pose needs {POSE_VALUES[rig]}")
+    if not math.isfinite(pts) or pts < 0:
+        raise DriveFormatError(f"drive message pts {pts} is not a finite time >= 0")
+    values = np.frombuffer(data, "<f4", count, DRIVE_HEADER.size).astype(np.float32)
+    if not np.isfinite(values).all():
+        raise DriveFormatError("drive message has non-finite values")
+    return {"index": index, "pts": pts, "epoch": epoch, "speaking": bool(flags & 1),
+            "rig": "arkit" if rig else "flame", "values": values, "split": split}
 
 
 class FrameTrack(MediaStreamTrack):
@@ -192,14 +265,123 @@ class Session:
                 "renderer": self.head.renderer if self.head else None}
 
 
-async def push_real_time(live, audio: np.ndarray, rate: int) -> None:
-    """Push `audio` in CHUNK_S chunks at real time, as a voice that speaks as it is made, then flush. Stops
+class DriveSession:
+    """Client-render mode: one connection's live session on `head` (shared by every session: output=None makes
+    no image, so no GL is used), its driver on a thread of its own. Each frame's drive goes to the page's "drives"
+    data channel (encode_drive), its audio to the audio track; the last RECORDED drives are kept for /drives."""
+
+    THREAD_NAME = "gt-live-driver"
+    RECORDED = 1500
+
+    def __init__(self, head, lookahead_ms: float, loop: asyncio.AbstractEventLoop,
+                 on_error: Callable[[BaseException], None] | None = None) -> None:
+        self.head, self._loop, self._on_error = head, loop, on_error
+        self.live = head.live(lookahead_ms=lookahead_ms, audio_rate=AUDIO_RATE, output=None)
+        self.audio = FrameTrack("audio", loop)
+        self.audio.fps = head.fps
+        self.closed = asyncio.Event()
+        self.error: BaseException | None = None
+        self.voice: asyncio.Task | None = None  # what the server speaks, cancelled by a barge-in
+        self.stats: dict = {"frames": 0, "speaking_frames": 0, "sent": 0, "unsent": 0}
+        self.recorded: list[bytes] = []
+        self.started = threading.Event()
+        self.start_time = 0.0  # time.monotonic() of frame 0's due time: the session's pts 0 on the wall clock
+        self._drives = self._control = None
+        self._outbox: list[str] = []
+        self._thread = threading.Thread(target=self._run, name=self.THREAD_NAME, daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def attach(self, channel) -> None:
+        if channel.label == "drives":
+            self._drives = channel
+        elif channel.label == "control":
+            self._control = channel
+            channel.on("open", self._send_outbox)
+            self._send_outbox()
+
+    def tell(self, message: dict) -> None:
+        self._outbox.append(json.dumps(message))
+        self._send_outbox()
+
+    def _send_outbox(self) -> None:
+        if self._control is not None and self._control.readyState == "open":
+            while self._outbox:
+                self._control.send(self._outbox.pop(0))
+
+    def interrupt(self) -> dict:
+        """Barge-in (on the event loop): the voice stops, the session drops what it queued and eases to idle. The
+        page hears the new epoch in every later drive, and on its control channel with the epoch's first frame
+        once the driver has made it."""
+        if self.voice is not None:
+            self.voice.cancel()
+        self.live.interrupt()
+        return {"epoch": self.live.stats.interrupts}
+
+    def _send(self, message: bytes) -> None:
+        channel = self._drives
+        if channel is not None and channel.readyState == "open":
+            channel.send(message)
+            self.stats["sent"] += 1
+        else:
+            self.stats["unsent"] += 1
+
+    def _run(self) -> None:
+        try:
+            self.start_time = time.monotonic()  # (frames() anchors its pacing at its first frame, just after)
+            self.started.set()
+            frames, last_epoch = self.live.frames(), 0
+            while True:
+                # The epoch is read before the frame is made: a frame planned after an interrupt() has its epoch,
+                # one planned before keeps the older one (interrupt() counts itself once it has cleared the queues).
+                epoch = self.live.stats.interrupts
+                frame = next(frames, None)
+                if frame is None:
+                    break
+                message = encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, epoch)
+                self.stats["frames"] += 1
+                self.stats["speaking_frames"] += frame.speaking
+                self.recorded.append(message)
+                del self.recorded[:-self.RECORDED]
+                try:
+                    self._loop.call_soon_threadsafe(self._send, message)
+                    if epoch != last_epoch:
+                        last_epoch = epoch
+                        self._loop.call_soon_threadsafe(self.tell, {"interrupt": {"epoch": epoch,
+                                                                                  "index": frame.index}})
+                except RuntimeError:  # the event loop has closed
+                    return
+                self.audio.put(frame)
+        except Exception as exc:
+            self.error = exc
+            if self._on_error is not None:
+                try:
+                    self._loop.call_soon_threadsafe(self._on_error, exc)
+                except RuntimeError:
+                    pass
+        finally:
+            self.started.set()
+            self.audio.put(None)
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self.live.close()
+        if self._thread.ident is not None:
+            self._thread.join(timeout)
+
+    def summary(self) -> dict:
+        return {"mode": "client-render", **self.stats, "fps": self.head.fps,
+                "late_frames": self.live.stats.late_frames, "interrupts": self.live.stats.interrupts}
+
+
+async def push_real_time(live, audio: np.ndarray, rate: int, chunk_s: float = CHUNK_S) -> None:
+    """Push `audio` in `chunk_s` chunks at real time, as a voice that speaks as it is made, then flush. Stops
     quietly when the session closes (the browser left)."""
-    step = int(rate * CHUNK_S)
+    step = int(rate * chunk_s)
     start = time.monotonic()
     try:
         for k, first in enumerate(range(0, audio.shape[0], step)):
-            await asyncio.sleep(max(0.0, start + k * CHUNK_S - time.monotonic()))
+            await asyncio.sleep(max(0.0, start + k * chunk_s - time.monotonic()))
             live.push(audio[first:first + step], rate)
         live.flush()
     except LiveError:
@@ -236,8 +418,11 @@ def spoken_text(text: str) -> tuple[np.ndarray, int]:
         path.unlink(missing_ok=True)
 
 
-def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, renderer: str = "auto") -> web.Application:
+def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, renderer: str = "auto",
+             client_render: bool = False) -> web.Application:
     app = web.Application()
+    if client_render:
+        return make_client_render_app(app, bundle, lookahead_ms, speech, renderer)
     sessions: dict[RTCPeerConnection, Session] = {}
     connections: dict[str, RTCPeerConnection] = {}  # the id each page holds -> its connection
     tasks: set[asyncio.Task] = set()  # voice sources and failure handling: held until they end
@@ -359,6 +544,157 @@ def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, rendere
     return app
 
 
+def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: float, speech: Path,
+                           renderer: str) -> web.Application:
+    """Client-render mode's routes: the page and the web player's modules, the bundle, the offer (audio track and
+    drive channel), barge-in, close, stats, the recorded drives and health."""
+    # Its driver only (the translator; no frame is drawn). One intra-op thread: the sessions' threads are the
+    # parallelism, and onnxruntime's spinning worker threads would only compete with them.
+    head = TalkingHead(bundle, composite=False, renderer=renderer, resolution=(16, 16), threads=1)
+    sessions: dict[RTCPeerConnection, DriveSession] = {}
+    connections: dict[str, RTCPeerConnection] = {}
+    tasks: set[asyncio.Task] = set()
+
+    def background(coroutine) -> asyncio.Task:
+        task = asyncio.ensure_future(coroutine)
+        tasks.add(task)
+        task.add_done_callback(tasks.discard)
+        return task
+
+    async def page(request: web.Request) -> web.Response:
+        return web.Response(text=WEB_PAGE.read_text(), content_type="text/html")
+
+    async def static(request: web.Request) -> web.StreamResponse:
+        """web/src and the onnxruntime-web npm install: the player's modules, served as JavaScript and wasm."""
+        path = (WEB_ROOT / request.match_info["path"]).resolve()
+        allowed = (WEB_ROOT / "src", WEB_ROOT / "node_modules" / "onnxruntime-web" / "dist")
+        if not any(path.is_relative_to(root) for root in allowed) or not path.is_file():
+            raise web.HTTPNotFound()
+        types = {".js": "text/javascript", ".mjs": "text/javascript", ".wasm": "application/wasm"}
+        return web.FileResponse(path, headers={"Content-Type": types.get(path.suffix, "application/octet-stream"),
+                                               "Cache-Control": "no-store"})
+
+    async def serve_bundle(request: web.Request) -> web.FileResponse:
+        return web.FileResponse(bundle, headers={"Content-Type": "application/octet-stream"})
+
+    async def offer(request: web.Request) -> web.Response:
+        params = await request.json()
+        source = params.get("source", "file")
+        if source not in ("file", "text", "none"):
+            raise web.HTTPBadRequest(text=f"source must be file, text or none, got {source!r}")
+        # How the voice arrives: chunks of chunk_ms at real time (20: a voice made as it is spoken, one translator
+        # call a frame; a text-to-speech engine faster than real time sends more at a time).
+        chunk_ms = params.get("chunk_ms", CHUNK_S * 1000)
+        if not (isinstance(chunk_ms, (int, float)) and 10 <= chunk_ms <= 10000):
+            raise web.HTTPBadRequest(text=f"chunk_ms must be a number of milliseconds in 10..10000, got {chunk_ms!r}")
+        loop = asyncio.get_running_loop()
+        voice = None
+        if source == "file":
+            voice = load_audio(speech, 16000), 16000
+        elif source == "text":
+            voice = await loop.run_in_executor(None, spoken_text, str(params.get("text", "Hello.")))
+        pc = RTCPeerConnection()
+        session_id = uuid.uuid4().hex
+        session = DriveSession(head, lookahead_ms, loop, on_error=lambda error: background(fail(pc, session_id,
+                                                                                                  error)))
+        sessions[pc] = session
+        connections[session_id] = pc
+        pc.on("datachannel", session.attach)
+
+        @pc.on("connectionstatechange")
+        async def on_state() -> None:
+            if pc.connectionState in ("failed", "closed"):
+                await close(pc)
+
+        try:
+            pc.addTrack(session.audio)
+            await pc.setRemoteDescription(RTCSessionDescription(sdp=params["sdp"], type=params["type"]))
+            await pc.setLocalDescription(await pc.createAnswer())
+        except BaseException:
+            await close(pc)
+            raise
+        session.start()
+        await loop.run_in_executor(None, session.started.wait, 10.0)
+        if voice is not None:
+            session.voice = background(push_real_time(session.live, *voice, chunk_s=chunk_ms / 1000))
+        # start_time: time.monotonic() when frame 0 was due (a load client on this machine compares arrivals).
+        return web.json_response({"sdp": pc.localDescription.sdp, "type": pc.localDescription.type,
+                                  "session": session_id, "fps": head.fps, "start_time": session.start_time})
+
+    async def fail(pc: RTCPeerConnection, session_id: str, error: BaseException) -> None:
+        log.error("live session %s ended: its driver raised", session_id, exc_info=error)
+        session = sessions.get(pc)
+        if session is None:
+            return
+        session.tell({"error": f"the live session ended: {type(error).__name__}: {error}"})
+        try:
+            await asyncio.wait_for(session.closed.wait(), ERROR_GRACE_S)
+        except asyncio.TimeoutError:
+            pass
+        await close(pc)
+
+    async def close(pc: RTCPeerConnection) -> None:
+        session = sessions.pop(pc, None)
+        for key in [key for key, value in connections.items() if value is pc]:
+            del connections[key]
+        if session is not None:
+            if session.voice is not None:
+                session.voice.cancel()
+            await asyncio.get_running_loop().run_in_executor(None, session.stop)
+            session.closed.set()
+        await pc.close()
+
+    def session_of(session_id: str) -> tuple[RTCPeerConnection, DriveSession]:
+        pc = connections.get(session_id.strip())
+        if pc is None or pc not in sessions:
+            raise web.HTTPNotFound(text=f"no live session {session_id.strip()[:40]!r} (already closed?)")
+        return pc, sessions[pc]
+
+    async def leave(request: web.Request) -> web.Response:
+        pc, _ = session_of(await request.text())
+        await close(pc)
+        return web.Response(status=204)
+
+    async def interrupt(request: web.Request) -> web.Response:
+        _, session = session_of(await request.text())
+        return web.json_response(session.interrupt())
+
+    async def drives(request: web.Request) -> web.Response:
+        """The session's recorded drive messages (the last DriveSession.RECORDED), concatenated, each preceded by
+        its length (u16): what the tests compare the page's received drives with."""
+        _, session = session_of(request.query.get("session", ""))
+        body = b"".join(struct.pack("<H", len(m)) + m for m in list(session.recorded))
+        return web.Response(body=body, content_type="application/octet-stream")
+
+    async def stats(request: web.Request) -> web.Response:
+        return web.json_response([session.summary() for session in sessions.values()])
+
+    async def health(request: web.Request) -> web.Response:
+        threads = sum(thread.name == DriveSession.THREAD_NAME for thread in threading.enumerate())
+        return web.json_response({"sessions": len(sessions), "driver_threads": threads})
+
+    async def on_shutdown(app: web.Application) -> None:
+        await asyncio.gather(*(close(pc) for pc in list(sessions)))
+        for task in list(tasks):
+            task.cancel()
+
+    async def on_cleanup(app: web.Application) -> None:
+        head.close()
+
+    app.router.add_get("/", page)
+    app.router.add_get("/web/{path:.+}", static)
+    app.router.add_get("/bundle", serve_bundle)
+    app.router.add_post("/offer", offer)
+    app.router.add_post("/interrupt", interrupt)
+    app.router.add_post("/close", leave)
+    app.router.add_get("/drives", drives)
+    app.router.add_get("/stats", stats)
+    app.router.add_get("/health", health)
+    app.on_shutdown.append(on_shutdown)
+    app.on_cleanup.append(on_cleanup)
+    return app
+
+
 def main(bundle: Path = typer.Argument(..., help="a speaker bundle with a translator (.gtb)"),
          port: int = typer.Option(8080, "--port", help="port on 127.0.0.1"),
          host: str = typer.Option("127.0.0.1", "--host", help="address to listen on"),
@@ -366,14 +702,17 @@ def main(bundle: Path = typer.Argument(..., help="a speaker bundle with a transl
          lookahead_ms: float = typer.Option(160.0, "--lookahead-ms", min=0.0, help="the live session's lookahead"),
          audio: Path = typer.Option(SPEECH, "--audio", help="the sound file the page's 'file' source plays"),
          renderer: str = typer.Option("auto", "--renderer", help="what splats: gl, cpu or auto (cpu where the GL "
-                                      "is a software rasterizer and numba is installed; docs/embedding.md)")) -> None:
+                                      "is a software rasterizer and numba is installed; docs/embedding.md)"),
+         client_render: bool = typer.Option(False, "--client-render", help="stream drives, not pixels: the page "
+                                            "renders the head with the web player (samples/web/live.html)")) -> None:
     """Serve the live page and stream the talking head over WebRTC."""
     for path, hint in ((bundle, "BUNDLE"), (audio, "--audio")):
         if not path.is_file():
             raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
     logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
     print(json.dumps({"url": f"http://{host}:{port}/", "bundle": str(bundle)}), flush=True)
-    web.run_app(make_app(bundle, size, lookahead_ms, audio, renderer), host=host, port=port, print=None)
+    web.run_app(make_app(bundle, size, lookahead_ms, audio, renderer, client_render), host=host, port=port,
+                print=None)
 
 
 if __name__ == "__main__":

@@ -120,6 +120,8 @@ def play(
                                       "order in between (1-60) [default: the bundle's preset, else 1]"),
     sort_key_bits: int = typer.Option(None, "--sort-key-bits", help="32: exact depth; 16: depth quantised to "
                                       "65536 levels, faster [default: the bundle's preset, else 32]"),
+    no_pipeline: bool = typer.Option(False, "--no-pipeline", help="one frame stage after another on one thread "
+                                     "(the same frames; by default neighbouring frames' stages overlap)"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
 ) -> None:
     """Render BUNDLE talking to AUDIO (or playing an ARKit MOTION) and write a video with the audio muxed in."""
@@ -139,7 +141,8 @@ def play(
         plan = view.plan_video(output, alpha=alpha, codec=codec, crf=crf, preset=preset, container=video_format)
         # The render knobs are shortcuts: each one not given keeps the bundle's preset value.
         head = TalkingHead(bundle, output=output_settings, backend=BackendSettings(backend, threads=threads,
-                                                                                 renderer=renderer),
+                                                                                 renderer=renderer,
+                                                                                 pipeline=not no_pipeline),
                            render_scale=render_scale, render_target=render_target, sort_interval=sort_interval,
                            sort_key_bits=sort_key_bits)
         window = None

@@ -17,6 +17,10 @@
                            FPS (bench/avatar.py)
     gt-bench live          live sessions: first-frame latency, agreement with offline frames, barge-in, drift,
                            sessions per process (bench/live.py)
+    gt-bench live-clients  client-render live sessions under load: late frames, server CPU, first-frame and
+                           barge-in latency per number of clients (bench/live_clients.py)
+    gt-bench pipeline      the pipelined frame loop against the serial one on the CPU splatter, alternating
+                           (bench/pipeline.py)
 
 The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
 still work: `entry.gt_bench` rewrites them to their subcommand.
@@ -415,6 +419,90 @@ def live(
                                      f"{result['machine']['cores']} cores, {result['machine']['gl']}; splatted by the "
                                      f"{result['renderer']} renderer.\n\n{tables}\n")
         typer.echo(f"wrote {out / 'live.md'}, {out / 'live.json'}")
+
+
+@app.command()
+def pipeline(
+    bundle: Path = typer.Argument(..., help="a speaker bundle with a translator and a reference clip (.gtb)"),
+    audio: Path = typer.Option(Path("samples/demo_speech.wav"), "--audio", help="speech to render"),
+    seconds: float = typer.Option(0.0, "--seconds", min=0.0, help="the first seconds of the audio (0: all)"),
+    size: int = typer.Option(512, "--size", min=16, help="square frame size of the bare-head cases"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="rounds per case and variant"),
+    cases: str = typer.Option("frames,frames-composite,play,play-composite", "--cases",
+                              help="what to time: frames, frames-composite, play, play-composite"),
+    before: Path = typer.Option(None, "--before", help="another checkout of the SDK, timed as it is (\"before\")"),
+    out: Path = typer.Option(None, "--out", help="folder for pipeline.md and pipeline.json"),
+) -> None:
+    """The pipelined frame loop against the serial one and, with --before, another checkout, on the CPU tile
+    splatter, alternating rounds (bench/pipeline.py)."""
+    import shlex
+    import sys
+
+    from .pipeline import bench_pipeline, format_report
+
+    if not bundle.is_file():
+        raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
+    result = bench_pipeline(bundle.resolve(), audio=audio.resolve(), seconds=seconds, size=size, rounds=rounds,
+                            cases=[c.strip() for c in cases.split(",") if c.strip()],
+                            baseline=before)
+    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    report = format_report(result, result["machine"], result["command"])
+    typer.echo(report)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "pipeline.json").write_text(json.dumps(result, indent=2))
+        (out / "pipeline.md").write_text(report)
+        typer.echo(f"wrote {out / 'pipeline.md'}, {out / 'pipeline.json'}")
+
+
+@app.command("live-clients")
+def live_clients(
+    bundle: Path = typer.Argument(..., help="a speaker bundle with a translator (.gtb)"),
+    clients: str = typer.Option("1,10,25,50,75", "--clients", help="numbers of concurrent sessions to run"),
+    lookahead_ms: float = typer.Option(160.0, "--lookahead-ms", min=0.0, help="the sessions' lookahead"),
+    speak_s: float = typer.Option(4.0, "--speak-s", min=0.5, help="seconds each client lets the head speak "
+                                  "before it interrupts"),
+    chunk_ms: str = typer.Option("20", "--chunk-ms", help="the voice's chunk sizes (ms, pushed at real time; "
+                                 "comma-separated: one run each): 20 is a voice made as it is spoken"),
+    out: Path = typer.Option(None, "--out", help="folder for live-clients.md and live-clients.json"),
+) -> None:
+    """Client-render live sessions (samples/live_server.py --client-render) under N concurrent load clients:
+    late drives, server CPU per session-second, first-frame and barge-in latency; the largest N with <= 5% late."""
+    import shlex
+    import sys
+
+    from .live_clients import live_clients_table, run_live_clients_bench
+
+    if not bundle.is_file():
+        raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
+    try:
+        counts = [int(v) for v in clients.split(",") if v.strip()]
+        chunks = [float(v) for v in chunk_ms.split(",") if v.strip()]
+    except ValueError:
+        raise typer.BadParameter("comma-separated numbers expected", param_hint="--clients/--chunk-ms") from None
+    if not counts or min(counts) < 1 or not chunks or not all(10 <= c <= 10000 for c in chunks):
+        raise typer.BadParameter("counts >= 1 and chunks of 10..10000 ms", param_hint="--clients/--chunk-ms")
+    import os
+
+    result = {"load_at_start": os.getloadavg(), "runs": []}
+    for chunk in chunks:
+        typer.echo(f"voice in {chunk:g} ms chunks")
+        result["runs"].append(run_live_clients_bench(bundle, counts, lookahead_ms, speak_s, chunk_ms=chunk,
+                                                     log=typer.echo))
+    result["load_at_end"] = os.getloadavg()
+    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    table = "\n\n".join(f"Voice pushed in {run['chunk_ms']:g} ms chunks at real time:\n\n{live_clients_table(run)}"
+                         for run in result["runs"])
+    typer.echo(table)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "live-clients.json").write_text(json.dumps(result, indent=2))
+        (out / "live-clients.md").write_text(
+            f"# Live sessions rendered by the client, under load\n\n`{result['command']}` on "
+            f"{result['machine']['cpu']}, {result['machine']['cores']} cores; load average (1, 5, 15 min) "
+            f"{', '.join(f'{v:.2f}' for v in result['load_at_start'])} at the start, "
+            f"{', '.join(f'{v:.2f}' for v in result['load_at_end'])} at the end.\n\n{table}\n")
+        typer.echo(f"wrote {out / 'live-clients.md'}, {out / 'live-clients.json'}")
 
 
 def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: float, rounds: int,
