@@ -167,6 +167,30 @@ class FrameTrack(MediaStreamTrack):
         return out
 
 
+class ControlChannel:
+    """The page's "control" data channel: JSON messages for the page, kept until the channel is open."""
+
+    def __init__(self) -> None:
+        self._channel = None
+        self._outbox: list[str] = []
+
+    def attach(self, channel) -> None:
+        """The channel the page opened: queued messages go out on it once it is open."""
+        self._channel = channel
+        channel.on("open", self._send_outbox)
+        self._send_outbox()
+
+    def tell(self, message: dict) -> None:
+        """Send the page `message` (JSON) now, or as soon as the channel opens."""
+        self._outbox.append(json.dumps(message))
+        self._send_outbox()
+
+    def _send_outbox(self) -> None:
+        if self._channel is not None and self._channel.readyState == "open":
+            while self._outbox:
+                self._channel.send(self._outbox.pop(0))
+
+
 class Session:
     """One connection's live session on a render thread of its own, with its counters for /stats.
     `on_error(error)` is called on the event loop when a frame raises (the session has then ended)."""
@@ -184,8 +208,7 @@ class Session:
         self.error: BaseException | None = None  # what ended the session, if it failed
         self._started = False  # the head and its live session were made: an error after it is a frame's
         self.video, self.audio = FrameTrack("video", loop), FrameTrack("audio", loop)
-        self._channel = None  # the page's "control" data channel
-        self._outbox: list[str] = []  # messages for the page until its channel is open
+        self._control = ControlChannel()
         self._thread = threading.Thread(target=self._run, name=self.THREAD_NAME, daemon=True)
 
     def start(self) -> None:
@@ -198,19 +221,11 @@ class Session:
 
     def attach(self, channel) -> None:
         """The page's control data channel: messages go out on it once it is open."""
-        self._channel = channel
-        channel.on("open", self._send_outbox)
-        self._send_outbox()
+        self._control.attach(channel)
 
     def tell(self, message: dict) -> None:
         """Send the page `message` (JSON) on its control channel, now or as soon as the channel opens."""
-        self._outbox.append(json.dumps(message))
-        self._send_outbox()
-
-    def _send_outbox(self) -> None:
-        if self._channel is not None and self._channel.readyState == "open":
-            while self._outbox:
-                self._channel.send(self._outbox.pop(0))
+        self._control.tell(message)
 
     def stop(self, timeout: float = 10.0) -> None:
         """End the live session and wait for its render thread, so no frame is drawn after the server shuts down."""
@@ -286,8 +301,8 @@ class DriveSession:
         self.recorded: list[bytes] = []
         self.started = threading.Event()
         self.start_time = 0.0  # time.monotonic() of frame 0's due time: the session's pts 0 on the wall clock
-        self._drives = self._control = None
-        self._outbox: list[str] = []
+        self._drives = None
+        self._control = ControlChannel()
         self._thread = threading.Thread(target=self._run, name=self.THREAD_NAME, daemon=True)
 
     def start(self) -> None:
@@ -297,18 +312,11 @@ class DriveSession:
         if channel.label == "drives":
             self._drives = channel
         elif channel.label == "control":
-            self._control = channel
-            channel.on("open", self._send_outbox)
-            self._send_outbox()
+            self._control.attach(channel)
 
     def tell(self, message: dict) -> None:
-        self._outbox.append(json.dumps(message))
-        self._send_outbox()
-
-    def _send_outbox(self) -> None:
-        if self._control is not None and self._control.readyState == "open":
-            while self._outbox:
-                self._control.send(self._outbox.pop(0))
+        """Send the page `message` (JSON) on its control channel, now or as soon as the channel opens."""
+        self._control.tell(message)
 
     def interrupt(self) -> dict:
         """Barge-in (on the event loop): the voice stops, the session drops what it queued and eases to idle. The

@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 from ci_tools import need_chromium, need_module
 
+from gaussiantalker.exporter.bench.live_clients import serving
 from gaussiantalker.runtime.chromium import Chromium
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,20 +50,8 @@ def _free_port() -> int:
 def _server(bundle: Path, port: int, python: tuple[str, ...] = ()) -> subprocess.Popen:
     """live_server.py serving `bundle` on `port`, once it answers; `python`: arguments before the script's path
     (a `-c` program that runs it, as the failure tests do)."""
-    process = subprocess.Popen([sys.executable, *python, str(ROOT / "samples" / "live_server.py"), str(bundle),
-                                "--port", str(port), "--size", str(SIZE)], stdout=subprocess.PIPE,
-                               stderr=subprocess.STDOUT, text=True)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            urllib.request.urlopen(f"http://127.0.0.1:{port}/stats", timeout=1).read()
-            return process
-        except OSError:
-            if process.poll() is not None:
-                raise AssertionError(f"live_server.py exited: {process.stdout.read()[-3000:]}") from None
-            time.sleep(0.2)
-    process.kill()
-    raise AssertionError(f"live_server.py did not answer within 60 s: {process.stdout.read()[-3000:]}")
+    return serving([sys.executable, *python, str(ROOT / "samples" / "live_server.py"), str(bundle), "--port",
+                    str(port), "--size", str(SIZE)], f"http://127.0.0.1:{port}/stats", 60)
 
 
 def _get(port: int, path: str):

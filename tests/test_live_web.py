@@ -22,6 +22,8 @@ import numpy as np
 import pytest
 from ci_tools import BROWSER_INSTALL, need, need_chromium, need_module
 
+from gaussiantalker.exporter.bench.live_clients import serving
+
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 64
 MIN_PSNR_DB = 40.0
@@ -103,20 +105,8 @@ def _free_port() -> int:
 
 def start_server(bundle: Path, port: int, timeout: float = 120.0) -> subprocess.Popen:
     """live_server.py --client-render serving `bundle` on `port`, once it answers."""
-    process = subprocess.Popen([sys.executable, str(ROOT / "samples" / "live_server.py"), str(bundle), "--port",
-                                str(port), "--client-render"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                               text=True)
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=1).read()
-            return process
-        except OSError:
-            if process.poll() is not None:
-                raise AssertionError(f"live_server.py exited: {process.stdout.read()[-3000:]}") from None
-            time.sleep(0.2)
-    process.kill()
-    raise AssertionError(f"live_server.py did not answer within {timeout} s")
+    return serving([sys.executable, str(ROOT / "samples" / "live_server.py"), str(bundle), "--port", str(port),
+                    "--client-render"], f"http://127.0.0.1:{port}/health", timeout)
 
 
 def _get(port: int, path: str) -> bytes:

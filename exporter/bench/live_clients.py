@@ -126,21 +126,26 @@ def _client_process(url: str, count: int, first: int, speak_s: float, idle_s: fl
     queue.put(asyncio.run(main()))
 
 
-def _start_server(bundle: Path, port: int, lookahead_ms: float) -> subprocess.Popen:
-    process = subprocess.Popen([sys.executable, str(SERVER), str(bundle), "--port", str(port), "--client-render",
-                                "--lookahead-ms", str(lookahead_ms)], stdout=subprocess.PIPE,
-                               stderr=subprocess.STDOUT, text=True)
-    deadline = time.monotonic() + 180
+def serving(command: list[str], url: str, timeout: float, name: str = "live_server.py") -> subprocess.Popen:
+    """Start `command` (the server `name`) and return it once `url` answers; RuntimeError with its output's tail if
+    it exits first or does not answer within `timeout` seconds (then it is killed)."""
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
-            urllib.request.urlopen(f"http://127.0.0.1:{port}/health", timeout=1).read()
+            urllib.request.urlopen(url, timeout=1).read()
             return process
         except OSError:
             if process.poll() is not None:
-                raise RuntimeError(f"live_server.py exited: {process.stdout.read()[-3000:]}") from None
-            time.sleep(0.3)
+                raise RuntimeError(f"{name} exited: {process.stdout.read()[-3000:]}") from None
+            time.sleep(0.2)
     process.kill()
-    raise RuntimeError("live_server.py did not answer within 180 s")
+    raise RuntimeError(f"{name} did not answer within {timeout:g} s: {process.stdout.read()[-3000:]}")
+
+
+def _start_server(bundle: Path, port: int, lookahead_ms: float) -> subprocess.Popen:
+    return serving([sys.executable, str(SERVER), str(bundle), "--port", str(port), "--client-render",
+                    "--lookahead-ms", str(lookahead_ms)], f"http://127.0.0.1:{port}/health", 180)
 
 
 def _percentiles(values: list[float]) -> dict:
