@@ -137,7 +137,10 @@ class BundleWriter:
     def write(self, path: str | os.PathLike | StagedFile) -> int:
         """Write the bundle to `path` atomically (a failure never leaves a partial file there), or into a file
         the caller staged with `atomic_path` (written in place: it is a temporary file already). Returns bytes."""
-        manifest_bytes = json.dumps(self.manifest(), sort_keys=True).encode("utf-8")
+        try:
+            manifest_bytes = json.dumps(self.manifest(), sort_keys=True, allow_nan=False).encode("utf-8")
+        except ValueError as exc:  # NaN or an infinity, which JSON has no number for
+            raise BundleError(f"cannot write the manifest: {exc} (NaN and infinities are not JSON)") from None
         header = _HEADER.pack(MAGIC, FORMAT_MAJOR, FORMAT_MINOR, 0, len(manifest_bytes),
                               hashlib.sha256(manifest_bytes).digest())
         header += b"\0" * (HEADER_SIZE - len(header))
@@ -160,6 +163,11 @@ class _Manifest(dict):
 
     def __missing__(self, key):
         raise BundleError(f"{self.path}: manifest has no {key!r} section")
+
+
+def _no_constant(name: str) -> float:
+    """Python's json reads NaN, Infinity and -Infinity, which JSON does not have (and other readers refuse)."""
+    raise ValueError(f"{name} is not a JSON number")
 
 
 def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
@@ -219,7 +227,8 @@ class Bundle:
         if hashlib.sha256(manifest_bytes).digest() != digest:
             raise BundleError(f"{self.path}: manifest checksum mismatch (corrupt manifest or header)")
         try:
-            manifest = json.loads(manifest_bytes.decode("utf-8"), object_pairs_hook=_unique_keys)
+            manifest = json.loads(manifest_bytes.decode("utf-8"), object_pairs_hook=_unique_keys,
+                                  parse_constant=_no_constant)
         except (UnicodeDecodeError, ValueError, RecursionError) as exc:
             detail = "it nests too deep" if isinstance(exc, RecursionError) else " ".join(str(exc).split())[:200]
             raise BundleError(f"{self.path}: manifest is not valid JSON: {detail}") from None

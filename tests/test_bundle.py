@@ -199,6 +199,20 @@ def test_manifest_repeating_a_key_is_refused(tmp_path):
         Bundle(path)
 
 
+@pytest.mark.parametrize("constant", ["NaN", "Infinity", "-Infinity"])
+def test_manifest_with_a_non_json_number_is_refused(tmp_path, constant):
+    """Python's json reads NaN and the infinities; JSON has no such numbers and other readers (the browser's)
+    refuse them, so this reader does too; and the writer never writes one."""
+    path = _write(tmp_path / "a.gtb")
+    _rewrite_manifest_text(path, lambda text: text[:-1] + f', "odd": {constant}}}')
+    with pytest.raises(BundleError, match=f"manifest is not valid JSON: {constant} is not a JSON number"):
+        Bundle(path)
+    writer = BundleWriter(metadata={"odd": float(constant.replace("Infinity", "inf"))})
+    with pytest.raises(BundleError, match="cannot write the manifest: .*NaN and infinities are not JSON"):
+        writer.write(tmp_path / "b.gtb")
+    assert not (tmp_path / "b.gtb").exists()
+
+
 def test_shape_numpy_cannot_make_is_refused_at_open(tmp_path):
     """An empty buffer claiming a dimension of 2^62 stores 0 bytes, as declared, but no array has that shape."""
     writer = BundleWriter()
