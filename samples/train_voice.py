@@ -23,7 +23,7 @@ from gaussiantalker.exporter.voice.model import VoiceConfig, VoiceNet
 from gaussiantalker.exporter.voice.train import TrainSettings, train, training_streams
 
 app = typer.Typer(add_completion=False)
-MODELS = Path(__file__).resolve().parent.parent / "exporter" / "voice" / "models"
+MODELS = Path(__file__).resolve().parent.parent / "src" / "gaussiantalker" / "exporter" / "voice" / "models"
 BENCH = Path(__file__).resolve().parent.parent / "docs" / "bench" / "voice"
 
 

@@ -29,12 +29,14 @@ WORKER = Path(__file__).with_name("worker.py")
 
 
 def checkout_root(path: Path) -> Path:
-    """The folder holding sdk/, runtime/, exporter/ and shaders/ of an SDK checkout; ValueError if it is not one."""
+    """The folder holding sdk/, runtime/, exporter/ and shaders/ of an SDK checkout (its src/gaussiantalker/, or the
+    checkout itself in versions before the src/ layout); ValueError if it is not one."""
     path = path.expanduser().resolve()
-    missing = [name for name in PACKAGES if not (path / name).is_dir()]
-    if missing:
-        raise ValueError(f"{path} is not a checkout of the SDK (it has no {', '.join(p + '/' for p in missing)})")
-    return path
+    for candidate in (path / "src" / "gaussiantalker", path):
+        if all((candidate / name).is_dir() for name in PACKAGES):
+            return candidate
+    raise ValueError(f"{path} is not a checkout of the SDK (it has no src/gaussiantalker/ holding "
+                     f"{', '.join(name + '/' for name in PACKAGES)})")
 
 
 def this_version_root() -> Path:

@@ -89,8 +89,8 @@ def run_renderers_bench(gaussians: str, sizes: str, frames: int, rounds: int, th
     return results
 
 
-PLAYER = Path(__file__).resolve().parents[2] / "samples" / "play.py"
-SPEECH = Path(__file__).resolve().parents[2] / "samples" / "demo_speech.wav"
+PLAYER = Path(__file__).resolve().parents[4] / "samples" / "play.py"
+SPEECH = Path(__file__).resolve().parents[4] / "samples" / "demo_speech.wav"
 
 
 def _frames_seconds(head, audio: np.ndarray, rate: int) -> float:

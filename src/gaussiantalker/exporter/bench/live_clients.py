@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[4]
 SERVER = ROOT / "samples" / "live_server.py"
 SPEAK_S = 4.0
 IDLE_S = 1.5

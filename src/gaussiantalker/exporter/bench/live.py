@@ -20,7 +20,7 @@ from gaussiantalker.runtime.live_audio import SampleFifo
 from gaussiantalker.sdk.audio import load_audio, resample
 
 CHUNK_MS = 20.0
-SPEECH = Path(__file__).resolve().parents[2] / "samples" / "demo_speech.wav"
+SPEECH = Path(__file__).resolve().parents[4] / "samples" / "demo_speech.wav"
 
 
 def sample_speech(rate: int) -> np.ndarray:

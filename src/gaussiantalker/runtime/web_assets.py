@@ -32,7 +32,7 @@ GENERATED = "src/generated.js"
 
 def web_root() -> Path:
     """The web/ folder of this source tree (the player is not part of the Python wheel)."""
-    return Path(__file__).resolve().parent.parent / "web"
+    return Path(__file__).resolve().parents[3] / "web"  # src/gaussiantalker/runtime/ -> the checkout
 
 
 def constants() -> dict[str, object]:

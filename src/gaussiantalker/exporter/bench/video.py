@@ -23,7 +23,7 @@ import numpy as np
 from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.sdk.video import VideoWriter
 
-ROOT = Path(__file__).resolve().parents[2]  # the checkout (samples/ holds the demo speech)
+ROOT = Path(__file__).resolve().parents[4]  # the checkout (samples/ holds the demo speech)
 # (label, file name, writer options)
 OUTPUTS = [
     ("mp4 h264", "a.mp4", {}),
