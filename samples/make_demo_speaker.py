@@ -17,7 +17,7 @@ from pathlib import Path
 
 import typer
 
-from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
 from gaussiantalker.exporter.demo.steps import INPAINT_STEPS, STEPS_PER_SECOND, steps_for_seconds
 from gaussiantalker.exporter.demo.train_translator import TrainSettings
 from gaussiantalker.exporter.export.checkpoint import save_checkpoint

@@ -140,9 +140,9 @@ def play(
             view = TalkingHead.output_view(bundle, output_settings)
         plan = view.plan_video(output, alpha=alpha, codec=codec, crf=crf, preset=preset, container=video_format)
         # The render knobs are shortcuts: each one not given keeps the bundle's preset value.
-        head = TalkingHead(bundle, output=output_settings, backend=BackendSettings(backend, threads=threads,
-                                                                                 renderer=renderer,
-                                                                                 pipeline=not no_pipeline),
+        head = TalkingHead(bundle, output_settings=output_settings,
+                           backend_settings=BackendSettings(backend, threads=threads, renderer=renderer,
+                                                            pipeline=not no_pipeline),
                            render_scale=render_scale, render_target=render_target, sort_interval=sort_interval,
                            sort_key_bits=sort_key_bits)
         window = None
@@ -152,15 +152,16 @@ def play(
                 raise GaussianTalkerError("--show needs a display (DISPLAY is not set); the video is still written "
                                           "without --show")
             window = FrameWindow(*head.frame_size, f"GaussianTalker - {bundle.name}")
-        samples = None if audio is None else head.load_audio(audio)
-        if motion is not None or samples is None or not head.has_translator:
-            if motion is None and head.has_translator and head.motion_track is None:
+        driver = head.driver
+        samples = None if audio is None else driver.load_audio(audio)
+        if motion is not None or samples is None or not driver.has_translator:
+            if motion is None and driver.has_translator and driver.motion_track is None:
                 raise GaussianTalkerError("--audio is required: this speaker turns speech into motion (or give "
                                           "--motion FILE)")
-            track = head.motion(None if motion == OWN_MOTION else motion)
+            track = driver.motion(None if motion == OWN_MOTION else motion)
             total = len(track)
         else:
-            track, total = None, head.frame_count(samples.shape[0])
+            track, total = None, driver.frame_count(samples.shape[0])
         head.write_video(plan, samples, head.sample_rate, progress=not quiet, motion=track,
                          on_frame=window.show if window is not None else None)
         if window is not None:

@@ -5,12 +5,12 @@ and exports its bundle into a temporary folder (nothing of the avatar is kept), 
 (default tests/data/voice_heldout.wav, its timed phonemes in the .json beside it) with the runtime's TalkingHead
 twice:
 
-* top row, "voice model (from audio)": the attached model run by the runtime from the audio (`TalkingHead.translate`,
+* top row, "voice model (from audio)": the attached model run by the runtime from the audio (`head.driver.translate`,
   the rows `frames(audio)` draws: overlapping windows, 25 fps rows resampled to the speaker's 30 fps, the silence
   gate);
 * bottom row, "phoneme targets": the weights the model was trained to reproduce (exporter/voice/targets.py, 25 fps,
   from the phonemes and the audio's loudness), resampled linearly in time to the same 30 fps frames and played as a
-  motion (`TalkingHead.motion`).
+  motion (`head.driver.motion`).
 
 The columns are instants that show distinct visemes, read from the phonemes: a /p b m/ closure, an open vowel, a
 rounded vowel, a spread vowel, a pause, then other classes (each at the frame of its segment where the target shape
@@ -240,9 +240,9 @@ def mouth_box(head: TalkingHead) -> tuple[int, int, int, int]:
     """The mouth in `head`'s view with the head at rest: the box of what the first of LIP_SHAPES that moves
     anything changes."""
     rest = HeadPose.make()
-    neutral = head.render(head.blendshape_drive(None, rest), "float")
+    neutral = head.render(head.driver.drive(None, rest), "float")
     for shape in LIP_SHAPES:
-        box = changed_box(neutral, head.render(head.blendshape_drive(shape, rest), "float"))
+        box = changed_box(neutral, head.render(head.driver.drive(shape, rest), "float"))
         if box is not None:
             return box
     raise GaussianTalkerError("no lip shape moves anything in view: cannot find the mouth to crop to")
@@ -268,7 +268,7 @@ def crop_camera(camera: Camera, square: tuple[float, float, float], size: int) -
 def render_cells(head: TalkingHead, rows: Sequence[np.ndarray], frames: Sequence[int]) -> np.ndarray:
     """Each row's weights at each frame, drawn with the head at rest: uint8 [rows, frames, H, W, 3]."""
     rest = HeadPose.make()
-    return np.stack([np.stack([head.render(head.blendshape_drive(weights[frame], rest)) for frame in frames])
+    return np.stack([np.stack([head.render(head.driver.drive(weights[frame], rest)) for frame in frames])
                      for weights in rows])
 
 
@@ -364,9 +364,9 @@ def write_png(path: Path, image: np.ndarray, max_bytes: int | None = None) -> st
 def import_with_voice(avatar: Path, folder: Path, progress: bool = False) -> Path:
     """Import a LAM avatar zip, attach the built-in voice, save its checkpoint and export its bundle into `folder`
     (as `gt-import lam` and `gt-export` do); returns the bundle's path."""
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
-    from gaussiantalker.exporter.export.export import export_bundle
-    from gaussiantalker.exporter.imports.lam import LamOptions, import_lam
+    from gaussiantalker.exporter.imports.sources.lam import LamOptions, import_lam
     from gaussiantalker.exporter.voice.attach import builtin_audio_model
 
     speaker = import_lam(avatar, LamOptions(), progress=progress)
@@ -392,10 +392,10 @@ def make_strip(bundle: Path, audio_path: Path, phonemes_path: Path, output: Path
         raise GaussianTalkerError(f"crop must be one of {', '.join(CROPS)}, got {crop!r}")
     phonemes, text = load_phonemes(phonemes_path)
     with TalkingHead(bundle, resolution=(PROBE_SIZE, PROBE_SIZE), renderer=renderer, composite=False) as probe:
-        samples = probe.load_audio(audio_path)
-        model = probe.translate(samples)  # the rows frames(audio) draws
+        samples = probe.driver.load_audio(audio_path)
+        model = probe.driver.translate(samples)  # the rows frames(audio) draws
         fps, seconds, camera = probe.fps, samples.shape[0] / probe.sample_rate, probe.camera
-        targets = np.asarray(probe.motion(target_rows(phonemes, text, load_audio(audio_path, SAMPLE_RATE), fps,
+        targets = np.asarray(probe.driver.motion(target_rows(phonemes, text, load_audio(audio_path, SAMPLE_RATE), fps,
                                                       model.shape[0])).weights, np.float32)
         square = crop_square(mouth_box(probe), crop)
     columns = choose_columns(phonemes, text, targets, fps, seconds, count)
@@ -508,7 +508,7 @@ def markdown(strip: Strip, png: Path, audio: Path, avatar: str, command: str, se
         f"{fps:g} fps frames, the head held at rest:",
         "",
         "* **top, voice model (from audio)**: `exporter/voice/models/arkit_voice.onnx` run by the runtime from "
-        "the audio (`TalkingHead.translate`, the rows `frames(audio)` draws: overlapping windows, its 25 fps rows "
+        "the audio (`head.driver.translate`, the rows `frames(audio)` draws: overlapping windows, its 25 fps rows "
         f"resampled to {fps:g} fps, the silence gate);",
         "* **bottom, phoneme targets**: the weights it was trained to reproduce (`exporter/voice/targets.py`, from "
         "the timed phonemes and the audio's loudness, 25 fps), resampled linearly in time to the same frames.",

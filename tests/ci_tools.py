@@ -35,7 +35,7 @@ def need_module(module: str, extra: str, *, module_level: bool = False) -> None:
 def need_chromium() -> None:
     """`need` for Debian's chromium (the browser tests: tests/test_lam_web.py, tests/test_live_browser.py,
     tests/test_web_player.py)."""
-    from gaussiantalker.runtime.chromium import ChromiumMissing, chromium_path
+    from tools.browser.chromium import ChromiumMissing, chromium_path
 
     try:
         chromium_path()
@@ -45,7 +45,7 @@ def need_chromium() -> None:
 
 def need_lam_renderer() -> None:
     """`need` for chromium and LAM's npm web renderer in its cache (docs/lam-web.md)."""
-    from gaussiantalker.exporter.bench import lam_web
+    from tools.bench import lam_web
 
     need_chromium()
     need(lam_web.check_installed(), BROWSER_INSTALL)

@@ -20,7 +20,7 @@ def demo_speaker(small_speaker):
     """The default demo speaker (20k Gaussians) with the small speaker's trained translator. The translator learns
     from synthetic speech alone, whatever the head, so one training serves both; its default 400 steps (~70 s) are
     checked by test_demo_motion's heavy test and measured by `make_demo_speaker.py` (docs/demo-speaker.md)."""
-    from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+    from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
 
     speaker, metrics = make_demo_speaker(progress=False, train_steps=0)
     speaker.translator.load_state_dict(small_speaker.translator.state_dict())
@@ -50,7 +50,7 @@ def _export_recording(speaker, path, **export_kwargs) -> SimpleNamespace:
     """Export `speaker` to `path` (with `export_kwargs`: a scene, a preset...), keeping the ONNX protos torch.onnx
     made (translator, deform, then inpaint where the speaker has F) and the ExportResult (`.result`)."""
     import gaussiantalker.exporter.export.onnx_export as onnx_export_module
-    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
 
     protos = []
     real_export_onnx = onnx_export_module.export_onnx
@@ -217,7 +217,7 @@ def _export_rebound(speaker, path, recorded: SimpleNamespace, **export_kwargs) -
     """Export `speaker` to `path` with `recorded`'s graphs (a `small_export`-like namespace of a speaker of the
     same architecture) rebound to its weights; buffers, codecs and writing run for real.
     Returns the same kind of namespace (path, protos, speaker)."""
-    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
 
     with rebinding_onnx_exports(recorded) as protos:
         export_bundle(speaker, path, progress=export_kwargs.pop("progress", False), **export_kwargs)
@@ -265,7 +265,7 @@ def small_speaker():
     20 of 20 coefficients moving, in a quarter of the time): the quick run's speaker (its torch frames are ~4x
     cheaper than the 20k demo speaker's). No time cap (`seconds_budget`): on a busy machine the 150 s default
     could stop training early and make the speaker depend on the machine's load."""
-    from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+    from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
     from gaussiantalker.exporter.demo.train_translator import TrainSettings, train_demo_translator
 
     speaker, metrics = make_demo_speaker(n_gaussians=2000, seed=3, train_steps=0, progress=False)
@@ -291,8 +291,8 @@ def lam_voice_bundle(tmp_path_factory):
     voice driver attached (docs/voice.md), exported as an fp32 bundle: an ARKit speaker that audio drives at 30 fps."""
     from lam_avatars import write_avatar_zip
 
-    from gaussiantalker.exporter.export.export import export_bundle
-    from gaussiantalker.exporter.imports.lam import import_lam
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.imports.sources.lam import import_lam
     from gaussiantalker.exporter.voice.attach import builtin_audio_model
 
     folder = tmp_path_factory.mktemp("lam_voice")
@@ -364,7 +364,7 @@ REDUCED_EXPORTS = {"balanced": True, "compact": False, "fast": False, "mobile": 
 def reduced_export(small_export, tmp_path_factory):
     """`reduced_export(name)`: the path of `small_export.speaker` exported as `name` (a preset, or
     "translator-fp16"/"translator-int8"), made on first use and shared by the session's tests."""
-    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.exporter.export.presets import ExportSettings
 
     folder = tmp_path_factory.mktemp("reduced")

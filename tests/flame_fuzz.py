@@ -1,5 +1,5 @@
-"""Fuzzer of the FLAME pickle reader (exporter/imports/flame_pkl.py): mutated FLAME-layout pickles, each of which
-must load into arrays that own exactly their file's bytes, or be refused with one line naming the file.
+"""Fuzzer of the FLAME pickle reader (exporter/imports/formats/flame_pkl.py): mutated FLAME-layout pickles, each of
+which must load into arrays that own exactly their file's bytes, or be refused with one line naming the file.
 
 Run as a script so that a crash (a signal) ends only this process and the test that started it can name the case:
 
@@ -43,7 +43,7 @@ from flame_pickles import (  # noqa: E402
     py2_dumps,
 )
 
-from gaussiantalker.exporter.imports.flame_pkl import FlameLayout, convert_flame_pkl, load_flame_pickle  # noqa: E402
+from gaussiantalker.exporter.imports.formats.flame_pkl import FlameLayout, convert_flame_pkl, load_flame_pickle  # noqa: E402
 from gaussiantalker.sdk.errors import ImportFormatError  # noqa: E402
 
 SPEC = FlameSpec(n_vertices=12, n_faces=10, n_shape=4, n_expr=3)

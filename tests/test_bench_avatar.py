@@ -10,9 +10,9 @@ import pytest
 from lam_avatars import write_avatar_zip
 from typer.testing import CliRunner
 
-from gaussiantalker.exporter.bench.app import app
-from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
 from gaussiantalker.exporter.export.checkpoint import save_checkpoint
+from tools.bench.app import app
 
 pytestmark = pytest.mark.slow  # four torch.onnx exports (three presets, the demo speaker) and a verify: over 20 s
 # quality (the reference), compact (a size ratio above 1) and fast (played in the FPS rounds); `--presets` picks

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from gaussiantalker.exporter.bench.compare import (
+from tools.bench.compare import (
     PACKAGES,
     Version,
     _without_names,

@@ -11,9 +11,9 @@ import pytest
 from gaussian_avatars import synthetic_flame, write_flame_npz, write_gaussian_avatar
 from typer.testing import CliRunner
 
-from gaussiantalker.exporter.bench.app import app
-from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
 from gaussiantalker.exporter.export.checkpoint import save_checkpoint
+from tools.bench.app import app
 
 # Nothing but quantised codecs separates the balanced bundle from fp32, which on the demo speaker costs ~49 dB
 # (exporter/export/presets.py); far below that, the two bundles were not compared on the same frames.

@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from gaussiantalker.exporter.bench.app import app
-from gaussiantalker.exporter.bench.clip_crf import CLIP_CRFS, clip_settings
-from gaussiantalker.exporter.bench.composite import F_CODECS, f_codec_settings
-from gaussiantalker.exporter.bench.quality import mouth_box, region_scores, ssim_map
-from gaussiantalker.exporter.bench.report import format_report, goal_rows, pareto_front
-from gaussiantalker.exporter.bench.sweep import REFERENCE, select_cases, sweep_cases, sweep_speaker
 from gaussiantalker.exporter.export.presets import CODEC_GROUPS, PRESETS, ExportSettings
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.render_settings import EXPERIMENTAL_FIELDS, RenderSettings
+from tools.bench.app import app
+from tools.bench.clip_crf import CLIP_CRFS, clip_settings
+from tools.bench.composite_cost import F_CODECS, f_codec_settings
+from tools.bench.quality import mouth_box, region_scores, ssim_map
+from tools.bench.report import format_report, goal_rows, pareto_front
+from tools.bench.sweep import REFERENCE, select_cases, sweep_cases, sweep_speaker
 
 
 def test_every_knob_and_preset_is_swept():
@@ -133,7 +133,7 @@ def test_tiny_sweep_end_to_end(small_export, replay_onnx_exports, tmp_path):
     for name in sweep.cases:
         assert f"| {name} |" in report or f"| **{name}** |" in report
     assert goal_rows(sweep) == []  # no preset but the reference was swept
-    from gaussiantalker.exporter.bench.report import plot_sweep  # matplotlib: in the dev extra, so always tested
+    from tools.bench.report import plot_sweep  # matplotlib: in the dev extra, so always tested
 
     png = plot_sweep([sweep], tmp_path / "sweep.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -156,6 +156,7 @@ def test_browser_installs_chromium_and_the_npm_renderer(tmp_path, uid):
     apt = [call for call in calls if call[0] == "apt-get"]
     assert [call[1] for call in apt] == ["update", "install"] and {"chromium", "npm"} <= set(apt[1]), calls
     assert ["gt-bench", "lam-web", "--install"] in calls
+    assert ["python", "-m", "tools.browser.web_cli", "install"] in calls  # from the checkout's root
     assert len([call for call in calls if call[0] == "sudo"]) == (0 if uid == 0 else 2), calls
     env["STUB_NPM_RC"] = "1"  # the npm renderer cannot be installed (no registry, a broken package)
     assert _run("browser", env).returncode != 0
@@ -185,7 +186,7 @@ def test_run_sets_ci_for_the_suite_and_fails_where_the_browser_tools_did(tmp_pat
 # Loaded into the fresh pytest below (-p): Chromium's fixed path becomes $STUB_CHROMIUM, missing or a stub.
 STUB_BROWSER_PLUGIN = """\
 import os
-from gaussiantalker.runtime import chromium
+from tools.browser import chromium
 chromium.CHROMIUM = os.environ["STUB_CHROMIUM"]
 """
 BROWSER_MODULES = ("tests/test_lam_web.py", "tests/test_live_browser.py", "tests/test_web_player.py")

@@ -26,7 +26,7 @@ from typer.testing import CliRunner
 from gaussiantalker.sdk.video import probe_video
 
 ROOT = Path(__file__).resolve().parents[1]
-GT_EXPORT = [sys.executable, "-m", "gaussiantalker.exporter.cli"]
+GT_EXPORT = [sys.executable, "-m", "gaussiantalker.cli.export"]
 # An untrained 2k-Gaussian demo speaker: another speaker of the session's small speaker's architecture.
 SAMPLE_SPEAKER_ARGS = ["--gaussians", "2000", "--seed", "5", "--train-steps", "0", "--no-reference"]
 
@@ -101,7 +101,7 @@ def in_process_dir(tmp_path, monkeypatch, small_export, rebind_onnx_exports):
 
 
 def test_export_verify_play_in_process(in_process_dir):
-    from gaussiantalker.exporter.cli import app
+    from gaussiantalker.cli.export import app
 
     work = in_process_dir
     result = _invoke(app, ["speaker.ckpt", "-o", "speaker.gtb", "--verify", "--report", "report.json",
@@ -120,7 +120,7 @@ def test_export_verify_play_in_process(in_process_dir):
 def test_export_verify_composited_in_process(clip_export, replay_onnx_exports, tmp_path, monkeypatch):
     """A speaker with a reference clip (the session's small clip speaker): --verify adds the inpaint graph and the
     composited frames to what it checks and reports (its recorded graphs replayed instead of torch.onnx)."""
-    from gaussiantalker.exporter.cli import app
+    from gaussiantalker.cli.export import app
 
     monkeypatch.chdir(tmp_path)
     shutil.copy(clip_export.checkpoint, tmp_path / "speaker.ckpt")
@@ -131,7 +131,7 @@ def test_export_verify_composited_in_process(clip_export, replay_onnx_exports, t
 
 
 def test_bad_input_gives_clear_errors_in_process(in_process_dir):
-    from gaussiantalker.exporter.cli import app
+    from gaussiantalker.cli.export import app
 
     result = _invoke(app, ["missing.ckpt"], expect=2)
     assert "error: checkpoint missing.ckpt does not exist" in result.stderr
@@ -162,7 +162,7 @@ def _console_script() -> str:
 def test_console_script_starts(tmp_path):
     """The installed `gt-export` runs its entry point; here as in a runtime-only install (the export extra's modules
     made unimportable, so nothing heavy loads): exit 2 and one line naming them."""
-    from gaussiantalker.exporter.entry import EXPORT_EXTRA_MODULES
+    from gaussiantalker.cli.extras import EXPORT_EXTRA_MODULES
 
     blocked = tmp_path / "blocked"
     for name in EXPORT_EXTRA_MODULES:

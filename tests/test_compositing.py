@@ -215,11 +215,11 @@ def test_head_composites_into_the_clip_following_its_track(clip_export, tmp_path
     from gaussiantalker.runtime import TalkingHead
 
     with TalkingHead(clip_export.path) as head:
-        assert head.composite and len(head.reference) == CLIP_FRAMES
+        assert head.compositor is not None and len(head.reference) == CLIP_FRAMES
         assert (head.camera.width, head.camera.height) == CLIP_SIZE
-        audio = np.zeros(head.config.samples_per_frame * 6, np.float32)
-        frames = list(head.frames(audio, head.config.sample_rate))
-        drives = list(head.drives(audio, head.config.sample_rate))
+        audio = np.zeros(head.driver.config.samples_per_frame * 6, np.float32)
+        frames = list(head.frames(audio, head.driver.config.sample_rate))
+        drives = list(head.drives(audio, head.driver.config.sample_rate))
         assert len(frames) == 6 and frames[0].shape == (CLIP_SIZE[1], CLIP_SIZE[0], 3)
         for index in (0, 5):  # frame 5 shows clip frame 1 (forth and back through 4 frames)
             row = track_row(CLIP_FRAMES, index)
@@ -232,22 +232,22 @@ def test_head_composites_into_the_clip_following_its_track(clip_export, tmp_path
             # one 8-bit level apart (rounding of values within ~1e-6 of a level boundary).
             assert np.abs(frames[index].astype(int) - expected).max() <= 1
         with pytest.raises(RenderError, match="follows the reference clip's pose track"):
-            next(head.frames(audio, head.config.sample_rate, head_pose=np.zeros((1, 6), np.float32)))
+            next(head.frames(audio, head.driver.config.sample_rate, head_pose=np.zeros((1, 6), np.float32)))
         with pytest.raises(RenderError, match="composited frames are uint8"):
-            next(head.frames(audio, head.config.sample_rate, output="float"))
+            next(head.frames(audio, head.driver.config.sample_rate, output="float"))
         with pytest.raises(RenderError, match="alpha=True needs the bare head"):
-            head.write_video(tmp_path / "talk.webm", audio, head.config.sample_rate, alpha=True)
+            head.write_video(tmp_path / "talk.webm", audio, head.driver.config.sample_rate, alpha=True)
     with TalkingHead(clip_export.path, composite=False) as bare:
-        assert not bare.composite and bare.camera.width == clip_export.speaker.camera.width
+        assert bare.compositor is None and bare.camera.width == clip_export.speaker.camera.width
     with TalkingHead(clip_export.path, resolution=(48, 56)) as small:
         assert small.reference.frame(0).shape == (56, 48, 3) and small.reference.mask(0).shape == (56, 48)
-        assert next(small.frames(audio, small.config.sample_rate)).shape == (56, 48, 3)
+        assert next(small.frames(audio, small.sample_rate)).shape == (56, 48, 3)
 
 
 def test_inpaint_codec_is_a_precision_knob(clip_export, replay_onnx_exports, tmp_path):
     """F's weights take the `inpaint` group's codec (`gt-export --inpaint-codec`) and nothing else changes; the
     composited frames differ from the fp32 F's only inside the mask, by what 8-bit weights change in F's output."""
-    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.exporter.export.presets import PRESETS, ExportSettings
     from gaussiantalker.runtime import TalkingHead
     from gaussiantalker.sdk.bundle import Bundle
@@ -267,7 +267,7 @@ def test_inpaint_codec_is_a_precision_knob(clip_export, replay_onnx_exports, tmp
         0.35 * sum(e["nbytes"] for n, e in plain.items() if n.startswith("inpaint/"))
     audio = np.random.default_rng(0).normal(0.0, 0.1, 6 * clip_export.speaker.config.samples_per_frame)
     with TalkingHead(clip_export.path) as reference, TalkingHead(path) as head:
-        rate = head.config.sample_rate
+        rate = head.driver.config.sample_rate
         inside_psnr = []
         for index, (want, got) in enumerate(zip(reference.frames(audio, rate), head.frames(audio, rate),
                                                  strict=True)):
@@ -283,7 +283,7 @@ def test_inpaint_codec_is_a_precision_knob(clip_export, replay_onnx_exports, tmp
 def test_composite_bench_end_to_end(clip_export, replay_onnx_exports, tmp_path):
     """`gt-bench composite` on the small clip speaker: every table is written, the reference codec matches
     itself exactly, a lossy F codec is finite and close, and the seam rows are there (speed is not judged)."""
-    from gaussiantalker.exporter.bench.composite import run_composite_bench
+    from tools.bench.composite_cost import run_composite_bench
 
     replay_onnx_exports(clip_export.protos * 3)  # the bench's own export, then one per F codec
     out = tmp_path / "composite.md"
@@ -309,7 +309,7 @@ def test_composite_true_without_a_clip_and_a_custom_camera_are_refused(clip_expo
 
 
 def test_the_cpu_splatter_composites_like_gl(clip_export):
-    """renderer="cpu" (runtime/cpu_splatter.py) through the whole compositing path: the clip's frames, F's
+    """renderer="cpu" (runtime/splat/cpu.py) through the whole compositing path: the clip's frames, F's
     inpainting and the mask blend, against GL's composited frames (both splatters' bare frames agree at >= 60 dB,
     tests/test_cpu_splatter.py; the compositing after them is the same numpy)."""
     from gaussiantalker.exporter.export.speech import synth_speech
@@ -320,7 +320,7 @@ def test_the_cpu_splatter_composites_like_gl(clip_export):
     frames = {}
     for renderer in ("gl", "cpu"):
         with TalkingHead(clip_export.path, renderer=renderer) as head:
-            assert head.composite and head.renderer == renderer
+            assert head.compositor is not None and head.renderer == renderer
             frames[renderer] = list(head.frames(speech, 16000))
     assert len(frames["cpu"]) == len(frames["gl"]) > 0
     for mine, theirs in zip(frames["cpu"], frames["gl"], strict=True):
@@ -336,7 +336,7 @@ def test_a_composited_head_does_not_play_a_motion(clip_export, tmp_path):
         with pytest.raises(RenderError, match="play a motion with composite=False"):
             head.write_video(tmp_path / "m.mp4", motion=np.zeros((2, n_expr + 18), np.float32))
     with TalkingHead(clip_export.path, composite=False, resolution=(32, 32)) as head:
-        assert len(list(head.motion_frames(np.zeros((2, n_expr + 18), np.float32)))) == 2
+        assert len(list(head.frames(motion=np.zeros((2, n_expr + 18), np.float32)))) == 2
 
 
 def test_output_view_of_a_clip_bundle_is_the_heads(clip_export, tmp_path):
@@ -349,9 +349,9 @@ def test_output_view_of_a_clip_bundle_is_the_heads(clip_export, tmp_path):
     audio = np.zeros(640 * 3, np.float32)
     for settings in (OutputSettings(), OutputSettings(resolution=(48, 56)), OutputSettings(composite=False)):
         view = TalkingHead.output_view(clip_export.path, settings)
-        with TalkingHead(clip_export.path, output=settings) as head:
-            assert (view.composite, view.camera.to_dict()) == (head.composite, head.camera.to_dict())
-            if not head.composite:
+        with TalkingHead(clip_export.path, output_settings=settings) as head:
+            assert (view.composite, view.camera.to_dict()) == (head.compositor is not None, head.camera.to_dict())
+            if head.compositor is None:
                 continue
             frames = list(head.frames(audio, 16000))
             with pytest.raises(RenderError, match="alpha=True needs the bare head"):
@@ -369,7 +369,7 @@ def test_rgba_float_is_the_premultiplied_frame_of_the_same_draw(small_export):
     from gaussiantalker.runtime import TalkingHead
 
     with TalkingHead(small_export.path, resolution=(64, 64), background=(0.2, 0.4, 0.6)) as head:
-        drive = FrameDrive.make(head.config.n_expr, jaw_pose=[0.2, 0.0, 0.0])
+        drive = FrameDrive.make(head.driver.config.n_expr, jaw_pose=[0.2, 0.0, 0.0])
         premultiplied = head.render(drive, output="rgba_float")
         opaque = head.render(drive, output="float")
         assert premultiplied.shape == (64, 64, 4) and premultiplied.dtype == np.float32
@@ -382,12 +382,12 @@ def test_semantic_pass_and_region_weights(clip_export):
     from gaussiantalker.runtime import TalkingHead
 
     with TalkingHead(clip_export.path, composite=False, resolution=(64, 64)) as head:
-        regions = head.regions
+        regions = head.frame_renderer.regions
         assert regions.names == clip_export.speaker.flame_arrays.region_names
         faces = clip_export.speaker.flame_arrays.regions[clip_export.speaker.gaussians.parent.numpy()]
         np.testing.assert_array_equal(regions.ids, faces)
-        drive = FrameDrive.make(head.config.n_expr, jaw_pose=[0.25, 0.0, 0.0])
-        weights = head.region_weights(drive)
+        drive = FrameDrive.make(head.driver.config.n_expr, jaw_pose=[0.25, 0.0, 0.0])
+        weights = head.frame_renderer.region_weights(drive)
         coverage = head.render(drive, output="rgba_float")[..., 3]
         assert weights.shape == (64, 64, len(regions.names))
         # Each region's weight is the blend weight of its Gaussians; together they are the frame's coverage.
@@ -403,7 +403,7 @@ def test_scene_export_leaves_the_clip_out(clip_export, small_scene_export, repla
     """The clip speaker exported for the small speaker's scene: no clip, no F. Its Gaussians, translator and
     deformation are the small speaker's, so that scene's specialisation and recorded graphs are its own (checked:
     every buffer but the clip's equals the small speaker's scene bundle's)."""
-    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.sdk.bundle import Bundle
 
     path = clip_export.folder / "scene.gtb"
@@ -445,7 +445,7 @@ def test_reference_crf_reencodes_the_frames_only(clip_export, replay_onnx_export
     entry are unchanged; the composited frames stay close to the stored clip's."""
     import av
 
-    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.exporter.export.presets import ExportSettings
     from gaussiantalker.runtime import TalkingHead
     from gaussiantalker.sdk.bundle import Bundle
@@ -474,7 +474,7 @@ def test_reference_crf_reencodes_the_frames_only(clip_export, replay_onnx_export
             (av.video.reformatter.Colorspace.ITU601, av.video.reformatter.ColorRange.MPEG, 1, 13)
     audio = np.random.default_rng(0).normal(0.0, 0.1, 6 * clip_export.speaker.config.samples_per_frame)
     with TalkingHead(clip_export.path) as stored, TalkingHead(path) as head:
-        rate = head.config.sample_rate
+        rate = head.driver.config.sample_rate
         clip_psnr = [psnr_db(stored.reference.frame(i), head.reference.frame(i)) for i in range(CLIP_FRAMES)]
         frame_psnr = [psnr_db(want, got) for want, got in zip(stored.frames(audio, rate), head.frames(audio, rate),
                                                                strict=True)]
@@ -489,7 +489,7 @@ def test_reference_crf_reencodes_the_frames_only(clip_export, replay_onnx_export
 def test_reference_knob_in_presets_and_without_a_clip(clip_export, small_export, replay_onnx_exports, tmp_path):
     """A preset re-encodes the clip at its own CRF (the same bytes as `EncodedClip.reencoded`); a speaker without a
     clip exports the same entries whatever the knob says."""
-    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.exporter.export.presets import PRESETS, ExportSettings, parse_reference
     from gaussiantalker.sdk.bundle import Bundle
 
@@ -518,7 +518,7 @@ def test_reencoding_refuses_a_bad_crf(clip_export):
 def test_clip_crf_bench_end_to_end(clip_export, replay_onnx_exports, tmp_path):
     """`gt-bench clip-crf` on the small clip speaker: "keep" matches itself exactly, a CRF row is smaller and finite,
     and the presets table compares whole files and bare heads (ratios from the files' sizes)."""
-    from gaussiantalker.exporter.bench.clip_crf import run_clip_crf_bench
+    from tools.bench.clip_crf import run_clip_crf_bench
 
     with_f, bare = clip_export.protos, clip_export.protos[:2]  # a bare head has no inpaint graph
     replay_onnx_exports(with_f * 3 + bare + with_f + bare)  # keep, crf:33, quality (+ bare), balanced (+ bare)

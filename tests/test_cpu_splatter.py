@@ -1,4 +1,4 @@
-"""The CPU tile splatter (runtime/cpu_splatter.py) against the torch reference and the GL splatter.
+"""The CPU tile splatter (runtime/splat/cpu.py) against the torch reference and the GL splatter.
 
 Bounds, and why:
 * vs the torch reference (render_reference): both are the contract in float32 with the same stop rule; they differ
@@ -21,9 +21,10 @@ from test_reference_rasterizer import off_centre_camera, random_scene, stacked_s
 
 from gaussiantalker.exporter.model.rasterizer import render_reference
 from gaussiantalker.exporter.model.splat_math import cov3d_from_rotation_scale, quat_to_rotmat
-from gaussiantalker.runtime import cpu_splatter as cs
-from gaussiantalker.runtime.cpu_splatter import CPUSplatter, exp_approx, upscale_bilinear
-from gaussiantalker.runtime.splatter import FRAME_OUTPUTS, GLSplatter
+from gaussiantalker.runtime.splat import cpu as cs
+from gaussiantalker.runtime.splat.common import FRAME_OUTPUTS
+from gaussiantalker.runtime.splat.cpu import CPUSplatter, exp_approx, upscale_bilinear
+from gaussiantalker.runtime.splat.gl import GLSplatter
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import psnr_db, to_uint8
@@ -247,7 +248,7 @@ def test_renderers_bench_runs_both_splatters(tmp_path):
     """`gt-bench renderers` on a tiny speaker: both splatters timed, ratios written (the speed itself: the bench)."""
     from typer.testing import CliRunner
 
-    from gaussiantalker.exporter.bench.app import app
+    from tools.bench.app import app
 
     out = tmp_path / "renderers.json"
     result = CliRunner().invoke(app, ["renderers", "--gaussians", "500", "--sizes", "32", "--frames", "1",
@@ -278,7 +279,7 @@ def test_renderer_setting_is_checked():
 
 
 def test_auto_picks_cpu_on_a_software_gl_and_says_why(monkeypatch, caplog):
-    from gaussiantalker.runtime import renderer as renderer_module
+    from gaussiantalker.runtime.splat import choice as renderer_module
     from gaussiantalker.sdk.errors import SettingsError
 
     assert renderer_module.is_software_renderer("llvmpipe (LLVM 15.0.6, 256 bits)")
@@ -316,7 +317,7 @@ def small_drives(small_export):
 
 def test_small_speaker_frames_match_torch(small_export):
     """End to end (audio -> translator -> deformation graph -> CPU splatter) against the torch speaker."""
-    from gaussiantalker.exporter.verify.verify import verify_frames
+    from gaussiantalker.exporter.verify.bundle_verify import verify_frames
     from gaussiantalker.runtime import TalkingHead
 
     with TalkingHead(small_export.path, resolution=(128, 128), renderer="cpu") as head:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gaussiantalker.exporter.demo.audio import (
+from gaussiantalker.exporter.demo.audio_signals import (
     BLINK_FRAMES,
     CLOSURE_FRAMES,
     JAW_FLOOR_DB,
@@ -17,7 +17,7 @@ from gaussiantalker.exporter.demo.audio import (
     motion_signals,
     normalize_audio,
 )
-from gaussiantalker.exporter.demo.head import EXPRESSION_FIELDS, make_demo_head
+from gaussiantalker.exporter.demo.procedural_head import EXPRESSION_FIELDS, make_demo_head
 from gaussiantalker.exporter.demo.train_translator import (
     MOTION_MAP,
     expression_dimension,
@@ -209,7 +209,7 @@ def test_quick_speaker_moves_the_whole_basis_on_unseen_speech(small_speaker) -> 
 @pytest.mark.heavy  # the default 400-step training, ~70 s (its figures: docs/demo-speaker.md)
 def test_default_training_moves_the_whole_basis_on_unseen_speech() -> None:
     """The demo speaker as `make_demo_speaker.py` builds it (translator: default settings, 400 steps, seed 0)."""
-    from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+    from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
 
     _, metrics = make_demo_speaker(progress=False, train_seconds=float("inf"))  # no time cap: deterministic
     _check_trained(metrics, 7, FULL_CORR_BOUNDS)

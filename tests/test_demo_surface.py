@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.bench.surface import measure_surface, surface_table
-from gaussiantalker.exporter.demo.head import REGION_NAMES, make_demo_head
-from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
+from gaussiantalker.exporter.demo.procedural_head import REGION_NAMES, make_demo_head
+from tools.bench.surface import measure_surface, surface_table
 
 YAWS = (0.0, 90.0)  # front and side: the previous head showed most at the side (the sides mirror)
 RESOLUTION = 128  # at 96 px the previous head's gaps fall below a pixel and its see-through hides
@@ -68,8 +68,8 @@ def test_gt_bench_surface_writes_its_table(tmp_path):
 
     from typer.testing import CliRunner
 
-    from gaussiantalker.exporter.bench.app import app
-    from gaussiantalker.exporter.bench.surface import SURFACE_YAWS_DEG
+    from tools.bench.app import app
+    from tools.bench.surface import SURFACE_YAWS_DEG
 
     result = CliRunner().invoke(app, ["surface", "--gaussians", "500", "--resolution", "48", "--out", str(tmp_path)])
     assert result.exit_code == 0, result.output

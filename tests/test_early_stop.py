@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from test_splatter import BACKGROUND, FLOAT_TOL, make_camera, random_scene
 
-from gaussiantalker.runtime.splatter import GLSplatter, early_stop_segments
+from gaussiantalker.runtime.splat.gl import GLSplatter, early_stop_segments
 from gaussiantalker.sdk import numerics
 from gaussiantalker.sdk.render_settings import MAX_EARLY_STOPS, RenderSettings
 
@@ -57,8 +57,8 @@ def test_dense_opaque_scene_agrees_with_the_plain_draw(plain, fractions):
 def test_demo_speaker_agrees_with_the_plain_draw(plain):
     """The opaque demo head at 96 px: within `_bound` of the plain draw, and within one 8-bit level."""
     torch = pytest.importorskip("torch")
-    from gaussiantalker.exporter.bench.early_stop import splat_inputs
-    from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+    from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
+    from tools.bench.early_stop import splat_inputs
 
     torch.manual_seed(0)
     speaker, _ = make_demo_speaker(2000, train_seconds=0, progress=False)

@@ -6,21 +6,17 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.demo.head import (
+from gaussiantalker.exporter.demo.procedural_head import (
     MOUTH_Y,
     REGION_COLORS,
     REGION_NAMES,
     demo_lip_vertices,
     make_demo_head,
 )
-from gaussiantalker.exporter.model.flame import (
-    FlameArrays,
-    FlameLayer,
-    add_teeth,
-    lbs,
-    load_flame_npz,
-    rodrigues,
-)
+from gaussiantalker.exporter.model.flame import FlameArrays
+from gaussiantalker.exporter.model.flame_lbs import FlameLayer, lbs, rodrigues
+from gaussiantalker.exporter.model.flame_npz import load_flame_npz
+from gaussiantalker.exporter.model.flame_teeth import add_teeth
 from gaussiantalker.sdk.config import FLAME_PARENTS, POSE_DIM
 from gaussiantalker.sdk.errors import CheckpointError
 

@@ -26,8 +26,8 @@ from flame_pickles import (
 )
 from typer.testing import CliRunner
 
-from gaussiantalker.exporter.import_cli import app
-from gaussiantalker.exporter.imports.flame_pkl import (
+from gaussiantalker.cli.imports import app
+from gaussiantalker.exporter.imports.formats.flame_pkl import (
     FLAME_LAYOUT,
     MAX_PICKLE_BYTES,
     FlameLayout,
@@ -37,7 +37,7 @@ from gaussiantalker.exporter.imports.flame_pkl import (
     load_flame_pickle,
     read_flame_npz_info,
 )
-from gaussiantalker.exporter.model.flame import FLAME_NPZ_KEYS, load_flame_npz
+from gaussiantalker.exporter.model.flame_npz import FLAME_NPZ_KEYS, load_flame_npz
 from gaussiantalker.sdk.config import FLAME_PARENTS
 from gaussiantalker.sdk.errors import ImportFormatError
 

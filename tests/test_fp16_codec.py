@@ -5,8 +5,8 @@ from __future__ import annotations
 import os
 import stat
 
-from gaussiantalker.exporter.export.export import export_bundle
-from gaussiantalker.exporter.verify.verify import Tolerances, verify_bundle
+from gaussiantalker.exporter.export.bundle_export import export_bundle
+from gaussiantalker.exporter.verify.bundle_verify import Tolerances, verify_bundle
 from gaussiantalker.sdk.bundle import Bundle
 
 

@@ -222,7 +222,7 @@ def test_fuzz_lam_avatar_members(lam_members, tmp_path, heavy, seed):
     """skin.glb, animation.glb (glTF container fields, JSON values), offset.ply (header lines, bytes), bsData.json
     and vertex_order.json (JSON values) mutated inside an otherwise valid avatar zip: import_lam loads or refuses
     with ImportFormatError naming the zip."""
-    from gaussiantalker.exporter.imports.lam import import_lam
+    from gaussiantalker.exporter.imports.sources.lam import import_lam
 
     fuzz(lambda path: import_lam(path, progress=False), _lam_member_case(lam_members, tmp_path),
          _counts(300, heavy), seed, ImportFormatError)
@@ -287,7 +287,7 @@ def _lam_zip_case(members: dict[str, bytes], folder: Path) -> Callable[[np.rando
 def test_fuzz_lam_avatar_zip(lam_members, tmp_path, heavy, seed):
     """The zip itself: bytes mutated, header fields (sizes, methods, flags, offsets) set to 0/-1/huge in the local
     header or the central directory, members renamed out of their folder, duplicated, made into bombs, removed."""
-    from gaussiantalker.exporter.imports.lam import import_lam
+    from gaussiantalker.exporter.imports.sources.lam import import_lam
 
     fuzz(lambda path: import_lam(path, progress=False), _lam_zip_case(lam_members, tmp_path), _counts(150, heavy),
          seed + 1, ImportFormatError)
@@ -315,7 +315,7 @@ def ply_files() -> list[bytes]:
 @pytest.mark.parametrize("heavy, seed", RUNS)
 def test_fuzz_gaussian_ply(ply_files, heavy, seed):
     """read_gaussian_ply on header-line and byte mutations of two real layouts (and ASCII or big-endian rewrites)."""
-    from gaussiantalker.exporter.imports.gaussian_ply import read_gaussian_ply
+    from gaussiantalker.exporter.imports.formats.gaussian_ply import read_gaussian_ply
 
     def make(rng: np.random.Generator, index: int) -> Case:
         data = ply_files[index % 2]
@@ -337,7 +337,7 @@ def ga_avatar(tmp_path_factory):
     """A small GaussianAvatars avatar on the synthetic FLAME-layout model, and that model with the teeth added."""
     from gaussian_avatars import synthetic_flame, write_flame_npz, write_gaussian_avatar
 
-    from gaussiantalker.exporter.imports.gaussian_avatars_flame import load_gaussian_avatars_flame
+    from gaussiantalker.exporter.imports.sources.gaussian_avatars_flame import load_gaussian_avatars_flame
 
     root = tmp_path_factory.mktemp("fuzz_ga")
     model = synthetic_flame(0)
@@ -354,7 +354,7 @@ def test_fuzz_gaussian_avatars_folder(ga_avatar, tmp_path, heavy, seed):
     """flame_param.npz (arrays reshaped, retyped, pickled, headers lying, bytes) and point_cloud.ply (header lines,
     bytes) of a GaussianAvatars avatar: read_flame_params and read_bound_gaussians load or refuse with
     ImportFormatError naming the file."""
-    from gaussiantalker.exporter.imports.gaussian_avatars import read_bound_gaussians, read_flame_params
+    from gaussiantalker.exporter.imports.sources.gaussian_avatars import read_bound_gaussians, read_flame_params
 
     arrays, written = ga_avatar["arrays"], ga_avatar["written"]
     ply = written["ply_path"].read_bytes()
@@ -383,7 +383,7 @@ def test_fuzz_gaussian_avatars_folder(ga_avatar, tmp_path, heavy, seed):
 def test_fuzz_gaussian_avatars_import(ga_avatar, tmp_path, heavy, seed):
     """The whole import on a few mutated avatars (it builds a speaker, ~0.4 s a case), folder layout included:
     iteration folders that are files, odd iteration numbers, a PLY that is a folder."""
-    from gaussiantalker.exporter.imports.gaussian_avatars import GaussianAvatarsOptions, import_gaussian_avatars
+    from gaussiantalker.exporter.imports.sources.gaussian_avatars import GaussianAvatarsOptions, import_gaussian_avatars
 
     written, arrays = ga_avatar["written"], ga_avatar["arrays"]
     ply, params = written["ply_path"].read_bytes(), written["param_path"].read_bytes()
@@ -437,7 +437,7 @@ def _small_flame() -> dict[str, np.ndarray]:
 def test_fuzz_flame_npz(tmp_path, heavy, seed):
     """load_flame_npz (the SDK's FLAME npz) on a small FLAME-layout npz with its arrays and npy headers mutated, its
     zip fields and bytes: loads or CheckpointError naming the file; never unpickles."""
-    from gaussiantalker.exporter.model.flame import load_flame_npz
+    from gaussiantalker.exporter.model.flame_npz import load_flame_npz
 
     model = _small_flame()
 
@@ -461,7 +461,7 @@ def test_fuzz_flame_npz(tmp_path, heavy, seed):
 def test_fuzz_gaussian_avatars_flame_npz(ga_avatar, tmp_path, heavy, seed):
     """load_gaussian_avatars_flame on the full-size synthetic FLAME npz (53 MB): its version and column records
     and its zip fields mutated (the array checks are load_flame_npz's, fuzzed above)."""
-    from gaussiantalker.exporter.imports.gaussian_avatars_flame import load_gaussian_avatars_flame
+    from gaussiantalker.exporter.imports.sources.gaussian_avatars_flame import load_gaussian_avatars_flame
 
     data = ga_avatar["flame_path"].read_bytes()
     with zipfile.ZipFile(ga_avatar["flame_path"]) as archive:
@@ -635,8 +635,8 @@ def lam_bundle(lam_members, tmp_path_factory) -> Path:
     """A LAM avatar's fp32 bundle (an ARKit speaker with a pose and a motion track)."""
     from lam_avatars import write_avatar_zip
 
-    from gaussiantalker.exporter.export.export import export_bundle
-    from gaussiantalker.exporter.imports.lam import import_lam
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.imports.sources.lam import import_lam
 
     root = tmp_path_factory.mktemp("fuzz_head")
     path = root / "avatar.gtb"
@@ -705,9 +705,9 @@ def checkpoints(tmp_path_factory, lam_members) -> list[Path]:
     """A FLAME speaker's checkpoint (200 Gaussians, untrained translator) and a LAM avatar's (an ARKit speaker)."""
     from lam_avatars import write_avatar_zip
 
-    from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+    from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
     from gaussiantalker.exporter.export.checkpoint import save_checkpoint
-    from gaussiantalker.exporter.imports.lam import import_lam
+    from gaussiantalker.exporter.imports.sources.lam import import_lam
 
     root = tmp_path_factory.mktemp("fuzz_ckpt")
     speaker, _ = make_demo_speaker(n_gaussians=200, train_seconds=0, progress=False)
@@ -857,7 +857,7 @@ def test_cli_refusals_are_one_line_naming_the_file(lam_members, ga_avatar, tmp_p
     `error: ...` naming the file (in process)."""
     from typer.testing import CliRunner
 
-    from gaussiantalker.exporter.import_cli import app
+    from gaussiantalker.cli.imports import app
 
     runner = CliRunner()
     rng = np.random.default_rng(12)
@@ -945,7 +945,7 @@ def _clip_time(members: dict[str, bytes], seconds: float) -> bytes:
 @pytest.mark.parametrize("case", list(LAM_HOLES))
 def test_lam_hole(lam_members, tmp_path, case):
     """Each hole the fuzz found in the LAM reader, as one file: ImportFormatError naming the zip and the problem."""
-    from gaussiantalker.exporter.imports.lam import import_lam
+    from gaussiantalker.exporter.imports.sources.lam import import_lam
 
     member, make, words = LAM_HOLES[case]
     path = _lam_zip_with(lam_members, tmp_path / "hole.zip", member, make(lam_members))
@@ -957,7 +957,7 @@ def test_lam_hole(lam_members, tmp_path, case):
 def test_zip_holes(lam_members, tmp_path):
     """Member names out of the folder, a member twice, a bzip2 bomb, a stated size over the budget, an encrypted
     member, an unknown method: each refused by name before anything is inflated."""
-    from gaussiantalker.exporter.imports.lam import import_lam
+    from gaussiantalker.exporter.imports.sources.lam import import_lam
 
     items = list(lam_members.items())
     cases = {"../skin.glb": write_zip([("../skin.glb", b"x")] + items),

@@ -11,8 +11,8 @@ import torch
 from flame_pickles import FlameSpec, flame_model, write_flame_pickle
 from plyfile import PlyData
 
-from gaussiantalker.exporter.imports.flame_pkl import convert_flame_pkl
-from gaussiantalker.exporter.imports.gaussian_avatars_flame import (
+from gaussiantalker.exporter.imports.formats.flame_pkl import convert_flame_pkl
+from gaussiantalker.exporter.imports.sources.gaussian_avatars_flame import (
     GA_N_EXPR,
     GA_N_SHAPE,
     GA_TEETH_VERTICES,
@@ -23,7 +23,9 @@ from gaussiantalker.exporter.imports.gaussian_avatars_flame import (
     load_gaussian_avatars_flame,
     teeth_faces_local,
 )
-from gaussiantalker.exporter.model.flame import BASE_REGION, TEETH_REGION, FlameLayer, load_flame_npz
+from gaussiantalker.exporter.model.flame_lbs import FlameLayer
+from gaussiantalker.exporter.model.flame_npz import load_flame_npz
+from gaussiantalker.exporter.model.flame_teeth import BASE_REGION, TEETH_REGION
 from gaussiantalker.sdk.errors import CheckpointError, ImportFormatError
 
 FULL = FlameSpec(n_vertices=5023, n_faces=9976)

@@ -21,11 +21,11 @@ from gaussian_avatars import (
 )
 from typer.testing import CliRunner
 
+from gaussiantalker.exporter.export.bundle_export import export_bundle
 from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
-from gaussiantalker.exporter.export.export import export_bundle
 from gaussiantalker.exporter.export.prune import prune_speaker
-from gaussiantalker.exporter.imports.gaussian_avatars import GaussianAvatarsOptions, import_gaussian_avatars
-from gaussiantalker.exporter.imports.gaussian_avatars_flame import load_gaussian_avatars_flame
+from gaussiantalker.exporter.imports.sources.gaussian_avatars import GaussianAvatarsOptions, import_gaussian_avatars
+from gaussiantalker.exporter.imports.sources.gaussian_avatars_flame import load_gaussian_avatars_flame
 from gaussiantalker.exporter.model.splat_math import quat_to_rotmat
 from gaussiantalker.runtime import BundleError, DriveError, FlameMotion, HeadPose, TalkingHead
 from gaussiantalker.sdk.errors import ImportFormatError
@@ -133,29 +133,29 @@ def test_bundle_plays_its_motion_like_torch(avatar, avatar_bundle):
     """The runtime's frames of the avatar's own motion and of FLAME drives against the torch speaker: 50 dB; the
     bundle holds no translator, no latent-pose product, and its tracked motion."""
     with TalkingHead(avatar_bundle, resolution=SIZE) as head:
-        assert head.rig == "flame" and not head.has_translator
+        assert head.driver.rig == "flame" and not head.driver.has_translator
         assert head.bundle.manifest["speaker"]["binding"] == "scaled_triangle"
         assert head.bundle.manifest["driver"] == "flame" and head.bundle.manifest["source"]["format"] == \
             "gaussian-avatars"
         assert not any(name.startswith("deform/latent_pose") or name == "deform/latent_weight"
                        for name in head.bundle.manifest["buffers"])
-        motion = head.motion_track
+        motion = head.driver.motion_track
         assert isinstance(motion, FlameMotion) and len(motion) == FRAMES
-        drives = list(head.motion_drives())
-        frames = list(head.motion_frames(output="float"))
+        drives = list(head.drives())
+        frames = list(head.frames(output="float"))
         assert len(frames) == FRAMES
         for index in (0, FRAMES - 1):
-            reference = avatar.render(drives[index], head.camera, head.background).numpy()
+            reference = avatar.render(drives[index], head.camera, head.frame_renderer.background).numpy()
             assert psnr_db(to_uint8(reference), to_uint8(frames[index])) >= MIN_PSNR_DB, index
         params = head.render_params(jaw_pose=[0.3, 0, 0], head_rotation=[0, 0.4, 0], output="float")
         reference = avatar.render(drives[0].__class__.make(100, jaw_pose=[0.3, 0, 0],
                                                            head_pose=HeadPose.make([0, 0.4, 0])),
-                                  head.camera, head.background).numpy()
+                                  head.camera, head.frame_renderer.background).numpy()
         assert psnr_db(to_uint8(reference), to_uint8(params)) >= MIN_PSNR_DB
         with pytest.raises(BundleError, match="imported avatar without an audio model"):
             list(head.frames(np.zeros(16000, np.float32), 16000))
         with pytest.raises(DriveError, match="JSON motion holds ARKit weights"):
-            head.motion("bsData.json")
+            head.driver.motion("bsData.json")
         with pytest.raises(DriveError, match="FLAME parameters.*a drive of the 52 ARKit"):
             head.render_blendshapes({"jawOpen": 1.0})
 
@@ -167,20 +167,20 @@ def test_motion_npz_and_table(avatar_bundle, avatar_dir, tmp_path):
     path = tmp_path / "motion.npz"
     np.savez(path, **params)
     with TalkingHead(avatar_bundle, resolution=SIZE) as head:
-        np.testing.assert_allclose(head.motion(path).table, head.motion_track.table, atol=1e-6)
-        table = head.motion_track.table[:2]
-        assert len(list(head.motion_drives(table))) == 2
+        np.testing.assert_allclose(head.driver.motion(path).table, head.driver.motion_track.table, atol=1e-6)
+        table = head.driver.motion_track.table[:2]
+        assert len(list(head.drives(motion=table))) == 2
         half = {k: v[::2] for k, v in params.items()}
         np.savez(path, **half)
-        assert len(head.motion(FlameMotion.from_table(np.concatenate(
+        assert len(head.driver.motion(FlameMotion.from_table(np.concatenate(
             [half["expr"], half["rotation"], half["neck_pose"], half["jaw_pose"], half["eyes_pose"],
              half["translation"]], 1), 12.5))) == 6  # 3 frames at 12.5 fps play 6 at 25
         np.savez(path, **{**params, "jaw_pose": params["jaw_pose"][:-1]})
         with pytest.raises(DriveError, match=r"'jaw_pose' has shape \[5, 3\], expected \[6, 3\]"):
-            head.motion(path)
+            head.driver.motion(path)
         np.savez(path, **{k: v for k, v in params.items() if k != "eyes_pose"})
         with pytest.raises(DriveError, match="missing eyes_pose"):
-            head.motion(path)
+            head.driver.motion(path)
 
 
 def _flame_audio_model(path: Path, n_expr: int = 100, frame_samples: int = 640, gain: float = 4.0) -> Path:
@@ -212,8 +212,8 @@ def _flame_audio_model(path: Path, n_expr: int = 100, frame_samples: int = 640, 
 def test_cli_import_export_verify_play_and_audio_model(avatar_dir, tmp_path):
     """The user's path: gt-import gaussian-avatars (with an attached audio-to-FLAME model), gt-export --verify (the
     bundle's frames and novel views against the torch speaker), play.py --motion, and audio through the model."""
-    from gaussiantalker.exporter.cli import app as export_app
-    from gaussiantalker.exporter.import_cli import app as import_app
+    from gaussiantalker.cli.export import app as export_app
+    from gaussiantalker.cli.imports import app as import_app
     from gaussiantalker.exporter.imports.audio_model import flame_outputs, load_audio_model
 
     folder, _ = avatar_dir
@@ -245,7 +245,7 @@ def test_cli_import_export_verify_play_and_audio_model(avatar_dir, tmp_path):
     loud = (0.5 * np.sin(2 * np.pi * 220 * np.arange(rate) / rate)).astype(np.float32)
     audio = np.concatenate([np.zeros(rate // 2, np.float32), loud])
     with TalkingHead(bundle, resolution=(48, 48)) as head:
-        expression, jaw = head.translate(audio)
+        expression, jaw = head.driver.translate(audio)
         assert expression.shape == (38, 100) and jaw[:10, 0].max() < 1e-6 and jaw[20:, 0].min() > 0.5
         frames = list(head.frames(audio, rate))
         assert len(frames) == 38 and not np.array_equal(frames[0], frames[30])
@@ -254,8 +254,8 @@ def test_cli_import_export_verify_play_and_audio_model(avatar_dir, tmp_path):
 def test_cli_import_attaches_the_builtin_voice(avatar_dir, tmp_path):
     """Without --audio-model, gt-import gaussian-avatars attaches the built-in FLAME voice driver, its expressions
     fitted on the user's FLAME (docs/voice.md): speech opens the jaw and moves the expression, silence does not."""
-    from gaussiantalker.exporter.cli import app as export_app
-    from gaussiantalker.exporter.import_cli import app as import_app
+    from gaussiantalker.cli.export import app as export_app
+    from gaussiantalker.cli.imports import app as import_app
     from gaussiantalker.sdk.audio import load_audio
 
     folder, _ = avatar_dir
@@ -269,7 +269,7 @@ def test_cli_import_attaches_the_builtin_voice(avatar_dir, tmp_path):
     speech = load_audio(ROOT / "tests" / "data" / "voice_heldout.wav", 16000)
     audio = np.concatenate([np.zeros(16000, np.float32), speech])  # 1 s of silence, then the sentence
     with TalkingHead(bundle, resolution=(48, 48)) as head:
-        expression, jaw = head.translate(audio)
+        expression, jaw = head.driver.translate(audio)
         assert expression.shape == (len(audio) // 640 + (len(audio) % 640 > 0), 100)
         assert np.abs(jaw[:20]).max() < 0.02 and jaw[25:, 0].max() > 0.1  # radians: the jaw opens with speech
         assert np.abs(expression[:20]).max() < 0.1 and np.abs(expression[25:]).max() > 0.1

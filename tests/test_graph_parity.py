@@ -1,14 +1,15 @@
-"""Each ONNX graph of the bundle against its torch module, on several inputs (tolerance: see exporter/verify/verify.py).
-Quick run: the small speaker; full run: also the 20k-Gaussian demo speaker (conftest `speaker_export`)."""
+"""Each ONNX graph of the bundle against its torch module, on several inputs (tolerance: see
+exporter/verify/bundle_verify.py). Quick run: the small speaker; full run: also the 20k-Gaussian demo speaker (conftest
+`speaker_export`)."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from gaussiantalker.exporter.export.export import DEFORM_INPUTS
+from gaussiantalker.exporter.export.bundle_export import DEFORM_INPUTS
 from gaussiantalker.exporter.export.speech import synth_speech
-from gaussiantalker.exporter.verify.verify import GRAPH_RTOL, verify_deformation, verify_translator
+from gaussiantalker.exporter.verify.bundle_verify import GRAPH_RTOL, verify_deformation, verify_translator
 from gaussiantalker.runtime import TalkingHead
 
 
@@ -25,8 +26,8 @@ def test_translator_graph_output_depends_on_audio(speaker_export):
     with TalkingHead(speaker_export.path, resolution=(32, 32)) as head:
         loud = synth_speech(1.0, seed=5)[:640 * 25]
         quiet = np.zeros_like(loud)
-        jaw_loud = head.graphs.run("translator", {"audio": loud[None]})["jaw_pose"]
-        jaw_quiet = head.graphs.run("translator", {"audio": quiet[None]})["jaw_pose"]
+        jaw_loud = head.frame_renderer.graphs.run("translator", {"audio": loud[None]})["jaw_pose"]
+        jaw_quiet = head.frame_renderer.graphs.run("translator", {"audio": quiet[None]})["jaw_pose"]
     assert np.abs(jaw_loud - jaw_quiet).max() > 0.05
 
 
@@ -45,8 +46,9 @@ def test_deformation_graph_batches(speaker_export):
               "head_translation": np.zeros((3, 3), np.float32),
               "camera_center": np.tile(np.float32([[0, 0, 0.9]]), (3, 1))}
     with TalkingHead(speaker_export.path, resolution=(32, 32)) as head:
-        batched = head.graphs.run("deform", inputs)["means"]
-        single = [head.graphs.run("deform", {k: v[i:i + 1] for k, v in inputs.items()})["means"][0] for i in range(3)]
+        graphs = head.frame_renderer.graphs
+        batched = graphs.run("deform", inputs)["means"]
+        single = [graphs.run("deform", {k: v[i:i + 1] for k, v in inputs.items()})["means"][0] for i in range(3)]
     np.testing.assert_allclose(batched, np.stack(single), atol=1e-6)
     with torch.no_grad():
         reference = speaker_export.speaker.deform(*(torch.from_numpy(inputs[k]) for k in DEFORM_INPUTS))[0]

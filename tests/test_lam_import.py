@@ -15,9 +15,9 @@ from ci_tools import need_module
 from lam_avatars import AvatarSpec, expected_centres, gaussians, motion_json, write_avatar_zip
 from typer.testing import CliRunner
 
+from gaussiantalker.exporter.export.bundle_export import export_bundle
 from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
-from gaussiantalker.exporter.export.export import export_bundle
-from gaussiantalker.exporter.imports.lam import LAM_WEIGHT_SCALE, LamOptions, import_lam, rotation_vector
+from gaussiantalker.exporter.imports.sources.lam import LAM_WEIGHT_SCALE, LamOptions, import_lam, rotation_vector
 from gaussiantalker.runtime import DriveError, HeadPose, TalkingHead
 from gaussiantalker.sdk.drive import BlendshapeDrive
 from gaussiantalker.sdk.errors import ImportFormatError
@@ -137,7 +137,7 @@ def test_bad_zips(tmp_path):
 
 
 def test_truncated_glb(tmp_path):
-    from gaussiantalker.exporter.imports.gltf import load_glb
+    from gaussiantalker.exporter.imports.formats.gltf import load_glb
 
     data = zipfile.ZipFile(write_avatar_zip(tmp_path / "a.zip")).read("avatar/skin.glb")
     with pytest.raises(ImportFormatError, match="skin.glb: glTF version 2 with length"):
@@ -169,13 +169,14 @@ def test_checkpoint_round_trip(avatar, tmp_path):
 def test_bundle_matches_torch(avatar, avatar_bundle):
     """Runtime frames of random ARKit drives against the torch reference rasterizer: the contract's 50 dB."""
     with TalkingHead(avatar_bundle, resolution=SIZE) as head:
-        assert head.rig == "arkit" and head.fps == 30 and head.motion_track is not None
+        assert head.driver.rig == "arkit" and head.fps == 30 and head.driver.motion_track is not None
         rng = np.random.default_rng(1)
         for index in range(3):
             weights = dict(zip(ARKIT_BLENDSHAPES, rng.uniform(0, 1, 52) * (rng.random(52) < 0.3), strict=True))
             pose = HeadPose.make(rng.normal(0, 0.15, 3), rng.normal(0, 0.01, 3))
             frame = head.render_blendshapes(weights, pose, output="float")
-            reference = avatar.render(head.blendshape_drive(weights, pose), head.camera, head.background).numpy()
+            reference = avatar.render(head.driver.drive(weights, pose), head.camera,
+                                      head.frame_renderer.background).numpy()
             assert psnr_db(to_uint8(reference), to_uint8(frame)) >= MIN_PSNR_DB, index
         assert head.render_blendshapes(np.zeros(52)).shape == (SIZE[1], SIZE[0], 3)
         assert head.render_blendshapes(output="rgba").shape == (SIZE[1], SIZE[0], 4)
@@ -183,11 +184,11 @@ def test_bundle_matches_torch(avatar, avatar_bundle):
 
 def test_motion_frames_and_drive_mismatch(avatar_bundle, small_export, tmp_path):
     with TalkingHead(avatar_bundle, resolution=SIZE) as head:
-        frames = list(head.motion_frames())
-        assert len(frames) == len(head.motion_track) and not np.array_equal(frames[0], frames[3])
+        frames = list(head.frames())
+        assert len(frames) == len(head.driver.motion_track) and not np.array_equal(frames[0], frames[3])
         motion = tmp_path / "motion.json"
         motion.write_text(json.dumps(motion_json(frames=6, fps=15.0)))
-        assert len(list(head.motion_frames(motion))) == 12  # 6 frames at 15 fps play 12 frames at 30 fps
+        assert len(list(head.frames(motion=motion))) == 12  # 6 frames at 15 fps play 12 frames at 30 fps
         with pytest.raises(DriveError, match="ARKit blendshape weights.*use render_blendshapes"):
             head.render_params(jaw_pose=[0.2, 0, 0])
         with pytest.raises(DriveError, match="no audio model"):
@@ -204,8 +205,8 @@ def test_motion_frames_and_drive_mismatch(avatar_bundle, small_export, tmp_path)
 def test_cli_import_export_verify_play(avatar_zip, tmp_path):
     """gt-import lam (the built-in voice attached by default), gt-export --verify --preset balanced, then play.py
     --motion and --audio: the user's path; --no-voice imports without an audio model."""
-    from gaussiantalker.exporter.cli import app as export_app
-    from gaussiantalker.exporter.import_cli import app as import_app
+    from gaussiantalker.cli.export import app as export_app
+    from gaussiantalker.cli.imports import app as import_app
 
     runner = CliRunner()
     checkpoint = tmp_path / "avatar.ckpt"
@@ -252,8 +253,8 @@ def test_audio_model_drives_the_avatar(avatar_zip, tmp_path):
     graph, verified against the model file, and audio then drives the avatar (loud: jaw open, silent: neutral)."""
     from lam_avatars import energy_audio_model
 
-    from gaussiantalker.exporter.cli import app as export_app
-    from gaussiantalker.exporter.import_cli import app as import_app
+    from gaussiantalker.cli.export import app as export_app
+    from gaussiantalker.cli.imports import app as import_app
     from gaussiantalker.exporter.imports.audio_model import load_audio_model
 
     bad = energy_audio_model(tmp_path / "bad.onnx", width=10)
@@ -275,7 +276,7 @@ def test_audio_model_drives_the_avatar(avatar_zip, tmp_path):
     loud = (0.5 * np.sin(2 * np.pi * 220 * t)).astype(np.float32)
     audio = np.concatenate([np.zeros(rate // 2, np.float32), loud])  # 1.5 s: silence, then a loud tone
     with TalkingHead(bundle, resolution=(48, 48)) as head:
-        weights = head.translate(audio)
+        weights = head.driver.translate(audio)
         assert weights.shape == (45, 52)  # 1.5 s at 30 fps, though the model gives floor(S / 533) = 45 frames
         jaw = weights[:, ARKIT_BLENDSHAPES.index("jawOpen")]
         assert jaw[:10].max() < 1e-6 and jaw[20:40].min() > 0.5 * 8 * 2 / np.pi * 0.9, jaw
@@ -288,7 +289,7 @@ def test_audio_model_drives_the_avatar(avatar_zip, tmp_path):
 def test_mnn_graphs_and_scene_refusal(avatar, tmp_path):
     """An ARKit speaker's bundle with MNN graphs verifies like a FLAME one (MNN vs onnxruntime, frames vs torch);
     a scene is refused with a clear error (scenes are for FLAME speakers)."""
-    from gaussiantalker.exporter.verify.verify import verify_bundle
+    from gaussiantalker.exporter.verify.bundle_verify import verify_bundle
     from gaussiantalker.sdk.errors import BundleError
     from gaussiantalker.sdk.scene import load_scene
 

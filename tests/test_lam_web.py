@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 from ci_tools import need_chromium, need_lam_renderer
 
-from gaussiantalker.exporter.bench import lam_web, lam_web_camera
-from gaussiantalker.exporter.bench.lam_web_camera import (
+from gaussiantalker.sdk.camera import Camera
+from tools.bench import lam_web, lam_web_camera
+from tools.bench.lam_web_camera import (
     ThreeCamera,
     from_three,
     lam_default_camera,
@@ -29,10 +30,9 @@ from gaussiantalker.exporter.bench.lam_web_camera import (
     quaternion_from_matrix,
     to_three,
 )
-from gaussiantalker.exporter.bench.lam_web_run import parse_frames, write_png
-from gaussiantalker.exporter.bench.lam_web_synthetic import default_splats, write_synthetic_avatar
-from gaussiantalker.runtime.chromium import Chromium, ChromiumMissing, chromium_path
-from gaussiantalker.sdk.camera import Camera
+from tools.bench.lam_web_run import parse_frames, write_png
+from tools.bench.lam_web_synthetic import default_splats, write_synthetic_avatar
+from tools.browser.chromium import Chromium, ChromiumMissing, chromium_path
 
 
 def _project(camera: Camera, points: np.ndarray) -> np.ndarray:
@@ -199,7 +199,7 @@ def test_server_serves_its_routes_only(tmp_path):
 def test_cli_lists_lam_web():
     from typer.testing import CliRunner
 
-    from gaussiantalker.exporter.bench.app import app
+    from tools.bench.app import app
 
     result = CliRunner().invoke(app, ["lam-web", "--help"])
     assert result.exit_code == 0
@@ -210,7 +210,7 @@ def test_cli_lists_lam_web():
 def test_cli_refuses_an_off_centre_camera_before_starting_a_browser(tmp_path):
     from typer.testing import CliRunner
 
-    from gaussiantalker.exporter.bench.app import app
+    from tools.bench.app import app
 
     camera = Camera(64, 64, 60.0, 60.0, 30.0, 32.0)
     (tmp_path / "camera.json").write_text(json.dumps(camera.to_dict()))
@@ -350,7 +350,7 @@ def test_synthetic_background_is_the_clear_colour(synthetic_renderer):
 def test_cli_writes_frames_cameras_and_weights(tmp_path):
     from typer.testing import CliRunner
 
-    from gaussiantalker.exporter.bench.app import app
+    from tools.bench.app import app
 
     _skip_without_renderer()
     avatar = write_synthetic_avatar(tmp_path / "synthetic.zip")
@@ -428,9 +428,9 @@ def test_runtime_frames_match_the_web_renderer(tmp_path):
     alpha cap (docs/lam-web.md); measured 40.3 dB at 128x128 on this avatar, 35-36 dB on LAM's sample."""
     import sys
 
-    from gaussiantalker.exporter.bench.lam_web_run import run_lam_web
-    from gaussiantalker.exporter.export.export import export_bundle
-    from gaussiantalker.exporter.imports.lam import import_lam
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.imports.sources.lam import import_lam
+    from tools.bench.lam_web_run import run_lam_web
 
     _skip_without_renderer()
     sys.path.insert(0, str(Path(__file__).resolve().parent))

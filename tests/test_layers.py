@@ -1,9 +1,13 @@
-"""Import floors, read from the installed package's source: every `import` and `from` statement (inside functions
-and TYPE_CHECKING blocks too, relative ones resolved), so a lazy import cannot hide a wrong dependency.
+"""Import floors, read from the installed package's source and the checkout's tools/: every `import` and `from`
+statement (inside functions and TYPE_CHECKING blocks too, relative ones resolved), so a lazy import cannot hide a
+wrong dependency.
 
-The exporter's floors import only downwards: model < export < verify < demo | bench | imports | voice < the console
-scripts (exporter/__init__.py says what each holds). No two modules of the exporter, the sdk or the runtime import each
-other, directly or around a longer loop.
+The exporter's floors import only downwards: model < export < verify < demo | imports | voice (exporter/__init__.py
+says what each holds). The console scripts (`gaussiantalker.cli`) may import the exporter, the runtime and the sdk,
+and none of those imports them. tools/ (the benchmarks and the browser harness, run from a checkout) may import
+anything; nothing in the package imports tools/ except the two launchers that run it (`gt-bench`, `gt-web`). No two
+modules of the exporter, the sdk, the runtime, the console scripts or tools/ import each other, directly or around a
+longer loop.
 """
 
 from __future__ import annotations
@@ -16,28 +20,34 @@ from pathlib import Path
 import pytest
 
 EXPORTER = "gaussiantalker.exporter"
-# Rank of each exporter floor (its sub-package; "" is the top level: cli.py, entry.py): a module may import modules
-# of its own rank or below. demo and bench share a rank (bench builds demo speakers; NEVER_IMPORTS keeps demo off
-# bench); so do imports and voice (the voice driver uses the importer's audio-model checks, never the reverse).
-FLOORS = {"model": 0, "export": 1, "verify": 2, "demo": 3, "bench": 3, "imports": 3, "voice": 3, "": 4}
+# Rank of each exporter floor (its sub-package; "" is the package's own __init__): a module may import modules of its
+# own rank or below. demo, imports and voice share a rank; NEVER_IMPORTS keeps them apart (the voice driver uses the
+# importer's audio-model checks, never the reverse).
+FLOORS = {"model": 0, "export": 1, "verify": 2, "demo": 3, "imports": 3, "voice": 3, "": 4}
+CLI = "gaussiantalker.cli"
+TOOLS = "tools"
 # (importer, imported) prefixes that must never meet, whatever the ranks say.
 NEVER_IMPORTS = [
     (f"{EXPORTER}.export", f"{EXPORTER}.verify"),  # export never verifies (verify drives export's probes)
-    (f"{EXPORTER}.demo", f"{EXPORTER}.bench"),
-    (f"{EXPORTER}.imports", f"{EXPORTER}.bench"),
     (f"{EXPORTER}.imports", f"{EXPORTER}.demo"),
     (f"{EXPORTER}.imports", f"{EXPORTER}.voice"),
-    (f"{EXPORTER}.voice", f"{EXPORTER}.bench"),
     (f"{EXPORTER}.voice", f"{EXPORTER}.demo"),
     ("gaussiantalker.sdk", "gaussiantalker.runtime"),
     ("gaussiantalker.sdk", "gaussiantalker.exporter"),
     ("gaussiantalker.runtime", "gaussiantalker.exporter"),
+    ("gaussiantalker.sdk", CLI),
+    ("gaussiantalker.runtime", CLI),
+    ("gaussiantalker.exporter", CLI),
 ]
+# The package's only imports of tools/ (no other module of sdk, runtime, exporter or cli imports it): the launchers,
+# after they put the checkout on sys.path (cli/checkout.py).
+LAUNCHES = ["gaussiantalker.cli.bench -> tools.bench.app", "gaussiantalker.cli.web -> tools.browser.web_cli"]
 # Packages that must have no import cycle among their own modules.
-ACYCLIC = ["gaussiantalker.exporter", "gaussiantalker.sdk", "gaussiantalker.runtime"]
+ACYCLIC = ["gaussiantalker.exporter", "gaussiantalker.sdk", "gaussiantalker.runtime", CLI, TOOLS]
+CHECKOUT = Path(__file__).resolve().parents[1]
 
 
-def installed_roots(names: Iterable[str] = ("sdk", "runtime", "exporter")) -> dict[str, Path]:
+def installed_roots(names: Iterable[str] = ("sdk", "runtime", "exporter", "cli")) -> dict[str, Path]:
     """Source folder of each `gaussiantalker.<name>` the interpreter imports (found, not imported)."""
     roots = {}
     for name in names:
@@ -45,6 +55,11 @@ def installed_roots(names: Iterable[str] = ("sdk", "runtime", "exporter")) -> di
         assert spec is not None and spec.submodule_search_locations, f"gaussiantalker.{name} is not installed"
         roots[f"gaussiantalker.{name}"] = Path(next(iter(spec.submodule_search_locations)))
     return roots
+
+
+def checked_roots() -> dict[str, Path]:
+    """The installed package's folders and the checkout's tools/."""
+    return installed_roots() | {TOOLS: CHECKOUT / "tools"}
 
 
 def _modules(roots: dict[str, Path]) -> dict[str, tuple[Path, bool]]:
@@ -162,7 +177,7 @@ def import_cycles(graph: dict[str, set[str]], package: str) -> list[list[str]]:
 
 @pytest.fixture(scope="module")
 def graph() -> dict[str, set[str]]:
-    return import_graph(installed_roots())
+    return import_graph(checked_roots())
 
 
 def test_every_exporter_subpackage_is_a_floor(graph):
@@ -171,9 +186,14 @@ def test_every_exporter_subpackage_is_a_floor(graph):
 
 
 def test_init_files_import_nothing(graph):
-    """The exporter's __init__ files are one docstring each: importing a floor never pulls another module."""
+    """The exporter's, the console scripts' and tools/' __init__ files are one docstring each: importing a floor
+    never pulls another module."""
     inits = [m for m in graph if m == EXPORTER or m.startswith(EXPORTER + ".") and m[len(EXPORTER) + 1:] in FLOORS]
     assert len(inits) == len(FLOORS)
+    packages = [m for m in graph
+                if m.split(".")[0] == TOOLS and CHECKOUT.joinpath(*m.split("."), "__init__.py").is_file()]
+    inits += [CLI, *packages, *(f"{EXPORTER}.imports.{sub}" for sub in ("formats", "sources"))]
+    assert {TOOLS, f"{TOOLS}.bench", f"{TOOLS}.browser"} <= set(packages)
     assert {m: graph[m] for m in inits if graph[m]} == {}
 
 
@@ -183,7 +203,7 @@ def test_exporter_floors_import_only_downwards(graph):
 
 
 def test_export_never_imports_verify(graph):
-    assert any(t.startswith(f"{EXPORTER}.export.") for t in graph[f"{EXPORTER}.verify.verify"])  # seen at all
+    assert any(t.startswith(f"{EXPORTER}.export.") for t in graph[f"{EXPORTER}.verify.bundle_verify"])  # seen at all
     assert not forbidden_imports(graph, f"{EXPORTER}.export", f"{EXPORTER}.verify")
 
 
@@ -191,6 +211,23 @@ def test_export_never_imports_verify(graph):
 def test_forbidden_imports(graph, importer, imported):
     found = forbidden_imports(graph, importer, imported)
     assert not found, f"{importer} must not import {imported}:\n" + "\n".join(found)
+
+
+def test_module_file_names_say_which_module():
+    """No two modules of the package share a file name, and none is named like its own package: a traceback, an
+    import line or a docs mention names one module."""
+    paths = [path for folder in installed_roots().values() for path in folder.rglob("*.py") if path.stem != "__init__"]
+    seen: dict[str, list[str]] = {}
+    for path in paths:
+        seen.setdefault(path.name, []).append(str(path))
+    assert {name: where for name, where in seen.items() if len(where) > 1} == {}
+    assert [str(path) for path in paths if path.stem == path.parent.name] == []
+
+
+def test_the_package_imports_tools_only_through_its_launchers(graph):
+    """A wheel has no tools/: only `gt-bench` and `gt-web` reach them, once they found the checkout."""
+    assert forbidden_imports(graph, "gaussiantalker", TOOLS) == LAUNCHES
+    assert any(t.startswith(f"{TOOLS}.browser.") for t in graph[f"{TOOLS}.bench.lam_web"])  # tools are read too
 
 
 @pytest.mark.parametrize("package", ACYCLIC)

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from gaussiantalker.exporter.bench.app import app
-from gaussiantalker.exporter.bench.live import CHUNK_MS
 from gaussiantalker.runtime import AudioError, IdleMotion, LiveError, TalkingHead
 from gaussiantalker.sdk.audio import load_audio, resample
+from tools.bench.app import app
+from tools.bench.live_sessions import CHUNK_MS
 
 SPEECH_SECONDS = 4.0
 
@@ -80,7 +80,7 @@ def test_chunking_does_not_change_the_frames(head, speech):
 def test_live_agrees_with_offline_frames(head, speech, lookahead_ms):
     """The jaw of frames read while 20 ms chunks arrive follows the offline jaw (goal at 160 ms: r >= 0.95, the
     figure docs/bench/live.md reports; 0 ms must still follow the speech, r >= 0.8)."""
-    expression, jaw_pose = head.translate(speech)
+    expression, jaw_pose = head.driver.translate(speech)
     frames = []
     with head.live(lookahead_ms=lookahead_ms, paced=False, output=None) as live:
         for start in range(0, speech.shape[0], 320):
@@ -104,7 +104,7 @@ def test_a_lam_bundle_speaks_live_through_the_builtin_voice(lam_voice_bundle):
     speech = load_audio("tests/data/voice_heldout.wav", 16000)
     audio = np.concatenate([np.zeros(8000, np.float32), speech])  # 0.5 s of silence first
     with TalkingHead(lam_voice_bundle, resolution=(32, 32)) as lam:
-        offline = lam.translate(audio)[:, jaw_open]
+        offline = lam.driver.translate(audio)[:, jaw_open]
         frames = []
         with lam.live(lookahead_ms=160, paced=False, output=None) as live:
             for start in range(0, audio.shape[0], 320):
@@ -123,7 +123,7 @@ def test_free_running_latency_is_a_frame_and_its_lookahead(head, speech, lookahe
     """Free-running, 20 ms chunks polled as each arrives: frame n comes out exactly when the audio of frames 0..n
     and of the lookahead after it is in (lookahead_ms rounded up to whole frames), not a chunk earlier or later;
     the last lookahead's worth of frames come with end()."""
-    per_frame = head.config.samples_per_frame
+    per_frame = head.driver.config.samples_per_frame
     lookahead_frames = int(np.ceil(lookahead_ms * head.fps / 1000))
     chunk = per_frame // 2
     ready_at: dict[int, int] = {}  # frame index -> samples pushed when poll() first gave it
@@ -160,8 +160,8 @@ def test_idle_face_blinks_and_keeps_the_pose_track(head):
     with head.live(paced=False, output=None, idle=idle) as live:
         frames = list(itertools.islice(live.frames(), 100))
     assert not any(f.speaking for f in frames) and not any(f.audio.any() for f in frames)
-    n_expr = head.config.n_expr
-    names = head.config.expression_names
+    n_expr = head.driver.config.n_expr
+    names = head.driver.config.expression_names
     blink = [names.index("blink_left"), names.index("blink_right")]
     closure = np.array([f.drive.expression[blink[0]] for f in frames])
     assert 2 <= np.sum(np.diff((closure > 0.5).astype(int)) == 1) <= 4, closure  # 100 frames = 4 s: 2-4 blinks
@@ -169,7 +169,7 @@ def test_idle_face_blinks_and_keeps_the_pose_track(head):
     assert not others.any() and not np.stack([f.drive.flame_pose[6:9] for f in frames]).any()
     assert n_expr == len(names)
     for frame in frames[::7]:
-        np.testing.assert_array_equal(frame.drive.flame_pose[:3], head.head_pose(frame.index).rotation)
+        np.testing.assert_array_equal(frame.drive.flame_pose[:3], head.driver.head_pose(frame.index).rotation)
 
 
 def test_interrupt_eases_to_idle_and_the_next_push_starts_clean(head, speech):
@@ -190,7 +190,7 @@ def test_interrupt_eases_to_idle_and_the_next_push_starts_clean(head, speech):
         live.push(second, head.sample_rate)
         live.end()
         rest = list(live.frames())
-    assert [f.speaking for f in rest] == [True] * (head.sample_rate // head.config.samples_per_frame)
+    assert [f.speaking for f in rest] == [True] * (head.sample_rate // head.driver.config.samples_per_frame)
     np.testing.assert_array_equal(np.concatenate([f.audio for f in rest]), second)
     with head.live(paced=False, output=None) as fresh:  # the same utterance in a new session: the same face
         fresh.push(second, head.sample_rate)

@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 from ci_tools import need_chromium, need_module
 
-from gaussiantalker.exporter.bench.live_clients import serving
-from gaussiantalker.runtime.chromium import Chromium
+from tools.bench.live_clients import serving
+from tools.browser.chromium import Chromium
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 64

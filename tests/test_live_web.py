@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from ci_tools import BROWSER_INSTALL, need, need_chromium, need_module
 
-from gaussiantalker.exporter.bench.live_clients import serving
+from tools.bench.live_clients import serving
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = 64
@@ -90,7 +90,7 @@ def test_drive_format_round_trips_and_refuses_bad_messages():
 @pytest.fixture(scope="module")
 def live_web_ready() -> None:
     """Chromium, the web player's npm install and the live extra, checked before the speaker is made."""
-    from gaussiantalker.runtime.web_harness import check_web_player
+    from tools.browser.web_harness import check_web_player
 
     need_chromium()
     need(check_web_player(), BROWSER_INSTALL)
@@ -138,7 +138,7 @@ def server_drives(server, port: int, session: str) -> dict[int, dict]:
 def run_live_page(bundle: Path, speak_s: float = 3.0, after_interrupt_s: float = 1.5) -> dict:
     """One client-render session in chromium: the sample speech for `speak_s` of speaking drives, then a barge-in,
     then `after_interrupt_s` more. Returns what the page and the server saw, and two page renders."""
-    from gaussiantalker.runtime.chromium import Chromium
+    from tools.browser.chromium import Chromium
 
     server = _server_module()
     port = _free_port()
@@ -248,7 +248,7 @@ def check_live_page(bundle: Path) -> None:
 
     # The page's frames are the Python runtime's frames of the same drives.
     with TalkingHead(bundle, resolution=(SIZE, SIZE), renderer="gl", composite=False) as head:
-        n_expr = head.config.n_expr
+        n_expr = head.driver.config.n_expr
         for index, frame in result["renders"].items():
             values = drives[index]["values"]
             drive = FrameDrive(values[:n_expr], values[n_expr:n_expr + 15], values[n_expr + 15:])

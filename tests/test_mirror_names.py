@@ -5,7 +5,7 @@ The GLSL function definitions are parsed out of shaders/*.vert and shaders/*.fra
 the start of a line; `main` is skipped), and checked against the torch module (docs/numerics.md, "Mirror names"):
 
 (a) every GLSL function that is not on the non-contract allow-list
-    (`gaussiantalker.runtime.splatter.NON_CONTRACT_GLSL_FUNCTIONS`) has a public torch function of the same name
+    (`gaussiantalker.runtime.splat.gl.NON_CONTRACT_GLSL_FUNCTIONS`) has a public torch function of the same name
     whose parameters are the GLSL parameters, same names in the same order, followed by the uniforms the GLSL
     function reads (itself or through the functions it calls), mapped as `UNIFORM_ARGUMENTS` says and in
     `UNIFORM_ORDER`; the torch docstring names the GLSL twin and its file, and the GLSL comment block above the
@@ -29,7 +29,8 @@ from types import ModuleType
 import pytest
 
 from gaussiantalker.exporter.model import splat_math
-from gaussiantalker.runtime import programs, splatter
+from gaussiantalker.runtime.splat import gl as splatter
+from gaussiantalker.runtime.splat import programs
 from gaussiantalker.sdk import numerics
 
 # GLSL has no 6-vector: the packed world covariance is two vec3 there and one [N, 6] tensor in torch.

@@ -27,7 +27,7 @@ import pytest
 
 from gaussiantalker.exporter.export.mnn_export import convert_to_mnn, mnn_compatible
 from gaussiantalker.exporter.export.speech import synth_speech
-from gaussiantalker.exporter.verify.verify import MNN_RTOL, _agreement_cases, verify_backend_agreement
+from gaussiantalker.exporter.verify.bundle_verify import MNN_RTOL, _agreement_cases, verify_backend_agreement
 from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.errors import BundleError, RenderError
@@ -53,7 +53,7 @@ def mnn_export(small_export, tmp_path_factory):
     creation made to fail and the installed distributions listed before and after."""
     from conftest import replaying_onnx_exports
 
-    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
 
     path = tmp_path_factory.mktemp("mnn") / "small_mnn.gtb"
     before = _installed()
@@ -129,7 +129,7 @@ def test_converter_misbehaviour_is_a_clear_export_error(tmp_path, monkeypatch, s
 def test_missing_converter_fails_before_exporting(monkeypatch, small_export, tmp_path):
     """--mnn without the extra: an error saying what to install, before any graph is exported."""
     import gaussiantalker.exporter.export.mnn_export as mnn_export_module
-    from gaussiantalker.exporter.export.export import export_bundle
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
 
     def not_installed(name):
         raise importlib.metadata.PackageNotFoundError(name)
@@ -176,8 +176,8 @@ def test_mnn_translator_takes_any_audio_length(mnn_export, frames):
     audio = synth_speech(frames * 640 / 16000 + 0.1, seed=frames)[None, : 640 * frames].astype(np.float32)
     with TalkingHead(mnn_export["path"], resolution=SIZE, backend="mnn") as mnn_head, \
             TalkingHead(mnn_export["path"], resolution=SIZE) as ort_head:
-        got, expected = mnn_head.graphs.run("translator", {"audio": audio}), ort_head.graphs.run(
-            "translator", {"audio": audio})
+        got = mnn_head.frame_renderer.graphs.run("translator", {"audio": audio})
+        expected = ort_head.frame_renderer.graphs.run("translator", {"audio": audio})
     for name, value in expected.items():
         assert got[name].shape == value.shape == (1, frames, value.shape[-1])
         assert np.abs(got[name] - value).max() <= MNN_RTOL * np.abs(value).max()
@@ -189,7 +189,7 @@ def test_mnn_frames_match_onnxruntime(mnn_export):
     audio = synth_speech(1.0, seed=5)
     with TalkingHead(mnn_export["path"], resolution=SIZE) as ort_head, \
             TalkingHead(mnn_export["path"], resolution=SIZE, backend="mnn") as mnn_head:
-        assert type(mnn_head.graphs).__name__ == "MnnBackend"
+        assert type(mnn_head.frame_renderer.graphs).__name__ == "MnnBackend"
         pairs = list(zip(ort_head.frames(audio, 16000), mnn_head.frames(audio, 16000), strict=True))
     assert len(pairs) == 25
     worst = min(psnr_db(a, b) for a, b in pairs)
@@ -275,7 +275,7 @@ def test_speaker_expression_width_is_checked_on_mnn_too(mnn_export, tmp_path):
 @needs_mnn
 def test_verify_report_covers_mnn_graphs(mnn_export, small_export):
     """gt-export --verify's report gains the MNN rows (graphs vs onnxruntime, frames), all passing."""
-    from gaussiantalker.exporter.verify.verify import format_report, verify_bundle
+    from gaussiantalker.exporter.verify.bundle_verify import format_report, verify_bundle
 
     report = verify_bundle(small_export.speaker, mnn_export["path"], frames=4, resolution=SIZE, progress=False)
     mnn = report["mnn"]
@@ -289,7 +289,7 @@ def test_verify_report_covers_mnn_graphs(mnn_export, small_export):
 @needs_mnn
 def test_backends_bench_measures_both_backends(mnn_export):
     """`gt-bench --backends`' measurement and table run end to end on a small bundle (speed is not judged here)."""
-    from gaussiantalker.exporter.bench.backends import CASES, format_table, measure_case
+    from tools.bench.backends import CASES, format_table, measure_case
 
     audio = synth_speech(0.6, seed=2)
     runs = {label: [measure_case(mnn_export["path"], backend, threads, 64, audio, 16000)]

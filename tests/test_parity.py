@@ -1,7 +1,7 @@
 """Parity: runtime frames (onnxruntime + OpenGL) against the torch speaker's frames, end to end from audio.
 
-Tolerances (the SDK's parity bounds, as in exporter/verify/verify.py): every frame >= 50 dB PSNR on the final 8-bit
-frames and >= 60 dB on the float frames, no NaN. What legitimately remains is float32 reassociation between the
+Tolerances (the SDK's parity bounds, as in exporter/verify/bundle_verify.py): every frame >= 50 dB PSNR on the final
+8-bit frames and >= 60 dB on the float frames, no NaN. What legitimately remains is float32 reassociation between the
 two implementations (~1e-6), the GL path's missing early termination (residual transmittance < 0.01, typically
 ~1e-4) and rare depth-order flips of Gaussians whose depths differ by a few ulps. Measured margins are in
 docs/export.md ("Parity with the torch speaker"). Quick run: the small speaker (2k Gaussians) at 256; full run:
@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gaussiantalker.exporter.verify.verify import Tolerances, verify_frames
+from gaussiantalker.exporter.verify.bundle_verify import Tolerances, verify_frames
 from gaussiantalker.runtime import TalkingHead
 
 FRAMES = 25
@@ -49,11 +49,11 @@ def test_parity_clip_really_moves(speaker_export):
 def test_a_wrong_frame_fails_verification(speaker_export):
     """The same check fails when the runtime's Gaussians are off by 2 mm (a bug of that size is caught)."""
     with TalkingHead(speaker_export.path, resolution=(96, 96)) as head:
-        prepare = head.splatter.prepare
+        prepare = head.frame_renderer.splatter.prepare
 
         def shifted(means, *args, **kwargs):
             return prepare(means + np.float32([0.002, 0.0, 0.0]), *args, **kwargs)
 
-        head.splatter.prepare = shifted
+        head.frame_renderer.splatter.prepare = shifted
         report = verify_frames(speaker_export.speaker, head, frames=2)
     assert not report["passed"]

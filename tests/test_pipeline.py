@@ -159,7 +159,7 @@ def _frames(path, call, **settings) -> dict[bool, list[np.ndarray]]:
     frames = {}
     for pipeline in (False, True):
         with TalkingHead(path, pipeline=pipeline, **settings) as head:
-            assert head.pipelined is pipeline
+            assert (head.backend_settings.pipeline is not False) is pipeline
             frames[pipeline] = list(call(head))
         assert pipeline_threads() == []
     return frames
@@ -192,7 +192,7 @@ def test_arkit_frames_and_motions_are_the_same_pipelined_or_not(lam_voice_bundle
     speech = _speech()
     _assert_identical(_frames(lam_voice_bundle, lambda head: head.frames(speech, 16000), resolution=(40, 40)))
     weights = np.linspace(0.0, 1.0, 6 * 52, dtype=np.float32).reshape(6, 52)
-    _assert_identical(_frames(lam_voice_bundle, lambda head: head.motion_frames(weights), resolution=(40, 40)))
+    _assert_identical(_frames(lam_voice_bundle, lambda head: head.frames(motion=weights), resolution=(40, 40)))
 
 
 def test_written_frames_are_the_same_pipelined_or_not(small_export, tmp_path):
@@ -259,7 +259,7 @@ def test_an_error_in_a_stage_reaches_the_consumer(small_export, clip_export, mon
         def failing_composite(*args):
             raise RuntimeError("F failed")
 
-        monkeypatch.setattr(head, "_composite", failing_composite)  # the stage on the composite thread
+        monkeypatch.setattr(head.compositor, "blend", failing_composite)  # the stage on the composite thread
         with pytest.raises(RuntimeError, match="F failed"):
             list(head.frames(speech, 16000))
         assert pipeline_threads() == []
@@ -284,7 +284,7 @@ def test_an_encoder_error_reaches_write_video(small_export, tmp_path, monkeypatc
 
 def test_the_bench_report_gives_medians_and_ratios_to_on():
     """`gt-bench pipeline`'s summary: per case and variant the median over rounds, RTF and the ratio to "on"."""
-    from gaussiantalker.exporter.bench.pipeline import format_report, summarise
+    from tools.bench.pipeline_vs_serial import format_report, summarise
 
     stages = {"deformation": 5.0, "draw": 20.0}
     runs = {"frames": {v: [{"seconds": s, "frames": 100, "stages_ms": stages, "load_1min": 1.0} for s in seconds]

@@ -19,8 +19,14 @@ from gaussiantalker.exporter.export.presets import (
     parse_reference,
 )
 from gaussiantalker.exporter.export.prune import budget_count, gaussian_contributions, prune_speaker
-from gaussiantalker.exporter.verify.verify import HEAD_PSNR_FLOOR_DB, Tolerances, verify_bundle, verify_translator
-from gaussiantalker.runtime.head import TalkingHead, _render_settings
+from gaussiantalker.exporter.verify.bundle_verify import (
+    HEAD_PSNR_FLOOR_DB,
+    Tolerances,
+    verify_bundle,
+    verify_translator,
+)
+from gaussiantalker.runtime.head import TalkingHead
+from gaussiantalker.runtime.stages import bundle_render_settings
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose
@@ -90,9 +96,9 @@ def test_mobile_preset_stores_the_es_settings_and_stays_within_its_bound(small_s
             if name.startswith("deform/") and entry["dtype"] == "float32"} == {"fp16"}
     with TalkingHead(path) as head:
         assert head.render_settings == RenderSettings(render_target="float16", sort_key_bits=16, graph_threads=1)
-        assert head.graphs.threads == 1
+        assert head.frame_renderer.graphs.threads == 1
     with TalkingHead(path, threads=2) as head:  # an app's own thread count wins
-        assert head.graphs.threads == 2
+        assert head.frame_renderer.graphs.threads == 2
     _verify(small_speaker, path, "mobile")
 
 
@@ -149,7 +155,7 @@ def test_render_scale_is_the_small_frame_upscaled_bilinearly(small_export, scale
 def test_bad_runtime_knobs_are_named(kwargs, message):
     bundle = SimpleNamespace(path="b.gtb", manifest={})
     with pytest.raises(RenderError, match=message):
-        _render_settings(bundle, **kwargs)
+        bundle_render_settings(bundle, **kwargs)
 
 
 @pytest.mark.parametrize("defaults, message", [
@@ -160,7 +166,7 @@ def test_bad_runtime_knobs_are_named(kwargs, message):
 def test_damaged_runtime_defaults_are_a_bundle_error(defaults, message):
     bundle = SimpleNamespace(path="b.gtb", manifest={"runtime_defaults": defaults})
     with pytest.raises(BundleError, match=message):
-        _render_settings(bundle)
+        bundle_render_settings(bundle)
 
 
 def test_contributions_sum_to_each_frames_coverage(small_speaker):
@@ -246,7 +252,7 @@ def test_translator_precision_uses_onnxruntime_tools(small_export, reduced_expor
 
 def _moving_scene(frames: int, n: int = 400, seed: int = 5) -> tuple[list[np.ndarray], Camera]:
     """Packed rows of `n` Gaussians drifting in depth over `frames` frames (some crossing each other)."""
-    from gaussiantalker.runtime.splatter import pack_gaussians
+    from gaussiantalker.runtime.splat.common import pack_gaussians
 
     rng = np.random.default_rng(seed)
     means = rng.normal(0, 0.05, (n, 3)).astype(np.float32)
@@ -258,7 +264,7 @@ def _moving_scene(frames: int, n: int = 400, seed: int = 5) -> tuple[list[np.nda
 
 
 def test_sort_interval_reuses_the_last_full_sort_between_sorts():
-    from gaussiantalker.runtime.depth_sort import DepthSorter, depth_order
+    from gaussiantalker.runtime.splat.depth_sort import DepthSorter, depth_order
 
     scene, camera = _moving_scene(7)
     sorter = DepthSorter(interval=3)
@@ -270,7 +276,7 @@ def test_sort_interval_reuses_the_last_full_sort_between_sorts():
 
 
 def test_sort_interval_sorts_anew_for_a_newly_visible_row_or_another_camera():
-    from gaussiantalker.runtime.depth_sort import DepthSorter, depth_order
+    from gaussiantalker.runtime.splat.depth_sort import DepthSorter, depth_order
 
     scene, camera = _moving_scene(3)
     sorter = DepthSorter(interval=10)
@@ -290,7 +296,7 @@ def test_sort_interval_sorts_anew_for_a_newly_visible_row_or_another_camera():
 
 def test_16_bit_sort_keys_order_by_quantised_depth():
     """Rows further apart in depth than one key level keep the exact order; closer ones may tie (index order)."""
-    from gaussiantalker.runtime.depth_sort import depth_order, view_depth
+    from gaussiantalker.runtime.splat.depth_sort import depth_order, view_depth
 
     scene, camera = _moving_scene(1, n=5000)
     rows = scene[0]
@@ -309,7 +315,7 @@ def test_sort_knobs_through_talking_head(small_export):
     with TalkingHead(small_export.path, resolution=(96, 96)) as head:
         reference = head.render(drive, output="float")
     with TalkingHead(small_export.path, resolution=(96, 96), sort_interval=4, sort_key_bits=16) as head:
-        assert head.render_settings.sort_interval == 4 and head.splatter._sorter.key_bits == 16
+        assert head.render_settings.sort_interval == 4 and head.frame_renderer.splatter._sorter.key_bits == 16
         frames = [head.render(drive, output="float") for _ in range(3)]
     for frame in frames:
         assert psnr_db(reference, frame) > 60.0

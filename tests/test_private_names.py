@@ -1,5 +1,6 @@
 """No file reaches into another's private names: a name that starts with one underscore belongs to the file that
-defines it. Read from the installed package's source (every module of sdk, runtime and exporter):
+defines it. Read from the installed package's source (every module of sdk, runtime, exporter and cli) and the
+checkout's tools/:
 
 * `from module import _name` of another module is refused;
 * `something._name` is refused where another of the package's files defines `_name` and this one does not (a
@@ -15,7 +16,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-from test_layers import installed_roots
+from test_layers import checked_roots
 
 
 def _private(name: str) -> bool:
@@ -59,7 +60,7 @@ def private_reaches(path: Path, ours: set[str]) -> list[str]:
 
 
 def test_no_file_uses_another_files_private_names():
-    paths = [path for folder in installed_roots().values() for path in sorted(folder.rglob("*.py"))]
+    paths = [path for folder in checked_roots().values() for path in sorted(folder.rglob("*.py"))]
     ours = set().union(*(_defined_here(_tree(path)) for path in paths))
     found = [reach for path in paths for reach in private_reaches(path, ours)]
     assert found == [], "\n".join(found)

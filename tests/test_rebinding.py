@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
+from gaussiantalker.exporter.export.bundle_export import DEFORM_INPUTS
 from gaussiantalker.exporter.export.deform_graph import DeformationGraph
-from gaussiantalker.exporter.export.export import DEFORM_INPUTS
 from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose

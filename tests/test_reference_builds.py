@@ -35,7 +35,7 @@ def _racing_clock(module, monkeypatch) -> None:
 
 @pytest.fixture(scope="module")
 def tiny_speaker():
-    from gaussiantalker.exporter.demo.speaker import make_demo_speaker
+    from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
 
     speaker, _ = make_demo_speaker(n_gaussians=300, seed=3, train_steps=0, progress=False)
     speaker.pose_track = speaker.pose_track[:4].clone()
@@ -74,8 +74,7 @@ def test_the_translator_stops_on_its_step_count(monkeypatch):
     """make_demo_speaker hands the translator a step count and no time budget, and training with no budget runs
     its steps however fast the clock runs (its steps, seed and settings make the same weights: the module's
     docstring)."""
-    from gaussiantalker.exporter.demo import speaker as demo_speaker
-    from gaussiantalker.exporter.demo import train_translator
+    from gaussiantalker.exporter.demo import demo_speaker, train_translator
     from gaussiantalker.exporter.model.translator import MotionTranslator, TranslatorConfig
 
     handed: list[tuple] = []
@@ -159,8 +158,8 @@ def _rows(output: str) -> dict[str, tuple]:
 
 
 def test_gt_bench_video_measures_a_composited_bundle(clip_export, capsys):
-    from gaussiantalker.exporter.bench.app import app
-    from gaussiantalker.exporter.bench.video import OUTPUTS, run_video_bench
+    from tools.bench.app import app
+    from tools.bench.video_outputs import OUTPUTS, run_video_bench
 
     result = CliRunner().invoke(app, ["video", str(clip_export.path), "--size", "48", "--frames", "3",
                                       "--rounds", "1"])

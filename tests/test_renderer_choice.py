@@ -1,4 +1,4 @@
-"""`renderer="auto"` (runtime/renderer.py, docs/embedding.md "Renderer"), every branch of the choice on stubbed
+"""`renderer="auto"` (runtime/splat/choice.py, docs/embedding.md "Renderer"), every branch of the choice on stubbed
 GL: GL that cannot start (the real context code, its backends failing as without libEGL) with and without numba,
 GL_RENDERER strings of software rasterizers (llvmpipe, softpipe, SwiftShader, Apple's, Microsoft's WARP) and of
 hardware, and what "gl" and "cpu" do meanwhile. Then a TalkingHead on a machine whose GL cannot start draws with
@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 from ci_tools import need_module
 
-from gaussiantalker.runtime import gl_context
-from gaussiantalker.runtime import renderer as choice
+from gaussiantalker.runtime.splat import choice, gl_context
 from gaussiantalker.sdk.errors import RenderError, SettingsError
 from gaussiantalker.sdk.render_settings import RenderSettings
 

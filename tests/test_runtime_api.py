@@ -31,7 +31,7 @@ def test_frames_stream_from_audio_array(head):
     frames = head.frames(audio, sample_rate=16000)
     assert isinstance(frames, types.GeneratorType)
     frames = list(frames)
-    assert len(frames) == head.frame_count(audio.shape[0]) == 13
+    assert len(frames) == head.driver.frame_count(audio.shape[0]) == 13
     assert all(f.shape == (48, 64, 3) and f.dtype == np.uint8 for f in frames)
 
 

@@ -1,5 +1,6 @@
-"""TalkingHead's grouped settings (render=, output=, backend=): the same frames as the shortcut keywords, one
-setting given twice refused naming both, frozen groups that name a bad field, and write_video from a VideoPlan."""
+"""TalkingHead's grouped settings (render_settings=, output_settings=, backend_settings=): the same frames as the
+shortcut keywords, one setting given twice refused naming both, frozen groups that name a bad field, and write_video
+from a VideoPlan."""
 
 from __future__ import annotations
 
@@ -41,10 +42,11 @@ def test_groups_give_the_shortcuts_frames_bit_for_bit(bundle):
     shortcuts = dict(resolution=(64, 48), camera=camera, background=(0.1, 0.2, 0.3), composite=False,
                      render_scale=0.5, render_target="float16", sort_interval=2, sort_key_bits=16, threads=1,
                      shader_target="410")
-    groups = dict(output=OutputSettings(resolution=(64, 48), camera=camera, background=(0.1, 0.2, 0.3),
+    groups = dict(output_settings=OutputSettings(resolution=(64, 48), camera=camera, background=(0.1, 0.2, 0.3),
                                         composite=False),
-                  render=RenderSettings(render_scale=0.5, render_target="float16", sort_interval=2, sort_key_bits=16),
-                  backend=BackendSettings("onnxruntime", threads=1, shader_target="410"))
+                  render_settings=RenderSettings(render_scale=0.5, render_target="float16", sort_interval=2,
+                                                 sort_key_bits=16),
+                  backend_settings=BackendSettings("onnxruntime", threads=1, shader_target="410"))
     # The same value given both ways is one setting, not a conflict.
     both = {**shortcuts, **groups}
     results = []
@@ -54,7 +56,7 @@ def test_groups_give_the_shortcuts_frames_bit_for_bit(bundle):
     expected = results[0]
     assert expected[0] == RenderSettings(0.5, "float16", 2, 16, graph_threads=1)
     assert expected[1] == BackendSettings("onnxruntime", 1, "410")
-    assert expected[2] == groups["output"]
+    assert expected[2] == groups["output_settings"]
     assert expected[3][0].shape == (48, 64, 3) and len(expected[3]) == 6
     for result in results[1:]:
         assert result[:3] == expected[:3]
@@ -64,11 +66,11 @@ def test_groups_give_the_shortcuts_frames_bit_for_bit(bundle):
 
 def test_a_group_left_out_keeps_the_bundle_defaults(bundle):
     """No group and no shortcut: the bundle's camera, background and preset; a partial group sets only its own."""
-    with TalkingHead(bundle, output=OutputSettings(resolution=(40, 30))) as head:
+    with TalkingHead(bundle, output_settings=OutputSettings(resolution=(40, 30))) as head:
         assert head.frame_size == (40, 30)
         assert head.render_settings == RenderSettings()  # the small bundle stores no preset: the contract's frame
         assert head.backend_settings == BackendSettings()
-        np.testing.assert_array_equal(head.background, np.float32(head.bundle.manifest["background"]))
+        np.testing.assert_array_equal(head.frame_renderer.background, np.float32(head.bundle.manifest["background"]))
         corner = head.render_params()[0, 0]
     with TalkingHead(bundle, resolution=(40, 30)) as shortcut:
         assert shortcut.output_settings == head.output_settings
@@ -76,19 +78,22 @@ def test_a_group_left_out_keeps_the_bundle_defaults(bundle):
 
 
 @pytest.mark.parametrize("kwargs, names", [
-    ({"resolution": (64, 48), "output": OutputSettings(resolution=(32, 32))}, ("resolution=", "output.resolution=")),
-    ({"background": (0, 0, 0), "output": OutputSettings(background=(1, 1, 1))}, ("background=", "output.background=")),
-    ({"composite": True, "output": OutputSettings(composite=False)}, ("composite=", "output.composite=")),
-    ({"camera": Camera(8, 8, 8.0, 8.0, 4.0, 4.0), "output": OutputSettings(camera=Camera(9, 9, 8.0, 8.0, 4.0, 4.0))},
+    ({"resolution": (64, 48), "output_settings": OutputSettings(resolution=(32, 32))},
+     ("resolution=", "output.resolution=")),
+    ({"background": (0, 0, 0), "output_settings": OutputSettings(background=(1, 1, 1))},
+     ("background=", "output.background=")),
+    ({"composite": True, "output_settings": OutputSettings(composite=False)}, ("composite=", "output.composite=")),
+    ({"camera": Camera(8, 8, 8.0, 8.0, 4.0, 4.0),
+      "output_settings": OutputSettings(camera=Camera(9, 9, 8.0, 8.0, 4.0, 4.0))},
      ("camera=", "output.camera=")),
-    ({"threads": 2, "backend": BackendSettings(threads=1)}, ("threads=2", "backend.threads=1")),
-    ({"shader_target": "410", "backend": BackendSettings(shader_target="300es")},
+    ({"threads": 2, "backend_settings": BackendSettings(threads=1)}, ("threads=2", "backend.threads=1")),
+    ({"shader_target": "410", "backend_settings": BackendSettings(shader_target="300es")},
      ("shader_target='410'", "backend.shader_target='300es'")),
-    ({"render_scale": 0.5, "render": RenderSettings(render_scale=0.75)},
+    ({"render_scale": 0.5, "render_settings": RenderSettings(render_scale=0.75)},
      ("render_scale=0.5", "render.render_scale=0.75")),
-    ({"sort_key_bits": 16, "render": RenderSettings()}, ("sort_key_bits=16", "render.sort_key_bits=32")),
-    ({"threads": 2, "render": RenderSettings(graph_threads=3)}, ("threads=2", "render.graph_threads=3")),
-    ({"backend": BackendSettings(threads=2), "render": RenderSettings(graph_threads=3)},
+    ({"sort_key_bits": 16, "render_settings": RenderSettings()}, ("sort_key_bits=16", "render.sort_key_bits=32")),
+    ({"threads": 2, "render_settings": RenderSettings(graph_threads=3)}, ("threads=2", "render.graph_threads=3")),
+    ({"backend_settings": BackendSettings(threads=2), "render_settings": RenderSettings(graph_threads=3)},
      ("backend.threads=2", "render.graph_threads=3")),
 ])
 def test_a_setting_given_twice_is_refused_naming_both(bundle, kwargs, names):
@@ -134,13 +139,14 @@ def test_a_bad_field_is_named(make, message):
 
 
 @pytest.mark.parametrize("kwargs, message", [
-    ({"render": {"render_scale": 0.5}}, "render= must be a RenderSettings \\(or None\\), got dict"),
-    ({"output": (64, 48)}, "output= must be a OutputSettings \\(or None\\), got tuple"),
+    ({"render_settings": {"render_scale": 0.5}}, "render_settings= must be a RenderSettings \\(or None\\), got dict"),
+    ({"output_settings": (64, 48)}, "output_settings= must be a OutputSettings \\(or None\\), got tuple"),
+    ({"backend_settings": "mnn"}, "backend_settings= must be a BackendSettings \\(or None\\), got str"),
     ({"backend": 3}, "backend= must be a backend name \\(onnxruntime, mnn\\) or a BackendSettings, got int"),
     ({"backend": "tensorrt"}, "unknown graph backend 'tensorrt'"),
     ({"resolution": (0, 4)}, "output resolution must be"),
     ({"render_scale": 0.05}, "render_scale must be a number in 0.1..1"),
-    ({"render": RenderSettings(), "render_scale": 0.05}, "render_scale given twice"),
+    ({"render_settings": RenderSettings(), "render_scale": 0.05}, "render_scale given twice"),
 ])
 def test_bad_groups_and_shortcuts_are_refused_before_loading(bundle, kwargs, message):
     with pytest.raises(SettingsError, match=message):
@@ -203,5 +209,5 @@ def test_output_view_says_the_frames_before_loading(bundle, tmp_path, monkeypatc
         view.plan_video(tmp_path / "talk.mp4", alpha=True)
     with pytest.raises(SettingsError, match="resolution given twice"):
         TalkingHead.output_view(bundle, OutputSettings(resolution=(40, 30)), resolution=(41, 30))
-    with TalkingHead(bundle, output=OutputSettings(resolution=(40, 30))) as head:
-        assert head.camera.to_dict() == view.camera.to_dict() and head.composite == view.composite
+    with TalkingHead(bundle, output_settings=OutputSettings(resolution=(40, 30))) as head:
+        assert head.camera.to_dict() == view.camera.to_dict() and (head.compositor is not None) == view.composite

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.cli import app as export_app
+from gaussiantalker.cli.export import app as export_app
+from gaussiantalker.exporter.export.bundle_export import export_bundle
 from gaussiantalker.exporter.export.deform_graph import DeformationGraph
-from gaussiantalker.exporter.export.export import export_bundle
 from gaussiantalker.exporter.export.specialise import specialise, translator_outputs
 from gaussiantalker.exporter.model.rasterizer import render_reference
 from gaussiantalker.runtime.head import TalkingHead
@@ -53,7 +53,7 @@ def _compare_in_scene(plain_path, scene_path, scene: Scene, n_expr: int, audio: 
     psnrs = []
     with TalkingHead(scene_path) as spec, TalkingHead(plain_path, camera=spec.camera) as plain:
         expression = np.zeros(n_expr, np.float32)
-        allowed = spec.scene_guard.expression_allowed
+        allowed = spec.frame_renderer.scene_guard.expression_allowed
         expression[np.flatnonzero(allowed)[:2]] = [1.5, -1.0][: int(allowed.sum())]
         with warnings.catch_warnings():
             warnings.simplefilter("error", SceneRangeWarning)  # every drive here is inside the scene

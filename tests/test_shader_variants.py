@@ -24,15 +24,15 @@ import pytest
 from ci_tools import need
 from test_splatter import BACKGROUND, make_camera, random_scene
 
-from gaussiantalker.runtime import programs as programs_module
-from gaussiantalker.runtime.gl_context import (
+from gaussiantalker.runtime.splat import programs as programs_module
+from gaussiantalker.runtime.splat.gl import GLSplatter
+from gaussiantalker.runtime.splat.gl_context import (
     _TARGET_GL_VERSION,
     check_shader_target,
     gles_render_target,
     shader_target_problem,
 )
-from gaussiantalker.runtime.programs import PROGRAMS, program_sources, shader_defines, with_defines
-from gaussiantalker.runtime.splatter import GLSplatter
+from gaussiantalker.runtime.splat.programs import PROGRAMS, program_sources, shader_defines, with_defines
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.shaders import (

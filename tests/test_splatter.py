@@ -18,17 +18,12 @@ import sys
 import numpy as np
 import pytest
 
-from gaussiantalker.runtime import gl_context
-from gaussiantalker.runtime import programs as programs_module
-from gaussiantalker.runtime import splatter as splatter_module
-from gaussiantalker.runtime.depth_sort import depth_order, stable_argsort_positive
-from gaussiantalker.runtime.splatter import (
-    STAGES,
-    GLSplatter,
-    draw_runs,
-    extent_radius_bound,
-    pack_gaussians,
-)
+from gaussiantalker.runtime.splat import gl as splatter_module
+from gaussiantalker.runtime.splat import gl_context
+from gaussiantalker.runtime.splat import programs as programs_module
+from gaussiantalker.runtime.splat.common import STAGES, pack_gaussians
+from gaussiantalker.runtime.splat.depth_sort import depth_order, stable_argsort_positive
+from gaussiantalker.runtime.splat.gl import GLSplatter, draw_runs, extent_radius_bound
 from gaussiantalker.sdk import numerics
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import RenderError

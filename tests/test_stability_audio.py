@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-import gaussiantalker.runtime.head as head_module
+import gaussiantalker.runtime.timings as timings_module
 from gaussiantalker.exporter.export.speech import synth_speech
 from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.runtime.translate import (
@@ -68,7 +68,7 @@ def _render(head: TalkingHead, audio, sample_rate: int | None = None) -> tuple[l
     assert len(frames) == len(drives) >= 1
     assert all(np.isfinite(d.expression).all() and np.isfinite(d.flame_pose).all() for d in drives)
     widest = max(drives, key=lambda d: abs(float(d.flame_pose[JAW])))
-    assert all(np.isfinite(v).all() for v in head.gaussians(widest).values())
+    assert all(np.isfinite(v).all() for v in head.frame_renderer.deform(widest).values())
     assert all(f.dtype == np.uint8 and f.shape == (32, 32, 3) for f in frames)
     jaw = np.array([d.flame_pose[JAW] for d in drives])
     expr = max(float(np.abs(d.expression).max()) for d in drives)
@@ -340,7 +340,7 @@ def test_readable_files(head, stability, files, name, seconds):
     decoded = load_audio(files[name])
     assert abs(decoded.shape[0] / SR - seconds) < 0.1  # mp3/aac add encoder delay/padding (< 0.1 s)
     frames, jaw, summary = _render(head, files[name])
-    assert len(frames) == head.frame_count(decoded.shape[0]) and jaw.max() > 0.1
+    assert len(frames) == head.driver.frame_count(decoded.shape[0]) and jaw.max() > 0.1
     stability.record("audio", f"file {name}", f"{decoded.shape[0] / SR:.3f} s decoded, {summary}")
 
 
@@ -366,12 +366,12 @@ def test_video_of_tiny_and_partial_clips_keeps_every_frame(head, stability, tmp_
         path = head.write_video(tmp_path / f"clip{samples}.mp4", np.full(samples, 0.2, np.float32), SR,
                                 progress=False)
         info = probe_video(path)
-        assert info["frames"] == head.frame_count(samples) and info["has_audio"]
+        assert info["frames"] == head.driver.frame_count(samples) and info["has_audio"]
         stability.record("audio", f"write_video, {samples} samples",
                          f"mp4 with {info['frames']} frames ({info['seconds']:.2f} s), audio stream")
     path = head.write_video(tmp_path / "from_m4a.mp4", files["speech.m4a"], progress=False)
     info = probe_video(path)
-    assert info["frames"] == head.frame_count(load_audio(files["speech.m4a"]).shape[0]) and info["has_audio"]
+    assert info["frames"] == head.driver.frame_count(load_audio(files["speech.m4a"]).shape[0]) and info["has_audio"]
     stability.record("audio", "write_video from an m4a file", f"mp4 with {info['frames']} frames, audio stream")
 
 
@@ -433,7 +433,7 @@ def test_ten_minute_file_streams_in_bounded_memory(head, stability, tmp_path):
 
 def test_stage_timings_stay_bounded(head, monkeypatch, stability):
     """First found (reading the code): every frame appended to per-stage timing lists, forever."""
-    monkeypatch.setattr(head_module, "MAX_TIMINGS_PER_STAGE", 8)
+    monkeypatch.setattr(timings_module, "MAX_TIMINGS_PER_STAGE", 8)
     frames = list(head.frames(SPEECH, SR))
     lengths = {stage: len(values) for stage, values in head.timings.items()}
     assert len(frames) == 25 and lengths["draw"] >= 4 and max(lengths.values()) <= 8
@@ -457,7 +457,7 @@ def test_window_joins_have_no_visible_seam(head, stability):
     well below the natural frame-to-frame change of speech. First found: a hard cut between windows added up to
     ~half a median step in one frame; joins are now a 20-frame cross-fade."""
     audio = synth_speech(30.0, seed=8)
-    run = head.run_translator
+    run = head.driver.run_translator
     out = run(audio)
     one_shot = np.concatenate([out["expression"][0], out["jaw_pose"][0]], axis=1)
     windowed, cut = _params(run, audio), _params(run, audio, crossfade_frames=0)
@@ -486,7 +486,7 @@ def test_lazy_translation_runs_one_window_at_a_time(head):
 
     def run(chunk: np.ndarray) -> dict:
         calls.append(chunk.shape[0] // SPF)
-        return head.run_translator(chunk)
+        return head.driver.run_translator(chunk)
 
     blocks = iter_translate(run, np.zeros(SPF * 3 * WINDOW_FRAMES, np.float32), SPF)
     first = next(blocks)
@@ -506,11 +506,11 @@ def _torch_run(speaker):
 def test_silence_gate_closes_the_mouth_on_low_level_noise(head, speaker, stability):
     """Per-window normalisation amplifies low-level noise: ungated the jaw opens ~0.23 rad with no speech."""
     noise = RNG.standard_normal(3 * SR).astype(np.float32)
-    runs = {"runtime": head.run_translator, "torch": _torch_run(speaker)}
+    runs = {"runtime": head.driver.run_translator, "torch": _torch_run(speaker)}
     for level in (-80.0, SILENCE_GATE_DBFS - SILENCE_GATE_RAMP_DB / 2, -40.0):
         quiet = noise * np.float32(10 ** (level / 20))
         gated = {side: _params(run, quiet)[:, -3] for side, run in runs.items()}
-        ungated = _params(head.run_translator, quiet, silence_gate_dbfs=None)[:, -3]
+        ungated = _params(head.driver.run_translator, quiet, silence_gate_dbfs=None)[:, -3]
         measured_db = 10 * np.log10(np.var(quiet.astype(np.float64)))  # one window: 75 frames, no padding
         expected_gain = float(np.clip((measured_db - SILENCE_GATE_DBFS) / SILENCE_GATE_RAMP_DB + 1, 0, 1))
         assert np.abs(gated["runtime"] - expected_gain * ungated).max() < 1e-4
@@ -521,7 +521,7 @@ def test_silence_gate_closes_the_mouth_on_low_level_noise(head, speaker, stabili
                          f"torch path {gated['torch'].mean():.3f}")
     for level in (-20.0, -50.0):  # speech at normal and low level: the gate leaves it alone
         speech = SPEECH * np.float32(10 ** (level / 20) / np.sqrt(np.mean(SPEECH**2)))
-        gated, ungated = _params(head.run_translator, speech), _params(head.run_translator, speech,
+        gated, ungated = _params(head.driver.run_translator, speech), _params(head.driver.run_translator, speech,
                                                                          silence_gate_dbfs=None)
         np.testing.assert_array_equal(gated, ungated)
         assert gated[:, -3].max() > 0.1

@@ -36,10 +36,10 @@ import torch
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from gaussiantalker.exporter.export.export import DEFORM_INPUTS, DEFORM_OUTPUTS
+from gaussiantalker.exporter.export.bundle_export import DEFORM_INPUTS, DEFORM_OUTPUTS
 from gaussiantalker.exporter.model.flame import FlameArrays
 from gaussiantalker.exporter.model.speaker import Speaker
-from gaussiantalker.exporter.verify.verify import GRAPH_RTOL
+from gaussiantalker.exporter.verify.bundle_verify import GRAPH_RTOL
 from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.drive import MAX_DRIVE_MAGNITUDE, FrameDrive, HeadPose
@@ -50,7 +50,7 @@ from gaussiantalker.sdk.numerics import SH_C0
 SIZE = (64, 64)
 ANGLE_ULPS = 8
 MIN_FRAME_PSNR_DB = 60.0
-STOP_RULE_BOUND = 0.01  # T at a stopped pixel is < 1e-4 / (1 - 0.99) (runtime/splatter.py)
+STOP_RULE_BOUND = 0.01  # T at a stopped pixel is < 1e-4 / (1 - 0.99) (runtime/splat/gl.py)
 SCALE_RTOL = 1e-4
 N_EXPR = 20
 PI = math.pi
@@ -188,7 +188,7 @@ def _relative_errors(reference: dict, test: dict) -> dict[str, float]:
 def check_graph(speaker: Speaker, head: TalkingHead, drive: FrameDrive, center=None) -> float:
     """Assert torch and ONNX `deform` outputs are finite and agree; return the worst relative error."""
     inputs = _inputs(drive, head.camera.center if center is None else center)
-    reference, graph = _torch_deform(speaker, inputs), head.graphs.run("deform", inputs)
+    reference, graph = _torch_deform(speaker, inputs), head.frame_renderer.graphs.run("deform", inputs)
     for name in DEFORM_OUTPUTS:
         assert np.isfinite(reference[name]).all(), f"torch {name} not finite"
         assert np.isfinite(graph[name]).all(), f"onnx {name} not finite"
@@ -208,15 +208,16 @@ def check_frame(speaker: Speaker, head: TalkingHead, drive: FrameDrive, *, torch
     reference = speaker.render(drive, head.camera).numpy()
     if torch_gaussians:
         out = _torch_deform(speaker, _inputs(drive, head.camera.center))
-        prepared = head.splatter.prepare(out["means"][0], out["cov3d"][0], out["rgb"][0], out["opacity"], head.camera)
-        frame = head.draw(prepared, output="float")
+        prepared = head.frame_renderer.splatter.prepare(out["means"][0], out["cov3d"][0], out["rgb"][0],
+                                                        out["opacity"], head.camera)
+        frame = head.frame_renderer.draw(prepared, output="float")
     else:
         frame = head.render(drive, output="float")
     assert np.isfinite(reference).all() and np.isfinite(frame).all()
     psnr = min(psnr_db(reference, frame), 200.0)
     # Frames agree to MIN_FRAME_PSNR_DB, or else within the one documented difference between the two: GL cannot stop
     # a saturated pixel, so the Gaussians the reference skips still add up to 0.01 x the colour range
-    # (runtime/splatter.py, docs/numerics.md). The opaque head saturates most pixels, so extreme drives that crowd
+    # (runtime/splat/gl.py, docs/numerics.md). The opaque head saturates most pixels, so extreme drives that crowd
     # its splats reach that bound (59.96 dB at expression +-1e3), and colours far outside [0, 1] (rotations of 1e4
     # rad drive the latent-pose MLP, and with it the colour offsets, to ~20) widen it.
     if psnr < MIN_FRAME_PSNR_DB:
@@ -348,7 +349,7 @@ def test_gaussian_exactly_at_camera_centre(base_speaker, base_head, stability):
     drive = FrameDrive.make(N_EXPR)
     means = _torch_deform(base_speaker, _inputs(drive, base_head.camera.center))["means"][0]
     inputs = _inputs(drive, means[0])
-    reference, graph = _torch_deform(base_speaker, inputs), base_head.graphs.run("deform", inputs)
+    reference, graph = _torch_deform(base_speaker, inputs), base_head.frame_renderer.graphs.run("deform", inputs)
     assert all(np.isfinite(reference[k]).all() and np.isfinite(graph[k]).all() for k in DEFORM_OUTPUTS)
     with torch.no_grad():  # torch: no direction, so only the degree-0 band kappa0' = kappa0 + BS(gamma; W_color)
         gamma = base_speaker.latent_pose(torch.from_numpy(drive.flame_pose[None, 3:]))[0]
@@ -516,7 +517,7 @@ def test_coincident_vertices(geometry, degenerate_setup, stability):
     worst = Worst()
     rng = np.random.default_rng(5)
     for drive in (FrameDrive.make(N_EXPR), FrameDrive.make(N_EXPR, rng.normal(0, 3, N_EXPR), [0.3, 0, 0])):
-        cov = head.graphs.run("deform", _inputs(drive, head.camera.center))["cov3d"][0]
+        cov = head.frame_renderer.graphs.run("deform", _inputs(drive, head.camera.center))["cov3d"][0]
         assert (cov[mask] == 0).all()  # a zero frame, not a NaN and not a noise-driven unit one
         check_case(speaker, head, drive, worst)
     stability.record("geometry", f"coincident vertices (v0 = v1 in every basis), head scale {scale:g}",

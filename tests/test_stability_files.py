@@ -29,8 +29,8 @@ import pytest
 import torch
 
 import gaussiantalker.exporter.export.onnx_export as onnx_export_module
+from gaussiantalker.exporter.export.bundle_export import export_bundle
 from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
-from gaussiantalker.exporter.export.export import export_bundle
 from gaussiantalker.runtime import TalkingHead
 from gaussiantalker.sdk.bundle import _HEADER, HEADER_SIZE, Bundle, _align
 from gaussiantalker.sdk.errors import BundleError, CheckpointError
@@ -533,7 +533,7 @@ def test_export_failing_between_graphs_writes_nothing(real, tmp_path, monkeypatc
 
 
 _PAUSING_CLI = '''
-"""Run gt-export as `python -m gaussiantalker.exporter.cli` does, pausing once half the bundle is written."""
+"""Run gt-export as `python -m gaussiantalker.cli.export` does, pausing once half the bundle is written."""
 import os, runpy, sys, time
 from pathlib import Path
 import onnx
@@ -570,7 +570,7 @@ def pausing_open(*args, **kwargs):
 
 bundle.open = files.open = pausing_open  # the bundle writer (staged by gt-export) and the atomic writer
 sys.argv = ["gt-export", *cli_args]
-runpy.run_module("gaussiantalker.exporter.cli", run_name="__main__", alter_sys=True)
+runpy.run_module("gaussiantalker.cli.export", run_name="__main__", alter_sys=True)
 '''
 
 
@@ -640,7 +640,7 @@ def test_failed_verify_keeps_the_real_good_bundle(real, checkpoint, tmp_path, st
     """gt-export --verify that fails: NAME.unverified.gtb holds the new bundle, the good one is untouched."""
     from typer.testing import CliRunner
 
-    from gaussiantalker.exporter.cli import app
+    from gaussiantalker.cli.export import app
 
     out = tmp_path / "speaker.gtb"
     shutil.copy(real.path, out)

@@ -47,7 +47,7 @@ JAW = 6  # index of the jaw's x rotation in FrameDrive.flame_pose
 def _drives(n_expr: int, head: TalkingHead) -> dict[str, FrameDrive]:
     """The drive extremes of test_stability_drive.py, one representative each."""
     camera = head.camera
-    rest = head.gaussians(FrameDrive.make(n_expr))["means"].mean(0)
+    rest = head.frame_renderer.deform(FrameDrive.make(n_expr))["means"].mean(0)
     behind = camera.center - 0.5 * camera.R[2] - rest  # head centre 0.5 m behind the camera
     onto = camera.center - rest
     return {
@@ -83,12 +83,12 @@ def fp32_head(small_export):
 
 @pytest.mark.parametrize("name", REDUCED)
 def test_reduced_bundle_stays_finite_at_the_extremes(name, reduced_export, fp32_head, stability):
-    n_expr = fp32_head.config.n_expr
+    n_expr = fp32_head.driver.config.n_expr
     drives = _drives(n_expr, fp32_head)
     worst, checked, jaw_diff = math.inf, 0, 0.0
     with TalkingHead(reduced_export(name), resolution=SIZE) as head:
         for case, drive in drives.items():
-            outputs = head.gaussians(drive)
+            outputs = head.frame_renderer.deform(drive)
             assert all(np.isfinite(v).all() for v in outputs.values()), (name, case)
             frame = head.render(drive, output="float")
             assert np.isfinite(frame).all(), (name, case)

@@ -72,8 +72,8 @@ from gaussiantalker.exporter.model.splat_math import (
     sigma_matrix,
     world_to_camera,
 )
-from gaussiantalker.runtime.cpu_splatter import CPUSplatter
-from gaussiantalker.runtime.splatter import GLSplatter
+from gaussiantalker.runtime.splat.cpu import CPUSplatter
+from gaussiantalker.runtime.splat.gl import GLSplatter
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import CameraError
 from gaussiantalker.sdk.numerics import ALPHA_MAX, ALPHA_MIN, COLOR_LIMIT, DET_MIN_RELATIVE, LOW_PASS_PX2

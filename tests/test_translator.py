@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from gaussiantalker.exporter.demo.audio import (
+from gaussiantalker.exporter.demo.audio_signals import (
     jaw_target_from_audio,
     loudness_envelope,
     normalize_audio,

@@ -244,7 +244,7 @@ def test_rgba_frames_composite_back_to_the_opaque_frames(head):
     rgba = head.render(drive, output="rgba")
     assert rgba.dtype == np.uint8 and rgba.shape == (48, 64, 4)
     alpha = rgba[..., 3:4] / 255.0
-    composite = rgba[..., :3] / 255.0 * alpha + head.background * (1.0 - alpha)
+    composite = rgba[..., :3] / 255.0 * alpha + head.frame_renderer.background * (1.0 - alpha)
     # Two 8-bit roundings (colour, alpha) and the straight colour's amplification at low coverage: within 2 levels.
     assert np.abs(composite - opaque).max() <= 2.0 / 255.0
     assert 0 < np.count_nonzero(rgba[..., 3]) < rgba[..., 3].size  # the head is covered, the corners are not

@@ -29,7 +29,7 @@ import torch
 from ci_tools import need
 
 from gaussiantalker.exporter.imports.audio_model import flame_outputs, load_audio_model
-from gaussiantalker.exporter.model.flame import load_flame_npz
+from gaussiantalker.exporter.model.flame_npz import load_flame_npz
 from gaussiantalker.exporter.voice import corpus, espeak, evaluate, flame_fit, onnx_graph, targets, visemes
 from gaussiantalker.exporter.voice.data import Stream, load_utterance
 from gaussiantalker.exporter.voice.espeak import PAUSE, Phoneme
@@ -194,7 +194,7 @@ def test_flame_fit_on_a_flame_layout_model(tmp_path):
     far face still, stays within MAX_COEFFICIENT, and the bound graph passes the importer's checks."""
     from gaussian_avatars import synthetic_flame, write_flame_npz
 
-    from gaussiantalker.exporter.imports.gaussian_avatars_flame import LOWER_LIP_RING, UPPER_LIP_RING
+    from gaussiantalker.exporter.imports.sources.gaussian_avatars_flame import LOWER_LIP_RING, UPPER_LIP_RING
 
     flame = load_flame_npz(write_flame_npz(tmp_path / "flame.npz", synthetic_flame(0)), 300, 100)
     mapping = flame_fit.fit_expression_map(flame)
@@ -239,8 +239,8 @@ def test_attach_builtin_voice_to_imported_checkpoints(tmp_path):
     from lam_avatars import write_avatar_zip
 
     from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
-    from gaussiantalker.exporter.imports.gaussian_avatars import import_gaussian_avatars
-    from gaussiantalker.exporter.imports.lam import import_lam
+    from gaussiantalker.exporter.imports.sources.gaussian_avatars import import_gaussian_avatars
+    from gaussiantalker.exporter.imports.sources.lam import import_lam
     from gaussiantalker.exporter.voice.attach import attach_builtin_voice
     from gaussiantalker.sdk.errors import CheckpointError
 
@@ -271,8 +271,8 @@ def test_gt_import_voice_gives_an_imported_speaker_a_voice(tmp_path, small_speak
     from lam_avatars import write_avatar_zip
     from typer.testing import CliRunner
 
+    from gaussiantalker.cli.imports import app as import_app
     from gaussiantalker.exporter.export.checkpoint import save_checkpoint
-    from gaussiantalker.exporter.import_cli import app as import_app
     from gaussiantalker.runtime.head import TalkingHead
 
     runner = CliRunner()
@@ -284,7 +284,7 @@ def test_gt_import_voice_gives_an_imported_speaker_a_voice(tmp_path, small_speak
     assert result.exit_code == 0 and "built-in voice driver attached" in result.output, result.output
     audio = np.concatenate([np.zeros(16000, np.float32), load_utterance(CLIP).audio])  # 1 s of silence first
     with TalkingHead(bundle, resolution=(32, 32)) as head:
-        weights = head.translate(audio)
+        weights = head.driver.translate(audio)
         assert weights.shape == (int(np.ceil(len(audio) / (16000 / 30))), ARKIT_COUNT)
         assert weights[:, JAW].max() > 0.2 and weights[:20, JAW].max() < 0.05  # speech opens it, silence not
         assert len(list(head.frames(audio[:16000], 16000))) == 30

@@ -28,12 +28,12 @@ import pytest
 from ci_tools import BROWSER_INSTALL, need, need_chromium
 from typer.testing import CliRunner
 
-from gaussiantalker.runtime import web_assets
-from gaussiantalker.runtime.web_cli import app, parse_size
-from gaussiantalker.runtime.web_harness import check_web_player
 from gaussiantalker.sdk.bundle import Bundle, BundleWriter
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.image import psnr_db
+from tools.browser import web_assets
+from tools.browser.web_cli import app, parse_size
+from tools.browser.web_harness import check_web_player
 
 ROOT = Path(__file__).resolve().parents[1]
 MIN_PSNR_DB = 40.0
@@ -81,7 +81,7 @@ def player_ready() -> None:
 @pytest.fixture(scope="module")
 def page(player_ready):
     """One headless chromium with the player's harness page, for the whole module."""
-    from gaussiantalker.runtime.web_harness import WebPlayerPage
+    from tools.browser.web_harness import WebPlayerPage
 
     with WebPlayerPage() as page:
         yield page
@@ -103,8 +103,8 @@ def lam_bundle(tmp_path_factory) -> tuple[Path, Path]:
     """A small synthetic LAM avatar (tests/lam_avatars.py) imported and exported, and a motion file for it."""
     from lam_avatars import motion_json, write_avatar_zip
 
-    from gaussiantalker.exporter.export.export import export_bundle
-    from gaussiantalker.exporter.imports.lam import import_lam
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.imports.sources.lam import import_lam
 
     folder = tmp_path_factory.mktemp("web_lam")
     path = folder / "avatar.gtb"
@@ -121,7 +121,7 @@ def _python_frames(bundle: Path, indexes: list[int], audio: Path | None = None, 
 
     extra = {"camera": camera} if camera is not None else {}
     with TalkingHead(bundle, resolution=SIZE, renderer="gl", composite=False, **extra) as head:
-        drives = list(head.drives(audio) if audio else head.motion_drives(motion))
+        drives = list(head.drives(audio) if audio else head.drives(motion=motion))
         frames = [head.render(drives[i]) for i in indexes]
     if audio:
         rows = np.stack([np.concatenate([d.expression, d.flame_pose[6:9]]) for d in drives])
@@ -300,7 +300,7 @@ def test_render_settings_match_the_python_runtime(player_ready, page, small_expo
     assert info["precision"] == python_settings.get("render_target", "float32")
     page.drive(audio=speech_wav)
     render = RenderSettings(**python_settings)
-    with TalkingHead(small_export.path, resolution=SIZE, renderer="gl", render=render) as head:
+    with TalkingHead(small_export.path, resolution=SIZE, renderer="gl", render_settings=render) as head:
         drives = list(head.drives(speech_wav))[: len(indexes)]
         python_frames = [head.render(drive) for drive in drives]
     _check_frames(page, python_frames, indexes)
@@ -311,8 +311,8 @@ def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export):
     audio clock drawing frames (WebAudio allowed to start without a gesture, as a click would)."""
     import time
 
-    from gaussiantalker.runtime.chromium import Chromium
-    from gaussiantalker.runtime.web_harness import HarnessServer
+    from tools.browser.chromium import Chromium
+    from tools.browser.web_harness import HarnessServer
 
     server = HarnessServer(ROOT, {})
     try:

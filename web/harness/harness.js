@@ -1,4 +1,4 @@
-// What `gt-web` (runtime/web_harness.py) drives over the DevTools protocol: window.gtWeb loads a bundle into the
+// What `gt-web` (tools/browser/web_harness.py) drives over the DevTools protocol: window.gtWeb loads a bundle into the
 // player, makes a drive from an audio or motion URL, and renders frames, returning their RGB bytes as base64.
 
 import { readBundle } from '../src/bundle.js';

@@ -1,4 +1,6 @@
-"""Torch-free GaussianTalker runtime: bundle -> onnxruntime graphs -> OpenGL splatting -> frames.
+"""Torch-free GaussianTalker runtime: a bundle's graphs on onnxruntime (or MNN), its Gaussians splatted with
+OpenGL or the CPU tile splatter, frames out. `TalkingHead` is a front over the frame's stages (docs/embedding.md,
+"Stages"): a Driver per rig (`FlameDriver`, `ArkitDriver`), a `FrameRenderer` with its splatter, a `Compositor`.
 
 Everything an app needs is importable from here:
 
@@ -7,6 +9,7 @@ Everything an app needs is importable from here:
     from gaussiantalker.runtime import FlameMotion, load_flame_motion   # FLAME motions (imported avatars)
     from gaussiantalker.runtime import RenderSettings, OutputSettings, BackendSettings   # grouped settings
     from gaussiantalker.runtime import LiveSession, LiveFrame, IdleMotion   # live sessions (TalkingHead.live)
+    from gaussiantalker.runtime import FlameDriver, ArkitDriver, FrameRenderer, Compositor   # the stages
 """
 
 from gaussiantalker.sdk import __version__
@@ -29,6 +32,9 @@ from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
 from gaussiantalker.sdk.video_formats import VideoPlan, plan_video
 
+from .compositor import Compositor
+from .driver import ArkitDriver, FlameDriver
+from .frame_renderer import FrameRenderer
 from .head import FrameOutput, HeadPoseSource, TalkingHead
 from .idle import IdleMotion
 from .live import LiveFrame, LiveSession, LiveStats
@@ -38,6 +44,10 @@ from .settings import BackendSettings, OutputSettings
 
 __all__ = [
     "TalkingHead",
+    "FlameDriver",
+    "ArkitDriver",
+    "FrameRenderer",
+    "Compositor",
     "Camera",
     "HeadPose",
     "FrameDrive",

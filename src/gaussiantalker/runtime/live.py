@@ -33,7 +33,7 @@ from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_RIG
 
 from .idle import IdleMotion, IdleTrack, blink_vector
 from .live_audio import ResampledQueue
-from .translate import blendshape_params, flame_params, frame_start, silence_gain
+from .translate import frame_start, silence_gain
 
 # Frames translated per translator call at most when audio is queued ahead (a long push): bigger batches cost
 # fewer calls but delay the first of them.
@@ -108,7 +108,8 @@ class _Timeline:
 
 class LiveSession:
     """A live session on a TalkingHead (`TalkingHead.live`): push audio from any thread, read frames on the thread
-    that owns the head's GL context."""
+    that owns the head's GL context. On a Driver alone (`LiveSession(head.driver, output=None)`) it makes each
+    frame's drive and no pixels, as a server does that streams drives to a client that renders them."""
 
     def __init__(self, head, *, lookahead_ms: float = 160.0, paced: bool = True, context_ms: float = 1000.0,
                  output: str | None = "uint8", audio_rate: int | None = None, idle: IdleMotion | None = None,
@@ -116,27 +117,31 @@ class LiveSession:
         for name, value in (("lookahead_ms", lookahead_ms), ("context_ms", context_ms), ("max_queued_s", max_queued_s)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise LiveError(f"{name} must be a finite number >= 0, got {value!r}")
-        if not head.has_translator:
-            head.run_translator(np.zeros(1, np.float32))  # raises the BundleError that says why and what instead
-        self.head, self.paced, self.output = head, bool(paced), output
-        self.fps = float(head.fps)
+        driver = getattr(head, "driver", head)  # a TalkingHead, or a Driver alone (drives without pixels)
+        if driver is head:
+            head = None
+            if output is not None:
+                raise LiveError("a live session on a driver alone makes drives, not frames: give output=None, or "
+                                "open it with head.live() to render them")
+        if not driver.has_translator:
+            driver.run_translator(np.zeros(1, np.float32))  # raises the error that says why and what instead
+        self.head, self.driver, self.paced, self.output = head, driver, bool(paced), output
+        self.fps = float(driver.fps)
         self.lookahead_frames = math.ceil(lookahead_ms * self.fps / 1000.0 - 1e-9)
         self.context_frames = math.ceil(context_ms * self.fps / 1000.0 - 1e-9)
-        self.sample_rate = int(audio_rate) if audio_rate is not None else head.sample_rate
-        self._speech = _Timeline(head.sample_rate, self.fps)
+        self.sample_rate = int(audio_rate) if audio_rate is not None else driver.sample_rate
+        self._speech = _Timeline(driver.sample_rate, self.fps)
         self._out = _Timeline(self.sample_rate, self.fps)
-        self._heard = ResampledQueue(head.sample_rate)  # what the translator hears
+        self._heard = ResampledQueue(driver.sample_rate)  # what the translator hears
         self._shown = ResampledQueue(self.sample_rate)  # what the frames carry
         self._history = np.zeros(self._speech.span(0, self.context_frames), np.float32)
-        self._max_queued = int(max_queued_s * head.sample_rate)
-        arkit = head.rig == ARKIT_RIG
-        self._params_of = blendshape_params if arkit else flame_params
-        names = ARKIT_BLENDSHAPES if arkit else tuple(getattr(head.config, "expression_names", ()) or ())
-        self._size = len(ARKIT_BLENDSHAPES) if arkit else head.config.n_expr + 3
+        self._max_queued = int(max_queued_s * driver.sample_rate)
+        names = driver.param_names
+        self._size = len(ARKIT_BLENDSHAPES) if driver.rig == ARKIT_RIG else driver.config.n_expr + 3
         idle = idle or IdleMotion()
         self._idle = IdleTrack(idle, self.fps)
         self._blink = blink_vector(names, self._size, idle.blink)
-        self._sway = head.pose_track is None and (idle.sway_deg > 0 or idle.breath_mm > 0)
+        self._sway = driver.pose_track is None and (idle.sway_deg > 0 or idle.breath_mm > 0)
         self._translated: deque[_Translated] = deque()
         self._cond = threading.Condition()
         self._epoch = 0  # bumped by interrupt(): translator results of an older epoch are dropped
@@ -160,10 +165,11 @@ class LiveSession:
             if self._closed or self._ended:
                 raise LiveError("this live session has " + ("been closed" if self._closed else "ended (end() was "
                                 "called)") + ": open a new one with head.live() to push more audio")
-            queued = len(self._heard.samples) + round(mono.shape[0] * self.head.sample_rate / rate)
+            queued = len(self._heard.samples) + round(mono.shape[0] * self.driver.sample_rate / rate)
             if queued > self._max_queued:
-                raise LiveError(f"{queued / self.head.sample_rate:.1f} s of audio would be waiting, more than "
-                                f"max_queued_s={self._max_queued / self.head.sample_rate:g}: the frames are not being "
+                rate = self.driver.sample_rate
+                raise LiveError(f"{queued / rate:.1f} s of audio would be waiting, more than "
+                                f"max_queued_s={self._max_queued / rate:g}: the frames are not being "
                                 "read (or not as fast as audio is pushed)")
             if mono.shape[0]:
                 self._heard.push(mono, rate)
@@ -236,7 +242,7 @@ class LiveSession:
 
     def _queued_seconds(self) -> float:
         """Under the lock: pushed audio not yet shown, queued or translated, in seconds."""
-        return (len(self._heard.samples) + len(self._translated) * self._speech.per_frame) / self.head.sample_rate
+        return (len(self._heard.samples) + len(self._translated) * self._speech.per_frame) / self.driver.sample_rate
 
     # -- consumer side (the GL thread) ---------------------------------------------------------------------------
     def frames(self) -> Iterator[LiveFrame]:
@@ -354,8 +360,8 @@ class LiveSession:
     def _translate(self, window: np.ndarray, count: int, shown: list, late: bool, epoch: int) -> None:
         """Run the translator on a window outside the lock; keep the batch's frames unless interrupted meanwhile."""
         frames = self.context_frames + count + self.lookahead_frames
-        params = self._params_of(self.head.run_translator(window), frames) * np.float32(
-            silence_gain(window, self.head.silence_gate_dbfs))
+        params = self.driver.params_of(self.driver.run_translator(window), frames) * np.float32(
+            silence_gain(window, self.driver.silence_gate_dbfs))
         with self._cond:
             self.stats.translator_calls += 1
             if epoch != self._epoch:
@@ -379,7 +385,8 @@ class LiveSession:
         drive = self._drive(params, index)
         image = None
         if self.output is not None:
-            image = self.head.render(drive, self.output, reference_frame=index if self.head.composite else None)
+            image = self.head.render(drive, self.output,
+                                     reference_frame=index if self.head.compositor is not None else None)
         stats = self.stats
         stats.frames += 1
         stats.speaking_frames += speaking
@@ -390,11 +397,8 @@ class LiveSession:
         return LiveFrame(index, index / self.fps, image, plan.out_audio, self.sample_rate, speaking, drive)
 
     def _drive(self, params: np.ndarray, index: int) -> FrameDrive | BlendshapeDrive:
-        pose = self._idle.sway(index) if self._sway else self.head.head_pose(index)
-        if self.head.rig == ARKIT_RIG:
-            return self.head.blendshape_drive(np.clip(params, 0.0, 1.0), pose)
-        n_expr = self.head.config.n_expr
-        return FrameDrive.make(n_expr, params[:n_expr], params[n_expr:], head_pose=pose)
+        pose = self._idle.sway(index) if self._sway else self.driver.head_pose(index)
+        return self.driver.drive_from_params(self.driver.clamp_params(params), pose)
 
 
 __all__ = ["LiveSession", "LiveFrame", "LiveStats", "IdleMotion"]

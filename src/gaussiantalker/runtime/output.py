@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
-from gaussiantalker.sdk.errors import BundleError, CameraError, RenderError
+from gaussiantalker.sdk.errors import BundleError, CameraError, RenderError, VideoError
 from gaussiantalker.sdk.reference_clip import ClipLayout, ReferenceClipError
 from gaussiantalker.sdk.video_formats import VideoPlan, plan_video
 
@@ -39,6 +39,23 @@ class OutputView:
         if self.composite and alpha:
             raise RenderError(COMPOSITE_ALPHA_MESSAGE)
         return plan_video(path, self.size, alpha=alpha, codec=codec, crf=crf, preset=preset, container=container)
+
+    def video_plan(self, path: str | os.PathLike | VideoPlan, *, alpha: bool | None, **options) -> VideoPlan:
+        """`path` planned for these frames (`plan_video`), or a given VideoPlan checked against them (VideoError if
+        it is for another size, or options are given beside it; RenderError for alpha on composited frames)."""
+        if not isinstance(path, VideoPlan):
+            return self.plan_video(path, alpha=bool(alpha), **options)
+        given = [f"{name}={value!r}" for name, value in options.items() if value is not None]
+        if given:
+            raise VideoError(f"a VideoPlan already sets the output; give it or {', '.join(given)}, not both")
+        if alpha is not None and bool(alpha) != path.alpha:
+            raise VideoError(f"alpha={alpha!r} but the VideoPlan has alpha={path.alpha}; give it once")
+        if self.composite and path.alpha:
+            raise RenderError(COMPOSITE_ALPHA_MESSAGE)
+        if tuple(path.size) != self.size:
+            raise VideoError(f"the VideoPlan is for {path.size[0]}x{path.size[1]} frames but this head renders "
+                             f"{self.size[0]}x{self.size[1]} (plan it with head.plan_video)")
+        return path
 
 
 def output_view(bundle: Bundle, output: OutputSettings) -> OutputView:

@@ -147,7 +147,7 @@ def _check_group(value: Any, kind: type, keyword: str) -> None:
 
 def merged_output(output: OutputSettings | None, **shortcuts: Any) -> OutputSettings:
     """`output` (None: all defaults) with the shortcut keywords resolution, camera, background, composite."""
-    _check_group(output, OutputSettings, "output")
+    _check_group(output, OutputSettings, "output_settings")
     output = output or OutputSettings()
     fields = {}
     for name, value in shortcuts.items():
@@ -181,7 +181,7 @@ def merged_render(preset: RenderSettings, render: RenderSettings | None, threads
     """The render settings a head runs with: `render` (None: the bundle's `preset`) with the shortcut keywords
     render_scale, render_target, sort_interval, sort_key_bits, and the graph `threads` (given as `threads_label`;
     None: the render group's graph_threads, else the preset's)."""
-    _check_group(render, RenderSettings, "render")
+    _check_group(render, RenderSettings, "render_settings")
     try:
         if render is None:
             return preset.with_overrides(graph_threads=threads, **shortcuts)

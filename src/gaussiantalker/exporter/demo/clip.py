@@ -16,7 +16,7 @@ import numpy as np
 import torch
 import torch.nn.functional as nnf
 
-from gaussiantalker.runtime.splatter import GLSplatter
+from gaussiantalker.runtime.splat.gl import GLSplatter
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose
 from gaussiantalker.sdk.image import to_uint8

@@ -27,8 +27,8 @@ from gaussiantalker.sdk.progress import progress_bar
 
 from ..export.speech import synth_speech
 from ..model.translator import MotionTranslator
-from .audio import MOTION_SIGNALS, SAMPLE_RATE, jaw_target_from_audio, motion_signals
-from .head import EXPRESSION_FIELDS
+from .audio_signals import MOTION_SIGNALS, SAMPLE_RATE, jaw_target_from_audio, motion_signals
+from .procedural_head import EXPRESSION_FIELDS
 
 HELDOUT_SEED_OFFSET = 900_000  # held-out clip seed = this + seed: never one of the training clips' seeds
 JAW_MAX_ANGLE = 0.3  # rad: jaw_pose x = this * the "open" signal (jaw_target_from_audio's default)

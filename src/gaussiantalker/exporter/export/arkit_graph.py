@@ -17,7 +17,7 @@ from torch import nn
 from gaussiantalker.sdk.numerics import SH_C0, sh_coeff_count
 
 from ..model.arkit_speaker import ArkitSpeaker
-from ..model.flame import rodrigues
+from ..model.flame_lbs import rodrigues
 from ..model.splat_math import quat_to_rotmat, sh_basis
 
 ARKIT_DEFORM_INPUTS = ["blendshapes", "head_rotation", "head_translation", "camera_center"]

@@ -30,7 +30,8 @@ from torch import nn
 from gaussiantalker.sdk.numerics import SH_C0, sh_coeff_count
 from gaussiantalker.sdk.rig import SCALED_TRIANGLE_BINDING
 
-from ..model.flame import N_JOINTS, POSE_FEATURE_DIM, forward_kinematics, rodrigues
+from ..model.flame import N_JOINTS, POSE_FEATURE_DIM
+from ..model.flame_lbs import forward_kinematics, rodrigues
 from ..model.gaussians import triangle_frame, triangle_size
 from ..model.speaker import Speaker
 from ..model.splat_math import quat_to_rotmat, sh_basis

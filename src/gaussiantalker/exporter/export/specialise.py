@@ -10,7 +10,7 @@
   (ridge-conditioned, `_sh_refit`), when no Gaussian's colour moves by more than SH_REFIT_BOUND (a pixel is a
   convex blend of Gaussian colours, so no pixel moves by more), or down to the export settings' SH degree;
 * the vertices no kept Gaussian's triangle needs (DeformationGraph(vertex_subset=True)), and, for a flame-driven
-  scene, the translator graph (export.py).
+  scene, the translator graph (bundle_export.py).
 Each removal is reported with its reason, the bytes it saves (stored as float32) and the per-frame work it saves.
 """
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from .flame import rodrigues
+from .flame_lbs import rodrigues
 
 
 class BlendshapeRig(nn.Module):

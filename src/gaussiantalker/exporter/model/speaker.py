@@ -18,7 +18,8 @@ from gaussiantalker.sdk.flame_motion import FlameMotion
 from gaussiantalker.sdk.reference_clip import EncodedClip
 from gaussiantalker.sdk.rig import FLAME_RIG
 
-from .flame import FlameArrays, FlameLayer
+from .flame import FlameArrays
+from .flame_lbs import FlameLayer
 from .gaussians import BoundGaussians, LatentPoseMLP
 from .inpainter import InpainterNet
 from .reference_render import ReferenceRendering

@@ -5,7 +5,7 @@ GLSL function that implements a contract step has a function here with the same 
 same order and the same meaning; its docstring names it ("GLSL twin: `name` in shaders/file"). A public function
 without a GLSL twin says why ("No GLSL twin: ..."). tests/test_mirror_names.py parses both sides and checks this.
 The GLSL functions that only decide where to rasterise (`pixel_box`, `cull`) are listed in
-`gaussiantalker.runtime.splatter.NON_CONTRACT_GLSL_FUNCTIONS` and have no twin here.
+`gaussiantalker.runtime.splat.gl.NON_CONTRACT_GLSL_FUNCTIONS` and have no twin here.
 
 How a torch twin maps its GLSL function:
 * Batched: GLSL handles one Gaussian (or one pixel); the twin takes the same arguments with a leading batch axis
@@ -516,7 +516,7 @@ def keep_mask(
     the others (camera-space points, cov2d and the per-Gaussian inputs in `extra`) must be finite.
 
     No GLSL twin: the runtime makes the same decisions in two places, the near-plane and finite-input tests in
-    numpy (`depth_order` in runtime/depth_sort.py) and the det > 0 and `screen_bounded` tests in the vertex
+    numpy (`depth_order` in runtime/splat/depth_sort.py) and the det > 0 and `screen_bounded` tests in the vertex
     shader's main.
     """
     keep = (p_cam[..., 2] >= near) & (det > 0) & screen_bounded(center, conic, shape, radius)

@@ -4,5 +4,5 @@ sentences and voices spoken (`corpus`), the viseme table (`visemes`), the target
 streams and augmentation (`data`), the network and its hand-built ONNX graph (`model`, `onnx_graph`), training
 (`train`), FLAME's expressions fitted to the viseme shapes (`flame_fit`), the measurements (`evaluate`) and where
 the committed models live (`paths`). Imports `model` (FLAME's arrays), `imports` (FLAME's lip rings, the audio
-model checks), `gaussiantalker.sdk`, `gaussiantalker.runtime` and its own modules; never `demo`, `bench` or the
-console scripts."""
+model checks), `gaussiantalker.sdk`, `gaussiantalker.runtime` and its own modules; never `demo` or the console
+scripts."""

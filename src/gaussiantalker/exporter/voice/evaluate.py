@@ -165,16 +165,16 @@ def lag_frames(mouth: np.ndarray, level: np.ndarray) -> float:
     return float(lags[k])
 
 
-class _StubHead:
-    """What LiveSession reads of a TalkingHead (runtime/live.py), around the voice model alone: no renderer."""
+class _VoiceDriver:
+    """What a LiveSession reads of a Driver (runtime/driver.py), around the voice model alone: drives are the
+    weights themselves, and there is no renderer."""
 
     rig = ARKIT_RIG
     has_translator = True
-    composite = False
     pose_track = None
-    config = None
     silence_gate_dbfs = SILENCE_GATE_DBFS
     sample_rate = SAMPLE_RATE
+    param_names = ARKIT_BLENDSHAPES
 
     def __init__(self, sess: ort.InferenceSession, fps: int) -> None:
         self.sess, self.fps = sess, fps
@@ -182,8 +182,14 @@ class _StubHead:
     def run_translator(self, chunk: np.ndarray) -> dict:
         return {"blendshapes": self.sess.run(["blendshapes"], {"audio": chunk[None]})[0]}
 
-    def blendshape_drive(self, weights, head_pose=None) -> np.ndarray:
-        return np.asarray(weights, np.float32)
+    def params_of(self, out: dict, frames: int) -> np.ndarray:
+        return blendshape_params(out, frames)
+
+    def clamp_params(self, params: np.ndarray) -> np.ndarray:
+        return np.clip(params, 0.0, 1.0)
+
+    def drive_from_params(self, params: np.ndarray, head_pose=None) -> np.ndarray:
+        return np.asarray(params, np.float32)
 
     def head_pose(self, index: int):
         return None
@@ -191,15 +197,14 @@ class _StubHead:
 
 def offline_frames(sess: ort.InferenceSession, audio: np.ndarray, fps: int) -> np.ndarray:
     """The runtime's offline path: windows, cross-fades and the silence gate (runtime/translate.py)."""
-    run = _StubHead(sess, fps).run_translator
+    run = _VoiceDriver(sess, fps).run_translator
     return np.concatenate(list(iter_translate(run, audio, SAMPLE_RATE / fps, params_of=blendshape_params)))
 
 
 def live_frames(sess: ort.InferenceSession, audio: np.ndarray, fps: int,
                 lookahead_ms: float = LIVE_LOOKAHEAD_MS) -> np.ndarray:
     """The runtime's live session, free-running, fed LIVE_CHUNK_S chunks then ended: the weights of its frames."""
-    head = _StubHead(sess, fps)
-    live = LiveSession(head, lookahead_ms=lookahead_ms, paced=False, output=None)
+    live = LiveSession(_VoiceDriver(sess, fps), lookahead_ms=lookahead_ms, paced=False, output=None)
     chunk = int(LIVE_CHUNK_S * SAMPLE_RATE)
     for start in range(0, audio.shape[0], chunk):
         live.push(audio[start:start + chunk], SAMPLE_RATE)

@@ -24,7 +24,7 @@ import onnx
 
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_COUNT
 
-from ..imports.gaussian_avatars_flame import LOWER_LIP_RING, UPPER_LIP_RING
+from ..imports.sources.gaussian_avatars_flame import LOWER_LIP_RING, UPPER_LIP_RING
 from ..model.flame import FlameArrays
 from .onnx_graph import with_expression_map, with_jaw_map
 

@@ -1,0 +1,109 @@
+"""What every splatter shares (docs/numerics.md): the `Splatter` protocol the frame renderer draws through, the
+packed and depth-sorted frame both kinds prepare alike (`PreparedSplats`, `sorted_rows`), and the frame kinds they
+return. The GL splatter (splat/gl.py) and the CPU tile splatter (splat/cpu.py) implement it side by side.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from gaussiantalker.sdk.camera import Camera
+from gaussiantalker.sdk.errors import RenderError
+from gaussiantalker.sdk.render_settings import RenderSettings
+
+from .depth_sort import DepthSorter
+
+STAGES = ("sort", "upload", "draw", "readback")
+
+# What `draw`/`render` return: "uint8" or "float" [H, W, 3] over the background; "rgba" uint8 [H, W, 4] straight
+# colour and alpha; "rgba_float" float32 [H, W, 4] premultiplied (C, 1 - T), no background.
+FRAME_OUTPUTS = ("uint8", "float", "rgba", "rgba_float")
+ALPHA_OUTPUTS = ("rgba", "rgba_float")
+
+FLOATS_PER_SPLAT = 13  # mean 3, covariance 6, rgb 3, opacity 1
+
+
+def pack_gaussians(means, cov3d, rgb, opacity) -> np.ndarray:
+    """Validate shapes and pack [N, 13] float32 rows: mean xyz, cov xx xy xz yy yz zz, rgb, opacity."""
+    means = np.asarray(means, dtype=np.float32)
+    if means.ndim != 2 or means.shape[1] != 3:
+        raise RenderError(f"means must have shape [N, 3], got {list(means.shape)}")
+    n = means.shape[0]
+    arrays = {
+        "cov3d": (np.asarray(cov3d, dtype=np.float32), (n, 6)),
+        "rgb": (np.asarray(rgb, dtype=np.float32), (n, 3)),
+        "opacity": (np.asarray(opacity, dtype=np.float32), (n,)),
+    }
+    for name, (array, shape) in arrays.items():
+        if array.shape != shape and not (name == "opacity" and array.shape == (n, 1)):
+            raise RenderError(f"{name} must have shape {list(shape)} to match means {list(means.shape)}, "
+                              f"got {list(array.shape)}")
+    packed = np.empty((n, FLOATS_PER_SPLAT), dtype=np.float32)
+    packed[:, 0:3] = means
+    packed[:, 3:9] = arrays["cov3d"][0]
+    packed[:, 9:12] = arrays["rgb"][0]
+    packed[:, 12] = arrays["opacity"][0].reshape(n)
+    return packed
+
+
+def background_rgb(background) -> tuple[float, float, float]:
+    """Three finite floats, or RenderError."""
+    values = np.asarray(background, dtype=np.float64).reshape(-1)
+    if values.shape != (3,) or not np.all(np.isfinite(values)):
+        raise RenderError(f"background must be 3 finite floats, got {background!r}")
+    return tuple(float(v) for v in values)
+
+
+@dataclass(frozen=True)
+class PreparedSplats:
+    """A frame's Gaussians packed and sorted front to back, with their draw runs: ready for `GLSplatter.draw`."""
+
+    rows: np.ndarray  # [n, 13] float32, culled and depth-sorted
+    runs: list[tuple[int, int, bool]]  # (start, stop, as_quads)
+    camera: Camera  # the camera drawn with (at the render scale's size)
+    seconds: float  # time spent preparing (reported as the "sort" stage)
+    output_size: tuple[int, int] | None = None  # (width, height) returned, when it differs from the drawn size
+
+
+def sorted_rows(sorter: DepthSorter, settings: RenderSettings, means, cov3d, rgb, opacity, camera: Camera
+                ) -> tuple[np.ndarray, Camera, tuple[int, int] | None]:
+    """What both splatters prepare alike: the Gaussians validated, packed and sorted front to back ([n, 13]) for the
+    camera at the render scale's draw size, that camera, and the output size to upscale to (None: no upscale)."""
+    if not isinstance(camera, Camera):
+        raise RenderError(f"camera must be a gaussiantalker.sdk.camera.Camera, got {type(camera).__name__}")
+    output_size = (int(camera.width), int(camera.height))
+    draw_size = settings.draw_size(*output_size)
+    if draw_size != output_size:
+        camera = camera.resized(*draw_size)  # the same view, fewer pixels: upscaled after drawing
+    packed = pack_gaussians(means, cov3d, rgb, opacity)
+    rows = packed[sorter.order(packed, camera)]
+    return rows, camera, (output_size if draw_size != output_size else None)
+
+
+@runtime_checkable
+class Splatter(Protocol):
+    """A frame's Gaussians in, pixels out, on the numerics contract: `prepare` needs no GL and is safe on a worker
+    thread, `draw` runs on the thread that owns the splatter; `last_timings` holds the last draw's STAGES seconds."""
+
+    settings: RenderSettings
+    last_timings: dict[str, float]
+
+    def prepare(self, means, cov3d, rgb, opacity, camera: Camera) -> PreparedSplats:
+        """Validate, pack and depth-sort one frame's Gaussians for `camera`."""
+
+    def draw(self, prepared: PreparedSplats, background, *, output: str = "uint8") -> np.ndarray:
+        """Splat a prepared frame over `background` -> a frame of kind `output` (FRAME_OUTPUTS)."""
+
+    def render(self, means, cov3d, rgb, opacity, camera: Camera, background, *, output: str = "uint8"
+               ) -> np.ndarray:
+        """`prepare` then `draw`."""
+
+    def release(self) -> None:
+        """Free what the splatter holds; later draws raise RenderError."""
+
+
+__all__ = ["ALPHA_OUTPUTS", "FLOATS_PER_SPLAT", "FRAME_OUTPUTS", "STAGES", "PreparedSplats", "Splatter",
+           "background_rgb", "pack_gaussians", "sorted_rows"]

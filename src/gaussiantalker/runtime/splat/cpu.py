@@ -1,0 +1,595 @@
+"""CPU tile splatter of the runtime: the numerics contract (docs/numerics.md) on the CPU cores, with numba.
+
+Where the only OpenGL is a software rasterizer (Mesa's llvmpipe, softpipe, SwiftShader), most of a frame is that
+rasterizer's generic triangle/point set-up, 4x4-block shading and RGBA32F blending. This splatter does what the
+3DGS rasterizer does on GPUs instead, specialised to Gaussians:
+
+1. `_project` (parallel over Gaussians): each depth-sorted Gaussian's contract steps in float32, step for step as
+   the torch reference computes them (exporter/model/splat_math.py): world -> camera -> pixel, the FOV-clamped 2D
+   covariance with the low-pass filter, the least-cancelling determinant, the conic's `alpha_shape`, the extent
+   radius and the culling rules; plus the whole-pixel box where it can reach alpha >= ALPHA_MIN.
+2. `_bin` (parallel over slices of the sorted list): the kept Gaussians binned to the 16x16 tiles their box
+   overlaps, every tile's list kept front to back.
+3. `_blend_tiles` (parallel over tiles): each tile's 256 pixels accumulated front to back in a small array that
+   stays in L1 cache, with the contract's per-pixel extent test, alpha bound, 0.99 clamp and the T_MIN stop; a tile
+   whose pixels have all stopped skips the rest of its list. The per-pixel loop is written branch-free (selects, a
+   polynomial exp: `_exp`) so LLVM vectorises it.
+
+Every per-pixel decision is made exactly as the contract says; the boxes and tiles only choose which pixels are
+tried (a superset of those that can pass), as in the torch reference and the GL renderer.
+
+It is hand-written because no library does it: the CPU 3DGS rasterizers that exist are the torch reference's kind
+(tensor-batched, autograd) or CUDA kernels; numba's parallel loops give per-tile register/cache accumulation
+without a C extension to build. Kernels are compiled once, at construction, and cached on disk (`cache_dir`), so
+a warm start loads machine code instead of compiling; a render loop never compiles. The kernels release the GIL
+(`nogil`), so a pipelined frame loop's other threads (the next frame's deformation and sort, the compositing, the
+encoder: runtime/pipeline.py) run their Python while a frame is drawn instead of waiting for the draw to end.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gaussiantalker.sdk import numerics
+from gaussiantalker.sdk.camera import Camera
+from gaussiantalker.sdk.errors import RenderError
+from gaussiantalker.sdk.image import straight_rgba
+from gaussiantalker.sdk.render_settings import RenderSettings
+
+from .common import FRAME_OUTPUTS, STAGES, PreparedSplats, background_rgb, sorted_rows
+from .depth_sort import DepthSorter
+
+logger = logging.getLogger("gaussiantalker.runtime")
+
+
+def cache_dir() -> Path:
+    """Where compiled kernels are cached: $NUMBA_CACHE_DIR if the user set it, else the user cache directory
+    ($XDG_CACHE_HOME or ~/.cache, then gaussiantalker/numba)."""
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return Path(os.environ["NUMBA_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "gaussiantalker" / "numba"
+
+
+def _configure_numba_cache() -> None:
+    """Point numba's on-disk cache at `cache_dir` (only when the user has not chosen one) before any kernel loads."""
+    import numba
+
+    if not os.environ.get("NUMBA_CACHE_DIR") and not numba.config.CACHE_DIR:
+        numba.config.CACHE_DIR = str(cache_dir())
+
+
+_configure_numba_cache()
+
+# Idle OpenMP workers sleep instead of spinning (unless the user chose a policy): numba's parallel kernels share
+# the cores with onnxruntime's deformation and the compositing, and spinning workers starve them (measured:
+# docs/bench/renderers.md, "Threads that wait"). Read by the OpenMP runtime when numba first loads it.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import numba  # noqa: E402  (after the cache directory is set)
+from numba import njit, prange  # noqa: E402
+
+TILE = 16  # tile side in pixels (the 3DGS rasterizer's)
+_TILE_PIXELS = TILE * TILE
+# Pixels per vectorised run: one SSE register of float32 (4: 53 ms, 8: 63 ms, 16: 105 ms per frame on an AMD Zen 1,
+# whose AVX units are 128 bits wide, docs/bench/renderers.md). `_blend_tiles`'s saturated-run test reads exactly 4.
+_LANES = 4
+# Offsets of the planes in a tile's accumulator (red at 0), unsigned like the pixel index added to them.
+_G, _B, _T = (np.uint64(k * _TILE_PIXELS) for k in range(1, 4))
+_PARAMS = 11  # per kept Gaussian: u, v, A, k, q, opacity, radius, r, g, b, alpha level (see `_project`)
+
+_F = np.float32
+_HALF = _F(numerics.PIXEL_CENTER_OFFSET)
+_NEG_HALF = _F(-0.5)
+_ZERO = _F(0.0)
+_ONE = _F(1.0)
+_LOW_PASS = _F(numerics.LOW_PASS_PX2)
+_EXTENT = _F(numerics.EXTENT_SIGMAS)
+_ALPHA_MAX = _F(numerics.ALPHA_MAX)
+_ALPHA_MIN = _F(numerics.ALPHA_MIN)
+_T_MIN = _F(numerics.TRANSMITTANCE_MIN)
+_FINITE = _F(numerics.FINITE_LIMIT)
+_COLOR = _F(numerics.COLOR_LIMIT)
+_DET_REL = _F(numerics.DET_MIN_RELATIVE)
+_HUGE = _F(numerics.COV2D_HUGE_PX2)
+
+# exp(x) = exp(x / 16)^16: x / 16 lies in [-0.625, 0] once x is clamped to [_EXP_LO, 0], where a degree-8 Taylor
+# polynomial (Estrin form) is within 1.3e-7 relatively; four squarings follow. Only float multiply-adds and
+# selects, so the per-pixel loop vectorises (numba's np.exp calls libm per lane, and a 2^n exponent split needs
+# int64 -> float conversions that AVX2 lacks; both measured ~2x slower per frame). alpha >= 1/255 needs
+# x >= ln(1/255) = -5.55, so below _EXP_LO the value only has to stay small. Max relative error against float64
+# exp: docs/numerics.md.
+_EXP_LO = _F(-10.0)
+_EXP_SPLIT = _F(1.0 / 16.0)
+_TAYLOR = tuple(_F(1.0 / math.factorial(k)) for k in range(9))  # 1/k!, k = 0..8
+# Relative widening of the alpha >= ALPHA_MIN ellipse's box and extra pixels, so float32 rounding of a pixel's
+# power can never pass a pixel outside the box (the box only selects pixels; each still tests itself).
+_BOX_SLACK_REL = 1e-3
+_BOX_SLACK_PX = 1.0
+
+
+@njit(inline="always", cache=True, error_model="numpy", fastmath={"contract"})
+def _exp(x):
+    """exp(x) for float32 x <= 0 (x > 0 is taken as 0): branch-free, vectorisable (see the constants above)."""
+    y = min(max(x, _EXP_LO), _ZERO) * _EXP_SPLIT
+    y2 = y * y  # Estrin's scheme: the same polynomial in a shorter dependency chain than Horner's
+    y4 = y2 * y2
+    low = (_TAYLOR[0] + _TAYLOR[1] * y) + (_TAYLOR[2] + _TAYLOR[3] * y) * y2
+    high = (_TAYLOR[4] + _TAYLOR[5] * y) + (_TAYLOR[6] + _TAYLOR[7] * y) * y2
+    p = low + (high + _TAYLOR[8] * y4) * y4
+    p = p * p
+    p = p * p
+    p = p * p
+    return p * p
+
+
+@njit(cache=True, error_model="numpy")
+def exp_approx(x: np.ndarray) -> np.ndarray:
+    """`_exp` over a float32 array (for tests and docs/numerics.md's error figure)."""
+    out = np.empty_like(x)
+    for i in range(x.shape[0]):
+        out[i] = _exp(x[i])
+    return out
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _safe_div(x):
+    """x where x > 0, else 1 (the torch reference's `_safe_divisor`: culled anyway, kept finite)."""
+    return x if x > _ZERO else _ONE
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _safe_sqrt(x):
+    return np.sqrt(x) if x > _ZERO else _ZERO
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _radius_of(a, b, c):
+    mid = _HALF * (a + c)
+    return _EXTENT * _safe_sqrt(mid + _safe_sqrt(mid * mid - (a * c - b * b)))
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _times_sym(r0, r1, r2, xx, xy, xz, yy, yz, zz):
+    """The row (r0, r1, r2) times the symmetric 3x3 [[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]."""
+    return r0 * xx + r1 * xy + r2 * xz, r0 * xy + r1 * yy + r2 * yz, r0 * xz + r1 * yz + r2 * zz
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _bounded(x):
+    return abs(x) < _FINITE  # NaN fails
+
+
+@njit(inline="always", cache=True, error_model="numpy")
+def _pixel_span(center, reach, size):
+    """Pixel index range [lo, hi] (clipped) whose centres lie within `reach` (float64), widened by one pixel."""
+    lo = math.ceil(center - reach - 0.5) - 1.0
+    hi = math.floor(center + reach - 0.5) + 1.0
+    ok = hi >= 0.0 and lo <= size - 1.0
+    return int(min(max(lo, 0.0), size - 1.0)), int(min(max(hi, 0.0), size - 1.0)), ok
+
+
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
+def _project(rows, R, t, intr, limits, width, height, params, boxes):
+    """Contract steps of each sorted Gaussian (float32, as exporter/model/splat_math.py computes them):
+    params [n, _PARAMS] as `_PARAMS` lists, boxes [n, 4] (x0, x1, y0, y1) of pixels that can reach ALPHA_MIN,
+    x0 = -1 where the Gaussian is culled or misses the image. Rows are finite with z >= near (`depth_order`)."""
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    x_min, x_max, y_min, y_max = limits[0], limits[1], limits[2], limits[3]
+    for i in prange(rows.shape[0]):
+        boxes[i, 0] = -1
+        mx, my, mz = rows[i, 0], rows[i, 1], rows[i, 2]
+        # world_to_camera: (mean * R_row).sum() + t, summed left to right
+        px = mx * R[0, 0] + my * R[0, 1] + mz * R[0, 2] + t[0]
+        py = mx * R[1, 0] + my * R[1, 1] + mz * R[1, 2] + t[1]
+        pz = mx * R[2, 0] + my * R[2, 1] + mz * R[2, 2] + t[2]
+        z = _safe_div(pz)
+        u = fx * px / z + cx  # camera_to_pixel
+        v = fy * py / z + cy
+        xz = min(max(px / z, x_min), x_max)  # clamped_ratios
+        yz = min(max(py / z, y_min), y_max)
+        s_xx, s_xy, s_xz = rows[i, 3], rows[i, 4], rows[i, 5]
+        s_yy, s_yz, s_zz = rows[i, 6], rows[i, 7], rows[i, 8]
+        # covariance_2d: m = J R, cov = (m Sigma) m^T + low-pass
+        j00, j02 = fx / z, -fx * xz / z
+        j11, j12 = fy / z, -fy * yz / z
+        m00, m01, m02 = j00 * R[0, 0] + j02 * R[2, 0], j00 * R[0, 1] + j02 * R[2, 1], j00 * R[0, 2] + j02 * R[2, 2]
+        m10, m11, m12 = j11 * R[1, 0] + j12 * R[2, 0], j11 * R[1, 1] + j12 * R[2, 1], j11 * R[1, 2] + j12 * R[2, 2]
+        w00, w01, w02 = _times_sym(m00, m01, m02, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
+        w10, w11, w12 = _times_sym(m10, m11, m12, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
+        a = w00 * m00 + w01 * m01 + w02 * m02 + _LOW_PASS
+        b = w00 * m10 + w01 * m11 + w02 * m12
+        c = w10 * m10 + w11 * m11 + w12 * m12 + _LOW_PASS
+        # covariance_2d_determinant: J's second row sheared orthogonal to the first
+        g = _ONE / (_ONE + xz * xz)
+        f = fy / z
+        k0, k1, k2 = f * (-(xz * g) * yz), f * _ONE, f * (-yz * g)
+        # row 0 is J R's own (m0, and m0 Sigma = w0); row 1 is the sheared one
+        n10 = k0 * R[0, 0] + k1 * R[1, 0] + k2 * R[2, 0]
+        n11 = k0 * R[0, 1] + k1 * R[1, 1] + k2 * R[2, 1]
+        n12 = k0 * R[0, 2] + k1 * R[1, 2] + k2 * R[2, 2]
+        e10, e11, e12 = _times_sym(n10, n11, n12, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
+        c00 = w00 * m00 + w01 * m01 + w02 * m02
+        c01 = w00 * n10 + w01 * n11 + w02 * n12
+        c11 = e10 * n10 + e11 * n11 + e12 * n12
+        use_sheared = c11 + _LOW_PASS < c
+        s = max(abs(a), abs(c))  # cov2d_scale
+        an, bn, cn = a / s, b / s, c / s
+        s00, s01, s11 = c00 / s, c01 / s, c11 / s
+        low = _LOW_PASS / s
+        # reliable(det, rounding_products): the entries' magnitudes are the same quadratic forms over |rows| and
+        # |Sigma|; row 0 is the same in both forms, the plain form's entries carry the low-pass
+        a_xx, a_xy, a_xz, a_yy, a_yz, a_zz = abs(s_xx), abs(s_xy), abs(s_xz), abs(s_yy), abs(s_yz), abs(s_zz)
+        r00, r01, r02 = abs(m00), abs(m01), abs(m02)
+        t00, t01, t02 = _times_sym(r00, r01, r02, a_xx, a_xy, a_xz, a_yy, a_yz, a_zz)
+        if use_sheared:
+            r10, r11, r12 = abs(n10), abs(n11), abs(n12)
+            x, y, z_entry, low_mag = s00, s01, s11, _ZERO
+            det = (s00 * s11 - s01 * s01) + low * (an + cn - low)
+        else:
+            r10, r11, r12 = abs(m10), abs(m11), abs(m12)
+            x, y, z_entry, low_mag = an, bn, cn, _LOW_PASS
+            det = an * cn - bn * bn
+        t10, t11, t12 = _times_sym(r10, r11, r12, a_xx, a_xy, a_xz, a_yy, a_yz, a_zz)
+        x_mag = (t00 * r00 + t01 * r01 + t02 * r02 + low_mag) / s
+        y_mag = (t10 * r00 + t11 * r01 + t12 * r02) / s
+        z_mag = (t10 * r10 + t11 * r11 + t12 * r12 + low_mag) / s
+        noise = _HALF * (x_mag * abs(z_entry) + abs(x) * z_mag) + abs(y) * y_mag
+        threshold = _DET_REL * noise
+        if not det > threshold:  # reliable: rounding noise, culled (NaN too)
+            continue
+        # reliability_fade: 1 - exp(-ALPHA_MIN (rho - 1)), rho = det / threshold; 1 where the threshold underflowed
+        fade = _ONE - np.exp(-_ALPHA_MIN * ((det - threshold) / threshold)) if threshold > _ZERO else _ONE
+        # conic_from_cov2d, alpha_shape
+        det_s = _safe_div(det) * s
+        con_a, con_b, con_c = cn / det_s, -bn / det_s, an / det_s
+        c_div = c if c != _ZERO else _ONE
+        shape_k, shape_q = b / c_div, _ONE / c_div
+        # extent_radius
+        if _HALF * (a + c) > _HUGE:
+            radius = _radius_of(an, bn, cn) * _safe_sqrt(s)
+        else:
+            radius = _radius_of(a, b, c)
+        bound = (abs(con_a) + _F(2.0) * abs(con_b) + abs(con_c)) * radius * radius  # extent_power_bound
+        # screen_bounded, and keep_mask's finite 2D covariance
+        if not (_bounded(u) and _bounded(v) and _bounded(con_a) and _bounded(con_b) and _bounded(con_c)
+                and _bounded(shape_k) and _bounded(shape_q) and _bounded(radius) and _bounded(bound)
+                and math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
+            continue
+        opacity = rows[i, 12] * fade  # the opacity as composited
+        if opacity < _ALPHA_MIN:  # alpha <= opacity (exp <= 1): no pixel can pass
+            continue
+        # Box: the extent square intersected with the alpha >= ALPHA_MIN ellipse of this quadratic form,
+        # |dx| <= sqrt(2 L (det' + b^2) / c), |dy| <= sqrt(2 L c), L = ln(255 opacity); in float64, widened.
+        level = 2.0 * math.log(float(opacity) / float(_ALPHA_MIN))
+        det_abs = float(det) * float(s) * float(s)  # det(cov2d) as the conic uses it
+        reach_x = math.sqrt(max(level * (det_abs + float(b) * float(b)) / float(c), 0.0))
+        reach_y = math.sqrt(max(level * float(c), 0.0))
+        reach_x = min(float(radius), reach_x * (1.0 + _BOX_SLACK_REL) + _BOX_SLACK_PX)
+        reach_y = min(float(radius), reach_y * (1.0 + _BOX_SLACK_REL) + _BOX_SLACK_PX)
+        x0, x1, ok_x = _pixel_span(float(u), reach_x, width)
+        y0, y1, ok_y = _pixel_span(float(v), reach_y, height)
+        if not (ok_x and ok_y):
+            continue
+        params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4] = u, v, con_a, shape_k, shape_q
+        params[i, 5], params[i, 6] = opacity, radius
+        params[i, 10] = level * (1.0 + _BOX_SLACK_REL)  # A t^2 + q dy^2 <= this where alpha can reach ALPHA_MIN
+        for ch in range(3):  # splat_color
+            params[i, 7 + ch] = min(max(rows[i, 9 + ch], -_COLOR), _COLOR)
+        boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = x0, x1, y0, y1
+
+
+_BIN_CHUNKS = 8  # contiguous slices of the sorted list that `_bin` counts and fills in parallel
+
+
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
+def _bin(boxes, tiles_x, tiles_y):
+    """Per-tile lists of Gaussian indices (each front to back): (start [tiles + 1], list [pairs]). The sorted list
+    is cut into _BIN_CHUNKS contiguous slices, each counted and then written by one thread; a tile's entries from
+    slice k go after those of slices < k, so every tile's list keeps the depth order."""
+    n, tiles = boxes.shape[0], tiles_x * tiles_y
+    per_chunk = -(-n // _BIN_CHUNKS)
+    count = np.zeros((_BIN_CHUNKS, tiles), dtype=np.int64)
+    for chunk in prange(_BIN_CHUNKS):
+        for i in range(chunk * per_chunk, min(n, (chunk + 1) * per_chunk)):
+            if boxes[i, 0] < 0:
+                continue
+            for ty in range(boxes[i, 2] // TILE, boxes[i, 3] // TILE + 1):
+                for tx in range(boxes[i, 0] // TILE, boxes[i, 1] // TILE + 1):
+                    count[chunk, ty * tiles_x + tx] += 1
+    start = np.zeros(tiles + 1, dtype=np.int64)
+    cursor = np.empty((_BIN_CHUNKS, tiles), dtype=np.int64)  # where each slice writes next in each tile
+    total = 0
+    for tile in range(tiles):
+        start[tile] = total
+        for chunk in range(_BIN_CHUNKS):
+            cursor[chunk, tile] = total
+            total += count[chunk, tile]
+    start[tiles] = total
+    lists = np.empty(total, dtype=np.int32)
+    for chunk in prange(_BIN_CHUNKS):
+        for i in range(chunk * per_chunk, min(n, (chunk + 1) * per_chunk)):
+            if boxes[i, 0] < 0:
+                continue
+            for ty in range(boxes[i, 2] // TILE, boxes[i, 3] // TILE + 1):
+                for tx in range(boxes[i, 0] // TILE, boxes[i, 1] // TILE + 1):
+                    tile = ty * tiles_x + tx
+                    lists[cursor[chunk, tile]] = i
+                    cursor[chunk, tile] += 1
+    return start, lists
+
+
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy", fastmath={"contract"})
+def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
+    """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99 clamp,
+    skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN."""
+    n_tiles = start.shape[0] - 1
+    for tile in prange(n_tiles):
+        ty, tx = tile // tiles_x, tile % tiles_x
+        x0, y0 = tx * TILE, ty * TILE
+        x1, y1 = min(x0 + TILE, width), min(y0 + TILE, height)
+        # One array holds the tile's red, green, blue and T planes at constant offsets, so the compiler sees that
+        # the planes do not overlap and vectorises. A pixel that has stopped keeps -T (and one outside the image
+        # -1): T > 0 is "still blending".
+        acc = np.zeros(4 * _TILE_PIXELS, dtype=np.float32)
+        acc[_T: _T + _TILE_PIXELS] = -_ONE
+        for py in range(y1 - y0):
+            acc[_T + py * TILE: _T + py * TILE + x1 - x0] = _ONE
+        running = (x1 - x0) * (y1 - y0)  # pixels of the tile that have not stopped
+        row_running = np.zeros(TILE, dtype=np.int64)  # the same per pixel row: a row with none left is skipped
+        row_running[: y1 - y0] = x1 - x0
+        for j in range(start[tile], start[tile + 1]):
+            if running == 0:
+                break
+            g = lists[j]
+            u, v, sa, sk, sq = params[g, 0], params[g, 1], params[g, 2], params[g, 3], params[g, 4]
+            opacity, radius = params[g, 5], params[g, 6]
+            red, green, blue = params[g, 7], params[g, 8], params[g, 9]
+            level = params[g, 10]
+            bx0, bx1 = max(boxes[g, 0], x0), min(boxes[g, 1], x1 - 1)
+            for py in range(max(boxes[g, 2], y0), min(boxes[g, 3], y1 - 1) + 1):
+                if row_running[py - y0] == 0:
+                    continue
+                dy = _F(py) + _HALF - v
+                if abs(dy) > radius:
+                    continue
+                qdy = sq * dy * dy
+                skdy = sk * dy
+                # This row's columns where A t^2 <= level - q dy^2 (t = dx - k dy), widened by a pixel, in whole
+                # aligned runs of _LANES pixels: each pixel still tests itself, the extra lanes change nothing,
+                # and the fixed-width inner loop is what vectorises.
+                rest = level - qdy
+                if rest < _ZERO:
+                    continue
+                half = np.sqrt(rest / sa) + _ONE
+                mid = u + skdy - _HALF
+                lo, hi = np.floor(mid - half), np.ceil(mid + half)
+                gx0 = np.int64(lo) if lo > bx0 else bx0  # compared as floats first: no huge float -> int
+                gx1 = np.int64(hi) if hi < bx1 else bx1
+                if gx0 > gx1:
+                    continue
+                lx0, lx1 = (gx0 - x0) // _LANES * _LANES, gx1 - x0
+                row = (py - y0) * TILE
+                for lane0 in range(lx0, lx1 + 1, _LANES):
+                    first = np.uint64(row + lane0)  # unsigned: no negative-index wraparound, which blocks SIMD
+                    # A run whose pixels have all stopped (or lie outside the image) changes nothing: skip it. On an
+                    # opaque head most runs behind the first few layers are such (docs/bench/renderers.md).
+                    if max(max(acc[_T + first], acc[_T + first + np.uint64(1)]),
+                           max(acc[_T + first + np.uint64(2)], acc[_T + first + np.uint64(3)])) <= _ZERO:
+                        continue
+                    stopped = 0
+                    for lane in range(_LANES):  # branch-free, fixed width: vectorised
+                        i = first + np.uint64(lane)
+                        dx = _F(x0 + lane0 + lane) + _HALF - u
+                        tt = dx - skdy
+                        power = _NEG_HALF * (sa * tt * tt + qdy)
+                        alpha = min(_ALPHA_MAX, opacity * _exp(power))
+                        t_old = acc[_T + i]
+                        use = (abs(dx) <= radius) & (power <= _ZERO) & (alpha >= _ALPHA_MIN) & (t_old > _ZERO)
+                        t_new = t_old * (_ONE - alpha)
+                        stop = use & (t_new < _T_MIN)
+                        added = alpha if use & (t_new >= _T_MIN) else _ZERO
+                        # Stores of computed values only (T * (1 - 0) is exact): a select between a new and the
+                        # loaded value would become a masked store, slow on AMD CPUs.
+                        w = added * t_old
+                        acc[i] += red * w
+                        acc[_G + i] += green * w
+                        acc[_B + i] += blue * w
+                        acc[_T + i] = -t_old if stop else t_old * (_ONE - added)
+                        stopped += 1 if stop else 0
+                    running -= stopped
+                    row_running[py - y0] -= stopped
+        for py in range(y0, y1):
+            row = (py - y0) * TILE - x0
+            for px in range(x0, x1):
+                out[py, px, 0] = acc[row + px]
+                out[py, px, 1] = acc[_G + row + px]
+                out[py, px, 2] = acc[_B + row + px]
+                out[py, px, 3] = abs(acc[_T + row + px])
+
+
+def splat_frame(rows: np.ndarray, camera: Camera) -> tuple[np.ndarray, float, float]:
+    """(C, T) [H, W, 4] float32 of depth-sorted, culled rows [n, 13]; also the set-up and blend seconds."""
+    start = time.perf_counter()
+    width, height = int(camera.width), int(camera.height)
+    n = len(rows)
+    params = np.empty((n, _PARAMS), dtype=np.float32)
+    boxes = np.empty((n, 4), dtype=np.int32)
+    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float32)
+    limits = np.array(camera.fov_clamp_limits(), dtype=np.float32)
+    if n:
+        _project(rows, camera.R.astype(np.float32), camera.t.astype(np.float32), intrinsics, limits, width, height,
+                 params, boxes)
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    tile_start, lists = _bin(boxes, tiles_x, tiles_y)
+    setup = time.perf_counter() - start
+    start = time.perf_counter()
+    out = np.empty((height, width, 4), dtype=np.float32)
+    _blend_tiles(params, boxes, tile_start, lists, tiles_x, width, height, out)
+    return out, setup, time.perf_counter() - start
+
+
+def upscale_bilinear(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """image [h, w, C] sampled bilinearly at the centres of a (width, height) grid, edges clamped: what the GL
+    render-scale pass (shaders/upscale.frag, a LINEAR texture) computes."""
+
+    def axis(size_out: int, size_in: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        pos = (np.arange(size_out, dtype=np.float64) + 0.5) * size_in / size_out - 0.5
+        lo = np.floor(pos)
+        frac = (pos - lo).astype(np.float32)
+        return (np.clip(lo, 0, size_in - 1).astype(np.intp), np.clip(lo + 1, 0, size_in - 1).astype(np.intp),
+                1 - frac, frac)
+
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    out = np.empty((height, width, image.shape[2]), dtype=np.float32)
+    _upscale(image, *axis(height, image.shape[0]), *axis(width, image.shape[1]), out)
+    return out
+
+
+# A kernel rather than numpy's gathers: the gathered [H, W, C] temporaries cost ~20 ms a frame at 480x600 on
+# 2 cores, more than a 3/4 render scale saves in the blending (docs/bench/renderers.md).
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
+def _upscale(image, y0, y1, wy0, wy1, x0, x1, wx0, wx1, out):
+    """out[y, x] = the vertical blend of rows y0/y1, then the horizontal blend of columns x0/x1 (float32)."""
+    for y in prange(out.shape[0]):
+        top, bottom, w_top, w_bottom = y0[y], y1[y], wy0[y], wy1[y]
+        for x in range(out.shape[1]):
+            left, right = x0[x], x1[x]
+            for c in range(out.shape[2]):
+                at_left = image[top, left, c] * w_top + image[bottom, left, c] * w_bottom
+                at_right = image[top, right, c] * w_top + image[bottom, right, c] * w_bottom
+                out[y, x, c] = at_left * wx0[x] + at_right * wx1[x]
+
+
+class CPUSplatter:
+    """`GLSplatter`'s interface (prepare, draw, render, release, last_timings, the same outputs) on the CPU.
+
+    `settings`: the render settings; render_scale and the sort knobs work as on GL, render_target does not apply
+    (the CPU always blends in float32, the contract's precision). `threads`: numba threads for the kernels (None:
+    numba's default, every core). Construction compiles (first run) or loads (cached) the kernels."""
+
+    def __init__(self, *, settings: RenderSettings | None = None, threads: int | None = None) -> None:
+        if settings is not None and not isinstance(settings, RenderSettings):
+            raise RenderError(f"settings must be a RenderSettings, got {type(settings).__name__}")
+        self.settings = settings or RenderSettings()
+        self.threads = threads
+        self._sorter = DepthSorter(self.settings.sort_interval, self.settings.sort_key_bits)
+        self.last_timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
+        self.released = False
+        if not _WARM and not kernels_cached():
+            logger.warning("compiling the CPU splatter's kernels for this machine: once, about 20 s on 2 cores "
+                           "(cached in %s)", cache_dir())
+        start = time.perf_counter()
+        warm_up()
+        self.warm_up_seconds = time.perf_counter() - start
+
+    def prepare(self, means, cov3d, rgb, opacity, camera: Camera) -> PreparedSplats:
+        """Validate, pack and depth-sort (numpy only: safe on a worker thread)."""
+        start = time.perf_counter()
+        rows, camera, output_size = sorted_rows(self._sorter, self.settings, means, cov3d, rgb, opacity, camera)
+        return PreparedSplats(np.ascontiguousarray(rows), [], camera, time.perf_counter() - start, output_size)
+
+    def draw(self, prepared: PreparedSplats, background, *, output: str = "uint8") -> np.ndarray:
+        """Splat a prepared frame -> the `output` frame (see `GLSplatter.render`). Timings: "upload" is the
+        projection and binning, "draw" the tile blending (and render-scale upscale), "readback" the conversion."""
+        if self.released:
+            raise RenderError("this CPUSplatter has been released")
+        if output not in FRAME_OUTPUTS:
+            raise RenderError(f"output must be one of {', '.join(map(repr, FRAME_OUTPUTS))}, got {output!r}")
+        background = np.asarray(background_rgb(background), dtype=np.float32)
+        timings = dict.fromkeys(STAGES, 0.0)
+        timings["sort"] = prepared.seconds
+        previous = numba.get_num_threads()
+        if self.threads is not None:
+            numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+        try:
+            frame, timings["upload"], timings["draw"] = splat_frame(prepared.rows, prepared.camera)
+        finally:
+            numba.set_num_threads(previous)
+        if prepared.output_size is not None:
+            start = time.perf_counter()
+            frame = upscale_bilinear(frame, *prepared.output_size)
+            timings["draw"] += time.perf_counter() - start
+        start = time.perf_counter()
+        result = _convert(frame, background, output)
+        timings["readback"] = time.perf_counter() - start
+        self.last_timings = timings
+        return result
+
+    def render(self, means, cov3d, rgb, opacity, camera: Camera, background, *, output: str = "uint8"
+               ) -> np.ndarray:
+        """Splat N Gaussians -> a frame, as `GLSplatter.render`."""
+        return self.draw(self.prepare(means, cov3d, rgb, opacity, camera), background, output=output)
+
+    def release(self) -> None:
+        """Nothing to free but the name; later draws raise RenderError like a released GLSplatter's."""
+        self.released = True
+
+    def __enter__(self) -> CPUSplatter:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.release()
+
+
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
+def _over_background(frame, background, out, as_bytes):
+    """out = C + T * background (float32 [H, W, 3]) or, for a uint8 `out`, `to_uint8` of it: floor(clamp(v, 0, 1)
+    * 255 + 0.5) in float32, NaN as 0."""
+    for y in prange(frame.shape[0]):
+        for x in range(frame.shape[1]):
+            for ch in range(3):
+                value = frame[y, x, ch] + frame[y, x, 3] * background[ch]
+                if as_bytes:
+                    value = min(max(value, _ZERO), _ONE) if value == value else _ZERO
+                    out[y, x, ch] = np.uint8(np.floor(value * _F(255.0) + _HALF))
+                else:
+                    out[y, x, ch] = value
+
+
+def _convert(frame: np.ndarray, background: np.ndarray, output: str) -> np.ndarray:
+    """(C, T) [H, W, 4] -> the requested output (the GL splatter's four)."""
+    if output in ("rgba", "rgba_float"):
+        premultiplied = np.concatenate([frame[..., :3], 1.0 - frame[..., 3:4]], axis=-1)
+        return premultiplied if output == "rgba_float" else straight_rgba(premultiplied, background)
+    out = np.empty((*frame.shape[:2], 3), dtype=np.uint8 if output == "uint8" else np.float32)
+    _over_background(frame, background, out, output == "uint8")
+    return out
+
+
+_WARM = False
+
+
+def kernels_cached() -> bool:
+    """Whether the blend kernel's machine code for this source is in numba's cache, so that construction loads
+    instead of compiling. It reads numba's index path, an internal attribute: where that is missing, True."""
+    try:
+        return Path(_blend_tiles._cache._cache_file._index_path).is_file()
+    except AttributeError:
+        return True
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel on a tiny frame, once per process."""
+    global _WARM
+    if _WARM:
+        return
+    camera = Camera(3, 2, 2.0, 2.0, 1.5, 1.0)
+    rows = np.zeros((1, 13), dtype=np.float32)
+    rows[0, 2], rows[0, 3], rows[0, 6], rows[0, 8], rows[0, 9:13] = 1.0, 0.1, 0.1, 0.1, 0.5
+    frame, _, _ = splat_frame(rows, camera)
+    for output in ("uint8", "float"):
+        _convert(frame, np.ones(3, dtype=np.float32), output)
+    exp_approx(np.zeros(1, dtype=np.float32))
+    upscale_bilinear(frame, 4, 3)
+    _WARM = True
+
+
+__all__ = ["CPUSplatter", "TILE", "cache_dir", "exp_approx", "kernels_cached", "splat_frame", "upscale_bilinear",
+           "warm_up"]

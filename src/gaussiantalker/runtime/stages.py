@@ -1,0 +1,122 @@
+"""A bundle's frame path built from its manifest and the app's settings (docs/embedding.md, "Stages"): the Driver of
+its rig, the FrameRenderer (graph backend + splatter) and, when compositing, the Compositor. Everything a frame may
+need is read and checked here, at load, so a damaged bundle fails before the first frame, not mid-video.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from gaussiantalker.sdk.bundle import Bundle
+from gaussiantalker.sdk.config import SpeakerConfig
+from gaussiantalker.sdk.errors import BundleError
+from gaussiantalker.sdk.reference_clip import ReferenceClip
+from gaussiantalker.sdk.render_settings import RenderSettings
+from gaussiantalker.sdk.rig import ARKIT_RIG, ArkitRig, rig_kind
+from gaussiantalker.sdk.scene import Scene, SceneError, SceneGuard
+
+from .backend import GraphBackend, open_backend
+from .compositor import Compositor
+from .driver import ArkitDriver, FlameDriver
+from .frame_renderer import FrameRenderer
+from .output import output_view
+from .semantic import Regions
+from .settings import BackendSettings, OutputSettings, merged_render
+from .splat.choice import make_splatter
+from .timings import Timings
+
+
+@dataclass
+class Stages:
+    """The stages of one head, sharing one Timings: `compositor` is None for bare frames; `renderer` names the
+    splatter that draws ("gl" or "cpu"); `reference` is the bundle's clip (None if it has none)."""
+
+    driver: FlameDriver | ArkitDriver
+    frame_renderer: FrameRenderer
+    compositor: Compositor | None
+    renderer: str
+    reference: ReferenceClip | None
+    timings: Timings
+
+
+def bundle_render_settings(bundle: Bundle, render: RenderSettings | None = None, threads: int | None = None,
+                           threads_label: str = "threads", **shortcuts) -> RenderSettings:
+    """The render settings: `render` (None: the bundle's stored runtime defaults, BundleError if damaged) with the
+    app's shortcut keywords (None: keep the value; SettingsError if bad or given twice)."""
+    try:
+        preset = RenderSettings.from_dict(bundle.manifest.get("runtime_defaults", {}))
+    except (TypeError, ValueError) as exc:
+        raise BundleError(f"{bundle.path}: manifest 'runtime_defaults' is invalid: {exc}") from None
+    return merged_render(preset, render, threads, threads_label, **shortcuts)
+
+
+def read_rig(bundle: Bundle) -> SpeakerConfig | ArkitRig:
+    """The FLAME speaker config or the ARKit rig of the manifest, checked (BundleError names what is wrong)."""
+    manifest = bundle.manifest
+    try:
+        if rig_kind(manifest) == ARKIT_RIG:
+            return ArkitRig.from_dict(manifest["rig"])
+    except (TypeError, ValueError) as exc:
+        raise BundleError(f"{bundle.path}: manifest has no valid rig: {exc}") from exc
+    try:
+        config = SpeakerConfig.from_dict(manifest["speaker"])
+        config.check_timing()
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise BundleError(f"{bundle.path}: manifest has no valid speaker config: {exc}") from exc
+    return config
+
+
+def read_background(bundle: Bundle, background=None) -> np.ndarray:
+    """The app's background or the bundle's: 3 numbers finite in float32 (docs/untrusted-input.md, "Bundles")."""
+    if background is None:
+        background = bundle.manifest.get("background", (1, 1, 1))
+        if not (isinstance(background, list | tuple) and len(background) == 3 and all(
+                isinstance(c, int | float) and not isinstance(c, bool) and abs(c) <= float(np.finfo(np.float32).max)
+                for c in background)):
+            raise BundleError(f"{bundle.path}: manifest 'background' must be 3 finite numbers (RGB), got "
+                              f"{repr(background)[:80]}")
+    return np.asarray(background, dtype=np.float32).reshape(3)
+
+
+def read_scene(bundle: Bundle, config: SpeakerConfig | ArkitRig) -> tuple[Scene | None, SceneGuard | None]:
+    """The scene the bundle was specialised for (docs/scene.md) and its range checks; (None, None) if none."""
+    data = bundle.manifest.get("scene")
+    if data is None:
+        return None, None
+    try:
+        scene = Scene.from_dict(data)
+        if not isinstance(config, SpeakerConfig):
+            raise SceneError("scenes are for FLAME speakers")
+        return scene, SceneGuard(scene, config.n_expr)
+    except (SceneError, TypeError, ValueError, AttributeError) as exc:
+        raise BundleError(f"{bundle.path}: manifest 'scene' is invalid: {exc}") from None
+
+
+def build_stages(bundle: Bundle, render: RenderSettings, output: OutputSettings, backend: BackendSettings, *,
+                 gl_context=None, silence_gate_dbfs: float | None) -> Stages:
+    """The stages of a head playing `bundle` with these (merged) settings."""
+    manifest, timings = bundle.manifest, Timings()
+    rig = read_rig(bundle)
+    graphs: GraphBackend = open_backend(bundle, backend.name, threads=backend.threads)
+    options = {"timings": timings, "silence_gate_dbfs": silence_gate_dbfs}
+    driver = (ArkitDriver(bundle, graphs, rig, **options) if isinstance(rig, ArkitRig) else
+              FlameDriver(bundle, graphs, rig, specialised="scene" in manifest, **options))
+    view = output_view(bundle, output)
+    background = read_background(bundle, output.background)
+    reference = ReferenceClip(bundle, output.resolution) if "reference" in manifest else None
+    compositor = (Compositor.from_bundle(bundle, reference, driver.pose_track, graphs, timings=timings)
+                  if view.composite else None)
+    scene, scene_guard = read_scene(bundle, rig)
+    if scene_guard is not None:
+        scene_guard.check_camera(view.camera)
+    splatter, renderer = make_splatter(backend.renderer, gl_context=gl_context, settings=render,
+                                       shader_target=backend.shader_target)
+    regions = Regions(bundle) if "regions" in manifest else None
+    frame_renderer = FrameRenderer(graphs, splatter, view.camera, background, rig=driver.rig, scene=scene,
+                                   scene_guard=scene_guard, regions=regions, timings=timings, where=str(bundle.path))
+    return Stages(driver, frame_renderer, compositor, renderer, reference, timings)
+
+
+__all__ = ["Stages", "build_stages", "bundle_render_settings", "read_background", "read_rig", "read_scene"]

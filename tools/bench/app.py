@@ -1,0 +1,597 @@
+"""`gt-bench`: the benchmarks, one subcommand each, every subcommand with only its own options.
+
+    gt-bench frames        per-stage timings and FPS of the runtime vs the torch reference (bench/frames.py)
+    gt-bench sweep         every speed/accuracy knob alone and every preset side by side (bench/sweep.py)
+    gt-bench compare       this SDK against another checkout of it, alternating rounds (bench/compare.py)
+    gt-bench composite     compositing's cost and seam quality (bench/composite_cost.py)
+    gt-bench backends      onnxruntime vs MNN (bench/backends.py)
+    gt-bench renderers     the CPU tile splatter vs the GL splatter, alternating (bench/renderers.py)
+    gt-bench video         the encoding cost of every video output (bench/video_outputs.py)
+    gt-bench clip-codecs   how to store a reference clip (bench/clip_codecs.py)
+    gt-bench clip-crf      the reference clip's codec knob: bytes against PSNR, presets' whole files (bench/clip_crf.py)
+    gt-bench surface       how opaque a head's surface is from around it (bench/surface.py)
+    gt-bench early-stop    the GL splatter's early stop of saturated pixels against the plain draw
+                           (bench/early_stop.py)
+    gt-bench lam-web       ground-truth frames of a LAM avatar from the original web renderer (bench/lam_web.py)
+    gt-bench avatar        an imported LAM or GaussianAvatars avatar: import, export, verify, presets' quality,
+                           FPS (bench/avatar.py)
+    gt-bench live          live sessions: first-frame latency, agreement with offline frames, barge-in, drift,
+                           sessions per process (bench/live_sessions.py)
+    gt-bench live-clients  client-render live sessions under load: late frames, server CPU, first-frame and
+                           barge-in latency per number of clients (bench/live_clients.py)
+    gt-bench pipeline      the pipelined frame loop against the serial one on the CPU splatter, alternating
+                           (bench/pipeline_vs_serial.py)
+
+The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
+still work: `gaussiantalker.cli.bench` rewrites them to their subcommand.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from .frames import machine_info
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help="Benchmarks of the runtime against the torch "
+                  "reference, the speed/accuracy knobs, another checkout, compositing, graph backends and video "
+                  "outputs.")
+
+SIZES_HELP = "square resolutions to bench"
+
+
+@app.command()
+def frames(
+    checkpoint: Path = typer.Option(None, "--checkpoint", help="speaker checkpoint [default: untrained demo]"),
+    gaussians: int = typer.Option(20_000, "--gaussians", help="demo speaker size when no checkpoint is given"),
+    sizes: str = typer.Option("256,512", "--sizes", help=SIZES_HELP),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio length driven through the runtime"),
+    torch_frames: int = typer.Option(3, "--torch-frames", help="frames rendered by the torch reference"),
+    paper_translator: bool = typer.Option(False, "--paper-translator", help="also export/run the ~300M translator"),
+    json_path: Path = typer.Option(None, "--json", help="write results as JSON"),
+) -> None:
+    """Per-stage timings and FPS of the runtime vs the torch reference (what a bare `gt-bench` runs)."""
+    from .frames import run_frames_bench
+
+    run_frames_bench(checkpoint, gaussians, sizes, seconds, torch_frames, paper_translator, json_path)
+
+
+@app.command()
+def renderers(
+    gaussians: str = typer.Option("20000,100000", "--gaussians", help="demo speaker sizes (comma-separated; empty: "
+                                  "only --play)"),
+    sizes: str = typer.Option("256,512,1024", "--sizes", help=SIZES_HELP),
+    frames: int = typer.Option(10, "--frames", min=1, help="draws per splatter per round"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds"),
+    threads: str = typer.Option("1,2", "--threads", help="CPU splatter thread counts (comma-separated)"),
+    json_path: Path = typer.Option(None, "--json", help="write results as JSON"),
+    play: Path = typer.Option(None, "--play", help="a bundle: also time audio -> pixels and samples/play.py on the "
+                              "sample speech with each renderer"),
+    play_size: int = typer.Option(512, "--play-size", min=16, help="--play's bare frame size"),
+    play_rounds: int = typer.Option(3, "--play-rounds", min=1, help="--play's alternating rounds"),
+) -> None:
+    """The CPU tile splatter vs the GL splatter: splat-time medians and ratios, alternating (the cpu extra)."""
+    from .renderers import run_play_bench, run_renderers_bench
+
+    if play is not None and not play.is_file():
+        raise typer.BadParameter(f"{play}: no such bundle", param_hint="--play")
+    results = run_renderers_bench(gaussians, sizes, frames, rounds, threads) if gaussians else {}
+    if play is not None:
+        results["play"] = run_play_bench(play, ["gl", "cpu"], play_size, play_rounds)
+        typer.echo(json.dumps(results["play"], indent=2))
+    if json_path is not None:
+        json_path.write_text(json.dumps(results, indent=2))
+        typer.echo(f"wrote {json_path}")
+
+
+@app.command()
+def sweep(
+    checkpoint: Path = typer.Option(None, "--checkpoint", help="speaker checkpoint [default: the demo speaker, "
+                                    "its translator trained for a few minutes]"),
+    gaussians: int = typer.Option(20_000, "--gaussians", help="demo speaker size when no checkpoint is given"),
+    sweep_gaussians: int = typer.Option(100_000, "--sweep-gaussians", min=0, help="size of the synthetic speaker "
+                                        "(0: demo speaker only)"),
+    skip_demo: bool = typer.Option(False, "--skip-demo", help="the synthetic speaker only (each speaker can then "
+                                   "get its own --seconds and --rounds)"),
+    cases: str = typer.Option(None, "--cases", help="only the cases whose name or knob contains one of these "
+                              "comma-separated words, e.g. 'preset,sort' [default: all]"),
+    scene: Path = typer.Option(None, "--scene", help="each preset plain and specialised for this scene file "
+                               "(docs/scene.md), side by side (use --sizes at the scene's resolution)"),
+    sizes: str = typer.Option("256,512", "--sizes", help=SIZES_HELP),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio length of each case"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds per case"),
+    out: Path = typer.Option(Path("bench-sweep"), "--out", help="folder for sweep.md, sweep.json and sweep.png"),
+) -> None:
+    """Every speed/accuracy knob alone and every preset side by side (alternating rounds) on the demo speaker and
+    a larger synthetic one."""
+    if skip_demo and sweep_gaussians == 0:
+        raise typer.BadParameter("--skip-demo needs a synthetic speaker (--sweep-gaussians > 0)",
+                                 param_hint="--skip-demo")
+    _sweep(checkpoint, gaussians, sweep_gaussians, sizes, seconds, rounds, cases, out, skip_demo, scene)
+
+
+@app.command()
+def compare(
+    baseline: Path = typer.Option(..., "--baseline", help="another checkout of the SDK, measured side by side"),
+    gaussians: int = typer.Option(20_000, "--gaussians", help="demo speaker size"),
+    sizes: str = typer.Option("256,512", "--sizes", help=SIZES_HELP),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio length driven through each version"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="rounds per version and case"),
+    scaling: str = typer.Option(None, "--scaling", help="Gaussian counts to compare at the largest size, e.g. "
+                                "20000,50000,100000,200000 [default: --gaussians only]"),
+    play_seconds: float = typer.Option(10.0, "--play-seconds", help="audio length for timing each version's "
+                                       "samples/play.py at 512x512 (0: skip)"),
+    json_path: Path = typer.Option(None, "--json", help="write results as JSON"),
+) -> None:
+    """This SDK and another checkout of it (--baseline), alternating rounds: the per-stage table with speed-ups."""
+    _compare_with_baseline(baseline, gaussians, sizes, seconds, rounds, scaling, play_seconds, json_path)
+
+
+@app.command()
+def composite(
+    checkpoint: Path = typer.Option(..., "--checkpoint", help="a speaker with a reference clip"),
+    bundle: Path = typer.Option(None, "--bundle", help="its exported bundle (default: exported afresh)"),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio per FPS case"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds"),
+    pairs: int = typer.Option(12, "--pairs", min=1, help="re-rendered frames for the seam measure"),
+    codecs: str = typer.Option(None, "--codecs", help="F codecs to measure, comma-separated (the first is the "
+                               "reference; empty: none; default: bench/composite_cost.py's F_CODECS)"),
+    out: Path = typer.Option(Path("bench-sweep"), "--out", help="folder for composite.md"),
+) -> None:
+    """Compositing into the reference clip: FPS composited and bare at the clip's size and 512x512, F's cost and
+    codecs, seam steps (docs/compositing.md)."""
+    from .composite_cost import F_CODECS, run_composite_bench
+
+    chosen = F_CODECS if codecs is None else tuple(c.strip() for c in codecs.split(",") if c.strip())
+    typer.echo(run_composite_bench(checkpoint, bundle, seconds, rounds, pairs, out / "composite.md", chosen))
+
+
+@app.command()
+def backends(
+    checkpoint: Path = typer.Option(..., "--checkpoint", help="speaker checkpoint (exported here with --mnn)"),
+    sizes: str = typer.Option("256,512", "--sizes", help="square resolutions; the largest is benched"),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio length of each case"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds"),
+    out: Path = typer.Option(Path("bench-sweep"), "--out", help="folder for backends.md"),
+) -> None:
+    """onnxruntime vs MNN: each graph's ms, stages and FPS, alternating (docs/mnn.md)."""
+    from .backends import run_backends_bench
+
+    run_backends_bench(checkpoint, max(int(s) for s in sizes.split(",")), seconds, rounds, out / "backends.md")
+
+
+@app.command()
+def video(
+    bundle: Path = typer.Argument(..., help="speaker bundle"),
+    size: int = typer.Option(512, "--size", help="frame side"),
+    frames: int = typer.Option(50, "--frames", help="frames per encode"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds"),
+) -> None:
+    """The encoding cost of every video output (docs/video.md) for BUNDLE's frames at SIZE x SIZE."""
+    from .video_outputs import run_video_bench
+
+    run_video_bench(bundle, size, frames, rounds)
+
+
+@app.command("clip-codecs")
+def clip_codecs(checkpoint: Path = typer.Argument(Path("out/speaker.ckpt"), help="a speaker with a reference clip")
+                ) -> None:
+    """Size and decode time of candidate reference-clip codecs on the speaker's clip (docs/compositing.md)."""
+    from .clip_codecs import run_clip_codecs_bench
+
+    run_clip_codecs_bench(checkpoint)
+
+
+@app.command("early-stop")
+def early_stop(
+    gaussians: str = typer.Option("20000,100000", "--gaussians", help="demo speaker sizes (untrained)"),
+    sizes: str = typer.Option("256,512", "--sizes", help=SIZES_HELP),
+    settings: str = typer.Option("0.5;0.3,0.6;0.4,0.6,0.8", "--settings",
+                                 help="early-stop settings to compare with the plain draw: ';' between settings, "
+                                      "',' between a setting's fractions"),
+    frames: int = typer.Option(30, "--frames", min=1, help="frames per setting and round"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds"),
+    json_path: Path = typer.Option(None, "--json", help="write the results here"),
+) -> None:
+    """Saturated pixels after each fraction of the sorted Gaussians, and the early stop's agreement with and speed
+    against the plain draw (docs/numerics.md, "Early stop of saturated pixels")."""
+    from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
+
+    from .early_stop import early_stop_tables, run_early_stop_bench
+
+    try:
+        choices = [tuple(float(f) for f in part.split(",")) for part in settings.split(";") if part.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"not fractions: {settings!r}", param_hint="--settings") from None
+    results = {"machine": machine_info(), "speakers": []}
+    for n in (int(g) for g in gaussians.split(",")):
+        speaker, _ = make_demo_speaker(n, train_seconds=0, progress=False)
+        result = run_early_stop_bench(speaker, tuple(int(s) for s in sizes.split(",")), choices, frames, rounds)
+        results["speakers"].append(result)
+        typer.echo(early_stop_tables(result) + "\n")
+    if json_path is not None:
+        json_path.write_text(json.dumps(results, indent=2))
+        typer.echo(f"wrote {json_path}")
+
+
+@app.command()
+def surface(
+    checkpoint: Path = typer.Option(None, "--checkpoint", help="a FLAME speaker checkpoint [default: the demo head, "
+                                    "untrained]"),
+    gaussians: int = typer.Option(20_000, "--gaussians", help="demo speaker size when no checkpoint is given"),
+    resolution: int = typer.Option(160, "--resolution", min=32, help="square size of the torch reference frames"),
+    out: Path = typer.Option(None, "--out", help="folder for surface.md and surface.json"),
+) -> None:
+    """How opaque the head's surface is from yaw -90 to 90 degrees: how much of its hidden half shows through, how
+    many pixels saturate, how many Gaussians a pixel blends (docs/demo-speaker.md, "Surface")."""
+    from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
+    from gaussiantalker.exporter.export.checkpoint import load_checkpoint
+    from gaussiantalker.exporter.model.speaker import Speaker
+
+    from .surface import measure_surface, surface_table
+
+    if checkpoint is None:
+        speaker, _ = make_demo_speaker(gaussians, train_seconds=0, progress=False)
+    else:
+        speaker = load_checkpoint(checkpoint)
+        if not isinstance(speaker, Speaker):
+            raise typer.BadParameter("the surface measure needs a FLAME speaker (triangle-bound Gaussians)",
+                                     param_hint="--checkpoint")
+    views = measure_surface(speaker, resolution=resolution)
+    table = surface_table(views)
+    typer.echo(table)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        source = str(checkpoint) if checkpoint else f"demo head, {gaussians} Gaussians"
+        (out / "surface.md").write_text(f"# Surface of {source} at {resolution}x{resolution}\n\n{table}\n")
+        (out / "surface.json").write_text(json.dumps({"machine": machine_info(), "source": source,
+                                                      "resolution": resolution,
+                                                      "views": [v.to_dict() for v in views]}, indent=2))
+        typer.echo(f"wrote {out / 'surface.md'}")
+
+
+@app.command("clip-crf")
+def clip_crf(
+    checkpoint: Path = typer.Option(..., "--checkpoint", help="a speaker with a reference clip"),
+    crfs: str = typer.Option(None, "--crfs", help="x264 CRFs of the clip to measure against the clip as stored, "
+                             "comma-separated [default: bench/clip_crf.py's CLIP_CRFS, 18,23,28,33]"),
+    presets: str = typer.Option(None, "--presets", help="presets whose whole files to compare, comma-separated "
+                                "(the first is the reference; empty: none) [default: all, quality first]"),
+    seconds: float = typer.Option(6.0, "--seconds", help="audio played through each bundle"),
+    out: Path = typer.Option(Path("bench-sweep"), "--out", help="folder for clip-crf.md"),
+) -> None:
+    """The reference clip's codec knob (`gt-export --reference-codec`): clip and bundle bytes against the PSNR of
+    the clip and of the composited frames; the presets' whole-file sizes (docs/compositing.md)."""
+    from gaussiantalker.exporter.export.presets import PRESETS
+
+    from .clip_crf import CLIP_CRFS, run_clip_crf_bench
+
+    try:
+        crf_values = CLIP_CRFS if crfs is None else tuple(int(c) for c in crfs.split(",") if c.strip())
+    except ValueError:
+        raise typer.BadParameter(f"--crfs must be integers, got {crfs!r}", param_hint="--crfs") from None
+    chosen = tuple(PRESETS) if presets is None else tuple(p.strip() for p in presets.split(",") if p.strip())
+    unknown = [p for p in chosen if p not in PRESETS]
+    if unknown:
+        raise typer.BadParameter(f"unknown preset(s) {unknown} (known: {', '.join(PRESETS)})", param_hint="--presets")
+    typer.echo(run_clip_crf_bench(checkpoint, crf_values, chosen, seconds, out / "clip-crf.md"))
+
+
+@app.command("lam-web")
+def lam_web(
+    avatar: Path = typer.Argument(None, help="a LAM avatar zip (one folder: skin.glb, animation.glb, offset.ply, "
+                                  "vertex_order.json)"),
+    motion: Path = typer.Option(None, "--motion", help="motion JSON {names, frames: [{weights}]} [default: the "
+                                "neutral face, all weights 0]"),
+    frames: str = typer.Option("0", "--frames", help="comma-separated motion frame indexes"),
+    size: int = typer.Option(512, "--size", min=1, help="frame side"),
+    camera: Path = typer.Option(None, "--camera", help="camera JSON (Camera.to_dict()) [default: the renderer's "
+                                "own camera]"),
+    background: str = typer.Option("1,1,1", "--background", help="background r,g,b in 0..1"),
+    out: Path = typer.Option(Path("out/lam-web"), "-o", "--out", help="folder for web_{frame}.png, cameras.json, "
+                             "weights.json"),
+    cache: Path = typer.Option(None, "--cache", help="npm cache folder [default: $GT_LAM_WEB_CACHE or "
+                               "~/.cache/gaussiantalker/lam-web]"),
+    install: bool = typer.Option(False, "--install", help="first install the npm renderer and Debian's chromium"),
+    compare: Path = typer.Option(None, "--compare", help="a bundle of the same avatar (gt-import lam + gt-export): "
+                                 "draw the same frames with the runtime and write their PSNR (compare.json)"),
+) -> None:
+    """Frames of AVATAR drawn by the original LAM web renderer in headless Chromium (docs/lam-web.md)."""
+    from gaussiantalker.sdk.camera import Camera
+
+    from .lam_web import LamWebMissing
+    from .lam_web import install as install_lam_web
+    from .lam_web_run import run_lam_web
+
+    if install:
+        typer.echo(f"installed the renderer in {install_lam_web(cache)}")
+    if avatar is None:
+        if not install:
+            raise typer.BadParameter("give an avatar zip (or --install)", param_hint="AVATAR")
+        return
+    rgb = tuple(float(c) for c in background.split(","))
+    if len(rgb) != 3:
+        raise typer.BadParameter("three numbers: r,g,b", param_hint="--background")
+    view = Camera.from_dict(json.loads(camera.read_text())) if camera is not None else None
+    try:
+        run_lam_web(avatar, out, motion, frames, size, rgb, view, cache, echo=typer.echo, compare=compare)
+    except (LamWebMissing, ValueError) as exc:
+        typer.echo(f"gt-bench lam-web: {exc}", err=True)
+        raise typer.Exit(2) from exc
+
+
+@app.command()
+def avatar(
+    avatar_path: Path = typer.Argument(..., metavar="AVATAR", help="a LAM avatar zip, or a GaussianAvatars output "
+                                       "directory with --flame (docs/import.md)"),
+    flame: Path = typer.Option(None, "--flame", help="the FLAME model (.pkl or .npz) a GaussianAvatars avatar is "
+                               "imported with (gt-import gaussian-avatars --flame)"),
+    motion: Path = typer.Option(None, "--motion", help="motion played for quality and FPS: an ARKit motion file for "
+                                "a LAM avatar, a FLAME motion npz for a GaussianAvatars one [default: the avatar's "
+                                "own motion track, else random ARKit drives]"),
+    frames: int = typer.Option(30, "--frames", min=1, help="frames sampled evenly from the motion for quality"),
+    fps_seconds: float = typer.Option(4.0, "--fps-seconds", min=0.1, help="seconds of frames per FPS run"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating FPS rounds"),
+    demo_checkpoint: Path = typer.Option(None, "--demo-checkpoint", help="the demo speaker played beside the avatar "
+                                         "(samples/make_demo_speaker.py) [default: an untrained one built here]"),
+    gaussians: int = typer.Option(20_000, "--gaussians", min=1, help="demo speaker size when no checkpoint is given"),
+    note: str = typer.Option(None, "--note", help="a line about the machine or the run, written into avatar.md"),
+    out: Path = typer.Option(Path("bench-avatar"), "--out", help="folder for avatar.md and avatar.json"),
+    presets: str = typer.Option(None, "--presets", help="comma-separated presets to export and compare, quality "
+                                "among them [default: all]"),
+    verify_frames: int = typer.Option(25, "--verify-frames", min=0, help="frames verify_bundle compares against the "
+                                      "torch speaker (its 6 novel views come on top); 0: no verify"),
+) -> None:
+    """An imported LAM or GaussianAvatars avatar: import, preset export and verify times, bundle sizes, each preset's
+    head PSNR against fp32, and FPS at 512x512 beside the demo speaker (alternating rounds)."""
+    import shlex
+    import sys
+
+    from gaussiantalker.sdk.errors import GaussianTalkerError
+
+    from .avatar import format_report, run_avatar_bench
+
+    if avatar_path.is_dir() and flame is None:
+        raise typer.BadParameter(f"{avatar_path} is a directory: a GaussianAvatars avatar, which needs its FLAME "
+                                 "model (--flame FLAME.pkl|npz)", param_hint="--flame")
+    if flame is not None and not avatar_path.is_dir():
+        raise typer.BadParameter(f"{avatar_path}: --flame is for a GaussianAvatars output directory, and this is no "
+                                 "directory", param_hint="AVATAR")
+    from gaussiantalker.exporter.export.presets import PRESETS
+
+    chosen = None if presets is None else [name.strip() for name in presets.split(",") if name.strip()]
+    if chosen is not None and ("quality" not in chosen or set(chosen) - set(PRESETS)):
+        raise typer.BadParameter(f"{presets!r}: presets among {', '.join(PRESETS)}, quality (the reference) "
+                                 "among them", param_hint="--presets")
+    files = [(motion, "--motion"), (demo_checkpoint, "--demo-checkpoint"), (flame, "--flame")]
+    if flame is None:
+        files.insert(0, (avatar_path, "AVATAR"))  # a LAM zip; a GaussianAvatars directory was checked above
+    for path, hint in files:
+        if path is not None and not path.is_file():
+            raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
+    command = shlex.join(["gt-bench", *sys.argv[1:]])
+    try:
+        result = run_avatar_bench(avatar_path, motion, frames, fps_seconds, rounds, demo_checkpoint, gaussians, out,
+                                  command, note, flame, chosen, verify_frames)
+    except GaussianTalkerError as exc:  # a damaged avatar, FLAME model or motion file: its message, not a traceback
+        typer.echo(f"gt-bench avatar: {exc}", err=True)
+        raise typer.Exit(2) from None
+    typer.echo(format_report(result))
+    typer.echo(f"wrote {out / 'avatar.md'}, {out / 'avatar.json'}")
+
+
+@app.command()
+def live(
+    bundle: Path = typer.Argument(..., help="a speaker bundle with a translator (.gtb)"),
+    size: int = typer.Option(512, "--size", min=16, help="square frame size of the latency and barge-in runs"),
+    lookaheads: str = typer.Option("0,80,160,320", "--lookaheads", help="lookaheads to measure (ms)"),
+    utterances: int = typer.Option(10, "--utterances", min=1, help="utterances per lookahead for the latency"),
+    barge_trials: int = typer.Option(5, "--barge-trials", min=1, help="interrupt() trials"),
+    drift_minutes: float = typer.Option(60.0, "--drift-minutes", min=0.0, help="minutes of the drift run (0: none)"),
+    session_sizes: str = typer.Option("512,256", "--session-sizes", help="frame sizes of the sessions run"),
+    most_sessions: int = typer.Option(8, "--most-sessions", min=1, help="largest session count tried"),
+    renderer: str = typer.Option("gl", "--renderer", help="what splats: gl, cpu or auto (docs/embedding.md)"),
+    out: Path = typer.Option(None, "--out", help="folder for live.md and live.json"),
+) -> None:
+    """Live sessions (docs/live.md): first-frame latency p50/p95 per lookahead (paced, real-time pushes), jaw
+    agreement with offline frames, barge-in time, drift over a long free-running session, sessions sustained."""
+    import shlex
+    import sys
+
+    from .live_sessions import live_tables, run_live_bench
+
+    if not bundle.is_file():
+        raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
+    try:
+        chosen = [float(v) for v in lookaheads.split(",") if v.strip()]
+        sizes = [int(v) for v in session_sizes.split(",") if v.strip()]
+    except ValueError:
+        raise typer.BadParameter("comma-separated numbers expected",
+                                 param_hint="--lookaheads/--session-sizes") from None
+    result = run_live_bench(bundle, size, chosen, utterances, barge_trials, drift_minutes, sizes, most_sessions,
+                            renderer)
+    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    tables = live_tables(result)
+    typer.echo(tables)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "live.json").write_text(json.dumps(result, indent=2))
+        (out / "live.md").write_text(f"# Live sessions\n\n`{result['command']}` on {result['machine']['cpu']}, "
+                                     f"{result['machine']['cores']} cores, {result['machine']['gl']}; splatted by the "
+                                     f"{result['renderer']} renderer.\n\n{tables}\n")
+        typer.echo(f"wrote {out / 'live.md'}, {out / 'live.json'}")
+
+
+@app.command()
+def pipeline(
+    bundle: Path = typer.Argument(..., help="a speaker bundle with a translator and a reference clip (.gtb)"),
+    audio: Path = typer.Option(Path("samples/demo_speech.wav"), "--audio", help="speech to render"),
+    seconds: float = typer.Option(0.0, "--seconds", min=0.0, help="the first seconds of the audio (0: all)"),
+    size: int = typer.Option(512, "--size", min=16, help="square frame size of the bare-head cases"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="rounds per case and variant"),
+    cases: str = typer.Option("frames,frames-composite,play,play-composite", "--cases",
+                              help="what to time: frames, frames-composite, play, play-composite"),
+    before: Path = typer.Option(None, "--before", help="another checkout of the SDK, timed as it is (\"before\")"),
+    out: Path = typer.Option(None, "--out", help="folder for pipeline.md and pipeline.json"),
+) -> None:
+    """The pipelined frame loop against the serial one and, with --before, another checkout, on the CPU tile
+    splatter, alternating rounds (bench/pipeline_vs_serial.py)."""
+    import shlex
+    import sys
+
+    from .pipeline_vs_serial import bench_pipeline, format_report
+
+    if not bundle.is_file():
+        raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
+    result = bench_pipeline(bundle.resolve(), audio=audio.resolve(), seconds=seconds, size=size, rounds=rounds,
+                            cases=[c.strip() for c in cases.split(",") if c.strip()],
+                            baseline=before)
+    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    report = format_report(result, result["machine"], result["command"])
+    typer.echo(report)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "pipeline.json").write_text(json.dumps(result, indent=2))
+        (out / "pipeline.md").write_text(report)
+        typer.echo(f"wrote {out / 'pipeline.md'}, {out / 'pipeline.json'}")
+
+
+@app.command("live-clients")
+def live_clients(
+    bundle: Path = typer.Argument(..., help="a speaker bundle with a translator (.gtb)"),
+    clients: str = typer.Option("1,10,25,50,75", "--clients", help="numbers of concurrent sessions to run"),
+    lookahead_ms: float = typer.Option(160.0, "--lookahead-ms", min=0.0, help="the sessions' lookahead"),
+    speak_s: float = typer.Option(4.0, "--speak-s", min=0.5, help="seconds each client lets the head speak "
+                                  "before it interrupts"),
+    chunk_ms: str = typer.Option("20", "--chunk-ms", help="the voice's chunk sizes (ms, pushed at real time; "
+                                 "comma-separated: one run each): 20 is a voice made as it is spoken"),
+    out: Path = typer.Option(None, "--out", help="folder for live-clients.md and live-clients.json"),
+) -> None:
+    """Client-render live sessions (samples/live_server.py --client-render) under N concurrent load clients:
+    late drives, server CPU per session-second, first-frame and barge-in latency; the largest N with <= 5% late."""
+    import shlex
+    import sys
+
+    from .live_clients import live_clients_table, run_live_clients_bench
+
+    if not bundle.is_file():
+        raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
+    try:
+        counts = [int(v) for v in clients.split(",") if v.strip()]
+        chunks = [float(v) for v in chunk_ms.split(",") if v.strip()]
+    except ValueError:
+        raise typer.BadParameter("comma-separated numbers expected", param_hint="--clients/--chunk-ms") from None
+    if not counts or min(counts) < 1 or not chunks or not all(10 <= c <= 10000 for c in chunks):
+        raise typer.BadParameter("counts >= 1 and chunks of 10..10000 ms", param_hint="--clients/--chunk-ms")
+    import os
+
+    result = {"load_at_start": os.getloadavg(), "runs": []}
+    for chunk in chunks:
+        typer.echo(f"voice in {chunk:g} ms chunks")
+        result["runs"].append(run_live_clients_bench(bundle, counts, lookahead_ms, speak_s, chunk_ms=chunk,
+                                                     log=typer.echo))
+    result["load_at_end"] = os.getloadavg()
+    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    table = "\n\n".join(f"Voice pushed in {run['chunk_ms']:g} ms chunks at real time:\n\n{live_clients_table(run)}"
+                         for run in result["runs"])
+    typer.echo(table)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "live-clients.json").write_text(json.dumps(result, indent=2))
+        (out / "live-clients.md").write_text(
+            f"# Live sessions rendered by the client, under load\n\n`{result['command']}` on "
+            f"{result['machine']['cpu']}, {result['machine']['cores']} cores; load average (1, 5, 15 min) "
+            f"{', '.join(f'{v:.2f}' for v in result['load_at_start'])} at the start, "
+            f"{', '.join(f'{v:.2f}' for v in result['load_at_end'])} at the end.\n\n{table}\n")
+        typer.echo(f"wrote {out / 'live-clients.md'}, {out / 'live-clients.json'}")
+
+
+def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: float, rounds: int,
+                           scaling: str | None, play_seconds: float, json_path: Path | None) -> None:
+    """`gt-bench compare`: the side-by-side table of bench/compare.py, printed (and written as JSON)."""
+    from dataclasses import asdict
+
+    from .compare import checkout_root, compare, format_table
+
+    try:
+        checkout_root(baseline)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--baseline") from None
+    size_list = [int(s) for s in sizes.split(",")]
+    result = compare(baseline, gaussians=[gaussians], sizes=size_list, seconds=seconds, rounds=rounds,
+                     play_seconds=play_seconds)
+    if scaling:
+        counts = [int(c) for c in scaling.split(",") if int(c) != gaussians]
+        scaled = compare(baseline, gaussians=counts, sizes=[max(size_list)], seconds=seconds, rounds=rounds,
+                         play_seconds=0)
+        result.cases.update(scaled.cases)
+    result_text = format_table(result)
+    typer.echo(f"machine: {json.dumps(machine_info())}\n{result_text}")
+    if json_path is not None:
+        json_path.write_text(json.dumps({"machine": machine_info(), **asdict(result)}, indent=2))
+        typer.echo(f"wrote {json_path}")
+
+
+def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seconds: float, rounds: int,
+           cases: str | None, out: Path, skip_demo: bool = False, scene: Path | None = None) -> None:
+    """`gt-bench sweep`: see bench/sweep.py; writes the markdown report, the JSON and (with matplotlib) the plot."""
+    import sys
+    from dataclasses import asdict
+
+    from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
+    from gaussiantalker.exporter.export.checkpoint import load_checkpoint
+    from gaussiantalker.sdk.errors import GaussianTalkerError
+    from gaussiantalker.sdk.files import atomic_write
+
+    from .report import format_report, plot_sweep
+    from .sweep import scene_cases, select_cases, sweep_cases, sweep_speaker
+
+    try:
+        if scene is not None:
+            from gaussiantalker.sdk.scene import load_scene
+
+            try:
+                load_scene(scene)  # a bad scene file fails here, before any speaker is built
+            except GaussianTalkerError as exc:
+                raise typer.BadParameter(str(exc), param_hint="--scene") from None
+        chosen = select_cases(sweep_cases() if scene is None else scene_cases(str(scene)), cases)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--cases") from None
+    size_list = [int(s) for s in sizes.split(",")]
+    if checkpoint is not None:
+        demo = load_checkpoint(checkpoint)
+        demo.reference = demo.inpaint = None  # the bare head (compositing: tools/bench/composite_cost.py)
+    else:
+        typer.echo("building the demo speaker (its translator trains for a few minutes; --checkpoint skips this)")
+        demo, _ = make_demo_speaker(gaussians)
+    speakers = [] if skip_demo else [("demo speaker", demo)]
+    if large > 0:
+        synthetic, _ = make_demo_speaker(large, seed=1, train_seconds=0, progress=False, config=demo.config)
+        synthetic.translator.load_state_dict(demo.translator.state_dict())  # the same speech, more Gaussians
+        speakers.append(("synthetic speaker", synthetic))
+    out.mkdir(parents=True, exist_ok=True)
+    sweeps = [sweep_speaker(name, speaker, chosen, sizes=size_list, seconds=seconds, rounds=rounds)
+              for name, speaker in speakers]
+    machine = machine_info()
+    command = "gt-bench " + " ".join(sys.argv[1:])
+    report = format_report(sweeps, machine, command)
+    with atomic_write(out / "sweep.md", "w") as handle:
+        handle.write(report + "\n")
+    with atomic_write(out / "sweep.json", "w") as handle:
+        json.dump({"machine": machine, "command": command, "seconds": seconds, "rounds": rounds,
+                   "speakers": [asdict(s) for s in sweeps]}, handle, indent=2)
+    written = ["sweep.md", "sweep.json"]
+    try:
+        plot_sweep(sweeps, out / "sweep.png")
+        written.append("sweep.png")
+    except ImportError:
+        typer.echo("matplotlib is not installed (pip install 'gaussiantalker-sdk[bench]'): no plot", err=True)
+    typer.echo(report)
+    typer.echo(f"wrote {', '.join(str(out / name) for name in written)}")
+
+
+def main_entry(args: list[str] | None = None) -> None:
+    """Run the app as `gt-bench` (`args`: the command line after the program name; None: sys.argv's)."""
+    app(args=args, prog_name="gt-bench")

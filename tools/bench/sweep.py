@@ -1,0 +1,222 @@
+"""`gt-bench sweep`: every speed/accuracy knob alone and every preset, measured side by side on the same clip.
+
+For each speaker (the demo speaker and a larger synthetic one), every case's bundle is exported once (cases with
+the same export settings share a bundle; runtime knobs play the fp32 bundle with `TalkingHead` arguments). Each
+case then gets its own worker process (`worker.py`), so its peak memory is its own, and the rounds
+alternate the cases (the order reversed every other round) at each size: machine noise falls on all of them,
+and ratios are taken within a round. Each round reloads the bundle (load time) and plays the clip through
+`TalkingHead.frames` (frame time and FPS, then per-stage medians). The first round's frames are compared with
+the fp32 bundle's frames of the same audio (`quality.py`: head and mouth PSNR/SSIM, translator FLAME error).
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from gaussiantalker.exporter.export.presets import PRESETS, ExportSettings
+from gaussiantalker.sdk.progress import progress_bar
+from gaussiantalker.sdk.render_settings import RenderSettings
+
+from .compare import Version, alternating, this_version_root
+from .quality import clip_quality, reference_clip
+from .worker import STAGES
+
+REFERENCE = "quality"  # the fp32 bundle every case is compared with (the `quality` preset)
+
+
+@dataclass(frozen=True)
+class SweepCase:
+    """One measured setting: a knob alone (`group` names it) or a preset, as export settings plus runtime
+    arguments of `TalkingHead`."""
+
+    name: str
+    group: str
+    export: ExportSettings = field(default_factory=ExportSettings)
+    runtime: dict = field(default_factory=dict)
+    preset: str | None = None
+    scene: str | None = None  # a scene file the bundle is specialised for (docs/scene.md)
+
+    @property
+    def bundle_key(self) -> str:
+        """Cases with the same key play the same bundle: the same export settings, stored runtime defaults and
+        scene."""
+        defaults = PRESETS[self.preset].runtime if self.preset else RenderSettings()
+        return json.dumps([asdict(self.export), defaults.to_dict(), self.scene], sort_keys=True)
+
+
+def sweep_cases() -> list[SweepCase]:
+    """The reference, every knob setting alone (docs/precision.md lists the knobs), then the other presets."""
+    def knob(name: str, group: str, **export) -> SweepCase:
+        return SweepCase(name, group, ExportSettings(**export))
+
+    def runtime(name: str, group: str, **settings) -> SweepCase:
+        return SweepCase(name, group, runtime=settings)
+
+    cases = [SweepCase(REFERENCE, "preset", PRESETS[REFERENCE].export, preset=REFERENCE)]
+    for group in ("gaussians", "sh", "blendshapes", "flame", "translator"):
+        codecs = {"gaussians": ("fp16", "q16", "q8"), "sh": ("fp16", "q8", "q4"), "blendshapes": ("fp16", "q8", "q4"),
+                  "flame": ("fp16", "q8", "q4/128"), "translator": ("fp16", "q8", "q4")}[group]
+        cases += [knob(f"{group} {codec}", f"{group} codec", **{group: codec}) for codec in codecs]
+    cases += [knob(f"translator graph {p}", "translator precision", translator_precision=p) for p in ("fp16", "int8")]
+    cases += [knob(f"SH degree {d}", "SH degree", sh_degree=d) for d in (2, 1, 0)]
+    cases += [knob(f"blendshape rank {r}", "blendshape rank", blendshape_rank=r) for r in (6, 4, 2)]
+    cases += [knob(f"budget {round(100 * b)}%", "Gaussian budget", gaussian_budget=b) for b in (0.7, 0.5)]
+    cases += [runtime(f"framebuffer {t}", "framebuffer", render_target=t) for t in ("float16", "uint8")]
+    cases += [runtime(f"render scale {s}", "render scale", render_scale=s) for s in (0.75, 0.5)]
+    cases += [runtime(f"sort every {k} frames", "sort interval", sort_interval=k) for k in (2, 4)]
+    cases += [runtime("sort keys 16-bit", "sort key bits", sort_key_bits=16)]
+    cases += [runtime("graph threads 1", "graph threads", threads=1)]
+    cases += [SweepCase(name, "preset", preset.export, preset=name) for name, preset in PRESETS.items()
+              if name != REFERENCE]
+    return cases
+
+
+def scene_cases(scene: str, presets: tuple[str, ...] = tuple(PRESETS)) -> list[SweepCase]:
+    """Each preset plain and specialised for the scene file `scene`, side by side (the reference first)."""
+    cases = []
+    for name in presets:
+        preset = PRESETS[name]
+        cases += [SweepCase(name, "preset", preset.export, preset=name),
+                  SweepCase(f"{name} + scene", "scene", preset.export, preset=name, scene=scene)]
+    return cases
+
+
+def select_cases(cases: list[SweepCase], only: str | None) -> list[SweepCase]:
+    """The cases whose name or group contains one of the comma-separated words of `only` (the reference always)."""
+    if not only:
+        return cases
+    words = [w.strip().lower() for w in only.split(",") if w.strip()]
+    chosen = [c for c in cases if c.name == REFERENCE or any(w in c.name.lower() or w in c.group.lower()
+                                                              for w in words)]
+    if len(chosen) == 1:
+        raise ValueError(f"no sweep case matches {only!r} (cases: {', '.join(c.name for c in cases)})")
+    return chosen
+
+
+@dataclass
+class SpeakerSweep:
+    """Everything measured for one speaker: per case, its bundle, timings per size and round, and quality."""
+
+    speaker: str
+    gaussians: int
+    cases: dict[str, dict] = field(default_factory=dict)
+
+
+def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar) -> dict[str, dict]:
+    """Export each distinct bundle once: key -> {path, bytes, gaussians, export_s}."""
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.sdk.scene import load_scene
+
+    bundles: dict[str, dict] = {}
+    for case in cases:
+        if case.bundle_key in bundles:
+            continue
+        bar.set_postfix_str(f"export {case.name}")
+        path = tmp / f"bundle-{len(bundles)}.gtb"
+        start = time.perf_counter()
+        scene = None if case.scene is None else load_scene(case.scene)
+        if case.preset:
+            result = export_bundle(speaker, path, preset=case.preset, progress=False, scene=scene)
+        else:
+            result = export_bundle(speaker, path, settings=case.export, progress=False, scene=scene)
+        bundles[case.bundle_key] = {"path": str(path), "bytes": path.stat().st_size, "gaussians": result.gaussians,
+                                    "export_s": time.perf_counter() - start}
+        bar.update()
+    return bundles
+
+
+def sweep_speaker(name: str, speaker, cases: list[SweepCase], *, sizes: list[int], seconds: float, rounds: int,
+                  warmup: int = 5, progress: bool = True) -> SpeakerSweep:
+    """Measure every case on one speaker (see the module docstring)."""
+    from gaussiantalker.exporter.export.speech import synth_speech
+    from gaussiantalker.runtime.head import TalkingHead
+    from gaussiantalker.sdk.audio import write_wav
+
+    result = SpeakerSweep(name, speaker.gaussians.count)
+    labels = [c.name for c in cases]
+    by_name = {c.name: c for c in cases}
+    distinct = len({c.bundle_key for c in cases})
+    bar = progress_bar(total=distinct + len(sizes) * rounds * len(cases) + len(cases), unit="run", disable=not progress,
+               desc=f"gt-bench sweep {name}")
+    with tempfile.TemporaryDirectory(prefix="gt-sweep-") as tmp_name:
+        tmp = Path(tmp_name)
+        audio = tmp / "speech.wav"
+        samples = synth_speech(seconds, seed=7)
+        write_wav(audio, samples)
+        bundles = _export_bundles(speaker, cases, tmp, bar)
+        workers = {label: Version.make(f"case{i}", this_version_root(), tmp) for i, label in enumerate(labels)}
+        for label in labels:
+            bundle = bundles[by_name[label].bundle_key]
+            result.cases[label] = {"group": by_name[label].group, "preset": by_name[label].preset,
+                                   "scene": by_name[label].scene,
+                                   "export": asdict(by_name[label].export), "runtime": by_name[label].runtime,
+                                   "bundle_bytes": bundle["bytes"], "gaussians": bundle["gaussians"],
+                                   "export_s": bundle["export_s"], "sizes": {}}
+        try:
+            for worker in workers.values():
+                worker.start(tmp)
+            for size in sizes:
+                runs: dict[str, list[dict]] = {label: [] for label in labels}
+                for round_index, label in alternating(labels, rounds):
+                    bar.set_postfix_str(f"{size}² round {round_index + 1}: {label}")
+                    save = str(tmp / f"frames-{labels.index(label)}-{size}.npy") if round_index == 0 else None
+                    runs[label].append(workers[label].ask(
+                        op="frames", bundle=bundles[by_name[label].bundle_key]["path"], size=size, audio=str(audio),
+                        warmup=warmup, settings=by_name[label].runtime, save=save, reopen=True))
+                    bar.update()
+                for worker in workers.values():
+                    worker.ask(op="release")
+                _record_size(result, runs, size)
+                bar.set_postfix_str(f"{size}²: quality")
+                flames = {}
+                for index, label in enumerate(labels):  # each case's translator output, in its own process
+                    translated = tmp / f"flame-{index}.npz"
+                    if not translated.exists():
+                        workers[label].ask(op="translate", bundle=bundles[by_name[label].bundle_key]["path"],
+                                           audio=str(audio), save=str(translated))
+                    flames[label] = np.load(translated)
+                reference_flame = flames[REFERENCE]
+                with TalkingHead(bundles[by_name[REFERENCE].bundle_key]["path"], resolution=(size, size)) as head:
+                    reference = reference_clip(head, samples,
+                                               np.load(tmp / f"frames-{labels.index(REFERENCE)}-{size}.npy"),
+                                               reference_flame["expression"], reference_flame["jaw"])
+                for index, label in enumerate(labels):
+                    flame = flames[label]
+                    frames = np.load(tmp / f"frames-{index}-{size}.npy")
+                    result.cases[label]["sizes"][str(size)]["quality"] = clip_quality(
+                        reference, frames, flame["expression"], flame["jaw"])
+            for label in labels:
+                result.cases[label]["peak_rss_mb"] = workers[label].ask(op="memory")["peak_rss_mb"]
+                bar.update()
+        finally:
+            bar.close()
+            for worker in workers.values():
+                worker.stop()
+    return result
+
+
+def _record_size(result: SpeakerSweep, runs: dict[str, list[dict]], size: int) -> None:
+    """Medians over rounds per case, and each case's frame-rate ratio to the reference within each round."""
+    reference = runs[REFERENCE]
+    for label, rounds in runs.items():
+        loads = [r["load_s"] for r in rounds if r.get("load_s") is not None]
+        ratios = [ref["frame_ms"] / r["frame_ms"] for ref, r in zip(reference, rounds, strict=True)]
+        result.cases[label]["sizes"][str(size)] = {
+            "frame_ms": statistics.median(r["frame_ms"] for r in rounds),
+            "fps": statistics.median(r["fps"] for r in rounds),
+            "fps_vs_reference": statistics.median(ratios),
+            "fps_vs_reference_rounds": ratios,
+            "load_s": statistics.median(loads) if loads else None,
+            "stages_ms": {stage: statistics.median(r["stages_ms"][stage] for r in rounds) for stage in STAGES},
+            "rounds": len(rounds),
+        }
+
+
+__all__ = ["REFERENCE", "SpeakerSweep", "SweepCase", "scene_cases", "select_cases", "sweep_cases", "sweep_speaker"]
