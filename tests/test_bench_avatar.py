@@ -34,7 +34,8 @@ def test_bench_avatar_writes_every_measure(tmp_path):
     assert set(report["presets"]) == set(PRESET_SUBSET)
     assert "the avatar's own motion track" in report["quality"]["motion"]
     assert len(report["quality"]["frames"]) == 4
-    numbers = [report["import_s"], report["verify"]["verify_s"], report["verify"]["min_psnr_db"]]
+    numbers = [report["import_s"], report["verify"]["verify_s"]]
+    assert report["verify"]["min_psnr_db"] >= 50.0  # the fp32 tier's bound; inf where the frames equal torch's
     for name, preset in report["presets"].items():
         numbers += [preset["export_s"], *preset["export_s_rounds"], preset["bundle_mb"], preset["smaller_than_fp32"]]
         assert len(preset["export_s_rounds"]) == 1

@@ -50,15 +50,15 @@ def test_rebound_export_equals_a_real_export(small_export, export_rebound, expor
         for drive in (FrameDrive.make(20), FrameDrive.make(20, rng.normal(0, 1, 20), [0.3, 0, 0],
                                                             head_pose=HeadPose.make([0.1, 0.2, 0.0]))):
             inputs = drive.graph_inputs() | {"camera_center": a.camera.center.astype(np.float32)[None]}
-            out_a, out_b = a.graphs.run("deform", inputs), b.graphs.run("deform", inputs)
+            out_a, out_b = a.frame_renderer.graphs.run("deform", inputs), b.frame_renderer.graphs.run("deform", inputs)
             for name in out_a:
                 np.testing.assert_array_equal(out_a[name], out_b[name])
             with torch.no_grad():
                 means = other.deform(*(torch.from_numpy(inputs[k]) for k in DEFORM_INPUTS))[0].numpy()
             np.testing.assert_allclose(out_a["means"], means, atol=1e-5)
         audio = 0.1 * rng.standard_normal((1, 640 * 9)).astype(np.float32)
-        np.testing.assert_array_equal(a.graphs.run("translator", {"audio": audio})["jaw_pose"],
-                                      b.graphs.run("translator", {"audio": audio})["jaw_pose"])
+        np.testing.assert_array_equal(a.frame_renderer.graphs.run("translator", {"audio": audio})["jaw_pose"],
+                                      b.frame_renderer.graphs.run("translator", {"audio": audio})["jaw_pose"])
 
 
 @pytest.mark.parametrize("recorded", [pytest.param("demo_export", marks=pytest.mark.slow), "small_export"])

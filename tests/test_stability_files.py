@@ -646,7 +646,7 @@ def test_failed_verify_keeps_the_real_good_bundle(real, checkpoint, tmp_path, st
     shutil.copy(real.path, out)
     replay_onnx_exports(real.protos)
     result = CliRunner().invoke(app, [str(checkpoint.path), "-o", str(out), "--verify", "--frames", "1",
-                                      "--resolution", "32", "--min-psnr", "999", "-q"])
+                                      "--resolution", "32", "--min-psnr", "999", "--min-float-psnr", "999", "-q"])
     assert result.exit_code == 1, result.output
     assert "verification FAILED" in result.output
     assert out.read_bytes() == real.data

@@ -50,7 +50,7 @@ def test_head_has_at_most_25_public_names(small_export):
 
 
 def test_the_stages_a_head_is_built_from(small_export, lam_voice_bundle):
-    with TalkingHead(small_export.path, resolution=(64, 64), composite=False) as head:
+    with TalkingHead(small_export.path, resolution=(64, 64), composite=False, renderer="gl") as head:
         assert isinstance(head.driver, FlameDriver) and isinstance(head.frame_renderer, FrameRenderer)
         assert head.compositor is None and isinstance(head.frame_renderer.splatter, GLSplatter)
         assert isinstance(head.frame_renderer.splatter, Splatter)

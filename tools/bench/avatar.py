@@ -152,7 +152,7 @@ def render_at(bundle: Path, motion: np.ndarray, indices: np.ndarray, bar, covera
     `motion_drives`), the coverage masks when asked, and the render settings the bundle picked."""
     frames, masks = [], []
     wanted = set(indices.tolist())
-    with TalkingHead(bundle, resolution=(SIZE, SIZE), composite=False) as head:
+    with TalkingHead(bundle, resolution=(SIZE, SIZE), composite=False, renderer="gl") as head:
         for index, drive in enumerate(head.drives(motion=motion)):
             if index not in wanted:
                 continue
@@ -210,7 +210,7 @@ def run_avatar_bench(avatar: Path, motion: Path | None, samples: int, fps_second
         folder = Path(tmp)
         importer, load = avatar_importer(avatar, flame)
         speaker, exports, costs = timed_costs(load, folder, rounds, presets, verify_frames)
-        with TalkingHead(exports[REFERENCE]["path"], resolution=(SIZE, SIZE)) as head:
+        with TalkingHead(exports[REFERENCE]["path"], resolution=(SIZE, SIZE), renderer="gl") as head:
             table, motion_line = bench_motion(head, motion)
             fps, rig = head.fps, head.driver.rig
         indices = sample_indices(len(table), samples)

@@ -44,7 +44,7 @@ def bench_runtime(bundle: Path, size: int, audio: np.ndarray, sample_rate: int, 
 
     from .worker import measure_frames
 
-    with TalkingHead(bundle, resolution=(size, size)) as head:
+    with TalkingHead(bundle, resolution=(size, size), renderer="gl") as head:
         return measure_frames(head, audio, sample_rate, warmup)
 
 

@@ -183,7 +183,8 @@ def sweep_speaker(name: str, speaker, cases: list[SweepCase], *, sizes: list[int
                                            audio=str(audio), save=str(translated))
                     flames[label] = np.load(translated)
                 reference_flame = flames[REFERENCE]
-                with TalkingHead(bundles[by_name[REFERENCE].bundle_key]["path"], resolution=(size, size)) as head:
+                with TalkingHead(bundles[by_name[REFERENCE].bundle_key]["path"], resolution=(size, size),
+                                 renderer="gl") as head:
                     reference = reference_clip(head, samples,
                                                np.load(tmp / f"frames-{labels.index(REFERENCE)}-{size}.npy"),
                                                reference_flame["expression"], reference_flame["jaw"])

@@ -11,6 +11,7 @@ the libraries print goes to stderr).
 
 from __future__ import annotations
 
+import inspect
 import json
 import sys
 import time
@@ -43,6 +44,14 @@ def measure_frames(head, audio, sample_rate: int | None, warmup: int, keep: list
     frame_ms = 1000.0 * float(np.median(walls[warmup:]))
     return {"frames": frames, "stages_ms": stages, "sequential_frame_ms": sum(stages.values()),
             "frame_ms": frame_ms, "fps": 1000.0 / frame_ms, "clip_fps": frames / clip_seconds}
+
+
+def gl_pinned(talking_head: type, settings: dict) -> dict:
+    """`settings` drawing with the OpenGL splatter, which every version has (the renderer keyword and the "auto"
+    default came later), so that versions are compared on one renderer; a renderer given is kept."""
+    if "renderer" in settings or "renderer" not in inspect.signature(talking_head.__init__).parameters:
+        return settings
+    return {**settings, "renderer": "gl"}
 
 
 class Worker:
@@ -82,7 +91,7 @@ class Worker:
         load_s = None
         if key not in self.heads:
             start = time.perf_counter()
-            self.heads[key] = TalkingHead(bundle, resolution=(size, size), **(settings or {}))
+            self.heads[key] = TalkingHead(bundle, resolution=(size, size), **gl_pinned(TalkingHead, settings or {}))
             load_s = time.perf_counter() - start
         kept = [] if save else None
         result = measure_frames(self.heads[key], audio, None, warmup, kept)

@@ -89,16 +89,16 @@ RENDERERS = ("auto", "gl", "cpu")
 class BackendSettings:
     """What runs a TalkingHead: the graph backend `name` ("onnxruntime" or "mnn", docs/mnn.md), its `threads`
     (None: the bundle's preset, else every core for onnxruntime, one for MNN), the GLSL variant compiled,
-    `shader_target` ("330", "410", "300es"; the same pixels, docs/shaders.md), and the `renderer` that splats:
-    "gl", "cpu" (the numba tile splatter, the `cpu` extra) or "auto" (cpu where the GL is a software rasterizer
-    and numba is installed, else gl), and whether the frame loops `pipeline` their stages across frames on worker
-    threads (runtime/pipeline.py; the same frames either way; None: on, False: one stage after another on the
-    caller's thread)."""
+    `shader_target` ("330", "410", "300es"; the same pixels, docs/shaders.md), the `renderer` that splats: "gl",
+    "cpu" (the numba tile splatter, the `cpu` extra) or "auto", the default (cpu where the GL is a software
+    rasterizer or none starts, and numba is installed; gl in an app's GL context or on a GPU), and whether the frame
+    loops `pipeline` their stages across frames on worker threads (runtime/pipeline.py; the same frames either way;
+    None: on, False: one stage after another on the caller's thread)."""
 
     name: str = "onnxruntime"
     threads: int | None = None
     shader_target: str = "330"
-    renderer: str = "gl"
+    renderer: str = "auto"
     pipeline: bool | None = None
 
     def __post_init__(self) -> None:

@@ -1,7 +1,8 @@
 """Which splatter draws a TalkingHead's frames: the OpenGL one or the CPU tile splatter (docs/embedding.md,
 "Renderer").
 
-"auto" tries GL first. Where no GL context can be made, or its shaders cannot be built (no libEGL, a sandbox, a
+"auto" (TalkingHead's default) draws with GL in a GL context the app gives (`gl_context=`: a window's). Otherwise
+it tries GL first. Where no GL context can be made, or its shaders cannot be built (no libEGL, a sandbox, a
 driver below OpenGL 3.3), it draws on the CPU splatter if numba (the `cpu` extra) is installed, and otherwise
 raises one RenderError naming both problems. Where GL starts on a software rasterizer (SOFTWARE_RASTERIZERS), which
 the CPU splatter outdraws (docs/bench/renderers.md), it releases GL for the CPU splatter when numba is installed.
@@ -67,9 +68,9 @@ def make_splatter(renderer: str, *, gl_context=None, settings: RenderSettings | 
             raise SettingsError(f"renderer='cpu' needs numba, the cpu extra: {CPU_EXTRA_HINT}")
         _report(renderer, "cpu", "asked for")
         return _cpu_splatter(settings), "cpu"
-    if renderer == "gl":
+    if renderer == "gl" or gl_context is not None:
         splatter = GLSplatter(gl_context, settings=settings, shader_target=shader_target)
-        _report(renderer, "gl", "asked for")
+        _report(renderer, "gl", "asked for" if renderer == "gl" else "the app gave a GL context to draw in")
         return splatter, "gl"
     try:
         splatter = GLSplatter(gl_context, settings=settings, shader_target=shader_target)
