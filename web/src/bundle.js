@@ -11,6 +11,8 @@ export const FORMAT_MAJOR = 1;
 export const HEADER_SIZE = 64;
 export const ALIGN = 64;
 export const MAX_MANIFEST_BYTES = 16 * 1024 * 1024;
+// Objects and arrays nested deeper than this are refused, as sdk/bundle.py refuses them (MAX_MANIFEST_DEPTH).
+export const MAX_MANIFEST_DEPTH = 64;
 export const MAX_GRAPH_BYTES = 2 ** 31 - 1;
 
 const align = (n) => Math.ceil(n / ALIGN) * ALIGN;
@@ -39,8 +41,9 @@ async function sha256Hex(bytes) {
   return Array.from(digest, (b) => b.toString(16).padStart(2, '0')).join('');
 }
 
-/** The first key given twice in one object of a JSON text, or null. JSON.parse keeps the last silently; two
- * readers could then take different values, so the Python reader refuses such a manifest and so does this one.
+/** The first key given twice in one object of a JSON text, or null; RangeError where it nests deeper than
+ * MAX_MANIFEST_DEPTH. JSON.parse keeps the last of two keys silently; two readers could then take different values,
+ * so the Python reader refuses such a manifest and so does this one.
  * Written by hand: no JSON parser of the platform reports duplicate keys. */
 export function duplicateKey(text) {
   const stack = []; // per open container: a Set of keys (object) or null (array)
@@ -58,11 +61,10 @@ export function duplicateKey(text) {
       }
       expectKey = false;
       i = j;
-    } else if (ch === '{') {
-      stack.push(new Set());
-      expectKey = true;
-    } else if (ch === '[') {
-      stack.push(null);
+    } else if (ch === '{' || ch === '[') {
+      stack.push(ch === '{' ? new Set() : null);
+      expectKey = ch === '{';
+      if (stack.length > MAX_MANIFEST_DEPTH) throw new RangeError('the manifest nests too deep');
     } else if (ch === '}' || ch === ']') {
       stack.pop();
     } else if (ch === ',') {
@@ -280,7 +282,7 @@ function checkEntries(name, manifest, payloadStart, size) {
   }
   for (const [graphName, entry] of Object.entries(manifest.graphs)) {
     const what = label('graph', graphName);
-    const initializers = entry.initializers ?? {};
+    const initializers = entry.initializers === undefined ? {} : entry.initializers;  // null is malformed
     if (!(isObject(initializers) && Object.values(initializers).every((v) => typeof v === 'string'))) {
       throw fail(`${what} has a malformed initializers table`);
     }

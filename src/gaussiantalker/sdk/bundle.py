@@ -37,6 +37,9 @@ FORMAT_MINOR = 1  # 1.1: graphs may be stored zlib-compressed ("compression": "z
 HEADER_SIZE = 64
 ALIGN = 64
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024
+# Objects and arrays nested deeper than this in a manifest are refused (a real one nests about 6 deep): a bound both
+# readers enforce alike (web/src/bundle.js), so neither walks, prints or recurses through a hostile nesting.
+MAX_MANIFEST_DEPTH = 64
 # Largest graph a compressed entry may inflate to (protobuf's own 2 GiB limit): checked before inflating.
 MAX_GRAPH_BYTES = 2**31 - 1
 GRAPH_COMPRESSIONS = ("zlib",)
@@ -170,6 +173,19 @@ def _no_constant(name: str) -> float:
     raise ValueError(f"{name} is not a JSON number")
 
 
+def nests_deeper_than(value: object, limit: int) -> bool:
+    """Whether a parsed JSON value holds an object or array more than `limit` deep (the top level is 1), walked
+    without recursion."""
+    stack = [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, dict | list):
+            if depth > limit:
+                return True
+            stack.extend((child, depth + 1) for child in (item.values() if isinstance(item, dict) else item))
+    return False
+
+
 def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
     """A JSON object's pairs as a dict; a key given twice is refused (two readers could take different values)."""
     data = dict(pairs)
@@ -190,8 +206,13 @@ def _codec_params(codec: dict) -> dict:
     return {k: v for k, v in codec.items() if k != "name"}
 
 
+# The largest integer a manifest may hold: 2^53 - 1, the largest every JSON reader (JavaScript's numbers) holds
+# exactly, so that the Python and the browser readers take the same values (web/src/bundle.js `isInt`).
+MAX_JSON_INT = 2**53 - 1
+
+
 def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, int) and not isinstance(value, bool) and -MAX_JSON_INT <= value <= MAX_JSON_INT
 
 
 def _is_sha256(value) -> bool:
@@ -229,12 +250,16 @@ class Bundle:
         try:
             manifest = json.loads(manifest_bytes.decode("utf-8"), object_pairs_hook=_unique_keys,
                                   parse_constant=_no_constant)
+            if nests_deeper_than(manifest, MAX_MANIFEST_DEPTH):
+                raise RecursionError
         except (UnicodeDecodeError, ValueError, RecursionError) as exc:
             detail = "it nests too deep" if isinstance(exc, RecursionError) else " ".join(str(exc).split())[:200]
             raise BundleError(f"{self.path}: manifest is not valid JSON: {detail}") from None
         if not isinstance(manifest, dict) or manifest.get("format") != "gaussiantalker-bundle":
             raise BundleError(f"{self.path}: manifest does not describe a gaussiantalker-bundle")
-        if manifest.get("version") != [major, minor]:
+        version = manifest.get("version")
+        if not (isinstance(version, list) and len(version) == 2 and all(map(_is_int, version))
+                and version == [major, minor]):
             raise BundleError(f"{self.path}: header says format version {major}.{minor} but the manifest says "
                               f"{manifest.get('version')!r} (corrupt header)")
         payload_start = HEADER_SIZE + _align(manifest_len)
