@@ -1,8 +1,9 @@
-"""The browser player's bundle reader (web/src/bundle.js, run by node) on the same seeded mutations as the Python
-reader's fuzz (tests/test_fuzz_readers.py): header fields set to 0/-1/huge, bytes mutated anywhere, manifest values
-swapped under a matching digest. Every case either loads (every buffer decoded, every graph's bytes read) or is
-refused with one BundleError line naming the file, never another exception or a hang, and the JS reader's verdict
-is the Python reader's, case by case (docs/web.md, "Reading a bundle").
+"""The browser player's readers of a user's bytes, run by node on seeded mutations: the bundle reader
+(web/src/bundle.js) on the Python reader's bundle cases (tests/test_fuzz_readers.py: header fields set to 0/-1/huge,
+bytes mutated anywhere, manifest values swapped under a matching digest), the motion file reader (web/src/drive.js)
+on LAM motion JSON, and the live drive decoder (web/src/live.js) on drive messages. Every case either loads or is
+refused with the reader's own error (one line; naming the file where there is one), never another exception or a
+hang, and each JS reader's verdict is its Python twin's, case by case (docs/web.md, "Rejections").
 
 Needs node (.ci/browser's npm brings it in CI, where this test fails without it)."""
 
@@ -13,6 +14,7 @@ import shutil
 import struct
 import subprocess
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -133,9 +135,12 @@ def test_both_readers_bound_the_manifest_alike():
     from gaussiantalker.sdk import bundle
 
     source = (ROOT / "web" / "src" / "bundle.js").read_text()
-    for name in ("MAX_MANIFEST_BYTES", "MAX_MANIFEST_DEPTH"):
+    from gaussiantalker.sdk import json_bounds
+
+    bounds = {"MAX_MANIFEST_BYTES": bundle.MAX_MANIFEST_BYTES, "MAX_JSON_DEPTH": json_bounds.MAX_JSON_DEPTH}
+    for name, value in bounds.items():
         (expression,) = re.findall(rf"export const {name} = ([0-9 *]+);", source)
-        assert eval(expression, {"__builtins__": {}}) == getattr(bundle, name), name  # digits and * only
+        assert eval(expression, {"__builtins__": {}}) == value, name  # digits and * only
 
 
 def test_a_manifest_nesting_past_the_bound_is_refused(small_bundle, tmp_path):  # noqa: F811
@@ -149,3 +154,145 @@ def test_a_manifest_nesting_past_the_bound_is_refused(small_bundle, tmp_path):  
         assert _python_verdict(path) == verdict, depth
     with pytest.raises(BundleError, match="manifest is not valid JSON: it nests too deep"):
         Bundle(path)
+
+
+# -- motion files and live drive messages --------------------------------------------------------------------------
+
+READERS = """
+import fs from 'node:fs';
+import { readMotion, motionAtFps, DriveError } from %(drive_js)s;
+import { decodeDrive, DriveFormatError } from %(live_js)s;
+const read = {
+  motion: (path) => motionAtFps(readMotion(fs.readFileSync(path), path), 30),
+  drive: (path) => decodeDrive(fs.readFileSync(path)),
+};
+const refusal = { motion: DriveError, drive: DriveFormatError };
+const { kind, paths } = JSON.parse(fs.readFileSync(%(list)s, 'utf8'));
+const results = [];
+for (const path of paths) {
+  try {
+    read[kind](path);
+    results.push({ verdict: 'loaded' });
+  } catch (error) {
+    results.push({ verdict: error instanceof refusal[kind] ? 'refused' : 'crashed',
+                   message: `${error?.constructor?.name}: ${error?.message}` });
+  }
+}
+console.log(JSON.stringify(results));
+"""
+
+
+def _web_verdicts(kind: str, paths: list[Path], folder: Path) -> list[dict]:
+    """What the JS reader of `kind` ("motion" or "drive") says of each file."""
+    node = shutil.which("node")
+    need(None if node else "node is missing (Debian's npm brings it)", BROWSER_INSTALL)
+    listing = folder / "cases.json"
+    listing.write_text(json.dumps({"kind": kind, "paths": [str(path) for path in paths]}))
+    script = folder / "readers.mjs"
+    script.write_text(READERS % {"drive_js": json.dumps((ROOT / "web" / "src" / "drive.js").as_uri()),
+                                 "live_js": json.dumps((ROOT / "web" / "src" / "live.js").as_uri()),
+                                 "list": json.dumps(str(listing))})
+    done = subprocess.run([node, str(script)], capture_output=True, text=True, timeout=NODE_TIMEOUT_S)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout)
+
+
+def _disagreements(cases: list[tuple[Path, str]], web: list[dict], python_verdict, names_file: bool) -> list[str]:
+    """Every case where the JS reader crashed, wrote a bad message, or disagreed with Python."""
+    problems = []
+    for (path, what), result in zip(cases, web, strict=True):
+        where = f"{path.name} ({what})"
+        if result["verdict"] == "crashed":
+            problems.append(f"{where}: not the reader's error: {result['message'][:300]}")
+            continue
+        message = result.get("message", "")
+        if result["verdict"] == "refused" and ("\n" in message or (names_file and str(path) not in message)):
+            problems.append(f"{where}: the message is not one line naming the file: {message[:300]!r}")
+        python = python_verdict(path)
+        if python != result["verdict"]:
+            problems.append(f"{where}: Python {python}, web {result['verdict']} ({message[:200]})")
+    return problems
+
+
+@pytest.mark.parametrize("run, seed", [pytest.param("ci", 0, id="ci"),
+                                       pytest.param("heavy", 1000, id="heavy", marks=pytest.mark.heavy)])
+def test_fuzz_the_web_motion_reader(tmp_path, run, seed):
+    """LAM motion JSON (the documents tests/test_fuzz_readers.py mutates) through `readMotion` and `motionAtFps`
+    against `runtime.motions.arkit_motion` at 30 fps."""
+    from lam_avatars import motion_json
+
+    from gaussiantalker.runtime.motions import arkit_motion
+    from gaussiantalker.sdk.errors import DriveError
+    from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
+
+    documents = [motion_json(), {"frames": [{"jawOpen": 0.5, "eyeBlinkLeft": 1.0}] * 5},
+                 {"names": list(ARKIT_BLENDSHAPES[:3]), "frames": [{"weights": [0.1, 0.2, 0.3], "time": t / 30}
+                                                                   for t in range(6)], "head_pose": [[0, 0, 0]]}]
+    rng = np.random.default_rng(seed + 7)
+    cases = []
+    for index in range(CASES[run]):
+        document = documents[index % len(documents)]
+        if rng.random() < 0.75:
+            changed, what = mutate_json(document, rng)
+            data = dumps(changed)
+        else:
+            data, what = mutate_bytes(json.dumps(document).encode(), rng)
+        path = tmp_path / f"motion{index:05d}.json"
+        path.write_bytes(data)
+        cases.append((path, what))
+
+    def python_verdict(path: Path) -> str:
+        try:
+            arkit_motion(path, None, 30, "speaker")
+        except DriveError:
+            return "refused"
+        return "loaded"
+
+    web = _web_verdicts("motion", [path for path, _ in cases], tmp_path)
+    problems = _disagreements(cases, web, python_verdict, names_file=True)
+    assert not problems, "\n".join(problems[:20]) + f"\n({len(problems)} in all)"
+    assert sum(r["verdict"] == "loaded" for r in web) > 0
+
+
+@pytest.mark.parametrize("run, seed", [pytest.param("ci", 0, id="ci"),
+                                       pytest.param("heavy", 1000, id="heavy", marks=pytest.mark.heavy)])
+def test_fuzz_the_web_drive_decoder(tmp_path, run, seed):
+    """Live drive messages (samples/live_server.py `encode_drive`, FLAME and ARKit) with header fields set to
+    0/-1/huge, bytes mutated anywhere and values made non-finite, through `decodeDrive` against `decode_drive`."""
+    from test_live_web import _server_module
+
+    server = _server_module()
+    flame = SimpleNamespace(expression=np.linspace(-1, 1, 10, dtype=np.float32),
+                            flame_pose=np.full(15, 0.1, np.float32), head_translation=np.zeros(3, np.float32))
+    arkit = SimpleNamespace(blendshapes=np.linspace(0, 1, 52, dtype=np.float32),
+                            head_rotation=np.zeros(3, np.float32), head_translation=np.ones(3, np.float32))
+    messages = [server.encode_drive(7, 0.28, flame, True, 2), server.encode_drive(0, 0.0, arkit, False, 0)]
+    fields = [(4, 1), (5, 1), (6, 1), (7, 1), (8, 4), (12, 4), (16, 8), (24, 2), (26, 2)]
+    rng = np.random.default_rng(seed + 11)
+    cases = []
+    for index in range(CASES[run]):
+        message, choice = messages[index % 2], rng.random()
+        if choice < 0.4:
+            data, what = mutate_field_bytes(message, rng, fields)
+        elif choice < 0.55:
+            values = bytearray(message)
+            at = server.DRIVE_HEADER.size + 4 * int(rng.integers((len(message) - server.DRIVE_HEADER.size) // 4))
+            values[at:at + 4] = struct.pack("<f", float(rng.choice([np.nan, np.inf, -np.inf, 3e38, -0.0])))
+            data, what = bytes(values), f"value at byte {at} replaced"
+        else:
+            data, what = mutate_bytes(message, rng, protect=4 if choice < 0.85 else 0)
+        path = tmp_path / f"drive{index:05d}.bin"
+        path.write_bytes(data)
+        cases.append((path, what))
+
+    def python_verdict(path: Path) -> str:
+        try:
+            server.decode_drive(path.read_bytes())
+        except server.DriveFormatError:
+            return "refused"
+        return "loaded"
+
+    web = _web_verdicts("drive", [path for path, _ in cases], tmp_path)
+    problems = _disagreements(cases, web, python_verdict, names_file=False)
+    assert not problems, "\n".join(problems[:20]) + f"\n({len(problems)} in all)"
+    assert 0 < sum(r["verdict"] == "loaded" for r in web) < len(cases)

@@ -11,8 +11,9 @@ export const FORMAT_MAJOR = 1;
 export const HEADER_SIZE = 64;
 export const ALIGN = 64;
 export const MAX_MANIFEST_BYTES = 16 * 1024 * 1024;
-// Objects and arrays nested deeper than this are refused, as sdk/bundle.py refuses them (MAX_MANIFEST_DEPTH).
-export const MAX_MANIFEST_DEPTH = 64;
+// Objects and arrays nested deeper than this are refused, as sdk/json_bounds.py refuses them (MAX_JSON_DEPTH).
+export const MAX_JSON_DEPTH = 64;
+export const MAX_MANIFEST_DEPTH = MAX_JSON_DEPTH;
 export const MAX_GRAPH_BYTES = 2 ** 31 - 1;
 
 const align = (n) => Math.ceil(n / ALIGN) * ALIGN;
@@ -39,6 +40,25 @@ function bytesRepr(bytes) {
 async function sha256Hex(bytes) {
   const digest = new Uint8Array(await crypto.subtle.digest('SHA-256', bytes));
   return Array.from(digest, (b) => b.toString(16).padStart(2, '0')).join('');
+}
+
+/** Whether a JSON text holds an object or array more than `limit` deep (the top level is 1), as sdk/json_bounds.py
+ * `nests_deeper_than` says of the parsed value. */
+export function nestsDeeperThan(text, limit) {
+  let depth = 0;
+  for (let i = 0; i < text.length; i++) {
+    const ch = text[i];
+    if (ch === '"') {
+      let j = i + 1;
+      while (j < text.length && text[j] !== '"') j += text[j] === '\\' ? 2 : 1;
+      i = j;
+    } else if (ch === '{' || ch === '[') {
+      if (++depth > limit) return true;
+    } else if (ch === '}' || ch === ']') {
+      depth -= 1;
+    }
+  }
+  return false;
 }
 
 /** The first key given twice in one object of a JSON text, or null; RangeError where it nests deeper than

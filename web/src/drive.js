@@ -13,6 +13,7 @@ import {
   ARKIT_BLENDSHAPES, CONTEXT_FRAMES, CROSSFADE_FRAMES, DEFAULT_MOTION_FPS, MAX_DRIVE_MAGNITUDE, MAX_MOTION_FILE_BYTES,
   MAX_MOTION_FRAMES, SILENCE_GATE_DBFS, SILENCE_GATE_RAMP_DB, WINDOW_FRAMES,
 } from './generated.js';
+import { MAX_JSON_DEPTH, nestsDeeperThan } from './bundle.js';
 
 export class DriveError extends Error {
   constructor(message) {
@@ -204,7 +205,7 @@ const isNumber = (v) => typeof v === 'number' && Number.isFinite(v);
 function frameWeights(frame, names, index, where) {
   let weights = frame;
   if (frame !== null && typeof frame === 'object' && !Array.isArray(frame)) {
-    if (!('weights' in frame)) return names.map((name) => frame[name] ?? 0.0);
+    if (!('weights' in frame)) return names.map((name) => (Object.hasOwn(frame, name) ? frame[name] : 0.0));
     weights = frame.weights;
   }
   if (!Array.isArray(weights) || weights.length !== names.length) {
@@ -299,7 +300,9 @@ export function readMotion(text, where = 'motion file') {
   }
   let data;
   try {
-    data = JSON.parse(typeof text === 'string' ? text : new TextDecoder('utf-8', { fatal: true }).decode(text));
+    const json = typeof text === 'string' ? text : new TextDecoder('utf-8', { fatal: true }).decode(text);
+    data = JSON.parse(json);
+    if (nestsDeeperThan(json, MAX_JSON_DEPTH)) throw new RangeError('the motion file nests too deep');
   } catch (error) {
     const detail = error instanceof RangeError ? 'it nests too deep' : error.message.slice(0, 200);
     throw new DriveError(`${where} is not JSON: ${detail}`);

@@ -30,6 +30,7 @@ import numpy as np
 from .codecs import encode_buffer, expected_nbytes, get_codec
 from .errors import BundleError
 from .files import StagedFile, atomic_write
+from .json_bounds import MAX_JSON_DEPTH, MAX_JSON_INT, nests_deeper_than, no_constant
 
 MAGIC = b"GTBUNDLE"
 FORMAT_MAJOR = 1
@@ -37,9 +38,7 @@ FORMAT_MINOR = 1  # 1.1: graphs may be stored zlib-compressed ("compression": "z
 HEADER_SIZE = 64
 ALIGN = 64
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024
-# Objects and arrays nested deeper than this in a manifest are refused (a real one nests about 6 deep): a bound both
-# readers enforce alike (web/src/bundle.js), so neither walks, prints or recurses through a hostile nesting.
-MAX_MANIFEST_DEPTH = 64
+MAX_MANIFEST_DEPTH = MAX_JSON_DEPTH  # objects and arrays nested deeper are refused (sdk/json_bounds.py)
 # Largest graph a compressed entry may inflate to (protobuf's own 2 GiB limit): checked before inflating.
 MAX_GRAPH_BYTES = 2**31 - 1
 GRAPH_COMPRESSIONS = ("zlib",)
@@ -168,24 +167,6 @@ class _Manifest(dict):
         raise BundleError(f"{self.path}: manifest has no {key!r} section")
 
 
-def _no_constant(name: str) -> float:
-    """Python's json reads NaN, Infinity and -Infinity, which JSON does not have (and other readers refuse)."""
-    raise ValueError(f"{name} is not a JSON number")
-
-
-def nests_deeper_than(value: object, limit: int) -> bool:
-    """Whether a parsed JSON value holds an object or array more than `limit` deep (the top level is 1), walked
-    without recursion."""
-    stack = [(value, 1)]
-    while stack:
-        item, depth = stack.pop()
-        if isinstance(item, dict | list):
-            if depth > limit:
-                return True
-            stack.extend((child, depth + 1) for child in (item.values() if isinstance(item, dict) else item))
-    return False
-
-
 def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
     """A JSON object's pairs as a dict; a key given twice is refused (two readers could take different values)."""
     data = dict(pairs)
@@ -204,11 +185,6 @@ def _label(kind: str, name: str) -> str:
 def _codec_params(codec: dict) -> dict:
     """A manifest codec entry's parameters (everything but its name)."""
     return {k: v for k, v in codec.items() if k != "name"}
-
-
-# The largest integer a manifest may hold: 2^53 - 1, the largest every JSON reader (JavaScript's numbers) holds
-# exactly, so that the Python and the browser readers take the same values (web/src/bundle.js `isInt`).
-MAX_JSON_INT = 2**53 - 1
 
 
 def _is_int(value) -> bool:
@@ -249,7 +225,7 @@ class Bundle:
             raise BundleError(f"{self.path}: manifest checksum mismatch (corrupt manifest or header)")
         try:
             manifest = json.loads(manifest_bytes.decode("utf-8"), object_pairs_hook=_unique_keys,
-                                  parse_constant=_no_constant)
+                                  parse_constant=no_constant)
             if nests_deeper_than(manifest, MAX_MANIFEST_DEPTH):
                 raise RecursionError
         except (UnicodeDecodeError, ValueError, RecursionError) as exc:

@@ -19,6 +19,7 @@ import numpy as np
 
 from .drive import MAX_DRIVE_MAGNITUDE
 from .errors import DriveError
+from .json_bounds import MAX_JSON_DEPTH, nests_deeper_than, no_constant
 from .rig import ARKIT_BLENDSHAPES
 
 # A motion file whose frames give no rate (no metadata fps, fewer than two times) plays at LAM's 30 fps.
@@ -135,6 +136,8 @@ def parse_motion(data: object, where: str = "motion") -> MotionTrack:
     if len(set(names)) != len(names):
         raise DriveError(f"{where}: 'names' lists a blendshape twice")
     rows = [_frame_weights(frame, names, i, where) for i, frame in enumerate(frames)]
+    if any(isinstance(value, bool) for row in rows if isinstance(row, list) for value in row):
+        raise DriveError(f"{where}: frame weights must be numbers, one per name")  # JSON's true is not 1.0
     try:
         table = np.asarray(rows, np.float64)
     except (TypeError, ValueError, OverflowError) as exc:
@@ -156,7 +159,9 @@ def load_motion(path: str | os.PathLike) -> MotionTrack:
         size = path.stat().st_size
         if size > MAX_MOTION_FILE_BYTES:
             raise DriveError(f"motion file {path} is {size} bytes, over the {MAX_MOTION_FILE_BYTES} byte limit")
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(path.read_text(encoding="utf-8"), parse_constant=no_constant)
+        if nests_deeper_than(data, MAX_JSON_DEPTH):
+            raise RecursionError
     except OSError as exc:
         raise DriveError(f"cannot read motion file {path}: {exc.strerror or exc}") from None
     except (UnicodeDecodeError, ValueError, RecursionError) as exc:
