@@ -426,19 +426,99 @@ def spoken_text(text: str) -> tuple[np.ndarray, int]:
         path.unlink(missing_ok=True)
 
 
+class Sessions:
+    """The open sessions of one app (either kind), by connection and by the id each page holds; the background
+    tasks (voice sources, failure handling), held until they end; and the routes both kinds share: close, stats,
+    health and shutdown."""
+
+    def __init__(self, thread_name: str, threads_key: str, failed: str) -> None:
+        self.by_connection: dict[RTCPeerConnection, Session | DriveSession] = {}
+        self.by_id: dict[str, RTCPeerConnection] = {}
+        self.tasks: set[asyncio.Task] = set()
+        self.thread_name, self.threads_key, self.failed = thread_name, threads_key, failed
+
+    def background(self, coroutine) -> asyncio.Task:
+        task = asyncio.ensure_future(coroutine)
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+        return task
+
+    def add(self, pc: RTCPeerConnection, session_id: str, session) -> None:
+        self.by_connection[pc] = session
+        self.by_id[session_id] = pc
+
+    def session_of(self, session_id: str) -> tuple[RTCPeerConnection, Session | DriveSession]:
+        """The connection and session a page's id names; 404 when it is closed or was never open."""
+        pc = self.by_id.get(session_id.strip())
+        if pc is None or pc not in self.by_connection:
+            raise web.HTTPNotFound(text=f"no live session {session_id.strip()[:40]!r} (already closed?)")
+        return pc, self.by_connection[pc]
+
+    async def fail(self, pc: RTCPeerConnection, session_id: str, error: BaseException) -> None:
+        """A frame (or drive) raised, which ended the session: log it once, tell the page, and close the session
+        when the page has left, ERROR_GRACE_S at most."""
+        log.error("live session %s ended: %s", session_id, self.failed, exc_info=error)
+        session = self.by_connection.get(pc)
+        if session is None:  # already closed
+            return
+        session.tell({"error": f"the live session ended: {type(error).__name__}: {error}"})
+        try:
+            await asyncio.wait_for(session.closed.wait(), ERROR_GRACE_S)
+        except asyncio.TimeoutError:  # not the builtin before Python 3.11
+            pass
+        await self.close(pc)
+
+    async def close(self, pc: RTCPeerConnection) -> None:
+        session = self.by_connection.pop(pc, None)
+        for key in [key for key, value in self.by_id.items() if value is pc]:
+            del self.by_id[key]
+        if session is not None:
+            if getattr(session, "voice", None) is not None:
+                session.voice.cancel()
+            await asyncio.get_running_loop().run_in_executor(None, session.stop)
+            session.closed.set()
+        await pc.close()
+
+    def watch(self, pc: RTCPeerConnection) -> None:
+        """Close the session when its connection fails or closes."""
+        @pc.on("connectionstatechange")
+        async def on_state() -> None:
+            if pc.connectionState in ("failed", "closed"):
+                await self.close(pc)
+
+    async def leave(self, request: web.Request) -> web.Response:
+        """The page is leaving (its Stop button, or unload through sendBeacon): end its session now."""
+        pc, _ = self.session_of(await request.text())
+        await self.close(pc)
+        return web.Response(status=204)
+
+    async def stats(self, request: web.Request) -> web.Response:
+        return web.json_response([session.summary() for session in self.by_connection.values()])
+
+    async def health(self, request: web.Request) -> web.Response:
+        """Open sessions and their running threads: both drop to 0 when every browser has left."""
+        threads = sum(thread.name == self.thread_name for thread in threading.enumerate())
+        return web.json_response({"sessions": len(self.by_connection), self.threads_key: threads})
+
+    async def shutdown(self, app: web.Application) -> None:
+        await asyncio.gather(*(self.close(pc) for pc in list(self.by_connection)))
+        for task in list(self.tasks):
+            task.cancel()
+
+    def route(self, app: web.Application) -> None:
+        """The shared routes and the shutdown hook."""
+        app.router.add_get("/stats", self.stats)
+        app.router.add_get("/health", self.health)
+        app.router.add_post("/close", self.leave)
+        app.on_shutdown.append(self.shutdown)
+
+
 def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, renderer: str = "auto",
              client_render: bool = False) -> web.Application:
     app = web.Application()
     if client_render:
         return make_client_render_app(app, bundle, lookahead_ms, speech, renderer)
-    sessions: dict[RTCPeerConnection, Session] = {}
-    connections: dict[str, RTCPeerConnection] = {}  # the id each page holds -> its connection
-    tasks: set[asyncio.Task] = set()  # voice sources and failure handling: held until they end
-
-    def background(coroutine) -> None:
-        task = asyncio.ensure_future(coroutine)
-        tasks.add(task)
-        task.add_done_callback(tasks.discard)
+    sessions = Sessions(Session.THREAD_NAME, "render_threads", "rendering a frame raised")
 
     async def index(request: web.Request) -> web.Response:
         return web.Response(text=PAGE.read_text(), content_type="text/html")
@@ -457,24 +537,20 @@ def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, rendere
         pc = RTCPeerConnection()
         session_id = uuid.uuid4().hex
         session = Session(bundle, size, lookahead_ms, renderer, loop,
-                          on_error=lambda error: background(fail(pc, session_id, error)))
-        sessions[pc] = session
-        connections[session_id] = pc
+                          on_error=lambda error: sessions.background(sessions.fail(pc, session_id, error)))
+        sessions.add(pc, session_id, session)
 
         @pc.on("track")
         def on_track(track: MediaStreamTrack) -> None:
             if track.kind == "audio" and source == "mic":
-                background(push_track(session.live, track))
+                sessions.background(push_track(session.live, track))
 
         @pc.on("datachannel")
         def on_channel(channel) -> None:
             if channel.label == "control":
                 session.attach(channel)
 
-        @pc.on("connectionstatechange")
-        async def on_state() -> None:
-            if pc.connectionState in ("failed", "closed"):
-                await close(pc)
+        sessions.watch(pc)
 
         try:
             await loop.run_in_executor(None, session.start)
@@ -483,7 +559,7 @@ def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, rendere
                 log.error("live session %s could not start: %s", session_id, exc)
             else:
                 log.error("live session %s could not start", session_id, exc_info=exc)
-            await close(pc)
+            await sessions.close(pc)
             return web.Response(status=500, text=f"the live session could not start: {type(exc).__name__}: {exc}")
         try:
             pc.addTrack(session.video)
@@ -491,64 +567,16 @@ def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, rendere
             await pc.setRemoteDescription(RTCSessionDescription(sdp=params["sdp"], type=params["type"]))
             await pc.setLocalDescription(await pc.createAnswer())
         except BaseException:
-            await close(pc)
+            await sessions.close(pc)
             raise
         if voice is not None:
-            background(push_real_time(session.live, *voice))
+            sessions.background(push_real_time(session.live, *voice))
         return web.json_response({"sdp": pc.localDescription.sdp, "type": pc.localDescription.type,
                                   "session": session_id})
 
-    async def fail(pc: RTCPeerConnection, session_id: str, error: BaseException) -> None:
-        """A frame raised, which ended the session: log it once, tell the page, and close the session when the
-        page has left, ERROR_GRACE_S at most."""
-        log.error("live session %s ended: rendering a frame raised", session_id, exc_info=error)
-        session = sessions.get(pc)
-        if session is None:  # already closed
-            return
-        session.tell({"error": f"the live session ended: {type(error).__name__}: {error}"})
-        try:
-            await asyncio.wait_for(session.closed.wait(), ERROR_GRACE_S)
-        except asyncio.TimeoutError:  # not the builtin before Python 3.11
-            pass
-        await close(pc)
-
-    async def close(pc: RTCPeerConnection) -> None:
-        session = sessions.pop(pc, None)
-        for key in [key for key, value in connections.items() if value is pc]:
-            del connections[key]
-        if session is not None:
-            await asyncio.get_running_loop().run_in_executor(None, session.stop)
-            session.closed.set()
-        await pc.close()
-
-    async def leave(request: web.Request) -> web.Response:
-        """The page is leaving (its Stop button, or unload through sendBeacon): end its session now."""
-        session_id = (await request.text()).strip()
-        pc = connections.get(session_id)
-        if pc is None:
-            raise web.HTTPNotFound(text=f"no live session {session_id[:40]!r} (already closed?)")
-        await close(pc)
-        return web.Response(status=204)
-
-    async def stats(request: web.Request) -> web.Response:
-        return web.json_response([session.summary() for session in sessions.values()])
-
-    async def health(request: web.Request) -> web.Response:
-        """Open sessions and running render threads: both drop to 0 when every browser has left."""
-        threads = sum(thread.name == Session.THREAD_NAME for thread in threading.enumerate())
-        return web.json_response({"sessions": len(sessions), "render_threads": threads})
-
-    async def on_shutdown(app: web.Application) -> None:
-        await asyncio.gather(*(close(pc) for pc in list(sessions)))
-        for task in list(tasks):
-            task.cancel()
-
     app.router.add_get("/", index)
     app.router.add_post("/offer", offer)
-    app.router.add_get("/stats", stats)
-    app.router.add_get("/health", health)
-    app.router.add_post("/close", leave)
-    app.on_shutdown.append(on_shutdown)
+    sessions.route(app)
     return app
 
 
@@ -559,15 +587,7 @@ def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: flo
     # Its driver only (the translator; no frame is drawn). One intra-op thread: the sessions' threads are the
     # parallelism, and onnxruntime's spinning worker threads would only compete with them.
     head = TalkingHead(bundle, composite=False, renderer=renderer, resolution=(16, 16), threads=1)
-    sessions: dict[RTCPeerConnection, DriveSession] = {}
-    connections: dict[str, RTCPeerConnection] = {}
-    tasks: set[asyncio.Task] = set()
-
-    def background(coroutine) -> asyncio.Task:
-        task = asyncio.ensure_future(coroutine)
-        tasks.add(task)
-        task.add_done_callback(tasks.discard)
-        return task
+    sessions = Sessions(DriveSession.THREAD_NAME, "driver_threads", "its driver raised")
 
     async def page(request: web.Request) -> web.Response:
         return web.Response(text=WEB_PAGE.read_text(), content_type="text/html")
@@ -603,88 +623,36 @@ def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: flo
             voice = await loop.run_in_executor(None, spoken_text, str(params.get("text", "Hello.")))
         pc = RTCPeerConnection()
         session_id = uuid.uuid4().hex
-        session = DriveSession(head, lookahead_ms, loop, on_error=lambda error: background(fail(pc, session_id,
-                                                                                                  error)))
-        sessions[pc] = session
-        connections[session_id] = pc
+        session = DriveSession(head, lookahead_ms, loop,
+                               on_error=lambda error: sessions.background(sessions.fail(pc, session_id, error)))
+        sessions.add(pc, session_id, session)
         pc.on("datachannel", session.attach)
-
-        @pc.on("connectionstatechange")
-        async def on_state() -> None:
-            if pc.connectionState in ("failed", "closed"):
-                await close(pc)
-
+        sessions.watch(pc)
         try:
             pc.addTrack(session.audio)
             await pc.setRemoteDescription(RTCSessionDescription(sdp=params["sdp"], type=params["type"]))
             await pc.setLocalDescription(await pc.createAnswer())
         except BaseException:
-            await close(pc)
+            await sessions.close(pc)
             raise
         session.start()
         await loop.run_in_executor(None, session.started.wait, 10.0)
         if voice is not None:
-            session.voice = background(push_real_time(session.live, *voice, chunk_s=chunk_ms / 1000))
+            session.voice = sessions.background(push_real_time(session.live, *voice, chunk_s=chunk_ms / 1000))
         # start_time: time.monotonic() when frame 0 was due (a load client on this machine compares arrivals).
         return web.json_response({"sdp": pc.localDescription.sdp, "type": pc.localDescription.type,
                                   "session": session_id, "fps": head.fps, "start_time": session.start_time})
 
-    async def fail(pc: RTCPeerConnection, session_id: str, error: BaseException) -> None:
-        log.error("live session %s ended: its driver raised", session_id, exc_info=error)
-        session = sessions.get(pc)
-        if session is None:
-            return
-        session.tell({"error": f"the live session ended: {type(error).__name__}: {error}"})
-        try:
-            await asyncio.wait_for(session.closed.wait(), ERROR_GRACE_S)
-        except asyncio.TimeoutError:
-            pass
-        await close(pc)
-
-    async def close(pc: RTCPeerConnection) -> None:
-        session = sessions.pop(pc, None)
-        for key in [key for key, value in connections.items() if value is pc]:
-            del connections[key]
-        if session is not None:
-            if session.voice is not None:
-                session.voice.cancel()
-            await asyncio.get_running_loop().run_in_executor(None, session.stop)
-            session.closed.set()
-        await pc.close()
-
-    def session_of(session_id: str) -> tuple[RTCPeerConnection, DriveSession]:
-        pc = connections.get(session_id.strip())
-        if pc is None or pc not in sessions:
-            raise web.HTTPNotFound(text=f"no live session {session_id.strip()[:40]!r} (already closed?)")
-        return pc, sessions[pc]
-
-    async def leave(request: web.Request) -> web.Response:
-        pc, _ = session_of(await request.text())
-        await close(pc)
-        return web.Response(status=204)
-
     async def interrupt(request: web.Request) -> web.Response:
-        _, session = session_of(await request.text())
+        _, session = sessions.session_of(await request.text())
         return web.json_response(session.interrupt())
 
     async def drives(request: web.Request) -> web.Response:
         """The session's recorded drive messages (the last DriveSession.RECORDED), concatenated, each preceded by
         its length (u16): what the tests compare the page's received drives with."""
-        _, session = session_of(request.query.get("session", ""))
+        _, session = sessions.session_of(request.query.get("session", ""))
         body = b"".join(struct.pack("<H", len(m)) + m for m in list(session.recorded))
         return web.Response(body=body, content_type="application/octet-stream")
-
-    async def stats(request: web.Request) -> web.Response:
-        return web.json_response([session.summary() for session in sessions.values()])
-
-    async def health(request: web.Request) -> web.Response:
-        threads = sum(thread.name == DriveSession.THREAD_NAME for thread in threading.enumerate())
-        return web.json_response({"sessions": len(sessions), "driver_threads": threads})
-
-    async def on_shutdown(app: web.Application) -> None:
-        await asyncio.gather(*(close(pc) for pc in list(sessions)))
-        for task in list(tasks):
-            task.cancel()
 
     async def on_cleanup(app: web.Application) -> None:
         head.close()
@@ -694,11 +662,8 @@ def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: flo
     app.router.add_get("/bundle", serve_bundle)
     app.router.add_post("/offer", offer)
     app.router.add_post("/interrupt", interrupt)
-    app.router.add_post("/close", leave)
     app.router.add_get("/drives", drives)
-    app.router.add_get("/stats", stats)
-    app.router.add_get("/health", health)
-    app.on_shutdown.append(on_shutdown)
+    sessions.route(app)
     app.on_cleanup.append(on_cleanup)
     return app
 
