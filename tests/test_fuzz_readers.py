@@ -498,28 +498,38 @@ def _npy(value) -> bytes:
 # -- motion files ------------------------------------------------------------------------------------------------
 
 
+def motion_documents() -> list[dict]:
+    """LAM motion JSON of each kind the loader reads: bsData.json's layout, {name: weight} frames, named weights
+    with times and a head pose."""
+    from lam_avatars import motion_json
+
+    from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
+
+    return [motion_json(), {"frames": [{"jawOpen": 0.5, "eyeBlinkLeft": 1.0}] * 5},
+            {"names": list(ARKIT_BLENDSHAPES[:3]), "frames": [{"weights": [0.1, 0.2, 0.3], "time": t / 30}
+                                                              for t in range(6)], "head_pose": [[0, 0, 0]]}]
+
+
+def mutated_motion(document: dict, rng: np.random.Generator) -> tuple[bytes, str]:
+    """One seeded mutation of a motion document's JSON values (3 in 4) or of its bytes, and what was done."""
+    if rng.random() < 0.75:
+        changed, what = mutate_json(document, rng)
+        return dumps(changed), what
+    return mutate_bytes(json.dumps(document).encode(), rng)
+
+
 @pytest.mark.parametrize("heavy, seed", RUNS)
 def test_fuzz_arkit_motion_json(tmp_path, heavy, seed):
     """LAM motion JSON (bsData.json's layout; LAM_WebRender's and {name: weight} frames too) with values swapped
     for huge numbers, wrong types, deep nesting, and bytes mutated: the runtime's motion loader (the path a
     `motion=` argument takes) loads or refuses with DriveError naming the file."""
-    from lam_avatars import motion_json
-
     from gaussiantalker.runtime.motions import arkit_motion
-    from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
 
-    documents = [motion_json(), {"frames": [{"jawOpen": 0.5, "eyeBlinkLeft": 1.0}] * 5},
-                 {"names": list(ARKIT_BLENDSHAPES[:3]), "frames": [{"weights": [0.1, 0.2, 0.3], "time": t / 30}
-                                                                   for t in range(6)], "head_pose": [[0, 0, 0]]}]
+    documents = motion_documents()
 
     def make(rng: np.random.Generator, index: int) -> Case:
         path = tmp_path / "motion.json"
-        document = documents[index % len(documents)]
-        if rng.random() < 0.75:
-            changed, what = mutate_json(document, rng)
-            data = dumps(changed)
-        else:
-            data, what = mutate_bytes(json.dumps(document).encode(), rng)
+        data, what = mutated_motion(documents[index % len(documents)], rng)
         path.write_bytes(data)
         return Case(what, path, str(path))
 
@@ -579,27 +589,38 @@ def _bundle_with_manifest(data: bytes, manifest: bytes) -> bytes:
     return header + manifest + b"\0" * (_align(len(manifest)) - len(manifest)) + payload
 
 
+def bundle_manifest(data: bytes) -> dict:
+    """The parsed manifest of a bundle's bytes."""
+    from gaussiantalker.sdk.bundle import HEADER_SIZE
+
+    length = struct.unpack_from("<Q", data, 16)[0]
+    return json.loads(data[HEADER_SIZE:HEADER_SIZE + length])
+
+
+def mutated_bundle(data: bytes, manifest: dict, rng: np.random.Generator) -> tuple[bytes, str]:
+    """One seeded mutation of a bundle and what was done: a manifest value swapped under a matching digest (so
+    the checks behind it run), a header field set to 0/-1/huge, or bytes anywhere."""
+    choice = rng.random()
+    if choice < 0.55:
+        changed, what = mutate_json(manifest, rng)
+        return _bundle_with_manifest(data, dumps(changed)), what
+    if choice < 0.7:
+        return mutate_field_bytes(data, rng, [(8, 2), (10, 2), (12, 4), (16, 8), (56, 8)])
+    return mutate_bytes(data, rng)
+
+
 @pytest.mark.parametrize("heavy, seed", RUNS)
 def test_fuzz_bundle(small_bundle, tmp_path, heavy, seed):
     """The bundle reader (Bundle, then every graph and buffer read and decoded) on header fields set to 0/-1/huge,
     bytes mutated anywhere, and manifest values swapped (with a matching digest, so the checks behind it run):
     loads or BundleError naming the file."""
-    from gaussiantalker.sdk.bundle import HEADER_SIZE, Bundle
+    from gaussiantalker.sdk.bundle import Bundle
 
-    length = struct.unpack_from("<Q", small_bundle, 16)[0]
-    manifest = json.loads(small_bundle[HEADER_SIZE:HEADER_SIZE + length])
-    header_fields = [(8, 2), (10, 2), (12, 4), (16, 8), (56, 8)]
+    manifest = bundle_manifest(small_bundle)
 
     def make(rng: np.random.Generator, index: int) -> Case:
         path = tmp_path / "case.gtb"
-        choice = rng.random()
-        if choice < 0.55:
-            changed, what = mutate_json(manifest, rng)
-            data = _bundle_with_manifest(small_bundle, dumps(changed))
-        elif choice < 0.7:
-            data, what = mutate_field_bytes(small_bundle, rng, header_fields)
-        else:
-            data, what = mutate_bytes(small_bundle, rng)
+        data, what = mutated_bundle(small_bundle, manifest, rng)
         path.write_bytes(data)
         return Case(what, path, str(path))
 
