@@ -87,6 +87,8 @@ class Driver:
         """Names of the leading parameters of `params_of`'s rows, where the rig names them (blinks use them)."""
         return ()
 
+    param_count: int  # D, the width of `params_of`'s rows
+
     def load_audio(self, audio: AudioSource, sample_rate: int | None = None) -> np.ndarray:
         """Any file or array -> mono float32 at the speaker's sample rate."""
         if isinstance(audio, (str, os.PathLike)):
@@ -149,6 +151,7 @@ class FlameDriver(Driver):
         self.config, self.specialised = config, specialised
         self.fps, self.sample_rate = config.fps, config.sample_rate
         self.samples_per_frame = config.samples_per_frame
+        self.param_count = config.n_expr + 3  # expression, then jaw pose
 
     @property
     def param_names(self) -> tuple[str, ...]:
@@ -211,6 +214,7 @@ class ArkitDriver(Driver):
         self.arkit = arkit
         self.fps, self.sample_rate = arkit.fps, arkit.sample_rate
         self.samples_per_frame = arkit.sample_rate / arkit.fps
+        self.param_count = len(ARKIT_BLENDSHAPES)
 
     @property
     def param_names(self) -> tuple[str, ...]:

@@ -29,7 +29,6 @@ import numpy as np
 from gaussiantalker.sdk.audio import as_mono
 from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive
 from gaussiantalker.sdk.errors import LiveError
-from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_RIG
 
 from .idle import IdleMotion, IdleTrack, blink_vector
 from .live_audio import ResampledQueue
@@ -137,7 +136,7 @@ class LiveSession:
         self._history = np.zeros(self._speech.span(0, self.context_frames), np.float32)
         self._max_queued = int(max_queued_s * driver.sample_rate)
         names = driver.param_names
-        self._size = len(ARKIT_BLENDSHAPES) if driver.rig == ARKIT_RIG else driver.config.n_expr + 3
+        self._size = driver.param_count
         idle = idle or IdleMotion()
         self._idle = IdleTrack(idle, self.fps)
         self._blink = blink_vector(names, self._size, idle.blink)

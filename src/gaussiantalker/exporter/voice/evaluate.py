@@ -175,6 +175,7 @@ class _VoiceDriver:
     silence_gate_dbfs = SILENCE_GATE_DBFS
     sample_rate = SAMPLE_RATE
     param_names = ARKIT_BLENDSHAPES
+    param_count = len(ARKIT_BLENDSHAPES)
 
     def __init__(self, sess: ort.InferenceSession, fps: int) -> None:
         self.sess, self.fps = sess, fps
