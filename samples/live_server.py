@@ -19,10 +19,13 @@ A session that fails is logged once and the page is told: a head that cannot sta
 ERROR_GRACE_S later).
 
 `--client-render`: the browser renders the head itself (samples/web/live.html with the web player, docs/web.md).
-One TalkingHead runs the driver of every session (`live(output=None)`: no image is made); each frame's drive goes
-to the page on its unordered "drives" data channel in the binary format of `encode_drive` (docs/live.md, "Live,
-rendered by the client"), stamped with its pts, beside the audio track. `GET /bundle` serves the bundle to the page,
-`POST /interrupt` (the session id) is a barge-in.
+One Driver (`open_driver`: the bundle's graphs, no splatter, no GL) serves every session, and a DrivePool makes
+their frames. Each session runs over one WebSocket (`GET /live`: a frame packet per frame, `encode_frame_packet`,
+the drive and its audio together; the page's barge-ins and microphone the other way) or over WebRTC (`POST /offer`:
+each drive on an unordered "drives" data channel in the binary format of `encode_drive`, stamped with its pts,
+beside an audio track); docs/live.md, "Live, rendered by the client". `GET /bundle` serves the bundle to the page,
+`POST /interrupt` (the session id) is a barge-in, `--batch-frames` trades each utterance's start for fewer
+translator calls.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ import fractions
 import json
 import logging
 import math
+import os
 import shutil
 import struct
 import subprocess
@@ -44,7 +48,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from gaussiantalker.runtime import GaussianTalkerError, LiveError, TalkingHead
+from gaussiantalker.runtime import GaussianTalkerError, LiveError, LiveSession, TalkingHead, open_driver
 from gaussiantalker.sdk.audio import load_audio
 
 try:
@@ -61,6 +65,9 @@ SPEECH = Path(__file__).with_name("demo_speech.wav")
 AUDIO_RATE = 48000  # WebRTC's Opus clock
 CHUNK_S = 0.02  # what a voice source pushes at a time
 QUEUE_FRAMES = 50  # frames waiting for a track, at most (2 s): a reader that stalls loses the oldest
+MAX_THREADS = 1 << 16  # a DrivePool of this many threads gives each session one of its own
+START_TIMEOUT_S = 30.0  # a WebSocket page's start message must come this soon after it connects
+MAX_MIC_MESSAGE_BYTES = 1 << 20  # a page's microphone message, at most (5 s at 96 kHz): larger ones close the socket
 # A session whose rendering failed waits this long at most for its page to hear why and leave, then closes: long
 # enough for a page whose first frame failed to finish connecting and open its control channel.
 ERROR_GRACE_S = 10.0
@@ -130,6 +137,52 @@ def decode_drive(message: bytes) -> dict:
         raise DriveFormatError("drive message has non-finite values")
     return {"index": index, "pts": pts, "epoch": epoch, "speaking": bool(flags & 1),
             "rig": "arkit" if rig else "flame", "values": values, "split": split}
+
+
+# -- the frame packet (client-render over a WebSocket) ---------------------------------------------------------
+# One binary WebSocket message per frame, little-endian: a 12-byte header, the frame's drive message, its audio.
+#   0  4s   magic b"GTLF"
+#   4  u8   version (1)
+#   5  u8   audio dtype: 0 int16 PCM, mono, at the session's sample_rate (the only one written)
+#   6  u16  reserved (0)
+#   8  u32  drive_bytes: the length of the drive message that follows (encode_drive)
+#   12      the drive message, then the frame's audio (what is left: whole int16 samples, zeros while idle)
+# The small demo speaker at 25 fps and 16 kHz: 12 + 180 + 1280 bytes a frame, 37 kB/s.
+PACKET_MAGIC = b"GTLF"
+PACKET_VERSION = 1
+PACKET_HEADER = struct.Struct("<4sBBHI")
+
+
+def encode_frame_packet(drive_message: bytes, audio: np.ndarray) -> bytes:
+    """A frame packet: a drive message and the frame's audio (float in [-1, 1] or int16), as int16 PCM."""
+    if audio.dtype != np.int16:
+        audio = np.clip(np.round(np.asarray(audio, np.float32) * 32768.0), -32768, 32767).astype(np.int16)
+    return PACKET_HEADER.pack(PACKET_MAGIC, PACKET_VERSION, 0, 0, len(drive_message)) + drive_message \
+        + audio.astype("<i2").tobytes()
+
+
+def decode_frame_packet(message: bytes) -> dict:
+    """A frame packet -> {"drive": decode_drive's dict, "audio": int16 samples}; DriveFormatError naming what is
+    wrong. drive_bytes is checked against the bytes present before anything is read."""
+    data = bytes(message)
+    if len(data) < PACKET_HEADER.size:
+        raise DriveFormatError(f"frame packet truncated: {len(data)} bytes, the header alone is {PACKET_HEADER.size}")
+    magic, version, dtype, _, drive_bytes = PACKET_HEADER.unpack_from(data)
+    if magic != PACKET_MAGIC:
+        raise DriveFormatError("not a frame packet (bad magic)")
+    if version != PACKET_VERSION or dtype != 0:
+        raise DriveFormatError(f"frame packet version {version} audio dtype {dtype}: only version {PACKET_VERSION} "
+                               "int16 is read")
+    rest = len(data) - PACKET_HEADER.size
+    if drive_bytes > rest:
+        raise DriveFormatError(f"frame packet claims a {drive_bytes}-byte drive but carries {rest} bytes after its "
+                               "header")
+    audio_bytes = rest - drive_bytes
+    if audio_bytes % 2:
+        raise DriveFormatError(f"frame packet audio is {audio_bytes} bytes: not whole int16 samples")
+    drive = decode_drive(data[PACKET_HEADER.size:PACKET_HEADER.size + drive_bytes])
+    audio = np.frombuffer(data, "<i2", audio_bytes // 2, PACKET_HEADER.size + drive_bytes).astype(np.int16)
+    return {"drive": drive, "audio": audio}
 
 
 class FrameTrack(MediaStreamTrack):
@@ -281,32 +334,44 @@ class Session:
 
 
 class DriveSession:
-    """Client-render mode: one connection's live session on `head` (shared by every session: output=None makes
-    no image, so no GL is used), its driver on a thread of its own. Each frame's drive goes to the page's "drives"
-    data channel (encode_drive), its audio to the audio track; the last RECORDED drives are kept for /drives."""
+    """Client-render mode: one connection's live session on `driver` (shared by every session: a Driver alone
+    makes drives, no image, so no GL is used), its frames made by a DrivePool thread when due (`advance`); the last
+    RECORDED drives are kept for /drives.
 
-    THREAD_NAME = "gt-live-driver"
+    transport "webrtc": each frame's drive goes to the page's "drives" data channel (encode_drive), its audio to
+    the audio track (48 kHz Opus). transport "ws": each frame goes out as one frame packet (encode_frame_packet:
+    the drive and its audio as int16 at the speaker's rate) on the page's WebSocket, through `outbox`, which
+    `write_to` drains; JSON messages for the page go the same way, in order."""
+
     RECORDED = 1500
 
-    def __init__(self, head, lookahead_ms: float, loop: asyncio.AbstractEventLoop,
-                 on_error: Callable[[BaseException], None] | None = None) -> None:
-        self.head, self._loop, self._on_error = head, loop, on_error
-        self.live = head.live(lookahead_ms=lookahead_ms, audio_rate=AUDIO_RATE, output=None)
-        self.audio = FrameTrack("audio", loop)
-        self.audio.fps = head.fps
+    def __init__(self, driver, lookahead_ms: float, loop: asyncio.AbstractEventLoop, pool: DrivePool,
+                 on_error: Callable[[BaseException], None] | None = None, transport: str = "webrtc",
+                 batch_frames: int = 1) -> None:
+        self.driver, self._loop, self._on_error, self.transport = driver, loop, on_error, transport
+        self.sample_rate = AUDIO_RATE if transport == "webrtc" else driver.sample_rate
+        self.live = LiveSession(driver, lookahead_ms=lookahead_ms, audio_rate=self.sample_rate, output=None,
+                                min_batch_frames=batch_frames)
+        self.audio = FrameTrack("audio", loop) if transport == "webrtc" else None
+        if self.audio is not None:
+            self.audio.fps = driver.fps
+        # ws: frame packets (bytes) and JSON messages (str) for the page, in order; None ends write_to.
+        self.outbox: asyncio.Queue = asyncio.Queue()
         self.closed = asyncio.Event()
         self.error: BaseException | None = None
         self.voice: asyncio.Task | None = None  # what the server speaks, cancelled by a barge-in
         self.stats: dict = {"frames": 0, "speaking_frames": 0, "sent": 0, "unsent": 0}
         self.recorded: list[bytes] = []
-        self.started = threading.Event()
         self.start_time = 0.0  # time.monotonic() of frame 0's due time: the session's pts 0 on the wall clock
+        self.done = threading.Event()  # set once its pool thread has let go of it: no frame is made after
+        self._pool, self._last_epoch = pool, 0
         self._drives = None
         self._control = ControlChannel()
-        self._thread = threading.Thread(target=self._run, name=self.THREAD_NAME, daemon=True)
 
     def start(self) -> None:
-        self._thread.start()
+        """Hand the session to its pool: frame 0 is due now."""
+        self.start_time = time.monotonic()
+        self._pool.add(self)
 
     def attach(self, channel) -> None:
         if channel.label == "drives":
@@ -315,8 +380,11 @@ class DriveSession:
             self._control.attach(channel)
 
     def tell(self, message: dict) -> None:
-        """Send the page `message` (JSON) on its control channel, now or as soon as the channel opens."""
-        self._control.tell(message)
+        """Send the page `message` (JSON): on its control channel (now or once it opens), or its WebSocket."""
+        if self.transport == "ws":
+            self.outbox.put_nowait(json.dumps(message))
+        else:
+            self._control.tell(message)
 
     def interrupt(self) -> dict:
         """Barge-in (on the event loop): the voice stops, the session drops what it queued and eases to idle. The
@@ -328,6 +396,13 @@ class DriveSession:
         return {"epoch": self.live.stats.interrupts}
 
     def _send(self, message: bytes) -> None:
+        if self.transport == "ws":
+            if self.outbox.qsize() >= QUEUE_FRAMES:  # a page that stopped reading: it loses frames, not memory
+                self.stats["unsent"] += 1
+                return
+            self.outbox.put_nowait(message)
+            self.stats["sent"] += 1
+            return
         channel = self._drives
         if channel is not None and channel.readyState == "open":
             channel.send(message)
@@ -335,51 +410,143 @@ class DriveSession:
         else:
             self.stats["unsent"] += 1
 
-    def _run(self) -> None:
+    async def write_to(self, socket: web.WebSocketResponse) -> None:
+        """ws: send the outbox to the page until None (the session ended) or the socket closes."""
+        while (item := await self.outbox.get()) is not None:
+            try:
+                if isinstance(item, bytes):
+                    await socket.send_bytes(item)
+                else:
+                    await socket.send_str(item)
+            except ConnectionError:  # the page left; its handler closes the session
+                return
+
+    def advance(self) -> bool:
+        """On its pool thread: make and send every frame due now. False once the session has ended (closed, or
+        failed: on_error then hears why on the event loop)."""
         try:
-            self.start_time = time.monotonic()  # (frames() anchors its pacing at its first frame, just after)
-            self.started.set()
-            frames, last_epoch = self.live.frames(), 0
             while True:
                 # The epoch is read before the frame is made: a frame planned after an interrupt() has its epoch,
                 # one planned before keeps the older one (interrupt() counts itself once it has cleared the queues).
                 epoch = self.live.stats.interrupts
-                frame = next(frames, None)
+                frame = self.live.step()
                 if frame is None:
-                    break
-                message = encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, epoch)
-                self.stats["frames"] += 1
-                self.stats["speaking_frames"] += frame.speaking
-                self.recorded.append(message)
-                del self.recorded[:-self.RECORDED]
-                try:
-                    self._loop.call_soon_threadsafe(self._send, message)
-                    if epoch != last_epoch:
-                        last_epoch = epoch
-                        self._loop.call_soon_threadsafe(self.tell, {"interrupt": {"epoch": epoch,
-                                                                                  "index": frame.index}})
-                except RuntimeError:  # the event loop has closed
-                    return
-                self.audio.put(frame)
+                    return not self.live.finished
+                self._emit(frame, epoch)
         except Exception as exc:
             self.error = exc
             if self._on_error is not None:
                 try:
                     self._loop.call_soon_threadsafe(self._on_error, exc)
-                except RuntimeError:
+                except RuntimeError:  # the event loop has closed
                     pass
-        finally:
-            self.started.set()
+            return False
+
+    def _emit(self, frame, epoch: int) -> None:
+        message = encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, epoch)
+        self.stats["frames"] += 1
+        self.stats["speaking_frames"] += frame.speaking
+        self.recorded.append(message)
+        del self.recorded[:-self.RECORDED]
+        sent = message if self.audio is not None else encode_frame_packet(message, frame.audio)
+        told = None
+        if epoch != self._last_epoch:
+            self._last_epoch = epoch
+            told = {"interrupt": {"epoch": epoch, "index": frame.index}}
+        try:
+            self._loop.call_soon_threadsafe(self._deliver, sent, told)
+        except RuntimeError:  # the event loop has closed: nobody reads the session any more
+            self.live.close()
+            return
+        if self.audio is not None:
+            self.audio.put(frame)
+
+    def _deliver(self, message: bytes, told: dict | None) -> None:
+        """On the event loop: a frame's message, and the new epoch's news with its first frame."""
+        self._send(message)
+        if told is not None:
+            self.tell(told)
+
+    def ended(self) -> None:
+        """On its pool thread, when it lets go of the session: the audio track ends; stop() may return."""
+        if self.audio is not None:
             self.audio.put(None)
+        self.done.set()
 
     def stop(self, timeout: float = 10.0) -> None:
         self.live.close()
-        if self._thread.ident is not None:
-            self._thread.join(timeout)
+        if self.start_time:
+            self._pool.wake()
+            self.done.wait(timeout)
+        try:
+            self._loop.call_soon_threadsafe(self.outbox.put_nowait, None)
+        except RuntimeError:  # the event loop has closed
+            pass
 
     def summary(self) -> dict:
-        return {"mode": "client-render", **self.stats, "fps": self.head.fps,
+        return {"mode": "client-render", "transport": self.transport, **self.stats, "fps": self.driver.fps,
                 "late_frames": self.live.stats.late_frames, "interrupts": self.live.stats.interrupts}
+
+
+class DrivePool:
+    """Client-render: a few threads make the frames of every session (each session on the least busy one), instead
+    of a thread per session. Fifty threads each waking 25 times a second to run a little Python starve the event
+    loop of the GIL, and it then sends drives and pushes voices late; a few threads do the same work in turns. A
+    thread starts with its first session and ends when it has none left, so an idle server runs none."""
+
+    THREAD_NAME = "gt-live-driver"
+
+    def __init__(self, threads: int) -> None:
+        self.threads = max(1, threads)
+        self._lock = threading.Lock()
+        self._workers: list[_DriveWorker] = []
+
+    def add(self, session: DriveSession) -> None:
+        with self._lock:
+            self._workers = [w for w in self._workers if not w.ended]
+            if len(self._workers) < self.threads:
+                worker = _DriveWorker(self._lock)
+                self._workers.append(worker)
+                worker.sessions.append(session)
+                worker.start()
+                return
+            worker = min(self._workers, key=lambda w: len(w.sessions))
+            worker.sessions.append(session)
+            worker.wake.set()
+
+    def wake(self) -> None:
+        """Have every thread look at its sessions now (one was closed)."""
+        with self._lock:
+            for worker in self._workers:
+                worker.wake.set()
+
+
+class _DriveWorker(threading.Thread):
+    """One DrivePool thread: advances its sessions, then sleeps until the next frame is due or it is woken."""
+
+    def __init__(self, pool_lock: threading.Lock) -> None:
+        super().__init__(name=DrivePool.THREAD_NAME, daemon=True)
+        self.sessions: list[DriveSession] = []  # changed under pool_lock
+        self.wake = threading.Event()
+        self.ended = False
+        self._pool_lock = pool_lock
+
+    def run(self) -> None:
+        while True:
+            with self._pool_lock:
+                sessions = list(self.sessions)
+            for session in sessions:
+                if not session.advance():
+                    with self._pool_lock:
+                        self.sessions.remove(session)
+                    session.ended()
+            with self._pool_lock:
+                if not self.sessions:
+                    self.ended = True
+                    return
+                due = min(session.live.due for session in self.sessions)
+                self.wake.clear()
+            self.wake.wait(max(0.0, due - time.monotonic()))
 
 
 async def push_real_time(live, audio: np.ndarray, rate: int, chunk_s: float = CHUNK_S) -> None:
@@ -410,6 +577,14 @@ async def push_track(live, track: MediaStreamTrack) -> None:
             live.push(mono, frame.sample_rate)
         except LiveError:
             return
+
+
+def _json_or_none(text: str):
+    """`text` parsed as JSON, or None where it is not JSON."""
+    try:
+        return json.loads(text)
+    except ValueError:
+        return None
 
 
 def spoken_text(text: str) -> tuple[np.ndarray, int]:
@@ -514,10 +689,10 @@ class Sessions:
 
 
 def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, renderer: str = "auto",
-             client_render: bool = False) -> web.Application:
+             client_render: bool = False, batch_frames: int = 1) -> web.Application:
     app = web.Application()
     if client_render:
-        return make_client_render_app(app, bundle, lookahead_ms, speech, renderer)
+        return make_client_render_app(app, bundle, lookahead_ms, speech, batch_frames)
     sessions = Sessions(Session.THREAD_NAME, "render_threads", "rendering a frame raised")
 
     async def index(request: web.Request) -> web.Response:
@@ -581,13 +756,17 @@ def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, rendere
 
 
 def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: float, speech: Path,
-                           renderer: str) -> web.Application:
+                           batch_frames: int = 1) -> web.Application:
     """Client-render mode's routes: the page and the web player's modules, the bundle, the offer (audio track and
     drive channel), barge-in, close, stats, the recorded drives and health."""
     # Its driver only (the translator; no frame is drawn). One intra-op thread: the sessions' threads are the
     # parallelism, and onnxruntime's spinning worker threads would only compete with them.
-    head = TalkingHead(bundle, composite=False, renderer=renderer, resolution=(16, 16), threads=1)
-    sessions = Sessions(DriveSession.THREAD_NAME, "driver_threads", "its driver raised")
+    driver = open_driver(bundle, threads=1)
+    sessions = Sessions(DrivePool.THREAD_NAME, "driver_threads", "its driver raised")
+    # WebSocket sessions share a thread per core. WebRTC sessions keep a thread each: aiortc's work on the event loop
+    # (Opus, SRTP, SCTP) is their bottleneck, and measured, two shared threads made their drives later (16 sessions:
+    # 42% of the drives late against 22%, docs/live.md "Load").
+    pool, webrtc_pool = DrivePool(os.cpu_count() or 2), DrivePool(MAX_THREADS)
 
     async def page(request: web.Request) -> web.Response:
         return web.Response(text=WEB_PAGE.read_text(), content_type="text/html")
@@ -605,25 +784,38 @@ def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: flo
     async def serve_bundle(request: web.Request) -> web.FileResponse:
         return web.FileResponse(bundle, headers={"Content-Type": "application/octet-stream"})
 
-    async def offer(request: web.Request) -> web.Response:
-        params = await request.json()
+    spoken: list[np.ndarray] = []  # the --audio file's samples, once read
+
+    async def voice_of(params: dict, sources: tuple[str, ...]) -> tuple[tuple | None, float]:
+        """What the server speaks for a page's start parameters, and the chunk length it is pushed in;
+        ValueError naming a bad parameter."""
         source = params.get("source", "file")
-        if source not in ("file", "text", "none"):
-            raise web.HTTPBadRequest(text=f"source must be file, text or none, got {source!r}")
+        if source not in sources:
+            raise ValueError(f"source must be {', '.join(sources[:-1])} or {sources[-1]}, got {source!r}")
         # How the voice arrives: chunks of chunk_ms at real time (20: a voice made as it is spoken, one translator
         # call a frame; a text-to-speech engine faster than real time sends more at a time).
         chunk_ms = params.get("chunk_ms", CHUNK_S * 1000)
         if not (isinstance(chunk_ms, (int, float)) and 10 <= chunk_ms <= 10000):
-            raise web.HTTPBadRequest(text=f"chunk_ms must be a number of milliseconds in 10..10000, got {chunk_ms!r}")
-        loop = asyncio.get_running_loop()
-        voice = None
+            raise ValueError(f"chunk_ms must be a number of milliseconds in 10..10000, got {chunk_ms!r}")
         if source == "file":
-            voice = load_audio(speech, 16000), 16000
-        elif source == "text":
-            voice = await loop.run_in_executor(None, spoken_text, str(params.get("text", "Hello.")))
+            if not spoken:  # read once: every session that plays the file shares its samples
+                spoken.append(await asyncio.get_running_loop().run_in_executor(None, load_audio, speech, 16000))
+            return (spoken[0], 16000), chunk_ms / 1000
+        if source == "text":
+            text = str(params.get("text", "Hello."))
+            return await asyncio.get_running_loop().run_in_executor(None, spoken_text, text), chunk_ms / 1000
+        return None, chunk_ms / 1000
+
+    async def offer(request: web.Request) -> web.Response:
+        params = await request.json()
+        try:
+            voice, chunk_s = await voice_of(params, ("file", "text", "none"))
+        except ValueError as error:
+            raise web.HTTPBadRequest(text=str(error)) from None
+        loop = asyncio.get_running_loop()
         pc = RTCPeerConnection()
         session_id = uuid.uuid4().hex
-        session = DriveSession(head, lookahead_ms, loop,
+        session = DriveSession(driver, lookahead_ms, loop, webrtc_pool, batch_frames=batch_frames,
                                on_error=lambda error: sessions.background(sessions.fail(pc, session_id, error)))
         sessions.add(pc, session_id, session)
         pc.on("datachannel", session.attach)
@@ -636,12 +828,67 @@ def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: flo
             await sessions.close(pc)
             raise
         session.start()
-        await loop.run_in_executor(None, session.started.wait, 10.0)
         if voice is not None:
-            session.voice = sessions.background(push_real_time(session.live, *voice, chunk_s=chunk_ms / 1000))
+            session.voice = sessions.background(push_real_time(session.live, *voice, chunk_s=chunk_s))
         # start_time: time.monotonic() when frame 0 was due (a load client on this machine compares arrivals).
         return web.json_response({"sdp": pc.localDescription.sdp, "type": pc.localDescription.type,
-                                  "session": session_id, "fps": head.fps, "start_time": session.start_time})
+                                  "session": session_id, "fps": driver.fps, "start_time": session.start_time})
+
+    async def live_socket(request: web.Request) -> web.WebSocketResponse:
+        """One client-render session on one WebSocket (docs/live.md, "One WebSocket a session"): the page's start
+        message, the answer, then a frame packet per frame; the page's barge-ins (text) and microphone (binary)."""
+        socket = web.WebSocketResponse(max_msg_size=MAX_MIC_MESSAGE_BYTES, heartbeat=30.0)
+        await socket.prepare(request)
+        try:
+            first = await socket.receive(timeout=START_TIMEOUT_S)
+            params = _json_or_none(first.data) if first.type == web.WSMsgType.TEXT else None
+            if not isinstance(params, dict):
+                raise ValueError("the first message must be the start message, a JSON object")
+            voice, chunk_s = await voice_of(params, ("file", "text", "none", "mic"))
+            mic_rate = params.get("mic_rate") if params.get("source") == "mic" else None
+            if mic_rate is not None and not (isinstance(mic_rate, int) and 8000 <= mic_rate <= 192000):
+                raise ValueError(f"mic_rate must be a whole number of Hz in 8000..192000, got {mic_rate!r}")
+            if params.get("source") == "mic" and mic_rate is None:
+                raise ValueError("source mic needs mic_rate, the sample rate of the PCM the page sends")
+        except (ValueError, asyncio.TimeoutError, TypeError) as error:
+            reason = f"no start message within {START_TIMEOUT_S:g} s" if isinstance(error, asyncio.TimeoutError) \
+                else str(error)
+            if not socket.closed:
+                await socket.send_json({"error": f"bad start message: {reason}"})
+                await socket.close()
+            return socket
+        loop = asyncio.get_running_loop()
+        session_id = uuid.uuid4().hex
+        session = DriveSession(driver, lookahead_ms, loop, pool, transport="ws", batch_frames=batch_frames,
+                               on_error=lambda error: sessions.background(sessions.fail(socket, session_id, error)))
+        sessions.add(socket, session_id, session)
+        writer = None
+        try:
+            session.start()
+            await socket.send_json({"session": session_id, "fps": driver.fps, "sample_rate": session.sample_rate,
+                                    "start_time": session.start_time, "rig": driver.rig})
+            writer = sessions.background(session.write_to(socket))
+            if voice is not None:
+                session.voice = sessions.background(push_real_time(session.live, *voice, chunk_s=chunk_s))
+            async for message in socket:
+                if message.type == web.WSMsgType.BINARY and mic_rate is not None:
+                    if len(message.data) % 2:
+                        raise ValueError(f"a microphone message of {len(message.data)} bytes: not whole int16 "
+                                         "samples")
+                    session.live.push(np.frombuffer(message.data, "<i2"), mic_rate)
+                elif message.type == web.WSMsgType.TEXT and _json_or_none(message.data) == {"interrupt": True}:
+                    session.outbox.put_nowait(json.dumps({"interrupted": session.interrupt()}))
+                elif message.type in (web.WSMsgType.TEXT, web.WSMsgType.BINARY):
+                    raise ValueError("the page may send {\"interrupt\": true} or, with source mic, int16 PCM; got "
+                                     f"a {message.type.name.lower()} message of {len(message.data)} bytes")
+        except (ValueError, LiveError) as error:  # the page's mistake (or its session ended): told, then closed
+            if not socket.closed:
+                await socket.send_json({"error": str(error)})
+        finally:
+            if writer is not None:
+                writer.cancel()
+            await sessions.close(socket)
+        return socket
 
     async def interrupt(request: web.Request) -> web.Response:
         _, session = sessions.session_of(await request.text())
@@ -654,17 +901,14 @@ def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: flo
         body = b"".join(struct.pack("<H", len(m)) + m for m in list(session.recorded))
         return web.Response(body=body, content_type="application/octet-stream")
 
-    async def on_cleanup(app: web.Application) -> None:
-        head.close()
-
     app.router.add_get("/", page)
     app.router.add_get("/web/{path:.+}", static)
     app.router.add_get("/bundle", serve_bundle)
     app.router.add_post("/offer", offer)
     app.router.add_post("/interrupt", interrupt)
+    app.router.add_get("/live", live_socket)
     app.router.add_get("/drives", drives)
     sessions.route(app)
-    app.on_cleanup.append(on_cleanup)
     return app
 
 
@@ -677,15 +921,18 @@ def main(bundle: Path = typer.Argument(..., help="a speaker bundle with a transl
          renderer: str = typer.Option("auto", "--renderer", help="what splats: gl, cpu or auto (cpu where the GL "
                                       "is a software rasterizer and numba is installed; docs/embedding.md)"),
          client_render: bool = typer.Option(False, "--client-render", help="stream drives, not pixels: the page "
-                                            "renders the head with the web player (samples/web/live.html)")) -> None:
+                                            "renders the head with the web player (samples/web/live.html)"),
+         batch_frames: int = typer.Option(1, "--batch-frames", min=1, max=8, help="client-render: frames per "
+                                          "translator call at least; each utterance starts (batch_frames - 1) "
+                                          "frames later, and the server's CPU per session falls")) -> None:
     """Serve the live page and stream the talking head over WebRTC."""
     for path, hint in ((bundle, "BUNDLE"), (audio, "--audio")):
         if not path.is_file():
             raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
     logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
     print(json.dumps({"url": f"http://{host}:{port}/", "bundle": str(bundle)}), flush=True)
-    web.run_app(make_app(bundle, size, lookahead_ms, audio, renderer, client_render), host=host, port=port,
-                print=None)
+    web.run_app(make_app(bundle, size, lookahead_ms, audio, renderer, client_render, batch_frames), host=host,
+                port=port, print=None)
 
 
 if __name__ == "__main__":

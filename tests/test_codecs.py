@@ -150,3 +150,76 @@ def test_every_codec_is_documented():
 
     for name in CODECS:
         assert f"`{name}`" in codecs.__doc__, name
+
+
+# -- the sparse layer ------------------------------------------------------------------------------------------
+
+
+def _sparse_array(shape, zeros: float, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    array = rng.normal(size=shape).astype(np.float32)
+    array[rng.random(shape) < zeros] = 0.0
+    return array
+
+
+@pytest.mark.parametrize("codec", ["raw", "fp16", "q16", "q8", "q4"])
+@pytest.mark.parametrize("shape, zeros", [((52, 3 * 700), 0.82), ((7,), 0.0), ((9,), 1.0), ((0, 4), 0.5),
+                                          ((3, 5, 11), 0.5)])
+def test_a_sparse_buffer_decodes_to_its_zeros_and_its_codecs_values(tmp_path, codec, shape, zeros):
+    """Zeros stay exact zeros; the nonzero values decode as the codec decodes them alone; the size is the mask plus
+    the codec's payload of nnz values, known from the manifest; a bundle round-trips it."""
+    array = _sparse_array(shape, zeros)
+    payload, params = encode_buffer(array, codec, sparse=True)
+    nnz = int(np.count_nonzero(array))
+    assert params["sparse"] == {"nnz": nnz}
+    inner = {key: value for key, value in params.items() if key != "sparse"}
+    assert len(payload) == -(-array.size // 8) + expected_nbytes(codec, "float32", (nnz,), inner)
+    assert expected_nbytes(codec, "float32", shape, params) == len(payload)
+    writer = BundleWriter()
+    writer.add_buffer("w", array, codec, sparse=True)
+    writer.write(tmp_path / "b.gtb")
+    decoded = Bundle(tmp_path / "b.gtb").buffer("w")
+    assert decoded.shape == array.shape and decoded.dtype == np.float32
+    assert np.array_equal(decoded == 0, array == 0)
+    alone, _ = encode_buffer(array[array != 0], codec)
+    np.testing.assert_array_equal(decoded[array != 0], get_codec(codec).decode(alone, "float32", (nnz,), inner))
+    if zeros >= 0.8 and codec == "raw":
+        assert len(payload) < 0.25 * array.nbytes  # 18% nonzero: a bit per element and 4 bytes per nonzero
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda e: e["codec"].update(sparse={"nnz": -1}), "sparse buffer needs {\"nnz\": K} with 0 <= K <= 40"),
+    (lambda e: e["codec"].update(sparse={"nnz": 41}), "sparse buffer needs {\"nnz\": K} with 0 <= K <= 40"),
+    (lambda e: e["codec"].update(sparse={"nnz": True}), "sparse buffer needs"),
+    (lambda e: e["codec"].update(sparse=[3]), "sparse buffer needs"),
+    (lambda e: e["codec"].update(sparse={"nnz": 3, "x": 1}), "sparse buffer needs"),
+    (lambda e: e["codec"].update(sparse={"nnz": 2 ** 60}), "sparse buffer needs"),
+    (lambda e: e["codec"].update(sparse={"nnz": 20}), "declares dtype float32 shape \\[4, 10\\]"),
+])
+def test_a_damaged_sparse_entry_is_refused_on_open(tmp_path, edit, message):
+    writer = BundleWriter()
+    writer.add_buffer("w", _sparse_array((4, 10), 0.7), "raw", sparse=True)
+    manifest = writer.manifest()
+    edit(manifest["buffers"]["w"])
+    writer.manifest = lambda: manifest
+    writer.write(tmp_path / "b.gtb")
+    with pytest.raises(BundleError, match=message):
+        Bundle(tmp_path / "b.gtb")
+
+
+def test_a_sparse_mask_that_disagrees_with_nnz_is_refused_on_decode():
+    """The mask's set bits must number nnz, and its spare bits past the last element must be zero (payloads edited
+    directly: in a bundle the entry's checksum would catch the flipped bytes first)."""
+    from gaussiantalker.sdk.codecs import decode_buffer
+
+    array = np.array([1, 0, 2, 0, 0, 3, 0, 0, 0, 0, 0, 0, 4], np.float32)
+    payload, params = encode_buffer(array, "raw", sparse=True)
+    assert payload[:2] == bytes([0b00100101, 0b00010000]) and params["sparse"] == {"nnz": 4}
+    extra = bytearray(payload)
+    extra[0] |= 0b10  # element 1 marked nonzero: 5 set bits for 4 values
+    with pytest.raises(BundleError, match="mask marks 5 nonzero elements, its nnz says 4"):
+        decode_buffer(bytes(extra), "raw", "float32", (13,), params)
+    spare = bytearray(payload)
+    spare[1] |= 0x80  # bit 15: past element 12
+    with pytest.raises(BundleError, match="bits set past its last element"):
+        decode_buffer(bytes(spare), "raw", "float32", (13,), params)

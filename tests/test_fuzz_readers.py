@@ -558,7 +558,7 @@ def test_fuzz_flame_motion_npz(ga_avatar, tmp_path, heavy, seed):
 
 @pytest.fixture(scope="module")
 def small_bundle(tmp_path_factory) -> bytes:
-    """A bundle with a buffer in every codec and a compressed and a stored graph."""
+    """A bundle with a buffer in every codec, two sparse ones, and a compressed and a stored graph."""
     from gaussiantalker.sdk.bundle import BundleWriter
 
     rng = np.random.default_rng(3)
@@ -567,6 +567,9 @@ def small_bundle(tmp_path_factory) -> bytes:
     for codec in ("raw", "fp16", "q16", "q8", "q4"):
         writer.add_buffer(f"w/{codec}", values, codec=codec, chunk=16 if codec.startswith("q") else None)
     writer.add_buffer("ids", np.arange(300, dtype=np.int64), codec="index")
+    mostly_zero = np.where(rng.random((6, 50)) < 0.8, 0.0, values).astype(np.float32)
+    writer.add_buffer("w/sparse_raw", mostly_zero, codec="raw", sparse=True)
+    writer.add_buffer("w/sparse_q8", mostly_zero, codec="q8", chunk=16, sparse=True)
     writer.add_buffer("raw_ids", np.arange(7, dtype=np.int32))
     io_spec = [{"name": "x", "dtype": "float32", "shape": [1, "n"]}]
     writer.add_graph("g", b"\x08\x07" + bytes(200), io_spec, io_spec, {"w": "w/q8"})

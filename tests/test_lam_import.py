@@ -19,6 +19,7 @@ from gaussiantalker.exporter.export.bundle_export import export_bundle
 from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
 from gaussiantalker.exporter.imports.sources.lam import LAM_WEIGHT_SCALE, LamOptions, import_lam, rotation_vector
 from gaussiantalker.runtime import DriveError, HeadPose, TalkingHead
+from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.drive import BlendshapeDrive
 from gaussiantalker.sdk.errors import ImportFormatError
 from gaussiantalker.sdk.image import psnr_db, to_uint8
@@ -314,3 +315,21 @@ def test_morph_targets_keep_8_bits_in_reduced_presets():
         flame = settings.codec_for("deform/blend_basis", morphs)
         assert flame[0] == "q4" and settings.codec_for("deform/morph_basis", morphs) == ("q8", flame[1]), name
     assert get_preset("mobile").export.codec_for("deform/morph_basis", morphs) == ("fp16", None)
+
+
+def test_a_mostly_zero_morph_basis_is_stored_sparse(avatar_bundle):
+    """The morph basis is stored sparse (a bitmask and the nonzero values, sdk/codecs.py) when at least half of it
+    is zeros, as an avatar's blendshapes each moving one region of the face make it; it decodes to the same basis,
+    which test_bundle_matches_torch renders. Other buffers and dense bases stay dense."""
+    from gaussiantalker.exporter.export.presets import stored_sparse
+
+    bundle = Bundle(avatar_bundle)
+    basis = bundle.buffer("deform/morph_basis")
+    zeros = 1 - np.count_nonzero(basis) / basis.size
+    assert ("sparse" in bundle.manifest["buffers"]["deform/morph_basis"]["codec"]) == (zeros >= 0.5), zeros
+    regional = np.zeros((51, 6000), np.float32)
+    regional[:, :1200] = 1.0  # 80% zeros
+    assert stored_sparse("deform/morph_basis", regional)
+    assert not stored_sparse("deform/morph_basis", np.ones((51, 6000), np.float32))
+    assert not stored_sparse("deform/blend_basis", regional)
+    assert not stored_sparse("deform/morph_basis", np.zeros((0, 6000), np.float32))

@@ -118,6 +118,36 @@ def test_a_lam_bundle_speaks_live_through_the_builtin_voice(lam_voice_bundle):
     assert live_jaw[:10].max() < 0.05 and live_jaw.max() > 0.2
 
 
+def test_min_batch_frames_translates_that_many_frames_a_call(head, speech):
+    """min_batch_frames=4, 20 ms chunks polled as they arrive: the translator runs once per 4 frames, each batch
+    comes out when its last frame's audio and lookahead are in (frame n of batch b, b = n // 4, at the audio of
+    frames 0..4b + 3 plus the lookahead), and the jaw still follows the offline one (r >= 0.95, as at 1 frame)."""
+    per_frame = head.driver.config.samples_per_frame
+    expression, jaw_pose = head.driver.translate(speech)
+    batches, frames = [], []
+    with head.live(lookahead_ms=160, paced=False, output=None, min_batch_frames=4) as live:
+        pushed = 0
+        for start in range(0, speech.shape[0], per_frame // 2):
+            live.push(speech[start:start + per_frame // 2], head.sample_rate)
+            pushed += speech[start:start + per_frame // 2].shape[0]
+            got = live.poll()
+            if got:
+                batches.append((len(got), got[0].index, pushed))
+            frames += got
+        calls = live.stats.translator_calls
+        live.end()
+        frames += list(live.frames())
+    assert {size for size, _, _ in batches} == {4}
+    assert calls == len(batches)
+    assert all(pushed == (first + 4 + 4) * per_frame for _, first, pushed in batches)  # 4 frames + 160 ms
+    assert [f.index for f in frames] == list(range(jaw_pose.shape[0]))
+    corr = np.corrcoef(jaw(frames), jaw_pose[:, 0])[0, 1]
+    assert corr >= 0.95, corr
+    for bad in (0, 9, 2.0):
+        with pytest.raises(LiveError, match="min_batch_frames must be a whole number in 1..8"):
+            head.live(output=None, min_batch_frames=bad)
+
+
 @pytest.mark.parametrize("lookahead_ms", [0, 80, 100, 160])
 def test_free_running_latency_is_a_frame_and_its_lookahead(head, speech, lookahead_ms):
     """Free-running, 20 ms chunks polled as each arrives: frame n comes out exactly when the audio of frames 0..n
@@ -312,3 +342,17 @@ def test_gt_bench_live_writes_every_measure(small_export, head, tmp_path):
     assert drift["frames_with_other_audio"] == 0 and abs(drift["clock_gap_frames"]) < 1.0
     assert report["sessions"][0]["rows"][0]["fps_total"] > 0
     assert "| 80 ms |" in (out / "live.md").read_text()
+
+
+def test_gt_bench_live_batching_writes_its_table(small_export, tmp_path):
+    """`gt-bench live-batching` on 2 s of speech: one row per K, K = 4 making a quarter of K = 1's translator calls
+    (to within the utterance's last batch), the drives still following the offline ones."""
+    out = tmp_path / "batching"
+    result = CliRunner().invoke(app, ["live-batching", str(small_export.path), "--seconds", "2", "--rounds", "1",
+                                      "--batch-frames", "1,4", "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = {row["batch_frames"]: row for row in json.loads((out / "live-batching.json").read_text())["rows"]}
+    assert rows[1]["frames"] == rows[4]["frames"] == 50
+    assert rows[1]["translator_calls"] >= 45 and rows[4]["translator_calls"] <= rows[1]["translator_calls"] / 4 + 2
+    assert all(row["jaw_r"] >= 0.9 and row["cpu_ms_per_speech_s"] > 0 for row in rows.values())
+    assert "| 4 |" in (out / "live-batching.md").read_text()

@@ -188,13 +188,17 @@ def test_arkit_avatar_from_a_motion_file_matches_the_python_runtime(player_ready
 
 @pytest.fixture(scope="module")
 def tiny_bundle(tmp_path_factory) -> Path:
-    """A bundle of one buffer per codec (and a stand-in graph): what the reader checks needs no real graphs."""
+    """A bundle of one buffer per codec, three sparse ones (and a stand-in graph): what the reader checks needs no
+    real graphs."""
     rng = np.random.default_rng(0)
     writer = BundleWriter({"note": "codecs"})
     values = rng.normal(size=(7, 37)).astype(np.float32)
     for codec in ("raw", "fp16", "q16", "q8", "q4"):
         writer.add_buffer(f"values/{codec}", values, codec, chunk=16 if codec.startswith("q") else None)
     writer.add_buffer("values/half", values.astype(np.float16), "q8", chunk=32)
+    mostly_zero = np.where(rng.random(values.shape) < 0.8, 0.0, values).astype(np.float32)  # a morph basis's kind
+    for codec in ("raw", "fp16", "q8"):
+        writer.add_buffer(f"sparse/{codec}", mostly_zero, codec, chunk=16 if codec == "q8" else None, sparse=True)
     writer.add_buffer("faces", rng.integers(0, 3000, size=(50, 3)).astype(np.int64), "index")
     writer.add_buffer("pose_track", rng.normal(size=(5, 6)).astype(np.float32))
     writer.add_graph("stand_in", b"not an onnx model, never run" * 40, inputs=[], outputs=[])

@@ -458,6 +458,81 @@ def pipeline(
         typer.echo(f"wrote {out / 'pipeline.md'}, {out / 'pipeline.json'}")
 
 
+@app.command("live-batching")
+def live_batching(
+    bundle: Path = typer.Argument(..., help="a FLAME speaker bundle with a translator (.gtb)"),
+    audio: Path = typer.Option(Path("samples/demo_speech.wav"), "--audio", help="the voice"),
+    batch_frames: str = typer.Option("1,4,8", "--batch-frames", help="comma-separated K (min_batch_frames)"),
+    seconds: float = typer.Option(8.0, "--seconds", min=1.0, help="seconds of the voice"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds (CPU: their median)"),
+    context_ms: float = typer.Option(1000.0, "--context-ms", min=0.0, help="the translator's past context"),
+    out: Path = typer.Option(None, "--out", help="folder for live-batching.md and live-batching.json"),
+) -> None:
+    """Live sessions' translator calls, CPU per second of speech and drive accuracy per min_batch_frames, with a
+    voice pushed in 20 ms chunks (docs/live.md)."""
+    import shlex
+    import sys
+
+    from .live_batching import live_batching_table, run_live_batching
+
+    try:
+        batches = [int(v) for v in batch_frames.split(",") if v.strip()]
+    except ValueError:
+        raise typer.BadParameter("comma-separated whole numbers", param_hint="--batch-frames") from None
+    if not batches or not all(1 <= b <= 8 for b in batches):
+        raise typer.BadParameter("whole numbers in 1..8", param_hint="--batch-frames")
+    result = run_live_batching(bundle, audio, batches, seconds, rounds, context_ms)
+    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    table = live_batching_table(result)
+    typer.echo(table)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "live-batching.json").write_text(json.dumps(result, indent=2))
+        (out / "live-batching.md").write_text(
+            f"# Live sessions: translator calls per min_batch_frames\n\n`{result['command']}` on "
+            f"{result['machine']['cpu']}, {result['machine']['cores']} cores; {result['speech_s']:g} s of speech in "
+            f"20 ms chunks, free-running, one thread; {rounds} alternating rounds.\n\n{table}\n")
+        typer.echo(f"wrote {out / 'live-batching.md'}, {out / 'live-batching.json'}")
+
+
+@app.command("web-presets")
+def web_presets(
+    speakers: list[str] = typer.Argument(..., help="LABEL=CHECKPOINT[:audio=WAV|:motion=FILE], one per speaker"),
+    presets: str = typer.Option("quality,balanced,compact,fast,mobile", "--presets", help="export presets"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="fresh pages per bundle (medians)"),
+    out: Path = typer.Option(None, "--out", help="folder for web-presets.md and web-presets.json"),
+) -> None:
+    """Each preset's bundle bytes (the page's download) and time to the first frame in headless Chromium (load,
+    drive, first frame), per speaker (docs/web.md)."""
+    import shlex
+    import sys
+
+    from .web_presets import run_web_presets, web_presets_table
+
+    parsed = []
+    for spec in speakers:
+        label, _, rest = spec.partition("=")
+        checkpoint, *options = rest.split(":")
+        given = dict(option.split("=", 1) for option in options if "=" in option)
+        if not label or not Path(checkpoint).is_file() or set(given) - {"audio", "motion"}:
+            raise typer.BadParameter(f"{spec!r}: LABEL=CHECKPOINT[:audio=WAV|:motion=FILE] of an existing "
+                                     "checkpoint", param_hint="SPEAKERS")
+        parsed.append((label, Path(checkpoint), Path(given["audio"]) if "audio" in given else None,
+                       Path(given["motion"]) if "motion" in given else None))
+    result = run_web_presets(parsed, [p.strip() for p in presets.split(",") if p.strip()], rounds, log=typer.echo)
+    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    table = web_presets_table(result)
+    typer.echo(table)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "web-presets.json").write_text(json.dumps(result, indent=2))
+        (out / "web-presets.md").write_text(
+            f"# Bundles for the web: download size and time to the first frame\n\n`{result['command']}` on "
+            f"{result['machine']['cpu']}, {result['machine']['cores']} cores (headless Chromium, SwiftShader; "
+            f"{result['size'][0]}x{result['size'][1]}; medians of {rounds} fresh pages).\n\n{table}\n")
+        typer.echo(f"wrote {out / 'web-presets.md'}, {out / 'web-presets.json'}")
+
+
 @app.command("live-clients")
 def live_clients(
     bundle: Path = typer.Argument(..., help="a speaker bundle with a translator (.gtb)"),
@@ -467,34 +542,47 @@ def live_clients(
                                   "before it interrupts"),
     chunk_ms: str = typer.Option("20", "--chunk-ms", help="the voice's chunk sizes (ms, pushed at real time; "
                                  "comma-separated: one run each): 20 is a voice made as it is spoken"),
+    transport: str = typer.Option("ws", "--transport", help="how drives and voice reach the clients "
+                                  "(comma-separated: one run each): ws, one WebSocket a session; webrtc, an audio "
+                                  "track and a data channel"),
+    batch_frames: str = typer.Option("1", "--batch-frames", help="the server's frames per translator call at least "
+                                     "(comma-separated: one run each; live_server.py --batch-frames)"),
     out: Path = typer.Option(None, "--out", help="folder for live-clients.md and live-clients.json"),
 ) -> None:
     """Client-render live sessions (samples/live_server.py --client-render) under N concurrent load clients:
     late drives, server CPU per session-second, first-frame and barge-in latency; the largest N with <= 5% late."""
+    import itertools
     import shlex
     import sys
 
-    from .live_clients import live_clients_table, run_live_clients_bench
+    from .live_clients import TRANSPORT_NAMES, live_clients_table, run_live_clients_bench
 
     if not bundle.is_file():
         raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
     try:
         counts = [int(v) for v in clients.split(",") if v.strip()]
         chunks = [float(v) for v in chunk_ms.split(",") if v.strip()]
+        batches = [int(v) for v in batch_frames.split(",") if v.strip()]
     except ValueError:
         raise typer.BadParameter("comma-separated numbers expected", param_hint="--clients/--chunk-ms") from None
     if not counts or min(counts) < 1 or not chunks or not all(10 <= c <= 10000 for c in chunks):
         raise typer.BadParameter("counts >= 1 and chunks of 10..10000 ms", param_hint="--clients/--chunk-ms")
+    transports = [v.strip() for v in transport.split(",") if v.strip()]
+    if not transports or not set(transports) <= {"ws", "webrtc"}:
+        raise typer.BadParameter("ws, webrtc or both", param_hint="--transport")
+    if not batches or not all(1 <= b <= 8 for b in batches):
+        raise typer.BadParameter("whole numbers in 1..8", param_hint="--batch-frames")
     import os
 
     result = {"load_at_start": os.getloadavg(), "runs": []}
-    for chunk in chunks:
-        typer.echo(f"voice in {chunk:g} ms chunks")
+    for kind, chunk, batch in itertools.product(transports, chunks, batches):
+        typer.echo(f"{kind}: voice in {chunk:g} ms chunks, {batch} frames per translator call at least")
         result["runs"].append(run_live_clients_bench(bundle, counts, lookahead_ms, speak_s, chunk_ms=chunk,
-                                                     log=typer.echo))
+                                                     log=typer.echo, transport=kind, batch_frames=batch))
     result["load_at_end"] = os.getloadavg()
     result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
-    table = "\n\n".join(f"Voice pushed in {run['chunk_ms']:g} ms chunks at real time:\n\n{live_clients_table(run)}"
+    table = "\n\n".join(f"{TRANSPORT_NAMES[run['transport']]}, voice pushed in {run['chunk_ms']:g} ms chunks at "
+                         f"real time, `--batch-frames {run['batch_frames']}`:\n\n{live_clients_table(run)}"
                          for run in result["runs"])
     typer.echo(table)
     if out is not None:

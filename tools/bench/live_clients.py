@@ -40,7 +40,11 @@ STAGGER_S = 0.05  # between two clients' offers: a ramp, not a stampede of DTLS 
 LATE_TOLERANCE_S = 0.1
 CLOCK_WINDOW_S = 2.0  # the page's clock follows the smallest arrival - pts over this window (LiveClock)
 CLIENTS_PER_PROCESS = 40
-HEADER = struct.Struct("<4sBBBBIIdHH")
+HEADER = struct.Struct("<4sBBBBIIdHH")  # a drive message's header
+PACKET_DRIVE_BYTES = struct.Struct("<I")  # a frame packet's drive length, at offset 8
+TRANSPORTS = ("webrtc", "ws")
+TRANSPORT_NAMES = {"ws": "One WebSocket a session (frame packets: drive + int16 audio)",
+                   "webrtc": "WebRTC (drives on a data channel, voice on an Opus audio track)"}
 
 
 def _free_port() -> int:
@@ -60,7 +64,7 @@ async def _client(url: str, delay: float, speak_s: float, idle_s: float, chunk_m
     from aiortc import RTCPeerConnection, RTCSessionDescription
 
     await asyncio.sleep(delay)
-    result: dict = {"drives": [], "error": None}
+    result: dict = {"drives": [], "error": None, "audio_per_s": 50.0}  # two 20 ms Opus packets a 40 ms frame
     pc = RTCPeerConnection()
     try:
         transceiver = pc.addTransceiver("audio", direction="recvonly")
@@ -102,8 +106,54 @@ async def _client(url: str, delay: float, speak_s: float, idle_s: float, chunk_m
     return result
 
 
+async def _ws_client(url: str, delay: float, speak_s: float, idle_s: float, chunk_ms: float) -> dict:
+    """One load client on the WebSocket transport: reads every frame packet (its drive header and its audio's
+    length; the audio is not played: that is the page's cost), barges in after `speak_s` and leaves `idle_s`
+    later."""
+    import aiohttp
+
+    await asyncio.sleep(delay)
+    result: dict = {"drives": [], "error": None, "audio_packets": 0, "audio_lost": 0, "audio_per_s": 0.0}
+    try:
+        async with aiohttp.ClientSession() as http:
+            sent = time.monotonic()
+            async with http.ws_connect(url.replace("http://", "ws://") + "/live", max_msg_size=1 << 20) as socket:
+                await socket.send_json({"source": "file", "chunk_ms": chunk_ms})
+                answer = await socket.receive_json(timeout=120)
+                if "error" in answer:
+                    raise RuntimeError(f"start: {answer['error']}")
+                frame_samples = answer["sample_rate"] / answer["fps"]
+                result.update(offer_sent=sent, answered=time.monotonic(), start_time=answer["start_time"],
+                              fps=answer["fps"], audio_per_s=float(answer["fps"]))
+
+                async def read() -> None:
+                    async for message in socket:
+                        if message.type != aiohttp.WSMsgType.BINARY:
+                            continue
+                        arrival = time.monotonic()
+                        (drive_bytes,) = PACKET_DRIVE_BYTES.unpack_from(message.data, 8)
+                        _, _, _, flags, _, index, epoch, pts, _, _ = HEADER.unpack_from(message.data, 12)
+                        result["drives"].append((index, epoch, flags & 1, pts, arrival, len(message.data)))
+                        samples = (len(message.data) - 12 - drive_bytes) // 2
+                        # A frame's audio is its share of the timeline: 640 or 641 samples where fps does not
+                        # divide the rate.
+                        result["audio_packets"] += abs(samples - frame_samples) < 1
+
+                reader = asyncio.ensure_future(read())
+                await asyncio.sleep(max(0.0, result["answered"] + speak_s - time.monotonic()))
+                result["interrupt_sent"] = time.monotonic()
+                await socket.send_json({"interrupt": True})
+                await asyncio.sleep(idle_s)
+                result["closed"] = time.monotonic()
+                result["interrupt"] = {"epoch": max((d[1] for d in result["drives"]), default=0)}
+                reader.cancel()
+    except Exception as exc:  # reported per client: a refused or failed session is part of what is measured
+        result["error"] = f"{type(exc).__name__}: {exc}"
+    return result
+
+
 def _client_process(url: str, count: int, first: int, speak_s: float, idle_s: float, chunk_ms: float,
-                    queue) -> None:
+                    queue, transport: str = "webrtc") -> None:
     """`count` load clients on one event loop; their results go to `queue`."""
     from aiortc.rtcrtpreceiver import RTCRtpReceiver
 
@@ -120,6 +170,9 @@ def _client_process(url: str, count: int, first: int, speak_s: float, idle_s: fl
     RTCRtpReceiver._handle_rtp_packet = count_packet
 
     async def main() -> list:
+        if transport == "ws":
+            return await asyncio.gather(*(_ws_client(url, (first + k) * STAGGER_S, speak_s, idle_s, chunk_ms)
+                                          for k in range(count)))
         return await asyncio.gather(*(_client(url, (first + k) * STAGGER_S, speak_s, idle_s, chunk_ms,
                                               packets) for k in range(count)))
 
@@ -143,9 +196,10 @@ def serving(command: list[str], url: str, timeout: float, name: str = "live_serv
     raise RuntimeError(f"{name} did not answer within {timeout:g} s: {process.stdout.read()[-3000:]}")
 
 
-def _start_server(bundle: Path, port: int, lookahead_ms: float) -> subprocess.Popen:
+def _start_server(bundle: Path, port: int, lookahead_ms: float, batch_frames: int = 1) -> subprocess.Popen:
     return serving([sys.executable, str(SERVER), str(bundle), "--port", str(port), "--client-render",
-                    "--lookahead-ms", str(lookahead_ms)], f"http://127.0.0.1:{port}/health", 180)
+                    "--lookahead-ms", str(lookahead_ms), "--batch-frames", str(batch_frames)],
+                   f"http://127.0.0.1:{port}/health", 180)
 
 
 def _percentiles(values: list[float]) -> dict:
@@ -207,7 +261,7 @@ def _analyse(clients: list[dict], cpu_s: float, wall_s: float) -> dict:
         session_s += client["closed"] - client["answered"]
         packets += client["audio_packets"]
         lost += client["audio_lost"]
-        expected_packets += round((client["closed"] - client["answered"]) * 50)  # 2 Opus packets a 40 ms frame
+        expected_packets += round((client["closed"] - client["answered"]) * client["audio_per_s"])
     late += missing
 
     def ms(values, q):
@@ -227,11 +281,14 @@ def _analyse(clients: list[dict], cpu_s: float, wall_s: float) -> dict:
 
 def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float = 160.0,
                            speak_s: float = SPEAK_S, idle_s: float = IDLE_S, chunk_ms: float = 20.0,
-                           log=print) -> dict:
-    """Start the client-render server once, then for each N its load clients; returns the figures per N."""
+                           log=print, transport: str = "webrtc", batch_frames: int = 1) -> dict:
+    """Start the client-render server once, then for each N its load clients on `transport` ("webrtc": audio
+    track and data channel; "ws": one WebSocket); returns the figures per N."""
+    if transport not in TRANSPORTS:
+        raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
-    server = _start_server(bundle, port, lookahead_ms)
+    server = _start_server(bundle, port, lookahead_ms, batch_frames)
     context = multiprocessing.get_context("spawn")
     runs = []
     try:
@@ -243,7 +300,7 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
             for first in range(0, n, CLIENTS_PER_PROCESS):
                 count = min(CLIENTS_PER_PROCESS, n - first)
                 process = context.Process(target=_client_process, args=(url, count, first, speak_s, idle_s,
-                                                                                  chunk_ms, queue))
+                                                                        chunk_ms, queue, transport))
                 process.start()
                 processes.append(process)
             clients = []
@@ -271,7 +328,8 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
     sustained = [row["n"] for row in runs if row["late_share"] <= 0.05 and not row["failed"]]
     return {"runs": runs, "largest_n_within_5pct_late": max(sustained) if sustained else 0,
             "late_tolerance_ms": 1000 * LATE_TOLERANCE_S, "speak_s": speak_s, "idle_s": idle_s,
-            "lookahead_ms": lookahead_ms, "chunk_ms": chunk_ms, "server_log_tail": server_log[-2000:]}
+            "lookahead_ms": lookahead_ms, "chunk_ms": chunk_ms, "transport": transport, "batch_frames": batch_frames,
+            "server_log_tail": server_log[-2000:]}
 
 
 def live_clients_table(result: dict) -> str:

@@ -48,6 +48,41 @@ function indexType(params) {
   return params.stored;
 }
 
+/** A sparse entry's [nnz, the inner codec's params] (sdk/codecs.py `_sparse_param`), or BundleError. */
+function sparseParam(params, n) {
+  const sparse = params.sparse;
+  const plain = sparse !== null && typeof sparse === 'object' && !Array.isArray(sparse);
+  const nnz = plain ? sparse.nnz : undefined;
+  if (!Number.isInteger(nnz) || nnz < 0 || BigInt(nnz) > n || Object.keys(sparse).length !== 1) {
+    throw new BundleError(`sparse buffer needs {"nnz": K} with 0 <= K <= ${n} (its element count), got `
+      + `${JSON.stringify(sparse)}`.slice(0, 80));
+  }
+  const { sparse: _, ...inner } = params;
+  return [nnz, inner];
+}
+
+/** A sparse buffer: the bitmask of its nonzero elements (C order, lowest bit first), then the codec's payload of
+ * those values; scattered into zeros. The mask must mark exactly nnz elements and leave its spare bits clear. */
+function decodeSparse(bytes, codec, dtype, n, params) {
+  const [nnz, inner] = sparseParam(params, BigInt(n));
+  const maskBytes = Math.ceil(n / 8);
+  let marked = 0;
+  for (let i = 0; i < maskBytes; i++) {
+    let byte = bytes[i];
+    if (i === maskBytes - 1 && n % 8 && byte >> (n % 8)) {
+      throw new BundleError('sparse buffer\'s mask has bits set past its last element');
+    }
+    for (; byte; byte &= byte - 1) marked += 1;
+  }
+  if (marked !== nnz) throw new BundleError(`sparse buffer's mask marks ${marked} nonzero elements, its nnz says ${nnz}`);
+  const values = decodeBuffer(bytes.subarray(maskBytes), codec, dtype, [nnz], inner);
+  const out = new values.constructor(n);
+  for (let i = 0, k = 0; i < n; i++) {
+    if (bytes[i >> 3] & (1 << (i & 7))) out[i] = values[k++];
+  }
+  return out;
+}
+
 /** Element count of a shape as a BigInt (a huge claimed shape is a big number, never an allocation). */
 function count(shape) {
   return shape.reduce((n, d) => n * BigInt(d), 1n);
@@ -75,6 +110,10 @@ export function expectedNbytes(codec, dtype, shape, params) {
       + `fewer than ${MAX_ELEMENTS} elements)`);
   }
   const n = count(shape);
+  if (Object.hasOwn(params, 'sparse')) {
+    const [nnz, inner] = sparseParam(params, n);
+    return (n + 7n) / 8n + expectedNbytes(codec, dtype, [nnz], inner);
+  }
   if (codec === 'raw') return n * BigInt(DTYPES[dtype][1]);
   if (codec === 'fp16') return 2n * n;
   if (codec === 'index') return n * BigInt(INDEX_TYPES[indexType(params)][0]);
@@ -123,9 +162,10 @@ function fromNumbers(values, dtype) {
   throw new BundleError(`cannot store numbers as ${dtype}`);
 }
 
-/** Copy of `bytes` as a typed array of `Type` (the copy makes it aligned). */
+/** Copy of `bytes` as a typed array of `Type` (the copy makes it aligned; Uint8Array's own slice, which copies
+ * even where `bytes` is a node Buffer, whose slice is a view). */
 function view(bytes, Type) {
-  const copy = bytes.slice();
+  const copy = Uint8Array.prototype.slice.call(bytes);
   return new Type(copy.buffer, copy.byteOffset, copy.byteLength / Type.BYTES_PER_ELEMENT);
 }
 
@@ -163,6 +203,7 @@ function decodeQuantised(bytes, dtype, n, params, codec) {
  * float16: Uint16Array of half bits). */
 export function decodeBuffer(bytes, codec, dtype, shape, params) {
   const n = Number(count(shape));
+  if (Object.hasOwn(params, 'sparse')) return decodeSparse(bytes, codec, dtype, n, params);
   if (codec === 'raw') return view(bytes, DTYPES[dtype][2]);
   if (codec === 'fp16') {
     const halves = view(bytes, Uint16Array);

@@ -7,6 +7,12 @@
 //   new LiveClock()                 the pts being heard now, from the drives' arrival and the audio receiver's
 //                                   playout delay
 //   new WireDrive(decoded, player)  what Player.renderFrame draws (duck-typed like drive.js's Drive)
+//
+// Over one WebSocket (transport "ws", docs/live.md) each frame comes as a frame packet: its drive and its audio.
+//
+//   decodeFramePacket(arrayBuffer)  -> {drive: decodeDrive's fields, audio: Int16Array}  (DriveFormatError)
+//   new LiveAudio()                 plays the packets' audio on a continuous WebAudio schedule; now() is the pts
+//                                   being heard, the clock the drives are drawn on
 
 import { ARKIT_BLENDSHAPES } from './generated.js';
 
@@ -175,5 +181,169 @@ export class LiveClock {
       if (count > 0) this.audioDelay = (this.lastStats.delay - (last?.delay ?? 0)) / count + outputLatency;
     }
     return this.audioDelay;
+  }
+}
+
+
+// A frame packet (samples/live_server.py encode_frame_packet): "GTLF", version, audio dtype, reserved u16, then
+// drive_bytes (u32), the drive message, and the frame's audio (int16 LE mono) filling the rest.
+export const FRAME_HEADER_BYTES = 12;
+const FRAME_MAGIC = [0x47, 0x54, 0x4c, 0x46]; // "GTLF"
+
+/** A frame packet (ArrayBuffer or a typed array) -> {drive, audio}; DriveFormatError naming what is wrong, the
+ * drive's own refusals included. drive_bytes is checked against the bytes present before anything is read. */
+export function decodeFramePacket(message) {
+  const bytes = message instanceof ArrayBuffer ? new Uint8Array(message)
+    : new Uint8Array(message.buffer, message.byteOffset, message.byteLength);
+  if (bytes.length < FRAME_HEADER_BYTES) {
+    throw new DriveFormatError(
+      `frame packet truncated: ${bytes.length} bytes, the header alone is ${FRAME_HEADER_BYTES}`);
+  }
+  if (!FRAME_MAGIC.every((b, i) => bytes[i] === b)) throw new DriveFormatError('not a frame packet (bad magic)');
+  const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
+  const version = view.getUint8(4);
+  const dtype = view.getUint8(5);
+  if (version !== 1 || dtype !== 0) {
+    throw new DriveFormatError(`frame packet version ${version} audio dtype ${dtype}: only version 1 int16 is read`);
+  }
+  const driveBytes = view.getUint32(8, true);
+  const rest = bytes.length - FRAME_HEADER_BYTES;
+  if (driveBytes > rest) {
+    throw new DriveFormatError(
+      `frame packet claims a ${driveBytes}-byte drive but carries ${rest} bytes after its header`);
+  }
+  const audioBytes = rest - driveBytes;
+  if (audioBytes % 2) throw new DriveFormatError(`frame packet audio is ${audioBytes} bytes: not whole int16 samples`);
+  const drive = decodeDrive(bytes.subarray(FRAME_HEADER_BYTES, FRAME_HEADER_BYTES + driveBytes));
+  const audio = new Int16Array(audioBytes / 2);
+  const at = FRAME_HEADER_BYTES + driveBytes;
+  for (let i = 0; i < audio.length; i++) audio[i] = view.getInt16(at + 2 * i, true);
+  return { drive, audio };
+}
+
+/** Plays frame packets' audio through an AudioContext, back to back, `bufferS` (a jitter buffer) after it arrives,
+ * and keeps which pts plays at which context time, so `now()` (the pts being heard) is the clock that the drives
+ * are drawn on: picture and sound share the sound card's clock and cannot drift apart.
+ *
+ *   schedule(pts, samples, rate, {epoch, index})  queue one packet after what is queued (re-anchored to now +
+ *                                                  bufferS when the queue ran dry: an underrun)
+ *   now()                                          the pts heard now (NaN before anything is scheduled)
+ *   bargeIn(epoch, firstIndex)                     stop the queued audio of older epochs from firstIndex on */
+export class LiveAudio {
+  constructor({ context = null, bufferS = 0.1, maxAheadS = 1.0, volume = 1.0 } = {}) {
+    this.ctx = context ?? new AudioContext();
+    this.gain = this.ctx.createGain();
+    this.gain.gain.value = volume;
+    this.gain.connect(this.ctx.destination);
+    Object.assign(this, { bufferS, maxAheadS, segments: [], nextTime: null, epoch: 0, epochStart: Infinity,
+      cut: false, scheduled: 0, underruns: 0, overruns: 0, stopped: 0, refused: 0, suspended: 0 });
+  }
+
+  /** The context time whose sound leaves the speaker now: currentTime less the output path's latency. */
+  heardTime() {
+    const latency = this.ctx.outputLatency || this.ctx.baseLatency || 0;
+    return this.ctx.currentTime - latency;
+  }
+
+  /** Queue one packet's int16 samples (pts: the time of its first sample on the session's clock). Returns the
+   * context time it starts at, or null when it is not played (a stale epoch's, one past maxAheadS, or while the
+   * context is not running). */
+  schedule(pts, samples, sampleRate, { epoch = 0, index = 0 } = {}) {
+    if (epoch > this.epoch) this.bargeIn(epoch, index);
+    if (epoch < this.epoch && index >= this.epochStart) {
+      this.refused += 1;
+      return null;
+    }
+    if (!samples.length) return null;
+    if (this.ctx.state !== 'running') {
+      // A context the autoplay policy holds (or one closed) plays nothing: queueing would only add delay for later.
+      this.suspended += 1;
+      return null;
+    }
+    const now = this.ctx.currentTime;
+    if (this.nextTime === null || this.nextTime < now || this.cut) {
+      // The first packet, an underrun (the queue ran dry) or the first after a barge-in's cut: a jitter buffer ahead.
+      if (this.nextTime !== null && this.nextTime < now && !this.cut) this.underruns += 1;
+      this.nextTime = Math.max(this.nextTime ?? 0, now + this.bufferS);
+    } else if (this.nextTime > now + this.bufferS + this.maxAheadS) {
+      // Arriving faster than it plays (a sender's clock running fast): dropping a packet keeps the delay bounded.
+      this.overruns += 1;
+      return null;
+    }
+    const buffer = this.ctx.createBuffer(1, samples.length, sampleRate);
+    const channel = buffer.getChannelData(0);
+    for (let i = 0; i < samples.length; i++) channel[i] = samples[i] / 32768;
+    const source = this.ctx.createBufferSource();
+    source.buffer = buffer;
+    source.connect(this.gain);
+    const start = this.nextTime;
+    const duration = samples.length / sampleRate;
+    source.start(start);
+    this.nextTime = start + duration;
+    this.cut = false;
+    this.segments.push({ pts, start, duration, epoch, index, source });
+    this.scheduled += 1;
+    // What has been heard more than a second ago is no longer needed for the mapping.
+    const heard = this.heardTime();
+    while (this.segments.length > 1 && this.segments[0].start + this.segments[0].duration < heard - 1.0) {
+      this.segments.shift();
+    }
+    return start;
+  }
+
+  /** The pts heard now: within a queued packet, its pts plus the time into it; between packets (an underrun) or
+   * after the last, the end of the one heard last (the clock waits for the sound); before the first, counting
+   * back from it. NaN before anything is scheduled. */
+  now() {
+    if (!this.segments.length) return NaN;
+    const t = this.heardTime();
+    const first = this.segments[0];
+    if (t < first.start) return first.pts - (first.start - t);
+    let last = first;
+    for (const s of this.segments) {
+      if (s.start > t) break;
+      last = s;
+    }
+    return last.pts + Math.min(t - last.start, last.duration);
+  }
+
+  /** A barge-in: stop the queued sound of epochs older than `epoch` from frame `firstIndex` on (null: from the
+   * first packet not yet playing), and refuse such packets arriving later, so the old speech stops at once. */
+  bargeIn(epoch, firstIndex = null) {
+    if (epoch < this.epoch) return;
+    const t = this.ctx.currentTime;
+    if (firstIndex === null) {
+      const pending = this.segments.find((s) => s.epoch < epoch && s.start > t);
+      const last = this.segments[this.segments.length - 1];
+      firstIndex = pending ? pending.index : last ? last.index + 1 : Infinity;
+    }
+    this.epochStart = epoch > this.epoch ? firstIndex : Math.min(this.epochStart, firstIndex);
+    this.epoch = epoch;
+    const kept = [];
+    let resume = null;
+    for (const s of this.segments) {
+      if (s.epoch < epoch && s.index >= this.epochStart && s.start + s.duration > t) {
+        s.source.stop();
+        this.stopped += 1;
+        resume = Math.min(resume ?? Infinity, Math.max(s.start, t));
+      } else {
+        kept.push(s);
+      }
+    }
+    this.segments = kept;
+    // The next packet follows what still plays (a jitter buffer ahead), not the silence left by what was stopped.
+    if (resume !== null) Object.assign(this, { nextTime: Math.min(this.nextTime, resume), cut: true });
+  }
+
+  get stats() {
+    return { scheduled: this.scheduled, underruns: this.underruns, overruns: this.overruns, stopped: this.stopped,
+      refused: this.refused, suspended: this.suspended, heardPts: this.now(), bufferS: this.bufferS,
+      ahead: this.nextTime === null ? 0 : this.nextTime - this.ctx.currentTime, contextRate: this.ctx.sampleRate };
+  }
+
+  close() {
+    for (const s of this.segments) s.source.stop();
+    this.segments = [];
+    return this.ctx.close();
   }
 }

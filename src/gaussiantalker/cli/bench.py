@@ -11,7 +11,8 @@ from .extras import require_export_extra
 # `gt-bench`'s subcommands (tools/bench/app.py), and the mode flags of the single command they replaced, in the order
 # it checked them, each with the subcommand it is now and the options that mode read (the others it ignored).
 BENCH_COMMANDS = ("frames", "sweep", "compare", "composite", "backends", "video", "clip-codecs", "clip-crf", "lam-web",
-                  "avatar", "surface", "early-stop", "live", "live-clients", "renderers", "pipeline")
+                  "avatar", "surface", "early-stop", "live", "live-clients", "renderers", "pipeline", "web-presets",
+                  "live-batching")
 LEGACY_BENCH_MODES = (
     ("--backends", "backends", ("--checkpoint", "--sizes", "--seconds", "--rounds", "--out")),
     ("--composite", "composite", ("--checkpoint", "--seconds", "--rounds", "--out")),

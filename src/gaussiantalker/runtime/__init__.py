@@ -41,11 +41,13 @@ from .live import LiveFrame, LiveSession, LiveStats
 from .motions import MotionSource
 from .output import OutputView
 from .settings import BackendSettings, OutputSettings
+from .stages import open_driver
 
 __all__ = [
     "TalkingHead",
     "FlameDriver",
     "ArkitDriver",
+    "open_driver",
     "FrameRenderer",
     "Compositor",
     "Camera",

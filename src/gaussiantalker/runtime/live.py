@@ -112,10 +112,13 @@ class LiveSession:
 
     def __init__(self, head, *, lookahead_ms: float = 160.0, paced: bool = True, context_ms: float = 1000.0,
                  output: str | None = "uint8", audio_rate: int | None = None, idle: IdleMotion | None = None,
-                 max_queued_s: float = MAX_QUEUED_S) -> None:
+                 max_queued_s: float = MAX_QUEUED_S, min_batch_frames: int = 1) -> None:
         for name, value in (("lookahead_ms", lookahead_ms), ("context_ms", context_ms), ("max_queued_s", max_queued_s)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise LiveError(f"{name} must be a finite number >= 0, got {value!r}")
+        if not (isinstance(min_batch_frames, int) and 1 <= min_batch_frames <= MAX_BATCH_FRAMES):
+            raise LiveError(f"min_batch_frames must be a whole number in 1..{MAX_BATCH_FRAMES}, got "
+                            f"{min_batch_frames!r}")
         driver = getattr(head, "driver", head)  # a TalkingHead, or a Driver alone (drives without pixels)
         if driver is head:
             head = None
@@ -127,6 +130,9 @@ class LiveSession:
         self.head, self.driver, self.paced, self.output = head, driver, bool(paced), output
         self.fps = float(driver.fps)
         self.lookahead_frames = math.ceil(lookahead_ms * self.fps / 1000.0 - 1e-9)
+        # An utterance starts once this many frames (and their lookahead) are in, so that the translator then runs
+        # once per that many frames: fewer calls, each utterance later by min_batch_frames - 1 frames.
+        self.min_batch_frames = min_batch_frames
         self.context_frames = math.ceil(context_ms * self.fps / 1000.0 - 1e-9)
         self.sample_rate = int(audio_rate) if audio_rate is not None else driver.sample_rate
         self._speech = _Timeline(driver.sample_rate, self.fps)
@@ -148,6 +154,8 @@ class LiveSession:
         self._ended = self._closed = self._reading = False
         self._error: BaseException | None = None  # what frames() or poll() raised: the session stopped on it
         self._next_index = 0
+        self._anchor: tuple[float, int] | None = None  # step(): (time, index) its pacing counts from
+        self._finished = False
         self._last_spoken: np.ndarray | None = None
         self._frames_since_speech = 0
         self.stats = LiveStats()
@@ -265,6 +273,43 @@ class LiveSession:
             with self._cond:
                 self._reading = False
 
+    def step(self) -> LiveFrame | None:
+        """Paced frames on an app's own scheduler (one thread serving many sessions, instead of a thread blocked in
+        frames() for each): the next frame if it is due now, else None; call again at `due`. `finished` says when
+        frames() would have ended."""
+        with self._cond:
+            if self._reading:
+                raise LiveError("frames() of this live session is being read: read it with frames() or step(), "
+                                "not both")
+            if not self.paced:
+                raise LiveError("step() gives frames at their due time: open the session with paced=True")
+            if self._anchor is None:
+                self._anchor = (time.monotonic(), self._next_index)
+        due = self.due
+        if due > time.monotonic():
+            return None
+        plan = self._plan_or_fail(due)  # due has come: it does not wait
+        if plan is None:
+            self._finished = True
+            return None
+        frame = self._make(plan)
+        if time.monotonic() - due > MAX_LAG_FRAMES / self.fps:  # behind: re-anchor, as frames() does
+            self._anchor = (time.monotonic(), self._next_index)
+        return frame
+
+    @property
+    def due(self) -> float:
+        """time.monotonic() at which step() gives the next frame (now, before the first step)."""
+        if self._anchor is None:
+            return time.monotonic()
+        anchor_time, anchor_index = self._anchor
+        return anchor_time + (self._next_index - anchor_index) / self.fps
+
+    @property
+    def finished(self) -> bool:
+        """step() gives no more frames: the session was closed, or ended and every frame went out."""
+        return self._finished
+
     def poll(self) -> list[LiveFrame]:
         """The frames whose audio and lookahead are in now (no idle frames, no waiting): for apps that push and
         read on one thread or event loop."""
@@ -321,6 +366,9 @@ class LiveSession:
                 count = self._ready_batch()
                 late = False
                 mid_utterance = self._last_spoken is not None and self._frames_since_speech == 0
+                if count < self.min_batch_frames and not self._flushed and not (mid_utterance and self.paced
+                                                                                 and due is not None):
+                    count = 0  # a batch fills before an utterance starts; mid-utterance, what is ready goes now
                 if count == 0 and due is not None and self.paced and mid_utterance \
                         and len(self._heard.samples) >= self._speech.span(self._next_index, self._next_index + 1):
                     # Mid-utterance, its own audio is in but its lookahead is late: show it with what is in. (An

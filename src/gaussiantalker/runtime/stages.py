@@ -5,6 +5,7 @@ need is read and checked here, at load, so a damaged bundle fails before the fir
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +27,7 @@ from .semantic import Regions
 from .settings import BackendSettings, OutputSettings, merged_render
 from .splat.choice import make_splatter
 from .timings import Timings
+from .translate import SILENCE_GATE_DBFS
 
 
 @dataclass
@@ -100,9 +102,7 @@ def build_stages(bundle: Bundle, render: RenderSettings, output: OutputSettings,
     manifest, timings = bundle.manifest, Timings()
     rig = read_rig(bundle)
     graphs: GraphBackend = open_backend(bundle, backend.name, threads=backend.threads)
-    options = {"timings": timings, "silence_gate_dbfs": silence_gate_dbfs}
-    driver = (ArkitDriver(bundle, graphs, rig, **options) if isinstance(rig, ArkitRig) else
-              FlameDriver(bundle, graphs, rig, specialised="scene" in manifest, **options))
+    driver = _driver(bundle, graphs, rig, timings, silence_gate_dbfs)
     view = output_view(bundle, output)
     background = read_background(bundle, output.background)
     reference = ReferenceClip(bundle, output.resolution) if "reference" in manifest else None
@@ -119,4 +119,21 @@ def build_stages(bundle: Bundle, render: RenderSettings, output: OutputSettings,
     return Stages(driver, frame_renderer, compositor, renderer, reference, timings)
 
 
-__all__ = ["Stages", "build_stages", "bundle_render_settings", "read_background", "read_rig", "read_scene"]
+def _driver(bundle: Bundle, graphs: GraphBackend, rig, timings: Timings,
+            silence_gate_dbfs: float | None) -> FlameDriver | ArkitDriver:
+    options = {"timings": timings, "silence_gate_dbfs": silence_gate_dbfs}
+    return (ArkitDriver(bundle, graphs, rig, **options) if isinstance(rig, ArkitRig) else
+            FlameDriver(bundle, graphs, rig, specialised="scene" in bundle.manifest, **options))
+
+
+def open_driver(bundle: str | os.PathLike | Bundle, *, backend: str = "onnxruntime", threads: int | None = None,
+                silence_gate_dbfs: float | None = SILENCE_GATE_DBFS) -> FlameDriver | ArkitDriver:
+    """A bundle's Driver alone: its graphs and rig, no splatter and no GL. What a server runs that streams drives
+    to clients that render them (`LiveSession(driver, output=None)`)."""
+    bundle = bundle if isinstance(bundle, Bundle) else Bundle(bundle)
+    return _driver(bundle, open_backend(bundle, backend, threads=threads), read_rig(bundle), Timings(),
+                   silence_gate_dbfs)
+
+
+__all__ = ["Stages", "build_stages", "open_driver", "bundle_render_settings", "read_background", "read_rig",
+           "read_scene"]

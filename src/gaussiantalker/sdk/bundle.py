@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .codecs import encode_buffer, expected_nbytes, get_codec
+from .codecs import decode_buffer, encode_buffer, expected_nbytes
 from .errors import BundleError
 from .files import StagedFile, atomic_write
 from .json_bounds import MAX_JSON_DEPTH, MAX_JSON_INT, nests_deeper_than, no_constant
@@ -76,14 +76,15 @@ class BundleWriter:
         self._size += padded
         return {"offset": offset, "nbytes": len(data), "sha256": _sha256(data)}
 
-    def add_buffer(self, name: str, array: np.ndarray, codec: str = "raw", chunk: int | None = None) -> None:
+    def add_buffer(self, name: str, array: np.ndarray, codec: str = "raw", chunk: int | None = None,
+                   sparse: bool = False) -> None:
         """Store `array` under `name`, encoded with `codec` (decoded back to the array's dtype; quantised codecs
-        use `chunk` values per chunk, sdk/codecs.py)."""
+        use `chunk` values per chunk; `sparse`: its nonzero elements only, after a bitmask; sdk/codecs.py)."""
         if name in self._buffers:
             raise BundleError(f"buffer {name!r} added twice")
         array = np.asarray(array)
         try:
-            payload, params = encode_buffer(array, codec, chunk)
+            payload, params = encode_buffer(array, codec, chunk, sparse)
         except BundleError as exc:
             raise BundleError(f"buffer {name!r}: {exc}") from None
         entry = self._append(payload)
@@ -97,8 +98,8 @@ class BundleWriter:
         """Buffer `name` as a reader will decode it (a lossy codec's values, not the array that was added)."""
         entry = self._buffers[name]
         codec = entry["codec"]
-        return get_codec(codec["name"]).decode(self._stored[name], entry["dtype"], tuple(entry["shape"]),
-                                               _codec_params(codec))
+        return decode_buffer(self._stored[name], codec["name"], entry["dtype"], tuple(entry["shape"]),
+                             _codec_params(codec))
 
     def add_graph(self, name: str, onnx_bytes: bytes, inputs: list[dict], outputs: list[dict],
                   initializers: dict[str, str] | None = None, compress: bool = True) -> None:
@@ -375,7 +376,7 @@ class Bundle:
         data = self._read_entry(_label("buffer", name), entry)
         codec = entry["codec"]
         try:
-            return get_codec(codec["name"]).decode(data, entry["dtype"], tuple(entry["shape"]), _codec_params(codec))
+            return decode_buffer(data, codec["name"], entry["dtype"], tuple(entry["shape"]), _codec_params(codec))
         except BundleError as exc:
             raise BundleError(f"{self.path}: {_label('buffer', name)}: {exc}") from None
 

@@ -12,10 +12,16 @@ happens once, when a bundle is loaded (graph weights become float32 initializers
   (2^(bits+1) - 2)). The exporter lays per-Gaussian buffers out component-major ([3, N], ...), so a chunk holds one
   quantity of neighbouring Gaussians.
 * `index`: non-negative integers in the smallest unsigned type that holds the largest (uint8/16/32). Lossless.
+
+Any codec may be made sparse (params `"sparse": {"nnz": K}`): the payload is then a bitmask of the array's
+nonzero elements (one bit per element in C order, the first in the lowest bit of byte 0, `ceil(count / 8)` bytes,
+spare bits zero), followed by the codec's own payload of those K values as a 1-D array. A morph basis that is
+mostly zeros (an avatar's blendshapes each move one region of the face) takes a fraction of its dense bytes.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -225,6 +231,43 @@ CODECS: dict[str, Codec] = {
 }
 
 
+# -- the sparse layer --------------------------------------------------------------------------------------------
+
+
+def _sparse_param(params: dict, count: int) -> tuple[int, dict]:
+    """(nnz, the inner codec's params) of a sparse entry; BundleError for a malformed or impossible nnz."""
+    sparse = params.get("sparse")
+    nnz = sparse.get("nnz") if isinstance(sparse, dict) else None
+    if not isinstance(nnz, int) or isinstance(nnz, bool) or not 0 <= nnz <= count or len(sparse) != 1:
+        raise BundleError(f"sparse buffer needs {{\"nnz\": K}} with 0 <= K <= {count} (its element count), got "
+                          f"{json.dumps(sparse)[:80]}")
+    return nnz, {key: value for key, value in params.items() if key != "sparse"}
+
+
+def _mask_nbytes(count: int) -> int:
+    return -(-count // 8)
+
+
+def decode_buffer(payload: bytes, codec_name: str, dtype: str, shape: tuple[int, ...], params: dict) -> np.ndarray:
+    """A buffer's stored bytes (their length already checked with expected_nbytes) -> its array."""
+    codec = get_codec(codec_name)
+    if "sparse" not in params:
+        return codec.decode(payload, dtype, shape, params)
+    count = _count(shape)
+    nnz, inner = _sparse_param(params, count)
+    mask_bytes = _mask_nbytes(count)
+    mask = np.unpackbits(np.frombuffer(payload, np.uint8, mask_bytes), bitorder="little")
+    if mask[count:].any():
+        raise BundleError("sparse buffer's mask has bits set past its last element")
+    mask = mask[:count].astype(bool)
+    if int(mask.sum()) != nnz:
+        raise BundleError(f"sparse buffer's mask marks {int(mask.sum())} nonzero elements, its nnz says {nnz}")
+    values = codec.decode(payload[mask_bytes:], dtype, (nnz,), inner)
+    out = np.zeros(count, dtype)
+    out[mask] = values
+    return out.reshape(shape)
+
+
 def get_codec(name: str) -> Codec:
     """The codec registered under `name`; BundleError naming it otherwise."""
     try:
@@ -253,11 +296,22 @@ def expected_nbytes(codec_name: str, dtype: str, shape: tuple[int, ...], params:
     if len(shape) > MAX_NDIM or spread >= MAX_ELEMENTS:
         raise BundleError(f"invalid buffer shape {str(list(shape))[:120]} (at most {MAX_NDIM} dimensions, fewer "
                           f"than {MAX_ELEMENTS} elements)")
-    return codec.stored_nbytes(dtype, tuple(int(d) for d in shape), params or {})
+    shape, params = tuple(int(d) for d in shape), params or {}
+    if "sparse" in params:
+        nnz, inner = _sparse_param(params, _count(shape))
+        return _mask_nbytes(_count(shape)) + codec.stored_nbytes(dtype, (nnz,), inner)
+    return codec.stored_nbytes(dtype, shape, params)
 
 
-def encode_buffer(array: np.ndarray, codec_name: str, chunk: int | None = None) -> tuple[bytes, dict]:
-    """Encode `array` with codec `codec_name` (quantised codecs: `chunk` values per chunk, default 256)."""
+def encode_buffer(array: np.ndarray, codec_name: str, chunk: int | None = None,
+                  sparse: bool = False) -> tuple[bytes, dict]:
+    """Encode `array` with codec `codec_name` (quantised codecs: `chunk` values per chunk, default 256); `sparse`:
+    only its nonzero elements, after a bitmask of where they are (a -0.0 is stored as a zero)."""
+    if sparse:
+        flat = np.ascontiguousarray(array).reshape(-1)
+        mask = flat != 0
+        payload, params = encode_buffer(flat[mask], codec_name, chunk)
+        return np.packbits(mask, bitorder="little").tobytes() + payload, {**params, "sparse": {"nnz": int(mask.sum())}}
     codec = get_codec(codec_name)
     if chunk is not None and codec_name.startswith("q"):
         _chunk_param({"chunk": chunk}, codec_name)

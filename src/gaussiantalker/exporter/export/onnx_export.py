@@ -17,6 +17,8 @@ from onnx import external_data_helper, numpy_helper
 from gaussiantalker.sdk.bundle import BundleWriter
 from gaussiantalker.sdk.codecs import ONNX_DTYPES
 
+from .presets import stored_sparse
+
 # Initializers at least this large move out of the graph into buffers; tiny ones (shape constants, which
 # ONNX shape inference must see) stay inline.
 EXTERNALIZE_MIN_BYTES = 1024
@@ -93,7 +95,7 @@ def add_graph(writer: BundleWriter, graph_name: str, model: onnx.ModelProto,
             continue
         buffer_name = f"{graph_name}/{re.sub(r'[^A-Za-z0-9_.]+', '_', tensor.name)}"
         codec, chunk = codec_for(buffer_name, array)
-        writer.add_buffer(buffer_name, array, codec=codec, chunk=chunk)
+        writer.add_buffer(buffer_name, array, codec=codec, chunk=chunk, sparse=stored_sparse(buffer_name, array))
         external_data_helper.set_external_data(tensor, location="bundle", offset=0, length=array.nbytes)
         tensor.ClearField("raw_data")
         for field in ("float_data", "int64_data", "int32_data", "double_data"):

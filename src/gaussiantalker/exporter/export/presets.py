@@ -37,6 +37,11 @@ KEEP_16_BITS = ("deform/rest_points", "deform/rest_scale", "deform/barycentric",
 # chunk of 128 values holds zeros beside 4 cm moves), so 4-bit steps are millimetres. Measured on LAM's sample
 # avatar, balanced preset, random strong expressions: head region 41.3 dB with q4/128, 53.7 dB with q8 (docs/import.md).
 KEEP_8_BITS = ("deform/morph_basis",)
+# Buffers stored sparse (sdk/codecs.py: a bitmask of the nonzero elements, then those values in the buffer's codec)
+# when at least SPARSE_MIN_ZEROS of their elements are zero. An ARKit avatar's morph basis is mostly zeros (LAM's
+# p2-1: 82%), each blendshape moving one region of the face; FLAME's buffers stay as they are.
+SPARSE_BUFFERS = ("deform/morph_basis",)
+SPARSE_MIN_ZEROS = 0.5
 # Quantised codecs spend 8 bytes of chunk parameters per chunk: below this many values a buffer gets fp16 instead.
 QUANT_MIN_VALUES = 4096
 # Translator graph precisions (exporter/export/graph_precision.py converts to them).
@@ -157,6 +162,12 @@ class ExportSettings:
         return codec, chunk
 
 
+def stored_sparse(buffer: str, array: np.ndarray) -> bool:
+    """Whether bundle buffer `buffer` is stored sparse: one of SPARSE_BUFFERS, at least SPARSE_MIN_ZEROS zeros."""
+    zeros = array.size - np.count_nonzero(array)
+    return buffer in SPARSE_BUFFERS and array.size > 0 and zeros >= SPARSE_MIN_ZEROS * array.size
+
+
 @dataclass(frozen=True)
 class Preset:
     """A named bundle recipe: export settings, runtime defaults, and the bound `--verify` holds it to."""
@@ -229,5 +240,5 @@ def settings_with(base: ExportSettings, **overrides) -> ExportSettings:
     return replace(base, **{k: v for k, v in overrides.items() if v is not None})
 
 
-__all__ = ["CODEC_GROUPS", "PRESETS", "ExportSettings", "Preset", "get_preset", "group_of", "parse_codec",
-           "parse_reference", "settings_with"]
+__all__ = ["CODEC_GROUPS", "PRESETS", "SPARSE_BUFFERS", "ExportSettings", "Preset", "get_preset", "group_of",
+           "parse_codec", "parse_reference", "settings_with", "stored_sparse"]

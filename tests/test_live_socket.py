@@ -1,0 +1,188 @@
+"""Client-render live sessions over one WebSocket (samples/live_server.py --client-render, GET /live; docs/live.md
+"One WebSocket a session"): a real server on loopback driven by an aiohttp client: every frame's drive and audio
+in order, the voice carried sample for sample, barge-in, the microphone source and
+the refusals of a bad page. No browser: tests/test_live_web.py runs the page itself, and checks the packet format
+against the page's decoder."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import struct
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ci_tools import need_module
+
+from tools.bench.live_clients import serving
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _server_module():
+    need_module("aiortc", "live")
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("live_server_socket_test", ROOT / "samples" / "live_server.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+# -- a server on loopback --------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def server(small_export):
+    module = _server_module()
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    process = serving([sys.executable, str(ROOT / "samples" / "live_server.py"), str(small_export.path), "--port",
+                       str(port), "--client-render"], f"http://127.0.0.1:{port}/health", 120)
+    yield module, port
+    process.terminate()
+    log = process.communicate(timeout=30)[0]
+    assert "Traceback" not in log, log[-3000:]
+
+
+def _get(port: int, path: str) -> bytes:
+    return urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=10).read()
+
+
+async def _session(port: int, start: dict, *, frames: int, interrupt_at: int | None = None, mic=None,
+                   raw: bytes | str | None = None) -> dict:
+    """Open /live, send `start`, read `frames` frame packets (barging in after `interrupt_at` of them; sending
+    `mic` = (int16 samples, rate) in 20 ms chunks as fast as the socket takes them; sending `raw` after the
+    answer), then leave. Returns the answer, the packets (raw bytes), the text messages and the session's
+    recorded drives (GET /drives, read before leaving)."""
+    import aiohttp
+
+    out: dict = {"packets": [], "texts": []}
+    async with aiohttp.ClientSession() as http, http.ws_connect(f"ws://127.0.0.1:{port}/live") as ws:
+        await ws.send_str(json.dumps(start) if isinstance(start, dict) else start)
+        out["answer"] = json.loads((await ws.receive(timeout=60)).data)
+        if "error" in out["answer"]:
+            out["closed"] = (await ws.receive(timeout=10)).type
+            return out
+        if mic is not None:
+            samples, rate = mic
+            step = rate // 50
+            for first in range(0, samples.shape[0], step):
+                await ws.send_bytes(samples[first:first + step].astype("<i2").tobytes())
+        if raw is not None:
+            await (ws.send_bytes(raw) if isinstance(raw, bytes) else ws.send_str(raw))
+        while len(out["packets"]) < frames:
+            message = await ws.receive(timeout=30)
+            if message.type == aiohttp.WSMsgType.BINARY:
+                out["packets"].append(message.data)
+                if len(out["packets"]) == interrupt_at:
+                    await ws.send_str(json.dumps({"interrupt": True}))
+            elif message.type == aiohttp.WSMsgType.TEXT:
+                out["texts"].append(json.loads(message.data))
+                if "error" in out["texts"][-1]:
+                    break
+            else:
+                out["closed"] = message.type
+                break
+        if "closed" not in out and not (out["texts"] and "error" in out["texts"][-1]):
+            session = out["answer"]["session"]
+            out["drives"] = await asyncio.get_running_loop().run_in_executor(
+                None, _get, port, f"/drives?session={session}")
+    return out
+
+
+def test_a_session_streams_every_frame_with_its_voice_and_barges_in(server):
+    """The sample speech pushed in 20 ms chunks: frame packets 0, 1, 2, ... each carrying the server's recorded
+    drive byte for byte and its 640 samples; the speaking frames' audio is the speech itself (16 kHz in and out:
+    int16 of the same samples); after the barge-in the server says the new epoch at once and
+    with its first frame, and every later frame is idle and silent."""
+    from gaussiantalker.sdk.audio import load_audio
+
+    module, port = server
+    out = asyncio.run(_session(port, {"source": "file", "chunk_ms": 20}, frames=100, interrupt_at=60))
+    answer = out["answer"]
+    assert answer["fps"] == 25 and answer["sample_rate"] == 16000 and answer["rig"] == "flame"
+    decoded = [module.decode_frame_packet(p) for p in out["packets"]]
+    indexes = [d["drive"]["index"] for d in decoded]
+    assert indexes == list(range(100))
+    assert all(d["audio"].shape == (640,) and d["drive"]["pts"] == d["drive"]["index"] / 25 for d in decoded)
+    body = out["drives"]
+    recorded, at = {}, 0
+    while at < len(body):
+        (length,) = struct.unpack_from("<H", body, at)
+        recorded[module.decode_drive(body[at + 2:at + 2 + length])["index"]] = body[at + 2:at + 2 + length]
+        at += 2 + length
+    for packet in out["packets"]:
+        (length,) = struct.unpack_from("<I", packet, 8)
+        assert packet[12:12 + length] == recorded[module.decode_frame_packet(packet)["drive"]["index"]]
+
+    speaking = [d["drive"]["speaking"] for d in decoded]
+    first = speaking.index(True)
+    assert first <= 15, first  # 160 ms of lookahead and a chunk of slack, not seconds
+    texts = out["texts"]
+    assert texts[0] == {"interrupted": {"epoch": 1}}, texts
+    told = texts[1]["interrupt"]
+    assert told["epoch"] == 1 and 60 <= told["index"] <= 75, texts
+    cut = told["index"]
+    assert all(d["drive"]["epoch"] == (d["drive"]["index"] >= cut) for d in decoded)
+    # Until the barge-in the head speaks (a loaded machine may let the pusher fall behind: an idle frame then, whose
+    # audio is silence, and the speech goes on in the next); after it, never.
+    assert sum(speaking[first:cut]) >= 0.9 * (cut - first) and not any(speaking[cut:])
+    heard = np.concatenate([d["audio"] for d in decoded[first:cut] if d["drive"]["speaking"]])
+    assert not any(d["audio"].any() for d in decoded[first:cut] if not d["drive"]["speaking"])
+    speech = np.clip(np.round(load_audio(ROOT / "samples" / "demo_speech.wav", 16000) * 32768.0), -32768, 32767)
+    np.testing.assert_array_equal(heard, speech[:heard.size].astype(np.int16))
+    assert not any(d["audio"].any() for d in decoded[cut:])
+    assert not any(d["audio"].any() for d in decoded[:first])
+
+
+def test_the_microphone_source_moves_the_mouth(server):
+    """source "mic": the page's int16 PCM at 48 kHz becomes the session's voice: speaking frames whose audio is
+    the speech resampled to 16 kHz (loud where the speech is), and a jaw that opens."""
+    from gaussiantalker.sdk.audio import load_audio
+
+    module, port = server
+    speech = load_audio(ROOT / "samples" / "demo_speech.wav", 48000)[:48000 * 3]
+    pcm = np.clip(np.round(speech * 32767), -32768, 32767).astype(np.int16)
+    out = asyncio.run(_session(port, {"source": "mic", "mic_rate": 48000}, frames=90, mic=(pcm, 48000)))
+    decoded = [module.decode_frame_packet(p) for p in out["packets"]]
+    speaking = [d for d in decoded if d["drive"]["speaking"]]
+    assert len(speaking) >= 50, len(speaking)
+    level = np.sqrt(np.mean(np.concatenate([d["audio"] for d in speaking]).astype(np.float64) ** 2)) / 32768
+    assert level > 0.02, level
+    n_expr = speaking[0]["drive"]["split"]
+    jaw = [float(d["drive"]["values"][n_expr + 6]) for d in speaking]
+    assert max(jaw) - min(jaw) > 0.05, (min(jaw), max(jaw))
+
+
+@pytest.mark.parametrize(("start", "raw", "message"), [
+    ("not json", None, "bad start message: the first message must be the start message"),
+    ({"source": "radio"}, None, "bad start message: source must be file, text, none or mic, got 'radio'"),
+    ({"source": "mic"}, None, "bad start message: source mic needs mic_rate"),
+    ({"source": "mic", "mic_rate": 5}, None, "bad start message: mic_rate must be a whole number of Hz in "
+                                             "8000..192000, got 5"),
+    ({"source": "none", "chunk_ms": 0}, None, "bad start message: chunk_ms must be a number of milliseconds"),
+    ({"source": "mic", "mic_rate": 16000}, b"\x01\x02\x03", "a microphone message of 3 bytes: not whole int16"),
+    ({"source": "none"}, b"\x00\x00", "the page may send"),
+    ({"source": "none"}, '{"say": "hi"}', "the page may send"),
+])
+def test_a_bad_page_is_told_why_and_its_session_ends(server, start, raw, message):
+    """Each mistake gets one {"error": ...} naming it, then the socket closes and no session is left open."""
+    import aiohttp
+
+    module, port = server
+    out = asyncio.run(_session(port, start, frames=1000, raw=raw))
+    error = out["answer"].get("error") or out["texts"][-1].get("error")
+    assert error is not None and error.startswith(message), (error, message)
+    for _ in range(100):  # (the pool's thread ends once its last session has: within a frame or two)
+        if json.loads(_get(port, "/health")) == {"sessions": 0, "driver_threads": 0}:
+            break
+        time.sleep(0.05)
+    assert json.loads(_get(port, "/health")) == {"sessions": 0, "driver_threads": 0}
+    assert out.get("closed") in (None, aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.CLOSING)
