@@ -356,3 +356,33 @@ def test_gt_bench_live_batching_writes_its_table(small_export, tmp_path):
     assert rows[1]["translator_calls"] >= 45 and rows[4]["translator_calls"] <= rows[1]["translator_calls"] / 4 + 2
     assert all(row["jaw_r"] >= 0.9 and row["cpu_ms_per_speech_s"] > 0 for row in rows.values())
     assert "| 4 |" in (out / "live-batching.md").read_text()
+
+
+def test_step_paces_frames_on_the_callers_schedule(head, speech):
+    """step(): None until a frame is due (frame n never before the first step + n / fps, a lower bound only), the
+    frames of frames() in order otherwise (idle, then the pushed speech), `finished` once end() has flushed; one
+    session is read with frames() or step(), not both, and step() needs a paced session."""
+    with head.live(lookahead_ms=80, output=None) as live:
+        assert live.step() is not None  # frame 0 is due at the first step
+        started = live.due - 1 / head.fps
+        live.push(speech[: head.sample_rate // 2], head.sample_rate)
+        live.end()
+        frames, empty = [], 0
+        while not live.finished:
+            frame = live.step()
+            if frame is None:
+                empty += 1
+                time.sleep(max(0.0, live.due - time.monotonic()))
+                continue
+            assert time.monotonic() - started >= frame.index / head.fps - 0.005, frame.index
+            frames.append(frame)
+    assert [f.index for f in frames] == list(range(1, len(frames) + 1)) and empty > 0
+    assert sum(f.speaking for f in frames) == 13  # 0.5 s of speech at 25 fps
+    with head.live(output=None) as live:
+        reader = live.frames()
+        next(reader)  # an idle frame, at once
+        with pytest.raises(LiveError, match="frames\\(\\) or step\\(\\)"):
+            live.step()
+        reader.close()
+    with head.live(paced=False, output=None) as live, pytest.raises(LiveError, match="paced=True"):
+        live.step()
