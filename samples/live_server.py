@@ -347,11 +347,11 @@ class DriveSession:
 
     def __init__(self, driver, lookahead_ms: float, loop: asyncio.AbstractEventLoop, pool: DrivePool,
                  on_error: Callable[[BaseException], None] | None = None, transport: str = "webrtc",
-                 batch_frames: int = 1) -> None:
+                 batch_frames: int = 1, context_ms: float = 1000.0) -> None:
         self.driver, self._loop, self._on_error, self.transport = driver, loop, on_error, transport
         self.sample_rate = AUDIO_RATE if transport == "webrtc" else driver.sample_rate
         self.live = LiveSession(driver, lookahead_ms=lookahead_ms, audio_rate=self.sample_rate, output=None,
-                                min_batch_frames=batch_frames)
+                                min_batch_frames=batch_frames, context_ms=context_ms)
         self.audio = FrameTrack("audio", loop) if transport == "webrtc" else None
         if self.audio is not None:
             self.audio.fps = driver.fps
@@ -689,10 +689,10 @@ class Sessions:
 
 
 def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, renderer: str = "auto",
-             client_render: bool = False, batch_frames: int = 1) -> web.Application:
+             client_render: bool = False, batch_frames: int = 1, context_ms: float = 1000.0) -> web.Application:
     app = web.Application()
     if client_render:
-        return make_client_render_app(app, bundle, lookahead_ms, speech, batch_frames)
+        return make_client_render_app(app, bundle, lookahead_ms, speech, batch_frames, context_ms)
     sessions = Sessions(Session.THREAD_NAME, "render_threads", "rendering a frame raised")
 
     async def index(request: web.Request) -> web.Response:
@@ -756,7 +756,7 @@ def make_app(bundle: Path, size: int, lookahead_ms: float, speech: Path, rendere
 
 
 def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: float, speech: Path,
-                           batch_frames: int = 1) -> web.Application:
+                           batch_frames: int = 1, context_ms: float = 1000.0) -> web.Application:
     """Client-render mode's routes: the page and the web player's modules, the bundle, the offer (audio track and
     drive channel), barge-in, close, stats, the recorded drives and health."""
     # Its driver only (the translator; no frame is drawn). One intra-op thread: the sessions' threads are the
@@ -816,6 +816,7 @@ def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: flo
         pc = RTCPeerConnection()
         session_id = uuid.uuid4().hex
         session = DriveSession(driver, lookahead_ms, loop, webrtc_pool, batch_frames=batch_frames,
+                               context_ms=context_ms,
                                on_error=lambda error: sessions.background(sessions.fail(pc, session_id, error)))
         sessions.add(pc, session_id, session)
         pc.on("datachannel", session.attach)
@@ -860,6 +861,7 @@ def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: flo
         loop = asyncio.get_running_loop()
         session_id = uuid.uuid4().hex
         session = DriveSession(driver, lookahead_ms, loop, pool, transport="ws", batch_frames=batch_frames,
+                               context_ms=context_ms,
                                on_error=lambda error: sessions.background(sessions.fail(socket, session_id, error)))
         sessions.add(socket, session_id, session)
         writer = None
@@ -924,15 +926,18 @@ def main(bundle: Path = typer.Argument(..., help="a speaker bundle with a transl
                                             "renders the head with the web player (samples/web/live.html)"),
          batch_frames: int = typer.Option(1, "--batch-frames", min=1, max=8, help="client-render: frames per "
                                           "translator call at least; each utterance starts (batch_frames - 1) "
-                                          "frames later, and the server's CPU per session falls")) -> None:
+                                          "frames later, and the server's CPU per session falls"),
+         context_ms: float = typer.Option(1000.0, "--context-ms", min=0.0, help="client-render: the past audio "
+                                          "the translator sees (shorter: cheaper calls, drives a little further "
+                                          "from the offline ones; docs/live.md)")) -> None:
     """Serve the live page and stream the talking head over WebRTC."""
     for path, hint in ((bundle, "BUNDLE"), (audio, "--audio")):
         if not path.is_file():
             raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
     logging.basicConfig(format="%(levelname)s %(name)s: %(message)s")
     print(json.dumps({"url": f"http://{host}:{port}/", "bundle": str(bundle)}), flush=True)
-    web.run_app(make_app(bundle, size, lookahead_ms, audio, renderer, client_render, batch_frames), host=host,
-                port=port, print=None)
+    web.run_app(make_app(bundle, size, lookahead_ms, audio, renderer, client_render, batch_frames, context_ms),
+                host=host, port=port, print=None)
 
 
 if __name__ == "__main__":

@@ -17,21 +17,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ci_tools import need_module
+from test_live_web import _server_module
 
 from tools.bench.live_clients import serving
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _server_module():
-    need_module("aiortc", "live")
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("live_server_socket_test", ROOT / "samples" / "live_server.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 # -- a server on loopback --------------------------------------------------------------------------------------

@@ -458,6 +458,18 @@ def pipeline(
         typer.echo(f"wrote {out / 'pipeline.md'}, {out / 'pipeline.json'}")
 
 
+def _write_report(out: Path | None, name: str, title: str, result: dict, table: str, details: str) -> None:
+    """`name`.json (the result) and `name`.md (the title, the command and machine, `details`, the table) in `out`
+    (nothing when it is None)."""
+    if out is None:
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(result, indent=2))
+    (out / f"{name}.md").write_text(f"# {title}\n\n`{result['command']}` on {result['machine']['cpu']}, "
+                                    f"{result['machine']['cores']} cores{details}\n\n{table}\n")
+    typer.echo(f"wrote {out / f'{name}.md'}, {out / f'{name}.json'}")
+
+
 @app.command("live-batching")
 def live_batching(
     bundle: Path = typer.Argument(..., help="a FLAME speaker bundle with a translator (.gtb)"),
@@ -485,14 +497,9 @@ def live_batching(
     result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
     table = live_batching_table(result)
     typer.echo(table)
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "live-batching.json").write_text(json.dumps(result, indent=2))
-        (out / "live-batching.md").write_text(
-            f"# Live sessions: translator calls per min_batch_frames\n\n`{result['command']}` on "
-            f"{result['machine']['cpu']}, {result['machine']['cores']} cores; {result['speech_s']:g} s of speech in "
-            f"20 ms chunks, free-running, one thread; {rounds} alternating rounds.\n\n{table}\n")
-        typer.echo(f"wrote {out / 'live-batching.md'}, {out / 'live-batching.json'}")
+    _write_report(out, "live-batching", "Live sessions: translator calls per min_batch_frames", result, table,
+                  f"; {result['speech_s']:g} s of speech in 20 ms chunks, free-running, one thread; {rounds} "
+                  "alternating rounds.")
 
 
 @app.command("web-presets")
@@ -523,14 +530,9 @@ def web_presets(
     result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
     table = web_presets_table(result)
     typer.echo(table)
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "web-presets.json").write_text(json.dumps(result, indent=2))
-        (out / "web-presets.md").write_text(
-            f"# Bundles for the web: download size and time to the first frame\n\n`{result['command']}` on "
-            f"{result['machine']['cpu']}, {result['machine']['cores']} cores (headless Chromium, SwiftShader; "
-            f"{result['size'][0]}x{result['size'][1]}; medians of {rounds} fresh pages).\n\n{table}\n")
-        typer.echo(f"wrote {out / 'web-presets.md'}, {out / 'web-presets.json'}")
+    _write_report(out, "web-presets", "Bundles for the web: download size and time to the first frame", result,
+                  table, f" (headless Chromium, SwiftShader; {result['size'][0]}x{result['size'][1]}; medians of "
+                  f"{rounds} fresh pages).")
 
 
 @app.command("live-clients")
@@ -547,6 +549,8 @@ def live_clients(
                                   "track and a data channel"),
     batch_frames: str = typer.Option("1", "--batch-frames", help="the server's frames per translator call at least "
                                      "(comma-separated: one run each; live_server.py --batch-frames)"),
+    context_ms: float = typer.Option(1000.0, "--context-ms", min=0.0, help="the translator's past context "
+                                     "(live_server.py --context-ms)"),
     out: Path = typer.Option(None, "--out", help="folder for live-clients.md and live-clients.json"),
 ) -> None:
     """Client-render live sessions (samples/live_server.py --client-render) under N concurrent load clients:
@@ -578,22 +582,18 @@ def live_clients(
     for kind, chunk, batch in itertools.product(transports, chunks, batches):
         typer.echo(f"{kind}: voice in {chunk:g} ms chunks, {batch} frames per translator call at least")
         result["runs"].append(run_live_clients_bench(bundle, counts, lookahead_ms, speak_s, chunk_ms=chunk,
-                                                     log=typer.echo, transport=kind, batch_frames=batch))
+                                                     log=typer.echo, transport=kind, batch_frames=batch,
+                                                     context_ms=context_ms))
     result["load_at_end"] = os.getloadavg()
     result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
     table = "\n\n".join(f"{TRANSPORT_NAMES[run['transport']]}, voice pushed in {run['chunk_ms']:g} ms chunks at "
-                         f"real time, `--batch-frames {run['batch_frames']}`:\n\n{live_clients_table(run)}"
+                         f"real time, `--batch-frames {run['batch_frames']}`, `--context-ms {run['context_ms']:g}`:"
+                         f"\n\n{live_clients_table(run)}"
                          for run in result["runs"])
     typer.echo(table)
-    if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "live-clients.json").write_text(json.dumps(result, indent=2))
-        (out / "live-clients.md").write_text(
-            f"# Live sessions rendered by the client, under load\n\n`{result['command']}` on "
-            f"{result['machine']['cpu']}, {result['machine']['cores']} cores; load average (1, 5, 15 min) "
-            f"{', '.join(f'{v:.2f}' for v in result['load_at_start'])} at the start, "
-            f"{', '.join(f'{v:.2f}' for v in result['load_at_end'])} at the end.\n\n{table}\n")
-        typer.echo(f"wrote {out / 'live-clients.md'}, {out / 'live-clients.json'}")
+    _write_report(out, "live-clients", "Live sessions rendered by the client, under load", result, table,
+                  f"; load average (1, 5, 15 min) {', '.join(f'{v:.2f}' for v in result['load_at_start'])} at the "
+                  f"start, {', '.join(f'{v:.2f}' for v in result['load_at_end'])} at the end.")
 
 
 def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: float, rounds: int,

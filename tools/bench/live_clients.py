@@ -196,9 +196,11 @@ def serving(command: list[str], url: str, timeout: float, name: str = "live_serv
     raise RuntimeError(f"{name} did not answer within {timeout:g} s: {process.stdout.read()[-3000:]}")
 
 
-def _start_server(bundle: Path, port: int, lookahead_ms: float, batch_frames: int = 1) -> subprocess.Popen:
+def _start_server(bundle: Path, port: int, lookahead_ms: float, batch_frames: int = 1,
+                  context_ms: float = 1000.0) -> subprocess.Popen:
     return serving([sys.executable, str(SERVER), str(bundle), "--port", str(port), "--client-render",
-                    "--lookahead-ms", str(lookahead_ms), "--batch-frames", str(batch_frames)],
+                    "--lookahead-ms", str(lookahead_ms), "--batch-frames", str(batch_frames), "--context-ms",
+                    str(context_ms)],
                    f"http://127.0.0.1:{port}/health", 180)
 
 
@@ -281,14 +283,15 @@ def _analyse(clients: list[dict], cpu_s: float, wall_s: float) -> dict:
 
 def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float = 160.0,
                            speak_s: float = SPEAK_S, idle_s: float = IDLE_S, chunk_ms: float = 20.0,
-                           log=print, transport: str = "webrtc", batch_frames: int = 1) -> dict:
+                           log=print, transport: str = "webrtc", batch_frames: int = 1,
+                           context_ms: float = 1000.0) -> dict:
     """Start the client-render server once, then for each N its load clients on `transport` ("webrtc": audio
     track and data channel; "ws": one WebSocket); returns the figures per N."""
     if transport not in TRANSPORTS:
         raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
-    server = _start_server(bundle, port, lookahead_ms, batch_frames)
+    server = _start_server(bundle, port, lookahead_ms, batch_frames, context_ms)
     context = multiprocessing.get_context("spawn")
     runs = []
     try:
@@ -329,6 +332,7 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
     return {"runs": runs, "largest_n_within_5pct_late": max(sustained) if sustained else 0,
             "late_tolerance_ms": 1000 * LATE_TOLERANCE_S, "speak_s": speak_s, "idle_s": idle_s,
             "lookahead_ms": lookahead_ms, "chunk_ms": chunk_ms, "transport": transport, "batch_frames": batch_frames,
+            "context_ms": context_ms,
             "server_log_tail": server_log[-2000:]}
 
 
