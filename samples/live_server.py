@@ -49,7 +49,7 @@ import numpy as np
 import typer
 
 from gaussiantalker.runtime import GaussianTalkerError, LiveError, LiveSession, TalkingHead, open_driver
-from gaussiantalker.sdk.audio import load_audio
+from gaussiantalker.sdk.audio import load_audio, to_pcm16
 
 try:
     from aiohttp import web
@@ -156,7 +156,7 @@ PACKET_HEADER = struct.Struct("<4sBBHI")
 def encode_frame_packet(drive_message: bytes, audio: np.ndarray) -> bytes:
     """A frame packet: a drive message and the frame's audio (float in [-1, 1] or int16), as int16 PCM."""
     if audio.dtype != np.int16:
-        audio = np.clip(np.round(np.asarray(audio, np.float32) * 32768.0), -32768, 32767).astype(np.int16)
+        audio = to_pcm16(audio)
     return PACKET_HEADER.pack(PACKET_MAGIC, PACKET_VERSION, 0, 0, len(drive_message)) + drive_message \
         + audio.astype("<i2").tobytes()
 
@@ -213,7 +213,7 @@ class FrameTrack(MediaStreamTrack):
             out = VideoFrame.from_ndarray(frame.image, format="rgb24")
             out.pts, out.time_base = frame.index * 90000 // self.fps, fractions.Fraction(1, 90000)
             return out
-        pcm = np.clip(np.round(frame.audio * 32768.0), -32768, 32767).astype(np.int16)[None]
+        pcm = to_pcm16(frame.audio)[None]
         out = AudioFrame.from_ndarray(pcm, format="s16", layout="mono")
         out.sample_rate = AUDIO_RATE
         out.pts, out.time_base = round(frame.index * AUDIO_RATE / self.fps), fractions.Fraction(1, AUDIO_RATE)

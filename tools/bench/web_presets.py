@@ -24,19 +24,11 @@ CLIP_S = 3.0  # the voice's first seconds: a reply's first sentence, translated 
 
 
 def _clip(audio: Path, folder: Path) -> Path:
-    """The first CLIP_S seconds of `audio` as a 16 kHz 16-bit wav (stdlib `wave`: nothing to decode in the page but
-    the clip itself)."""
-    import wave
+    """The first CLIP_S seconds of `audio` as a 16 kHz 16-bit wav (nothing to decode in the page but the clip)."""
+    from gaussiantalker.sdk.audio import load_audio, write_wav
 
-    from gaussiantalker.sdk.audio import load_audio
-
-    samples = load_audio(audio, 16000)[: int(CLIP_S * 16000)]
     out = folder / f"{audio.stem}-{CLIP_S:g}s.wav"
-    with wave.open(str(out), "wb") as file:
-        file.setnchannels(1)
-        file.setsampwidth(2)
-        file.setframerate(16000)
-        file.writeframes(np.clip(np.round(samples * 32767), -32768, 32767).astype("<i2").tobytes())
+    write_wav(out, load_audio(audio, 16000)[: int(CLIP_S * 16000)], 16000)
     return out
 
 

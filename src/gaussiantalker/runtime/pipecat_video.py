@@ -37,6 +37,7 @@ try:
 except ImportError as exc:  # an optional extra: the runtime does not need it
     raise ImportError(f"TalkingHeadVideo needs Pipecat: pip install 'gaussiantalker-sdk[pipecat]' ({exc})") from None
 
+from gaussiantalker.sdk.audio import to_pcm16
 from gaussiantalker.sdk.errors import LiveError
 
 from .head import TalkingHead
@@ -136,7 +137,7 @@ class TalkingHeadVideo(FrameProcessor):
             if isinstance(frame, BaseException):
                 await self._report(frame, "its live session ended: rendering a frame raised")
                 continue
-            pcm = np.clip(np.round(frame.audio * 32768.0), -32768, 32767).astype(np.int16).tobytes()  # int16 exact
+            pcm = to_pcm16(frame.audio).tobytes()  # int16 exact
             await self.push_frame(OutputAudioRawFrame(audio=pcm, sample_rate=frame.sample_rate, num_channels=1))
             height, width = frame.image.shape[:2]
             image = OutputImageRawFrame(image=frame.image.tobytes(), size=(width, height), format="RGB")

@@ -195,6 +195,12 @@ def load_audio(path: str | os.PathLike, target_rate: int = TARGET_SAMPLE_RATE) -
         raise AudioError(f"audio file {path}: {exc}") from None
 
 
+def to_pcm16(samples: np.ndarray) -> np.ndarray:
+    """Float audio in [-1, 1] as int16 PCM: x * 32768 rounded, clipped to int16 (int16 samples / 32768 come back
+    exactly), what a live transport sends."""
+    return np.clip(np.round(np.asarray(samples, np.float32) * np.float32(32768.0)), -32768, 32767).astype(np.int16)
+
+
 def write_wav(path: str | os.PathLike, samples: np.ndarray, sample_rate: int = TARGET_SAMPLE_RATE) -> None:
     """Write mono float audio as 16-bit PCM WAV (stdlib `wave`)."""
     pcm = np.clip(np.asarray(samples, dtype=np.float64), -1.0, 1.0 - 1.0 / 32768) * 32768.0
