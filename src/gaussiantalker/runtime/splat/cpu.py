@@ -82,7 +82,9 @@ _TILE_PIXELS = TILE * TILE
 _LANES = 4
 # Offsets of the planes in a tile's accumulator (red at 0), unsigned like the pixel index added to them.
 _G, _B, _T = (np.uint64(k * _TILE_PIXELS) for k in range(1, 4))
-_PARAMS = 11  # per kept Gaussian: u, v, A, k, q, opacity, radius, r, g, b, alpha level (see `_project`)
+# Per kept Gaussian: u, v, A, k, q, opacity, radius, r, g, b, alpha level (see `_project`), and its pixel box x0, x1,
+# y0, y1 as floats (exact: image sizes are far below 2^24), so the blend reads one Gaussian from one row.
+_PARAMS = 15
 
 _F = np.float32
 _HALF = _F(numerics.PIXEL_CENTER_OFFSET)
@@ -98,6 +100,7 @@ _FINITE = _F(numerics.FINITE_LIMIT)
 _COLOR = _F(numerics.COLOR_LIMIT)
 _DET_REL = _F(numerics.DET_MIN_RELATIVE)
 _HUGE = _F(numerics.COV2D_HUGE_PX2)
+_NO_SPAN = _F(np.inf)  # span start of a row no pixel of which can reach ALPHA_MIN
 
 # exp(x) = exp(x / 16)^16: x / 16 lies in [-0.625, 0] once x is clamped to [_EXP_LO, 0], where a degree-8 Taylor
 # polynomial (Estrin form) is within 1.3e-7 relatively; four squarings follow. Only float multiply-adds and
@@ -283,6 +286,7 @@ def _project(rows, R, t, intr, limits, width, height, params, boxes):
         for ch in range(3):  # splat_color
             params[i, 7 + ch] = min(max(rows[i, 9 + ch], -_COLOR), _COLOR)
         boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = x0, x1, y0, y1
+        params[i, 11], params[i, 12], params[i, 13], params[i, 14] = x0, x1, y0, y1
 
 
 _BIN_CHUNKS = 8  # contiguous slices of the sorted list that `_bin` counts and fills in parallel
@@ -326,7 +330,7 @@ def _bin(boxes, tiles_x, tiles_y):
 
 
 @njit(parallel=True, nogil=True, cache=True, error_model="numpy", fastmath={"contract"})
-def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
+def _blend_tiles(params, start, lists, tiles_x, width, height, out):
     """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99 clamp,
     skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN."""
     n_tiles = start.shape[0] - 1
@@ -344,37 +348,42 @@ def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
         running = (x1 - x0) * (y1 - y0)  # pixels of the tile that have not stopped
         row_running = np.zeros(TILE, dtype=np.int64)  # the same per pixel row: a row with none left is skipped
         row_running[: y1 - y0] = x1 - x0
+        span_lo = np.empty(TILE, dtype=np.float32)  # the current Gaussian's columns per row of its box
+        span_hi = np.empty(TILE, dtype=np.float32)
         for j in range(start[tile], start[tile + 1]):
             if running == 0:
                 break
-            g = lists[j]
-            u, v, sa, sk, sq = params[g, 0], params[g, 1], params[g, 2], params[g, 3], params[g, 4]
-            opacity, radius = params[g, 5], params[g, 6]
-            red, green, blue = params[g, 7], params[g, 8], params[g, 9]
-            level = params[g, 10]
-            bx0, bx1 = max(boxes[g, 0], x0), min(boxes[g, 1], x1 - 1)
-            for py in range(max(boxes[g, 2], y0), min(boxes[g, 3], y1 - 1) + 1):
-                if row_running[py - y0] == 0:
+            p = params[lists[j]]
+            u, v, sa, sk, sq = p[0], p[1], p[2], p[3], p[4]
+            opacity, radius = p[5], p[6]
+            red, green, blue = p[7], p[8], p[9]
+            level = p[10]
+            bx0, bx1 = max(p[11], _F(x0)), min(p[12], _F(x1 - 1))
+            by0, by1 = max(np.int64(p[13]), y0), min(np.int64(p[14]), y1 - 1)
+            # Each row's columns where A t^2 <= level - q dy^2 (t = dx - k dy), widened by a pixel, for all rows
+            # of the box at once (a loop without branches: vectorised); none in a row beyond the radius. They only
+            # choose the pixels tried: each pixel still tests itself.
+            inv_sa = _ONE / sa
+            first_row = _F(by0)
+            for r in range(by1 - by0 + 1):
+                dy = (first_row + _F(r)) + _HALF - v  # first_row + r is the row's own float: dy exactly as below
+                rest = level - sq * dy * dy
+                half = np.sqrt(max(rest, _ZERO) * inv_sa) + _ONE
+                mid = u + sk * dy - _HALF
+                lo, hi = np.floor(mid - half), np.ceil(mid + half)
+                # selects, not min/max: a NaN (0 * inf where A underflowed) keeps the whole box row
+                span_lo[r] = (lo if lo > bx0 else bx0) if (rest >= _ZERO) & (abs(dy) <= radius) else _NO_SPAN
+                span_hi[r] = hi if hi < bx1 else bx1
+            for r in range(by1 - by0 + 1):
+                py = by0 + r
+                if row_running[py - y0] == 0 or span_lo[r] > span_hi[r]:
                     continue
                 dy = _F(py) + _HALF - v
-                if abs(dy) > radius:
-                    continue
                 qdy = sq * dy * dy
                 skdy = sk * dy
-                # This row's columns where A t^2 <= level - q dy^2 (t = dx - k dy), widened by a pixel, in whole
-                # aligned runs of _LANES pixels: each pixel still tests itself, the extra lanes change nothing,
-                # and the fixed-width inner loop is what vectorises.
-                rest = level - qdy
-                if rest < _ZERO:
-                    continue
-                half = np.sqrt(rest / sa) + _ONE
-                mid = u + skdy - _HALF
-                lo, hi = np.floor(mid - half), np.ceil(mid + half)
-                gx0 = np.int64(lo) if lo > bx0 else bx0  # compared as floats first: no huge float -> int
-                gx1 = np.int64(hi) if hi < bx1 else bx1
-                if gx0 > gx1:
-                    continue
-                lx0, lx1 = (gx0 - x0) // _LANES * _LANES, gx1 - x0
+                # The span in whole aligned runs of _LANES pixels: the extra lanes change nothing, and the
+                # fixed-width inner loop is what vectorises.
+                lx0, lx1 = (np.int64(span_lo[r]) - x0) // _LANES * _LANES, np.int64(span_hi[r]) - x0
                 row = (py - y0) * TILE
                 for lane0 in range(lx0, lx1 + 1, _LANES):
                     first = np.uint64(row + lane0)  # unsigned: no negative-index wraparound, which blocks SIMD
@@ -384,9 +393,10 @@ def _blend_tiles(params, boxes, start, lists, tiles_x, width, height, out):
                            max(acc[_T + first + np.uint64(2)], acc[_T + first + np.uint64(3)])) <= _ZERO:
                         continue
                     stopped = 0
+                    run_x = _F(x0 + lane0)  # lanes add small whole floats to it: exact, and no int -> float per lane
                     for lane in range(_LANES):  # branch-free, fixed width: vectorised
                         i = first + np.uint64(lane)
-                        dx = _F(x0 + lane0 + lane) + _HALF - u
+                        dx = (run_x + _F(lane)) + _HALF - u
                         tt = dx - skdy
                         power = _NEG_HALF * (sa * tt * tt + qdy)
                         alpha = min(_ALPHA_MAX, opacity * _exp(power))
@@ -431,7 +441,7 @@ def splat_frame(rows: np.ndarray, camera: Camera) -> tuple[np.ndarray, float, fl
     setup = time.perf_counter() - start
     start = time.perf_counter()
     out = np.empty((height, width, 4), dtype=np.float32)
-    _blend_tiles(params, boxes, tile_start, lists, tiles_x, width, height, out)
+    _blend_tiles(params, tile_start, lists, tiles_x, width, height, out)
     return out, setup, time.perf_counter() - start
 
 
