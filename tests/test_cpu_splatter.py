@@ -25,6 +25,7 @@ from gaussiantalker.runtime.splat import cpu as cs
 from gaussiantalker.runtime.splat.common import FRAME_OUTPUTS
 from gaussiantalker.runtime.splat.cpu import CPUSplatter, exp_approx, upscale_bilinear
 from gaussiantalker.runtime.splat.gl import GLSplatter
+from gaussiantalker.sdk import numerics
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import psnr_db, to_uint8
@@ -261,6 +262,72 @@ def test_renderers_bench_runs_both_splatters(tmp_path):
     ratio = run["splat_ms"]["gl"] / run["splat_ms"]["cpu1"]
     assert run["gl_over_cpu"] == {"cpu1": ratio}, run
     assert f"GL/CPU cpu1 {ratio:.2f}x" in result.output
+
+
+def test_blend_counts_on_a_scene_every_pixel_blends():
+    """The counting twin on image-filling faint layers (tools/bench/blend_limit.py's full-occupancy scene), where
+    every count is known: each layer blends every pixel of a 40x24 image once (no pixel stops), so fragments =
+    layers x pixels, and every block of each tile is tried and blended; its pixels are the drawing kernel's."""
+    from tools.bench.blend_limit import full_occupancy_scene
+
+    layers, width, height = 6, 40, 24
+    arrays, square = full_occupancy_scene(width, layers)
+    camera = square.resized(width, height)
+    prepared = CPUSplatter().prepare(*arrays, camera)
+    counts = np.zeros(len(cs.BLEND_COUNTS), dtype=np.int64)
+    counted, _, _ = cs.splat_frame(prepared.rows, prepared.camera, counts)
+    drawn, _, _ = cs.splat_frame(prepared.rows, prepared.camera)
+    assert np.array_equal(counted, drawn)
+    totals = dict(zip(cs.BLEND_COUNTS, counts.tolist(), strict=True))
+    # 40x24 in 16x16 tiles: widths 16, 16, 8 and heights 16, 8; a tile of w x h holds h / 2 row pairs and
+    # (w / 4) x (h / 2) blocks of 4x2 pixels
+    tiles = [(w, h) for w in (16, 16, 8) for h in (16, 8)]
+    row_pairs = sum(h // 2 for _, h in tiles)
+    blocks = sum((w // 4) * (h // 2) for w, h in tiles)
+    assert totals == {"pairs_binned": layers * len(tiles), "pairs_visited": layers * len(tiles),
+                      "row_pairs": layers * row_pairs, "blocks_tried": layers * blocks,
+                      "blocks_blended": layers * blocks, "fragments": layers * width * height}, totals
+    assert np.all(counted[..., 3] > numerics.TRANSMITTANCE_MIN)  # no pixel stopped: the premise holds
+
+
+def test_blend_counts_stop_at_saturation(cpu):
+    """On opaque stacked Gaussians the twin visits at most the binned pairs and blends at most 8 fragments per
+    block; its pixels are the drawing kernel's. Each Gaussian alone blends its whole footprint; together they
+    blend fewer fragments than the footprints' sum, because covered pixels stop."""
+
+    def counted(arrays) -> dict[str, int]:
+        prepared = cpu.prepare(*arrays, camera)
+        counts = np.zeros(len(cs.BLEND_COUNTS), dtype=np.int64)
+        frame, _, _ = cs.splat_frame(prepared.rows, prepared.camera, counts)
+        drawn, _, _ = cs.splat_frame(prepared.rows, prepared.camera)
+        assert np.array_equal(frame, drawn)
+        return dict(zip(cs.BLEND_COUNTS, counts.tolist(), strict=True))
+
+    arrays, camera = _numpy(stacked_scene())
+    together = counted(arrays)
+    assert 0 < together["fragments"] <= 8 * together["blocks_blended"] <= 8 * together["blocks_tried"], together
+    assert together["pairs_visited"] <= together["pairs_binned"], together
+    alone = [counted([a[k: k + 1] for a in arrays])["fragments"] for k in range(len(arrays[0]))]
+    assert together["fragments"] < sum(alone), (together, alone)
+
+
+def test_blend_limit_bench_reports_counts_and_time(tmp_path):
+    """`gt-bench blend-limit` on a tiny speaker: counts, per-fragment times and the ratio to full occupancy
+    written (the speed itself: the bench)."""
+    from typer.testing import CliRunner
+
+    from tools.bench.app import app
+
+    result = CliRunner().invoke(app, ["blend-limit", "--gaussians", "500", "--size", "32", "--layers", "4",
+                                      "--threads", "1", "--frames", "1", "--rounds", "1", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    report = json.loads((tmp_path / "blend-limit.json").read_text())
+    head, full = report["cases"]
+    assert full["fragments"] == 4 * 32 * 32 and full["vs_full_occupancy"] == {"1": 1.0}, full
+    assert 0 < head["fragments"] and head["blend_ms"]["1"] > 0, head
+    ns = 1e6 * head["blend_ms"]["1"] / head["fragments"]
+    assert head["core_ns_per_fragment"]["1"] == pytest.approx(ns), head
+    assert "| demo head, 0k Gaussians |" in (tmp_path / "blend-limit.md").read_text()
 
 
 # -- TalkingHead(renderer=...) ----------------------------------------------------------------------------------

@@ -21,6 +21,8 @@
                            barge-in latency per number of clients (bench/live_clients.py)
     gt-bench pipeline      the pipelined frame loop against the serial one on the CPU splatter, alternating
                            (bench/pipeline_vs_serial.py)
+    gt-bench blend-limit   the CPU splatter's blend: its work counts and time per fragment against the same
+                           kernel at full occupancy (bench/blend_limit.py)
 
 The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
 still work: `gaussiantalker.cli.bench` rewrites them to their subcommand.
@@ -683,3 +685,36 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
 def main_entry(args: list[str] | None = None) -> None:
     """Run the app as `gt-bench` (`args`: the command line after the program name; None: sys.argv's)."""
     app(args=args, prog_name="gt-bench")
+
+
+@app.command("blend-limit")
+def blend_limit(
+    gaussians: str = typer.Option("20000,100000", "--gaussians", help="demo speaker sizes (comma-separated)"),
+    size: int = typer.Option(512, "--size", min=16, help="square frame size"),
+    layers: int = typer.Option(100, "--layers", min=1, max=400, help="image-filling layers of the full-occupancy "
+                               "scene"),
+    threads: str = typer.Option("1,2", "--threads", help="CPU splatter thread counts (comma-separated)"),
+    frames: int = typer.Option(5, "--frames", min=1, help="blends per case and thread count per round"),
+    rounds: int = typer.Option(5, "--rounds", min=1, help="alternating rounds"),
+    out: Path = typer.Option(None, "--out", help="folder for blend-limit.md and blend-limit.json"),
+) -> None:
+    """The CPU splatter's blend on the demo head: its work counts and core-ns per blended fragment, against the same
+    kernel at full SIMD occupancy (docs/speed.md)."""
+    import shlex
+    import sys
+
+    from .blend_limit import blend_limit_table, run_blend_limit
+
+    try:
+        counts = [int(v) for v in gaussians.split(",") if v.strip()]
+        thread_counts = [int(v) for v in threads.split(",") if v.strip()]
+    except ValueError:
+        raise typer.BadParameter("comma-separated whole numbers") from None
+    if not counts or not thread_counts or min(counts + thread_counts) < 1:
+        raise typer.BadParameter("--gaussians and --threads need whole numbers >= 1")
+    result = run_blend_limit(counts, size, layers, thread_counts, frames, rounds)
+    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    table = blend_limit_table(result)
+    typer.echo(table)
+    _write_report(out, "blend-limit", "CPU splatter: the blend's work and time per fragment", result, table,
+                  f"; {size}x{size}, medians of {rounds} alternating rounds x {frames} blends.")

@@ -77,9 +77,14 @@ from numba import njit, prange  # noqa: E402
 
 TILE = 16  # tile side in pixels (the 3DGS rasterizer's)
 _TILE_PIXELS = TILE * TILE
-# Pixels per vectorised run: one SSE register of float32 (4: 53 ms, 8: 63 ms, 16: 105 ms per frame on an AMD Zen 1,
-# whose AVX units are 128 bits wide, docs/bench/renderers.md). `_blend_tiles`'s saturated-run test reads exactly 4.
-_LANES = 4
+# Pixels per vectorised step: a block of 4 columns x 2 rows, one 256-bit register of float32 (contiguous in the
+# tile's accumulator: `_slot`). Runs of 8 columns of one row measured slower (more lanes outside the ellipse);
+# docs/bench/renderers.md, "What made the blend faster".
+_BLOCK = 8
+_PAIRS = TILE // 2  # pixel-row pairs per tile
+_LANE_COLUMN = np.array([0, 1, 2, 3, 0, 1, 2, 3], dtype=np.float32)  # a block lane's column and row in the block
+_LANE_ROW = np.array([0, 0, 0, 0, 1, 1, 1, 1], dtype=np.float32)
+_LIVE_EVERY = 8  # Gaussians between the checks of which row pairs of a tile still blend
 # Offsets of the planes in a tile's accumulator (red at 0), unsigned like the pixel index added to them.
 _G, _B, _T = (np.uint64(k * _TILE_PIXELS) for k in range(1, 4))
 # Per kept Gaussian: u, v, A, k, q, opacity, radius, r, g, b, alpha level (see `_project`), and its pixel box x0, x1,
@@ -329,103 +334,169 @@ def _bin(boxes, tiles_x, tiles_y):
     return start, lists
 
 
-@njit(parallel=True, nogil=True, cache=True, error_model="numpy", fastmath={"contract"})
-def _blend_tiles(params, start, lists, tiles_x, width, height, out):
-    """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99 clamp,
-    skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN."""
-    n_tiles = start.shape[0] - 1
-    for tile in prange(n_tiles):
-        ty, tx = tile // tiles_x, tile % tiles_x
-        x0, y0 = tx * TILE, ty * TILE
-        x1, y1 = min(x0 + TILE, width), min(y0 + TILE, height)
-        # One array holds the tile's red, green, blue and T planes at constant offsets, so the compiler sees that
-        # the planes do not overlap and vectorises. A pixel that has stopped keeps -T (and one outside the image
-        # -1): T > 0 is "still blending".
-        acc = np.zeros(4 * _TILE_PIXELS, dtype=np.float32)
-        acc[_T: _T + _TILE_PIXELS] = -_ONE
-        for py in range(y1 - y0):
-            acc[_T + py * TILE: _T + py * TILE + x1 - x0] = _ONE
-        running = (x1 - x0) * (y1 - y0)  # pixels of the tile that have not stopped
-        row_running = np.zeros(TILE, dtype=np.int64)  # the same per pixel row: a row with none left is skipped
-        row_running[: y1 - y0] = x1 - x0
-        span_lo = np.empty(TILE, dtype=np.float32)  # the current Gaussian's columns per row of its box
-        span_hi = np.empty(TILE, dtype=np.float32)
-        for j in range(start[tile], start[tile + 1]):
-            if running == 0:
-                break
-            p = params[lists[j]]
-            u, v, sa, sk, sq = p[0], p[1], p[2], p[3], p[4]
-            opacity, radius = p[5], p[6]
-            red, green, blue = p[7], p[8], p[9]
-            level = p[10]
-            bx0, bx1 = max(p[11], _F(x0)), min(p[12], _F(x1 - 1))
-            by0, by1 = max(np.int64(p[13]), y0), min(np.int64(p[14]), y1 - 1)
-            # Each row's columns where A t^2 <= level - q dy^2 (t = dx - k dy), widened by a pixel, for all rows
-            # of the box at once (a loop without branches: vectorised); none in a row beyond the radius. They only
-            # choose the pixels tried: each pixel still tests itself.
-            inv_sa = _ONE / sa
-            first_row = _F(by0)
-            for r in range(by1 - by0 + 1):
-                dy = (first_row + _F(r)) + _HALF - v  # first_row + r is the row's own float: dy exactly as below
-                rest = level - sq * dy * dy
-                half = np.sqrt(max(rest, _ZERO) * inv_sa) + _ONE
-                mid = u + sk * dy - _HALF
-                lo, hi = np.floor(mid - half), np.ceil(mid + half)
-                # selects, not min/max: a NaN (0 * inf where A underflowed) keeps the whole box row
-                span_lo[r] = (lo if lo > bx0 else bx0) if (rest >= _ZERO) & (abs(dy) <= radius) else _NO_SPAN
-                span_hi[r] = hi if hi < bx1 else bx1
-            for r in range(by1 - by0 + 1):
-                py = by0 + r
-                if row_running[py - y0] == 0 or span_lo[r] > span_hi[r]:
-                    continue
-                dy = _F(py) + _HALF - v
-                qdy = sq * dy * dy
-                skdy = sk * dy
-                # The span in whole aligned runs of _LANES pixels: the extra lanes change nothing, and the
-                # fixed-width inner loop is what vectorises.
-                lx0, lx1 = (np.int64(span_lo[r]) - x0) // _LANES * _LANES, np.int64(span_hi[r]) - x0
-                row = (py - y0) * TILE
-                for lane0 in range(lx0, lx1 + 1, _LANES):
-                    first = np.uint64(row + lane0)  # unsigned: no negative-index wraparound, which blocks SIMD
-                    # A run whose pixels have all stopped (or lie outside the image) changes nothing: skip it. On an
-                    # opaque head most runs behind the first few layers are such (docs/bench/renderers.md).
-                    if max(max(acc[_T + first], acc[_T + first + np.uint64(1)]),
-                           max(acc[_T + first + np.uint64(2)], acc[_T + first + np.uint64(3)])) <= _ZERO:
+@njit(inline="always", cache=True)
+def _slot(py, px):
+    """Index of tile pixel (px, py) in a plane of the accumulator: blocks of 4 columns x 2 rows are contiguous."""
+    return (py >> 1) * (2 * TILE) + (px >> 2) * _BLOCK + (py & 1) * 4 + (px & 3)
+
+
+def _blend_source(counting: bool):
+    """The tile blend, with the work counts of BLEND_COUNTS when `counting` (a compile-time constant: the kernel
+    that draws frames has no counting code; the counts would need integer sums inside the block loop, which keep
+    it from 8-wide vectors)."""
+
+    def blend_tiles(params, start, lists, tiles_x, width, height, out, counts):
+        """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99
+        clamp, skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN."""
+        n_tiles = start.shape[0] - 1
+        for tile in prange(n_tiles):
+            ty, tx = tile // tiles_x, tile % tiles_x
+            x0, y0 = tx * TILE, ty * TILE
+            x1, y1 = min(x0 + TILE, width), min(y0 + TILE, height)
+            # One array holds the tile's red, green, blue and T planes at constant offsets, so the compiler sees
+            # that the planes do not overlap and vectorises. A pixel that has stopped keeps -T (and one outside
+            # the image -1): T > 0 is "still blending".
+            acc = np.zeros(4 * _TILE_PIXELS, dtype=np.float32)
+            acc[_T: _T + _TILE_PIXELS] = -_ONE
+            for py in range(y1 - y0):
+                for px in range(x1 - x0):
+                    acc[_T + _slot(py, px)] = _ONE
+            pair_live = np.zeros(_PAIRS, dtype=np.bool_)  # pixel-row pairs with a pixel still blending
+            pair_live[: (y1 - y0 + 1) >> 1] = True
+            span_lo = np.empty(TILE, dtype=np.float32)  # the current Gaussian's columns per row of the tile
+            span_hi = np.empty(TILE, dtype=np.float32)
+            visited = row_pairs = blocks_tried = blocks_blended = fragments = 0
+            for j in range(start[tile], start[tile + 1]):
+                if (j - start[tile]) % _LIVE_EVERY == _LIVE_EVERY - 1:  # which row pairs still blend; any?
+                    any_live = False
+                    for pair in range(_PAIRS):
+                        if pair_live[pair]:
+                            most = acc[_T + np.uint64(pair * 2 * TILE)]
+                            for k in range(1, 2 * TILE):
+                                most = max(most, acc[_T + np.uint64(pair * 2 * TILE + k)])
+                            pair_live[pair] = most > _ZERO
+                            any_live |= pair_live[pair]
+                    if not any_live:
+                        break
+                if counting:
+                    visited += 1
+                p = params[lists[j]]
+                u, v, sa, sk, sq = p[0], p[1], p[2], p[3], p[4]
+                opacity, radius = p[5], p[6]
+                red, green, blue = p[7], p[8], p[9]
+                level = p[10]
+                bx0, bx1 = max(p[11], _F(x0)), min(p[12], _F(x1 - 1))
+                by0, by1 = max(np.int64(p[13]), y0) - y0, min(np.int64(p[14]), y1 - 1) - y0  # tile rows
+                ry0, ry1 = by0 & ~1, by1 | 1  # whole row pairs
+                # Each row's columns where A t^2 <= level - q dy^2 (t = dx - k dy), widened by a pixel, for every
+                # row of the pairs at once (a loop without branches: vectorised); none in a row beyond the radius
+                # or outside the box. They only choose the pixels tried: each pixel still tests itself.
+                inv_sa = _ONE / sa
+                first_row = _F(y0 + ry0)
+                for r in range(ry1 - ry0 + 1):
+                    dy = (first_row + _F(r)) + _HALF - v  # first_row + r is the row's own float: dy exactly
+                    rest = level - sq * dy * dy
+                    half = np.sqrt(max(rest, _ZERO) * inv_sa) + _ONE
+                    mid = u + sk * dy - _HALF
+                    lo, hi = np.floor(mid - half), np.ceil(mid + half)
+                    tried = (rest >= _ZERO) & (abs(dy) <= radius) & (ry0 + r >= by0) & (ry0 + r <= by1)
+                    # selects, not min/max: a NaN (0 * inf where A underflowed) keeps the whole box row
+                    span_lo[r] = (lo if lo > bx0 else bx0) if tried else _NO_SPAN
+                    span_hi[r] = (hi if hi < bx1 else bx1) if tried else -_NO_SPAN
+                for pair in range(ry0 >> 1, (ry1 >> 1) + 1):
+                    r = 2 * pair - ry0
+                    lo, hi = min(span_lo[r], span_lo[r + 1]), max(span_hi[r], span_hi[r + 1])
+                    if not pair_live[pair] or lo > hi:
                         continue
-                    stopped = 0
-                    run_x = _F(x0 + lane0)  # lanes add small whole floats to it: exact, and no int -> float per lane
-                    for lane in range(_LANES):  # branch-free, fixed width: vectorised
-                        i = first + np.uint64(lane)
-                        dx = (run_x + _F(lane)) + _HALF - u
-                        tt = dx - skdy
-                        power = _NEG_HALF * (sa * tt * tt + qdy)
-                        alpha = min(_ALPHA_MAX, opacity * _exp(power))
-                        t_old = acc[_T + i]
-                        use = (abs(dx) <= radius) & (power <= _ZERO) & (alpha >= _ALPHA_MIN) & (t_old > _ZERO)
-                        t_new = t_old * (_ONE - alpha)
-                        stop = use & (t_new < _T_MIN)
-                        added = alpha if use & (t_new >= _T_MIN) else _ZERO
-                        # Stores of computed values only (T * (1 - 0) is exact): a select between a new and the
-                        # loaded value would become a masked store, slow on AMD CPUs.
-                        w = added * t_old
-                        acc[i] += red * w
-                        acc[_G + i] += green * w
-                        acc[_B + i] += blue * w
-                        acc[_T + i] = -t_old if stop else t_old * (_ONE - added)
-                        stopped += 1 if stop else 0
-                    running -= stopped
-                    row_running[py - y0] -= stopped
-        for py in range(y0, y1):
-            row = (py - y0) * TILE - x0
-            for px in range(x0, x1):
-                out[py, px, 0] = acc[row + px]
-                out[py, px, 1] = acc[_G + row + px]
-                out[py, px, 2] = acc[_B + row + px]
-                out[py, px, 3] = abs(acc[_T + row + px])
+                    if counting:
+                        row_pairs += 1
+                    dy0 = _F(y0 + 2 * pair) + _HALF - v
+                    dy1 = _F(y0 + 2 * pair + 1) + _HALF - v
+                    qdy0, qdy1 = sq * dy0 * dy0, sq * dy1 * dy1
+                    skdy0, skdy1 = sk * dy0, sk * dy1
+                    # the extent test's dy half, per row: a row without columns passes no pixel (as a skipped row)
+                    reach0 = radius if span_lo[r] <= span_hi[r] else -_ONE
+                    reach1 = radius if span_lo[r + 1] <= span_hi[r + 1] else -_ONE
+                    for column in range((np.int64(lo) - x0) >> 2, ((np.int64(hi) - x0) >> 2) + 1):
+                        first = np.uint64(pair * 2 * TILE + column * _BLOCK)  # unsigned: no wraparound checks
+                        if counting:
+                            blocks_tried += 1
+                        # A block whose pixels have all stopped (or lie outside the image) changes nothing: skip it.
+                        # On an opaque head most blocks behind the first few layers are such.
+                        most = acc[_T + first]
+                        for lane in range(1, _BLOCK):
+                            most = max(most, acc[_T + first + np.uint64(lane)])
+                        if most <= _ZERO:
+                            continue
+                        if counting:
+                            blocks_blended += 1
+                        block_x = _F(x0 + 4 * column)  # plus small whole floats: exact, and no int -> float per lane
+                        for lane in range(_BLOCK):  # branch-free, fixed width, no integer sums: 8-wide vectors
+                            i = first + np.uint64(lane)
+                            lower = _LANE_ROW[lane] > _HALF
+                            dx = (block_x + _LANE_COLUMN[lane]) + _HALF - u
+                            tt = dx - (skdy1 if lower else skdy0)
+                            power = _NEG_HALF * (sa * tt * tt + (qdy1 if lower else qdy0))
+                            alpha = min(_ALPHA_MAX, opacity * _exp(power))
+                            t_old = acc[_T + i]
+                            # The tests as float selects (boolean ands of 8 lanes cost packing): a = alpha where
+                            # the pixel is inside the extent, the power is not positive and the pixel blends, else 0;
+                            # it is used where a >= ALPHA_MIN (> 0).
+                            a = alpha if abs(dx) <= (reach1 if lower else reach0) else _ZERO
+                            a = a if power <= _ZERO else _ZERO
+                            a = a if t_old > _ZERO else _ZERO
+                            used = a >= _ALPHA_MIN
+                            t_new = t_old * (_ONE - a)
+                            added = (a if t_new >= _T_MIN else _ZERO) if used else _ZERO
+                            stop_probe = t_new if used else _ONE  # below T_MIN: used, and T would fall under it
+                            # Stores of computed values only (T * (1 - 0) is exact): a select between a new and the
+                            # loaded value would become a masked store, slow on AMD CPUs.
+                            w = added * t_old
+                            acc[i] += red * w
+                            acc[_G + i] += green * w
+                            acc[_B + i] += blue * w
+                            acc[_T + i] = -t_old if stop_probe < _T_MIN else t_old * (_ONE - added)
+                            if counting:
+                                fragments += 1 if added > _ZERO else 0
+            if counting:
+                counts[tile, 0], counts[tile, 1], counts[tile, 2] = start[tile + 1] - start[tile], visited, row_pairs
+                counts[tile, 3], counts[tile, 4], counts[tile, 5] = blocks_tried, blocks_blended, fragments
+            for py in range(y0, y1):
+                for px in range(x0, x1):
+                    k = _slot(py - y0, px - x0)
+                    out[py, px, 0] = acc[k]
+                    out[py, px, 1] = acc[_G + k]
+                    out[py, px, 2] = acc[_B + k]
+                    out[py, px, 3] = abs(acc[_T + k])
+
+    return blend_tiles
 
 
-def splat_frame(rows: np.ndarray, camera: Camera) -> tuple[np.ndarray, float, float]:
-    """(C, T) [H, W, 4] float32 of depth-sorted, culled rows [n, 13]; also the set-up and blend seconds."""
+_blend_tiles = njit(parallel=True, nogil=True, cache=True, error_model="numpy",
+                    fastmath={"contract"})(_blend_source(False))
+_blend_counting = None  # the counting twin, compiled on first use (benchmarks only; not cached: it would share the
+#                         cache's name with _blend_tiles)
+
+
+def _counting_kernel():
+    global _blend_counting
+    if _blend_counting is None:
+        _blend_counting = njit(parallel=True, nogil=True, error_model="numpy",
+                               fastmath={"contract"})(_blend_source(True))
+    return _blend_counting
+
+
+# What the counting blend counts: (Gaussian, tile) pairs binned and visited (a tile stops soon after its last
+# pixel stops), pixel-row pairs and blocks of 4 x 2 pixels tried, blocks blended (not skipped as stopped), and
+# fragments blended (pixels whose colour a Gaussian changed).
+BLEND_COUNTS = ("pairs_binned", "pairs_visited", "row_pairs", "blocks_tried", "blocks_blended", "fragments")
+
+
+def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = None
+                ) -> tuple[np.ndarray, float, float]:
+    """(C, T) [H, W, 4] float32 of depth-sorted, culled rows [n, 13]; also the set-up and blend seconds. `counts`
+    (int64 [len(BLEND_COUNTS)]), when given, receives the blend's work totals from the counting twin of the blend
+    (the same pixels; compiled on first use, about 20 s)."""
     start = time.perf_counter()
     width, height = int(camera.width), int(camera.height)
     n = len(rows)
@@ -441,8 +512,13 @@ def splat_frame(rows: np.ndarray, camera: Camera) -> tuple[np.ndarray, float, fl
     setup = time.perf_counter() - start
     start = time.perf_counter()
     out = np.empty((height, width, 4), dtype=np.float32)
-    _blend_tiles(params, tile_start, lists, tiles_x, width, height, out)
-    return out, setup, time.perf_counter() - start
+    per_tile = np.zeros((tiles_x * tiles_y if counts is not None else 0, len(BLEND_COUNTS)), dtype=np.int64)
+    kernel = _blend_tiles if counts is None else _counting_kernel()
+    kernel(params, tile_start, lists, tiles_x, width, height, out, per_tile)
+    seconds = time.perf_counter() - start
+    if counts is not None:
+        counts[:] = per_tile.sum(axis=0)
+    return out, setup, seconds
 
 
 def upscale_bilinear(image: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -601,5 +677,5 @@ def warm_up() -> None:
     _WARM = True
 
 
-__all__ = ["CPUSplatter", "TILE", "cache_dir", "exp_approx", "kernels_cached", "splat_frame", "upscale_bilinear",
-           "warm_up"]
+__all__ = ["BLEND_COUNTS", "CPUSplatter", "TILE", "cache_dir", "exp_approx", "kernels_cached", "splat_frame",
+           "upscale_bilinear", "warm_up"]
