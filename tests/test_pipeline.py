@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -300,3 +301,17 @@ def test_the_bench_report_gives_medians_and_ratios_to_on():
     report = format_report({"runs": runs, "summary": summary, "audio_s": 2.0, "rounds": 3,
                             "versions": {"on": "this", "off": "this"}}, {"cpu": "x86_64", "cores": 2}, "gt-bench x")
     assert "| frames | off | 6.00 | 3.00 | 60.0 | 1.50 |" in report and "min 1.00, max 2.00" in report
+
+
+def test_bench_versions_find_their_samples(tmp_path):
+    """The version benches run each checkout's own samples/play.py: found above src/gaussiantalker/ in this
+    src-layout checkout, and beside the packages in a checkout from before that layout."""
+    from tools.bench.compare import PACKAGES, checkout_root, checkout_top, this_version_root
+
+    repo = Path(__file__).resolve().parents[1]
+    assert (checkout_top(checkout_root(repo)) / "samples" / "play.py").is_file()
+    assert (checkout_top(this_version_root()) / "samples" / "play.py").is_file()
+    flat = tmp_path / "old"
+    for name in (*PACKAGES, "samples"):
+        (flat / name).mkdir(parents=True)
+    assert checkout_top(checkout_root(flat)) == flat.resolve()

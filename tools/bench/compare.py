@@ -39,6 +39,11 @@ def checkout_root(path: Path) -> Path:
                      f"{', '.join(name + '/' for name in PACKAGES)})")
 
 
+def checkout_top(root: Path) -> Path:
+    """The checkout a version's package folder (`checkout_root`'s answer) belongs to: where samples/ lives."""
+    return root.parent.parent if root.name == "gaussiantalker" and root.parent.name == "src" else root
+
+
 def this_version_root() -> Path:
     """Where this interpreter's `gaussiantalker` packages live (a checkout, or site-packages/gaussiantalker)."""
     import gaussiantalker.sdk
@@ -231,7 +236,7 @@ def _time_players(versions: dict[str, Version], tmp: Path, count: int, seconds: 
 
 def _player(root: Path) -> Path | None:
     """samples/play.py of a checkout (None for an installed package, which does not ship the samples)."""
-    player = root / "samples" / "play.py"
+    player = checkout_top(root) / "samples" / "play.py"
     return player if player.is_file() else None
 
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from gaussiantalker.sdk.progress import progress_bar
 
-from .compare import Version, checkout_root, this_version_root
+from .compare import Version, checkout_root, checkout_top, this_version_root
 
 CASES = ("frames", "frames-composite", "play", "play-composite")
 STAGE_NAMES = ("translator", "deformation", "sort", "upload", "draw", "readback", "reference", "composite")
@@ -91,8 +91,9 @@ def measure(case: str, variant: str, version: Version, bundle: Path, audio: Path
         done = _run(version, ["-c", FRAMES_SNIPPET, str(bundle), str(audio),
                               str(size if case == "frames" else 0), pipeline], tmp)
         return json.loads(done.stdout.strip().splitlines()[-1])
-    args = [str(version.root / "samples" / "play.py"), str(bundle), "--audio", str(audio), "--renderer", "cpu",
-            "-o", str(tmp / f"{variant}.mp4"), "-q"]
+    player = checkout_top(version.root) / "samples" / "play.py"
+    args = [str(player), str(bundle), "--audio", str(audio), "--renderer", "cpu", "-o", str(tmp / f"{variant}.mp4"),
+            "-q"]
     if case == "play":
         args += ["-r", str(size), "--no-composite"]
     if variant == "off":

@@ -11,9 +11,11 @@ rasterizer's generic triangle/point set-up, 4x4-block shading and RGBA32F blendi
 2. `_bin` (parallel over slices of the sorted list): the kept Gaussians binned to the 16x16 tiles their box
    overlaps, every tile's list kept front to back.
 3. `_blend_tiles` (parallel over tiles): each tile's 256 pixels accumulated front to back in a small array that
-   stays in L1 cache, with the contract's per-pixel extent test, alpha bound, 0.99 clamp and the T_MIN stop; a tile
-   whose pixels have all stopped skips the rest of its list. The per-pixel loop is written branch-free (selects, a
-   polynomial exp: `_exp`) so LLVM vectorises it.
+   stays in L1 cache, with the contract's per-pixel extent test, alpha bound, 0.99 clamp and the T_MIN stop, in
+   blocks of 4 x 2 pixels; a block whose pixels have all stopped is skipped, and a tile whose pixels have all
+   stopped skips the rest of its list. The per-block loop is written branch-free (float selects, a polynomial exp:
+   `_exp`, no integer sums) so LLVM turns it into 8-wide vector code. Its counting twin (`splat_frame(...,
+   counts)`) reports the work; docs/speed.md, "The blend against the machine".
 
 Every per-pixel decision is made exactly as the contract says; the boxes and tiles only choose which pixels are
 tried (a superset of those that can pass), as in the torch reference and the GL renderer.
