@@ -340,7 +340,10 @@ def test_gt_bench_live_writes_every_measure(small_export, head, tmp_path):
     assert report["barge_in"]["timeline_max_ms"] <= 200.0  # the ease (120 ms) plus a frame
     drift = report["drift"]
     assert drift["frames_with_other_audio"] == 0 and abs(drift["clock_gap_frames"]) < 1.0
-    assert report["sessions"][0]["rows"][0]["fps_total"] > 0
+    (row,) = report["sessions"][0]["rows"]
+    assert row["fps_total"] > 0
+    # Free-running, a session's frames come a render apart: the p95 interval is not far below the mean (1 / fps).
+    assert 1000.0 / row["fps_each"] * 0.5 <= row["p95_interval_ms"] < 60_000, row
     assert "| 80 ms |" in (out / "live.md").read_text()
 
 

@@ -24,6 +24,19 @@ import typer
 from gaussiantalker.exporter.export.speech import synth_speech
 
 
+def cpu_name() -> str:
+    """The CPU's model and architecture (Linux's /proc/cpuinfo "model name"), else the architecture alone."""
+    machine = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as cpuinfo:
+            for line in cpuinfo:
+                if line.startswith("model name") and ":" in line:
+                    return f"{line.split(':', 1)[1].strip()[:80]} ({machine})"
+    except OSError:
+        pass
+    return machine
+
+
 def machine_info() -> dict:
     """The machine a benchmark ran on: CPU, cores, Python, torch, the GL context."""
     import moderngl
@@ -31,7 +44,7 @@ def machine_info() -> dict:
     from gaussiantalker.runtime.splat.gl_context import create_context, describe_context
 
     ctx = create_context()
-    info = {"cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+    info = {"cpu": cpu_name(), "cores": os.cpu_count(),
             "python": platform.python_version(), "torch": torch.__version__,
             "gl": describe_context(ctx), "moderngl": moderngl.__version__}
     ctx.release()

@@ -86,7 +86,8 @@ _BLOCK = 8
 _PAIRS = TILE // 2  # pixel-row pairs per tile
 _LANE_COLUMN = np.array([0, 1, 2, 3, 0, 1, 2, 3], dtype=np.float32)  # a block lane's column and row in the block
 _LANE_ROW = np.array([0, 0, 0, 0, 1, 1, 1, 1], dtype=np.float32)
-_LIVE_EVERY = 8  # Gaussians between the checks of which row pairs of a tile still blend
+_BLOCKS_PER_PAIR = TILE // 4
+_LIVE_EVERY = 8  # Gaussians between the checks of which blocks and row pairs of a tile still blend
 # Offsets of the planes in a tile's accumulator (red at 0), unsigned like the pixel index added to them.
 _G, _B, _T = (np.uint64(k * _TILE_PIXELS) for k in range(1, 4))
 # Per kept Gaussian: u, v, A, k, q, opacity, radius, r, g, b, alpha level (see `_project`), and its pixel box x0, x1,
@@ -363,22 +364,31 @@ def _blend_source(counting: bool):
             for py in range(y1 - y0):
                 for px in range(x1 - x0):
                     acc[_T + _slot(py, px)] = _ONE
-            pair_live = np.zeros(_PAIRS, dtype=np.bool_)  # pixel-row pairs with a pixel still blending
+            # Which blocks of 4 x 2 pixels, and which pixel-row pairs, still hold a pixel that blends: set again
+            # every _LIVE_EVERY Gaussians (a per-pixel count would need integer sums in the block loop), so a block
+            # that has just stopped may still be computed a few times, changing nothing.
+            block_live = np.ones(_TILE_PIXELS // _BLOCK, dtype=np.bool_)
+            pair_live = np.zeros(_PAIRS, dtype=np.bool_)
             pair_live[: (y1 - y0 + 1) >> 1] = True
             span_lo = np.empty(TILE, dtype=np.float32)  # the current Gaussian's columns per row of the tile
             span_hi = np.empty(TILE, dtype=np.float32)
             visited = row_pairs = blocks_tried = blocks_blended = fragments = 0
             for j in range(start[tile], start[tile + 1]):
-                if (j - start[tile]) % _LIVE_EVERY == _LIVE_EVERY - 1:  # which row pairs still blend; any?
+                if (j - start[tile]) % _LIVE_EVERY == _LIVE_EVERY - 1:
                     any_live = False
                     for pair in range(_PAIRS):
                         if pair_live[pair]:
-                            most = acc[_T + np.uint64(pair * 2 * TILE)]
-                            for k in range(1, 2 * TILE):
-                                most = max(most, acc[_T + np.uint64(pair * 2 * TILE + k)])
-                            pair_live[pair] = most > _ZERO
-                            any_live |= pair_live[pair]
-                    if not any_live:
+                            live = False
+                            for block in range(pair * _BLOCKS_PER_PAIR, (pair + 1) * _BLOCKS_PER_PAIR):
+                                if block_live[block]:
+                                    most = acc[_T + np.uint64(block * _BLOCK)]
+                                    for lane in range(1, _BLOCK):
+                                        most = max(most, acc[_T + np.uint64(block * _BLOCK + lane)])
+                                    block_live[block] = most > _ZERO
+                                    live |= block_live[block]
+                            pair_live[pair] = live
+                            any_live |= live
+                    if not any_live:  # every pixel of the tile has stopped
                         break
                 if counting:
                     visited += 1
@@ -425,10 +435,7 @@ def _blend_source(counting: bool):
                             blocks_tried += 1
                         # A block whose pixels have all stopped (or lie outside the image) changes nothing: skip it.
                         # On an opaque head most blocks behind the first few layers are such.
-                        most = acc[_T + first]
-                        for lane in range(1, _BLOCK):
-                            most = max(most, acc[_T + first + np.uint64(lane)])
-                        if most <= _ZERO:
+                        if not block_live[pair * _BLOCKS_PER_PAIR + column]:
                             continue
                         if counting:
                             blocks_blended += 1
@@ -481,6 +488,7 @@ _blend_counting = None  # the counting twin, compiled on first use (benchmarks o
 
 
 def _counting_kernel():
+    """The blend with its work counts (`_blend_source(True)`), compiled once per process on first use."""
     global _blend_counting
     if _blend_counting is None:
         _blend_counting = njit(parallel=True, nogil=True, error_model="numpy",
@@ -489,8 +497,8 @@ def _counting_kernel():
 
 
 # What the counting blend counts: (Gaussian, tile) pairs binned and visited (a tile stops soon after its last
-# pixel stops), pixel-row pairs and blocks of 4 x 2 pixels tried, blocks blended (not skipped as stopped), and
-# fragments blended (pixels whose colour a Gaussian changed).
+# pixel stops), pixel-row pairs and blocks of 4 x 2 pixels tried, blocks blended (computed: not skipped as stopped
+# at the last check), and fragments blended (pixels whose colour a Gaussian changed).
 BLEND_COUNTS = ("pairs_binned", "pairs_visited", "row_pairs", "blocks_tried", "blocks_blended", "fragments")
 
 
