@@ -327,7 +327,7 @@ def test_blend_limit_bench_reports_counts_and_time(tmp_path):
     assert 0 < head["fragments"] and head["blend_ms"]["1"] > 0, head
     ns = 1e6 * head["blend_ms"]["1"] / head["fragments"]
     assert head["core_ns_per_fragment"]["1"] == pytest.approx(ns), head
-    assert "| demo head, 0k Gaussians |" in (tmp_path / "blend-limit.md").read_text()
+    assert "| demo head, 500 Gaussians |" in (tmp_path / "blend-limit.md").read_text()
 
 
 # -- TalkingHead(renderer=...) ----------------------------------------------------------------------------------

@@ -75,7 +75,8 @@ def run_blend_limit(gaussians: list[int], size: int, layers: int, threads: list[
         speaker, _ = make_demo_speaker(count, train_seconds=0, progress=False)
         camera = speaker.camera.resized(size, size)
         prepared = splatter.prepare(*neutral_gaussians(speaker, camera), camera)
-        cases[f"demo head, {count // 1000}k Gaussians"] = (prepared.rows, prepared.camera)
+        label = f"{count // 1000}k" if count % 1000 == 0 else f"{count:,}"
+        cases[f"demo head, {label} Gaussians"] = (prepared.rows, prepared.camera)
     arrays, camera = full_occupancy_scene(size, layers)
     prepared = splatter.prepare(*arrays, camera)
     cases[f"full occupancy, {layers} layers"] = (prepared.rows, prepared.camera)
