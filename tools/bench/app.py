@@ -31,6 +31,9 @@ still work: `gaussiantalker.cli.bench` rewrites them to their subcommand.
 from __future__ import annotations
 
 import json
+import shlex
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import typer
@@ -42,6 +45,26 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, help="Benchmarks o
                   "outputs.")
 
 SIZES_HELP = "square resolutions to bench"
+
+
+def _command() -> str:
+    """The command line this bench runs under, as a user types it (what every report names)."""
+    return shlex.join(["gt-bench", *sys.argv[1:]])
+
+
+def _stamp(result: dict) -> dict:
+    """`result` with the machine it ran on and its command line."""
+    result["machine"], result["command"] = machine_info(), _command()
+    return result
+
+
+def _numbers(text: str, convert: Callable[[str], float], option: str) -> list:
+    """Option `option`'s comma-separated numbers (`convert`: int or float); BadParameter naming it otherwise."""
+    try:
+        return [convert(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        kind = "whole numbers" if convert is int else "numbers"
+        raise typer.BadParameter(f"comma-separated {kind} expected, got {text!r}", param_hint=option) from None
 
 
 @app.command()
@@ -348,8 +371,6 @@ def avatar(
 ) -> None:
     """An imported LAM or GaussianAvatars avatar: import, preset export and verify times, bundle sizes, each preset's
     head PSNR against fp32, and FPS at 512x512 beside the demo speaker (alternating rounds)."""
-    import shlex
-    import sys
 
     from gaussiantalker.sdk.errors import GaussianTalkerError
 
@@ -373,7 +394,7 @@ def avatar(
     for path, hint in files:
         if path is not None and not path.is_file():
             raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
-    command = shlex.join(["gt-bench", *sys.argv[1:]])
+    command = _command()
     try:
         result = run_avatar_bench(avatar_path, motion, frames, fps_seconds, rounds, demo_checkpoint, gaussians, out,
                                   command, note, flame, chosen, verify_frames)
@@ -399,22 +420,15 @@ def live(
 ) -> None:
     """Live sessions (docs/live.md): first-frame latency p50/p95 per lookahead (paced, real-time pushes), jaw
     agreement with offline frames, barge-in time, drift over a long free-running session, sessions sustained."""
-    import shlex
-    import sys
 
     from .live_sessions import live_tables, run_live_bench
 
     if not bundle.is_file():
         raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
-    try:
-        chosen = [float(v) for v in lookaheads.split(",") if v.strip()]
-        sizes = [int(v) for v in session_sizes.split(",") if v.strip()]
-    except ValueError:
-        raise typer.BadParameter("comma-separated numbers expected",
-                                 param_hint="--lookaheads/--session-sizes") from None
+    chosen, sizes = _numbers(lookaheads, float, "--lookaheads"), _numbers(session_sizes, int, "--session-sizes")
     result = run_live_bench(bundle, size, chosen, utterances, barge_trials, drift_minutes, sizes, most_sessions,
                             renderer)
-    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    _stamp(result)
     tables = live_tables(result)
     typer.echo(tables)
     if out is not None:
@@ -440,8 +454,6 @@ def pipeline(
 ) -> None:
     """The pipelined frame loop against the serial one and, with --before, another checkout, on the CPU tile
     splatter, alternating rounds (bench/pipeline_vs_serial.py)."""
-    import shlex
-    import sys
 
     from .pipeline_vs_serial import bench_pipeline, format_report
 
@@ -450,7 +462,7 @@ def pipeline(
     result = bench_pipeline(bundle.resolve(), audio=audio.resolve(), seconds=seconds, size=size, rounds=rounds,
                             cases=[c.strip() for c in cases.split(",") if c.strip()],
                             baseline=before)
-    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    _stamp(result)
     report = format_report(result, result["machine"], result["command"])
     typer.echo(report)
     if out is not None:
@@ -484,19 +496,14 @@ def live_batching(
 ) -> None:
     """Live sessions' translator calls, CPU per second of speech and drive accuracy per min_batch_frames, with a
     voice pushed in 20 ms chunks (docs/live.md)."""
-    import shlex
-    import sys
 
     from .live_batching import live_batching_table, run_live_batching
 
-    try:
-        batches = [int(v) for v in batch_frames.split(",") if v.strip()]
-    except ValueError:
-        raise typer.BadParameter("comma-separated whole numbers", param_hint="--batch-frames") from None
+    batches = _numbers(batch_frames, int, "--batch-frames")
     if not batches or not all(1 <= b <= 8 for b in batches):
         raise typer.BadParameter("whole numbers in 1..8", param_hint="--batch-frames")
     result = run_live_batching(bundle, audio, batches, seconds, rounds, context_ms)
-    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    _stamp(result)
     table = live_batching_table(result)
     typer.echo(table)
     _write_report(out, "live-batching", "Live sessions: translator calls per min_batch_frames", result, table,
@@ -513,8 +520,6 @@ def web_presets(
 ) -> None:
     """Each preset's bundle bytes (the page's download) and time to the first frame in headless Chromium (load,
     drive, first frame), per speaker (docs/web.md)."""
-    import shlex
-    import sys
 
     from .web_presets import run_web_presets, web_presets_table
 
@@ -529,7 +534,7 @@ def web_presets(
         parsed.append((label, Path(checkpoint), Path(given["audio"]) if "audio" in given else None,
                        Path(given["motion"]) if "motion" in given else None))
     result = run_web_presets(parsed, [p.strip() for p in presets.split(",") if p.strip()], rounds, log=typer.echo)
-    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    _stamp(result)
     table = web_presets_table(result)
     typer.echo(table)
     _write_report(out, "web-presets", "Bundles for the web: download size and time to the first frame", result,
@@ -558,19 +563,13 @@ def live_clients(
     """Client-render live sessions (samples/live_server.py --client-render) under N concurrent load clients:
     late drives, server CPU per session-second, first-frame and barge-in latency; the largest N with <= 5% late."""
     import itertools
-    import shlex
-    import sys
 
     from .live_clients import TRANSPORT_NAMES, live_clients_table, run_live_clients_bench
 
     if not bundle.is_file():
         raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
-    try:
-        counts = [int(v) for v in clients.split(",") if v.strip()]
-        chunks = [float(v) for v in chunk_ms.split(",") if v.strip()]
-        batches = [int(v) for v in batch_frames.split(",") if v.strip()]
-    except ValueError:
-        raise typer.BadParameter("comma-separated numbers expected", param_hint="--clients/--chunk-ms") from None
+    counts, chunks = _numbers(clients, int, "--clients"), _numbers(chunk_ms, float, "--chunk-ms")
+    batches = _numbers(batch_frames, int, "--batch-frames")
     if not counts or min(counts) < 1 or not chunks or not all(10 <= c <= 10000 for c in chunks):
         raise typer.BadParameter("counts >= 1 and chunks of 10..10000 ms", param_hint="--clients/--chunk-ms")
     transports = [v.strip() for v in transport.split(",") if v.strip()]
@@ -587,7 +586,7 @@ def live_clients(
                                                      log=typer.echo, transport=kind, batch_frames=batch,
                                                      context_ms=context_ms))
     result["load_at_end"] = os.getloadavg()
-    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    _stamp(result)
     table = "\n\n".join(f"{TRANSPORT_NAMES[run['transport']]}, voice pushed in {run['chunk_ms']:g} ms chunks at "
                          f"real time, `--batch-frames {run['batch_frames']}`, `--context-ms {run['context_ms']:g}`:"
                          f"\n\n{live_clients_table(run)}"
@@ -627,7 +626,6 @@ def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: 
 def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seconds: float, rounds: int,
            cases: str | None, out: Path, skip_demo: bool = False, scene: Path | None = None) -> None:
     """`gt-bench sweep`: see bench/sweep.py; writes the markdown report, the JSON and (with matplotlib) the plot."""
-    import sys
     from dataclasses import asdict
 
     from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
@@ -700,20 +698,14 @@ def blend_limit(
 ) -> None:
     """The CPU splatter's blend on the demo head: its work counts and core-ns per blended fragment, against the same
     kernel at full SIMD occupancy (docs/speed.md)."""
-    import shlex
-    import sys
 
     from .blend_limit import blend_limit_table, run_blend_limit
 
-    try:
-        counts = [int(v) for v in gaussians.split(",") if v.strip()]
-        thread_counts = [int(v) for v in threads.split(",") if v.strip()]
-    except ValueError:
-        raise typer.BadParameter("comma-separated whole numbers") from None
+    counts, thread_counts = _numbers(gaussians, int, "--gaussians"), _numbers(threads, int, "--threads")
     if not counts or not thread_counts or min(counts + thread_counts) < 1:
         raise typer.BadParameter("--gaussians and --threads need whole numbers >= 1")
     result = run_blend_limit(counts, size, layers, thread_counts, frames, rounds)
-    result["machine"], result["command"] = machine_info(), shlex.join(["gt-bench", *sys.argv[1:]])
+    _stamp(result)
     table = blend_limit_table(result)
     typer.echo(table)
     _write_report(out, "blend-limit", "CPU splatter: the blend's work and time per fragment", result, table,

@@ -164,8 +164,8 @@ class ExportSettings:
 
 def stored_sparse(buffer: str, array: np.ndarray) -> bool:
     """Whether bundle buffer `buffer` is stored sparse: one of SPARSE_BUFFERS, at least SPARSE_MIN_ZEROS zeros."""
-    zeros = array.size - np.count_nonzero(array)
-    return buffer in SPARSE_BUFFERS and array.size > 0 and zeros >= SPARSE_MIN_ZEROS * array.size
+    return (buffer in SPARSE_BUFFERS and array.size > 0
+            and array.size - np.count_nonzero(array) >= SPARSE_MIN_ZEROS * array.size)
 
 
 @dataclass(frozen=True)
