@@ -145,7 +145,6 @@ async def _ws_client(url: str, delay: float, speak_s: float, idle_s: float, chun
                 await socket.send_json({"interrupt": True})
                 await asyncio.sleep(idle_s)
                 result["closed"] = time.monotonic()
-                result["interrupt"] = {"epoch": max((d[1] for d in result["drives"]), default=0)}
                 reader.cancel()
     except Exception as exc:  # reported per client: a refused or failed session is part of what is measured
         result["error"] = f"{type(exc).__name__}: {exc}"
