@@ -772,9 +772,11 @@ def make_client_render_app(app: web.Application, bundle: Path, lookahead_ms: flo
         return web.Response(text=WEB_PAGE.read_text(), content_type="text/html")
 
     async def static(request: web.Request) -> web.StreamResponse:
-        """web/src and the onnxruntime-web npm install: the player's modules, served as JavaScript and wasm."""
+        """web/src and the npm installs the page's import map names (onnxruntime-web, fflate): the player's modules,
+        served as JavaScript and wasm."""
         path = (WEB_ROOT / request.match_info["path"]).resolve()
-        allowed = (WEB_ROOT / "src", WEB_ROOT / "node_modules" / "onnxruntime-web" / "dist")
+        modules = WEB_ROOT / "node_modules"
+        allowed = (WEB_ROOT / "src", modules / "onnxruntime-web" / "dist", modules / "fflate" / "esm")
         if not any(path.is_relative_to(root) for root in allowed) or not path.is_file():
             raise web.HTTPNotFound()
         types = {".js": "text/javascript", ".mjs": "text/javascript", ".wasm": "application/wasm"}

@@ -1,7 +1,8 @@
 """The browser player's readers of a user's bytes, run by node on seeded mutations: the bundle reader
 (web/src/bundle.js) on the Python reader's bundle cases (tests/test_fuzz_readers.py: header fields set to 0/-1/huge,
 bytes mutated anywhere, manifest values swapped under a matching digest), the motion file reader (web/src/drive.js)
-on LAM motion JSON, and the live drive decoder (web/src/live.js) on drive messages. Every case either loads or is
+on LAM motion JSON, the FLAME motion reader (web/src/flame_motion.js over npz.js) on GaussianAvatars' npz, and the
+live drive decoder (web/src/live.js) on drive messages. Every case either loads or is
 refused with the reader's own error (one line; naming the file where there is one), never another exception or a
 hang, and each JS reader's verdict is its Python twin's, case by case (docs/web.md, "Rejections").
 
@@ -43,6 +44,7 @@ READERS = """
 import fs from 'node:fs';
 import { readBundle, BundleError } from %(bundle_js)s;
 import { readMotion, motionAtFps, DriveError } from %(drive_js)s;
+import { flameMotionAtFps, readFlameMotion } from %(flame_motion_js)s;
 import { decodeDrive, DriveFormatError } from %(live_js)s;
 const read = {
   bundle: async (path) => {
@@ -51,9 +53,10 @@ const read = {
     for (const name of bundle.graphNames()) await bundle.graphBytes(name);
   },
   motion: (path) => motionAtFps(readMotion(fs.readFileSync(path), path), 30),
+  flame_motion: (path) => flameMotionAtFps(readFlameMotion(fs.readFileSync(path), 25, path), 30),
   drive: (path) => decodeDrive(fs.readFileSync(path)),
 };
-const refusal = { bundle: BundleError, motion: DriveError, drive: DriveFormatError };
+const refusal = { bundle: BundleError, motion: DriveError, flame_motion: DriveError, drive: DriveFormatError };
 const { kind, paths } = JSON.parse(fs.readFileSync(%(list)s, 'utf8'));
 const results = [];
 for (const path of paths) {
@@ -70,7 +73,7 @@ console.log(JSON.stringify(results));
 
 
 def _web_verdicts(kind: str, paths: list[Path], folder: Path) -> list[dict]:
-    """What the JS reader of `kind` ("bundle", "motion" or "drive") says of each file."""
+    """What the JS reader of `kind` ("bundle", "motion", "flame_motion" or "drive") says of each file."""
     node = shutil.which("node")
     need(None if node else "node is missing (Debian's npm brings it)", BROWSER_INSTALL)
     listing = folder / "cases.json"
@@ -79,6 +82,7 @@ def _web_verdicts(kind: str, paths: list[Path], folder: Path) -> list[dict]:
     script.write_text(READERS % {"bundle_js": json.dumps((ROOT / "web" / "src" / "bundle.js").as_uri()),
                                  "drive_js": json.dumps((ROOT / "web" / "src" / "drive.js").as_uri()),
                                  "live_js": json.dumps((ROOT / "web" / "src" / "live.js").as_uri()),
+                                 "flame_motion_js": json.dumps((ROOT / "web" / "src" / "flame_motion.js").as_uri()),
                                  "list": json.dumps(str(listing))})
     done = subprocess.run([node, str(script)], capture_output=True, text=True, timeout=NODE_TIMEOUT_S)
     assert done.returncode == 0, done.stderr[-2000:]
@@ -211,6 +215,103 @@ def test_fuzz_the_web_motion_reader(tmp_path, run, seed):
     problems = _disagreements(cases, web, python_verdict, names_file=True)
     assert not problems, "\n".join(problems[:20]) + f"\n({len(problems)} in all)"
     assert sum(r["verdict"] == "loaded" for r in web) > 0
+
+
+def _flame_params(frames: int = 4, n_expr: int = 10) -> dict[str, np.ndarray]:
+    """A small flame_param.npz's arrays, GaussianAvatars' keys and dtypes: the motion's per-frame keys and per-avatar
+    ones the motion reader skips."""
+    rng = np.random.default_rng(5)
+    per_frame = {"expr": n_expr, "rotation": 3, "neck_pose": 3, "jaw_pose": 3, "eyes_pose": 6, "translation": 3}
+    params = {key: (0.2 * rng.standard_normal((frames, width))).astype(np.float32) for key, width in per_frame.items()}
+    params["shape"] = rng.standard_normal(300).astype(np.float32)
+    params["static_offset"] = np.zeros((1, 40, 3), np.float32)
+    params["timestep_index"] = np.arange(frames)
+    return params
+
+
+@pytest.mark.parametrize("run, seed", [pytest.param("ci", 0, id="ci"),
+                                       pytest.param("heavy", 1000, id="heavy", marks=pytest.mark.heavy)])
+def test_fuzz_the_web_flame_motion_reader(tmp_path, run, seed):
+    """GaussianAvatars' flame_param.npz (arrays reshaped, retyped, pickled, headers lying; zip header fields; bytes;
+    stored and deflated) through `readFlameMotion` (web/src/npz.js, npy_header.js, flame_motion.js) and
+    `flameMotionAtFps` against `load_flame_motion(...).at_fps(30)`, case by case."""
+    from fuzz_mutations import mutate_npz_arrays, mutate_zip_field, npz_bytes
+
+    from gaussiantalker.sdk.errors import DriveError
+    from gaussiantalker.sdk.flame_motion import load_flame_motion
+
+    params = _flame_params()
+    rng = np.random.default_rng(seed + 13)
+    cases = []
+    for index in range(CASES[run]):
+        choice, compressed = rng.random(), bool(index % 2)
+        if choice < 0.45:
+            data, what = mutate_npz_arrays(params, rng)
+        elif choice < 0.75:
+            data, what = mutate_zip_field(npz_bytes(params, compressed), rng)
+        elif choice < 0.97:
+            data, what = mutate_bytes(npz_bytes(params, compressed), rng)
+        else:
+            data, what = npz_bytes(params, compressed), "valid"
+        path = tmp_path / f"flame{index:05d}.npz"
+        path.write_bytes(data)
+        cases.append((path, what + (" (deflated)" if compressed else "")))
+
+    def python_verdict(path: Path) -> str:
+        try:
+            load_flame_motion(path, 25).at_fps(30)
+        except DriveError:
+            return "refused"
+        return "loaded"
+
+    web = _web_verdicts("flame_motion", [path for path, _ in cases], tmp_path)
+    problems = _disagreements(cases, web, python_verdict, names_file=True)
+    assert not problems, "\n".join(problems[:20]) + f"\n({len(problems)} in all)"
+    loaded = sum(r["verdict"] == "loaded" for r in web)
+    assert 0 < loaded < len(cases), loaded  # the cases reach both ends
+
+
+def test_the_web_npy_reader_reads_dtypes_as_numpy_does(tmp_path):
+    """`parseDescr` (web/src/npy_header.js) against numpy on every one-character type code and every kind letter
+    with sizes 0-20, 32, 64, 99, each with each byte-order mark: the same numbers dtype (kind, size, byte order), a
+    string, or refused. float128 is the one numpy reads and the browser refuses (docs/untrusted-input.md)."""
+    import warnings
+
+    node = shutil.which("node")
+    need(None if node else "node is missing (Debian's npm brings it)", BROWSER_INSTALL)
+    cases = []
+    bodies = [chr(c) for c in range(256)] + [k + str(n) for k in "biufSaUcVOMm?" for n in [*range(21), 32, 64, 99]]
+    for descr in (order + body for order in ("", "<", ">", "|", "=") for body in bodies):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                dtype = np.dtype(descr)
+        except (TypeError, ValueError, SyntaxError):
+            cases.append([descr, None])
+            continue
+        if dtype.hasobject or dtype.names is not None or dtype.subdtype is not None or dtype.kind not in "biufUS" \
+                or dtype.itemsize == 0 or (dtype.kind == "f" and dtype.itemsize > 8):
+            cases.append([descr, None])
+        else:
+            cases.append([descr, [dtype.kind, dtype.itemsize, dtype.kind not in "US" and dtype.byteorder == ">"]])
+    (tmp_path / "cases.json").write_text(json.dumps(cases))
+    script = tmp_path / "descr.mjs"
+    script.write_text(f"""
+import fs from 'node:fs';
+import {{ parseDescr }} from {json.dumps((ROOT / "web" / "src" / "npy_header.js").as_uri())};
+const cases = JSON.parse(fs.readFileSync({json.dumps(str(tmp_path / "cases.json"))}, 'utf8'));
+console.log(JSON.stringify(cases.map(([descr]) => {{
+  const d = parseDescr(descr);
+  return d === null ? null : [d.kind, d.size, d.kind !== 'S' && d.kind !== 'U' && d.bigEndian];
+}})));
+""")
+    done = subprocess.run([node, str(script)], capture_output=True, text=True, timeout=NODE_TIMEOUT_S)
+    assert done.returncode == 0, done.stderr[-2000:]
+    web = json.loads(done.stdout)
+    pairs = zip(cases, web, strict=True)
+    wrong = [f"{descr!r}: numpy {want}, web {got}" for (descr, want), got in pairs if want != got]
+    assert not wrong, "\n".join(wrong[:20])
+    assert sum(want is not None for _, want in cases) > 100  # the table holds many readable dtypes
 
 
 @pytest.mark.parametrize("run, seed", [pytest.param("ci", 0, id="ci"),

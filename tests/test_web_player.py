@@ -48,12 +48,19 @@ def test_generated_module_matches_the_shaders_and_constants():
     assert web_assets.stale_message() is None
 
 
-def test_package_pins_onnxruntime_web_exactly():
+def test_package_pins_its_dependencies_exactly():
+    """onnxruntime-web and fflate, each an exact version that the lockfile holds, and each named in the harness's
+    import map (tools/browser/web_harness.py NPM_MODULES)."""
+    from tools.browser.web_harness import NPM_MODULES
+
     package = json.loads((ROOT / "web" / "package.json").read_text())
     lock = json.loads((ROOT / "web" / "package-lock.json").read_text())
-    version = package["dependencies"]["onnxruntime-web"]
-    assert version[0].isdigit(), "an exact version, not a range"
-    assert lock["packages"]["node_modules/onnxruntime-web"]["version"] == version
+    assert set(package["dependencies"]) == set(NPM_MODULES) == {"onnxruntime-web", "fflate"}
+    page = (ROOT / "web" / "harness" / "index.html").read_text()
+    for name, version in package["dependencies"].items():
+        assert version[0].isdigit(), f"{name}: an exact version, not a range"
+        assert lock["packages"][f"node_modules/{name}"]["version"] == version, name
+        assert NPM_MODULES[name].removeprefix("node_modules/") in page, name
 
 
 def test_cli_checks_its_arguments_before_starting_a_browser(tmp_path):
@@ -116,7 +123,8 @@ def lam_bundle(tmp_path_factory) -> tuple[Path, Path]:
 
 def _python_frames(bundle: Path, indexes: list[int], audio: Path | None = None, motion: Path | None = None,
                    camera=None) -> tuple[list[np.ndarray], np.ndarray]:
-    """TalkingHead's GL frames at `indexes` and its drive rows (FLAME: expression then jaw; ARKit: weights)."""
+    """TalkingHead's GL frames at `indexes` and its drive rows (FLAME from audio: expression then jaw; from a FLAME
+    motion: expression, flame_pose, head translation; ARKit: weights)."""
     from gaussiantalker.runtime import TalkingHead
 
     extra = {"camera": camera} if camera is not None else {}
@@ -125,6 +133,8 @@ def _python_frames(bundle: Path, indexes: list[int], audio: Path | None = None, 
         frames = [head.render(drives[i]) for i in indexes]
     if audio:
         rows = np.stack([np.concatenate([d.expression, d.flame_pose[6:9]]) for d in drives])
+    elif hasattr(drives[0], "flame_pose"):  # a FLAME motion: expression, flame_pose and head translation
+        rows = np.stack([np.concatenate([d.expression, d.flame_pose, d.head_translation]) for d in drives])
     else:
         rows = np.stack([d.blendshapes for d in drives])
     return frames, rows
@@ -181,6 +191,50 @@ def test_arkit_avatar_from_a_motion_file_matches_the_python_runtime(player_ready
     _check_frames(page, python_frames[-1:], indexes[-1:])
     page.drive(weights=python_rows[::2], fps=info["fps"] / 2)  # at half the rate: resampled to the speaker's
     assert page.drive_rows().shape == python_rows.shape
+
+
+@pytest.fixture(scope="module")
+def ga_bundle(tmp_path_factory) -> tuple[Path, Path]:
+    """A small synthetic GaussianAvatars avatar (tests/gaussian_avatars.py: FLAME's sizes, SH degree 3, 8 tracked
+    frames) imported and exported, and its flame_param.npz."""
+    from gaussian_avatars import synthetic_flame, write_flame_npz, write_gaussian_avatar
+
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.imports.sources.gaussian_avatars import GaussianAvatarsOptions, import_gaussian_avatars
+
+    folder = tmp_path_factory.mktemp("web_ga")
+    model = synthetic_flame(0)
+    written = write_gaussian_avatar(folder / "avatar", model, n_gaussians=400, frames=8)
+    speaker = import_gaussian_avatars(folder / "avatar", write_flame_npz(folder / "flame.npz", model),
+                                      GaussianAvatarsOptions(resolution=SIZE[0]))
+    path = folder / "avatar.gtb"
+    export_bundle(speaker, path, progress=False)
+    return path, written["param_path"]
+
+
+def test_flame_avatar_from_its_tracked_motion_matches_the_python_runtime(player_ready, page, ga_bundle, tmp_path):
+    """A GaussianAvatars avatar driven by its flame_param.npz in the page (read by web/src/npz.js), stored and
+    deflated: the same drive rows as the Python runtime's, bit for bit, and its frames; the bundle's own motion
+    track; a JSON motion refused by name."""
+    bundle, params = ga_bundle
+    indexes = [0, 4, 7]
+    info = page.load(bundle, size=SIZE)
+    assert info["rig"] == "flame"
+    assert page.drive(motion=params)["frames"] == 8
+    python_frames, python_rows = _python_frames(bundle, indexes, motion=params)
+    assert np.array_equal(page.drive_rows(), python_rows)
+    _check_frames(page, python_frames, indexes)
+    with np.load(params) as data:
+        compressed = tmp_path / "flame_param_compressed.npz"
+        np.savez_compressed(compressed, **{key: data[key] for key in data.files})
+    assert page.drive(motion=compressed)["frames"] == 8
+    assert np.array_equal(page.drive_rows(), python_rows)
+    page.drive()  # the bundle's motion track: the tracked motion the import stored
+    assert np.array_equal(page.drive_rows(), python_rows)
+    lam_motion = tmp_path / "bsData.json"
+    lam_motion.write_text(json.dumps({"frames": [[0.0] * 52]}))
+    with pytest.raises(Exception, match="a JSON motion holds ARKit weights; this FLAME speaker takes a FLAME motion"):
+        page.drive(motion=lam_motion)
 
 
 # -- bundle reading and rejection ----------------------------------------------------------------------------
@@ -310,9 +364,18 @@ def test_render_settings_match_the_python_runtime(player_ready, page, small_expo
     _check_frames(page, python_frames, indexes)
 
 
-def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export):
+def _sample_page_status(browser, url: str) -> str:
+    """Open samples/web/index.html at `url` and wait for its bundle (and drive) to load; its status text."""
+    browser.navigate(url)
+    browser.evaluate("new Promise((resolve) => { (function poll() { if (window.gtSampleReady) resolve(1); "
+                     "else setTimeout(poll, 50); })(); })", timeout=120)
+    return browser.evaluate("document.getElementById('status').textContent")
+
+
+def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export, ga_bundle):
     """samples/web/index.html: a bundle and a WAV by URL, the first frame on its canvas, and playback on the
-    audio clock drawing frames (WebAudio allowed to start without a gesture, as a click would)."""
+    audio clock drawing frames (WebAudio allowed to start without a gesture, as a click would); a FLAME avatar with
+    its flame_param.npz as the motion."""
     import time
 
     from tools.browser.chromium import Chromium
@@ -322,11 +385,12 @@ def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export):
     try:
         bundle = server.add("small.gtb", small_export.path)
         audio = server.add("speech.wav", ROOT / "samples" / "demo_speech.wav")
+        avatar, params = server.add("avatar.gtb", ga_bundle[0]), server.add("flame_param.npz", ga_bundle[1])
         with Chromium(window=(640, 720), extra_flags=("--autoplay-policy=no-user-gesture-required",)) as browser:
-            browser.navigate(f"{server.url}/web/samples/web/index.html?bundle={bundle}&audio={audio}")
-            browser.evaluate("new Promise((resolve) => { (function poll() { if (window.gtSampleReady) resolve(1); "
-                             "else setTimeout(poll, 50); })(); })", timeout=120)
-            status = browser.evaluate("document.getElementById('status').textContent")
+            page = f"{server.url}/web/samples/web/index.html"
+            status = _sample_page_status(browser, f"{page}?bundle={avatar}&motion={params}")
+            assert status.endswith("ready: 8 frames") and "flame speaker" in status, status
+            status = _sample_page_status(browser, f"{page}?bundle={bundle}&audio={audio}")
             assert status.endswith("ready: 250 frames"), status
             browser.evaluate("window.gtSample.play()")
             time.sleep(1.5)

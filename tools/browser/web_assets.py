@@ -19,8 +19,9 @@ from gaussiantalker.runtime import translate
 from gaussiantalker.runtime.splat.depth_sort import KEY_LEVELS_16
 from gaussiantalker.runtime.splat.gl import POINT_BOUND_SAFETY, RUN_COST_IN_SPLATS
 from gaussiantalker.runtime.splat.programs import PROGRAMS, QUAD_SLACK_PX, program_sources
-from gaussiantalker.sdk import numerics
+from gaussiantalker.sdk import numerics, zip_reader
 from gaussiantalker.sdk.drive import MAX_DRIVE_MAGNITUDE
+from gaussiantalker.sdk.flame_motion import MOTION_KEYS, TABLE_POSE_COLUMNS
 from gaussiantalker.sdk.motion import DEFAULT_MOTION_FPS, MAX_MOTION_FILE_BYTES, MAX_MOTION_FRAMES
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
 
@@ -45,7 +46,9 @@ def constants() -> dict[str, object]:
         "POINT_BOUND_SAFETY": POINT_BOUND_SAFETY, "QUAD_SLACK_PX": QUAD_SLACK_PX,
         "EXTENT_SIGMAS": numerics.EXTENT_SIGMAS, "LOW_PASS_PX2": numerics.LOW_PASS_PX2,
         "FOV_CLAMP_MARGIN": numerics.FOV_CLAMP_MARGIN, "DEFAULT_NEAR": numerics.DEFAULT_NEAR,
-        "KEY_LEVELS_16": KEY_LEVELS_16,
+        "KEY_LEVELS_16": KEY_LEVELS_16, "MAX_RATIO": zip_reader.MAX_RATIO, "MIN_BUDGET": zip_reader.MIN_BUDGET,
+        "MAX_NPZ_BYTES": zip_reader.MAX_NPZ_BYTES, "MAX_NDIM": zip_reader.MAX_NDIM,
+        "FLAME_MOTION_KEYS": [list(pair) for pair in MOTION_KEYS], "TABLE_POSE_COLUMNS": TABLE_POSE_COLUMNS,
     }
 
 

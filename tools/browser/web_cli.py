@@ -85,7 +85,8 @@ def render(
     audio: Path | None = typer.Option(None, "--audio", exists=True, dir_okay=False,
                                       help="audio file (what Chromium decodes: WAV, MP3, ...) through the translator"),
     motion: Path | None = typer.Option(None, "--motion", exists=True, dir_okay=False,
-                                       help="ARKit motion file (LAM's JSON) for an ARKit speaker"),
+                                       help="motion file: LAM's JSON for an ARKit speaker, a FLAME motion npz "
+                                            "(GaussianAvatars' flame_param.npz) for a FLAME one"),
     frames: str = typer.Option("0", "--frames", help="comma-separated frame indexes, e.g. 0,10,20"),
     size: str = typer.Option("512x512", "--size", help="output WIDTHxHEIGHT (the bundle camera resized)"),
     camera: Path | None = typer.Option(None, "--camera", exists=True, dir_okay=False,

@@ -24,6 +24,8 @@ from .chromium import Chromium, chromium_path
 from .web_assets import stale_message, web_root
 
 ORT_MODULE = "node_modules/onnxruntime-web/dist/ort.wasm.bundle.min.mjs"
+# The npm modules the pages' import maps name (web/harness/index.html), by package.
+NPM_MODULES = {"onnxruntime-web": ORT_MODULE, "fflate": "node_modules/fflate/esm/browser.js"}
 PAGE = "harness/index.html"
 # Content types the page needs exactly: module scripts must be served as JavaScript, wasm as application/wasm.
 CONTENT_TYPES = {".js": "text/javascript", ".mjs": "text/javascript", ".wasm": "application/wasm",
@@ -39,9 +41,10 @@ def check_web_player(root: Path | None = None) -> str | None:
     root = root or web_root()
     if not (root / "src" / "player.js").is_file():
         return f"the browser player's sources are not at {root} (gt-web runs from a source checkout)"
-    if not (root / ORT_MODULE).is_file():
-        return (f"onnxruntime-web is not installed in {root / 'node_modules'}: run `npm ci` in {root} "
-                "(or `python -m tools.browser.web_cli install`)")
+    for package, module in NPM_MODULES.items():
+        if not (root / module).is_file():
+            return (f"{package} is not installed in {root / 'node_modules'}: run `npm ci` in {root} "
+                    "(or `python -m tools.browser.web_cli install`)")
     return stale_message(root)
 
 

@@ -338,12 +338,13 @@ function checked(name, values) {
 }
 
 /**
- * Per-frame drive rows of one clip: `rows` [frames * width] (FLAME: expression then jaw; ARKit: weights in
- * ARKIT_BLENDSHAPES order), plus the head pose track (float32 [T * 6] or null).
+ * Per-frame drive rows of one clip: `rows` [frames * width] (FLAME from audio: expression then jaw; FLAME from a
+ * motion, `flameMotion`: expression, flame_pose [15] and head translation [3], the motion's own head pose; ARKit:
+ * weights in ARKIT_BLENDSHAPES order), plus the head pose track (float32 [T * 6] or null).
  */
 export class Drive {
-  constructor({ rig, rows, width, frames, poseTrack = null, rigNames = ARKIT_BLENDSHAPES }) {
-    Object.assign(this, { rig, rows, width, frames, poseTrack, rigNames });
+  constructor({ rig, rows, width, frames, poseTrack = null, rigNames = ARKIT_BLENDSHAPES, flameMotion = false }) {
+    Object.assign(this, { rig, rows, width, frames, poseTrack, rigNames, flameMotion });
   }
 
   /** Head rotation and translation of frame `index` (zero without a pose track). */
@@ -368,6 +369,13 @@ export class Drive {
       return { blendshapes: { data: checked('blendshapes', weights), dims: [1, weights.length] },
         head_rotation: { data: checked('head rotation', pose.rotation), dims: [1, 3] },
         head_translation: translation, camera_center: camera };
+    }
+    if (this.flameMotion) { // sdk/flame_motion.py `FlameMotion.drive`: the motion carries its own head pose
+      const n = this.width - 18;
+      return { expression: { data: checked('expression', row.slice(0, n)), dims: [1, n] },
+        flame_pose: { data: checked('flame pose', row.slice(n, n + 15)), dims: [1, 15] },
+        head_translation: { data: checked('head translation', row.slice(n + 15, n + 18)), dims: [1, 3] },
+        camera_center: camera };
     }
     const n = this.width - 3;
     const flamePose = new Float32Array(15);

@@ -2,7 +2,7 @@
 // (docs/web.md):
 //
 //   const player = await Player.load(bytes, { name: 'speaker.gtb', width: 512, height: 512 });
-//   const drive = await player.driveFromAudioFile(wavBytes);      // or driveFromMotion(json), driveFromAudio(...)
+//   const drive = await player.driveFromAudioFile(wavBytes);      // or driveFromMotion(file), driveFromAudio(...)
 //   const frame = await player.renderFrame(drive, 0);             // {pixels: Uint8Array RGB, width, height, timings}
 //   await player.renderToCanvas(drive, 0, canvas);                 // the same frame drawn on a 2D canvas
 //   player.release();
@@ -16,6 +16,7 @@ import {
   AudioError, blendshapeParams, decodeAudio, Drive, DriveError, flameParams, motionAtFps, readMotion, parseMotion,
   resampleAudio, translateAudio,
 } from './drive.js';
+import { flameMotionAtFps, flameMotionFromTable, parseFlameMotion, readFlameMotion, withExpressions } from './flame_motion.js';
 import { ARKIT_BLENDSHAPES } from './generated.js';
 import { GraphSessions } from './graphs.js';
 import { RenderError, WebGLSplatter } from './splat.js';
@@ -29,6 +30,15 @@ function roundHalfEven(x) {
   const r = Math.round(x);
   return Math.abs(x % 1) === 0.5 && r % 2 !== 0 ? r - 1 : r;
 }
+
+const firstBytes = (bytes) => (bytes instanceof ArrayBuffer ? new Uint8Array(bytes, 0, Math.min(bytes.byteLength, 4))
+  : bytes instanceof Uint8Array ? bytes.subarray(0, 4) : new Uint8Array(0));
+
+/** Whether a motion's bytes are a zip (an npz). */
+const isZip = (bytes) => { const b = firstBytes(bytes); return b[0] === 0x50 && b[1] === 0x4b; };
+
+/** Whether a motion's bytes start as a JSON object (after a UTF-8 byte order mark or whitespace). */
+const isJson = (bytes) => /^(\ufeff|\s)*\{/.test(new TextDecoder().decode(firstBytes(bytes)));
 
 /** The rig and timing of a bundle: FLAME speaker ('speaker') or ARKit speaker ('rig'). */
 function rigOf(bundle) {
@@ -200,25 +210,51 @@ export class Player {
     return this._drive(rows, width, frames);
   }
 
-  /** The drive of an ARKit speaker's motion: motion file text/bytes, its parsed JSON, or null (the bundle's own
-   * motion track). */
+  /**
+   * The drive of a motion: for an ARKit speaker a motion file (LAM's JSON: text or bytes) or its parsed JSON; for a
+   * FLAME speaker a FLAME motion npz (GaussianAvatars' flame_param.npz keys; bytes, at the speaker's fps, the head
+   * following the motion's own pose) or its arrays ({expr, rotation, neck_pose, jaw_pose, eyes_pose, translation}:
+   * rows of numbers). null: the bundle's own motion track.
+   */
   driveFromMotion(motion = null, where = 'motion file') {
-    if (this.rig.kind !== 'arkit') {
-      throw new DriveError('the web player drives FLAME speakers from audio only for now (FLAME motion files are '
-        + 'not read yet)');
-    }
+    if (this.rig.kind === 'flame') return this._flameMotionDrive(motion, where);
     let parsed;
     if (motion === null) {
       if (!this.motionTrack) throw new DriveError(`${this.bundle.name}: the avatar ships no motion track; give a motion file`);
       parsed = { weights: Float32Array.from(this.motionTrack.data), frames: this.motionTrack.rows, fps: this.fps };
       if (this.motionTrack.width !== ARKIT_BLENDSHAPES.length) throw new DriveError('motion_track is not [T, 52]');
     } else if (typeof motion === 'string' || motion instanceof Uint8Array || motion instanceof ArrayBuffer) {
+      if (isZip(motion)) {
+        throw new DriveError(`${where}: an npz motion holds FLAME parameters; this ARKit speaker takes ARKit weights `
+          + "(LAM's JSON motion files)");
+      }
       parsed = readMotion(motion instanceof ArrayBuffer ? new Uint8Array(motion) : motion, where);
     } else {
       parsed = parseMotion(motion, where);
     }
     const { weights, frames } = motionAtFps(parsed, this.fps);
     return this._drive(weights, ARKIT_BLENDSHAPES.length, frames);
+  }
+
+  _flameMotionDrive(motion, where) {
+    let parsed;
+    if (motion === null) {
+      if (!this.motionTrack) {
+        throw new DriveError(`${this.bundle.name}: the speaker ships no motion track; give a FLAME motion npz `
+          + "(GaussianAvatars' flame_param.npz keys)");
+      }
+      const { data, rows, width } = this.motionTrack;
+      parsed = flameMotionFromTable(data, rows, width, this.fps);
+    } else if (typeof motion === 'string' || isJson(motion)) {
+      throw new DriveError(`${where}: a JSON motion holds ARKit weights; this FLAME speaker takes a FLAME motion npz `
+        + "(GaussianAvatars' flame_param.npz keys)");
+    } else if (motion instanceof Uint8Array || motion instanceof ArrayBuffer) {
+      parsed = readFlameMotion(motion, this.fps, where);
+    } else {
+      parsed = parseFlameMotion(motion, this.fps, where);
+    }
+    const { table, frames, nExpr } = flameMotionAtFps(withExpressions(parsed, this.rig.nExpr), this.fps);
+    return new Drive({ rig: 'flame', rows: table, width: nExpr + 18, frames, flameMotion: true });
   }
 
   /** The drive of ARKit weights given directly: `weights` [frames * 52] in ARKIT_BLENDSHAPES order (an array, or
