@@ -1,8 +1,8 @@
 """`gt-web`: the browser player (web/, docs/web.md) from the command line, in headless Debian Chromium.
 
     gt-web render speaker.gtb --audio speech.wav --frames 0,10,20 --size 512x512 -o out/web [--timings] [--compare]
-    gt-web render avatar.gtb --motion bsData.json --frames 0,5 -o out/web
-    gt-web install          # npm ci in web/ (onnxruntime-web, pinned by web/package-lock.json)
+    gt-web render avatar.gtb --motion bsData.json --frames 0,5 -o out/web      # flame_param.npz for a FLAME avatar
+    gt-web install          # npm ci in web/ (onnxruntime-web and fflate, pinned by web/package-lock.json)
 
 `render` writes frame_NNNNN.png (8-bit RGB) per frame and, with --timings, timings.json: the player's per-step
 seconds (graphs, sort, upload, draw, readback) per frame and their medians. --compare renders the same frames with
