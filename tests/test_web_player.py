@@ -72,6 +72,8 @@ def test_cli_checks_its_arguments_before_starting_a_browser(tmp_path):
     assert parse_size("96x64") == (96, 64) and parse_size("80") == (80, 80)
     result = runner.invoke(app, ["render", str(bundle), "--motion", str(bundle), "--size", "0x9", "-o", str(tmp_path)])
     assert result.exit_code == 2 and "WIDTHxHEIGHT" in result.output
+    result = runner.invoke(app, ["render", str(bundle), "--motion", str(bundle), "--graphs", "gpu", "-o", "out"])
+    assert result.exit_code == 2 and "--graphs must be auto, wasm or webgpu" in result.output
 
 
 # -- in the browser ------------------------------------------------------------------------------------------
@@ -235,6 +237,37 @@ def test_flame_avatar_from_its_tracked_motion_matches_the_python_runtime(player_
     lam_motion.write_text(json.dumps({"frames": [[0.0] * 52]}))
     with pytest.raises(Exception, match="a JSON motion holds ARKit weights; this FLAME speaker takes a FLAME motion"):
         page.drive(motion=lam_motion)
+
+
+@pytest.fixture(scope="module")
+def webgpu_page(player_ready):
+    """A second headless chromium offered WebGPU: SwiftShader's software adapter."""
+    from tools.browser.web_harness import WEBGPU_FLAGS, WebPlayerPage
+
+    with WebPlayerPage(extra_flags=WEBGPU_FLAGS) as page:
+        yield page
+
+
+def test_graphs_run_on_webgpu_where_asked(player_ready, webgpu_page, page, small_export, speech_wav, tmp_path):
+    """graphs 'webgpu' (onnxruntime-web's WebGPU build) on the software adapter: the translator's rows within the
+    audio test's 1e-4 of the Python runtime's, and a frame within the fidelity bound; 'auto' keeps to wasm on a
+    software adapter; a page without WebGPU refuses 'webgpu' by name. 2 s of audio: SwiftShader runs a graph in
+    seconds."""
+    from gaussiantalker.sdk.audio import load_audio, write_wav
+
+    short = tmp_path / "speech2.wav"
+    write_wav(short, load_audio(speech_wav)[: 2 * 16000])
+    info = webgpu_page.load(small_export.path, size=SIZE, settings={"graphs": "webgpu"})
+    assert info["graphs"]["name"] == "webgpu" and info["graphs"]["executionProviders"] == ["webgpu", "wasm"]
+    assert info["graphs"]["adapter"]["fallback"], info["graphs"]  # headless: SwiftShader's adapter
+    assert webgpu_page.drive(audio=short)["frames"] == 50
+    python_frames, python_rows = _python_frames(small_export.path, [30], audio=short)
+    rows = webgpu_page.drive_rows()
+    assert float(np.abs(rows - python_rows).max()) <= 1e-4 * max(1.0, float(np.abs(python_rows).max()))
+    _check_frames(webgpu_page, python_frames, [30])
+    assert webgpu_page.load(small_export.path, size=SIZE)["graphs"]["name"] == "wasm"  # 'auto', a software adapter
+    with pytest.raises(Exception, match="WebGPU is not available in this browser"):
+        page.load(small_export.path, size=SIZE, settings={"graphs": "webgpu"})
 
 
 # -- bundle reading and rejection ----------------------------------------------------------------------------

@@ -27,7 +27,7 @@ from gaussiantalker.sdk.image import write_png
 
 from .chromium import ChromiumMissing
 from .web_assets import web_root
-from .web_harness import WebPlayerMissing, WebPlayerPage
+from .web_harness import WEBGPU_FLAGS, WebPlayerMissing, WebPlayerPage
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="The browser player (web/) in headless Chromium: frames as PNGs (docs/web.md).")
@@ -99,10 +99,14 @@ def render(
     sort_key_bits: int | None = typer.Option(None, "--sort-key-bits", help="32 (exact depth) or 16"),
     sort_interval: int | None = typer.Option(None, "--sort-interval", help="depth-sort every k-th frame"),
     quads: bool = typer.Option(False, "--quads", help="the web player draws every Gaussian as a quad (same pixels)"),
+    graphs: str = typer.Option("auto", "--graphs", help="onnxruntime-web backend: auto (WebGPU on a hardware adapter, "
+                               "else wasm), wasm, or webgpu (here: SwiftShader's software adapter, seconds a graph)"),
 ) -> None:
     """Render frames of BUNDLE through the browser player in headless Chromium, as 8-bit RGB PNGs."""
     if (audio is None) == (motion is None):
         raise typer.BadParameter("give exactly one of --audio and --motion")
+    if graphs not in ("auto", "wasm", "webgpu"):
+        raise typer.BadParameter(f"--graphs must be auto, wasm or webgpu, got {graphs!r}")
     wanted = parse_frames(frames)
     width, height = parse_size(size)
     camera_dict = json.loads(camera.read_text()) if camera else None
@@ -117,17 +121,18 @@ def render(
                     for k, v in settings.items()}
     if quads:
         web_settings["pointSprites"] = False
+    web_settings["graphs"] = graphs
     report: dict = {"bundle": str(bundle), "size": [width, height], "settings": settings, "quads": quads,
                     "frames": {}}
     try:
-        with WebPlayerPage() as page:
+        with WebPlayerPage(extra_flags=WEBGPU_FLAGS if graphs == "webgpu" else ()) as page:
             info = page.load(bundle, size=(width, height), camera=camera_dict, settings=web_settings)
             drive = page.drive(audio=audio, motion=motion)
             over = [i for i in wanted if i >= drive["frames"]]
             if over:
                 raise typer.BadParameter(f"frame {over[0]} is out of range: the drive has {drive['frames']} frames")
             report.update(load=info, translate_seconds=drive["translate"], renderer=info["renderer"],
-                          precision=info["precision"])
+                          precision=info["precision"], graphs=info["graphs"])
             web_frames = []
             for index in wanted:
                 frame, steps = page.render(index)
@@ -142,8 +147,10 @@ def render(
     except RuntimeError as exc:  # the page's error: a damaged bundle, a bad drive
         typer.echo(f"gt-web: {str(exc).splitlines()[0]}", err=True)
         raise typer.Exit(1) from None
+    adapter = info["graphs"]["adapter"]
+    backend = info["graphs"]["name"] + (f" on {adapter['vendor']} {adapter['architecture']}" if adapter else "")
     typer.echo(f"wrote {len(wanted)} frames ({width}x{height}) to {out} [{info['precision']} framebuffer, "
-               f"{info['renderer']}]")
+               f"{info['renderer']}; graphs {backend}]")
     if compare:
         from gaussiantalker.sdk.image import psnr_db
 

@@ -27,6 +27,8 @@ ORT_MODULE = "node_modules/onnxruntime-web/dist/ort.wasm.bundle.min.mjs"
 # The npm modules the pages' import maps name (web/harness/index.html), by package.
 NPM_MODULES = {"onnxruntime-web": ORT_MODULE, "fflate": "node_modules/fflate/esm/browser.js"}
 PAGE = "harness/index.html"
+# Headless Chromium offers WebGPU (SwiftShader's software adapter) only with this flag.
+WEBGPU_FLAGS = ("--enable-unsafe-webgpu",)
 # Content types the page needs exactly: module scripts must be served as JavaScript, wasm as application/wasm.
 CONTENT_TYPES = {".js": "text/javascript", ".mjs": "text/javascript", ".wasm": "application/wasm",
                  ".html": "text/html", ".json": "application/json", ".map": "application/json"}
@@ -98,7 +100,8 @@ class WebPlayerPage:
     """One headless Chromium with the player's harness page open; `load`, `drive`, `render` call the player."""
 
     def __init__(self, web: Path | None = None, chromium: str | os.PathLike | None = None,
-                 window: tuple[int, int] = (256, 256)) -> None:
+                 window: tuple[int, int] = (256, 256), extra_flags: tuple[str, ...] = ()) -> None:
+        """`extra_flags`: more Chromium flags (WEBGPU_FLAGS offers the page a WebGPU adapter)."""
         self.web = (web or web_root()).resolve()
         chromium_path(chromium)
         problem = check_web_player(self.web)
@@ -108,7 +111,7 @@ class WebPlayerPage:
         self.browser = None
         self._count = 0
         try:
-            self.browser = Chromium(chromium, window=window)
+            self.browser = Chromium(chromium, window=window, extra_flags=extra_flags)
             self.browser.navigate(f"{self.server.url}/web/{PAGE}")
             self.browser.evaluate("new Promise((resolve, reject) => { const t0 = performance.now(); "
                                   "(function poll() { if (window.gtWebReady) resolve(true); "

@@ -45,7 +45,7 @@ window.gtWeb = {
     return { rig: player.rig.kind, fps: player.fps, sampleRate: player.sampleRate, size: player.frameSize,
       gaussians: player.bundle.manifest.gaussians ?? null, precision: gl.precision, fallback: gl.fallback,
       renderer: gl.renderer, maxPointSize: gl.maxPointSize, extensions: gl.extensions, load: player.loadTimings,
-      settings: player.settings };
+      settings: player.settings, graphs: player.graphs.backend };
   },
 
   async drive({ audio, motion, weights }) {

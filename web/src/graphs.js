@@ -2,32 +2,86 @@
 // inflated, its weights written into the protobuf (onnx_wire.js), one session per graph, its input and output
 // names checked against the manifest.
 //
-// Execution providers: 'wasm' (onnxruntime-web's CPU backend) is the default and what the fidelity tests run.
-// WebGPU is the next step: pass `executionProviders: ['webgpu', 'wasm']` together with the `ort` module of
-// `onnxruntime-web/webgpu` (the seam is the `ort` and `executionProviders` options below; nothing else here
-// depends on the backend).
+// Backends (docs/web.md, "Graphs: WebAssembly and WebGPU"): 'wasm' (onnxruntime-web's CPU build), 'webgpu' (its
+// WebGPU build, the operators WebGPU lacks on wasm), or 'auto' (the default): WebGPU where the browser offers a
+// hardware adapter, else wasm. A software adapter (SwiftShader's, what headless Chromium offers) is not chosen by
+// 'auto': on a CPU the wasm build is the faster one.
 
 import * as ortWasm from 'onnxruntime-web/wasm';
 
 import { BundleError, label } from './bundle.js';
 import { inlineWeights } from './onnx_wire.js';
 
+export const GRAPH_BACKENDS = ['auto', 'wasm', 'webgpu'];
+
+/** Raised when the backend asked for cannot run here (WebGPU without an adapter). */
+export class GraphBackendError extends Error {
+  constructor(message) {
+    super(message);
+    this.name = 'GraphBackendError';
+  }
+}
+
+/** The browser's WebGPU adapter, or null (no navigator.gpu, no adapter, or the request failed). */
+async function webgpuAdapter() {
+  if (typeof navigator === 'undefined' || !navigator.gpu) return null;
+  try {
+    return await navigator.gpu.requestAdapter();
+  } catch {
+    return null;
+  }
+}
+
+/**
+ * The onnxruntime-web build and execution providers for `choice` ('auto', 'wasm' or 'webgpu'): {name, ort,
+ * executionProviders, adapter ({vendor, architecture, fallback} or null)}. GraphBackendError when 'webgpu' is asked
+ * for and the browser has no adapter.
+ */
+export async function graphBackend(choice = 'auto') {
+  if (!GRAPH_BACKENDS.includes(choice)) {
+    throw new GraphBackendError(`graphs must be one of ${GRAPH_BACKENDS.join(', ')}, got ${JSON.stringify(choice)}`);
+  }
+  const wasm = { name: 'wasm', ort: ortWasm, executionProviders: ['wasm'], adapter: null };
+  if (choice === 'wasm') return wasm;
+  const adapter = await webgpuAdapter();
+  const fallback = Boolean(adapter?.info?.isFallbackAdapter ?? adapter?.isFallbackAdapter);
+  if (!adapter || (choice === 'auto' && fallback)) {
+    if (choice === 'webgpu') {
+      throw new GraphBackendError('WebGPU is not available in this browser (navigator.gpu offers no adapter); use '
+        + "graphs: 'wasm' or 'auto'");
+    }
+    return wasm;
+  }
+  const ort = await import('onnxruntime-web/webgpu');
+  const info = adapter.info ?? {};
+  return { name: 'webgpu', ort, executionProviders: ['webgpu', 'wasm'],
+    adapter: { vendor: info.vendor ?? '', architecture: info.architecture ?? '', fallback } };
+}
+
 const ORT_TYPES = { float32: 'float32', float16: 'float16', int32: 'int32', int64: 'int64', int8: 'int8',
   uint8: 'uint8', uint16: 'uint16', uint32: 'uint32' };
 
 export class GraphSessions {
-  constructor(bundle, ort, sessions) {
+  constructor(bundle, ort, sessions, backend) {
     this.bundle = bundle;
     this.ort = ort;
     this.sessions = sessions;
+    this.backend = backend; // {name, executionProviders, adapter}
   }
 
   /**
-   * Sessions for every graph of `bundle` (or the `names` given). Options: `ort` (an onnxruntime-web module; default
-   * the wasm build), `executionProviders` (default ['wasm']), `threads` (wasm threads; default 1, which needs no
-   * cross-origin isolation).
+   * Sessions for every graph of `bundle` (or the `names` given). Options: `graphs` (the backend: 'auto', the
+   * default, 'wasm' or 'webgpu'; graphBackend), `threads` (wasm threads; default 1, which needs no cross-origin
+   * isolation); or, instead of `graphs`, an onnxruntime-web module `ort` with its `executionProviders`.
    */
-  static async open(bundle, { names = null, ort = ortWasm, executionProviders = ['wasm'], threads = 1 } = {}) {
+  static async open(bundle, { names = null, graphs = 'auto', ort = null, executionProviders = null, threads = 1 } = {}) {
+    let backend;
+    if (ort !== null || executionProviders !== null) {
+      backend = { name: 'custom', ort: ort ?? ortWasm, executionProviders: executionProviders ?? ['wasm'], adapter: null };
+    } else {
+      backend = await graphBackend(graphs);
+    }
+    ({ ort, executionProviders } = backend);
     if (ort.env?.wasm) ort.env.wasm.numThreads = threads;
     if (ort.env) ort.env.logLevel = 'error';
     const sessions = {};
@@ -45,7 +99,8 @@ export class GraphSessions {
       checkSignature(bundle, name, session);
       sessions[name] = session;
     }
-    return new GraphSessions(bundle, ort, sessions);
+    const { name, adapter } = backend;
+    return new GraphSessions(bundle, ort, sessions, { name, executionProviders, adapter });
   }
 
   has(name) {

@@ -18,10 +18,10 @@ import {
 } from './drive.js';
 import { flameMotionAtFps, flameMotionFromTable, parseFlameMotion, readFlameMotion, withExpressions } from './flame_motion.js';
 import { ARKIT_BLENDSHAPES } from './generated.js';
-import { GraphSessions } from './graphs.js';
+import { GraphBackendError, GraphSessions } from './graphs.js';
 import { RenderError, WebGLSplatter } from './splat.js';
 
-export { AudioError, BundleError, Camera, DriveError, RenderError };
+export { AudioError, BundleError, Camera, DriveError, GraphBackendError, RenderError };
 
 const FEATURES_PER_FRAME = 2; // the translator's audio features per video frame (sdk/config.py)
 
@@ -126,7 +126,7 @@ export class Player {
    * dict, replacing the bundle's), `background` ([r, g, b]), `renderTarget`/`renderScale`/`sortKeyBits`/
    * `sortInterval` (override the bundle's runtime_defaults, docs/precision.md), `pointSprites` (false: quads only),
    * `canvas` (the WebGL2 canvas; default an OffscreenCanvas), and the graph options of GraphSessions.open
-   * (`threads`, `executionProviders`, `ort`).
+   * (`graphs`: 'auto', 'wasm' or 'webgpu'; `threads`; or `ort` with `executionProviders`).
    */
   static async load(source, options = {}) {
     const timings = {};
