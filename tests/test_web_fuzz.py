@@ -89,6 +89,24 @@ def _web_verdicts(kind: str, paths: list[Path], folder: Path) -> list[dict]:
     return json.loads(done.stdout)
 
 
+def _check_verdicts(kind: str, cases: list[tuple[Path, str]], read_in_python, error: type[Exception], folder: Path,
+                    names_file: bool = True) -> list[dict]:
+    """Run the JS reader of `kind` on every case: each must agree with `read_in_python(path)` (loaded, or refused
+    with `error`) and refuse in one line. Returns the JS results."""
+
+    def python_verdict(path: Path) -> str:
+        try:
+            read_in_python(path)
+        except error:
+            return "refused"
+        return "loaded"
+
+    web = _web_verdicts(kind, [path for path, _ in cases], folder)
+    problems = _disagreements(cases, web, python_verdict, names_file)
+    assert not problems, "\n".join(problems[:20]) + f"\n({len(problems)} in all)"
+    return web
+
+
 def _disagreements(cases: list[tuple[Path, str]], web: list[dict], python_verdict, names_file: bool) -> list[str]:
     """Every case where the JS reader crashed, wrote a bad message, or disagreed with Python."""
     problems = []
@@ -204,16 +222,7 @@ def test_fuzz_the_web_motion_reader(tmp_path, run, seed):
         path.write_bytes(data)
         cases.append((path, what))
 
-    def python_verdict(path: Path) -> str:
-        try:
-            arkit_motion(path, None, 30, "speaker")
-        except DriveError:
-            return "refused"
-        return "loaded"
-
-    web = _web_verdicts("motion", [path for path, _ in cases], tmp_path)
-    problems = _disagreements(cases, web, python_verdict, names_file=True)
-    assert not problems, "\n".join(problems[:20]) + f"\n({len(problems)} in all)"
+    web = _check_verdicts("motion", cases, lambda path: arkit_motion(path, None, 30, "speaker"), DriveError, tmp_path)
     assert sum(r["verdict"] == "loaded" for r in web) > 0
 
 
@@ -257,16 +266,8 @@ def test_fuzz_the_web_flame_motion_reader(tmp_path, run, seed):
         path.write_bytes(data)
         cases.append((path, what + (" (deflated)" if compressed else "")))
 
-    def python_verdict(path: Path) -> str:
-        try:
-            load_flame_motion(path, 25).at_fps(30)
-        except DriveError:
-            return "refused"
-        return "loaded"
-
-    web = _web_verdicts("flame_motion", [path for path, _ in cases], tmp_path)
-    problems = _disagreements(cases, web, python_verdict, names_file=True)
-    assert not problems, "\n".join(problems[:20]) + f"\n({len(problems)} in all)"
+    web = _check_verdicts("flame_motion", cases, lambda path: load_flame_motion(path, 25).at_fps(30), DriveError,
+                          tmp_path)
     loaded = sum(r["verdict"] == "loaded" for r in web)
     assert 0 < loaded < len(cases), loaded  # the cases reach both ends
 
@@ -345,14 +346,6 @@ def test_fuzz_the_web_drive_decoder(tmp_path, run, seed):
         path.write_bytes(data)
         cases.append((path, what))
 
-    def python_verdict(path: Path) -> str:
-        try:
-            server.decode_drive(path.read_bytes())
-        except server.DriveFormatError:
-            return "refused"
-        return "loaded"
-
-    web = _web_verdicts("drive", [path for path, _ in cases], tmp_path)
-    problems = _disagreements(cases, web, python_verdict, names_file=False)
-    assert not problems, "\n".join(problems[:20]) + f"\n({len(problems)} in all)"
+    web = _check_verdicts("drive", cases, lambda path: server.decode_drive(path.read_bytes()), server.DriveFormatError,
+                          tmp_path, names_file=False)
     assert 0 < sum(r["verdict"] == "loaded" for r in web) < len(cases)

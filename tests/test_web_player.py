@@ -179,15 +179,23 @@ def test_novel_camera_matches_the_python_runtime(player_ready, page, small_expor
     _check_frames(page, python_frames, [40])
 
 
-def test_arkit_avatar_from_a_motion_file_matches_the_python_runtime(player_ready, page, lam_bundle):
-    bundle, motion = lam_bundle
-    indexes = [0, 3, 11]
+def _check_motion(page, bundle: Path, motion: Path, rig: str, frames: int, indexes: list[int]):
+    """Load `bundle` (a `rig` speaker), drive it with `motion` (`frames` long): the page's drive rows must be the
+    Python runtime's bit for bit and its frames at `indexes` within the bound. Returns (load info, Python frames,
+    Python rows)."""
     info = page.load(bundle, size=SIZE)
-    assert info["rig"] == "arkit"
-    assert page.drive(motion=motion)["frames"] == 12
+    assert info["rig"] == rig
+    assert page.drive(motion=motion)["frames"] == frames
     python_frames, python_rows = _python_frames(bundle, indexes, motion=motion)
     assert np.array_equal(page.drive_rows(), python_rows)
     _check_frames(page, python_frames, indexes)
+    return info, python_frames, python_rows
+
+
+def test_arkit_avatar_from_a_motion_file_matches_the_python_runtime(player_ready, page, lam_bundle):
+    bundle, motion = lam_bundle
+    indexes = [0, 3, 11]
+    info, python_frames, python_rows = _check_motion(page, bundle, motion, "arkit", 12, indexes)
     assert page.drive(weights=python_rows, fps=info["fps"])["frames"] == 12  # the same weights given directly
     assert np.array_equal(page.drive_rows(), python_rows)
     _check_frames(page, python_frames[-1:], indexes[-1:])
@@ -219,13 +227,7 @@ def test_flame_avatar_from_its_tracked_motion_matches_the_python_runtime(player_
     deflated: the same drive rows as the Python runtime's, bit for bit, and its frames; the bundle's own motion
     track; a JSON motion refused by name."""
     bundle, params = ga_bundle
-    indexes = [0, 4, 7]
-    info = page.load(bundle, size=SIZE)
-    assert info["rig"] == "flame"
-    assert page.drive(motion=params)["frames"] == 8
-    python_frames, python_rows = _python_frames(bundle, indexes, motion=params)
-    assert np.array_equal(page.drive_rows(), python_rows)
-    _check_frames(page, python_frames, indexes)
+    _, _, python_rows = _check_motion(page, bundle, params, "flame", 8, [0, 4, 7])
     with np.load(params) as data:
         compressed = tmp_path / "flame_param_compressed.npz"
         np.savez_compressed(compressed, **{key: data[key] for key in data.files})

@@ -242,21 +242,29 @@ function float16(bits) {
   return sign * (1 + fraction / 1024) * 2 ** (exponent - 15);
 }
 
+// Element readers by kind and size: (view, index, littleEndian) -> the value as a float64.
+const ELEMENT_READERS = {
+  b1: (v, i) => (v.getUint8(i) ? 1 : 0),
+  i1: (v, i) => v.getInt8(i),
+  i2: (v, i, le) => v.getInt16(2 * i, le),
+  i4: (v, i, le) => v.getInt32(4 * i, le),
+  i8: (v, i, le) => Number(v.getBigInt64(8 * i, le)),
+  u1: (v, i) => v.getUint8(i),
+  u2: (v, i, le) => v.getUint16(2 * i, le),
+  u4: (v, i, le) => v.getUint32(4 * i, le),
+  u8: (v, i, le) => Number(v.getBigUint64(8 * i, le)),
+  f2: (v, i, le) => float16(v.getUint16(2 * i, le)),
+  f4: (v, i, le) => v.getFloat32(4 * i, le),
+  f8: (v, i, le) => v.getFloat64(8 * i, le),
+};
+
 /** `count` values of a numeric dtype from `data` as float64 (numpy's cast: integers rounded to nearest). */
 function numericValues(data, dtype, count) {
   const view = new DataView(data.buffer, data.byteOffset, data.byteLength);
+  const read = ELEMENT_READERS[`${dtype.kind}${dtype.size}`];
   const little = !dtype.bigEndian;
   const out = new Float64Array(count);
-  const read = {
-    b: () => (i) => (data[i] ? 1 : 0),
-    i: () => [null, (i) => view.getInt8(i), (i) => view.getInt16(i * 2, little), null, (i) => view.getInt32(i * 4, little),
-      null, null, null, (i) => Number(view.getBigInt64(i * 8, little))][dtype.size],
-    u: () => [null, (i) => view.getUint8(i), (i) => view.getUint16(i * 2, little), null,
-      (i) => view.getUint32(i * 4, little), null, null, null, (i) => Number(view.getBigUint64(i * 8, little))][dtype.size],
-    f: () => ({ 2: (i) => float16(view.getUint16(i * 2, little)), 4: (i) => view.getFloat32(i * 4, little),
-      8: (i) => view.getFloat64(i * 8, little) })[dtype.size],
-  }[dtype.kind]();
-  for (let i = 0; i < count; i++) out[i] = read(i);
+  for (let i = 0; i < count; i++) out[i] = read(view, i, little);
   return out;
 }
 
