@@ -192,10 +192,14 @@ def _check_motion(page, bundle: Path, motion: Path, rig: str, frames: int, index
     return info, python_frames, python_rows
 
 
-def test_arkit_avatar_from_a_motion_file_matches_the_python_runtime(player_ready, page, lam_bundle):
+def test_arkit_avatar_from_a_motion_file_matches_the_python_runtime(player_ready, page, lam_bundle, tmp_path):
     bundle, motion = lam_bundle
     indexes = [0, 3, 11]
     info, python_frames, python_rows = _check_motion(page, bundle, motion, "arkit", 12, indexes)
+    flame_motion = tmp_path / "flame_param.npz"
+    np.savez(flame_motion, expr=np.zeros((2, 10), np.float32))
+    with pytest.raises(Exception, match="an npz motion holds FLAME parameters; this ARKit speaker takes ARKit"):
+        page.drive(motion=flame_motion)
     assert page.drive(weights=python_rows, fps=info["fps"])["frames"] == 12  # the same weights given directly
     assert np.array_equal(page.drive_rows(), python_rows)
     _check_frames(page, python_frames[-1:], indexes[-1:])

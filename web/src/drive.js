@@ -11,7 +11,7 @@
 
 import {
   ARKIT_BLENDSHAPES, CONTEXT_FRAMES, CROSSFADE_FRAMES, DEFAULT_MOTION_FPS, MAX_DRIVE_MAGNITUDE, MAX_MOTION_FILE_BYTES,
-  MAX_MOTION_FRAMES, SILENCE_GATE_DBFS, SILENCE_GATE_RAMP_DB, WINDOW_FRAMES,
+  MAX_MOTION_FRAMES, SILENCE_GATE_DBFS, SILENCE_GATE_RAMP_DB, TABLE_POSE_COLUMNS, WINDOW_FRAMES,
 } from './generated.js';
 import { MAX_JSON_DEPTH, nestsDeeperThan } from './bundle.js';
 
@@ -371,7 +371,7 @@ export class Drive {
         head_translation: translation, camera_center: camera };
     }
     if (this.flameMotion) { // sdk/flame_motion.py `FlameMotion.drive`: the motion carries its own head pose
-      const n = this.width - 18;
+      const n = this.width - TABLE_POSE_COLUMNS;
       return { expression: { data: checked('expression', row.slice(0, n)), dims: [1, n] },
         flame_pose: { data: checked('flame pose', row.slice(n, n + 15)), dims: [1, 15] },
         head_translation: { data: checked('head translation', row.slice(n + 15, n + 18)), dims: [1, 3] },

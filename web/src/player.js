@@ -17,7 +17,7 @@ import {
   resampleAudio, translateAudio,
 } from './drive.js';
 import { flameMotionAtFps, flameMotionFromTable, parseFlameMotion, readFlameMotion, withExpressions } from './flame_motion.js';
-import { ARKIT_BLENDSHAPES } from './generated.js';
+import { ARKIT_BLENDSHAPES, TABLE_POSE_COLUMNS } from './generated.js';
 import { GraphBackendError, GraphSessions } from './graphs.js';
 import { RenderError, WebGLSplatter } from './splat.js';
 
@@ -254,7 +254,7 @@ export class Player {
       parsed = parseFlameMotion(motion, this.fps, where);
     }
     const { table, frames, nExpr } = flameMotionAtFps(withExpressions(parsed, this.rig.nExpr), this.fps);
-    return new Drive({ rig: 'flame', rows: table, width: nExpr + 18, frames, flameMotion: true });
+    return new Drive({ rig: 'flame', rows: table, width: nExpr + TABLE_POSE_COLUMNS, frames, flameMotion: true });
   }
 
   /** The drive of ARKit weights given directly: `weights` [frames * 52] in ARKIT_BLENDSHAPES order (an array, or
