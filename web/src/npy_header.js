@@ -6,7 +6,7 @@
 // True/False/None, comments and line joins) and refuses the rest, as numpy does. Anything else a header could
 // spell (floats, sets, bytes) is refused too, which is numpy's verdict for a header of an array of numbers.
 
-const NPY_MAGIC = [0x93, 0x4e, 0x55, 0x4d, 0x50, 0x59]; // \x93NUMPY
+export const NPY_MAGIC = [0x93, 0x4e, 0x55, 0x4d, 0x50, 0x59]; // \x93NUMPY
 const MAX_HEADER_CHARS = 10000; // numpy's max_header_size
 const MAX_NESTING = 200; // Python's parser refuses deeper brackets
 const MAX_INT_DIGITS = 4300; // Python's limit on a decimal integer literal

@@ -11,7 +11,7 @@
 import { Inflate } from 'fflate';
 
 import { MAX_NDIM, MAX_NPZ_BYTES, MAX_RATIO, MIN_BUDGET } from './generated.js';
-import { NpyHeaderError, readNpyHeader } from './npy_header.js';
+import { NPY_MAGIC, NpyHeaderError, readNpyHeader } from './npy_header.js';
 
 const EOCD = [0x05, 0x06];
 const EOCD64 = [0x06, 0x06];
@@ -199,9 +199,9 @@ function memberBytes(bytes, entry, fail) {
   const chunks = [];
   let produced = 0;
   const inflate = new Inflate((chunk) => {
-    const room = entry.fileSize - produced;
-    if (room > 0) chunks.push(chunk.length > room ? chunk.subarray(0, room) : chunk);
-    produced += Math.min(chunk.length, Math.max(room, 0));
+    const kept = chunk.subarray(0, Math.max(entry.fileSize - produced, 0)); // never past the stated size
+    chunks.push(kept);
+    produced += kept.length;
   });
   try {
     // Pushed as not final: a stream cut short yields what it holds, as zlib's decompressor does.
@@ -222,7 +222,7 @@ function memberBytes(bytes, entry, fail) {
       ended = false;
     }
   }
-  const out = new Uint8Array(Math.min(produced, entry.fileSize));
+  const out = new Uint8Array(produced);
   let offset = 0;
   for (const chunk of chunks) {
     out.set(chunk, offset);
@@ -293,7 +293,7 @@ export function readNpz(bytes, { keys = null, where = 'npz', makeError = (m) => 
   what = 'an npz file' } = {}) {
   const data = bytes instanceof Uint8Array ? bytes : new Uint8Array(bytes);
   const failAs = (label) => (message) => { throw makeError(`${label} ${message}`); };
-  if (data.length >= 6 && [0x93, 0x4e, 0x55, 0x4d, 0x50, 0x59].every((b, i) => data[i] === b)) {
+  if (data.length >= NPY_MAGIC.length && NPY_MAGIC.every((b, i) => data[i] === b)) {
     throw makeError(`${where} is one array, not ${what}`);
   }
   if (!(signed(data, 0, LOCAL) || signed(data, 0, EOCD))) throw makeError(`cannot read ${where} (${what}): not an npz (zip) file`);
