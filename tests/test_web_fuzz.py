@@ -44,8 +44,10 @@ READERS = """
 import fs from 'node:fs';
 import { readBundle, BundleError } from %(bundle_js)s;
 import { readMotion, motionAtFps, DriveError } from %(drive_js)s;
-import { flameMotionAtFps, readFlameMotion } from %(flame_motion_js)s;
 import { decodeDrive, DriveFormatError } from %(live_js)s;
+const { kind, paths } = JSON.parse(fs.readFileSync(%(list)s, 'utf8'));
+// Only the FLAME motion reader needs the npm install (fflate inflates); the other readers run on node alone.
+const { flameMotionAtFps, readFlameMotion } = kind === 'flame_motion' ? await import(%(flame_motion_js)s) : {};
 const read = {
   bundle: async (path) => {
     const bundle = await readBundle(fs.readFileSync(path), { name: path });
@@ -57,7 +59,6 @@ const read = {
   drive: (path) => decodeDrive(fs.readFileSync(path)),
 };
 const refusal = { bundle: BundleError, motion: DriveError, flame_motion: DriveError, drive: DriveFormatError };
-const { kind, paths } = JSON.parse(fs.readFileSync(%(list)s, 'utf8'));
 const results = [];
 for (const path of paths) {
   try {
@@ -76,6 +77,12 @@ def _web_verdicts(kind: str, paths: list[Path], folder: Path) -> list[dict]:
     """What the JS reader of `kind` ("bundle", "motion", "flame_motion" or "drive") says of each file."""
     node = shutil.which("node")
     need(None if node else "node is missing (Debian's npm brings it)", BROWSER_INSTALL)
+    if kind == "flame_motion":
+        from tools.browser.web_harness import NPM_MODULES
+
+        fflate = ROOT / "web" / NPM_MODULES["fflate"]
+        need(None if fflate.is_file() else f"fflate is not installed in {ROOT / 'web' / 'node_modules'}: run `npm ci` "
+             "in web/", BROWSER_INSTALL)
     listing = folder / "cases.json"
     listing.write_text(json.dumps({"kind": kind, "paths": [str(path) for path in paths]}))
     script = folder / "readers.mjs"
