@@ -279,9 +279,11 @@ def test_blend_counts_on_a_scene_every_pixel_blends():
     drawn, _, _ = cs.splat_frame(prepared.rows, prepared.camera)
     assert np.array_equal(counted, drawn)
     totals = dict(zip(cs.BLEND_COUNTS, counts.tolist(), strict=True))
-    # 40x24 in 16x16 tiles: widths 16, 16, 8 and heights 16, 8; a tile of w x h holds h / 2 row pairs and
+    # 40x24 in TILE x TILE tiles (32: widths 32, 8 and height 24); a tile of w x h holds h / 2 row pairs and
     # (w / 4) x (h / 2) blocks of 4x2 pixels
-    tiles = [(w, h) for w in (16, 16, 8) for h in (16, 8)]
+    tiles = [(min(cs.TILE, width - x), min(cs.TILE, height - y))
+             for x in range(0, width, cs.TILE) for y in range(0, height, cs.TILE)]
+    assert len(tiles) > 1  # the scene crosses a tile edge
     row_pairs = sum(h // 2 for _, h in tiles)
     blocks = sum((w // 4) * (h // 2) for w, h in tiles)
     assert totals == {"pairs_binned": layers * len(tiles), "pairs_visited": layers * len(tiles),

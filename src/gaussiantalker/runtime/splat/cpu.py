@@ -8,9 +8,9 @@ rasterizer's generic triangle/point set-up, 4x4-block shading and RGBA32F blendi
    the torch reference computes them (exporter/model/splat_math.py): world -> camera -> pixel, the FOV-clamped 2D
    covariance with the low-pass filter, the least-cancelling determinant, the conic's `alpha_shape`, the extent
    radius and the culling rules; plus the whole-pixel box where it can reach alpha >= ALPHA_MIN.
-2. `_bin` (parallel over slices of the sorted list): the kept Gaussians binned to the 16x16 tiles their box
+2. `_bin` (parallel over slices of the sorted list): the kept Gaussians binned to the 32x32 tiles their box
    overlaps, every tile's list kept front to back.
-3. `_blend_tiles` (parallel over tiles): each tile's 256 pixels accumulated front to back in a small array that
+3. `_blend_tiles` (parallel over tiles): each tile's 1,024 pixels accumulated front to back in a small array that
    stays in L1 cache, with the contract's per-pixel extent test, alpha bound, 0.99 clamp and the T_MIN stop, in
    blocks of 4 x 2 pixels; a block whose pixels have all stopped is skipped, and a tile whose pixels have all
    stopped skips the rest of its list. The per-block loop is written branch-free (float selects, a polynomial exp:
@@ -77,7 +77,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import numba  # noqa: E402  (after the cache directory is set)
 from numba import njit, prange  # noqa: E402
 
-TILE = 16  # tile side in pixels (the 3DGS rasterizer's)
+TILE = 32  # tile side in pixels: twice the 3DGS rasterizer's 16, fewer (Gaussian, tile) set-ups (docs/speed.md)
 _TILE_PIXELS = TILE * TILE
 # Pixels per vectorised step: a block of 4 columns x 2 rows, one 256-bit register of float32 (contiguous in the
 # tile's accumulator: `_slot`). Runs of 8 columns of one row measured slower (more lanes outside the ellipse);
