@@ -26,26 +26,33 @@ ALPHA_OUTPUTS = ("rgba", "rgba_float")
 FLOATS_PER_SPLAT = 13  # mean 3, covariance 6, rgb 3, opacity 1
 
 
-def pack_gaussians(means, cov3d, rgb, opacity) -> np.ndarray:
-    """Validate shapes and pack [N, 13] float32 rows: mean xyz, cov xx xy xz yy yz zz, rgb, opacity."""
-    means = np.asarray(means, dtype=np.float32)
+def checked_gaussians(means, cov3d, rgb, opacity) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The four arrays as C-contiguous float32 means [N, 3], cov3d [N, 6], rgb [N, 3], opacity [N], or
+    RenderError naming the one whose shape does not match."""
+    means = np.ascontiguousarray(means, dtype=np.float32)
     if means.ndim != 2 or means.shape[1] != 3:
         raise RenderError(f"means must have shape [N, 3], got {list(means.shape)}")
     n = means.shape[0]
     arrays = {
-        "cov3d": (np.asarray(cov3d, dtype=np.float32), (n, 6)),
-        "rgb": (np.asarray(rgb, dtype=np.float32), (n, 3)),
-        "opacity": (np.asarray(opacity, dtype=np.float32), (n,)),
+        "cov3d": (np.ascontiguousarray(cov3d, dtype=np.float32), (n, 6)),
+        "rgb": (np.ascontiguousarray(rgb, dtype=np.float32), (n, 3)),
+        "opacity": (np.ascontiguousarray(opacity, dtype=np.float32), (n,)),
     }
     for name, (array, shape) in arrays.items():
         if array.shape != shape and not (name == "opacity" and array.shape == (n, 1)):
             raise RenderError(f"{name} must have shape {list(shape)} to match means {list(means.shape)}, "
                               f"got {list(array.shape)}")
-    packed = np.empty((n, FLOATS_PER_SPLAT), dtype=np.float32)
+    return means, arrays["cov3d"][0], arrays["rgb"][0], arrays["opacity"][0].reshape(n)
+
+
+def pack_gaussians(means, cov3d, rgb, opacity) -> np.ndarray:
+    """Validate shapes and pack [N, 13] float32 rows: mean xyz, cov xx xy xz yy yz zz, rgb, opacity."""
+    means, cov3d, rgb, opacity = checked_gaussians(means, cov3d, rgb, opacity)
+    packed = np.empty((means.shape[0], FLOATS_PER_SPLAT), dtype=np.float32)
     packed[:, 0:3] = means
-    packed[:, 3:9] = arrays["cov3d"][0]
-    packed[:, 9:12] = arrays["rgb"][0]
-    packed[:, 12] = arrays["opacity"][0].reshape(n)
+    packed[:, 3:9] = cov3d
+    packed[:, 9:12] = rgb
+    packed[:, 12] = opacity
     return packed
 
 
@@ -68,19 +75,24 @@ class PreparedSplats:
     output_size: tuple[int, int] | None = None  # (width, height) returned, when it differs from the drawn size
 
 
-def sorted_rows(sorter: DepthSorter, settings: RenderSettings, means, cov3d, rgb, opacity, camera: Camera
-                ) -> tuple[np.ndarray, Camera, tuple[int, int] | None]:
-    """What both splatters prepare alike: the Gaussians validated, packed and sorted front to back ([n, 13]) for the
-    camera at the render scale's draw size, that camera, and the output size to upscale to (None: no upscale)."""
+def draw_camera(settings: RenderSettings, camera: Camera) -> tuple[Camera, tuple[int, int] | None]:
+    """The camera to draw with at the render scale's draw size, and the output size to upscale to (None: none)."""
     if not isinstance(camera, Camera):
         raise RenderError(f"camera must be a gaussiantalker.sdk.camera.Camera, got {type(camera).__name__}")
     output_size = (int(camera.width), int(camera.height))
     draw_size = settings.draw_size(*output_size)
-    if draw_size != output_size:
-        camera = camera.resized(*draw_size)  # the same view, fewer pixels: upscaled after drawing
+    if draw_size == output_size:
+        return camera, None
+    return camera.resized(*draw_size), output_size  # the same view, fewer pixels: upscaled after drawing
+
+
+def sorted_rows(sorter: DepthSorter, settings: RenderSettings, means, cov3d, rgb, opacity, camera: Camera
+                ) -> tuple[np.ndarray, Camera, tuple[int, int] | None]:
+    """What both splatters prepare alike: the Gaussians validated, packed and sorted front to back ([n, 13]) for the
+    camera at the render scale's draw size, that camera, and the output size to upscale to (None: no upscale)."""
+    camera, output_size = draw_camera(settings, camera)
     packed = pack_gaussians(means, cov3d, rgb, opacity)
-    rows = packed[sorter.order(packed, camera)]
-    return rows, camera, (output_size if draw_size != output_size else None)
+    return packed[sorter.order(packed, camera)], camera, output_size
 
 
 @runtime_checkable
@@ -106,4 +118,4 @@ class Splatter(Protocol):
 
 
 __all__ = ["ALPHA_OUTPUTS", "FLOATS_PER_SPLAT", "FRAME_OUTPUTS", "STAGES", "PreparedSplats", "Splatter",
-           "background_rgb", "pack_gaussians", "sorted_rows"]
+           "background_rgb", "checked_gaussians", "draw_camera", "pack_gaussians", "sorted_rows"]

@@ -44,7 +44,7 @@ from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import straight_rgba
 from gaussiantalker.sdk.render_settings import RenderSettings
 
-from .common import FRAME_OUTPUTS, STAGES, PreparedSplats, background_rgb, sorted_rows
+from .common import FRAME_OUTPUTS, STAGES, PreparedSplats, background_rgb, checked_gaussians, draw_camera, sorted_rows
 from .depth_sort import DepthSorter
 
 logger = logging.getLogger("gaussiantalker.runtime")
@@ -76,6 +76,8 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba  # noqa: E402  (after the cache directory is set)
 from numba import njit, prange  # noqa: E402
+
+from . import cpu_sort  # noqa: E402  (its kernels share the cache directory)
 
 TILE = 32  # tile side in pixels: twice the 3DGS rasterizer's 16, fewer (Gaussian, tile) set-ups (docs/speed.md)
 _TILE_PIXELS = TILE * TILE
@@ -586,9 +588,15 @@ class CPUSplatter:
         self.warm_up_seconds = time.perf_counter() - start
 
     def prepare(self, means, cov3d, rgb, opacity, camera: Camera) -> PreparedSplats:
-        """Validate, pack and depth-sort (numpy only: safe on a worker thread)."""
+        """Validate, pack and depth-sort (no shared state: safe on a worker thread). At the contract's sort (every
+        frame, 32-bit keys) this runs the fused numba passes of `cpu_sort`, else the sort knobs' numpy path."""
         start = time.perf_counter()
-        rows, camera, output_size = sorted_rows(self._sorter, self.settings, means, cov3d, rgb, opacity, camera)
+        if self._sorter.interval == 1 and self._sorter.key_bits == 32:
+            camera, output_size = draw_camera(self.settings, camera)
+            rows = cpu_sort.sorted_packed_rows(*checked_gaussians(means, cov3d, rgb, opacity), camera)
+        else:
+            rows, camera, output_size = sorted_rows(self._sorter, self.settings, means, cov3d, rgb, opacity,
+                                                    camera)
         return PreparedSplats(np.ascontiguousarray(rows), [], camera, time.perf_counter() - start, output_size)
 
     def draw(self, prepared: PreparedSplats, background, *, output: str = "uint8") -> np.ndarray:
@@ -666,7 +674,7 @@ def kernels_cached() -> bool:
     """Whether the blend kernel's machine code for this source is in numba's cache, so that construction loads
     instead of compiling. It reads numba's index path, an internal attribute: where that is missing, True."""
     try:
-        return Path(_blend_tiles._cache._cache_file._index_path).is_file()
+        return all(Path(kernel._cache._cache_file._index_path).is_file() for kernel in (_blend_tiles, cpu_sort._gather))
     except AttributeError:
         return True
 
@@ -683,6 +691,7 @@ def warm_up() -> None:
     for output in ("uint8", "float"):
         _convert(frame, np.ones(3, dtype=np.float32), output)
     exp_approx(np.zeros(1, dtype=np.float32))
+    cpu_sort.warm_up()
     upscale_bilinear(frame, 4, 3)
     _WARM = True
 

@@ -1,0 +1,83 @@
+"""The CPU splatter's `prepare` at the contract's default sort: cull, depth-order and pack a frame's Gaussians in
+two parallel numba passes and one sort of 64-bit keys, instead of numpy's pack, finiteness reduction and gather
+(docs/speed.md, "Where a frame's time goes"). The order is `depth_order`'s exactly (docs/numerics.md): a stable sort
+on float32 view depth, rows behind the near plane or holding a non-finite value culled.
+
+numpy's version makes three [N, 13] temporaries (the packed rows, their finiteness, the gathered rows) and walks
+them in separate passes; here one pass computes each Gaussian's depth and verdict from the four arrays the
+deformation graph returns, and one writes the sorted rows straight from them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+from gaussiantalker.sdk.camera import Camera
+
+from .common import FLOATS_PER_SPLAT
+
+_CULLED = np.float32(np.inf)  # a culled Gaussian's depth: its key sorts after every kept one (kept depths are finite)
+
+
+@njit(inline="always", cache=True)
+def _finite_row(a, i, width):
+    ok = True
+    for k in range(width):
+        ok &= np.isfinite(a[i, k])
+    return ok
+
+
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
+def _depths(means, cov3d, rgb, opacity, r, t, near, depth):
+    """depth[i] = Gaussian i's float32 view depth (R mean + t).z, summed left to right as `view_depth` does, where it
+    is drawn (z >= near and all 13 of its values finite), else +inf."""
+    for i in prange(means.shape[0]):
+        z = means[i, 0] * r[0] + means[i, 1] * r[1] + means[i, 2] * r[2] + t
+        keep = (z >= near and np.isfinite(z) and np.isfinite(opacity[i]) and _finite_row(means, i, 3)
+                and _finite_row(cov3d, i, 6) and _finite_row(rgb, i, 3))
+        depth[i] = z if keep else _CULLED
+
+
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
+def _gather(means, cov3d, rgb, opacity, order, rows):
+    """rows[j] = Gaussian order[j]'s packed row: mean xyz, cov xx xy xz yy yz zz, rgb, opacity."""
+    for j in prange(order.shape[0]):
+        i = order[j]
+        for k in range(3):
+            rows[j, k] = means[i, k]
+        for k in range(6):
+            rows[j, 3 + k] = cov3d[i, k]
+        for k in range(3):
+            rows[j, 9 + k] = rgb[i, k]
+        rows[j, 12] = opacity[i]
+
+
+def sorted_packed_rows(means: np.ndarray, cov3d: np.ndarray, rgb: np.ndarray, opacity: np.ndarray,
+                       camera: Camera) -> np.ndarray:
+    """`pack_gaussians(...)[depth_order(..., camera)]` for checked float32 arrays (`checked_gaussians`): the rows
+    [n, 13] to draw, front to back."""
+    n = means.shape[0]
+    depth = np.empty(n, dtype=np.float32)
+    r = camera.R[2].astype(np.float32)
+    _depths(means, cov3d, rgb, opacity, r, np.float32(camera.t[2]), np.float32(camera.near), depth)
+    # A positive float32's bits order like its value, and +inf's after every finite one: bits << 32 | index sorts by
+    # depth and then by index, the stable order (as `stable_argsort_positive`); the keys are unique.
+    keys = depth.view(np.uint32).astype(np.uint64) << np.uint64(32)
+    keys |= np.arange(n, dtype=np.uint64)
+    keys.sort()
+    kept = n - int(np.count_nonzero(depth == _CULLED))
+    order = (keys[:kept] & np.uint64(0xFFFFFFFF)).astype(np.intp)
+    rows = np.empty((kept, FLOATS_PER_SPLAT), dtype=np.float32)
+    _gather(means, cov3d, rgb, opacity, order, rows)
+    return rows
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) both passes on one Gaussian."""
+    one = np.zeros((1, 3), dtype=np.float32)
+    sorted_packed_rows(one, np.zeros((1, 6), dtype=np.float32), one, np.ones(1, dtype=np.float32),
+                       Camera(3, 2, 2.0, 2.0, 1.5, 1.0))
+
+
+__all__ = ["sorted_packed_rows", "warm_up"]
