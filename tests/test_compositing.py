@@ -175,6 +175,58 @@ def test_composite_applies_the_formula_and_keeps_the_reference_outside_the_mask(
     np.testing.assert_array_equal(out[~outside], expected[~outside])
 
 
+class _ScaledInpainter:
+    """A stand-in F that reads the image and the coverage, in both layouts an inpainter may offer."""
+
+    def chw(self, image, mask, coverage):
+        return image[0] * np.float32(0.7) + coverage[0] * np.float32(0.2)
+
+    def __call__(self, x, mask, render):
+        return x * np.float32(0.7) + render[..., 3:4] * np.float32(0.2)
+
+
+@pytest.mark.parametrize("shape", [(20, 30), (200, 150)])  # a frame shorter than the crop multiple: edge padding
+def test_composite_kernels_match_the_formula_in_numpy_in_both_layouts(shape):
+    """The numba passes around F give numpy's float32 steps bit for bit, with the crop padded by edge pixels where
+    the frame is short, whether F takes the graph's channel-first layout (`chw`) or channel-last crops."""
+    rng = np.random.default_rng(3)
+    height, width = shape
+    reference = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    head = rng.uniform(0.0, 1.0, (height, width, 4)).astype(np.float32)
+    head[..., :3] *= head[..., 3:]
+    mask = rng.uniform(0.0, 1.0, shape).astype(np.float32) * (rng.random(shape) < 0.8)
+    if shape != (20, 30):  # the large frame's mask leaves room for the crop inside it
+        mask[: height // 4] = mask[-height // 4:] = 0.0
+        mask[:, : width // 4] = mask[:, -width // 4:] = 0.0
+    box = crop_box(mask)
+    assert (box.pad_bottom > 0) == (shape == (20, 30))  # the premise: only the small frame pads
+
+    def padded(array):
+        return np.pad(array, [(0, box.pad_bottom), (0, box.pad_right)] + [(0, 0)] * (array.ndim - 2), mode="edge")
+
+    m = padded(mask[box.rows, box.columns])
+    original = padded(reference[box.rows, box.columns]).astype(np.float32) * np.float32(1 / 255)
+    original *= 1.0 - m[..., None]
+    render = padded(head[box.rows, box.columns])
+    filled = _ScaledInpainter()(render[..., :3] + original, m, render)
+    blended = to_uint8(filled * m[..., None] + original)[: box.height, : box.width]
+    expected = reference.copy()
+    inside = mask[box.rows, box.columns] > 0
+    expected[box.rows, box.columns][inside] = blended[inside]
+    channel_first = composite(head, reference, mask, _ScaledInpainter())
+    channel_last = composite(head, reference, mask, lambda x, mk, r: _ScaledInpainter()(x, mk, r))
+    np.testing.assert_array_equal(channel_first, expected)
+    np.testing.assert_array_equal(channel_last, expected)
+
+
+def test_an_inpainter_of_the_wrong_size_is_named():
+    mask = np.zeros((40, 40), np.float32)
+    mask[10:20, 10:20] = 1.0
+    head, reference = np.zeros((40, 40, 4), np.float32), np.zeros((40, 40, 3), np.uint8)
+    with pytest.raises(RenderError, match=r"the inpainter returned shape \[\d+, \d+, 2\]"):
+        composite(head, reference, mask, lambda x, m, r: x[..., :2])
+
+
 def test_opencv_fallback_fills_the_uncovered_rim_from_its_surroundings():
     height, width = 48, 64
     background = np.zeros((height, width, 3), np.float32) + np.array([0.2, 0.5, 0.8], np.float32)

@@ -14,7 +14,7 @@ from gaussiantalker.sdk.errors import BundleError, RenderError
 from gaussiantalker.sdk.reference_clip import ReferenceClip
 
 from .backend import GraphBackend
-from .composite import Inpainter, composite, graph_inpainter, opencv_fallback
+from .composite import Inpainter, composite, graph_inpainter, opencv_fallback, warm_up
 from .timings import Timings
 
 
@@ -24,6 +24,7 @@ class Compositor:
     def __init__(self, reference: ReferenceClip, inpaint: Inpainter, *, timings: Timings | None = None) -> None:
         self.reference, self.inpaint = reference, inpaint
         self.timings = timings if timings is not None else Timings()
+        warm_up()
 
     @classmethod
     def from_bundle(cls, bundle: Bundle, reference: ReferenceClip, pose_track: np.ndarray | None,
