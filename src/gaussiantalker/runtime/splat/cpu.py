@@ -646,7 +646,7 @@ def kernels_cached() -> bool:
     """Whether the blend kernel's machine code for this source is in numba's cache, so that construction loads
     instead of compiling. It reads numba's index path, an internal attribute: where that is missing, True."""
     try:
-        return all(Path(kernel._cache._cache_file._index_path).is_file() for kernel in (_blend_tiles, cpu_sort._gather))
+        return Path(_blend_tiles._cache._cache_file._index_path).is_file()
     except AttributeError:
         return True
 
