@@ -6,8 +6,9 @@ only on the crop around the mask's support (plus a margin, rounded up to the gra
 where M is 0 is the reference frame's, bit for bit (docs/compositing.md).
 
 The arithmetic around F runs in two numba passes over the crop (`_crop_inputs`, `_blend_crop`): numpy's version
-took a dozen passes and temporaries, and transposes for the graph's channel-first layout, ~6 ms a frame at
-480x600 on 2 cores, against ~1 ms. Each pass does numpy's float32 steps in numpy's order, so frames are the same.
+took a dozen passes and temporaries, and transposes for the graph's channel-first layout, ~4.3 ms a frame at
+480x600 on 2 cores, against ~2 ms. Each pass does numpy's float32 steps in numpy's order, so frames are the same
+(docs/compositing.md, "Around F, two passes").
 """
 
 from __future__ import annotations

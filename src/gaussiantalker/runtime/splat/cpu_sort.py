@@ -1,6 +1,6 @@
 """The CPU splatter's `prepare` at the contract's default sort: cull, depth-order and pack a frame's Gaussians in
 two numba passes and one sort of 64-bit keys, instead of numpy's pack, finiteness reduction and gather
-(docs/speed.md, "Where a frame's time goes"). The order is `depth_order`'s exactly (docs/numerics.md): a stable sort
+(docs/speed.md, "The steps since"). The order is `depth_order`'s exactly (docs/numerics.md): a stable sort
 on float32 view depth, rows behind the near plane or holding a non-finite value culled.
 
 numpy's version makes three [N, 13] temporaries (the packed rows, their finiteness, the gathered rows) and walks
