@@ -185,10 +185,21 @@ class _ScaledInpainter:
         return x * np.float32(0.7) + render[..., 3:4] * np.float32(0.2)
 
 
+@pytest.mark.parametrize("passes", ["numba", "numpy"])  # with the cpu extra, and without numba
 @pytest.mark.parametrize("shape", [(20, 30), (200, 150)])  # a frame shorter than the crop multiple: edge padding
-def test_composite_kernels_match_the_formula_in_numpy_in_both_layouts(shape):
-    """The numba passes around F give numpy's float32 steps bit for bit, with the crop padded by edge pixels where
-    the frame is short, whether F takes the graph's channel-first layout (`chw`) or channel-last crops."""
+def test_composite_passes_match_the_formula_in_numpy_in_both_layouts(shape, passes, monkeypatch):
+    """The passes around F (numba's kernels, and the numpy functions an install without numba runs) give the
+    formula's float32 steps bit for bit, with the crop padded by edge pixels where the frame is short, whether F
+    takes the graph's channel-first layout (`chw`) or channel-last crops."""
+    import gaussiantalker.runtime.composite as composite_module
+
+    if passes == "numpy":
+        monkeypatch.setattr(composite_module, "_passes", lambda: (composite_module.crop_inputs,
+                                                                  composite_module.blend_crop))
+    else:
+        from gaussiantalker.runtime import composite_kernels
+
+        assert composite_module._passes() == (composite_kernels.crop_inputs, composite_kernels.blend_crop)
     rng = np.random.default_rng(3)
     height, width = shape
     reference = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)

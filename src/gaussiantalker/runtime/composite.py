@@ -5,14 +5,15 @@ generator (the bundle's `inpaint` graph) or, for a speaker without one, the non-
 only on the crop around the mask's support (plus a margin, rounded up to the graph's size multiple); every pixel
 where M is 0 is the reference frame's, bit for bit (docs/compositing.md).
 
-The arithmetic around F runs in two numba passes over the crop (`_crop_inputs`, `_blend_crop`): numpy's version
-took a dozen passes and temporaries, and transposes for the graph's channel-first layout, ~4.3 ms a frame at
-480x600 on 2 cores, against ~2 ms. Each pass does numpy's float32 steps in numpy's order, so frames are the same
-(docs/compositing.md, "Around F, two passes").
+The arithmetic around F is two passes over the crop (`crop_inputs`, `blend_crop`), in numba where it is installed
+(`composite_kernels`: one pass each, ~2 ms a frame at 480x600 on 2 cores, against ~4.3 ms for numpy's dozen
+passes, temporaries and transposes) and in numpy otherwise; both do the same float32 steps in the same order, so
+the frames are the same (docs/compositing.md, "Around F, two passes").
 """
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -21,8 +22,6 @@ import numpy as np
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import to_uint8
 from gaussiantalker.sdk.reference_clip import CROP_MARGIN_PX, CROP_MULTIPLE
-
-from .jit import njit, prange
 
 # The fallback fills what lies behind the face at this fraction of the crop's size (cv2.inpaint's cost grows with
 # the hole's area; the fill is smooth anyway), with this neighbourhood radius (pixels at that size).
@@ -35,11 +34,6 @@ FALLBACK_RADIUS_PX = 3
 # (the graph's own layout), which `composite` then calls instead, with no transposes.
 Inpainter = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
-_ONE = np.float32(1.0)
-_INV_255 = np.float32(1.0 / 255.0)
-_255 = np.float32(255.0)
-_HALF = np.float32(0.5)
-_ZERO = np.float32(0.0)
 
 
 @dataclass(frozen=True)
@@ -117,37 +111,44 @@ def opencv_fallback(x: np.ndarray, mask: np.ndarray, render: np.ndarray) -> np.n
     return np.where(inside, render[..., :3] + (1.0 - coverage) * fill, x).astype(np.float32)
 
 
-@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
-def _crop_inputs(head, reference, mask, top, left, image, masks, coverage, original):
-    """F's inputs on the crop at (top, left), edge pixels repeated past the frame (np.pad's "edge"): M, the render's
-    coverage 1 - T, original = (I_ori / 255) (1 - M) [h, w, 3] and F's image C + original [3, h, w]."""
+def crop_inputs(head, reference, mask, top, left, image, masks, coverage, original) -> None:
+    """F's inputs on the crop at (top, left), edge pixels repeated past the frame (np.pad's "edge"), into the given
+    arrays: masks [h, w] M, coverage [h, w] the render's 1 - T, original [h, w, 3] = (I_ori / 255) (1 - M) and
+    image [3, h, w] = C + original (F's input, channel-first). numpy; `composite_kernels` does the same in one
+    numba pass where numba is installed."""
     height, width = masks.shape
-    rows, columns = mask.shape
-    for y in prange(height):
-        source_y = min(top + y, rows - 1)
-        for x in range(width):
-            source_x = min(left + x, columns - 1)
-            m = mask[source_y, source_x]
-            keep = _ONE - m
-            masks[y, x] = m
-            coverage[y, x] = head[source_y, source_x, 3]
-            for c in range(3):
-                value = (np.float32(reference[source_y, source_x, c]) * _INV_255) * keep
-                original[y, x, c] = value
-                image[c, y, x] = head[source_y, source_x, c] + value
+    rows = np.minimum(np.arange(top, top + height), mask.shape[0] - 1)[:, None]
+    columns = np.minimum(np.arange(left, left + width), mask.shape[1] - 1)[None, :]
+    masks[...] = mask[rows, columns]
+    render = head[rows, columns]
+    coverage[...] = render[..., 3]
+    original[...] = reference[rows, columns]
+    original *= np.float32(1.0 / 255.0)
+    original *= 1.0 - masks[..., None]
+    image[...] = (render[..., :3] + original).transpose(2, 0, 1)
 
 
-@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
-def _blend_crop(filled, masks, original, top, left, height, width, out):
-    """out[top + y, left + x] = to_uint8((1 - M) I_ori + M F) where M > 0 on the crop's [height, width] (F's
-    output `filled` [3, h, w]; the clamp, * 255, + 0.5 and truncation of `to_uint8`)."""
-    for y in prange(height):
-        for x in range(width):
-            m = masks[y, x]
-            if m > _ZERO:
-                for c in range(3):
-                    value = min(max(filled[c, y, x] * m + original[y, x, c], _ZERO), _ONE)
-                    out[top + y, left + x, c] = np.uint8(value * _255 + _HALF)
+def blend_crop(filled, masks, original, top, left, height, width, out) -> None:
+    """out[top + y, left + x] = to_uint8((1 - M) I_ori + M F) where M > 0 on the crop's [height, width], from F's
+    output `filled` [3, h, w] (numpy; see `crop_inputs`)."""
+    blended = filled.transpose(1, 2, 0) * masks[..., None]
+    blended += original
+    np.clip(blended, 0.0, 1.0, out=blended)
+    blended *= np.float32(255.0)
+    blended += np.float32(0.5)
+    pixels = blended.astype(np.uint8)[:height, :width]
+    inside = masks[:height, :width] > 0.0
+    np.copyto(out[top: top + height, left: left + width], pixels, where=inside[..., None])
+
+
+def _passes():
+    """The two passes around F: numba's (`composite_kernels`) where numba is installed (the `cpu` extra), else
+    numpy's; the same float32 steps, so the same frames."""
+    if importlib.util.find_spec("numba") is None:
+        return crop_inputs, blend_crop
+    from . import composite_kernels
+
+    return composite_kernels.crop_inputs, composite_kernels.blend_crop
 
 
 def _checked_output(filled, shape: tuple[int, int, int]) -> np.ndarray:
@@ -174,7 +175,8 @@ def composite(head: np.ndarray, reference: np.ndarray, mask: np.ndarray, inpaint
     masks = np.empty((1, 1, height, width), dtype=np.float32)
     coverage = np.empty((1, 1, height, width), dtype=np.float32)
     original = np.empty((height, width, 3), dtype=np.float32)  # (1 - M) I_ori, in F's input and in the output
-    _crop_inputs(np.ascontiguousarray(head, dtype=np.float32), np.ascontiguousarray(reference, dtype=np.uint8),
+    fill_inputs, blend_back = _passes()
+    fill_inputs(np.ascontiguousarray(head, dtype=np.float32), np.ascontiguousarray(reference, dtype=np.uint8),
                  np.ascontiguousarray(mask, dtype=np.float32), box.top, box.left, image[0], masks[0, 0],
                  coverage[0, 0], original)
     if hasattr(inpaint, "chw"):
@@ -185,7 +187,7 @@ def composite(head: np.ndarray, reference: np.ndarray, mask: np.ndarray, inpaint
         filled = _checked_output(inpaint(x, masks[0, 0], np.ascontiguousarray(render)), (height, width, 3))
         filled = filled.transpose(2, 0, 1)
     # F's output is sanitised and clamped: both terms of the blend are finite
-    _blend_crop(np.ascontiguousarray(filled, dtype=np.float32), masks[0, 0], original, box.top, box.left,
+    blend_back(np.ascontiguousarray(filled, dtype=np.float32), masks[0, 0], original, box.top, box.left,
                 box.height, box.width, out)
     return out
 
