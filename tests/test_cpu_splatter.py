@@ -492,24 +492,3 @@ def test_prepare_takes_the_numpy_path_for_the_sort_knobs():
     coarse = CPUSplatter(settings=RenderSettings(sort_key_bits=16))
     assert np.array_equal(coarse.prepare(*arrays, camera).rows, packed[quantised])
     assert np.array_equal(CPUSplatter().prepare(*arrays, camera).rows, packed[exact])
-
-
-@pytest.mark.parametrize("background", [BACKGROUND, (1.0, 1.0, 1.0), (-0.5, 2.0, 0.3)])
-def test_the_blend_writes_the_uint8_frame_the_conversion_would(cpu, background):
-    """`splat_frame(..., background=)` (the blend writing 8-bit pixels itself, `draw`'s "uint8" path) gives the
-    bytes `to_uint8` makes of the float output, bit for bit (no fused multiply-add in the blend's conversion), on
-    scenes with translucent, stacked and out-of-range colours, and backgrounds outside [0, 1]."""
-    scenes = [_numpy(random_scene(seed, 300, off_centre_camera(37, 29))) for seed in (1, 2)]
-    scenes.append(_numpy(stacked_scene()))
-    rng = np.random.default_rng(4)
-    loud, camera = _numpy(random_scene(3, 200, off_centre_camera(33, 21)))
-    loud[2] = rng.uniform(-3.0, 4.0, loud[2].shape).astype(np.float32)  # colours beyond [0, 1] before the clamp
-    scenes.append((loud, camera))
-    rgb = np.asarray(background, dtype=np.float32)
-    for arrays, camera in scenes:
-        prepared = cpu.prepare(*arrays, camera)
-        fused, _, _ = cs.splat_frame(prepared.rows, prepared.camera, background=rgb)
-        expected = to_uint8(cpu.draw(prepared, background, output="float"))
-        assert fused.dtype == np.uint8 and np.array_equal(fused, expected)
-        assert np.array_equal(cpu.draw(prepared, background), expected)  # draw takes the fused path
-        assert 0 < len(np.unique(expected)) and expected.std() > 0  # the premise: a picture, not a flat frame

@@ -146,9 +146,10 @@ def _passes():
     numpy's; the same float32 steps, so the same frames."""
     if importlib.util.find_spec("numba") is None:
         return crop_inputs, blend_crop
-    from . import composite_kernels
+    from .composite_kernels import blend_crop as blend_with_numba
+    from .composite_kernels import crop_inputs as inputs_with_numba
 
-    return composite_kernels.crop_inputs, composite_kernels.blend_crop
+    return inputs_with_numba, blend_with_numba
 
 
 def _checked_output(filled, shape: tuple[int, int, int]) -> np.ndarray:

@@ -321,25 +321,14 @@ def _slot(py, px):
     return (py >> 1) * (2 * TILE) + (px >> 2) * _BLOCK + (py & 1) * 4 + (px & 3)
 
 
-@njit(cache=True, error_model="numpy")
-def _to_byte(color, transmittance, background):
-    """`to_uint8` of color + T * background: floor(clamp(v, 0, 1) * 255 + 0.5) in float32, NaN as 0. Its own
-    function, not inlined: compiled without the blend's `contract`, the product and sum stay two roundings (no
-    fused multiply-add), so the blend's 8-bit frames are the conversion's of its float frames, bit for bit."""
-    value = color + transmittance * background
-    value = min(max(value, _ZERO), _ONE) if value == value else _ZERO
-    return np.uint8(np.floor(value * _F(255.0) + _HALF))
-
-
 def _blend_source(counting: bool):
     """The tile blend, with the work counts of BLEND_COUNTS when `counting` (a compile-time constant: the kernel
     that draws frames has no counting code; the counts would need integer sums inside the block loop, which keep
     it from 8-wide vectors)."""
 
-    def blend_tiles(params, start, lists, tiles_x, width, height, out, counts, background, out_bytes, as_bytes):
-        """Composite each tile front to back into out [H, W, 4] = (C, T), or with `as_bytes` into out_bytes
-        [H, W, 3] = `_to_byte` over `background`: per pixel the extent test, alpha (0.99 clamp, skipped below
-        ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN."""
+    def blend_tiles(params, start, lists, tiles_x, width, height, out, counts):
+        """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99
+        clamp, skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN."""
         n_tiles = start.shape[0] - 1
         for tile in prange(n_tiles):
             ty, tx = tile // tiles_x, tile % tiles_x
@@ -459,22 +448,13 @@ def _blend_source(counting: bool):
             if counting:
                 counts[tile, 0], counts[tile, 1], counts[tile, 2] = start[tile + 1] - start[tile], visited, row_pairs
                 counts[tile, 3], counts[tile, 4], counts[tile, 5] = blocks_tried, blocks_blended, fragments
-            if as_bytes:  # the 8-bit frame straight from the tile: no float frame written and read again
-                for py in range(y0, y1):
-                    for px in range(x0, x1):
-                        k = _slot(py - y0, px - x0)
-                        t = abs(acc[_T + k])
-                        out_bytes[py, px, 0] = _to_byte(acc[k], t, background[0])
-                        out_bytes[py, px, 1] = _to_byte(acc[_G + k], t, background[1])
-                        out_bytes[py, px, 2] = _to_byte(acc[_B + k], t, background[2])
-            else:
-                for py in range(y0, y1):
-                    for px in range(x0, x1):
-                        k = _slot(py - y0, px - x0)
-                        out[py, px, 0] = acc[k]
-                        out[py, px, 1] = acc[_G + k]
-                        out[py, px, 2] = acc[_B + k]
-                        out[py, px, 3] = abs(acc[_T + k])
+            for py in range(y0, y1):
+                for px in range(x0, x1):
+                    k = _slot(py - y0, px - x0)
+                    out[py, px, 0] = acc[k]
+                    out[py, px, 1] = acc[_G + k]
+                    out[py, px, 2] = acc[_B + k]
+                    out[py, px, 3] = abs(acc[_T + k])
 
     return blend_tiles
 
@@ -500,12 +480,11 @@ def _counting_kernel():
 BLEND_COUNTS = ("pairs_binned", "pairs_visited", "row_pairs", "blocks_tried", "blocks_blended", "fragments")
 
 
-def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = None,
-                background: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
-    """(C, T) [H, W, 4] float32 of depth-sorted, culled rows [n, 13] or, given `background` (float32 [3]), the
-    uint8 [H, W, 3] frame over it (what `_convert`'s "uint8" makes of (C, T)); also the set-up and blend seconds.
-    `counts` (int64 [len(BLEND_COUNTS)]), when given, receives the blend's work totals from the counting twin of
-    the blend (the same pixels; compiled on first use, about 20 s)."""
+def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = None
+                ) -> tuple[np.ndarray, float, float]:
+    """(C, T) [H, W, 4] float32 of depth-sorted, culled rows [n, 13]; also the set-up and blend seconds. `counts`
+    (int64 [len(BLEND_COUNTS)]), when given, receives the blend's work totals from the counting twin of the blend
+    (the same pixels; compiled on first use, about 20 s)."""
     start = time.perf_counter()
     width, height = int(camera.width), int(camera.height)
     n = len(rows)
@@ -520,17 +499,14 @@ def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = No
     tile_start, lists = _bin(boxes, tiles_x, tiles_y)
     setup = time.perf_counter() - start
     start = time.perf_counter()
-    as_bytes = background is not None
-    out = np.empty((1, 1, 4) if as_bytes else (height, width, 4), dtype=np.float32)
-    out_bytes = np.empty((height, width, 3) if as_bytes else (1, 1, 3), dtype=np.uint8)
-    rgb = np.zeros(3, dtype=np.float32) if background is None else np.asarray(background, dtype=np.float32)
+    out = np.empty((height, width, 4), dtype=np.float32)
     per_tile = np.zeros((tiles_x * tiles_y if counts is not None else 0, len(BLEND_COUNTS)), dtype=np.int64)
     kernel = _blend_tiles if counts is None else _counting_kernel()
-    kernel(params, tile_start, lists, tiles_x, width, height, out, per_tile, rgb, out_bytes, as_bytes)
+    kernel(params, tile_start, lists, tiles_x, width, height, out, per_tile)
     seconds = time.perf_counter() - start
     if counts is not None:
         counts[:] = per_tile.sum(axis=0)
-    return (out_bytes if as_bytes else out), setup, seconds
+    return out, setup, seconds
 
 
 def upscale_bilinear(image: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -601,8 +577,7 @@ class CPUSplatter:
 
     def draw(self, prepared: PreparedSplats, background, *, output: str = "uint8") -> np.ndarray:
         """Splat a prepared frame -> the `output` frame (see `GLSplatter.render`). Timings: "upload" is the
-        projection and binning, "draw" the tile blending (and render-scale upscale), "readback" the conversion
-        (0 for "uint8" at the drawn size: the blend writes those bytes itself)."""
+        projection and binning, "draw" the tile blending (and render-scale upscale), "readback" the conversion."""
         if self.released:
             raise RenderError("this CPUSplatter has been released")
         if output not in FRAME_OUTPUTS:
@@ -613,15 +588,10 @@ class CPUSplatter:
         previous = numba.get_num_threads()
         if self.threads is not None:
             numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
-        fused = output == "uint8" and prepared.output_size is None
         try:
-            frame, timings["upload"], timings["draw"] = splat_frame(prepared.rows, prepared.camera,
-                                                                    background=background if fused else None)
+            frame, timings["upload"], timings["draw"] = splat_frame(prepared.rows, prepared.camera)
         finally:
             numba.set_num_threads(previous)
-        if fused:
-            self.last_timings = timings
-            return frame
         if prepared.output_size is not None:
             start = time.perf_counter()
             frame = upscale_bilinear(frame, *prepared.output_size)
@@ -655,10 +625,12 @@ def _over_background(frame, background, out, as_bytes):
     for y in prange(frame.shape[0]):
         for x in range(frame.shape[1]):
             for ch in range(3):
+                value = frame[y, x, ch] + frame[y, x, 3] * background[ch]
                 if as_bytes:
-                    out[y, x, ch] = _to_byte(frame[y, x, ch], frame[y, x, 3], background[ch])
+                    value = min(max(value, _ZERO), _ONE) if value == value else _ZERO
+                    out[y, x, ch] = np.uint8(np.floor(value * _F(255.0) + _HALF))
                 else:
-                    out[y, x, ch] = frame[y, x, ch] + frame[y, x, 3] * background[ch]
+                    out[y, x, ch] = value
 
 
 def _convert(frame: np.ndarray, background: np.ndarray, output: str) -> np.ndarray:
@@ -693,7 +665,6 @@ def warm_up() -> None:
     rows = np.zeros((1, 13), dtype=np.float32)
     rows[0, 2], rows[0, 3], rows[0, 6], rows[0, 8], rows[0, 9:13] = 1.0, 0.1, 0.1, 0.1, 0.5
     frame, _, _ = splat_frame(rows, camera)
-    splat_frame(rows, camera, background=np.ones(3, dtype=np.float32))
     for output in ("uint8", "float"):
         _convert(frame, np.ones(3, dtype=np.float32), output)
     exp_approx(np.zeros(1, dtype=np.float32))
