@@ -35,7 +35,6 @@ FALLBACK_RADIUS_PX = 3
 Inpainter = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
-
 @dataclass(frozen=True)
 class CropBox:
     """Rows [top, top + height) and columns [left, left + width) of the frame F runs on; `pad` extra rows/columns
@@ -178,8 +177,8 @@ def composite(head: np.ndarray, reference: np.ndarray, mask: np.ndarray, inpaint
     original = np.empty((height, width, 3), dtype=np.float32)  # (1 - M) I_ori, in F's input and in the output
     fill_inputs, blend_back = _passes()
     fill_inputs(np.ascontiguousarray(head, dtype=np.float32), np.ascontiguousarray(reference, dtype=np.uint8),
-                 np.ascontiguousarray(mask, dtype=np.float32), box.top, box.left, image[0], masks[0, 0],
-                 coverage[0, 0], original)
+                np.ascontiguousarray(mask, dtype=np.float32), box.top, box.left, image[0], masks[0, 0],
+                coverage[0, 0], original)
     if hasattr(inpaint, "chw"):
         filled = _checked_output(inpaint.chw(image, masks, coverage), (3, height, width))
     else:  # the Inpainter protocol: channel-last crops, the render as (C, 1 - T)
@@ -189,7 +188,7 @@ def composite(head: np.ndarray, reference: np.ndarray, mask: np.ndarray, inpaint
         filled = filled.transpose(2, 0, 1)
     # F's output is sanitised and clamped: both terms of the blend are finite
     blend_back(np.ascontiguousarray(filled, dtype=np.float32), masks[0, 0], original, box.top, box.left,
-                box.height, box.width, out)
+               box.height, box.width, out)
     return out
 
 
