@@ -13,6 +13,7 @@ the frames are the same (docs/compositing.md, "Around F, two passes").
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -140,9 +141,10 @@ def blend_crop(filled, masks, original, top, left, height, width, out) -> None:
     np.copyto(out[top: top + height, left: left + width], pixels, where=inside[..., None])
 
 
+@functools.cache
 def _passes():
     """The two passes around F: numba's (`composite_kernels`) where numba is installed (the `cpu` extra), else
-    numpy's; the same float32 steps, so the same frames."""
+    numpy's; the same float32 steps, so the same frames. Looked up once per process, not per frame."""
     if importlib.util.find_spec("numba") is None:
         return crop_inputs, blend_crop
     from .composite_kernels import blend_crop as blend_with_numba

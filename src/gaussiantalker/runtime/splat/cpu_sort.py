@@ -18,6 +18,7 @@ from gaussiantalker.sdk.camera import Camera
 
 from ..jit import njit
 from .common import FLOATS_PER_SPLAT
+from .depth_sort import stable_argsort_positive
 
 _CULLED = np.float32(np.inf)  # a culled Gaussian's depth: its key sorts after every kept one (kept depths are finite)
 
@@ -63,13 +64,9 @@ def sorted_packed_rows(means: np.ndarray, cov3d: np.ndarray, rgb: np.ndarray, op
     depth = np.empty(n, dtype=np.float32)
     r = camera.R[2].astype(np.float32)
     _depths(means, cov3d, rgb, opacity, r, np.float32(camera.t[2]), np.float32(camera.near), depth)
-    # A positive float32's bits order like its value, and +inf's after every finite one: bits << 32 | index sorts by
-    # depth and then by index, the stable order (as `stable_argsort_positive`); the keys are unique.
-    keys = depth.view(np.uint32).astype(np.uint64) << np.uint64(32)
-    keys |= np.arange(n, dtype=np.uint64)
-    keys.sort()
+    # +inf's bits order after every finite positive float32's, so the culled come last in the stable order
     kept = n - int(np.count_nonzero(depth == _CULLED))
-    order = (keys[:kept] & np.uint64(0xFFFFFFFF)).astype(np.intp)
+    order = stable_argsort_positive(depth)[:kept]
     rows = np.empty((kept, FLOATS_PER_SPLAT), dtype=np.float32)
     _gather(means, cov3d, rgb, opacity, order, rows)
     return rows
