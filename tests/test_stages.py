@@ -165,3 +165,40 @@ def test_package_code_uses_no_renamed_name():
                 if isinstance(node, ast.Attribute) and is_head(node.value) and node.attr in renamed.RENAMED_ATTRIBUTES:
                     found.append(f"{path.name}:{node.lineno} head.{node.attr}")
     assert not found, found
+
+
+def _intra_op_threads(head: TalkingHead) -> dict[str, int]:
+    """Each onnxruntime session's intra-op thread count (0: onnxruntime's default, every core)."""
+    return {name: session.get_session_options().intra_op_num_threads
+            for name, session in head.frame_renderer.graphs.sessions.items()}
+
+
+def test_graphs_run_on_one_thread_beside_the_pipelined_cpu_splatter(small_export):
+    """Where the pipelined frame loop draws on the CPU splatter, each graph gets one thread (docs/speed.md, "Work
+    shared as it finishes"); without the pipeline, with GL or with threads asked for, the settings' own count."""
+    pytest.importorskip("numba")
+    cases = [({"renderer": "cpu"}, 1), ({"renderer": "cpu", "pipeline": True}, 1),
+             ({"renderer": "cpu", "pipeline": False}, 0), ({"renderer": "cpu", "threads": 2}, 2),
+             ({"renderer": "gl"}, 0), ({"renderer": "gl", "threads": 1}, 1)]
+    for keywords, threads in cases:
+        with TalkingHead(small_export.path, resolution=(32, 32), **keywords) as head:
+            assert set(_intra_op_threads(head).values()) == {threads}, keywords
+            assert head.backend_settings.threads == keywords.get("threads"), keywords  # the settings as given
+
+
+def test_a_bundle_that_fails_to_load_releases_the_gl_it_chose(small_export, monkeypatch):
+    """The renderer is chosen before the graphs load; a GL splatter made to choose it is released when the bundle
+    then fails."""
+    from gaussiantalker.runtime import stages
+    from gaussiantalker.sdk.errors import BundleError
+
+    released = []
+    monkeypatch.setattr(GLSplatter, "release", lambda self: released.append(self))
+
+    def broken(*args, **kwargs):
+        raise BundleError("damaged graph")
+
+    monkeypatch.setattr(stages, "open_backend", broken)
+    with pytest.raises(BundleError, match="damaged graph"):
+        TalkingHead(small_export.path, resolution=(32, 32), renderer="gl")
+    assert len(released) == 1 and isinstance(released[0], GLSplatter)

@@ -34,5 +34,28 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba  # noqa: E402  (after the cache directory is set)
 from numba import njit, prange  # noqa: E402
+from numba.core import cgutils, types  # noqa: E402
+from numba.extending import intrinsic  # noqa: E402
 
-__all__ = ["cache_dir", "njit", "numba", "prange"]
+
+@intrinsic
+def claim(typingctx, counter):
+    """Inside a kernel: counter[0] += 1 as one atomic step, returning the value before (int64 [1] counter).
+
+    Threads that take work items by `claim` share the work as they finish it (dynamic scheduling), where numba's
+    parallel loops hand each thread a fixed slice: a thread whose core is also running other work (the pipeline's
+    deformation) then takes fewer items instead of holding the others back. numba offers no atomic operation on the
+    CPU, so this emits LLVM's `atomicrmw add` itself."""
+    if not (isinstance(counter, types.Array) and counter.dtype == types.int64 and counter.ndim == 1):
+        return None
+
+    def codegen(context, builder, signature, args):
+        array_type = signature.args[0]
+        array = context.make_array(array_type)(context, builder, args[0])
+        first = cgutils.get_item_pointer(context, builder, array_type, array, [context.get_constant(types.intp, 0)])
+        return builder.atomic_rmw("add", first, context.get_constant(types.int64, 1), "monotonic")
+
+    return types.int64(counter), codegen
+
+
+__all__ = ["cache_dir", "claim", "njit", "numba", "prange"]

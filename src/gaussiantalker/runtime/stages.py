@@ -25,7 +25,7 @@ from .frame_renderer import FrameRenderer
 from .output import output_view
 from .semantic import Regions
 from .settings import BackendSettings, OutputSettings, merged_render
-from .splat.choice import make_splatter
+from .splat.choice import SplatterChoice, choose_splatter
 from .timings import Timings
 from .translate import SILENCE_GATE_DBFS
 
@@ -99,9 +99,31 @@ def read_scene(bundle: Bundle, config: SpeakerConfig | ArkitRig) -> tuple[Scene 
 def build_stages(bundle: Bundle, render: RenderSettings, output: OutputSettings, backend: BackendSettings, *,
                  gl_context=None, silence_gate_dbfs: float | None) -> Stages:
     """The stages of a head playing `bundle` with these (merged) settings."""
+    # The renderer is chosen first (a GL splatter made to choose it is released if anything below fails): the
+    # graphs' threads depend on it, and the CPU splatter's kernels load last, after the bundle is checked.
+    choice = choose_splatter(backend.renderer, gl_context=gl_context, settings=render,
+                             shader_target=backend.shader_target)
+    try:
+        return _build_stages(bundle, render, output, backend, choice, silence_gate_dbfs)
+    except BaseException:
+        choice.release()
+        raise
+
+
+def graph_threads(backend: BackendSettings, renderer: str) -> int | None:
+    """Threads each graph runs on: the settings' own, else one where the pipelined frame loop draws with the CPU
+    splatter (the deformation then runs beside a draw that keeps every core busy, and a graph's own threads only
+    wait for each other: docs/speed.md, "Work shared as it finishes"), else the backend's default."""
+    if backend.threads is None and renderer == "cpu" and backend.pipeline is not False:
+        return 1
+    return backend.threads
+
+
+def _build_stages(bundle: Bundle, render: RenderSettings, output: OutputSettings, backend: BackendSettings,
+                  choice: SplatterChoice, silence_gate_dbfs: float | None) -> Stages:
     manifest, timings = bundle.manifest, Timings()
     rig = read_rig(bundle)
-    graphs: GraphBackend = open_backend(bundle, backend.name, threads=backend.threads)
+    graphs: GraphBackend = open_backend(bundle, backend.name, threads=graph_threads(backend, choice.renderer))
     driver = _driver(bundle, graphs, rig, timings, silence_gate_dbfs)
     view = output_view(bundle, output)
     background = read_background(bundle, output.background)
@@ -111,12 +133,11 @@ def build_stages(bundle: Bundle, render: RenderSettings, output: OutputSettings,
     scene, scene_guard = read_scene(bundle, rig)
     if scene_guard is not None:
         scene_guard.check_camera(view.camera)
-    splatter, renderer = make_splatter(backend.renderer, gl_context=gl_context, settings=render,
-                                       shader_target=backend.shader_target)
+    splatter = choice.build()
     regions = Regions(bundle) if "regions" in manifest else None
     frame_renderer = FrameRenderer(graphs, splatter, view.camera, background, rig=driver.rig, scene=scene,
                                    scene_guard=scene_guard, regions=regions, timings=timings, where=str(bundle.path))
-    return Stages(driver, frame_renderer, compositor, renderer, reference, timings)
+    return Stages(driver, frame_renderer, compositor, choice.renderer, reference, timings)
 
 
 def _driver(bundle: Bundle, graphs: GraphBackend, rig, timings: Timings,
@@ -135,5 +156,5 @@ def open_driver(bundle: str | os.PathLike | Bundle, *, backend: str = "onnxrunti
                    silence_gate_dbfs)
 
 
-__all__ = ["Stages", "build_stages", "open_driver", "bundle_render_settings", "read_background", "read_rig",
-           "read_scene"]
+__all__ = ["Stages", "build_stages", "graph_threads", "open_driver", "bundle_render_settings", "read_background",
+           "read_rig", "read_scene"]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import importlib.util
 import logging
+from dataclasses import dataclass
 
 from gaussiantalker.sdk.errors import RenderError, SettingsError
 from gaussiantalker.sdk.render_settings import RenderSettings
@@ -56,22 +57,40 @@ def _cpu_splatter(settings: RenderSettings | None):
     return CPUSplatter(settings=settings)
 
 
-def make_splatter(renderer: str, *, gl_context=None, settings: RenderSettings | None = None,
-                  shader_target: str = "330") -> tuple[Splatter, str]:
-    """(splatter, "gl" or "cpu") for a `BackendSettings.renderer` choice: "gl", "cpu" or "auto" (the module's
-    docstring). SettingsError for "cpu" without numba; RenderError where GL cannot start ("gl"), or where neither
-    GL nor the CPU splatter can run ("auto")."""
+@dataclass
+class SplatterChoice:
+    """A renderer chosen, before the CPU splatter is built: "gl" with its GLSplatter (made to choose it), or "cpu".
+    Knowing the kind first lets the graphs be set up for it; `build` then gives the splatter (the CPU one's kernels
+    load there), `release` frees a GL splatter that will not be used."""
+
+    renderer: str  # "gl" or "cpu"
+    gl: GLSplatter | None
+    settings: RenderSettings | None
+
+    def build(self) -> Splatter:
+        """The chosen splatter: the GL one made when choosing, or a new CPU splatter."""
+        return self.gl if self.gl is not None else _cpu_splatter(self.settings)
+
+    def release(self) -> None:
+        """Free the GL splatter made while choosing (nothing for "cpu")."""
+        if self.gl is not None:
+            self.gl.release()
+
+
+def choose_splatter(renderer: str, *, gl_context=None, settings: RenderSettings | None = None,
+                    shader_target: str = "330") -> SplatterChoice:
+    """The choice `make_splatter` makes (the module's docstring), with the CPU splatter not yet built."""
     if settings is not None and not isinstance(settings, RenderSettings):  # a wrong call, not a GL that cannot run
         raise SettingsError(f"settings must be a RenderSettings, got {type(settings).__name__}")
     if renderer == "cpu":
         if not cpu_splatter_available():
             raise SettingsError(f"renderer='cpu' needs numba, the cpu extra: {CPU_EXTRA_HINT}")
         _report(renderer, "cpu", "asked for")
-        return _cpu_splatter(settings), "cpu"
+        return SplatterChoice("cpu", None, settings)
     if renderer == "gl" or gl_context is not None:
         splatter = GLSplatter(gl_context, settings=settings, shader_target=shader_target)
         _report(renderer, "gl", "asked for" if renderer == "gl" else "the app gave a GL context to draw in")
-        return splatter, "gl"
+        return SplatterChoice("gl", splatter, settings)
     try:
         splatter = GLSplatter(gl_context, settings=settings, shader_target=shader_target)
     except SettingsError:
@@ -81,19 +100,28 @@ def make_splatter(renderer: str, *, gl_context=None, settings: RenderSettings | 
             raise RenderError(f"renderer='auto' has nothing to draw with: OpenGL cannot run here ({exc}), and the "
                               f"CPU splatter needs numba, which is not installed: {CPU_EXTRA_HINT}") from exc
         _report(renderer, "cpu", f"OpenGL cannot run here: {exc}")
-        return _cpu_splatter(settings), "cpu"
+        return SplatterChoice("cpu", None, settings)
     gl_renderer = str(splatter.ctx.info.get("GL_RENDERER", ""))
     if not is_software_renderer(gl_renderer):
         _report(renderer, "gl", f"the GL renderer {gl_renderer!r} is not a software rasterizer")
-        return splatter, "gl"
+        return SplatterChoice("gl", splatter, settings)
     if not cpu_splatter_available():
         _report(renderer, "gl", f"the GL renderer {gl_renderer!r} is a software rasterizer, but numba is not "
                                 f"installed for the CPU splatter: {CPU_EXTRA_HINT}")
-        return splatter, "gl"
+        return SplatterChoice("gl", splatter, settings)
     splatter.release()
     _report(renderer, "cpu", f"the GL renderer {gl_renderer!r} is a software rasterizer")
-    return _cpu_splatter(settings), "cpu"
+    return SplatterChoice("cpu", None, settings)
 
 
-__all__ = ["CPU_EXTRA_HINT", "SOFTWARE_RASTERIZERS", "cpu_splatter_available", "is_software_renderer",
-           "make_splatter"]
+def make_splatter(renderer: str, *, gl_context=None, settings: RenderSettings | None = None,
+                  shader_target: str = "330") -> tuple[Splatter, str]:
+    """(splatter, "gl" or "cpu") for a `BackendSettings.renderer` choice: "gl", "cpu" or "auto" (the module's
+    docstring). SettingsError for "cpu" without numba; RenderError where GL cannot start ("gl"), or where neither
+    GL nor the CPU splatter can run ("auto")."""
+    choice = choose_splatter(renderer, gl_context=gl_context, settings=settings, shader_target=shader_target)
+    return choice.build(), choice.renderer
+
+
+__all__ = ["CPU_EXTRA_HINT", "SOFTWARE_RASTERIZERS", "SplatterChoice", "choose_splatter", "cpu_splatter_available",
+           "is_software_renderer", "make_splatter"]

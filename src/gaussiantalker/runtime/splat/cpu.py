@@ -43,7 +43,7 @@ from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import straight_rgba
 from gaussiantalker.sdk.render_settings import RenderSettings
 
-from ..jit import cache_dir, njit, numba, prange
+from ..jit import cache_dir, claim, njit, numba, prange
 from . import cpu_sort
 from .common import FRAME_OUTPUTS, STAGES, PreparedSplats, background_rgb, checked_gaussians, draw_camera, sorted_rows
 from .depth_sort import DepthSorter
@@ -161,138 +161,157 @@ def _pixel_span(center, reach, size):
     return int(min(max(lo, 0.0), size - 1.0)), int(min(max(hi, 0.0), size - 1.0)), ok
 
 
+_PROJECT_CHUNK = 512  # sorted rows a thread of `_project` claims at a time (`claim`)
+_ROWS_CHUNK = 16  # image rows a thread of `_over_background` claims at a time
+
+
 @njit(parallel=True, nogil=True, cache=True, error_model="numpy")
-def _project(rows, R, t, intr, limits, width, height, params, boxes):
+def _project(rows, R, t, intr, limits, width, height, params, boxes, workers):
     """Contract steps of each sorted Gaussian (float32, as exporter/model/splat_math.py computes them):
     params [n, _PARAMS] as `_PARAMS` lists, boxes [n, 4] (x0, x1, y0, y1) of pixels that can reach ALPHA_MIN,
     x0 = -1 where the Gaussian is culled or misses the image. Rows are finite with z >= near (`depth_order`)."""
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     x_min, x_max, y_min, y_max = limits[0], limits[1], limits[2], limits[3]
-    for i in prange(rows.shape[0]):
-        boxes[i, 0] = -1
-        mx, my, mz = rows[i, 0], rows[i, 1], rows[i, 2]
-        # world_to_camera: (mean * R_row).sum() + t, summed left to right
-        px = mx * R[0, 0] + my * R[0, 1] + mz * R[0, 2] + t[0]
-        py = mx * R[1, 0] + my * R[1, 1] + mz * R[1, 2] + t[1]
-        pz = mx * R[2, 0] + my * R[2, 1] + mz * R[2, 2] + t[2]
-        z = _safe_div(pz)
-        u = fx * px / z + cx  # camera_to_pixel
-        v = fy * py / z + cy
-        xz = min(max(px / z, x_min), x_max)  # clamped_ratios
-        yz = min(max(py / z, y_min), y_max)
-        s_xx, s_xy, s_xz = rows[i, 3], rows[i, 4], rows[i, 5]
-        s_yy, s_yz, s_zz = rows[i, 6], rows[i, 7], rows[i, 8]
-        # covariance_2d: m = J R, cov = (m Sigma) m^T + low-pass
-        j00, j02 = fx / z, -fx * xz / z
-        j11, j12 = fy / z, -fy * yz / z
-        m00, m01, m02 = j00 * R[0, 0] + j02 * R[2, 0], j00 * R[0, 1] + j02 * R[2, 1], j00 * R[0, 2] + j02 * R[2, 2]
-        m10, m11, m12 = j11 * R[1, 0] + j12 * R[2, 0], j11 * R[1, 1] + j12 * R[2, 1], j11 * R[1, 2] + j12 * R[2, 2]
-        w00, w01, w02 = _times_sym(m00, m01, m02, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
-        w10, w11, w12 = _times_sym(m10, m11, m12, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
-        a = w00 * m00 + w01 * m01 + w02 * m02 + _LOW_PASS
-        b = w00 * m10 + w01 * m11 + w02 * m12
-        c = w10 * m10 + w11 * m11 + w12 * m12 + _LOW_PASS
-        # covariance_2d_determinant: J's second row sheared orthogonal to the first
-        g = _ONE / (_ONE + xz * xz)
-        f = fy / z
-        k0, k1, k2 = f * (-(xz * g) * yz), f * _ONE, f * (-yz * g)
-        # row 0 is J R's own (m0, and m0 Sigma = w0); row 1 is the sheared one
-        n10 = k0 * R[0, 0] + k1 * R[1, 0] + k2 * R[2, 0]
-        n11 = k0 * R[0, 1] + k1 * R[1, 1] + k2 * R[2, 1]
-        n12 = k0 * R[0, 2] + k1 * R[1, 2] + k2 * R[2, 2]
-        e10, e11, e12 = _times_sym(n10, n11, n12, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
-        c00 = w00 * m00 + w01 * m01 + w02 * m02
-        c01 = w00 * n10 + w01 * n11 + w02 * n12
-        c11 = e10 * n10 + e11 * n11 + e12 * n12
-        use_sheared = c11 + _LOW_PASS < c
-        s = max(abs(a), abs(c))  # cov2d_scale
-        an, bn, cn = a / s, b / s, c / s
-        s00, s01, s11 = c00 / s, c01 / s, c11 / s
-        low = _LOW_PASS / s
-        # reliable(det, rounding_products): the entries' magnitudes are the same quadratic forms over |rows| and
-        # |Sigma|; row 0 is the same in both forms, the plain form's entries carry the low-pass
-        a_xx, a_xy, a_xz, a_yy, a_yz, a_zz = abs(s_xx), abs(s_xy), abs(s_xz), abs(s_yy), abs(s_yz), abs(s_zz)
-        r00, r01, r02 = abs(m00), abs(m01), abs(m02)
-        t00, t01, t02 = _times_sym(r00, r01, r02, a_xx, a_xy, a_xz, a_yy, a_yz, a_zz)
-        if use_sheared:
-            r10, r11, r12 = abs(n10), abs(n11), abs(n12)
-            x, y, z_entry, low_mag = s00, s01, s11, _ZERO
-            det = (s00 * s11 - s01 * s01) + low * (an + cn - low)
-        else:
-            r10, r11, r12 = abs(m10), abs(m11), abs(m12)
-            x, y, z_entry, low_mag = an, bn, cn, _LOW_PASS
-            det = an * cn - bn * bn
-        t10, t11, t12 = _times_sym(r10, r11, r12, a_xx, a_xy, a_xz, a_yy, a_yz, a_zz)
-        x_mag = (t00 * r00 + t01 * r01 + t02 * r02 + low_mag) / s
-        y_mag = (t10 * r00 + t11 * r01 + t12 * r02) / s
-        z_mag = (t10 * r10 + t11 * r11 + t12 * r12 + low_mag) / s
-        noise = _HALF * (x_mag * abs(z_entry) + abs(x) * z_mag) + abs(y) * y_mag
-        threshold = _DET_REL * noise
-        if not det > threshold:  # reliable: rounding noise, culled (NaN too)
-            continue
-        # reliability_fade: 1 - exp(-ALPHA_MIN (rho - 1)), rho = det / threshold; 1 where the threshold underflowed.
-        # Below _FADE_SKIP, exp is under a quarter of float32's spacing below 1, so 1 - exp rounds to 1 exactly: exp
-        # (a libm call, a fifth of this loop's time) is skipped for the well-conditioned Gaussians, nearly all.
-        fade_power = -_ALPHA_MIN * ((det - threshold) / threshold) if threshold > _ZERO else _FADE_SKIP
-        fade = _ONE - np.exp(fade_power) if fade_power > _FADE_SKIP else _ONE
-        # conic_from_cov2d, alpha_shape
-        det_s = _safe_div(det) * s
-        con_a, con_b, con_c = cn / det_s, -bn / det_s, an / det_s
-        c_div = c if c != _ZERO else _ONE
-        shape_k, shape_q = b / c_div, _ONE / c_div
-        # extent_radius
-        if _HALF * (a + c) > _HUGE:
-            radius = _radius_of(an, bn, cn) * _safe_sqrt(s)
-        else:
-            radius = _radius_of(a, b, c)
-        bound = (abs(con_a) + _F(2.0) * abs(con_b) + abs(con_c)) * radius * radius  # extent_power_bound
-        # screen_bounded, and keep_mask's finite 2D covariance
-        if not (_bounded(u) and _bounded(v) and _bounded(con_a) and _bounded(con_b) and _bounded(con_c)
-                and _bounded(shape_k) and _bounded(shape_q) and _bounded(radius) and _bounded(bound)
-                and math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
-            continue
-        opacity = rows[i, 12] * fade  # the opacity as composited
-        if opacity < _ALPHA_MIN:  # alpha <= opacity (exp <= 1): no pixel can pass
-            continue
-        # Box: the extent square intersected with the alpha >= ALPHA_MIN ellipse of this quadratic form,
-        # |dx| <= sqrt(2 L (det' + b^2) / c), |dy| <= sqrt(2 L c), L = ln(255 opacity); in float64, widened.
-        level = 2.0 * math.log(float(opacity) / float(_ALPHA_MIN))
-        det_abs = float(det) * float(s) * float(s)  # det(cov2d) as the conic uses it
-        reach_x = math.sqrt(max(level * (det_abs + float(b) * float(b)) / float(c), 0.0))
-        reach_y = math.sqrt(max(level * float(c), 0.0))
-        reach_x = min(float(radius), reach_x * (1.0 + _BOX_SLACK_REL) + _BOX_SLACK_PX)
-        reach_y = min(float(radius), reach_y * (1.0 + _BOX_SLACK_REL) + _BOX_SLACK_PX)
-        x0, x1, ok_x = _pixel_span(float(u), reach_x, width)
-        y0, y1, ok_y = _pixel_span(float(v), reach_y, height)
-        if not (ok_x and ok_y):
-            continue
-        params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4] = u, v, con_a, shape_k, shape_q
-        params[i, 5], params[i, 6] = opacity, radius
-        params[i, 10] = level * (1.0 + _BOX_SLACK_REL)  # A t^2 + q dy^2 <= this where alpha can reach ALPHA_MIN
-        for ch in range(3):  # splat_color
-            params[i, 7 + ch] = min(max(rows[i, 9 + ch], -_COLOR), _COLOR)
-        boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = x0, x1, y0, y1
-        params[i, 11], params[i, 12], params[i, 13], params[i, 14] = x0, x1, y0, y1
+    n = rows.shape[0]
+    taken = np.zeros(1, dtype=np.int64)  # chunks of _PROJECT_CHUNK rows claimed so far
+    for _worker in prange(workers):
+        while True:
+            first = claim(taken) * _PROJECT_CHUNK
+            if first >= n:
+                break
+            for i in range(first, min(first + _PROJECT_CHUNK, n)):
+                boxes[i, 0] = -1
+                mx, my, mz = rows[i, 0], rows[i, 1], rows[i, 2]
+                # world_to_camera: (mean * R_row).sum() + t, summed left to right
+                px = mx * R[0, 0] + my * R[0, 1] + mz * R[0, 2] + t[0]
+                py = mx * R[1, 0] + my * R[1, 1] + mz * R[1, 2] + t[1]
+                pz = mx * R[2, 0] + my * R[2, 1] + mz * R[2, 2] + t[2]
+                z = _safe_div(pz)
+                u = fx * px / z + cx  # camera_to_pixel
+                v = fy * py / z + cy
+                xz = min(max(px / z, x_min), x_max)  # clamped_ratios
+                yz = min(max(py / z, y_min), y_max)
+                s_xx, s_xy, s_xz = rows[i, 3], rows[i, 4], rows[i, 5]
+                s_yy, s_yz, s_zz = rows[i, 6], rows[i, 7], rows[i, 8]
+                # covariance_2d: m = J R, cov = (m Sigma) m^T + low-pass
+                j00, j02 = fx / z, -fx * xz / z
+                j11, j12 = fy / z, -fy * yz / z
+                m00, m01 = j00 * R[0, 0] + j02 * R[2, 0], j00 * R[0, 1] + j02 * R[2, 1]
+                m02 = j00 * R[0, 2] + j02 * R[2, 2]
+                m10, m11 = j11 * R[1, 0] + j12 * R[2, 0], j11 * R[1, 1] + j12 * R[2, 1]
+                m12 = j11 * R[1, 2] + j12 * R[2, 2]
+                w00, w01, w02 = _times_sym(m00, m01, m02, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
+                w10, w11, w12 = _times_sym(m10, m11, m12, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
+                a = w00 * m00 + w01 * m01 + w02 * m02 + _LOW_PASS
+                b = w00 * m10 + w01 * m11 + w02 * m12
+                c = w10 * m10 + w11 * m11 + w12 * m12 + _LOW_PASS
+                # covariance_2d_determinant: J's second row sheared orthogonal to the first
+                g = _ONE / (_ONE + xz * xz)
+                f = fy / z
+                k0, k1, k2 = f * (-(xz * g) * yz), f * _ONE, f * (-yz * g)
+                # row 0 is J R's own (m0, and m0 Sigma = w0); row 1 is the sheared one
+                n10 = k0 * R[0, 0] + k1 * R[1, 0] + k2 * R[2, 0]
+                n11 = k0 * R[0, 1] + k1 * R[1, 1] + k2 * R[2, 1]
+                n12 = k0 * R[0, 2] + k1 * R[1, 2] + k2 * R[2, 2]
+                e10, e11, e12 = _times_sym(n10, n11, n12, s_xx, s_xy, s_xz, s_yy, s_yz, s_zz)
+                c00 = w00 * m00 + w01 * m01 + w02 * m02
+                c01 = w00 * n10 + w01 * n11 + w02 * n12
+                c11 = e10 * n10 + e11 * n11 + e12 * n12
+                use_sheared = c11 + _LOW_PASS < c
+                s = max(abs(a), abs(c))  # cov2d_scale
+                an, bn, cn = a / s, b / s, c / s
+                s00, s01, s11 = c00 / s, c01 / s, c11 / s
+                low = _LOW_PASS / s
+                # reliable(det, rounding_products): the entries' magnitudes are the same quadratic forms over |rows| and
+                # |Sigma|; row 0 is the same in both forms, the plain form's entries carry the low-pass
+                a_xx, a_xy, a_xz, a_yy, a_yz, a_zz = abs(s_xx), abs(s_xy), abs(s_xz), abs(s_yy), abs(s_yz), abs(s_zz)
+                r00, r01, r02 = abs(m00), abs(m01), abs(m02)
+                t00, t01, t02 = _times_sym(r00, r01, r02, a_xx, a_xy, a_xz, a_yy, a_yz, a_zz)
+                if use_sheared:
+                    r10, r11, r12 = abs(n10), abs(n11), abs(n12)
+                    x, y, z_entry, low_mag = s00, s01, s11, _ZERO
+                    det = (s00 * s11 - s01 * s01) + low * (an + cn - low)
+                else:
+                    r10, r11, r12 = abs(m10), abs(m11), abs(m12)
+                    x, y, z_entry, low_mag = an, bn, cn, _LOW_PASS
+                    det = an * cn - bn * bn
+                t10, t11, t12 = _times_sym(r10, r11, r12, a_xx, a_xy, a_xz, a_yy, a_yz, a_zz)
+                x_mag = (t00 * r00 + t01 * r01 + t02 * r02 + low_mag) / s
+                y_mag = (t10 * r00 + t11 * r01 + t12 * r02) / s
+                z_mag = (t10 * r10 + t11 * r11 + t12 * r12 + low_mag) / s
+                noise = _HALF * (x_mag * abs(z_entry) + abs(x) * z_mag) + abs(y) * y_mag
+                threshold = _DET_REL * noise
+                if not det > threshold:  # reliable: rounding noise, culled (NaN too)
+                    continue
+                # reliability_fade: 1 - exp(-ALPHA_MIN (rho - 1)), rho = det / threshold; 1 where the threshold
+                # underflowed. Below _FADE_SKIP, exp is under a quarter of float32's spacing below 1, so 1 - exp rounds
+                # to 1 exactly: exp (a libm call, a fifth of this loop's time) is skipped for the well-conditioned
+                # Gaussians, nearly all.
+                fade_power = -_ALPHA_MIN * ((det - threshold) / threshold) if threshold > _ZERO else _FADE_SKIP
+                fade = _ONE - np.exp(fade_power) if fade_power > _FADE_SKIP else _ONE
+                # conic_from_cov2d, alpha_shape
+                det_s = _safe_div(det) * s
+                con_a, con_b, con_c = cn / det_s, -bn / det_s, an / det_s
+                c_div = c if c != _ZERO else _ONE
+                shape_k, shape_q = b / c_div, _ONE / c_div
+                # extent_radius
+                if _HALF * (a + c) > _HUGE:
+                    radius = _radius_of(an, bn, cn) * _safe_sqrt(s)
+                else:
+                    radius = _radius_of(a, b, c)
+                bound = (abs(con_a) + _F(2.0) * abs(con_b) + abs(con_c)) * radius * radius  # extent_power_bound
+                # screen_bounded, and keep_mask's finite 2D covariance
+                if not (_bounded(u) and _bounded(v) and _bounded(con_a) and _bounded(con_b) and _bounded(con_c)
+                        and _bounded(shape_k) and _bounded(shape_q) and _bounded(radius) and _bounded(bound)
+                        and math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
+                    continue
+                opacity = rows[i, 12] * fade  # the opacity as composited
+                if opacity < _ALPHA_MIN:  # alpha <= opacity (exp <= 1): no pixel can pass
+                    continue
+                # Box: the extent square intersected with the alpha >= ALPHA_MIN ellipse of this quadratic form,
+                # |dx| <= sqrt(2 L (det' + b^2) / c), |dy| <= sqrt(2 L c), L = ln(255 opacity); in float64, widened.
+                level = 2.0 * math.log(float(opacity) / float(_ALPHA_MIN))
+                det_abs = float(det) * float(s) * float(s)  # det(cov2d) as the conic uses it
+                reach_x = math.sqrt(max(level * (det_abs + float(b) * float(b)) / float(c), 0.0))
+                reach_y = math.sqrt(max(level * float(c), 0.0))
+                reach_x = min(float(radius), reach_x * (1.0 + _BOX_SLACK_REL) + _BOX_SLACK_PX)
+                reach_y = min(float(radius), reach_y * (1.0 + _BOX_SLACK_REL) + _BOX_SLACK_PX)
+                x0, x1, ok_x = _pixel_span(float(u), reach_x, width)
+                y0, y1, ok_y = _pixel_span(float(v), reach_y, height)
+                if not (ok_x and ok_y):
+                    continue
+                params[i, 0], params[i, 1], params[i, 2], params[i, 3], params[i, 4] = u, v, con_a, shape_k, shape_q
+                params[i, 5], params[i, 6] = opacity, radius
+                params[i, 10] = level * (1.0 + _BOX_SLACK_REL)  # A t^2 + q dy^2 <= this where alpha can reach ALPHA_MIN
+                for ch in range(3):  # splat_color
+                    params[i, 7 + ch] = min(max(rows[i, 9 + ch], -_COLOR), _COLOR)
+                boxes[i, 0], boxes[i, 1], boxes[i, 2], boxes[i, 3] = x0, x1, y0, y1
+                params[i, 11], params[i, 12], params[i, 13], params[i, 14] = x0, x1, y0, y1
 
 
 _BIN_CHUNKS = 8  # contiguous slices of the sorted list that `_bin` counts and fills in parallel
 
 
 @njit(parallel=True, nogil=True, cache=True, error_model="numpy")
-def _bin(boxes, tiles_x, tiles_y):
+def _bin(boxes, tiles_x, tiles_y, workers):
     """Per-tile lists of Gaussian indices (each front to back): (start [tiles + 1], list [pairs]). The sorted list
-    is cut into _BIN_CHUNKS contiguous slices, each counted and then written by one thread; a tile's entries from
-    slice k go after those of slices < k, so every tile's list keeps the depth order."""
+    is cut into _BIN_CHUNKS contiguous slices, each counted and then written by whichever thread claims it; a
+    tile's entries from slice k go after those of slices < k, so every tile's list keeps the depth order."""
     n, tiles = boxes.shape[0], tiles_x * tiles_y
     per_chunk = -(-n // _BIN_CHUNKS)
     count = np.zeros((_BIN_CHUNKS, tiles), dtype=np.int64)
-    for chunk in prange(_BIN_CHUNKS):
-        for i in range(chunk * per_chunk, min(n, (chunk + 1) * per_chunk)):
-            if boxes[i, 0] < 0:
-                continue
-            for ty in range(boxes[i, 2] // TILE, boxes[i, 3] // TILE + 1):
-                for tx in range(boxes[i, 0] // TILE, boxes[i, 1] // TILE + 1):
-                    count[chunk, ty * tiles_x + tx] += 1
+    counted = np.zeros(1, dtype=np.int64)  # slices claimed so far
+    for _worker in prange(workers):
+        while True:
+            chunk = claim(counted)
+            if chunk >= _BIN_CHUNKS:
+                break
+            for i in range(chunk * per_chunk, min(n, (chunk + 1) * per_chunk)):
+                if boxes[i, 0] < 0:
+                    continue
+                for ty in range(boxes[i, 2] // TILE, boxes[i, 3] // TILE + 1):
+                    for tx in range(boxes[i, 0] // TILE, boxes[i, 1] // TILE + 1):
+                        count[chunk, ty * tiles_x + tx] += 1
     start = np.zeros(tiles + 1, dtype=np.int64)
     cursor = np.empty((_BIN_CHUNKS, tiles), dtype=np.int64)  # where each slice writes next in each tile
     total = 0
@@ -303,15 +322,20 @@ def _bin(boxes, tiles_x, tiles_y):
             total += count[chunk, tile]
     start[tiles] = total
     lists = np.empty(total, dtype=np.int32)
-    for chunk in prange(_BIN_CHUNKS):
-        for i in range(chunk * per_chunk, min(n, (chunk + 1) * per_chunk)):
-            if boxes[i, 0] < 0:
-                continue
-            for ty in range(boxes[i, 2] // TILE, boxes[i, 3] // TILE + 1):
-                for tx in range(boxes[i, 0] // TILE, boxes[i, 1] // TILE + 1):
-                    tile = ty * tiles_x + tx
-                    lists[cursor[chunk, tile]] = i
-                    cursor[chunk, tile] += 1
+    filled = np.zeros(1, dtype=np.int64)
+    for _worker in prange(workers):
+        while True:
+            chunk = claim(filled)
+            if chunk >= _BIN_CHUNKS:
+                break
+            for i in range(chunk * per_chunk, min(n, (chunk + 1) * per_chunk)):
+                if boxes[i, 0] < 0:
+                    continue
+                for ty in range(boxes[i, 2] // TILE, boxes[i, 3] // TILE + 1):
+                    for tx in range(boxes[i, 0] // TILE, boxes[i, 1] // TILE + 1):
+                        tile = ty * tiles_x + tx
+                        lists[cursor[chunk, tile]] = i
+                        cursor[chunk, tile] += 1
     return start, lists
 
 
@@ -326,135 +350,143 @@ def _blend_source(counting: bool):
     that draws frames has no counting code; the counts would need integer sums inside the block loop, which keep
     it from 8-wide vectors)."""
 
-    def blend_tiles(params, start, lists, tiles_x, width, height, out, counts):
+    def blend_tiles(params, start, lists, tiles_x, width, height, out, counts, order, workers):
         """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99
         clamp, skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN."""
         n_tiles = start.shape[0] - 1
-        for tile in prange(n_tiles):
-            ty, tx = tile // tiles_x, tile % tiles_x
-            x0, y0 = tx * TILE, ty * TILE
-            x1, y1 = min(x0 + TILE, width), min(y0 + TILE, height)
-            # One array holds the tile's red, green, blue and T planes at constant offsets, so the compiler sees
-            # that the planes do not overlap and vectorises. A pixel that has stopped keeps -T (and one outside
-            # the image -1): T > 0 is "still blending".
-            acc = np.zeros(4 * _TILE_PIXELS, dtype=np.float32)
-            acc[_T: _T + _TILE_PIXELS] = -_ONE
-            for py in range(y1 - y0):
-                for px in range(x1 - x0):
-                    acc[_T + _slot(py, px)] = _ONE
-            # Which blocks of 4 x 2 pixels, and which pixel-row pairs, still hold a pixel that blends: set again
-            # every _LIVE_EVERY Gaussians (a per-pixel count would need integer sums in the block loop), so a block
-            # that has just stopped may still be computed a few times, changing nothing.
-            block_live = np.ones(_TILE_PIXELS // _BLOCK, dtype=np.bool_)
-            pair_live = np.zeros(_PAIRS, dtype=np.bool_)
-            pair_live[: (y1 - y0 + 1) >> 1] = True
-            span_lo = np.empty(TILE, dtype=np.float32)  # the current Gaussian's columns per row of the tile
-            span_hi = np.empty(TILE, dtype=np.float32)
-            visited = row_pairs = blocks_tried = blocks_blended = fragments = 0
-            for j in range(start[tile], start[tile + 1]):
-                if (j - start[tile]) % _LIVE_EVERY == _LIVE_EVERY - 1:
-                    any_live = False
-                    for pair in range(_PAIRS):
-                        if pair_live[pair]:
-                            live = False
-                            for block in range(pair * _BLOCKS_PER_PAIR, (pair + 1) * _BLOCKS_PER_PAIR):
-                                if block_live[block]:
-                                    most = acc[_T + np.uint64(block * _BLOCK)]
-                                    for lane in range(1, _BLOCK):
-                                        most = max(most, acc[_T + np.uint64(block * _BLOCK + lane)])
-                                    block_live[block] = most > _ZERO
-                                    live |= block_live[block]
-                            pair_live[pair] = live
-                            any_live |= live
-                    if not any_live:  # every pixel of the tile has stopped
-                        break
-                if counting:
-                    visited += 1
-                p = params[lists[j]]
-                u, v, sa, sk, sq = p[0], p[1], p[2], p[3], p[4]
-                opacity, radius = p[5], p[6]
-                red, green, blue = p[7], p[8], p[9]
-                level = p[10]
-                bx0, bx1 = max(p[11], _F(x0)), min(p[12], _F(x1 - 1))
-                by0, by1 = max(np.int64(p[13]), y0) - y0, min(np.int64(p[14]), y1 - 1) - y0  # tile rows
-                ry0, ry1 = by0 & ~1, by1 | 1  # whole row pairs
-                # Each row's columns where A t^2 <= level - q dy^2 (t = dx - k dy), widened by a pixel, for every
-                # row of the pairs at once (a loop without branches: vectorised); none in a row beyond the radius
-                # or outside the box. They only choose the pixels tried: each pixel still tests itself.
-                inv_sa = _ONE / sa
-                first_row = _F(y0 + ry0)
-                for r in range(ry1 - ry0 + 1):
-                    dy = (first_row + _F(r)) + _HALF - v  # first_row + r is the row's own float: dy exactly
-                    rest = level - sq * dy * dy
-                    half = np.sqrt(max(rest, _ZERO) * inv_sa) + _ONE
-                    mid = u + sk * dy - _HALF
-                    lo, hi = np.floor(mid - half), np.ceil(mid + half)
-                    tried = (rest >= _ZERO) & (abs(dy) <= radius) & (ry0 + r >= by0) & (ry0 + r <= by1)
-                    # selects, not min/max: a NaN (0 * inf where A underflowed) keeps the whole box row
-                    span_lo[r] = (lo if lo > bx0 else bx0) if tried else _NO_SPAN
-                    span_hi[r] = (hi if hi < bx1 else bx1) if tried else -_NO_SPAN
-                for pair in range(ry0 >> 1, (ry1 >> 1) + 1):
-                    r = 2 * pair - ry0
-                    lo, hi = min(span_lo[r], span_lo[r + 1]), max(span_hi[r], span_hi[r + 1])
-                    if not pair_live[pair] or lo > hi:
-                        continue
+        taken = np.zeros(1, dtype=np.int64)  # tiles claimed so far, in `order`
+        for _worker in prange(workers):
+            while True:
+                claimed = claim(taken)
+                if claimed >= n_tiles:
+                    break
+                tile = order[claimed]
+                ty, tx = tile // tiles_x, tile % tiles_x
+                x0, y0 = tx * TILE, ty * TILE
+                x1, y1 = min(x0 + TILE, width), min(y0 + TILE, height)
+                # One array holds the tile's red, green, blue and T planes at constant offsets, so the compiler sees
+                # that the planes do not overlap and vectorises. A pixel that has stopped keeps -T (and one outside
+                # the image -1): T > 0 is "still blending".
+                acc = np.zeros(4 * _TILE_PIXELS, dtype=np.float32)
+                acc[_T: _T + _TILE_PIXELS] = -_ONE
+                for py in range(y1 - y0):
+                    for px in range(x1 - x0):
+                        acc[_T + _slot(py, px)] = _ONE
+                # Which blocks of 4 x 2 pixels, and which pixel-row pairs, still hold a pixel that blends: set again
+                # every _LIVE_EVERY Gaussians (a per-pixel count would need integer sums in the block loop), so a block
+                # that has just stopped may still be computed a few times, changing nothing.
+                block_live = np.ones(_TILE_PIXELS // _BLOCK, dtype=np.bool_)
+                pair_live = np.zeros(_PAIRS, dtype=np.bool_)
+                pair_live[: (y1 - y0 + 1) >> 1] = True
+                span_lo = np.empty(TILE, dtype=np.float32)  # the current Gaussian's columns per row of the tile
+                span_hi = np.empty(TILE, dtype=np.float32)
+                visited = row_pairs = blocks_tried = blocks_blended = fragments = 0
+                for j in range(start[tile], start[tile + 1]):
+                    if (j - start[tile]) % _LIVE_EVERY == _LIVE_EVERY - 1:
+                        any_live = False
+                        for pair in range(_PAIRS):
+                            if pair_live[pair]:
+                                live = False
+                                for block in range(pair * _BLOCKS_PER_PAIR, (pair + 1) * _BLOCKS_PER_PAIR):
+                                    if block_live[block]:
+                                        most = acc[_T + np.uint64(block * _BLOCK)]
+                                        for lane in range(1, _BLOCK):
+                                            most = max(most, acc[_T + np.uint64(block * _BLOCK + lane)])
+                                        block_live[block] = most > _ZERO
+                                        live |= block_live[block]
+                                pair_live[pair] = live
+                                any_live |= live
+                        if not any_live:  # every pixel of the tile has stopped
+                            break
                     if counting:
-                        row_pairs += 1
-                    dy0 = _F(y0 + 2 * pair) + _HALF - v
-                    dy1 = _F(y0 + 2 * pair + 1) + _HALF - v
-                    qdy0, qdy1 = sq * dy0 * dy0, sq * dy1 * dy1
-                    skdy0, skdy1 = sk * dy0, sk * dy1
-                    # the extent test's dy half, per row: a row without columns passes no pixel (as a skipped row)
-                    reach0 = radius if span_lo[r] <= span_hi[r] else -_ONE
-                    reach1 = radius if span_lo[r + 1] <= span_hi[r + 1] else -_ONE
-                    for column in range((np.int64(lo) - x0) >> 2, ((np.int64(hi) - x0) >> 2) + 1):
-                        first = np.uint64(pair * 2 * TILE + column * _BLOCK)  # unsigned: no wraparound checks
-                        if counting:
-                            blocks_tried += 1
-                        # A block whose pixels have all stopped (or lie outside the image) changes nothing: skip it.
-                        # On an opaque head most blocks behind the first few layers are such.
-                        if not block_live[pair * _BLOCKS_PER_PAIR + column]:
+                        visited += 1
+                    p = params[lists[j]]
+                    u, v, sa, sk, sq = p[0], p[1], p[2], p[3], p[4]
+                    opacity, radius = p[5], p[6]
+                    red, green, blue = p[7], p[8], p[9]
+                    level = p[10]
+                    bx0, bx1 = max(p[11], _F(x0)), min(p[12], _F(x1 - 1))
+                    by0, by1 = max(np.int64(p[13]), y0) - y0, min(np.int64(p[14]), y1 - 1) - y0  # tile rows
+                    ry0, ry1 = by0 & ~1, by1 | 1  # whole row pairs
+                    # Each row's columns where A t^2 <= level - q dy^2 (t = dx - k dy), widened by a pixel, for every
+                    # row of the pairs at once (a loop without branches: vectorised); none in a row beyond the radius
+                    # or outside the box. They only choose the pixels tried: each pixel still tests itself.
+                    inv_sa = _ONE / sa
+                    first_row = _F(y0 + ry0)
+                    for r in range(ry1 - ry0 + 1):
+                        dy = (first_row + _F(r)) + _HALF - v  # first_row + r is the row's own float: dy exactly
+                        rest = level - sq * dy * dy
+                        half = np.sqrt(max(rest, _ZERO) * inv_sa) + _ONE
+                        mid = u + sk * dy - _HALF
+                        lo, hi = np.floor(mid - half), np.ceil(mid + half)
+                        tried = (rest >= _ZERO) & (abs(dy) <= radius) & (ry0 + r >= by0) & (ry0 + r <= by1)
+                        # selects, not min/max: a NaN (0 * inf where A underflowed) keeps the whole box row
+                        span_lo[r] = (lo if lo > bx0 else bx0) if tried else _NO_SPAN
+                        span_hi[r] = (hi if hi < bx1 else bx1) if tried else -_NO_SPAN
+                    for pair in range(ry0 >> 1, (ry1 >> 1) + 1):
+                        r = 2 * pair - ry0
+                        lo, hi = min(span_lo[r], span_lo[r + 1]), max(span_hi[r], span_hi[r + 1])
+                        if not pair_live[pair] or lo > hi:
                             continue
                         if counting:
-                            blocks_blended += 1
-                        block_x = _F(x0 + 4 * column)  # plus small whole floats: exact, and no int -> float per lane
-                        for lane in range(_BLOCK):  # branch-free, fixed width, no integer sums: 8-wide vectors
-                            i = first + np.uint64(lane)
-                            lower = _LANE_ROW[lane] > _HALF
-                            dx = (block_x + _LANE_COLUMN[lane]) + _HALF - u
-                            tt = dx - (skdy1 if lower else skdy0)
-                            power = _NEG_HALF * (sa * tt * tt + (qdy1 if lower else qdy0))
-                            alpha = min(_ALPHA_MAX, opacity * _exp(power))
-                            t_old = acc[_T + i]
-                            # The tests as float selects (boolean ands of 8 lanes cost packing): a = alpha where
-                            # the pixel is inside the extent, the power is not positive and the pixel blends, else 0;
-                            # it is used where a >= ALPHA_MIN (> 0).
-                            a = alpha if abs(dx) <= (reach1 if lower else reach0) else _ZERO
-                            a = a if power <= _ZERO else _ZERO
-                            a = a if t_old > _ZERO else _ZERO
-                            used = a >= _ALPHA_MIN
-                            t_new = t_old * (_ONE - a)
-                            added = (a if t_new >= _T_MIN else _ZERO) if used else _ZERO
-                            stop_probe = t_new if used else _ONE  # below T_MIN: used, and T would fall under it
-                            # Stores of computed values only (T * (1 - 0) is exact): a select between a new and the
-                            # loaded value would become a masked store, slow on AMD CPUs.
-                            w = added * t_old
-                            acc[i] += red * w
-                            acc[_G + i] += green * w
-                            acc[_B + i] += blue * w
-                            acc[_T + i] = -t_old if stop_probe < _T_MIN else t_old * (_ONE - added)
+                            row_pairs += 1
+                        dy0 = _F(y0 + 2 * pair) + _HALF - v
+                        dy1 = _F(y0 + 2 * pair + 1) + _HALF - v
+                        qdy0, qdy1 = sq * dy0 * dy0, sq * dy1 * dy1
+                        skdy0, skdy1 = sk * dy0, sk * dy1
+                        # the extent test's dy half, per row: a row without columns passes no pixel (as a skipped row)
+                        reach0 = radius if span_lo[r] <= span_hi[r] else -_ONE
+                        reach1 = radius if span_lo[r + 1] <= span_hi[r + 1] else -_ONE
+                        for column in range((np.int64(lo) - x0) >> 2, ((np.int64(hi) - x0) >> 2) + 1):
+                            first = np.uint64(pair * 2 * TILE + column * _BLOCK)  # unsigned: no wraparound checks
                             if counting:
-                                fragments += 1 if added > _ZERO else 0
-            if counting:
-                counts[tile, 0], counts[tile, 1], counts[tile, 2] = start[tile + 1] - start[tile], visited, row_pairs
-                counts[tile, 3], counts[tile, 4], counts[tile, 5] = blocks_tried, blocks_blended, fragments
-            for py in range(y0, y1):
-                for px in range(x0, x1):
-                    k = _slot(py - y0, px - x0)
-                    out[py, px, 0] = acc[k]
-                    out[py, px, 1] = acc[_G + k]
-                    out[py, px, 2] = acc[_B + k]
-                    out[py, px, 3] = abs(acc[_T + k])
+                                blocks_tried += 1
+                            # A block whose pixels have all stopped (or lie outside the image) changes nothing: skip it.
+                            # On an opaque head most blocks behind the first few layers are such.
+                            if not block_live[pair * _BLOCKS_PER_PAIR + column]:
+                                continue
+                            if counting:
+                                blocks_blended += 1
+                            # plus small whole floats: exact, and no int -> float per lane
+                            block_x = _F(x0 + 4 * column)
+                            for lane in range(_BLOCK):  # branch-free, fixed width, no integer sums: 8-wide vectors
+                                i = first + np.uint64(lane)
+                                lower = _LANE_ROW[lane] > _HALF
+                                dx = (block_x + _LANE_COLUMN[lane]) + _HALF - u
+                                tt = dx - (skdy1 if lower else skdy0)
+                                power = _NEG_HALF * (sa * tt * tt + (qdy1 if lower else qdy0))
+                                alpha = min(_ALPHA_MAX, opacity * _exp(power))
+                                t_old = acc[_T + i]
+                                # The tests as float selects (boolean ands of 8 lanes cost packing): a = alpha
+                                # where the pixel is inside the extent, the power is not positive and the pixel
+                                # blends, else 0; it is used where a >= ALPHA_MIN (> 0).
+                                a = alpha if abs(dx) <= (reach1 if lower else reach0) else _ZERO
+                                a = a if power <= _ZERO else _ZERO
+                                a = a if t_old > _ZERO else _ZERO
+                                used = a >= _ALPHA_MIN
+                                t_new = t_old * (_ONE - a)
+                                added = (a if t_new >= _T_MIN else _ZERO) if used else _ZERO
+                                stop_probe = t_new if used else _ONE  # below T_MIN: used, and T would fall under it
+                                # Stores of computed values only (T * (1 - 0) is exact): a select between a new and the
+                                # loaded value would become a masked store, slow on AMD CPUs.
+                                w = added * t_old
+                                acc[i] += red * w
+                                acc[_G + i] += green * w
+                                acc[_B + i] += blue * w
+                                acc[_T + i] = -t_old if stop_probe < _T_MIN else t_old * (_ONE - added)
+                                if counting:
+                                    fragments += 1 if added > _ZERO else 0
+                if counting:
+                    counts[tile, 0], counts[tile, 1] = start[tile + 1] - start[tile], visited
+                    counts[tile, 2] = row_pairs
+                    counts[tile, 3], counts[tile, 4], counts[tile, 5] = blocks_tried, blocks_blended, fragments
+                for py in range(y0, y1):
+                    for px in range(x0, x1):
+                        k = _slot(py - y0, px - x0)
+                        out[py, px, 0] = acc[k]
+                        out[py, px, 1] = acc[_G + k]
+                        out[py, px, 2] = acc[_B + k]
+                        out[py, px, 3] = abs(acc[_T + k])
 
     return blend_tiles
 
@@ -492,17 +524,19 @@ def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = No
     boxes = np.empty((n, 4), dtype=np.int32)
     intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float32)
     limits = np.array(camera.fov_clamp_limits(), dtype=np.float32)
+    workers = numba.get_num_threads()  # one per thread; each claims its work as it goes (`claim`)
     if n:
         _project(rows, camera.R.astype(np.float32), camera.t.astype(np.float32), intrinsics, limits, width, height,
-                 params, boxes)
+                 params, boxes, workers)
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    tile_start, lists = _bin(boxes, tiles_x, tiles_y)
+    tile_start, lists = _bin(boxes, tiles_x, tiles_y, workers)
     setup = time.perf_counter() - start
     start = time.perf_counter()
     out = np.empty((height, width, 4), dtype=np.float32)
     per_tile = np.zeros((tiles_x * tiles_y if counts is not None else 0, len(BLEND_COUNTS)), dtype=np.int64)
     kernel = _blend_tiles if counts is None else _counting_kernel()
-    kernel(params, tile_start, lists, tiles_x, width, height, out, per_tile)
+    order = np.argsort(tile_start[:-1] - tile_start[1:], kind="stable")  # the longest lists first
+    kernel(params, tile_start, lists, tiles_x, width, height, out, per_tile, order, workers)
     seconds = time.perf_counter() - start
     if counts is not None:
         counts[:] = per_tile.sum(axis=0)
@@ -619,18 +653,25 @@ class CPUSplatter:
 
 
 @njit(parallel=True, nogil=True, cache=True, error_model="numpy")
-def _over_background(frame, background, out, as_bytes):
+def _over_background(frame, background, out, as_bytes, workers):
     """out = C + T * background (float32 [H, W, 3]) or, for a uint8 `out`, `to_uint8` of it: floor(clamp(v, 0, 1)
-    * 255 + 0.5) in float32, NaN as 0."""
-    for y in prange(frame.shape[0]):
-        for x in range(frame.shape[1]):
-            for ch in range(3):
-                value = frame[y, x, ch] + frame[y, x, 3] * background[ch]
-                if as_bytes:
-                    value = min(max(value, _ZERO), _ONE) if value == value else _ZERO
-                    out[y, x, ch] = np.uint8(np.floor(value * _F(255.0) + _HALF))
-                else:
-                    out[y, x, ch] = value
+    * 255 + 0.5) in float32, NaN as 0. Threads claim _ROWS_CHUNK rows at a time."""
+    height = frame.shape[0]
+    taken = np.zeros(1, dtype=np.int64)
+    for _worker in prange(workers):
+        while True:
+            first = claim(taken) * _ROWS_CHUNK
+            if first >= height:
+                break
+            for y in range(first, min(first + _ROWS_CHUNK, height)):
+                for x in range(frame.shape[1]):
+                    for ch in range(3):
+                        value = frame[y, x, ch] + frame[y, x, 3] * background[ch]
+                        if as_bytes:
+                            value = min(max(value, _ZERO), _ONE) if value == value else _ZERO
+                            out[y, x, ch] = np.uint8(np.floor(value * _F(255.0) + _HALF))
+                        else:
+                            out[y, x, ch] = value
 
 
 def _convert(frame: np.ndarray, background: np.ndarray, output: str) -> np.ndarray:
@@ -640,7 +681,7 @@ def _convert(frame: np.ndarray, background: np.ndarray, output: str) -> np.ndarr
         np.subtract(np.float32(1.0), frame[..., 3], out=frame[..., 3])
         return frame if output == "rgba_float" else straight_rgba(frame, background)
     out = np.empty((*frame.shape[:2], 3), dtype=np.uint8 if output == "uint8" else np.float32)
-    _over_background(frame, background, out, output == "uint8")
+    _over_background(frame, background, out, output == "uint8", numba.get_num_threads())
     return out
 
 
