@@ -26,6 +26,9 @@ without a C extension to build. Kernels are compiled once, at construction, and 
 a warm start loads machine code instead of compiling; a render loop never compiles. The kernels release the GIL
 (`nogil`), so a pipelined frame loop's other threads (the next frame's deformation and sort, the compositing, the
 encoder: runtime/pipeline.py) run their Python while a frame is drawn instead of waiting for the draw to end.
+Each parallel loop's threads claim their items as they finish (`jit.claim`: chunks of Gaussians, slices, tiles
+longest list first, rows), not a fixed share each, so a thread whose core the pipeline's worker also needs takes
+fewer and the others do not wait for it (docs/speed.md, "Work shared as it finishes").
 """
 
 from __future__ import annotations
@@ -296,7 +299,9 @@ _BIN_CHUNKS = 8  # contiguous slices of the sorted list that `_bin` counts and f
 def _bin(boxes, tiles_x, tiles_y, workers):
     """Per-tile lists of Gaussian indices (each front to back): (start [tiles + 1], list [pairs]). The sorted list
     is cut into _BIN_CHUNKS contiguous slices, each counted and then written by whichever thread claims it; a
-    tile's entries from slice k go after those of slices < k, so every tile's list keeps the depth order."""
+    tile's entries from slice k go after those of slices < k, so every tile's list keeps the depth order. The two
+    passes are written out, not one helper with a count-or-fill flag: the flag's test in the innermost loop measured
+    6-9% slower at 100k Gaussians."""
     n, tiles = boxes.shape[0], tiles_x * tiles_y
     per_chunk = -(-n // _BIN_CHUNKS)
     count = np.zeros((_BIN_CHUNKS, tiles), dtype=np.int64)
