@@ -54,22 +54,15 @@ def test_clip_entries_round_trip_and_play_forth_and_back():
 def test_masks_are_stored_with_the_up_filter_and_decode_losslessly():
     """Every row of a stored mask PNG below the first uses the "up" filter (MASK_PNG_FILTER: the fastest to decode;
     the first row has no row above it), and the levels come back exactly."""
-    import struct
-    import zlib
+    from png_rows import png_rows
 
     from gaussiantalker.sdk.reference_clip import encode_mask
 
     rng = np.random.default_rng(3)
     mask = np.clip(np.pad(np.ones((20, 30), np.float32), 10) * 1.2 - rng.random((40, 50), np.float32) * 0.4, 0, 1)
     data = encode_mask(mask)
-    chunks, pos = {}, 8  # the PNG signature, then length / type / body / CRC chunks
-    while pos < len(data):
-        (length,), kind = struct.unpack(">I", data[pos:pos + 4]), data[pos + 4:pos + 8]
-        chunks[kind] = chunks.get(kind, b"") + data[pos + 8:pos + 8 + length]
-        pos += 12 + length
-    width, height = struct.unpack(">II", chunks[b"IHDR"][:8])
-    rows = np.frombuffer(zlib.decompress(chunks[b"IDAT"]), np.uint8).reshape(height, width + 1)
-    assert (width, height) == (50, 40) and np.all(rows[1:, 0] == 2)  # filter type 2: "up"
+    width, height, rows = png_rows(data)
+    assert (width, height, rows.shape[1]) == (50, 40, 51) and np.all(rows[1:, 0] == 2)  # filter type 2: "up"
     layout = ClipLayout(1, Camera(50, 40, 30.0, 30.0, 25.0, 20.0))
     np.testing.assert_array_equal(decode_mask(data, layout, "m"), np.floor(mask * 255 + 0.5) / np.float32(255))
 

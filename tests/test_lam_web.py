@@ -8,15 +8,14 @@ from __future__ import annotations
 import json
 import math
 import os
-import struct
 import urllib.error
 import urllib.request
-import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
 from ci_tools import need_chromium, need_lam_renderer
+from png_rows import PNG_SIGNATURE, png_rows
 
 from gaussiantalker.sdk.camera import Camera
 from tools.bench import lam_web, lam_web_camera
@@ -149,11 +148,8 @@ def test_png_writer_round_trips(tmp_path):
     image = np.random.default_rng(0).integers(0, 256, (7, 5, 3), dtype=np.uint8)
     write_png(tmp_path / "a.png", image)
     data = (tmp_path / "a.png").read_bytes()
-    assert data[:8] == b"\x89PNG\r\n\x1a\n"
-    width, height = struct.unpack(">II", data[16:24])
-    idat = data.index(b"IDAT")
-    length = struct.unpack(">I", data[idat - 4: idat])[0]
-    rows = np.frombuffer(zlib.decompress(data[idat + 4: idat + 4 + length]), np.uint8).reshape(height, -1)
+    assert data[:8] == PNG_SIGNATURE
+    width, height, rows = png_rows(data)
     assert (width, height) == (5, 7) and not rows[:, 0].any()
     assert np.array_equal(rows[:, 1:].reshape(7, 5, 3), image)
 
