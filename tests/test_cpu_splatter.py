@@ -112,6 +112,30 @@ def test_claims_hand_out_each_work_item_once():
         assert np.all(marks == 1) and counter[0] == n + workers, (n, workers)
 
 
+def test_prefetch_compiles_and_changes_nothing():
+    """`prefetch` (runtime/jit.py) lowers to LLVM's prefetch call and reads nothing itself: a loop that fetches rows
+    ahead, past the array's end too (a prefetch never faults), sums what numpy sums; the rows the CPU splatter
+    fetches start on cache lines."""
+    from gaussiantalker.runtime.jit import njit, prefetch
+    from gaussiantalker.runtime.splat import cpu
+
+    @njit
+    def sum_first_column(rows, ahead):
+        total = 0.0
+        for i in range(rows.shape[0]):
+            prefetch(rows, i + ahead)
+            total += rows[i, 0]
+        return total
+
+    rows = np.arange(64, dtype=np.float32).reshape(16, 4)
+    for ahead in (0, 2, 1000):
+        assert sum_first_column(rows, ahead) == rows[:, 0].sum()
+    assert "llvm.prefetch" in sum_first_column.inspect_llvm(sum_first_column.signatures[0])
+    for n in (1, 7, 1000):
+        params = cpu._aligned_rows(n)
+        assert params.shape == (n, cpu._PARAMS) and params.ctypes.data % 64 == 0 and params.strides[0] == 64
+
+
 def test_frames_do_not_depend_on_which_thread_drew_a_tile():
     """Threads claim tiles and Gaussian chunks as they finish (`claim`): one thread and every thread draw the
     same bits, on a scene with tiles of very different work."""

@@ -33,6 +33,7 @@ _configure_numba_cache()
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba  # noqa: E402  (after the cache directory is set)
+from llvmlite import ir  # noqa: E402
 from numba import njit, prange  # noqa: E402
 from numba.core import cgutils, types  # noqa: E402
 from numba.extending import intrinsic  # noqa: E402
@@ -58,4 +59,32 @@ def claim(typingctx, counter):
     return types.int64(counter), codegen
 
 
-__all__ = ["cache_dir", "claim", "njit", "numba", "prange"]
+@intrinsic
+def prefetch(typingctx, array, row):
+    """Inside a kernel: ask the CPU to bring the cache line of array[row, 0] in, for reading, without waiting for it
+    (LLVM's `llvm.prefetch`; numba has no such call). A row index out of range is harmless: a prefetch never faults.
+    For loops that read rows in an order the CPU's own prefetchers cannot guess (a tile's list of Gaussians)."""
+    if not (isinstance(array, types.Array) and array.ndim == 2 and isinstance(row, types.Integer)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        array_type = signature.args[0]
+        data = context.make_array(array_type)(context, builder, args[0])
+        index = context.cast(builder, args[1], signature.args[1], types.intp)
+        address = cgutils.get_item_pointer(context, builder, array_type, data,
+                                           [index, context.get_constant(types.intp, 0)], wraparound=False)
+        # LLVM names its intrinsics by pointer type: "p0" where pointers are opaque (llvmlite >= 0.44), else "p0i8"
+        if str(address.type) != "ptr":
+            address = builder.bitcast(address, ir.IntType(8).as_pointer())
+        name = "llvm.prefetch." + ("p0" if str(address.type) == "ptr" else "p0i8")
+        i32 = ir.IntType(32)
+        function = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.VoidType(), [address.type, i32, i32, i32]), name)
+        # read (0), keep in all cache levels (3), a data cache (1)
+        builder.call(function, [address, i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return types.none(array, row), codegen
+
+
+__all__ = ["cache_dir", "claim", "njit", "numba", "prange", "prefetch"]

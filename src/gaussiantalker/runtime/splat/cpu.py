@@ -13,9 +13,10 @@ rasterizer's generic triangle/point set-up, 4x4-block shading and RGBA32F blendi
 3. `_blend_tiles` (parallel over tiles): each tile's 1,024 pixels accumulated front to back in a small array that
    stays in L1 cache, with the contract's per-pixel extent test, alpha bound, 0.99 clamp and the T_MIN stop, in
    blocks of 4 x 2 pixels; a block whose pixels have all stopped is skipped, and a tile whose pixels have all
-   stopped skips the rest of its list. The per-block loop is written branch-free (float selects, a polynomial exp:
-   `_exp`, no integer sums) so LLVM turns it into 8-wide vector code. Its counting twin (`splat_frame(...,
-   counts)`) reports the work; docs/speed.md, "The blend against the machine".
+   stopped skips the rest of its list. The next Gaussians' rows are fetched ahead (`prefetch`: a tile's list is
+   scattered over the parameter array, where no cache holds it). The per-block loop is written branch-free (float
+   selects, a polynomial exp: `_exp`, no integer sums) so LLVM turns it into 8-wide vector code. Its counting twin
+   (`splat_frame(..., counts)`) reports the work; docs/speed.md, "The blend against the machine".
 
 Every per-pixel decision is made exactly as the contract says; the boxes and tiles only choose which pixels are
 tried (a superset of those that can pass), as in the torch reference and the GL renderer.
@@ -46,7 +47,7 @@ from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import straight_rgba
 from gaussiantalker.sdk.render_settings import RenderSettings
 
-from ..jit import cache_dir, claim, njit, numba, prange
+from ..jit import cache_dir, claim, njit, numba, prange, prefetch
 from . import cpu_sort
 from .common import FRAME_OUTPUTS, STAGES, PreparedSplats, background_rgb, checked_gaussians, draw_camera, sorted_rows
 from .depth_sort import DepthSorter
@@ -63,12 +64,18 @@ _PAIRS = TILE // 2  # pixel-row pairs per tile
 _LANE_COLUMN = np.array([0, 1, 2, 3, 0, 1, 2, 3], dtype=np.float32)  # a block lane's column and row in the block
 _LANE_ROW = np.array([0, 0, 0, 0, 1, 1, 1, 1], dtype=np.float32)
 _BLOCKS_PER_PAIR = TILE // 4
+# Gaussians ahead in a tile's list whose parameter row the blend asks the CPU to fetch (`prefetch`) while it draws
+# the current one: the rows of a tile's list lie far apart in `params`, so each first read missed the caches.
+# docs/speed.md, "Rows fetched ahead".
+_AHEAD = 2
 _LIVE_EVERY = 8  # Gaussians between the checks of which blocks and row pairs of a tile still blend
 # Offsets of the planes in a tile's accumulator (red at 0), unsigned like the pixel index added to them.
 _G, _B, _T = (np.uint64(k * _TILE_PIXELS) for k in range(1, 4))
 # Per kept Gaussian: u, v, A, k, q, opacity, radius, r, g, b, alpha level (see `_project`), and its pixel box x0, x1,
-# y0, y1 as floats (exact: image sizes are far below 2^24), so the blend reads one Gaussian from one row.
-_PARAMS = 15
+# y0, y1 as floats (exact: image sizes are far below 2^24), so the blend reads one Gaussian from one row; padded to
+# 16 floats, and the array aligned (`_aligned_rows`), so that a row is one 64-byte cache line.
+_PARAMS = 16
+_CACHE_LINE = 64
 
 _F = np.float32
 _HALF = _F(numerics.PIXEL_CENTER_OFFSET)
@@ -405,6 +412,8 @@ def _blend_source(counting: bool):
                             break
                     if counting:
                         visited += 1
+                    if j + _AHEAD < start[tile + 1]:
+                        prefetch(params, lists[j + _AHEAD])
                     p = params[lists[j]]
                     u, v, sa, sk, sq = p[0], p[1], p[2], p[3], p[4]
                     opacity, radius = p[5], p[6]
@@ -517,6 +526,15 @@ def _counting_kernel():
 BLEND_COUNTS = ("pairs_binned", "pairs_visited", "row_pairs", "blocks_tried", "blocks_blended", "fragments")
 
 
+def _aligned_rows(n: int) -> np.ndarray:
+    """An uninitialised float32 [n, _PARAMS] array whose rows start on cache-line boundaries (numpy aligns to 16
+    bytes only)."""
+    spare = _CACHE_LINE // 4
+    raw = np.empty(n * _PARAMS + spare, dtype=np.float32)
+    skip = (-raw.ctypes.data % _CACHE_LINE) // 4
+    return raw[skip: skip + n * _PARAMS].reshape(n, _PARAMS)
+
+
 def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = None
                 ) -> tuple[np.ndarray, float, float]:
     """(C, T) [H, W, 4] float32 of depth-sorted, culled rows [n, 13]; also the set-up and blend seconds. `counts`
@@ -525,7 +543,7 @@ def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = No
     start = time.perf_counter()
     width, height = int(camera.width), int(camera.height)
     n = len(rows)
-    params = np.empty((n, _PARAMS), dtype=np.float32)
+    params = _aligned_rows(n)
     boxes = np.empty((n, 4), dtype=np.int32)
     intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float32)
     limits = np.array(camera.fov_clamp_limits(), dtype=np.float32)
