@@ -136,6 +136,26 @@ def test_prefetch_compiles_and_changes_nothing():
         assert params.shape == (n, cpu._PARAMS) and params.ctypes.data % 64 == 0 and params.strides[0] == 64
 
 
+def test_bytes_the_blend_writes_are_the_float_frame_converted():
+    """Asked for 8 bits at the drawn size, the blend writes them as each tile ends (`splat_frame(...,
+    background=...)`): the same bytes as the float (C, T) frame converted afterwards, on an image whose edge tiles are
+    partial, for backgrounds inside and outside [0, 1]; and `draw` takes that path for "uint8" only."""
+    arrays, camera = _numpy(random_scene(11, n=300, camera=off_centre_camera(150, 110), px_sigma=(0.3, 12.0)))
+    prepared = CPUSplatter().prepare(*arrays, camera)
+    for background in ((0.2, 0.4, 0.1), (1.5, -0.3, 0.0), (0.0, 0.0, 0.0)):
+        rgb = np.asarray(background, dtype=np.float32)
+        written, _, _ = cs.splat_frame(prepared.rows, prepared.camera, background=rgb)
+        floats, _, _ = cs.splat_frame(prepared.rows, prepared.camera)
+        assert written.dtype == np.uint8 and written.shape == (110, 150, 3)
+        np.testing.assert_array_equal(written, cs._convert(floats, rgb, "uint8"))
+        assert np.ptp(written) > 20  # something is drawn
+    splatter = CPUSplatter()
+    floats = splatter.draw(prepared, BACKGROUND, output="float")
+    assert splatter.last_timings["readback"] > 0.0
+    np.testing.assert_array_equal(splatter.draw(prepared, BACKGROUND), to_uint8(floats))
+    assert splatter.last_timings["readback"] == 0.0
+
+
 def test_frames_do_not_depend_on_which_thread_drew_a_tile():
     """Threads claim tiles and Gaussian chunks as they finish (`claim`): one thread and every thread draw the
     same bits, on a scene with tiles of very different work."""

@@ -63,6 +63,8 @@ _BLOCK = 8
 _PAIRS = TILE // 2  # pixel-row pairs per tile
 _LANE_COLUMN = np.array([0, 1, 2, 3, 0, 1, 2, 3], dtype=np.float32)  # a block lane's column and row in the block
 _LANE_ROW = np.array([0, 0, 0, 0, 1, 1, 1, 1], dtype=np.float32)
+_LANE_INDEX = np.arange(_BLOCK, dtype=np.float32)  # a lane's place in a run of 8 rows
+_HI = np.uint64(TILE)  # offset of the last columns in the blend's `span`
 _BLOCKS_PER_PAIR = TILE // 4
 # Gaussians ahead in a tile's list whose parameter row the blend asks the CPU to fetch (`prefetch`) while it draws
 # the current one: the rows of a tile's list lie far apart in `params`, so each first read missed the caches.
@@ -362,9 +364,11 @@ def _blend_source(counting: bool):
     that draws frames has no counting code; the counts would need integer sums inside the block loop, which keep
     it from 8-wide vectors)."""
 
-    def blend_tiles(params, start, lists, tiles_x, width, height, out, counts, order, workers):
+    def blend_tiles(params, start, lists, tiles_x, width, height, out, counts, order, workers, background, bytes_out):
         """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99
-        clamp, skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN."""
+        clamp, skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN. With
+        a non-empty bytes_out [H, W, 3] (uint8), that receives C + T background in 8 bits instead (`_over_pixel`), and
+        `out` is not written."""
         n_tiles = start.shape[0] - 1
         taken = np.zeros(1, dtype=np.int64)  # tiles claimed so far, in `order`
         for _worker in prange(workers):
@@ -390,8 +394,10 @@ def _blend_source(counting: bool):
                 block_live = np.ones(_TILE_PIXELS // _BLOCK, dtype=np.bool_)
                 pair_live = np.zeros(_PAIRS, dtype=np.bool_)
                 pair_live[: (y1 - y0 + 1) >> 1] = True
-                span_lo = np.empty(TILE, dtype=np.float32)  # the current Gaussian's columns per row of the tile
-                span_hi = np.empty(TILE, dtype=np.float32)
+                # The current Gaussian's first and last columns per row of the tile, in one array (the last at _HI) so
+                # that the compiler sees the two do not overlap and vectorises the loop that sets them.
+                span = np.empty(2 * TILE, dtype=np.float32)
+                span_lo, span_hi = span[:TILE], span[TILE:]
                 visited = row_pairs = blocks_tried = blocks_blended = fragments = 0
                 for j in range(start[tile], start[tile + 1]):
                     if (j - start[tile]) % _LIVE_EVERY == _LIVE_EVERY - 1:
@@ -423,20 +429,30 @@ def _blend_source(counting: bool):
                     by0, by1 = max(np.int64(p[13]), y0) - y0, min(np.int64(p[14]), y1 - 1) - y0  # tile rows
                     ry0, ry1 = by0 & ~1, by1 | 1  # whole row pairs
                     # Each row's columns where A t^2 <= level - q dy^2 (t = dx - k dy), widened by a pixel, for every
-                    # row of the pairs at once (a loop without branches: vectorised); none in a row beyond the radius
-                    # or outside the box. They only choose the pixels tried: each pixel still tests itself.
+                    # row of the pairs at once (runs of 8 rows without branches: 8-wide vector code); none in a row
+                    # beyond the radius or outside the box. They only choose the pixels tried: each pixel still tests
+                    # itself.
                     inv_sa = _ONE / sa
                     first_row = _F(y0 + ry0)
-                    for r in range(ry1 - ry0 + 1):
-                        dy = (first_row + _F(r)) + _HALF - v  # first_row + r is the row's own float: dy exactly
-                        rest = level - sq * dy * dy
-                        half = np.sqrt(max(rest, _ZERO) * inv_sa) + _ONE
-                        mid = u + sk * dy - _HALF
-                        lo, hi = np.floor(mid - half), np.ceil(mid + half)
-                        tried = (rest >= _ZERO) & (abs(dy) <= radius) & (ry0 + r >= by0) & (ry0 + r <= by1)
-                        # selects, not min/max: a NaN (0 * inf where A underflowed) keeps the whole box row
-                        span_lo[r] = (lo if lo > bx0 else bx0) if tried else _NO_SPAN
-                        span_hi[r] = (hi if hi < bx1 else bx1) if tried else -_NO_SPAN
+                    box_top, box_bottom = _F(by0 - ry0), _F(by1 - ry0)
+                    for eight in range(0, ry1 - ry0 + 1, _BLOCK):  # whole runs of 8 rows: vector code, no remainder
+                        for lane in range(_BLOCK):
+                            row = _F(eight) + _LANE_INDEX[lane]  # the row within the pairs, as a float (exact)
+                            dy = (first_row + row) + _HALF - v  # first_row + row is the row's own float: dy exactly
+                            rest = level - sq * dy * dy
+                            half = np.sqrt(max(rest, _ZERO) * inv_sa) + _ONE
+                            mid = u + sk * dy - _HALF
+                            lo, hi = np.floor(mid - half), np.ceil(mid + half)
+                            # selects, not min/max: a NaN (0 * inf where A underflowed) keeps the whole box row
+                            lo = lo if lo > bx0 else bx0
+                            hi = hi if hi < bx1 else bx1
+                            lo = lo if rest >= _ZERO else _NO_SPAN
+                            lo = lo if abs(dy) <= radius else _NO_SPAN
+                            lo = lo if row >= box_top else _NO_SPAN
+                            lo = lo if row <= box_bottom else _NO_SPAN
+                            k = np.uint64(eight) + np.uint64(lane)  # unsigned: no wraparound checks
+                            span[k] = lo
+                            span[_HI + k] = hi if lo != _NO_SPAN else -_NO_SPAN
                     for pair in range(ry0 >> 1, (ry1 >> 1) + 1):
                         r = 2 * pair - ry0
                         lo, hi = min(span_lo[r], span_lo[r + 1]), max(span_hi[r], span_hi[r + 1])
@@ -494,13 +510,22 @@ def _blend_source(counting: bool):
                     counts[tile, 0], counts[tile, 1] = start[tile + 1] - start[tile], visited
                     counts[tile, 2] = row_pairs
                     counts[tile, 3], counts[tile, 4], counts[tile, 5] = blocks_tried, blocks_blended, fragments
-                for py in range(y0, y1):
-                    for px in range(x0, x1):
-                        k = _slot(py - y0, px - x0)
-                        out[py, px, 0] = acc[k]
-                        out[py, px, 1] = acc[_G + k]
-                        out[py, px, 2] = acc[_B + k]
-                        out[py, px, 3] = abs(acc[_T + k])
+                if bytes_out.shape[0]:
+                    for py in range(y0, y1):
+                        for px in range(x0, x1):
+                            k = _slot(py - y0, px - x0)
+                            transmittance = abs(acc[_T + k])
+                            bytes_out[py, px, 0] = _over_pixel(acc[k], transmittance, background[0])
+                            bytes_out[py, px, 1] = _over_pixel(acc[_G + k], transmittance, background[1])
+                            bytes_out[py, px, 2] = _over_pixel(acc[_B + k], transmittance, background[2])
+                else:
+                    for py in range(y0, y1):
+                        for px in range(x0, x1):
+                            k = _slot(py - y0, px - x0)
+                            out[py, px, 0] = acc[k]
+                            out[py, px, 1] = acc[_G + k]
+                            out[py, px, 2] = acc[_B + k]
+                            out[py, px, 3] = abs(acc[_T + k])
 
     return blend_tiles
 
@@ -535,11 +560,13 @@ def _aligned_rows(n: int) -> np.ndarray:
     return raw[skip: skip + n * _PARAMS].reshape(n, _PARAMS)
 
 
-def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = None
-                ) -> tuple[np.ndarray, float, float]:
+def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = None, *,
+                background: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
     """(C, T) [H, W, 4] float32 of depth-sorted, culled rows [n, 13]; also the set-up and blend seconds. `counts`
     (int64 [len(BLEND_COUNTS)]), when given, receives the blend's work totals from the counting twin of the blend
-    (the same pixels; compiled on first use, about 20 s)."""
+    (the same pixels; compiled on first use, about 20 s). With `background` (float32 [3]) the frame is the 8-bit
+    [H, W, 3] over that background instead, written by the blend as each tile ends: `_convert(..., "uint8")`'s
+    bytes without the float frame between."""
     start = time.perf_counter()
     width, height = int(camera.width), int(camera.height)
     n = len(rows)
@@ -555,15 +582,18 @@ def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = No
     tile_start, lists = _bin(boxes, tiles_x, tiles_y, workers)
     setup = time.perf_counter() - start
     start = time.perf_counter()
-    out = np.empty((height, width, 4), dtype=np.float32)
+    as_bytes = background is not None
+    out = np.empty((0 if as_bytes else height, width, 4), dtype=np.float32)
+    bytes_out = np.empty((height if as_bytes else 0, width, 3), dtype=np.uint8)
+    background = np.zeros(3, dtype=np.float32) if background is None else background
     per_tile = np.zeros((tiles_x * tiles_y if counts is not None else 0, len(BLEND_COUNTS)), dtype=np.int64)
     kernel = _blend_tiles if counts is None else _counting_kernel()
     order = np.argsort(tile_start[:-1] - tile_start[1:], kind="stable")  # the longest lists first
-    kernel(params, tile_start, lists, tiles_x, width, height, out, per_tile, order, workers)
+    kernel(params, tile_start, lists, tiles_x, width, height, out, per_tile, order, workers, background, bytes_out)
     seconds = time.perf_counter() - start
     if counts is not None:
         counts[:] = per_tile.sum(axis=0)
-    return out, setup, seconds
+    return (bytes_out if as_bytes else out), setup, seconds
 
 
 def upscale_bilinear(image: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -634,7 +664,8 @@ class CPUSplatter:
 
     def draw(self, prepared: PreparedSplats, background, *, output: str = "uint8") -> np.ndarray:
         """Splat a prepared frame -> the `output` frame (see `GLSplatter.render`). Timings: "upload" is the
-        projection and binning, "draw" the tile blending (and render-scale upscale), "readback" the conversion."""
+        projection and binning, "draw" the tile blending (and render-scale upscale), "readback" the conversion; an
+        8-bit frame at the drawn size is written by the blend itself, so its "readback" is 0."""
         if self.released:
             raise RenderError("this CPUSplatter has been released")
         if output not in FRAME_OUTPUTS:
@@ -645,10 +676,16 @@ class CPUSplatter:
         previous = numba.get_num_threads()
         if self.threads is not None:
             numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+        # 8 bits at the drawn size: the blend writes them as each tile ends (timed as "draw"; "readback" is 0)
+        fused = output == "uint8" and prepared.output_size is None
         try:
-            frame, timings["upload"], timings["draw"] = splat_frame(prepared.rows, prepared.camera)
+            frame, timings["upload"], timings["draw"] = splat_frame(prepared.rows, prepared.camera,
+                                                                    background=background if fused else None)
         finally:
             numba.set_num_threads(previous)
+        if fused:
+            self.last_timings = timings
+            return frame
         if prepared.output_size is not None:
             start = time.perf_counter()
             frame = upscale_bilinear(frame, *prepared.output_size)
@@ -675,6 +712,16 @@ class CPUSplatter:
         self.release()
 
 
+@njit(cache=True, error_model="numpy")
+def _over_pixel(color, transmittance, background):
+    """`to_uint8` of color + transmittance x background: floor(clamp(v, 0, 1) * 255 + 0.5) in float32, NaN as 0.
+    Its own function, compiled without the blend's fastmath flags, so that the multiply and add stay two rounded
+    steps (no fused multiply-add) wherever it is called: the blend's 8-bit tiles are `_over_background`'s bytes."""
+    value = color + transmittance * background
+    value = min(max(value, _ZERO), _ONE) if value == value else _ZERO
+    return np.uint8(np.floor(value * _F(255.0) + _HALF))
+
+
 @njit(parallel=True, nogil=True, cache=True, error_model="numpy")
 def _over_background(frame, background, out, as_bytes, workers):
     """out = C + T * background (float32 [H, W, 3]) or, for a uint8 `out`, `to_uint8` of it: floor(clamp(v, 0, 1)
@@ -689,12 +736,10 @@ def _over_background(frame, background, out, as_bytes, workers):
             for y in range(first, min(first + _ROWS_CHUNK, height)):
                 for x in range(frame.shape[1]):
                     for ch in range(3):
-                        value = frame[y, x, ch] + frame[y, x, 3] * background[ch]
                         if as_bytes:
-                            value = min(max(value, _ZERO), _ONE) if value == value else _ZERO
-                            out[y, x, ch] = np.uint8(np.floor(value * _F(255.0) + _HALF))
+                            out[y, x, ch] = _over_pixel(frame[y, x, ch], frame[y, x, 3], background[ch])
                         else:
-                            out[y, x, ch] = value
+                            out[y, x, ch] = frame[y, x, ch] + frame[y, x, 3] * background[ch]
 
 
 def _convert(frame: np.ndarray, background: np.ndarray, output: str) -> np.ndarray:
