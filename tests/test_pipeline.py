@@ -8,6 +8,8 @@ Bounds, and why:
   (names start with "gt-"); checked right after the loop ends, no sleeping.
 * Memory: a source is never more than `depth` + 1 items ahead of its consumer (the queue plus the item in hand),
   however slowly the consumer reads.
+* Whole frames at once (the CPU splatter's `frames_at_once`): forced to 3 workers as well, so a machine with fewer
+  cores still runs that path; the same bits as one frame after another.
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ import pytest
 from gaussiantalker.runtime.pipeline import Ahead, Sink, in_order
 from gaussiantalker.sdk.errors import SettingsError
 
-PIPELINE_THREADS = ("gt-prepare", "gt-composite", "gt-encode", "gt-ahead", "gt-stage", "gt-sink")
+PIPELINE_THREADS = ("gt-prepare", "gt-composite", "gt-encode", "gt-ahead", "gt-stage", "gt-sink", "gt-frame",
+                    "gt-picture")
 
 
 def pipeline_threads() -> list[str]:
@@ -105,6 +108,34 @@ def test_in_order_keeps_the_order_and_raises_the_functions_exception():
     assert got == list(range(5)) and pipeline_threads() == []
 
 
+def test_in_order_on_several_workers_keeps_the_order_and_delivers_what_came_before_a_source_error():
+    started: list[str] = []
+
+    def begin():
+        started.append(threading.current_thread().name)
+
+    def slow_square(x):
+        time.sleep(0.002 * (3 - x % 3))  # later items often finish first
+        return x * x, threading.current_thread().name
+
+    results = list(in_order(slow_square, ((i,) for i in range(30)), depth=5, workers=3, initializer=begin))
+    assert [value for value, _ in results] == [i * i for i in range(30)]
+    assert len({name for _, name in results}) > 1 and len(started) == len(set(started)) <= 3
+    assert pipeline_threads() == []
+
+    def drives():
+        yield from ((i,) for i in range(4))
+        raise ValueError("no drive for frame 4")
+
+    got = []
+    with pytest.raises(ValueError, match="no drive for frame 4"):
+        for value, _ in in_order(slow_square, drives(), depth=5, workers=3):
+            got.append(value)
+    assert got == [0, 1, 4, 9] and pipeline_threads() == []
+    with pytest.raises(ValueError, match="workers must be >= 1"):
+        list(in_order(slow_square, [(1,)], workers=0))
+
+
 def test_in_order_closed_early_ends_its_thread():
     results = in_order(lambda x: x, ((i,) for i in range(100)), depth=1)
     assert next(results) == 0
@@ -181,6 +212,51 @@ def test_bare_frames_are_the_same_pipelined_or_not(small_export, renderer, outpu
     speech = _speech()
     _assert_identical(_frames(small_export.path, lambda head: head.frames(speech, 16000, output=output),
                               resolution=(48, 40), renderer=renderer))
+
+
+@pytest.mark.parametrize("composite", [False, True])
+def test_whole_frames_at_once_are_the_frames_made_one_after_another(clip_export, monkeypatch, composite):
+    """Three frames made at once on worker threads (more than this machine may have cores: the path runs anyway),
+    bare and composited, against the serial loop; and who may make frames at once."""
+    pytest.importorskip("numba", reason="the cpu extra is not installed")
+    from gaussiantalker.runtime import TalkingHead
+    from gaussiantalker.runtime.frame_renderer import FrameRenderer
+
+    speech = _speech()
+    with TalkingHead(clip_export.path, renderer="cpu", pipeline=False, composite=composite) as head:
+        serial = list(head.frames(speech, 16000))
+    monkeypatch.setattr(FrameRenderer, "frames_at_once", lambda self: 3)
+    with TalkingHead(clip_export.path, renderer="cpu", composite=composite) as head:
+        at_once = list(head.frames(speech, 16000))
+    assert pipeline_threads() == []
+    _assert_identical({True: at_once, False: serial})
+
+
+def test_who_makes_whole_frames_at_once(small_export):
+    numba = pytest.importorskip("numba", reason="the cpu extra is not installed")
+    from gaussiantalker.runtime import TalkingHead
+    from gaussiantalker.runtime.splat.cpu import MAX_FRAMES_AT_ONCE, CPUSplatter
+    from gaussiantalker.sdk.render_settings import RenderSettings
+
+    cores = min(numba.get_num_threads(), MAX_FRAMES_AT_ONCE)
+    assert CPUSplatter().frames_at_once() == cores
+    assert CPUSplatter(threads=2).frames_at_once() == 1  # the app chose the kernels' threads for each frame
+    assert CPUSplatter(settings=RenderSettings(sort_interval=2)).frames_at_once() == 1  # the sort keeps state
+    with TalkingHead(small_export.path, renderer="gl", resolution=(32, 32)) as head:
+        assert head.frame_renderer.frames_at_once() == 1  # a GL context is bound to its thread
+
+    splatter, seen = CPUSplatter(), {}
+
+    def worker():
+        splatter.begin_worker()
+        seen["threads"] = numba.get_num_threads()
+        seen["timings"] = splatter.last_timings
+
+    thread = threading.Thread(target=worker)
+    thread.start()
+    thread.join()
+    assert seen["threads"] == 1 and numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS  # per thread
+    assert seen["timings"]["draw"] == 0.0  # a thread that has drawn nothing has no timings of another's
 
 
 def test_composited_frames_are_the_same_pipelined_or_not(clip_export):

@@ -1,7 +1,8 @@
 """The frame loops every offline way of playing a bundle walks: drives -> FrameRenderer -> (Compositor) -> frames,
 and frames -> a video file. Pipelined (the default), neighbouring frames' stages overlap on worker threads
 (runtime/pipeline.py, docs/speed.md): onnxruntime, numpy, the CPU splatter's kernels and PyAV release the GIL, so
-the stages overlap instead of adding up. The frames are the same either way.
+the stages overlap instead of adding up. With the CPU splatter whole frames are made at once, one per core
+("Whole frames at once" in docs/speed.md). The frames are the same either way.
 """
 
 from __future__ import annotations
@@ -25,13 +26,26 @@ PREPARED_AHEAD = 2
 ENCODE_AHEAD = 2
 
 
+def _in_flight(workers: int) -> int:
+    """The `in_order` depth for frames made whole on `workers` threads: each has one frame in hand and one queued,
+    so none waits for the caller between frames."""
+    return 2 * workers - 1
+
+
 def bare_frames(renderer: FrameRenderer, drives: Iterable[Drive], output: str, pipelined: bool
                 ) -> Iterator[np.ndarray]:
-    """The head's frames. Pipelined: the next frames' drives, deformation and sort on a worker thread (up to
-    PREPARED_AHEAD frames ahead) while this thread draws (a GL context is bound to the thread that made it)."""
+    """The head's frames. Pipelined: where the splatter can (`frames_at_once` > 1: the CPU splatter), whole
+    frames on that many worker threads at once; else the next frames' drives, deformation and sort on a worker
+    thread (up to PREPARED_AHEAD frames ahead) while this thread draws (a GL context is bound to the thread that
+    made it)."""
     if not pipelined:
         for drive in drives:
             yield renderer.draw(renderer.prepare(drive), output)
+        return
+    workers = renderer.frames_at_once()
+    if workers > 1:
+        yield from in_order(renderer.frame, ((drive, output) for drive in drives), _in_flight(workers), "gt-frame",
+                            workers=workers, initializer=renderer.begin_worker)
         return
     with Ahead((renderer.prepare(drive) for drive in drives), PREPARED_AHEAD, "gt-prepare") as prepared:
         for splats in prepared:
@@ -40,9 +54,21 @@ def bare_frames(renderer: FrameRenderer, drives: Iterable[Drive], output: str, p
 
 def composited_frames(renderer: FrameRenderer, compositor: Compositor, drives: Iterable[Drive], pipelined: bool
                       ) -> Iterator[np.ndarray]:
-    """Frame t composited into the clip's frame t. Pipelined, three stages overlap: the next frames prepared with
-    their reference pictures decoded, frame t drawn on this thread, frame t-1 composited (F and the blend) on its
-    own thread, so the composite costs no frame time when the machine has cores to spare."""
+    """Frame t composited into the clip's frame t. Pipelined, where the splatter can (`frames_at_once` > 1),
+    whole frames (deformation, sort, draw, F and the blend) on that many worker threads at once, the reference
+    pictures decoded in order on one more; else three stages overlap: the next frames prepared with their reference
+    pictures decoded, frame t drawn on this thread, frame t-1 composited (F and the blend) on its own thread, so
+    the composite costs no frame time when the machine has cores to spare."""
+    workers = renderer.frames_at_once() if pipelined else 1
+    if workers > 1:
+        def composited(drive: Drive, picture: np.ndarray, mask: np.ndarray) -> np.ndarray:
+            return compositor.blend(renderer.frame(drive, "rgba_float"), picture, mask)
+
+        pictures = ((drive, *compositor.picture(index)) for index, drive in enumerate(drives))
+        with Ahead(pictures, _in_flight(workers), "gt-picture") as ahead:
+            yield from in_order(composited, ahead, _in_flight(workers), "gt-frame", workers=workers,
+                                initializer=renderer.begin_worker)
+        return
     prepared = ((renderer.prepare(drive), *compositor.picture(index)) for index, drive in enumerate(drives))
     if not pipelined:
         for splats, picture, mask in prepared:

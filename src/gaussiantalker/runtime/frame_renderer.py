@@ -2,7 +2,8 @@
 deformation graph (a GraphBackend), then pixels through a Splatter (runtime/splat/: GL or CPU, one contract).
 
 `prepare` needs no GL and is safe on a worker thread; `draw` runs on the thread that made the splatter (a GL context
-is bound to it). The pipelined frame loops (runtime/frame_loops.py) overlap the two across frames.
+is bound to it), or, where the splatter says `frames_at_once` > 1 (the CPU one), whole frames run on that many
+worker threads. The pipelined frame loops (runtime/frame_loops.py) overlap frames either way.
 """
 
 from __future__ import annotations
@@ -60,13 +61,26 @@ class FrameRenderer:
             self.timings.record(stage, seconds)
         return frame
 
+    def frame(self, drive: Drive, output: str = "uint8") -> np.ndarray:
+        """`prepare` then `draw`: one whole frame, as a worker of `frames_at_once` makes it."""
+        return self.draw(self.prepare(drive), output)
+
+    def frames_at_once(self) -> int:
+        """How many frames the pipelined loops may make at once, each whole on its own worker thread (the
+        splatter's answer: 1 for GL)."""
+        return self.splatter.frames_at_once()
+
+    def begin_worker(self) -> None:
+        """Set up a worker thread of `frames_at_once` (the splatter's kernels on one core there)."""
+        self.splatter.begin_worker()
+
     def render(self, drive: Drive, output: str = "uint8") -> np.ndarray:
         """One frame of `drive`: any of the splatter's outputs, or "semantic" (each Gaussian in its region's
         colour over black, uint8)."""
         if output == "semantic":
             g = self.deform(drive)
             return self._draw_in_colors(g, self.regions.gaussian_colors(g["opacity"].shape[0]), "uint8")
-        return self.draw(self.prepare(drive), output)
+        return self.frame(drive, output)
 
     @property
     def regions(self) -> Regions:

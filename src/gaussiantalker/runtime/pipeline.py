@@ -7,7 +7,8 @@ neighbouring frames can run at once instead of one after the other. Three pieces
 grows with the length of a clip, and each shutting its thread down when its consumer stops early or fails:
 
 * `Ahead`: an iterator run on a worker thread, at most `depth` items ahead of its consumer.
-* `in_order`: a function applied on a worker thread to items pulled on the caller's thread, results in order.
+* `in_order`: a function applied on worker threads (one, or several: whole frames at once) to items pulled on the
+  caller's thread, results in order.
 * `Sink`: a function (an encoder's `write`) called on a worker thread for each item handed to it, in order.
 
 Errors raised on a worker come back to the consumer as the same exception object, at its next call.
@@ -120,15 +121,28 @@ class Ahead(Iterator[T], Generic[T]):
 
 
 def in_order(function: Callable[..., R], items: Iterable[tuple], depth: int = 1,
-             name: str = "gt-stage") -> Iterator[R]:
-    """`function(*item)` for each item, run on a worker thread while the caller's thread pulls (and so computes)
-    the next items; results in the items' order, at most `depth` + 1 in flight. An exception from `function` is
-    raised here, the same object; when the caller stops early, the calls not started are dropped and the thread
-    ends before this generator closes."""
+             name: str = "gt-stage", *, workers: int = 1,
+             initializer: Callable[[], object] | None = None) -> Iterator[R]:
+    """`function(*item)` for each item, run on `workers` threads (each first calls `initializer`) while the
+    caller's thread pulls (and so computes) the next items; results in the items' order, at most `depth` + 1 in
+    flight. An exception from `function` is raised here, the same object; one from `items` too, after the results
+    of the items before it. When the caller stops early, the calls not started are dropped and the threads end
+    before this generator closes."""
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     pending: deque[Future] = deque()
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix=name) as pool:
+    source = iter(items)
+    failure: Exception | None = None
+    with ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name, initializer=initializer) as pool:
         try:
-            for item in items:
+            while True:
+                try:
+                    item = next(source)
+                except StopIteration:
+                    break
+                except Exception as error:  # noqa: BLE001  (raised below, after the items before it)
+                    failure = error
+                    break
                 pending.append(pool.submit(function, *item))
                 if len(pending) > depth:
                     yield pending.popleft().result()
@@ -137,6 +151,8 @@ def in_order(function: Callable[..., R], items: Iterable[tuple], depth: int = 1,
         finally:
             for future in pending:
                 future.cancel()
+    if failure is not None:
+        raise failure
 
 
 class Sink(Generic[T]):

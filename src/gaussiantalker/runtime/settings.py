@@ -88,7 +88,7 @@ RENDERERS = ("auto", "gl", "cpu")
 @dataclass(frozen=True)
 class BackendSettings:
     """What runs a TalkingHead: the graph backend `name` ("onnxruntime" or "mnn", docs/mnn.md), its `threads`
-    (None: the bundle's preset, else one where the pipelined frame loop draws on the CPU splatter, every core
+    (None: the bundle's preset, else one where the CPU splatter draws, every core
     for onnxruntime otherwise, one for MNN), the GLSL variant compiled, `shader_target`
     ("330", "410", "300es"; the same pixels, docs/shaders.md), the `renderer` that splats: "gl",
     "cpu" (the numba tile splatter, the `cpu` extra) or "auto", the default (cpu where the GL is a software

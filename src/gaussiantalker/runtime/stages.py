@@ -111,10 +111,11 @@ def build_stages(bundle: Bundle, render: RenderSettings, output: OutputSettings,
 
 
 def graph_threads(backend: BackendSettings, renderer: str) -> int | None:
-    """Threads each graph runs on: the settings' own, else one where the pipelined frame loop draws with the CPU
-    splatter (the deformation then runs beside a draw that keeps every core busy, and a graph's own threads only
-    wait for each other: docs/speed.md, "Work shared as it finishes"), else the backend's default."""
-    if backend.threads is None and renderer == "cpu" and backend.pipeline is not False:
+    """Threads each graph runs on: the settings' own, else one where the CPU splatter draws (the pipelined loops
+    make whole frames at once, one per core, and onnxruntime's results depend on its thread count, so the serial
+    loop takes one too and makes the same bits: docs/speed.md, "Whole frames at once"), else the backend's
+    default."""
+    if backend.threads is None and renderer == "cpu":
         return 1
     return backend.threads
 

@@ -37,8 +37,8 @@ class RenderSettings:
     `render_target`: framebuffer precision, float32 (the contract's), float16 or uint8;
     `sort_interval`: depth-sort every k-th frame, reusing that order in between (1: every frame);
     `sort_key_bits`: 32 sorts exact float32 depth (the contract's), 16 sorts depth quantised to 65536 levels;
-    `graph_threads`: threads each graph runs on (None: the backend's default: one beside the pipelined CPU
-    splatter, else every core for onnxruntime);
+    `graph_threads`: threads each graph runs on (None: the backend's default: one where the CPU splatter draws,
+    else every core for onnxruntime);
     `early_stop`: experimental, off by default (docs/numerics.md, "Early stop of saturated pixels"): fractions of
     the depth-sorted Gaussians after which the splatter marks pixels whose transmittance is below the contract's
     TRANSMITTANCE_MIN, so that later Gaussians skip them (() : off; e.g. (0.5,))."""

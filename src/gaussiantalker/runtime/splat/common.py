@@ -98,7 +98,8 @@ def sorted_rows(sorter: DepthSorter, settings: RenderSettings, means, cov3d, rgb
 @runtime_checkable
 class Splatter(Protocol):
     """A frame's Gaussians in, pixels out, on the numerics contract: `prepare` needs no GL and is safe on a worker
-    thread, `draw` runs on the thread that owns the splatter; `last_timings` holds the last draw's STAGES seconds."""
+    thread, `draw` runs on the thread that owns the splatter (or, where `frames_at_once` > 1, on that many worker
+    threads at once); `last_timings` holds the last draw's STAGES seconds (the calling thread's last draw)."""
 
     settings: RenderSettings
     last_timings: dict[str, float]
@@ -115,6 +116,13 @@ class Splatter(Protocol):
 
     def release(self) -> None:
         """Free what the splatter holds; later draws raise RenderError."""
+
+    def frames_at_once(self) -> int:
+        """How many frames a frame loop may draw at once, each prepared and drawn whole on its own worker thread
+        (1: draws stay on the owning thread, as a GL context's must)."""
+
+    def begin_worker(self) -> None:
+        """Set up the calling worker thread to draw one of `frames_at_once` frames (run once per thread)."""
 
 
 __all__ = ["ALPHA_OUTPUTS", "FLOATS_PER_SPLAT", "FRAME_OUTPUTS", "STAGES", "PreparedSplats", "Splatter",

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from pathlib import Path
 
@@ -628,6 +629,11 @@ def _upscale(image, y0, y1, wy0, wy1, x0, x1, wx0, wx1, out):
                 out[y, x, c] = at_left * wx0[x] + at_right * wx1[x]
 
 
+# Most frames a loop draws at once (`CPUSplatter.frames_at_once`): each holds its sorted rows, parameters and
+# pixels (about 3 MB at 20k Gaussians and 512x512), so this bounds that memory on machines with many cores.
+MAX_FRAMES_AT_ONCE = 8
+
+
 class CPUSplatter:
     """`GLSplatter`'s interface (prepare, draw, render, release, last_timings, the same outputs) on the CPU.
 
@@ -641,7 +647,8 @@ class CPUSplatter:
         self.settings = settings or RenderSettings()
         self.threads = threads
         self._sorter = DepthSorter(self.settings.sort_interval, self.settings.sort_key_bits)
-        self.last_timings: dict[str, float] = dict.fromkeys(STAGES, 0.0)
+        self._timings = threading.local()
+        self._no_draw: dict[str, float] = dict.fromkeys(STAGES, 0.0)
         self.released = False
         if not _WARM and not kernels_cached():
             logger.warning("compiling the CPU splatter's kernels for this machine: once, about 20 s on 2 cores "
@@ -700,6 +707,28 @@ class CPUSplatter:
                ) -> np.ndarray:
         """Splat N Gaussians -> a frame, as `GLSplatter.render`."""
         return self.draw(self.prepare(means, cov3d, rgb, opacity, camera), background, output=output)
+
+    def frames_at_once(self) -> int:
+        """Frames a loop may draw at once, each whole on one core (`begin_worker`): numba's thread count for the
+        calling thread, at most MAX_FRAMES_AT_ONCE, where draws share no state (the contract's sort, every frame)
+        and no `threads` was set; else 1. On 2 cores two frames at once beat one frame on both cores by about 1.25x
+        (no parallel loops to start and join; docs/speed.md, "Whole frames at once")."""
+        if self.threads is not None or self._sorter.interval != 1:
+            return 1
+        return max(1, min(numba.get_num_threads(), MAX_FRAMES_AT_ONCE))
+
+    def begin_worker(self) -> None:
+        """The calling thread's kernels run on one thread (numba's thread count is per thread)."""
+        numba.set_num_threads(1)
+
+    @property
+    def last_timings(self) -> dict[str, float]:
+        """The STAGES seconds of the calling thread's last draw (frames drawn at once each keep their own)."""
+        return getattr(self._timings, "last", self._no_draw)
+
+    @last_timings.setter
+    def last_timings(self, timings: dict[str, float]) -> None:
+        self._timings.last = timings
 
     def release(self) -> None:
         """Nothing to free but the name; later draws raise RenderError like a released GLSplatter's."""
@@ -782,5 +811,5 @@ def warm_up() -> None:
     _WARM = True
 
 
-__all__ = ["BLEND_COUNTS", "CPUSplatter", "TILE", "cache_dir", "exp_approx", "kernels_cached", "splat_frame",
-           "upscale_bilinear", "warm_up"]
+__all__ = ["BLEND_COUNTS", "MAX_FRAMES_AT_ONCE", "TILE", "CPUSplatter", "cache_dir", "exp_approx", "kernels_cached",
+           "splat_frame", "upscale_bilinear", "warm_up"]

@@ -447,6 +447,13 @@ class GLSplatter:
             self.ctx.release()
         self.ctx = None
 
+    def frames_at_once(self) -> int:
+        """1: the GL context is bound to the thread that made it, so frames are drawn there one at a time."""
+        return 1
+
+    def begin_worker(self) -> None:
+        """Nothing: a GL splatter draws on no worker thread."""
+
     def __enter__(self) -> GLSplatter:
         return self
 
