@@ -245,6 +245,19 @@ def test_who_makes_whole_frames_at_once(small_export):
     with TalkingHead(small_export.path, renderer="gl", resolution=(32, 32)) as head:
         assert head.frame_renderer.frames_at_once() == 1  # a GL context is bound to its thread
 
+    class OwnSplatter:  # an app's splatter that does not say how many frames it can draw at once
+        def __init__(self, inner):
+            self.settings, self.inner = inner.settings, inner
+
+    from gaussiantalker.runtime.frame_renderer import FrameRenderer
+
+    with TalkingHead(small_export.path, renderer="cpu", resolution=(32, 32)) as head:
+        assert head.frame_renderer.frames_at_once() == cores
+        own = FrameRenderer(head.frame_renderer.graphs, OwnSplatter(head.frame_renderer.splatter),
+                            head.frame_renderer.camera, head.frame_renderer.background, rig=head.frame_renderer.rig)
+        assert own.frames_at_once() == 1
+        own.begin_worker()  # nothing to set up
+
     splatter, seen = CPUSplatter(), {}
 
     def worker():

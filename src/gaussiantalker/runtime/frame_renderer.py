@@ -67,12 +67,15 @@ class FrameRenderer:
 
     def frames_at_once(self) -> int:
         """How many frames the pipelined loops may make at once, each whole on its own worker thread (the
-        splatter's answer: 1 for GL)."""
-        return self.splatter.frames_at_once()
+        splatter's answer: 1 for GL, and for an app's own splatter that does not say)."""
+        at_once = getattr(self.splatter, "frames_at_once", None)
+        return 1 if at_once is None else int(at_once())
 
     def begin_worker(self) -> None:
         """Set up a worker thread of `frames_at_once` (the splatter's kernels on one core there)."""
-        self.splatter.begin_worker()
+        begin = getattr(self.splatter, "begin_worker", None)
+        if begin is not None:
+            begin()
 
     def render(self, drive: Drive, output: str = "uint8") -> np.ndarray:
         """One frame of `drive`: any of the splatter's outputs, or "semantic" (each Gaussian in its region's
