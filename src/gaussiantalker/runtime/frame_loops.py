@@ -40,7 +40,7 @@ def bare_frames(renderer: FrameRenderer, drives: Iterable[Drive], output: str, p
     made it)."""
     if not pipelined:
         for drive in drives:
-            yield renderer.draw(renderer.prepare(drive), output)
+            yield renderer.frame(drive, output)
         return
     workers = renderer.frames_at_once()
     if workers > 1:
