@@ -217,7 +217,7 @@ def test_bare_frames_are_the_same_pipelined_or_not(small_export, renderer, outpu
 @pytest.mark.parametrize("composite", [False, True])
 def test_whole_frames_at_once_are_the_frames_made_one_after_another(clip_export, monkeypatch, composite):
     """Three frames made at once on worker threads (more than this machine may have cores: the path runs anyway),
-    bare and composited, against the serial loop; and who may make frames at once."""
+    bare and composited, against the serial loop."""
     pytest.importorskip("numba", reason="the cpu extra is not installed")
     from gaussiantalker.runtime import TalkingHead
     from gaussiantalker.runtime.frame_renderer import FrameRenderer
