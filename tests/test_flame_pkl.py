@@ -134,6 +134,9 @@ def test_modern_pickle_and_chumpy_expressions(tmp_path, protocol, numpy_global):
     fake = {name: type(sys)(name) for name in ("chumpy", "chumpy.ch", "chumpy.reordering", "scipy.sparse._csc")}
     fake["chumpy.ch"].Ch, fake["chumpy.reordering"].Select = ch, select
     fake["chumpy.reordering"].transpose, fake["scipy.sparse._csc"].csc_matrix = transpose, Csc
+    # pickle imports a class's module with its parents: stand-ins for those too where SciPy is not imported (or not
+    # installed: the SDK never needs it)
+    fake.update({name: type(sys)(name) for name in ("scipy", "scipy.sparse") if name not in sys.modules})
     saved = {name: sys.modules.get(name) for name in fake}
     sys.modules.update(fake)
     try:
