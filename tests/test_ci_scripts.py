@@ -3,9 +3,9 @@
 `.ci/install`, `.ci/runtime-only`, `.ci/browser` and `.ci/run` run with a PATH of stubs: `apt-get`, `sudo`,
 `ldconfig`, `ls`, `id`, `python` and the commands the scripts call record their arguments (and the environment
 variables apt-get and the test run need); everything else on that PATH is a link to the real tool.
-`glslangValidator`, `shellcheck`, `espeak-ng`, `chromium` and `npm` are missing, `ldconfig` lists no libEGL and `ls`
-finds no DRI driver, so the install must ask apt-get for every Debian package, as root and through sudo as another
-user.
+`glslangValidator`, `shellcheck`, `espeak-ng`, `nginx`, `chromium` and `npm` are missing, `ldconfig` lists no
+libEGL and `ls` finds no DRI driver, so the install must ask apt-get for every Debian package, as root and through
+sudo as another user.
 Where `.ci/browser` fails, `.ci/run` must still run the suite with CI set and then fail; and the browser tests
 themselves, run in a fresh pytest without chromium (or without the npm renderer), must fail with CI set and skip
 without it. shellcheck lints every script in `.ci/` (CI installs it; elsewhere that test skips).
@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parent.parent
 CI_DIR = ROOT / ".ci"
 # Real tools the scripts use besides the stubbed ones (bash builtins need none).
 REAL_TOOLS = ("bash", "env", "grep", "dirname", "cat", "mktemp", "rm", "wc", "test", "mkdir", "touch", "true")
-DEBIAN_PACKAGES = {"libegl1", "libgl1-mesa-dri", "glslang-tools", "shellcheck", "espeak-ng"}
+DEBIAN_PACKAGES = {"libegl1", "libgl1-mesa-dri", "glslang-tools", "shellcheck", "espeak-ng", "nginx"}
 
 # Each stub appends one line to $STUB_LOG: its name, then its arguments separated by tabs.
 RECORD = 'printf "%s" "$(basename "$0")" >>"$STUB_LOG"; printf "\\t%s" "$@" >>"$STUB_LOG"; echo >>"$STUB_LOG"\n'
@@ -46,7 +46,7 @@ case "$1 $2" in
   "-c import cv2"|"-c import torch") exit 1 ;;
   "-m pytest") echo "pytest-ci	${CI-unset}" >>"$STUB_LOG" ;;  # the test run: is CI set for it?
   "-m venv") mkdir -p "$3/bin"
-             for tool in python gt-export gt-bench; do ln -s "$STUB_DIR/$tool" "$3/bin/$tool"; done ;;
+             for tool in python gt-export gt-bench gt-serve; do ln -s "$STUB_DIR/$tool" "$3/bin/$tool"; done ;;
 esac
 while [ $# -gt 0 ]; do [ "$1" = "-o" ] && echo stub >"$2"; shift; done  # scripts' outputs exist afterwards
 exit 0
@@ -61,6 +61,10 @@ while [ $# -gt 0 ]; do [ "$1" = "-o" ] && echo stub >"$2"; shift; done
     # gt-bench: `lam-web --install` (.ci/browser's npm install) exits $STUB_NPM_RC; the rest refuses as without torch.
     "gt-bench": RECORD + """[ "$1" = lam-web ] && exit "${STUB_NPM_RC:-0}"
 echo "gt-bench: needs the 'export' extra (torch not installed): pip install ..." >&2
+exit 2
+""",
+    # gt-serve in a runtime-only venv: no `serve` extra, one line.
+    "gt-serve": RECORD + """echo "gt-serve: needs the 'serve' extra (aiohttp not installed): ..." >&2
 exit 2
 """,
 }
@@ -110,14 +114,14 @@ def test_install_asks_apt_for_every_missing_package(tmp_path, uid):
     assert len(sudo) == (0 if uid == 0 else 2), calls
     pips = [call for call in calls if call[0] == "python" and call[1:4] == ["-m", "pip", "install"]]
     assert ["torch==2.13.0"] == [arg for arg in pips[0] if arg.startswith("torch")], "torch (CPU) comes first"
-    assert ".[export,dev,mnn,live,pipecat,cpu]" in pips[1]
+    assert ".[export,dev,mnn,serve,pipecat,cpu]" in pips[1]
     assert any("opencv-python-headless" in arg for arg in pips[2])
 
 
 def test_install_asks_apt_for_nothing_when_everything_is_there(tmp_path):
     env, log = _stub_path(tmp_path, 0)
     bin_dir = Path(env["PATH"])
-    for tool in ("glslangValidator", "shellcheck", "espeak-ng"):
+    for tool in ("glslangValidator", "shellcheck", "espeak-ng", "nginx"):
         (bin_dir / tool).symlink_to(bin_dir / "true")
     (bin_dir / "ldconfig").write_text('#!/bin/bash\necho "libEGL.so.1 (libc6,x86-64) => /lib/libEGL.so.1"\n')
     (bin_dir / "ls").write_text("#!/bin/bash\necho /usr/lib/x86_64-linux-gnu/dri/swrast_dri.so\n")
@@ -136,6 +140,7 @@ def test_runtime_only_runs_on_a_bare_machine(tmp_path, uid):
     assert not [call for call in calls if call[0] in ("apt-get", "sudo")]
     commands = [call[0] for call in calls]
     assert commands.count("gt-export") == 2 and commands.count("gt-bench") == 1, calls  # export + two refusals
+    assert commands.count("gt-serve") == 1, calls
     assert any(call[0] == "python" and "samples/play.py" in call for call in calls)
 
 

@@ -23,6 +23,8 @@ print(",".join(bad))
     ("gaussiantalker.cli.entry", ()),  # the console scripts check for the export extra before any torch
     ("gaussiantalker.cli.bench", ()),
     ("gaussiantalker.cli.web", ()),
+    ("gaussiantalker.cli.serve", ()),
+    ("gaussiantalker.serve.wire", ("gaussiantalker.exporter", "aiohttp", "jwt")),  # a bare runtime reads it
     ("gaussiantalker.sdk.bundle", ("gaussiantalker.runtime", "gaussiantalker.exporter")),
     ("gaussiantalker.sdk.audio", ("gaussiantalker.runtime", "gaussiantalker.exporter")),
     ("gaussiantalker.sdk.video", ("gaussiantalker.runtime", "gaussiantalker.exporter")),

@@ -56,7 +56,7 @@ def test_outside_a_checkout_they_say_how_to_get_one(tmp_path, command, module):
 
 def test_the_wheel_holds_no_benchmark_or_browser_harness(tmp_path):
     """`pip wheel .` packs src/gaussiantalker/ only: the launchers, never tools/ (benchmarks, the Chromium driver, the
-    web harness) nor web/."""
+    web harness) nor web/; gt-serve's own two pages are the only HTML it carries."""
     subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation", "-w",
                     str(tmp_path), str(CHECKOUT)], check=True, capture_output=True, timeout=300)
     import zipfile
@@ -65,6 +65,9 @@ def test_the_wheel_holds_no_benchmark_or_browser_harness(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     code = [name for name in names if not name.endswith(".dist-info/RECORD") and ".dist-info/" not in name]
     assert "gaussiantalker/runtime/head.py" in code and "gaussiantalker/cli/bench.py" in code
+    pages = {"gaussiantalker/serve/pages/client.html", "gaussiantalker/serve/pages/pixel.html"}
+    assert pages <= set(code)  # an installed gt-serve serves them
+    code = [name for name in code if name not in pages]
     tooling = [name for name in code if any(part in name for part in (
         "tools/", "/bench/", "/browser/", "chromium", "harness", "web_cli", "web_assets", "frame_digests", ".js",
         ".html"))]

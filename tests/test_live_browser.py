@@ -1,7 +1,7 @@
-"""The live sample in a real browser (samples/live_server.py, docs/live.md "WebRTC sample"): Debian's chromium,
+"""The pixel mode of `gt-serve` in a real browser (docs/serve.md, docs/live.md "WebRTC sample"): Debian's chromium,
 headless, with a fake microphone fed from a wav file, connects over WebRTC; the page must receive video at the
 session's size and rate and an audio track carrying sound, and the server's session must move the mouth with the
-speech it hears. Skips without chromium or the live extra, except where CI is set: there .ci/browser and
+speech it hears. Skips without chromium or the serve extra, except where CI is set: there .ci/browser and
 .ci/install install them, and the tests fail (tests/ci_tools.py)."""
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ MEDIA_FLAGS = ("--use-fake-ui-for-media-stream", "--use-fake-device-for-media-st
 
 
 def _requirements() -> None:
-    """Skip without chromium or the live extra; where CI is set, fail (tests/ci_tools.py)."""
+    """Skip without chromium or the serve extra; where CI is set, fail (tests/ci_tools.py)."""
     need_chromium()
-    need_module("aiortc", "live")
+    need_module("aiortc", "serve")
 
 
 @pytest.fixture(scope="session")
@@ -47,11 +47,12 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
-def _server(bundle: Path, port: int, python: tuple[str, ...] = ()) -> subprocess.Popen:
-    """live_server.py serving `bundle` on `port`, once it answers; `python`: arguments before the script's path
-    (a `-c` program that runs it, as the failure tests do)."""
-    return serving([sys.executable, *python, str(ROOT / "samples" / "live_server.py"), str(bundle), "--port",
-                    str(port), "--size", str(SIZE)], f"http://127.0.0.1:{port}/stats", 60)
+def _server(bundle: Path, port: int, python: tuple[str, ...] = ("-m", "gaussiantalker.cli.serve")) \
+        -> subprocess.Popen:
+    """gt-serve serving `bundle` on `port` in pixel mode, once it answers (on loopback without tokens, --debug for
+    the counters); `python`: what runs the command (a `-c` program that runs it, as the failure tests do)."""
+    return serving([sys.executable, *python, str(bundle), "--port", str(port), "--size", str(SIZE), "--debug",
+                    "--drain-s", "1"], f"http://127.0.0.1:{port}/readyz", 60, name="gt-serve")
 
 
 def _get(port: int, path: str):
@@ -159,7 +160,7 @@ def test_a_browser_killed_mid_reply_ends_its_session(browser_tools, small_export
     print(f"closed {seconds:.1f} s after the browser was killed")
 
 
-# live_server.py with failures injected by session, in the order the sessions start (FAILURES): a number N makes
+# gt-serve with failures injected by session, in the order the sessions start (FAILURES): a number N makes
 # rendering raise from frame N on (0: the first frame), "start" makes the head's live session fail to be made (an
 # error other than the SDK's own), None leaves the session alone.
 FAILURES = (25, 0, "start", None)
@@ -180,8 +181,8 @@ def failing_live(self, **kwargs):
         self.render = failing_render
     return live(self, **kwargs)
 TalkingHead.live = failing_live
-sys.argv = sys.argv[1:]
-runpy.run_path(sys.argv[0], run_name="__main__")
+sys.argv = ["gt-serve", *sys.argv[1:]]
+runpy.run_module("gaussiantalker.cli.serve", run_name="__main__", alter_sys=True)
 """
 
 
@@ -198,19 +199,22 @@ def _wait_failed(browser: Chromium, timeout: float = 30.0) -> dict:
 
 def test_a_session_that_fails_is_logged_once_told_to_the_page_and_closed(browser_tools, small_export):
     """Rendering that raises mid-reply (frame 25) or on the first frame, and a head whose live session cannot be
-    made: each is logged once, the page is told (the data channel's error, or the offer's answer) and leaves, the
-    session and its render thread are gone within 10 s, and the server then serves a page that works."""
+    made: each is logged once with its traceback, the page is told in one line without the error's text (the data
+    channel's error, or the offer's answer) and leaves, the session and its render thread are gone within 10 s, and
+    the server then serves a page that works."""
     port = _free_port()
     server = _server(small_export.path, port, ("-c", FAILING_SERVER))
     page = f"http://127.0.0.1:{port}/?source=file&autostart=1"
     messages = ["injected render failure from frame 25", "injected render failure from frame 0",
                 "injected start-up failure"]
+    told = ["the live session ended: rendering a frame raised (RuntimeError)"] * 2 \
+        + ["the live session could not start (RuntimeError)"]
     try:
         with Chromium(extra_flags=MEDIA_FLAGS) as browser:
-            for message in messages:
+            for message in told:
                 browser.navigate(page)
                 stats = _wait_failed(browser)
-                assert stats.get("state") == "failed" and message in (stats.get("error") or ""), (message, stats)
+                assert stats.get("state") == "failed" and stats.get("error") == message, (message, stats)
                 # Told, the page leaves at once (its beacon); 10 s allows for a loaded machine.
                 _seconds_until_closed(port, 10.0)
             browser.navigate(page)
@@ -219,7 +223,9 @@ def test_a_session_that_fails_is_logged_once_told_to_the_page_and_closed(browser
     finally:
         server.terminate()
         log = server.communicate(timeout=30)[0]
+    records = [line for line in log.splitlines() if " ERROR gaussiantalker.serve: " in line]
     for message in messages:
-        assert log.count(message) == 1, (message, log[-5000:])  # each failure logged once, with its traceback
-    assert log.count("Traceback") == len(messages), log[-5000:]
+        assert sum(message in record for record in records) == 1, (message, log[-5000:])  # each failure once
+    # Tracebacks of one place are logged once a minute (serve/logs.py): frame 0's repeats frame 25's.
+    assert log.count("Traceback") == 2 and log.count("its traceback as logged before") == 1, log[-5000:]
     assert "never retrieved" not in log, log[-3000:]

@@ -1,4 +1,4 @@
-"""Client-render live sessions over one WebSocket (samples/live_server.py --client-render, GET /live; docs/live.md
+"""Client-render live sessions over one WebSocket (`gt-serve --client-render`, GET /live; docs/live.md
 "One WebSocket a session"): a real server on loopback driven by an aiohttp client: every frame's drive and audio
 in order, the voice carried sample for sample, barge-in, the microphone source and
 the refusals of a bad page. No browser: tests/test_live_web.py runs the page itself, and checks the packet format
@@ -33,12 +33,16 @@ def server(small_export):
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    process = serving([sys.executable, str(ROOT / "samples" / "live_server.py"), str(small_export.path), "--port",
-                       str(port), "--client-render"], f"http://127.0.0.1:{port}/health", 120)
+    # --debug: the admin routes (/health, /drives) without tokens, on loopback (tests/test_serve_security.py has
+    # the tokens)
+    process = serving([sys.executable, "-m", "gaussiantalker.cli.serve", str(small_export.path), "--port",
+                       str(port), "--client-render", "--debug", "--drain-s", "1"],
+                      f"http://127.0.0.1:{port}/readyz", 120, name="gt-serve")
     yield module, port
     process.terminate()
     log = process.communicate(timeout=30)[0]
     assert "Traceback" not in log, log[-3000:]
+    assert log.count("started: client-render, ws") == log.count("ended after"), log[-3000:]  # a line each
 
 
 def _get(port: int, path: str) -> bytes:
@@ -48,7 +52,7 @@ def _get(port: int, path: str) -> bytes:
 async def _session(port: int, start: dict, *, frames: int, interrupt_at: int | None = None, mic=None,
                    raw: bytes | str | None = None) -> dict:
     """Open /live, send `start`, read `frames` frame packets (barging in after `interrupt_at` of them; sending
-    `mic` = (int16 samples, rate) in 20 ms chunks as fast as the socket takes them; sending `raw` after the
+    `mic` = (int16 samples, rate) in 20 ms chunks at real time, as a page does; sending `raw` after the
     answer), then leave. Returns the answer, the packets (raw bytes), the text messages and the session's
     recorded drives (GET /drives, read before leaving)."""
     import aiohttp
@@ -63,7 +67,9 @@ async def _session(port: int, start: dict, *, frames: int, interrupt_at: int | N
         if mic is not None:
             samples, rate = mic
             step = rate // 50
-            for first in range(0, samples.shape[0], step):
+            began = time.monotonic()
+            for k, first in enumerate(range(0, samples.shape[0], step)):
+                await asyncio.sleep(max(0.0, began + k * 0.02 - time.monotonic()))
                 await ws.send_bytes(samples[first:first + step].astype("<i2").tobytes())
         if raw is not None:
             await (ws.send_bytes(raw) if isinstance(raw, bytes) else ws.send_str(raw))

@@ -1,24 +1,25 @@
-"""Live sessions rendered by the client (docs/live.md, "Live, rendered by the client"): samples/live_server.py
---client-render streams each frame's drive with its voice, and samples/web/live.html draws it with the web player
+"""Live sessions rendered by the client (docs/live.md, "Live, rendered by the client"): `gt-serve --client-render`
+(with tokens: the page carries its own) streams each frame's drive with its voice, and its page
+(serve/pages/client.html) draws it with the web player
 when the voice reaches its pts. Two transports: "ws" (the page's default), one WebSocket carrying a frame packet
 (drive and audio) per frame, the audio played through WebAudio whose schedule is the clock; "webrtc", the drives on
 an unordered data channel beside an audio track.
 
 The format tests are pure Python; LiveAudio's (the ws page's audio schedule and clock) runs in node on a fake
 AudioContext. The browser tests run Debian's chromium headless on loopback against the server with the tests' small
-speaker: they skip without chromium, the web player's npm install or the live extra, except where CI is set
+speaker: they skip without chromium, the web player's npm install or the serve extra, except where CI is set
 (tests/ci_tools.py), where they fail."""
 
 from __future__ import annotations
 
 import base64
-import importlib.util
 import json
 import shutil
 import socket
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.request
 from pathlib import Path
@@ -26,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from ci_tools import BROWSER_INSTALL, need, need_chromium, need_module
+from serve_clients import SECRET
 
 from tools.bench.live_clients import serving
 
@@ -36,12 +38,11 @@ FLAGS = ("--autoplay-policy=no-user-gesture-required", "--disable-features=WebRt
 
 
 def _server_module():
-    """samples/live_server.py as a module (it needs the live extra)."""
-    need_module("aiortc", "live")
-    spec = importlib.util.spec_from_file_location("live_server_under_test", ROOT / "samples" / "live_server.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """The live wire format's module (gaussiantalker.serve.wire; it needs the serve extra)."""
+    need_module("aiohttp", "serve")
+    from gaussiantalker.serve import wire
+
+    return wire
 
 
 # -- the wire format, no browser -------------------------------------------------------------------------------
@@ -275,12 +276,12 @@ def test_live_audio_schedule_clock_underrun_and_barge_in(tmp_path):
 
 @pytest.fixture(scope="module")
 def live_web_ready() -> None:
-    """Chromium, the web player's npm install and the live extra, checked before the speaker is made."""
+    """Chromium, the web player's npm install and the serve extra, checked before the speaker is made."""
     from tools.browser.web_harness import check_web_player
 
     need_chromium()
     need(check_web_player(), BROWSER_INSTALL)
-    need_module("aiortc", "live")
+    need_module("aiortc", "serve")
 
 
 def _free_port() -> int:
@@ -290,13 +291,29 @@ def _free_port() -> int:
 
 
 def start_server(bundle: Path, port: int, timeout: float = 120.0) -> subprocess.Popen:
-    """live_server.py --client-render serving `bundle` on `port`, once it answers."""
-    return serving([sys.executable, str(ROOT / "samples" / "live_server.py"), str(bundle), "--port", str(port),
-                    "--client-render"], f"http://127.0.0.1:{port}/health", timeout)
+    """gt-serve --client-render serving `bundle` on `port` with tokens (tests/serve_clients.py SECRET), once it
+    answers."""
+    secret = Path(tempfile.mkdtemp(prefix="gt-serve-test-")) / "secret.txt"
+    secret.write_bytes(SECRET)
+    return serving([sys.executable, "-m", "gaussiantalker.cli.serve", str(bundle), "--port", str(port),
+                    "--client-render", "--secret-file", str(secret), "--drain-s", "1"],
+                   f"http://127.0.0.1:{port}/readyz", timeout, name="gt-serve")
 
 
 def _get(port: int, path: str) -> bytes:
-    return urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=10).read()
+    """GET `path` with an admin token (the tests read the server's counters and recorded drives)."""
+    from gaussiantalker.serve import mint_token
+
+    token = mint_token(SECRET, 60.0, admin=True)
+    return urllib.request.urlopen(f"http://127.0.0.1:{port}{path}{'&' if '?' in path else '?'}token={token}",
+                                  timeout=10).read()
+
+
+def page_token() -> str:
+    """A page's token (what an app's backend mints), for the page's ?token=."""
+    from gaussiantalker.serve import mint_token
+
+    return mint_token(SECRET, 600.0)
 
 
 def _wait(browser, expression: str, timeout: float = 90.0):
@@ -324,7 +341,7 @@ def server_drives(server, port: int, session: str) -> dict[int, dict]:
 def page_url(port: int, transport: str, source: str = "file") -> str:
     """The page starting a `source` session at once; ws is the page's default transport, so it is not named."""
     named = "" if transport == "ws" else f"&transport={transport}"
-    return f"http://127.0.0.1:{port}/?source={source}&autostart=1&size={SIZE}{named}"
+    return f"http://127.0.0.1:{port}/?source={source}&autostart=1&size={SIZE}{named}&token={page_token()}"
 
 
 # What the tests read of the page (window.liveWeb), the same in both transports; audio (LiveAudio's counts and the

@@ -325,7 +325,7 @@ console.log(JSON.stringify(cases.map(([descr]) => {{
 @pytest.mark.parametrize("run, seed", [pytest.param("ci", 0, id="ci"),
                                        pytest.param("heavy", 1000, id="heavy", marks=pytest.mark.heavy)])
 def test_fuzz_the_web_drive_decoder(tmp_path, run, seed):
-    """Live drive messages (samples/live_server.py `encode_drive`, FLAME and ARKit) with header fields set to
+    """Live drive messages (gaussiantalker.serve.wire `encode_drive`, FLAME and ARKit) with header fields set to
     0/-1/huge, bytes mutated anywhere and values made non-finite, through `decodeDrive` against `decode_drive`."""
     from test_live_web import _server_module
 

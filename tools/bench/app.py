@@ -17,8 +17,9 @@
                            FPS (bench/avatar.py)
     gt-bench live          live sessions: first-frame latency, agreement with offline frames, barge-in, drift,
                            sessions per process (bench/live_sessions.py)
-    gt-bench live-clients  client-render live sessions under load: late frames, server CPU, first-frame and
-                           barge-in latency per number of clients (bench/live_clients.py)
+    gt-bench live-clients  client-render live sessions under load (gt-serve, tokens on; beside an older server
+                           with --baseline-server): late frames, server CPU, first-frame and barge-in latency per
+                           number of clients (bench/live_clients.py)
     gt-bench pipeline      the pipelined frame loop against the serial one on the CPU splatter, alternating
                            (bench/pipeline_vs_serial.py)
     gt-bench blend-limit   the CPU splatter's blend: its work counts and time per fragment against the same
@@ -555,13 +556,22 @@ def live_clients(
                                   "(comma-separated: one run each): ws, one WebSocket a session; webrtc, an audio "
                                   "track and a data channel"),
     batch_frames: str = typer.Option("1", "--batch-frames", help="the server's frames per translator call at least "
-                                     "(comma-separated: one run each; live_server.py --batch-frames)"),
+                                     "(comma-separated: one run each; gt-serve --batch-frames)"),
     context_ms: float = typer.Option(1000.0, "--context-ms", min=0.0, help="the translator's past context "
-                                     "(live_server.py --context-ms)"),
+                                     "(gt-serve --context-ms)"),
+    baseline_server: Path = typer.Option(None, "--baseline-server", help="an older server script to run beside "
+                                         "gt-serve in alternating rounds (samples/live_server.py of an earlier "
+                                         "commit, e.g. `git show 49c2f1e:samples/live_server.py > FILE`)"),
+    baseline_checkout: Path = typer.Option(None, "--baseline-checkout", help="a checkout of the baseline's commit "
+                                           "(`git worktree add DIR COMMIT`): its src/ is what the baseline imports "
+                                           "[default: the checkout the script lies in]"),
+    rounds: int = typer.Option(1, "--rounds", min=1, help="rounds per N and server (with a baseline: old, new, "
+                               "old, new ...)"),
     out: Path = typer.Option(None, "--out", help="folder for live-clients.md and live-clients.json"),
 ) -> None:
-    """Client-render live sessions (samples/live_server.py --client-render) under N concurrent load clients:
-    late drives, server CPU per session-second, first-frame and barge-in latency; the largest N with <= 5% late."""
+    """Client-render live sessions (gt-serve --client-render, tokens on) under N concurrent load clients: late
+    drives, server CPU per session-second, first-frame and barge-in latency; the largest N with <= 5% late. With
+    --baseline-server, the same against an older server script, alternating, and the ratios new / old."""
     import itertools
 
     from .live_clients import TRANSPORT_NAMES, live_clients_table, run_live_clients_bench
@@ -577,6 +587,7 @@ def live_clients(
         raise typer.BadParameter("ws, webrtc or both", param_hint="--transport")
     if not batches or not all(1 <= b <= 8 for b in batches):
         raise typer.BadParameter("whole numbers in 1..8", param_hint="--batch-frames")
+    baseline = _live_baseline(baseline_server, baseline_checkout)
     import os
 
     result = {"load_at_start": os.getloadavg(), "runs": []}
@@ -584,7 +595,7 @@ def live_clients(
         typer.echo(f"{kind}: voice in {chunk:g} ms chunks, {batch} frames per translator call at least")
         result["runs"].append(run_live_clients_bench(bundle, counts, lookahead_ms, speak_s, chunk_ms=chunk,
                                                      log=typer.echo, transport=kind, batch_frames=batch,
-                                                     context_ms=context_ms))
+                                                     context_ms=context_ms, baseline=baseline, rounds=rounds))
     result["load_at_end"] = os.getloadavg()
     _stamp(result)
     table = "\n\n".join(f"{TRANSPORT_NAMES[run['transport']]}, voice pushed in {run['chunk_ms']:g} ms chunks at "
@@ -595,6 +606,30 @@ def live_clients(
     _write_report(out, "live-clients", "Live sessions rendered by the client, under load", result, table,
                   f"; load average (1, 5, 15 min) {', '.join(f'{v:.2f}' for v in result['load_at_start'])} at the "
                   f"start, {', '.join(f'{v:.2f}' for v in result['load_at_end'])} at the end.")
+
+
+def _live_baseline(script: Path | None, checkout: Path | None):
+    """`gt-bench live-clients`' baseline (a live_clients.Baseline, or None without --baseline-server)."""
+    from .live_clients import Baseline, baseline_checkout
+
+    if script is None:
+        if checkout is not None:
+            raise typer.BadParameter("needs --baseline-server", param_hint="--baseline-checkout")
+        return None
+    if not script.is_file():
+        raise typer.BadParameter(f"{script}: no such file", param_hint="--baseline-server")
+    checkout = checkout or baseline_checkout(script)
+    if checkout is None:
+        raise typer.BadParameter(f"{script} lies in no git checkout: name the checkout of its commit",
+                                 param_hint="--baseline-checkout")
+    if not (checkout / "src" / "gaussiantalker").is_dir():
+        raise typer.BadParameter(f"{checkout} has no src/gaussiantalker", param_hint="--baseline-checkout")
+    baseline = Baseline(script.resolve(), checkout.resolve())
+    try:
+        typer.echo(f"baseline: {baseline.script} on {baseline.package().parent.parent}")
+    except ValueError as error:  # it would import another checkout's package (this one's editable install)
+        raise typer.BadParameter(str(error), param_hint="--baseline-checkout") from None
+    return baseline
 
 
 def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: float, rounds: int,

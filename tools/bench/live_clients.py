@@ -1,16 +1,24 @@
-"""Client-render live sessions under load (docs/live.md, "Live, rendered by the client"): how many sessions one
-`samples/live_server.py --client-render` sustains on this machine.
+"""Client-render live sessions under load (docs/live.md, "Live, rendered by the client" and "Load"): how many
+sessions one `gt-serve BUNDLE --client-render` sustains on this machine, with tokens on, and, with a baseline, the
+same load against an older server script (a `samples/live_server.py` of an earlier commit, run on that commit's
+package) in alternating rounds.
 
-The server runs on loopback in a process of its own; N load clients (aiortc peers, in client processes of their
-own) each open a session with the sample speech as the voice (pushed by the server at real time in 20 ms chunks:
-the producer that costs the translator most, one call per frame), read every drive on the unordered "drives"
-data channel and every RTP packet of the audio track (counted, sequence numbers checked, not decoded: decoding
-is the page's cost, not the server's), interrupt after SPEAK_S and leave IDLE_S later.
+Each server runs on loopback in a process of its own, its output in a log file (one line a session start and end:
+a pipe nobody reads would fill and stall it). gt-serve checks tokens: its secret is a file in a temporary folder,
+each load client mints its own token with a subject of its own (sessions are capped per subject), and the bench
+reads /health with an admin token. The baseline has no tokens.
 
-Per N: late frames (a drive arriving more than LATE_TOLERANCE_S after its due time, start + pts on the wall
-clock, or never arriving), the server's CPU seconds per session-second, first-frame latency (the answer to the
-first speaking drive), barge-in latency (POST /interrupt to the first idle drive after it), audio packets
-received per expected packet, and the machine's load average.
+N load clients (aiortc peers, in client processes of their own) each open a session with the sample speech as the
+voice (pushed by the server at real time in 20 ms chunks: the producer that costs the translator most, one call
+per frame), read every drive on the unordered "drives" data channel and every RTP packet of the audio track
+(counted, sequence numbers checked, not decoded: decoding is the page's cost, not the server's), interrupt after
+SPEAK_S and leave IDLE_S later.
+
+Per server and N: late frames (a drive arriving more than LATE_TOLERANCE_S after its due time, start + pts on the
+wall clock, or never arriving), the server's CPU seconds per session-second, first-frame latency (the answer to
+the first speaking drive), barge-in latency (POST /interrupt to the first idle drive after it), audio packets
+received per expected packet, and the machine's load average; with a baseline, each figure's new / old ratio over
+the rounds pooled (rounds run old, new, old, new ... for each N).
 """
 
 from __future__ import annotations
@@ -24,14 +32,20 @@ import socket
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.request
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
-SERVER = ROOT / "samples" / "live_server.py"
+SERVE_MODULE = "gaussiantalker.cli.serve"  # gt-serve
+SPEECH = ROOT / "samples" / "demo_speech.wav"  # the voice of every server under test: the same file for all
+SERVER_START_S = 180.0
+TOKEN_TTL_S = 900.0  # a client's token: longer than its stagger, its session and the requests after it
+DEFAULT_MAX_SESSIONS = 100  # gt-serve's cap in client-render mode: raised only for a larger N
 SPEAK_S = 4.0
 IDLE_S = 1.5
 STAGGER_S = 0.05  # between two clients' offers: a ramp, not a stampede of DTLS handshakes
@@ -42,6 +56,7 @@ CLOCK_WINDOW_S = 2.0  # the page's clock follows the smallest arrival - pts over
 CLIENTS_PER_PROCESS = 40
 HEADER = struct.Struct("<4sBBBBIIdHH")  # a drive message's header
 PACKET_DRIVE_BYTES = struct.Struct("<I")  # a frame packet's drive length, at offset 8
+WIRE_VERSION = 1  # the frame packet and drive message this bench reads (the baseline's answer names none)
 TRANSPORTS = ("webrtc", "ws")
 TRANSPORT_NAMES = {"ws": "One WebSocket a session (frame packets: drive + int16 audio)",
                    "webrtc": "WebRTC (drives on a data channel, voice on an Opus audio track)"}
@@ -59,7 +74,21 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-async def _client(url: str, delay: float, speak_s: float, idle_s: float, chunk_ms: float, packets: dict) -> dict:
+def _auth(token: str | None) -> dict[str, str]:
+    """The headers that carry a client's token (none for a server without tokens)."""
+    return {"Authorization": f"Bearer {token}"} if token else {}
+
+
+def _check_wire(answer: dict) -> None:
+    """A server that names its wire version must speak the one this bench reads (the baseline names none)."""
+    if answer.get("wire", WIRE_VERSION) != WIRE_VERSION:
+        raise RuntimeError(f"the server speaks wire version {answer['wire']}; this bench reads {WIRE_VERSION}")
+
+
+async def _client(url: str, delay: float, speak_s: float, idle_s: float, chunk_ms: float, packets: dict,
+                  token: str | None = None) -> dict:
+    """One load client on WebRTC: drives on the data channel, the voice's RTP packets counted; `token` (None: no
+    tokens) goes with every request."""
     import aiohttp
     from aiortc import RTCPeerConnection, RTCSessionDescription
 
@@ -78,7 +107,7 @@ async def _client(url: str, delay: float, speak_s: float, idle_s: float, chunk_m
             result["drives"].append((index, epoch, flags & 1, pts, arrival, len(message)))
 
         await pc.setLocalDescription(await pc.createOffer())
-        async with aiohttp.ClientSession() as http:
+        async with aiohttp.ClientSession(headers=_auth(token)) as http:
             sent = time.monotonic()
             async with http.post(f"{url}/offer", json={"sdp": pc.localDescription.sdp,
                                                         "type": pc.localDescription.type, "source": "file",
@@ -86,6 +115,7 @@ async def _client(url: str, delay: float, speak_s: float, idle_s: float, chunk_m
                 if reply.status != 200:
                     raise RuntimeError(f"offer: HTTP {reply.status}: {await reply.text()}")
                 answer = await reply.json()
+            _check_wire(answer)
             await pc.setRemoteDescription(RTCSessionDescription(sdp=answer["sdp"], type=answer["type"]))
             result.update(offer_sent=sent, answered=time.monotonic(), start_time=answer["start_time"],
                           fps=answer["fps"])
@@ -106,22 +136,26 @@ async def _client(url: str, delay: float, speak_s: float, idle_s: float, chunk_m
     return result
 
 
-async def _ws_client(url: str, delay: float, speak_s: float, idle_s: float, chunk_ms: float) -> dict:
+async def _ws_client(url: str, delay: float, speak_s: float, idle_s: float, chunk_ms: float,
+                     token: str | None = None) -> dict:
     """One load client on the WebSocket transport: reads every frame packet (its drive header and its audio's
     length; the audio is not played: that is the page's cost), barges in after `speak_s` and leaves `idle_s`
-    later."""
+    later. `token` (None: no tokens) goes with the socket's request; a close by the server before the client
+    leaves is recorded (`server_closed`: its close code)."""
     import aiohttp
 
     await asyncio.sleep(delay)
-    result: dict = {"drives": [], "error": None, "audio_packets": 0, "audio_lost": 0, "audio_per_s": 0.0}
+    result: dict = {"drives": [], "error": None, "audio_packets": 0, "audio_lost": 0, "audio_per_s": 0.0,
+                    "server_closed": None}
     try:
-        async with aiohttp.ClientSession() as http:
+        async with aiohttp.ClientSession(headers=_auth(token)) as http:
             sent = time.monotonic()
             async with http.ws_connect(url.replace("http://", "ws://") + "/live", max_msg_size=1 << 20) as socket:
                 await socket.send_json({"source": "file", "chunk_ms": chunk_ms})
                 answer = await socket.receive_json(timeout=120)
                 if "error" in answer:
                     raise RuntimeError(f"start: {answer['error']}")
+                _check_wire(answer)
                 frame_samples = answer["sample_rate"] / answer["fps"]
                 result.update(offer_sent=sent, answered=time.monotonic(), start_time=answer["start_time"],
                               fps=answer["fps"], audio_per_s=float(answer["fps"]))
@@ -138,6 +172,7 @@ async def _ws_client(url: str, delay: float, speak_s: float, idle_s: float, chun
                         # A frame's audio is its share of the timeline: 640 or 641 samples where fps does not
                         # divide the rate.
                         result["audio_packets"] += abs(samples - frame_samples) < 1
+                    result["server_closed"] = socket.close_code
 
                 reader = asyncio.ensure_future(read())
                 await asyncio.sleep(max(0.0, result["answered"] + speak_s - time.monotonic()))
@@ -152,8 +187,9 @@ async def _ws_client(url: str, delay: float, speak_s: float, idle_s: float, chun
 
 
 def _client_process(url: str, count: int, first: int, speak_s: float, idle_s: float, chunk_ms: float,
-                    queue, transport: str = "webrtc") -> None:
-    """`count` load clients on one event loop; their results go to `queue`."""
+                    queue, transport: str = "webrtc", tokens: list | None = None) -> None:
+    """`count` load clients on one event loop (`tokens`: each one's, or None without tokens); their results go to
+    `queue`."""
     from aiortc.rtcrtpreceiver import RTCRtpReceiver
 
     packets: dict = {}  # id(receiver) -> [packets, lost, last sequence number]
@@ -168,20 +204,35 @@ def _client_process(url: str, count: int, first: int, speak_s: float, idle_s: fl
 
     RTCRtpReceiver._handle_rtp_packet = count_packet
 
+    tokens = tokens or [None] * count
+
     async def main() -> list:
         if transport == "ws":
-            return await asyncio.gather(*(_ws_client(url, (first + k) * STAGGER_S, speak_s, idle_s, chunk_ms)
-                                          for k in range(count)))
+            return await asyncio.gather(*(_ws_client(url, (first + k) * STAGGER_S, speak_s, idle_s, chunk_ms,
+                                                     tokens[k]) for k in range(count)))
         return await asyncio.gather(*(_client(url, (first + k) * STAGGER_S, speak_s, idle_s, chunk_ms,
-                                              packets) for k in range(count)))
+                                              packets, tokens[k]) for k in range(count)))
 
     queue.put(asyncio.run(main()))
 
 
-def serving(command: list[str], url: str, timeout: float, name: str = "live_server.py") -> subprocess.Popen:
+def serving(command: list[str], url: str, timeout: float, name: str = "live_server.py", *,
+            log_path: Path | None = None, cwd: Path | None = None, env: dict | None = None) -> subprocess.Popen:
     """Start `command` (the server `name`) and return it once `url` answers; RuntimeError with its output's tail if
-    it exits first or does not answer within `timeout` seconds (then it is killed)."""
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    it exits first or does not answer within `timeout` seconds (then it is killed). Its output goes to the
+    returned process's stdout pipe, or to `log_path` (a server with many sessions logs more than a pipe holds
+    until it is read); `cwd` and `env` as for subprocess.Popen."""
+    if log_path is None:
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=cwd,
+                                   env=env)
+    else:
+        with open(log_path, "w") as log:
+            process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, text=True, cwd=cwd, env=env)
+
+    def output_tail() -> str:
+        text = process.stdout.read() if log_path is None else Path(log_path).read_text(errors="replace")
+        return text[-3000:]
+
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
@@ -189,18 +240,252 @@ def serving(command: list[str], url: str, timeout: float, name: str = "live_serv
             return process
         except OSError:
             if process.poll() is not None:
-                raise RuntimeError(f"{name} exited: {process.stdout.read()[-3000:]}") from None
+                raise RuntimeError(f"{name} exited: {output_tail()}") from None
             time.sleep(0.2)
     process.kill()
-    raise RuntimeError(f"{name} did not answer within {timeout:g} s: {process.stdout.read()[-3000:]}")
+    process.wait()
+    raise RuntimeError(f"{name} did not answer within {timeout:g} s: {output_tail()}")
 
 
-def _start_server(bundle: Path, port: int, lookahead_ms: float, batch_frames: int = 1,
-                  context_ms: float = 1000.0) -> subprocess.Popen:
-    return serving([sys.executable, str(SERVER), str(bundle), "--port", str(port), "--client-render",
-                    "--lookahead-ms", str(lookahead_ms), "--batch-frames", str(batch_frames), "--context-ms",
-                    str(context_ms)],
-                   f"http://127.0.0.1:{port}/health", 180)
+@dataclass(frozen=True)
+class ServerSettings:
+    """What every server under test runs with (the same for the baseline and gt-serve)."""
+
+    lookahead_ms: float = 160.0
+    batch_frames: int = 1
+    context_ms: float = 1000.0
+
+    def arguments(self) -> list[str]:
+        """The options both servers' command lines share."""
+        return ["--client-render", "--audio", str(SPEECH), "--lookahead-ms", str(self.lookahead_ms),
+                "--batch-frames", str(self.batch_frames), "--context-ms", str(self.context_ms)]
+
+
+@dataclass(frozen=True)
+class Baseline:
+    """An older server script (`samples/live_server.py` of an earlier commit) and the checkout of that commit
+    whose `src/` it imports (put first on PYTHONPATH, and its working folder, so the package it loads is that
+    commit's and not this checkout's editable install)."""
+
+    script: Path
+    checkout: Path
+
+    @property
+    def src(self) -> Path:
+        return self.checkout / "src"
+
+    def env(self) -> dict:
+        """The environment the baseline runs in: this one, with the checkout's src/ first on PYTHONPATH."""
+        paths = [str(self.src), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+        return {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
+
+    def package(self) -> Path:
+        """Where the baseline's `gaussiantalker.runtime` comes from, asked of the interpreter it runs in;
+        ValueError unless it is the checkout's."""
+        probe = subprocess.run([sys.executable, "-c", "import gaussiantalker.runtime as r; print(r.__file__)"],
+                               cwd=self.src, env=self.env(), capture_output=True, text=True, timeout=120)
+        if probe.returncode != 0:
+            raise ValueError(f"the baseline's package does not import from {self.src}: "
+                             f"{probe.stderr.strip()[-500:]}")
+        found = Path(probe.stdout.strip().splitlines()[-1]).resolve()
+        if not found.is_relative_to(self.src.resolve()):
+            raise ValueError(f"the baseline would import gaussiantalker from {found}, not from {self.src}")
+        return found
+
+    def commit(self) -> str | None:
+        """The checkout's commit, "+changes" after it where its src/ differs from it (None where git cannot
+        say)."""
+        probe = subprocess.run(["git", "-C", str(self.checkout), "rev-parse", "HEAD"], capture_output=True,
+                               text=True)
+        if not probe.stdout.strip():
+            return None
+        changed = subprocess.run(["git", "-C", str(self.checkout), "diff", "--quiet", "HEAD", "--", "src"],
+                                 capture_output=True).returncode != 0
+        return probe.stdout.strip() + ("+changes" if changed else "")
+
+    def describe(self) -> dict:
+        """The baseline as the report names it; ValueError where its package would not be its checkout's."""
+        return {"script": str(self.script), "checkout": str(self.checkout), "commit": self.commit(),
+                "package": str(self.package())}
+
+
+def baseline_checkout(script: Path) -> Path | None:
+    """The git checkout a baseline script lies in (None when it lies in none)."""
+    probe = subprocess.run(["git", "-C", str(script.resolve().parent), "rev-parse", "--show-toplevel"],
+                           capture_output=True, text=True)
+    return Path(probe.stdout.strip()) if probe.returncode == 0 and probe.stdout.strip() else None
+
+
+@dataclass
+class Server:
+    """A server under test: `label` "new" (gt-serve, tokens signed with `secret`) or "old" (the baseline, no
+    tokens), its process, base URL, command and log file."""
+
+    label: str
+    process: subprocess.Popen
+    url: str
+    command: list[str]
+    log_path: Path
+    secret: bytes | None = None
+    runs: list[dict] = field(default_factory=list)  # its rows, one per N and round
+
+    def client_tokens(self, count: int, tag: str) -> list[str | None]:
+        """A token per load client, each with its own subject (gt-serve caps sessions per subject)."""
+        if self.secret is None:
+            return [None] * count
+        from gaussiantalker.serve import mint_token
+
+        return [mint_token(self.secret, TOKEN_TTL_S, subject=f"gt-bench-{tag}-{k}") for k in range(count)]
+
+    def open_sessions(self) -> int:
+        """The sessions it holds now (/health, with an admin token where it checks tokens)."""
+        headers = {}
+        if self.secret is not None:
+            from gaussiantalker.serve import mint_token
+
+            headers = _auth(mint_token(self.secret, 60.0, subject="gt-bench-admin", admin=True))
+        request = urllib.request.Request(f"{self.url}/health", headers=headers)
+        return json.loads(urllib.request.urlopen(request, timeout=10).read())["sessions"]
+
+    def wait_idle(self, timeout: float = 30.0) -> bool:
+        """Wait until every session has closed (before the next round); False if some are open at `timeout`."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.open_sessions() == 0:
+                return True
+            time.sleep(0.5)
+        return False
+
+    def stop(self) -> dict:
+        """Stop it; its log's tail and how many of its lines name an error or a traceback."""
+        self.process.terminate()
+        try:
+            self.process.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+        text = self.log_path.read_text(errors="replace") if self.log_path.is_file() else ""
+        errors = sum(" ERROR " in line or "Traceback" in line for line in text.splitlines())
+        return {"log_tail": text[-2000:], "log_error_lines": errors}
+
+
+def _start_new_server(bundle: Path, settings: ServerSettings, folder: Path, max_sessions: int) -> Server:
+    """gt-serve on a free loopback port, tokens on (a fresh secret in `folder`), once /readyz answers."""
+    from gaussiantalker.serve import new_secret, read_secret
+
+    secret_path = folder / "secret.txt"
+    descriptor = os.open(secret_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(descriptor, "w") as file:
+        file.write(new_secret() + "\n")
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    command = [sys.executable, "-m", SERVE_MODULE, str(bundle), "--port", str(port), "--secret-file",
+               str(secret_path), "--max-sessions", str(max_sessions), *settings.arguments()]
+    log_path = folder / "gt-serve.log"
+    process = serving(command, f"{url}/readyz", SERVER_START_S, name="gt-serve", log_path=log_path)
+    return Server("new", process, url, command, log_path, secret=read_secret(secret_path))
+
+
+def _start_baseline_server(baseline: Baseline, bundle: Path, settings: ServerSettings, folder: Path) -> Server:
+    """The baseline script on a free loopback port, on its checkout's package, once /health answers."""
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    command = [sys.executable, str(baseline.script), str(bundle), "--port", str(port), *settings.arguments()]
+    log_path = folder / "baseline.log"
+    process = serving(command, f"{url}/health", SERVER_START_S, name=baseline.script.name, log_path=log_path,
+                      cwd=baseline.src, env=baseline.env())
+    return Server("old", process, url, command, log_path)
+
+
+def _run_clients(url: str, tokens: list, speak_s: float, idle_s: float, chunk_ms: float, transport: str) -> list:
+    """One round's load clients (len(tokens) of them, CLIENTS_PER_PROCESS a process); their records."""
+    context = multiprocessing.get_context("spawn")
+    n = len(tokens)
+    queue = context.Queue()
+    processes = []
+    for first in range(0, n, CLIENTS_PER_PROCESS):
+        count = min(CLIENTS_PER_PROCESS, n - first)
+        process = context.Process(target=_client_process, args=(url, count, first, speak_s, idle_s, chunk_ms, queue,
+                                                                transport, tokens[first:first + count]))
+        process.start()
+        processes.append(process)
+    clients = []
+    for _ in processes:
+        clients += queue.get(timeout=120 + n * STAGGER_S + speak_s + idle_s)
+    for process in processes:
+        process.join(30)
+    return clients
+
+
+def _run_round(server: Server, n: int, index: int, speak_s: float, idle_s: float, chunk_ms: float,
+               transport: str) -> tuple[dict, list]:
+    """N load clients against `server` once: the round's row and its clients' records."""
+    tokens = server.client_tokens(n, f"n{n}-r{index}")
+    load_before = os.getloadavg()
+    cpu_before, started = _cpu_seconds(server.process.pid), time.monotonic()
+    clients = _run_clients(server.url, tokens, speak_s, idle_s, chunk_ms, transport)
+    cpu_s, wall_s = _cpu_seconds(server.process.pid) - cpu_before, time.monotonic() - started
+    row = {"server": server.label, "n": n, "round": index, **_analyse(clients, cpu_s, wall_s),
+           "load_before": load_before, "load_after": os.getloadavg()}
+    row["drained"] = server.wait_idle()  # every session closed before the next round
+    return row, clients
+
+
+def _round_line(row: dict) -> str:
+    """A round's progress line."""
+    return (f"N={row['n']} round {row['round'] + 1} {row['server']}: late {100 * row['late_share']:.1f}%, "
+            f"{_cpu(row['cpu_s_per_session_s'])} CPU s per session-second, first frame p50 "
+            f"{_ms(row['first_frame']['p50_ms'])} ms, barge-in p50 {_ms(row['barge_in']['p50_ms'])} ms, failed "
+            f"{row['failed']}, closed by the server {row['server_closed']}, load {row['load_before'][0]:.2f}->"
+            f"{row['load_after'][0]:.2f}" + ("" if row["drained"] else ", sessions still open after 30 s"))
+
+
+def _pooled(rows: list[dict], clients: list) -> dict:
+    """One server's figures for one N over all its rounds: every client's record together, CPU summed."""
+    return {"n": rows[0]["n"], "rounds": len(rows),
+            **_analyse(clients, sum(r["server_cpu_s"] for r in rows), sum(r["wall_s"] for r in rows)),
+            "load_before": rows[0]["load_before"], "load_after": rows[-1]["load_after"]}
+
+
+def _alternate(servers: list[Server], counts: list[int], rounds: int, speak_s: float, idle_s: float,
+               chunk_ms: float, transport: str, log) -> dict[str, list[dict]]:
+    """For each N, `rounds` rounds of every server in turn (old, new, old, new ...); each server's pooled row
+    per N, by label (every round's row goes to the server's `runs`)."""
+    pooled: dict[str, list[dict]] = {server.label: [] for server in servers}
+    for n in counts:
+        records: dict[str, tuple[list, list]] = {server.label: ([], []) for server in servers}
+        for index in range(rounds):
+            for server in servers:
+                row, clients = _run_round(server, n, index, speak_s, idle_s, chunk_ms, transport)
+                log(_round_line(row))
+                server.runs.append(row)
+                records[server.label][0].append(row)
+                records[server.label][1].extend(clients)
+        for label, (rows, clients) in records.items():
+            pooled[label].append(_pooled(rows, clients))
+    return pooled
+
+
+def _ratio(new, old) -> float | None:
+    """new / old, None where either is missing or old is 0."""
+    return new / old if new is not None and old else None
+
+
+def _ratios(new_runs: list[dict], old_runs: list[dict]) -> list[dict]:
+    """Per N: gt-serve's figures over the baseline's."""
+    out = []
+    for new, old in zip(new_runs, old_runs, strict=True):
+        out.append({"n": new["n"], "late_share": _ratio(new["late_share"], old["late_share"]),
+                    "first_frame_p50": _ratio(new["first_frame"]["p50_ms"], old["first_frame"]["p50_ms"]),
+                    "cpu_s_per_session_s": _ratio(new["cpu_s_per_session_s"], old["cpu_s_per_session_s"]),
+                    "barge_in_p50": _ratio(new["barge_in"]["p50_ms"], old["barge_in"]["p50_ms"])})
+    return out
+
+
+def _largest_sustained(runs: list[dict]) -> int:
+    """The largest N with at most 5% late frames and no failed client (0: none)."""
+    sustained = [row["n"] for row in runs if row["late_share"] <= 0.05 and not row["failed"]]
+    return max(sustained) if sustained else 0
 
 
 def _percentiles(values: list[float]) -> dict:
@@ -277,84 +562,118 @@ def _analyse(clients: list[dict], cpu_s: float, wall_s: float) -> dict:
             "cpu_s_per_session_s": cpu_s / session_s if session_s else None,
             "first_frame": _percentiles(first_frame), "barge_in": _percentiles(barge_in),
             "audio_packets_per_expected": packets / expected_packets if expected_packets else 0.0,
-            "audio_packets_lost": lost}
+            "audio_packets_lost": lost, "server_closed": sum(bool(c.get("server_closed")) for c in clients)}
 
 
 def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float = 160.0,
                            speak_s: float = SPEAK_S, idle_s: float = IDLE_S, chunk_ms: float = 20.0,
                            log=print, transport: str = "webrtc", batch_frames: int = 1,
-                           context_ms: float = 1000.0) -> dict:
-    """Start the client-render server once, then for each N its load clients on `transport` ("webrtc": audio
-    track and data channel; "ws": one WebSocket); returns the figures per N."""
+                           context_ms: float = 1000.0, baseline: Baseline | None = None, rounds: int = 1) -> dict:
+    """Start gt-serve (tokens on) and, with `baseline`, the baseline script, then for each N `rounds` rounds of
+    its load clients on `transport` ("webrtc": audio track and data channel; "ws": one WebSocket) against each
+    server in turn; returns gt-serve's figures per N (`runs`), the baseline's and the ratios."""
     if transport not in TRANSPORTS:
         raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
-    port = _free_port()
-    url = f"http://127.0.0.1:{port}"
-    server = _start_server(bundle, port, lookahead_ms, batch_frames, context_ms)
-    context = multiprocessing.get_context("spawn")
-    runs = []
-    try:
-        for n in counts:
-            load_before = os.getloadavg()
-            cpu_before, started = _cpu_seconds(server.pid), time.monotonic()
-            queue = context.Queue()
-            processes = []
-            for first in range(0, n, CLIENTS_PER_PROCESS):
-                count = min(CLIENTS_PER_PROCESS, n - first)
-                process = context.Process(target=_client_process, args=(url, count, first, speak_s, idle_s,
-                                                                        chunk_ms, queue, transport))
-                process.start()
-                processes.append(process)
-            clients = []
-            for _ in processes:
-                clients += queue.get(timeout=120 + n * STAGGER_S + speak_s + idle_s)
-            for process in processes:
-                process.join(30)
-            cpu_s, wall_s = _cpu_seconds(server.pid) - cpu_before, time.monotonic() - started
-            row = {"n": n, **_analyse(clients, cpu_s, wall_s), "load_before": load_before,
-                   "load_after": os.getloadavg()}
-            runs.append(row)
-            log(f"N={n}: late {100 * row['late_share']:.1f}%, {row['cpu_s_per_session_s']:.3f} CPU s per "
-                f"session-second, first frame p50 {row['first_frame']['p50_ms']} ms, barge-in p50 "
-                f"{row['barge_in']['p50_ms']} ms, failed {row['failed']}, load {load_before[0]:.2f}->"
-                f"{row['load_after'][0]:.2f}")
-            deadline = time.monotonic() + 30  # every session closed before the next N
-            while time.monotonic() < deadline:
-                health = json.loads(urllib.request.urlopen(f"{url}/health", timeout=10).read())
-                if health["sessions"] == 0:
-                    break
-                time.sleep(0.5)
-    finally:
-        server.terminate()
-        server_log = server.communicate(timeout=30)[0]
-    sustained = [row["n"] for row in runs if row["late_share"] <= 0.05 and not row["failed"]]
-    return {"runs": runs, "largest_n_within_5pct_late": max(sustained) if sustained else 0,
-            "late_tolerance_ms": 1000 * LATE_TOLERANCE_S, "speak_s": speak_s, "idle_s": idle_s,
-            "lookahead_ms": lookahead_ms, "chunk_ms": chunk_ms, "transport": transport, "batch_frames": batch_frames,
-            "context_ms": context_ms,
-            "server_log_tail": server_log[-2000:]}
+    settings = ServerSettings(lookahead_ms, batch_frames, context_ms)
+    described = baseline.describe() if baseline is not None else None
+    servers: list[Server] = []
+    logs: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory(prefix="gt-bench-live-clients-") as folder:
+        try:
+            if baseline is not None:
+                servers.append(_start_baseline_server(baseline, bundle, settings, Path(folder)))
+            servers.append(_start_new_server(bundle, settings, Path(folder), max(DEFAULT_MAX_SESSIONS,
+                                                                                 max(counts))))
+            pooled = _alternate(servers, counts, rounds, speak_s, idle_s, chunk_ms, transport, log)
+        finally:
+            for server in servers:
+                logs[server.label] = server.stop()
+    new = next(server for server in servers if server.label == "new")
+    result = {"runs": pooled["new"], "largest_n_within_5pct_late": _largest_sustained(pooled["new"]),
+              "round_runs": [row for server in servers for row in server.runs], "rounds": rounds,
+              "late_tolerance_ms": 1000 * LATE_TOLERANCE_S, "speak_s": speak_s, "idle_s": idle_s,
+              "lookahead_ms": lookahead_ms, "chunk_ms": chunk_ms, "transport": transport, "batch_frames": batch_frames,
+              "context_ms": context_ms, "server": {"command": new.command, "tokens": True},
+              "server_log_tail": logs["new"]["log_tail"], "server_log_error_lines": logs["new"]["log_error_lines"],
+              "baseline": None, "ratios": None}
+    if baseline is not None:
+        old = pooled["old"]
+        result["baseline"] = {**described, "command": servers[0].command, "tokens": False, "runs": old,
+                              "largest_n_within_5pct_late": _largest_sustained(old),
+                              "server_log_tail": logs["old"]["log_tail"],
+                              "server_log_error_lines": logs["old"]["log_error_lines"]}
+        result["ratios"] = _ratios(pooled["new"], old)
+    return result
 
 
-def live_clients_table(result: dict) -> str:
+def _ms(value) -> str:
+    return "–" if value is None else f"{value:.0f}"
+
+
+def _cpu(value) -> str:
+    return "–" if value is None else f"{value:.3f}"
+
+
+def _times(value) -> str:
+    return "–" if value is None else f"{value:.2f}×"
+
+
+def _detail_table(runs: list[dict], largest: int, tolerance_ms: float) -> str:
+    """One server's figures per N, every column."""
     lines = ["| N | late frames | lost | jitter p50 / p99 | behind schedule | delay p50 / p99 | server CPU s per "
              "session-s | first frame p50 / p95 | barge-in p50 / p95 | audio packets | failed | load avg (1 min) "
              "before → after |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-
-    def ms(value) -> str:
-        return "–" if value is None else f"{value:.0f}"
-
-    for row in result["runs"]:
+    for row in runs:
         lines.append(f"| {row['n']} | {100 * row['late_share']:.1f}% ({row['late_frames']}/{row['frames_due']}) | "
-                     f"{row['missing_frames']} | {ms(row['jitter_p50_ms'])} / {ms(row['jitter_p99_ms'])} ms | "
-                     f"{100 * row['behind_share']:.1f}% | {ms(row['delay_p50_ms'])} / {ms(row['delay_p99_ms'])} ms | "
-                     f"{row['cpu_s_per_session_s']:.3f} | {ms(row['first_frame']['p50_ms'])} / "
-                     f"{ms(row['first_frame']['p95_ms'])} ms | {ms(row['barge_in']['p50_ms'])} / "
-                     f"{ms(row['barge_in']['p95_ms'])} ms | {100 * row['audio_packets_per_expected']:.0f}% | "
+                     f"{row['missing_frames']} | {_ms(row['jitter_p50_ms'])} / {_ms(row['jitter_p99_ms'])} ms | "
+                     f"{100 * row['behind_share']:.1f}% | {_ms(row['delay_p50_ms'])} / {_ms(row['delay_p99_ms'])} "
+                     f"ms | {_cpu(row['cpu_s_per_session_s'])} | {_ms(row['first_frame']['p50_ms'])} / "
+                     f"{_ms(row['first_frame']['p95_ms'])} ms | {_ms(row['barge_in']['p50_ms'])} / "
+                     f"{_ms(row['barge_in']['p95_ms'])} ms | {100 * row['audio_packets_per_expected']:.0f}% | "
                      f"{row['failed']} | {row['load_before'][0]:.2f} → {row['load_after'][0]:.2f} |")
     lines.append("")
-    lines.append(f"Largest N with at most 5% late frames: **{result['largest_n_within_5pct_late']}**. Late: a drive "
-                 f"arriving more than {result['late_tolerance_ms']:.0f} ms after the page's clock (the smallest "
-                 "arrival − pts of the last 2 s, which follows the voice) would show it, or lost. Behind schedule: "
-                 f"more than {result['late_tolerance_ms']:.0f} ms after start + pts on the wall clock (driver stalls, "
-                 "which delay the voice alike).")
+    lines.append(f"Largest N with at most 5% late frames: **{largest}**. Late: a drive arriving more than "
+                 f"{tolerance_ms:.0f} ms after the page's clock (the smallest arrival − pts of the last 2 s, which "
+                 "follows the voice) would show it, or lost. Behind schedule: more than "
+                 f"{tolerance_ms:.0f} ms after start + pts on the wall clock (driver stalls, which delay the voice "
+                 "alike).")
     return "\n".join(lines)
+
+
+def baseline_name(result: dict) -> str:
+    """The baseline as a table names it: its commit's short hash, or its script."""
+    baseline = result["baseline"]
+    commit = baseline.get("commit")
+    return commit[:7] + commit[40:] if commit else baseline["script"]
+
+
+def _comparison_table(result: dict) -> str:
+    """Per N: the baseline's row, gt-serve's, and gt-serve's over the baseline's."""
+    old_name = f"{baseline_name(result)} live_server.py"
+    lines = ["| N | server | late frames | first frame p50 | server CPU s per session-s | barge-in p50 | failed |",
+             "|---:|---|---:|---:|---:|---:|---:|"]
+    for old, new, ratio in zip(result["baseline"]["runs"], result["runs"], result["ratios"], strict=True):
+        for name, row in ((old_name, old), ("gt-serve (tokens)", new)):
+            lines.append(f"| {row['n']} | {name} | {100 * row['late_share']:.1f}% | "
+                         f"{_ms(row['first_frame']['p50_ms'])} ms | {_cpu(row['cpu_s_per_session_s'])} | "
+                         f"{_ms(row['barge_in']['p50_ms'])} ms | {row['failed']} |")
+        lines.append(f"| {ratio['n']} | **new / old** | {_times(ratio['late_share'])} | "
+                     f"{_times(ratio['first_frame_p50'])} | {_times(ratio['cpu_s_per_session_s'])} | "
+                     f"{_times(ratio['barge_in_p50'])} | |")
+    lines.append("")
+    lines.append(f"{result['rounds']} round(s) of each server per N, alternating ({old_name} first); each figure "
+                 "pools the clients of all its server's rounds (server CPU: summed over them). Every round's own "
+                 "figures are in the JSON (`round_runs`).")
+    return "\n".join(lines)
+
+
+def live_clients_table(result: dict) -> str:
+    """The report's tables: gt-serve's figures per N; with a baseline, the side-by-side comparison first and the
+    baseline's own figures after."""
+    tolerance = result["late_tolerance_ms"]
+    new = _detail_table(result["runs"], result["largest_n_within_5pct_late"], tolerance)
+    if not result.get("baseline"):
+        return new
+    old = _detail_table(result["baseline"]["runs"], result["baseline"]["largest_n_within_5pct_late"], tolerance)
+    return (f"{_comparison_table(result)}\n\ngt-serve (tokens on):\n\n{new}\n\n{baseline_name(result)} "
+            f"live_server.py:\n\n{old}")

@@ -1,10 +1,10 @@
 """What the browser player (web/, docs/web.md) shares with this runtime, written out as one generated ES module.
 
 `web/src/generated.js` holds the GLSL ES 3.00 programs exactly as `runtime/splat/programs.py` `program_sources` compiles
-them for the "300es" target (shaders/ with the contract's #defines), the ARKit blendshape names, and the constants
-the player's drive and splat steps use. The shaders and constants keep one source each (shaders/, sdk/, runtime/);
-the file is their copy for a browser that has no Python, and `gt-web` and tests/test_web_player.py refuse a copy
-that no longer matches.
+them for the "300es" target (shaders/ with the contract's #defines), the ARKit blendshape names, the constants the
+player's drive and splat steps use, and the live wire format's (gaussiantalker.serve.wire). The shaders and constants
+keep one source each (shaders/, sdk/, runtime/, serve/); the file is their copy for a browser that has no Python,
+and `gt-web` and tests/test_web_player.py refuse a copy that no longer matches.
 
     python -m tools.browser.web_assets          # rewrite web/src/generated.js
 """
@@ -24,6 +24,7 @@ from gaussiantalker.sdk.drive import MAX_DRIVE_MAGNITUDE
 from gaussiantalker.sdk.flame_motion import MOTION_KEYS, TABLE_POSE_COLUMNS
 from gaussiantalker.sdk.motion import DEFAULT_MOTION_FPS, MAX_MOTION_FILE_BYTES, MAX_MOTION_FRAMES
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
+from gaussiantalker.serve import wire
 
 # The programs the browser player builds (the early stop's saturation pass is not ported).
 WEB_PROGRAMS = ("points", "quads", "background", "upscale")
@@ -49,6 +50,7 @@ def constants() -> dict[str, object]:
         "KEY_LEVELS_16": KEY_LEVELS_16, "MAX_RATIO": zip_reader.MAX_RATIO, "MIN_BUDGET": zip_reader.MIN_BUDGET,
         "MAX_NPZ_BYTES": zip_reader.MAX_NPZ_BYTES, "MAX_NDIM": zip_reader.MAX_NDIM,
         "FLAME_MOTION_KEYS": [list(pair) for pair in MOTION_KEYS], "TABLE_POSE_COLUMNS": TABLE_POSE_COLUMNS,
+        **wire.js_constants(),
     }
 
 

@@ -14,7 +14,12 @@
 //   new LiveAudio()                 plays the packets' audio on a continuous WebAudio schedule; now() is the pts
 //                                   being heard, the clock the drives are drawn on
 
-import { ARKIT_BLENDSHAPES } from './generated.js';
+import {
+  ARKIT_BLENDSHAPES, DRIVE_HEADER_BYTES, DRIVE_MAGIC, DRIVE_VERSION, FRAME_HEADER_BYTES, PACKET_MAGIC, PACKET_VERSION,
+  POSE_VALUES, RIG_CODES, SPEAKING_FLAG,
+} from './generated.js';
+
+export { DRIVE_HEADER_BYTES, FRAME_HEADER_BYTES };
 
 export class DriveFormatError extends Error {
   constructor(message) {
@@ -23,11 +28,8 @@ export class DriveFormatError extends Error {
   }
 }
 
-// The wire format (samples/live_server.py encode_drive): little-endian, a 28-byte header then `count` float32.
-export const DRIVE_HEADER_BYTES = 28;
-const MAGIC = [0x47, 0x54, 0x4c, 0x44]; // "GTLD"
-const VERSION = 1;
-const POSE_VALUES = { 0: 18, 1: 6 }; // values after `split`: FLAME flame_pose[15] + translation, ARKit rotation + translation
+// The wire format (gaussiantalker.serve.wire, docs/serve.md): a drive message is little-endian, a DRIVE_HEADER_BYTES
+// header then `count` float32; its constants come from generated.js.
 
 /** A drive message (ArrayBuffer or a typed array) -> its fields; DriveFormatError for one that is truncated, lies
  * about its count, or is of an unknown kind. No count is trusted beyond the bytes present. */
@@ -37,14 +39,14 @@ export function decodeDrive(message) {
   if (bytes.length < DRIVE_HEADER_BYTES) {
     throw new DriveFormatError(`drive message truncated: ${bytes.length} bytes, the header alone is ${DRIVE_HEADER_BYTES}`);
   }
-  if (!MAGIC.every((b, i) => bytes[i] === b)) throw new DriveFormatError('not a drive message (bad magic)');
+  if (!DRIVE_MAGIC.every((b, i) => bytes[i] === b)) throw new DriveFormatError('not a drive message (bad magic)');
   const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
   const version = view.getUint8(4);
   const rig = view.getUint8(5);
   const flags = view.getUint8(6);
   const dtype = view.getUint8(7);
-  if (version !== VERSION || dtype !== 0) {
-    throw new DriveFormatError(`drive message version ${version} dtype ${dtype}: only version ${VERSION} float32 is read`);
+  if (version !== DRIVE_VERSION || dtype !== 0) {
+    throw new DriveFormatError(`drive message version ${version} dtype ${dtype}: only version ${DRIVE_VERSION} float32 is read`);
   }
   if (!(rig in POSE_VALUES)) throw new DriveFormatError(`drive message has unknown rig code ${rig}`);
   const index = view.getUint32(8, true);
@@ -65,7 +67,8 @@ export function decodeDrive(message) {
     values[i] = view.getFloat32(DRIVE_HEADER_BYTES + 4 * i, true);
     if (!Number.isFinite(values[i])) throw new DriveFormatError('drive message has non-finite values');
   }
-  return { index, pts, epoch, speaking: Boolean(flags & 1), rig: rig ? 'arkit' : 'flame', values, split };
+  return { index, pts, epoch, speaking: Boolean(flags & SPEAKING_FLAG), rig: rig === RIG_CODES.arkit ? 'arkit' : 'flame',
+    values, split };
 }
 
 /** One received drive as Player.renderFrame draws it (index ignored: the drive is one frame). */
@@ -185,10 +188,8 @@ export class LiveClock {
 }
 
 
-// A frame packet (samples/live_server.py encode_frame_packet): "GTLF", version, audio dtype, reserved u16, then
+// A frame packet (gaussiantalker.serve.wire encode_frame_packet): "GTLF", version, audio dtype, reserved u16, then
 // drive_bytes (u32), the drive message, and the frame's audio (int16 LE mono) filling the rest.
-export const FRAME_HEADER_BYTES = 12;
-const FRAME_MAGIC = [0x47, 0x54, 0x4c, 0x46]; // "GTLF"
 
 /** A frame packet (ArrayBuffer or a typed array) -> {drive, audio}; DriveFormatError naming what is wrong, the
  * drive's own refusals included. drive_bytes is checked against the bytes present before anything is read. */
@@ -199,12 +200,12 @@ export function decodeFramePacket(message) {
     throw new DriveFormatError(
       `frame packet truncated: ${bytes.length} bytes, the header alone is ${FRAME_HEADER_BYTES}`);
   }
-  if (!FRAME_MAGIC.every((b, i) => bytes[i] === b)) throw new DriveFormatError('not a frame packet (bad magic)');
+  if (!PACKET_MAGIC.every((b, i) => bytes[i] === b)) throw new DriveFormatError('not a frame packet (bad magic)');
   const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
   const version = view.getUint8(4);
   const dtype = view.getUint8(5);
-  if (version !== 1 || dtype !== 0) {
-    throw new DriveFormatError(`frame packet version ${version} audio dtype ${dtype}: only version 1 int16 is read`);
+  if (version !== PACKET_VERSION || dtype !== 0) {
+    throw new DriveFormatError(`frame packet version ${version} audio dtype ${dtype}: only version ${PACKET_VERSION} int16 is read`);
   }
   const driveBytes = view.getUint32(8, true);
   const rest = bytes.length - FRAME_HEADER_BYTES;

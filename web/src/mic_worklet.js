@@ -1,4 +1,4 @@
-// The microphone's AudioWorklet for live sessions over a WebSocket (samples/web/live.html, source "mic"): it turns
+// The microphone's AudioWorklet for live sessions over a WebSocket (gt-serve's client page, source "mic"): it turns
 // the first input channel into int16 PCM at the context's rate and posts it to the page in chunks of `chunk`
 // samples (options.processorOptions.chunk, default 20 ms), each an ArrayBuffer the page sends as one binary message.
 

@@ -7,6 +7,12 @@ downstream as an OutputAudioRawFrame (the samples it shows, silence while idle) 
 queued with that audio (`sync_with_audio`), so the output transport plays voice and face together. The end of a
 reply (TTSStoppedFrame) flushes the session, an interruption is a barge-in, and the face idles between turns.
 
+Push back: a text-to-speech service faster than real time would fill the session faster than the face shows it, so
+a chunk waits in process_frame (on the event loop, woken as each frame goes out) until the session's queued audio
+leaves room for it within `max_ahead_s`; the frames behind it wait in Pipecat's queue, and an interruption or a
+cancel ends the wait. A chunk the session still refuses (longer alone than its `max_queued_s`) passes on without
+the face, reported once a reply as an ErrorFrame that leaves the processor usable (docs/live.md, "Pipecat").
+
 The session runs on a render thread of its own, which owns the TalkingHead and its GL context; its frames reach
 the pipeline's event loop through a queue drained by one task, so they keep their order. A session that fails (the
 head cannot load, or a frame raises) ends: the error goes upstream once as an ErrorFrame that marks the processor
@@ -17,6 +23,7 @@ text-to-speech audio then passes on unchanged, the voice without the face (docs/
 from __future__ import annotations
 
 import asyncio
+import math
 import os
 import threading
 
@@ -41,20 +48,28 @@ from gaussiantalker.sdk.audio import to_pcm16
 from gaussiantalker.sdk.errors import LiveError
 
 from .head import TalkingHead
-from .live import LiveFrame
+from .live import MAX_QUEUED_S, LiveFrame, LiveSession
 
 
 class TalkingHeadVideo(FrameProcessor):
     """Text-to-speech audio in; the talking head's frames and the same audio out, in sync (paced at the frame rate,
     idling between turns). `bundle`: a speaker bundle with a translator; `resolution`, `lookahead_ms` and `idle` as
-    for TalkingHead and TalkingHead.live."""
+    for TalkingHead and TalkingHead.live; `max_ahead_s`: seconds of audio queued ahead of the face at most, beyond
+    which text-to-speech audio waits (push back; up to the session's max_queued_s, 120 s)."""
 
     def __init__(self, bundle: str | os.PathLike, *, resolution: tuple[int, int] | None = None,
-                 lookahead_ms: float = 160.0, idle=None, **kwargs) -> None:
+                 lookahead_ms: float = 160.0, idle=None, max_ahead_s: float = 30.0, **kwargs) -> None:
+        if not (isinstance(max_ahead_s, (int, float)) and math.isfinite(max_ahead_s)
+                and 0 < max_ahead_s <= MAX_QUEUED_S):
+            raise LiveError(f"max_ahead_s must be a number in (0, {MAX_QUEUED_S:g}] (the session's max_queued_s), "
+                            f"got {max_ahead_s!r}")
         super().__init__(**kwargs)
         self._bundle, self._resolution, self._lookahead_ms, self._idle = bundle, resolution, lookahead_ms, idle
-        self._live = None
+        self._max_ahead_s = float(max_ahead_s)
+        self._live: LiveSession | None = None
         self._failed = False  # the session failed and its error went upstream: frames pass on unchanged
+        self._refused = False  # this reply had a chunk refused, reported upstream: later refusals pass quietly
+        self._room = asyncio.Event()  # set as frames go out (the queue shrank) and when the session stops
         self._audio_rate = 16000
         self._ready = threading.Event()
         self._error: BaseException | None = None
@@ -76,17 +91,25 @@ class TalkingHeadVideo(FrameProcessor):
         live = None if self._failed else self._live
         if isinstance(frame, TTSAudioRawFrame) and live is not None:
             pcm = np.frombuffer(frame.audio, np.int16).reshape(-1, frame.num_channels)
-            try:
-                live.push(pcm, frame.sample_rate)
-                return  # its samples go on with the frames that show them
-            except LiveError:
-                if live.error is None:
-                    raise
-                # The session has just failed: its error is on its way upstream; the voice goes on without a face.
+            await self._wait_for_room(live, pcm.shape[0] / frame.sample_rate if frame.sample_rate > 0 else 0.0)
+            if self._live is live:  # else the session stopped while the chunk waited (a CancelFrame)
+                try:
+                    live.push(pcm, frame.sample_rate)
+                    return  # its samples go on with the frames that show them
+                except LiveError as error:
+                    if live.error is None:  # refused while the session runs: too long alone
+                        await self._report_refused(error)
+                        live.flush()  # the audio before this chunk is shown in full before it goes on, in order
+                        await self._wait_for_room(live, math.inf, held=0.0)
+                    # Else the session has just failed and its error is on its way upstream. Either way the voice
+                    # goes on without a face.
         elif isinstance(frame, TTSStoppedFrame) and live is not None:
             live.flush()
+            self._refused = False
         elif isinstance(frame, InterruptionFrame) and live is not None:
             live.interrupt()
+            self._refused = False
+            self._room.set()  # the queue is empty now
         elif isinstance(frame, (EndFrame, CancelFrame)):
             await self._stop(drain=isinstance(frame, EndFrame))
         await self.push_frame(frame, direction)
@@ -118,6 +141,32 @@ class TalkingHeadVideo(FrameProcessor):
         else:
             await self.cancel_task(self._sender)
         self._live = self._sender = None
+        self._room.set()  # a chunk still waiting for room stops waiting
+
+    async def _wait_for_room(self, live: LiveSession, seconds: float, held: float | None = None) -> None:
+        """Push back: return once `seconds` more fit within max_ahead_s of queued audio, or the queue is down to
+        `held` (by default what the session may hold back for lookahead: a chunk longer than the bound then goes in
+        alone), or the session has stopped. Waits on the event loop, woken by each frame that goes out
+        (docs/live.md, "Pipecat")."""
+        if held is None:
+            # Queued audio the session may hold without making frames until more comes (an utterance starts once
+            # its first frames and their lookahead are in): waiting for less could wait for ever.
+            held = (live.lookahead_frames + live.min_batch_frames + 1) / live.fps
+        while self._live is live and live.error is None:
+            self._room.clear()
+            queued = live.queued_s
+            if queued + seconds <= self._max_ahead_s or queued <= held:
+                return
+            await self._room.wait()
+
+    async def _report_refused(self, error: LiveError) -> None:
+        """The running session refused a chunk (longer alone than its max_queued_s): tell the pipeline once a reply
+        (an ErrorFrame upstream that leaves the processor usable); the chunk passes on without the face."""
+        if self._refused:
+            return
+        self._refused = True
+        await self.push_error(f"text-to-speech audio passes on without the face: {error}", exception=error,
+                              force_treat_as_permanent=False)
 
     async def _report(self, error: BaseException, what: str) -> None:
         """The session failed: tell the pipeline once (an ErrorFrame upstream, which Pipecat logs), and let the
@@ -132,6 +181,7 @@ class TalkingHeadVideo(FrameProcessor):
         """Push the session's frames downstream in order: the audio they show, then the picture, queued with it."""
         while True:
             frame: LiveFrame | BaseException | None = await self._queue.get()
+            self._room.set()  # a frame was made, so the session's queue shrank; or it failed or ended
             if frame is None:
                 return
             if isinstance(frame, BaseException):

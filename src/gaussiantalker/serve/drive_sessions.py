@@ -1,0 +1,244 @@
+"""Client-render sessions: a live session on the shared Driver (drives, no image), its frames made by a DrivePool
+thread when due and sent to the page as drive messages (WebRTC) or frame packets (WebSocket), through an outgoing
+queue whose bound closes a page that does not read (docs/serve.md, docs/live.md "Live, rendered by the client")."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+
+from gaussiantalker.runtime import LiveSession
+
+from .limits import ServeLimits
+from .metrics import ServeMetrics
+from .wire import encode_drive, encode_frame_packet
+
+WEBRTC_AUDIO_RATE = 48000  # WebRTC's Opus clock
+
+
+class DriveSession:
+    """One page's client-render session on `driver` (shared by every session). transport "webrtc": each frame's
+    drive goes to the page's "drives" data channel, its audio to `audio` (a FrameTrack the app attaches); "ws":
+    each frame goes out as one frame packet through `outbox`, which `write_to` drains, JSON messages the same way
+    and in order. `on_error(error)` is called on the event loop when making a frame raised; `on_overflow()` when
+    the page has not read `limits.outbox_frames` queued messages (it is then closed with 1008)."""
+
+    RECORDED = 1500  # the last drives kept for /drives
+    THREAD_NAME = "gt-live-driver"
+
+    def __init__(self, driver, lookahead_ms: float, loop: asyncio.AbstractEventLoop, pool: DrivePool,
+                 limits: ServeLimits, metrics: ServeMetrics, *, on_error: Callable[[BaseException], None],
+                 on_overflow: Callable[[], None], transport: str = "webrtc", batch_frames: int = 1,
+                 context_ms: float = 1000.0) -> None:
+        self.driver, self._loop, self._on_error, self._on_overflow = driver, loop, on_error, on_overflow
+        self.transport, self._limits, self._metrics = transport, limits, metrics
+        self.sample_rate = WEBRTC_AUDIO_RATE if transport == "webrtc" else driver.sample_rate
+        self.live = LiveSession(driver, lookahead_ms=lookahead_ms, audio_rate=self.sample_rate, output=None,
+                                min_batch_frames=batch_frames, context_ms=context_ms,
+                                max_queued_s=limits.max_queued_s)
+        self.audio = None  # webrtc: the FrameTrack its audio goes to
+        self.outbox: asyncio.Queue = asyncio.Queue()  # ws: frame packets (bytes) and JSON (str); None ends write_to
+        self.closed = asyncio.Event()
+        self.error: BaseException | None = None
+        self.voice: asyncio.Task | None = None  # what the server speaks, cancelled by a barge-in
+        self.stats: dict = {"frames": 0, "speaking_frames": 0, "sent": 0, "unsent": 0}
+        self.recorded: deque[bytes] = deque(maxlen=self.RECORDED)
+        self.start_time = 0.0  # time.monotonic() of frame 0's due time: the session's pts 0 on the wall clock
+        self.done = threading.Event()  # set once its pool thread has let go of it: no frame is made after
+        self.overflowed = False
+        self._pool, self._last_epoch, self._late_counted = pool, 0, 0
+        self._drives = None
+        self.control = None  # webrtc: the page's control channel (webrtc.ControlChannel)
+
+    def start(self) -> None:
+        """Hand the session to its pool: frame 0 is due now."""
+        self.start_time = time.monotonic()
+        self._pool.add(self)
+
+    def attach(self, channel) -> None:
+        """webrtc: the page's "drives" or "control" data channel."""
+        if channel.label == "drives":
+            self._drives = channel
+        elif channel.label == "control" and self.control is not None:
+            self.control.attach(channel)
+
+    def tell(self, message: dict) -> None:
+        """Send the page `message` (JSON): on its WebSocket in order with the frames, or its control channel."""
+        if self.transport == "ws":
+            self._enqueue(json.dumps(message))
+        elif self.control is not None:
+            self.control.tell(message)
+
+    def interrupt(self) -> dict:
+        """Barge-in (on the event loop): the voice stops, the session drops what it queued and eases to idle."""
+        if self.voice is not None:
+            self.voice.cancel()
+        self.live.interrupt()
+        return {"epoch": self.live.stats.interrupts}
+
+    def _enqueue(self, item) -> None:
+        """ws: queue `item` for the page; a page that has let outbox_frames pile up is not reading: it is closed."""
+        if self.overflowed:
+            return
+        if self.outbox.qsize() >= self._limits.outbox_frames:
+            self.overflowed = True
+            self._on_overflow()
+            return
+        self.outbox.put_nowait(item)
+
+    async def write_to(self, socket) -> None:
+        """ws: send the outbox to the page until None (the session ended) or the socket closes."""
+        while (item := await self.outbox.get()) is not None:
+            try:
+                if isinstance(item, bytes):
+                    await socket.send_bytes(item)
+                else:
+                    await socket.send_str(item)
+            except ConnectionError:  # the page left; its handler closes the session
+                return
+
+    def advance(self) -> bool:
+        """On its pool thread: make and send every frame due now. False once the session has ended (closed, or
+        failed: on_error then hears why on the event loop)."""
+        try:
+            while True:
+                # The epoch is read before the frame is made: a frame planned after an interrupt() has its epoch,
+                # one planned before keeps the older one (interrupt() counts itself once it has cleared the queues).
+                epoch = self.live.stats.interrupts
+                began = time.perf_counter()
+                frame = self.live.step()
+                if frame is None:
+                    return not self.live.finished
+                self._metrics.frame_seconds.labels(mode="client-render").observe(time.perf_counter() - began)
+                self._emit(frame, epoch)
+        except Exception as exc:
+            self.error = exc
+            try:
+                self._loop.call_soon_threadsafe(self._on_error, exc)
+            except RuntimeError:  # the event loop has closed
+                pass
+            return False
+
+    def _emit(self, frame, epoch: int) -> None:
+        message = encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, epoch)
+        self.stats["frames"] += 1
+        self.stats["speaking_frames"] += frame.speaking
+        self._metrics.frames.labels(mode="client-render").inc()
+        late = self.live.stats.late_frames
+        if late > self._late_counted:
+            self._metrics.late_frames.labels(mode="client-render").inc(late - self._late_counted)
+            self._late_counted = late
+        self.recorded.append(message)
+        sent = message if self.transport == "webrtc" else encode_frame_packet(message, frame.audio)
+        told = None
+        if epoch != self._last_epoch:
+            self._last_epoch = epoch
+            told = {"interrupt": {"epoch": epoch, "index": frame.index}}
+        try:
+            self._loop.call_soon_threadsafe(self._deliver, sent, told)
+        except RuntimeError:  # the event loop has closed: nobody reads the session any more
+            self.live.close()
+            return
+        if self.audio is not None:
+            self.audio.put(frame)
+
+    def _deliver(self, message: bytes, told: dict | None) -> None:
+        """On the event loop: a frame's message, and the new epoch's news with its first frame."""
+        if self.transport == "ws":
+            self._enqueue(message)
+            self.stats["sent" if not self.overflowed else "unsent"] += 1
+        else:
+            channel = self._drives
+            if channel is not None and channel.readyState == "open":
+                channel.send(message)
+                self.stats["sent"] += 1
+            else:
+                self.stats["unsent"] += 1
+        if told is not None:
+            self.tell(told)
+
+    def ended(self) -> None:
+        """On its pool thread, when it lets go of the session: the audio track ends; stop() may return."""
+        if self.audio is not None:
+            self.audio.put(None)
+        self.done.set()
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """End the session and wait for its pool thread to let go of it (blocking: run it in an executor)."""
+        self.live.close()
+        if self.start_time:
+            self._pool.wake()
+            self.done.wait(timeout)
+        try:
+            self._loop.call_soon_threadsafe(self.outbox.put_nowait, None)
+        except RuntimeError:  # the event loop has closed
+            pass
+
+    def summary(self) -> dict:
+        return {"mode": "client-render", "transport": self.transport, **self.stats, "fps": self.driver.fps,
+                "late_frames": self.live.stats.late_frames, "interrupts": self.live.stats.interrupts}
+
+
+class DrivePool:
+    """A few threads make the frames of every session (each session on the least busy one), instead of a thread
+    per session: fifty threads each waking 25 times a second to run a little Python starve the event loop of the
+    GIL (docs/live.md, "Load"). A thread starts with its first session and ends when it has none left."""
+
+    def __init__(self, threads: int) -> None:
+        self.threads = max(1, threads)
+        self._lock = threading.Lock()
+        self._workers: list[_DriveWorker] = []
+
+    def add(self, session: DriveSession) -> None:
+        with self._lock:
+            self._workers = [w for w in self._workers if not w.ended]
+            if len(self._workers) < self.threads:
+                worker = _DriveWorker(self._lock)
+                self._workers.append(worker)
+                worker.sessions.append(session)
+                worker.start()
+                return
+            worker = min(self._workers, key=lambda w: len(w.sessions))
+            worker.sessions.append(session)
+            worker.wake.set()
+
+    def wake(self) -> None:
+        """Have every thread look at its sessions now (one was closed)."""
+        with self._lock:
+            for worker in self._workers:
+                worker.wake.set()
+
+
+class _DriveWorker(threading.Thread):
+    """One DrivePool thread: advances its sessions, then sleeps until the next frame is due or it is woken."""
+
+    def __init__(self, pool_lock: threading.Lock) -> None:
+        super().__init__(name=DriveSession.THREAD_NAME, daemon=True)
+        self.sessions: list[DriveSession] = []  # changed under pool_lock
+        self.wake = threading.Event()
+        self.ended = False
+        self._pool_lock = pool_lock
+
+    def run(self) -> None:
+        while True:
+            with self._pool_lock:
+                sessions = list(self.sessions)
+            for session in sessions:
+                if not session.advance():
+                    with self._pool_lock:
+                        self.sessions.remove(session)
+                    session.ended()
+            with self._pool_lock:
+                if not self.sessions:
+                    self.ended = True
+                    return
+                due = min(session.live.due for session in self.sessions)
+                self.wake.clear()
+            self.wake.wait(max(0.0, due - time.monotonic()))
+
+
+__all__ = ["DrivePool", "DriveSession", "WEBRTC_AUDIO_RATE"]

@@ -1,0 +1,117 @@
+"""What a session speaks, from the page's start message: the server's sound file, text (text_speech.py), the page's
+microphone, or nothing; and the pusher that feeds the server's own voice at real time."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gaussiantalker.runtime import LiveError
+from gaussiantalker.sdk.audio import load_audio
+
+from .limits import ServeLimits
+from .sessions import read_json
+from .text_speech import SpeechError, speak
+from .wire import CHUNK_MS_RANGE, MIC_RATE_RANGE
+
+DEFAULT_CHUNK_MS = 20.0  # a voice made as it is spoken: one translator call a frame
+
+
+@dataclass
+class Voice:
+    """A start message read: `samples` at `rate` for the server to push in `chunk_s` chunks (None: the page's
+    microphone at `mic_rate`, or no voice)."""
+
+    source: str
+    samples: np.ndarray | None
+    rate: int
+    chunk_s: float
+    mic_rate: int | None = None
+
+
+class VoiceFiles:
+    """The server's sound file for the "file" source, read once and shared by every session."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._samples: np.ndarray | None = None
+
+    async def samples(self) -> np.ndarray:
+        if self._samples is None:
+            self._samples = await asyncio.get_running_loop().run_in_executor(None, load_audio, self.path, 16000)
+        return self._samples
+
+
+async def voice_of(params: dict, sources: tuple[str, ...], files: VoiceFiles, limits: ServeLimits,
+                   speech_gate: asyncio.Semaphore, *, mic_track: bool = False) -> Voice:
+    """The voice a start message (or offer) asks for; ValueError with one line naming a bad field. `mic_track`:
+    the microphone comes as a WebRTC track (its rate is the track's), not as PCM messages at mic_rate."""
+    source = params.get("source", "file")
+    if source not in sources:
+        raise ValueError(f"source must be {', '.join(sources[:-1])} or {sources[-1]}, got {_shown(source)}")
+    chunk_ms = params.get("chunk_ms", DEFAULT_CHUNK_MS)
+    low, high = CHUNK_MS_RANGE
+    if isinstance(chunk_ms, bool) or not (isinstance(chunk_ms, (int, float)) and low <= chunk_ms <= high):
+        raise ValueError(f"chunk_ms must be a number of milliseconds in {low}..{high}, got {_shown(chunk_ms)}")
+    chunk_s = chunk_ms / 1000
+    if source == "file":
+        return Voice(source, await files.samples(), 16000, chunk_s)
+    if source == "text":
+        try:
+            samples, rate = await speak(params.get("text", "Hello."), max_chars=limits.max_text_chars,
+                                        timeout_s=limits.speech_timeout_s, max_bytes=limits.max_speech_bytes,
+                                        gate=speech_gate)
+        except SpeechError as error:
+            raise ValueError(str(error)) from None
+        return Voice(source, samples, rate, chunk_s)
+    if source == "mic" and not mic_track:
+        mic_rate = params.get("mic_rate")
+        low, high = MIC_RATE_RANGE
+        if mic_rate is None:
+            raise ValueError("source mic needs mic_rate, the sample rate of the PCM the page sends")
+        if isinstance(mic_rate, bool) or not (isinstance(mic_rate, int) and low <= mic_rate <= high):
+            raise ValueError(f"mic_rate must be a whole number of Hz in {low}..{high}, got {_shown(mic_rate)}")
+        return Voice(source, None, 0, chunk_s, mic_rate)
+    return Voice(source, None, 0, chunk_s)
+
+
+async def read_offer(request, sources: tuple[str, ...], files: VoiceFiles, limits: ServeLimits,
+                     speech_gate: asyncio.Semaphore, *, mic_track: bool = False) -> tuple[str, Voice]:
+    """A WebRTC offer's SDP and the voice it asks for, from its JSON body; 400 (or 415, 413, 408) with one line."""
+    from aiohttp import web
+
+    params = await read_json(request)
+    sdp, kind = params.get("sdp"), params.get("type")
+    if not (isinstance(sdp, str) and kind == "offer"):
+        raise web.HTTPBadRequest(text="an offer needs sdp (a string) and type \"offer\"")
+    try:
+        return sdp, await voice_of(params, sources, files, limits, speech_gate, mic_track=mic_track)
+    except ValueError as error:
+        raise web.HTTPBadRequest(text=str(error)) from None
+
+
+def _shown(value: object) -> str:
+    """A client's value as an error message quotes it: its repr, 40 characters at most."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+async def push_real_time(live, audio: np.ndarray, rate: int, chunk_s: float) -> None:
+    """Push `audio` in `chunk_s` chunks at real time, as a voice that speaks as it is made, then flush. Stops
+    quietly when the session closes (the page left)."""
+    step = max(1, int(rate * chunk_s))
+    start = time.monotonic()
+    try:
+        for k, first in enumerate(range(0, audio.shape[0], step)):
+            await asyncio.sleep(max(0.0, start + k * chunk_s - time.monotonic()))
+            live.push(audio[first:first + step], rate)
+        live.flush()
+    except LiveError:
+        return
+
+
+__all__ = ["DEFAULT_CHUNK_MS", "Voice", "VoiceFiles", "push_real_time", "voice_of"]
