@@ -129,6 +129,9 @@ def test_the_page_sets_its_token_as_a_strict_cookie(server):
     status, _, headers = http(f"{server.url}/?token={token}")
     cookie = headers.get("Set-Cookie", "")
     assert status == 200 and "gt_serve_token=" in cookie and "HttpOnly" in cookie and "SameSite=Strict" in cookie
+    # the token in the page's URL leaves with no Referer, and no other site may frame the page
+    assert headers["Referrer-Policy"] == "no-referrer"
+    assert headers["Content-Security-Policy"] == "frame-ancestors 'self'"
     assert http(f"{server.url}/bundle", headers={"Cookie": f"gt_serve_token={token}"})[0] == 200
 
 
@@ -374,3 +377,24 @@ def test_an_offer_whose_peer_never_connects_expires(small_export):
         assert _wait_sessions(running, 0, timeout=1 * 3 + 2)["sessions"] == 0
         metrics = http(f"{running.url}/metrics?token={running.token(admin=True)}")[1].decode()
         assert 'gt_serve_refusals_total{reason="offer_not_connected"} 1.0' in metrics
+
+
+def test_connections_past_the_cap_are_turned_away(small_export):
+    """Connections are capped (--max-connections, 4 here): the 5th gets `503 too many connections` and is closed
+    before anything is read; once one closes, a new one is served."""
+    from gaussiantalker.serve import ServeLimits
+
+    with ServerThread(small_export.path, client_render=True, secret=SECRET,
+                      limits=ServeLimits(max_connections=4)) as running:
+        held = [socket.create_connection(("127.0.0.1", running.port)) for _ in range(4)]
+        time.sleep(0.2)
+        extra = socket.create_connection(("127.0.0.1", running.port))
+        extra.settimeout(5)
+        answer = extra.recv(1024)
+        extra.close()
+        assert answer.startswith(b"HTTP/1.1 503") and answer.endswith(b"too many connections\r\n"), answer
+        held.pop().close()
+        time.sleep(0.2)
+        assert http(f"{running.url}/healthz")[0] == 200
+        for sock in held:
+            sock.close()

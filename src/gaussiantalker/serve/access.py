@@ -25,8 +25,8 @@ LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
 
 def is_loopback(host: str) -> bool:
     """Whether `host` (a name or an address) is this machine only."""
-    if host in ("localhost", ""):
-        return host == "localhost"
+    if host == "localhost":
+        return True
     try:
         return ipaddress.ip_address(host.strip("[]")).is_loopback
     except ValueError:
@@ -71,6 +71,11 @@ class AccessPolicy:
         self.secret, self.bundle, self.debug, self.metrics = secret, bundle, debug, metrics
         self.allow_hosts = set(LOOPBACK_NAMES) | {_hostname(h) or h.lower() for h in allow_hosts}
         self.allow_origins = {origin_of(o) for o in allow_origins}
+        # The page's token is in its URL: no Referer carries it away; only the server's own and the allowed origins
+        # may frame the pages (a page elsewhere could otherwise frame one and trick a click on its microphone).
+        self.page_headers = {"Referrer-Policy": "no-referrer", "X-Content-Type-Options": "nosniff",
+                             "Content-Security-Policy": "frame-ancestors " + " ".join(["'self'",
+                                                                                       *sorted(self.allow_origins)])}
 
     # -- the checks ---------------------------------------------------------------------------------------------
     def _refuse(self, reason: str, status: type[web.HTTPException], text: str) -> web.HTTPException:
@@ -128,6 +133,8 @@ class AccessPolicy:
             raise self._refuse("admin", web.HTTPForbidden, "this route needs an admin token (or gt-serve --debug)")
         request[CLIENT] = client
         response = await handler(request)
+        if not response.prepared:
+            response.headers.update(self.page_headers)
         if origin is not None and not response.prepared:
             response.headers.update(_cors(origin))
         if request.path == "/" and "token" in request.query and client.claims is not None \
