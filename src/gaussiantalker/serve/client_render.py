@@ -86,14 +86,12 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
         sessions.admit_or_refuse(client)
         loop = asyncio.get_running_loop()
         pc = RTCPeerConnection()
-        holder: dict = {}
         session = new_session(
             loop, "webrtc", on_error=lambda error: sessions.background(sessions.fail(pc, error, "its driver raised")),
             on_overflow=lambda: None)
         session.audio = FrameTrack("audio", loop, driver.fps)
-        session.interrupts = TokenBucket(limits.interrupts_per_s, limits.interrupt_burst)
         session.control = ControlChannel(lambda message: _control_message(sessions, pc, session, message))
-        holder["id"] = sessions.add(pc, session, client, "webrtc")
+        session_id = sessions.add(pc, session, client, "webrtc")
         pc.on("datachannel", session.attach)
         watch(pc, lambda: sessions.close(pc), limits.offer_connect_s,
               lambda: metrics.refuse("offer_not_connected"))
@@ -110,7 +108,7 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
                                                                voice.chunk_s))
         # start_time: time.monotonic() when frame 0 was due (a load client on this machine compares arrivals).
         return web.json_response({"sdp": pc.localDescription.sdp, "type": pc.localDescription.type,
-                                  "session": holder["id"], "fps": driver.fps, "start_time": session.start_time,
+                                  "session": session_id, "fps": driver.fps, "start_time": session.start_time,
                                   "wire": WIRE_VERSION})
 
     async def live_socket(request: web.Request) -> web.WebSocketResponse:
@@ -152,7 +150,6 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
             if admitted:
                 sessions.admission.release(client)
         writer = None
-        interrupts = TokenBucket(limits.interrupts_per_s, limits.interrupt_burst)
         mic_rate = voice.mic_rate
         if mic_rate is not None:
             mic_samples = TokenBucket(limits.mic_realtime_factor * mic_rate, limits.mic_burst_s * mic_rate)
@@ -174,7 +171,7 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
                         raise _TooFast(f"microphone audio faster than {limits.mic_realtime_factor:g}x real time")
                     session.live.push(np.frombuffer(message.data, "<i2"), mic_rate)
                 elif message.type == web.WSMsgType.TEXT and _json_or_none(message.data) == INTERRUPT_MESSAGE:
-                    if not interrupts.take():
+                    if not session.interrupts.take():
                         raise _TooFast(f"more than {limits.interrupts_per_s:g} interrupts a second")
                     session.tell({"interrupted": session.interrupt()})
                 elif message.type in (web.WSMsgType.TEXT, web.WSMsgType.BINARY):

@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 from gaussiantalker.runtime import LiveSession
 
-from .limits import ServeLimits
+from .limits import ServeLimits, TokenBucket
 from .metrics import ServeMetrics
 from .wire import encode_drive, encode_frame_packet
 
@@ -50,6 +50,7 @@ class DriveSession:
         self.start_time = 0.0  # time.monotonic() of frame 0's due time: the session's pts 0 on the wall clock
         self.done = threading.Event()  # set once its pool thread has let go of it: no frame is made after
         self.overflowed = False
+        self.interrupts = TokenBucket(limits.interrupts_per_s, limits.interrupt_burst)  # barge-ins, by any route
         self._pool, self._last_epoch, self._late_counted = pool, 0, 0
         self._drives = None
         self.control = None  # webrtc: the page's control channel (webrtc.ControlChannel)
