@@ -24,6 +24,9 @@ print(",".join(bad))
     ("gaussiantalker.cli.bench", ()),
     ("gaussiantalker.cli.web", ()),
     ("gaussiantalker.cli.serve", ()),
+    ("gaussiantalker.cli.render", ()),
+    ("gaussiantalker.batch", ("gaussiantalker.exporter", "gaussiantalker.serve")),  # workers load the runtime alone
+    ("gaussiantalker.batch.worker", ("gaussiantalker.exporter",)),
     ("gaussiantalker.serve.wire", ("gaussiantalker.exporter", "aiohttp", "jwt")),  # a bare runtime reads it
     ("gaussiantalker.sdk.bundle", ("gaussiantalker.runtime", "gaussiantalker.exporter")),
     ("gaussiantalker.sdk.audio", ("gaussiantalker.runtime", "gaussiantalker.exporter")),

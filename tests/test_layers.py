@@ -3,12 +3,13 @@ statement (inside functions and TYPE_CHECKING blocks too, relative ones resolved
 wrong dependency.
 
 The exporter's floors import only downwards: model < export < verify < demo | imports | voice (exporter/__init__.py
-says what each holds). The service (`gaussiantalker.serve`) imports the runtime and the sdk, never the exporter,
-and nothing below it imports it. The console scripts (`gaussiantalker.cli`) may import the exporter, the runtime,
-the service and the sdk, and none of those imports them. tools/ (the benchmarks and the browser harness, run from
-a checkout) may import anything; nothing in the package imports tools/ except the two launchers that run it
-(`gt-bench`, `gt-web`). No two modules of the exporter, the sdk, the runtime, the service, the console scripts or
-tools/ import each other, directly or around a longer loop.
+says what each holds). The service (`gaussiantalker.serve`) and batch rendering (`gaussiantalker.batch`) import
+the runtime and the sdk, never the exporter nor each other, and nothing below them imports them. The console
+scripts (`gaussiantalker.cli`) may import the exporter, the runtime, the service, batch and the sdk, and none of
+those imports them. tools/ (the benchmarks and the browser harness, run from a checkout) may import anything;
+nothing in the package imports tools/ except the two launchers that run it (`gt-bench`, `gt-web`). No two modules
+of the exporter, the sdk, the runtime, the service, batch, the console scripts or tools/ import each other,
+directly or around a longer loop.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ EXPORTER = "gaussiantalker.exporter"
 FLOORS = {"model": 0, "export": 1, "verify": 2, "demo": 3, "imports": 3, "voice": 3, "": 4}
 CLI = "gaussiantalker.cli"
 SERVE = "gaussiantalker.serve"
+BATCH = "gaussiantalker.batch"
 TOOLS = "tools"
 # (importer, imported) prefixes that must never meet, whatever the ranks say.
 NEVER_IMPORTS = [
@@ -45,16 +47,23 @@ NEVER_IMPORTS = [
     ("gaussiantalker.exporter", SERVE),
     (SERVE, "gaussiantalker.exporter"),  # a server never needs torch
     (SERVE, CLI),
+    ("gaussiantalker.sdk", BATCH),  # batch sits above the runtime like the service: nothing below imports it
+    ("gaussiantalker.runtime", BATCH),
+    ("gaussiantalker.exporter", BATCH),
+    (SERVE, BATCH),
+    (BATCH, SERVE),
+    (BATCH, "gaussiantalker.exporter"),  # a render worker never needs torch
+    (BATCH, CLI),
 ]
 # The package's only imports of tools/ (no other module of sdk, runtime, exporter or cli imports it): the launchers,
 # after they put the checkout on sys.path (cli/checkout.py).
 LAUNCHES = ["gaussiantalker.cli.bench -> tools.bench.app", "gaussiantalker.cli.web -> tools.browser.web_cli"]
 # Packages that must have no import cycle among their own modules.
-ACYCLIC = ["gaussiantalker.exporter", "gaussiantalker.sdk", "gaussiantalker.runtime", SERVE, CLI, TOOLS]
+ACYCLIC = ["gaussiantalker.exporter", "gaussiantalker.sdk", "gaussiantalker.runtime", SERVE, BATCH, CLI, TOOLS]
 CHECKOUT = Path(__file__).resolve().parents[1]
 
 
-def installed_roots(names: Iterable[str] = ("sdk", "runtime", "exporter", "serve", "cli")) -> dict[str, Path]:
+def installed_roots(names: Iterable[str] = ("sdk", "runtime", "exporter", "serve", "batch", "cli")) -> dict[str, Path]:
     """Source folder of each `gaussiantalker.<name>` the interpreter imports (found, not imported)."""
     roots = {}
     for name in names:

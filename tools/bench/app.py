@@ -20,6 +20,8 @@
     gt-bench live-clients  client-render live sessions under load (gt-serve, tokens on; beside an older server
                            with --baseline-server): late frames, server CPU, first-frame and barge-in latency per
                            number of clients (bench/live_clients.py)
+    gt-bench serve-attacks the threat model's attacks on gt-serve (beside an older server with --baseline-server):
+                           held or broke, with what each observed (bench/serve_attacks.py)
     gt-bench pipeline      the pipelined frame loop against the serial one on the CPU splatter, alternating
                            (bench/pipeline_vs_serial.py)
     gt-bench blend-limit   the CPU splatter's blend: its work counts and time per fragment against the same
@@ -606,6 +608,31 @@ def live_clients(
     _write_report(out, "live-clients", "Live sessions rendered by the client, under load", result, table,
                   f"; load average (1, 5, 15 min) {', '.join(f'{v:.2f}' for v in result['load_at_start'])} at the "
                   f"start, {', '.join(f'{v:.2f}' for v in result['load_at_end'])} at the end.")
+
+
+@app.command("serve-attacks")
+def serve_attacks(
+    bundle: Path = typer.Argument(..., help="a speaker bundle with a translator (.gtb)"),
+    baseline_server: Path = typer.Option(None, "--baseline-server", help="an older server script to attack as well "
+                                         "(samples/live_server.py of an earlier commit, e.g. `git show "
+                                         "49c2f1e:samples/live_server.py > FILE`)"),
+    baseline_checkout: Path = typer.Option(None, "--baseline-checkout", help="a checkout of the baseline's commit "
+                                           "(`git worktree add DIR COMMIT`): its src/ is what the baseline imports "
+                                           "[default: the checkout the script lies in]"),
+    out: Path = typer.Option(None, "--out", help="folder for serve-attacks.md and serve-attacks.json"),
+) -> None:
+    """The threat model's attacks (docs/serve.md) against gt-serve --client-render with tokens and, with
+    --baseline-server, against an older server script: each attack held or broke, with what was observed."""
+    from .serve_attacks import run_serve_attacks, serve_attacks_table
+
+    if not bundle.is_file():
+        raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
+    baseline = _live_baseline(baseline_server, baseline_checkout)
+    result = _stamp(run_serve_attacks(bundle, baseline, log=typer.echo))
+    table = serve_attacks_table(result)
+    typer.echo(table)
+    _write_report(out, "serve-attacks", "Attacks on the live server", result, table,
+                  "; each server alone on loopback, `--client-render`, gt-serve with `--secret-file`.")
 
 
 def _live_baseline(script: Path | None, checkout: Path | None):

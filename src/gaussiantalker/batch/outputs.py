@@ -1,0 +1,31 @@
+"""Where a job's output is written while it renders: a hidden partial name beside the final one, renamed onto it
+only when complete, so no half file ever stands under a final name (docs/batch.md, "Failures")."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def partial_path(target: Path, pid: int | None = None) -> Path:
+    """`.NAME.partial-PID.SUFFIX` beside `target`: the same suffix (it picks the container), one per process."""
+    return target.with_name(f".{target.name}.partial-{os.getpid() if pid is None else pid}{target.suffix}")
+
+
+def remove_partials(target: Path) -> list[Path]:
+    """Remove what killed workers left for `target`: its partial files and the video writer's own staged files
+    beside them (`..NAME.partial-*`); returns what was removed."""
+    if not target.parent.is_dir():
+        return []
+    removed = []
+    for prefix in (f".{target.name}.partial-", f"..{target.name}.partial-"):
+        for path in target.parent.glob(_escaped(prefix) + "*"):
+            if path.is_file():
+                path.unlink(missing_ok=True)
+                removed.append(path)
+    return removed
+
+
+def _escaped(text: str) -> str:
+    """`text` as a literal glob pattern."""
+    return "".join(f"[{c}]" if c in "*?[" else c for c in text)
