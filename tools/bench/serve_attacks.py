@@ -103,14 +103,14 @@ class Watch:
 
 
 def http(url: str, *, method: str = "GET", body: bytes | None = None, headers: dict | None = None,
-         timeout: float = 15.0) -> tuple[int, bytes]:
-    """(status, body) of one request; HTTP errors are answers, not exceptions."""
+         timeout: float = 15.0) -> tuple[int, bytes, dict]:
+    """(status, body, headers) of one request; HTTP errors are answers, not exceptions."""
     request = urllib.request.Request(url, data=body, method=method, headers=headers or {})
     try:
         with urllib.request.urlopen(request, timeout=timeout) as response:
-            return response.status, response.read()
+            return response.status, response.read(), dict(response.headers)
     except urllib.error.HTTPError as error:
-        return error.code, error.read()
+        return error.code, error.read(), dict(error.headers)
 
 
 class RawWebSocket:
@@ -118,14 +118,15 @@ class RawWebSocket:
     be made as small as a client that does not read would leave it."""
 
     def __init__(self, port: int, path: str, *, headers: dict | None = None, receive_buffer: int | None = None,
-                 timeout: float = 15.0) -> None:
+                 host: str | None = None, timeout: float = 15.0) -> None:
         self.sock = socket.socket()
         if receive_buffer is not None:
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer)
         self.sock.settimeout(timeout)
         self.sock.connect(("127.0.0.1", port))
         key = base64.b64encode(os.urandom(16)).decode()
-        lines = [f"GET {path} HTTP/1.1", f"Host: 127.0.0.1:{port}", "Upgrade: websocket", "Connection: Upgrade",
+        lines = [f"GET {path} HTTP/1.1", f"Host: {host or f'127.0.0.1:{port}'}", "Upgrade: websocket",
+                 "Connection: Upgrade",
                  f"Sec-WebSocket-Key: {key}", "Sec-WebSocket-Version: 13",
                  *(f"{k}: {v}" for k, v in (headers or {}).items())]
         self.sock.sendall(("\r\n".join(lines) + "\r\n\r\n").encode())
@@ -205,6 +206,18 @@ class RawWebSocket:
         seen.seconds = time.monotonic() - started
         return seen
 
+    def until_close(self, limit: int = 100000) -> tuple[int, str, list]:
+        """Read until the close frame: (code, reason, the text messages before it, parsed)."""
+        texts = []
+        for _ in range(limit):
+            opcode, payload = self.receive()
+            if opcode == OPCODE_TEXT:
+                texts.append(json.loads(payload))
+            elif opcode == OPCODE_CLOSE:
+                code = struct.unpack(">H", payload[:2])[0] if len(payload) >= 2 else 1005
+                return code, payload[2:].decode("utf-8", "replace"), texts
+        raise AssertionError("no close frame")
+
     def close(self) -> None:
         self.sock.close()
 
@@ -248,7 +261,7 @@ def cross_site_websocket(target: Target) -> Outcome:
 def rebound_host_stats(target: Target) -> Outcome:
     """Held: GET /stats with Host: evil.example (DNS rebinding; an admin token where one is asked) is refused."""
     started = time.monotonic()
-    status, body = http(f"{target.url}/stats{target.query('host', admin=True)}", headers={"Host": "evil.example"})
+    status, body, _ = http(f"{target.url}/stats{target.query('host', admin=True)}", headers={"Host": "evil.example"})
     seconds = time.monotonic() - started
     if status == 200:
         return Outcome(False, f"200: every session's counters ({len(json.loads(body))} sessions)", seconds)
@@ -258,7 +271,7 @@ def rebound_host_stats(target: Target) -> Outcome:
 def bundle_without_token(target: Target) -> Outcome:
     """Held: GET /bundle with no token is refused, not answered with the speaker's bundle."""
     started = time.monotonic()
-    status, body = http(f"{target.url}/bundle")
+    status, body, _ = http(f"{target.url}/bundle")
     seconds = time.monotonic() - started
     if status == 200:
         return Outcome(False, f"200: the bundle ({len(body) / 1e6:.1f} MB)", seconds)
@@ -284,7 +297,7 @@ def text_plain_offer(target: Target) -> Outcome:
     body = json.dumps({"sdp": asyncio.run(_webrtc_offer()), "type": "offer", "source": "none"}).encode()
     started = time.monotonic()
     query = target.query("text-plain")
-    status, answer = http(f"{target.url}/offer{query}", method="POST", body=body,
+    status, answer, _ = http(f"{target.url}/offer{query}", method="POST", body=body,
                           headers={"Content-Type": "text/plain"})
     seconds = time.monotonic() - started
     if status == 200:
@@ -297,7 +310,7 @@ def text_plain_offer(target: Target) -> Outcome:
 def malformed_offer(target: Target) -> Outcome:
     """Held: POST /offer with a body that is not JSON is a 400 with one line and no traceback or path in it."""
     started = time.monotonic()
-    status, answer = http(f"{target.url}/offer{target.query('malformed')}", method="POST", body=b'{"sdp": "v=0',
+    status, answer, _ = http(f"{target.url}/offer{target.query('malformed')}", method="POST", body=b'{"sdp": "v=0',
                           headers={"Content-Type": "application/json"})
     text = answer.decode("utf-8", "replace").strip()
     leaks = re.search(r"Traceback|File \"|\.py\b|(^|\s)/\w+/", text)
@@ -440,7 +453,7 @@ def _listed(target: Target, session: str) -> bool | None:
     """Whether the server's /stats still lists `session` (None where its /stats names no sessions: the baseline)."""
     if target.secret is None:
         return None
-    status, body = http(f"{target.url}/stats{target.query('unread-admin', admin=True)}", timeout=5)
+    status, body, _ = http(f"{target.url}/stats{target.query('unread-admin', admin=True)}", timeout=5)
     return status == 200 and any(entry.get("session") == session for entry in json.loads(body))
 
 

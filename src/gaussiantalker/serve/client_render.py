@@ -77,9 +77,9 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
         return web.FileResponse(bundle, headers={"Content-Type": "application/octet-stream"})
 
     async def offer(request: web.Request) -> web.Response:
-        from aiortc import RTCPeerConnection, RTCSessionDescription
+        from aiortc import RTCPeerConnection
 
-        from .webrtc import ControlChannel, FrameTrack, watch
+        from .webrtc import ControlChannel, FrameTrack, answer_offer, watch
 
         sdp, voice = await read_offer(request, ("file", "text", "none"), files, limits, speech_gate)
         client = request[CLIENT].key
@@ -95,13 +95,7 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
         pc.on("datachannel", session.attach)
         watch(pc, lambda: sessions.close(pc), limits.offer_connect_s,
               lambda: metrics.refuse("offer_not_connected"))
-        try:
-            pc.addTrack(session.audio)
-            await pc.setRemoteDescription(RTCSessionDescription(sdp=sdp, type="offer"))
-            await pc.setLocalDescription(await pc.createAnswer())
-        except Exception:  # aiortc's parse errors name internals: the page hears one line
-            await sessions.close(pc)
-            raise web.HTTPBadRequest(text="the offer's SDP could not be used") from None
+        await answer_offer(pc, sdp, [session.audio], lambda: sessions.close(pc))
         session.start()
         if voice.samples is not None:
             session.voice = sessions.background(push_real_time(session.live, voice.samples, voice.rate,

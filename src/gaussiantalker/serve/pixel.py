@@ -152,9 +152,9 @@ def add_pixel_routes(app: web.Application, bundle: Path, sessions: Sessions, lim
                             headers={"Cache-Control": "no-store"})
 
     async def offer(request: web.Request) -> web.Response:
-        from aiortc import RTCPeerConnection, RTCSessionDescription
+        from aiortc import RTCPeerConnection
 
-        from .webrtc import push_track, watch
+        from .webrtc import answer_offer, push_track, watch
 
         sdp, voice = await read_offer(request, ("file", "mic", "text"), files, limits, speech_gate, mic_track=True)
         client = request[CLIENT].key
@@ -183,14 +183,7 @@ def add_pixel_routes(app: web.Application, bundle: Path, sessions: Sessions, lim
             await sessions.close(pc)
             raise web.HTTPServiceUnavailable(
                 text=f"the live session could not start ({type(error).__name__})") from None
-        try:
-            pc.addTrack(session.video)
-            pc.addTrack(session.audio)
-            await pc.setRemoteDescription(RTCSessionDescription(sdp=sdp, type="offer"))
-            await pc.setLocalDescription(await pc.createAnswer())
-        except Exception:  # aiortc's parse errors name internals: the page hears one line
-            await sessions.close(pc)
-            raise web.HTTPBadRequest(text="the offer's SDP could not be used") from None
+        await answer_offer(pc, sdp, [session.video, session.audio], lambda: sessions.close(pc))
         if voice.samples is not None:
             session.voice = sessions.background(push_real_time(session.live, voice.samples, voice.rate,
                                                                voice.chunk_s))

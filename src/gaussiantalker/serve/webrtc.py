@@ -8,7 +8,8 @@ import fractions
 import json
 from collections.abc import Awaitable, Callable
 
-from aiortc import MediaStreamTrack, RTCPeerConnection
+from aiohttp import web
+from aiortc import MediaStreamTrack, RTCPeerConnection, RTCSessionDescription
 from aiortc.mediastreams import MediaStreamError
 from av import AudioFrame, VideoFrame
 
@@ -111,6 +112,19 @@ async def push_track(live, track: MediaStreamTrack) -> None:
             return
 
 
+async def answer_offer(pc: RTCPeerConnection, sdp: str, tracks: list, close: Callable[[], Awaitable[None]]) -> None:
+    """Add the server's `tracks`, take the page's offer and make the answer; where aiortc cannot (its errors name
+    its internals) the session is closed and the page gets 400 with one line."""
+    try:
+        for track in tracks:
+            pc.addTrack(track)
+        await pc.setRemoteDescription(RTCSessionDescription(sdp=sdp, type="offer"))
+        await pc.setLocalDescription(await pc.createAnswer())
+    except Exception:
+        await close()
+        raise web.HTTPBadRequest(text="the offer's SDP could not be used") from None
+
+
 def watch(pc: RTCPeerConnection, close: Callable[[], Awaitable[None]], connect_s: float,
           on_expired: Callable[[], None]) -> None:
     """Close the session when its peer connection fails or closes, or has not connected within `connect_s`
@@ -131,4 +145,5 @@ def watch(pc: RTCPeerConnection, close: Callable[[], Awaitable[None]], connect_s
     pc.on("connectionstatechange", lambda: task.cancel() if pc.connectionState == "connected" else None)
 
 
-__all__ = ["ControlChannel", "FrameTrack", "MAX_CONTROL_MESSAGES", "QUEUE_FRAMES", "push_track", "watch"]
+__all__ = ["ControlChannel", "FrameTrack", "MAX_CONTROL_MESSAGES", "QUEUE_FRAMES", "answer_offer", "push_track",
+           "watch"]
