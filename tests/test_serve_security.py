@@ -15,7 +15,7 @@ import time
 import urllib.parse
 
 import pytest
-from ci_tools import need_module
+from ci_tools import need, need_module
 from serve_clients import SECRET, RawWebSocket, ServerThread, http
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
@@ -143,8 +143,7 @@ def test_text_that_looks_like_an_option_is_spoken_not_obeyed(tmp_path):
     speech is as long as the words themselves (espeak-ng says "f, slash, ..." for the first)."""
     from gaussiantalker.serve.text_speech import SpeechError, speak, synthesiser
 
-    if synthesiser() is None:
-        pytest.skip("espeak-ng is not installed")
+    need(None if synthesiser() else "espeak-ng is not installed (Debian: apt-get install espeak-ng)", ".ci/install")
     secret = tmp_path / "secret.txt"
     secret.write_text("the secret file says " + "many words " * 200)
 

@@ -183,7 +183,7 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
         return socket
 
     async def interrupt(request: web.Request) -> web.Response:
-        connection, session = _own_session(sessions, request, await read_text(request))
+        connection, session = sessions.own_session(request, await read_text(request))
         if not session.interrupts.take():
             metrics.refuse("rate")
             raise web.HTTPTooManyRequests(text=f"more than {limits.interrupts_per_s:g} interrupts a second")
@@ -225,14 +225,6 @@ async def _tell_and_close(socket: web.WebSocketResponse, sessions: Sessions, rea
         except ConnectionError:
             pass
     await sessions.close(socket, CLOSE_POLICY, reason)
-
-
-def _own_session(sessions: Sessions, request: web.Request, session_id: str):
-    """The (connection, session) of `session_id` when it is the requesting client's; 404 otherwise."""
-    connection, session = sessions.session_of(session_id)
-    if sessions.entries[connection].client != request[CLIENT].key:
-        raise web.HTTPNotFound(text="no such live session (already closed?)")
-    return connection, session
 
 
 def _control_message(sessions: Sessions, connection, session, message: dict) -> None:

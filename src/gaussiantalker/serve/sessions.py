@@ -83,6 +83,13 @@ class Sessions:
             raise web.HTTPNotFound(text="no such live session (already closed?)")
         return connection, self.entries[connection].session
 
+    def own_session(self, request: web.Request, session_id: str):
+        """session_of, for the requesting client only: another client's session is 404 as if it did not exist."""
+        connection, session = self.session_of(session_id)
+        if self.entries[connection].client != request[CLIENT].key:
+            raise web.HTTPNotFound(text="no such live session (already closed?)")
+        return connection, session
+
     async def fail(self, connection, error: BaseException, what: str) -> None:
         """Making a frame raised, which ended the session: log it once (with its traceback), tell the page in one
         line without the error's text, and close the session when the page has left, ERROR_GRACE_S at most."""
@@ -139,10 +146,7 @@ class Sessions:
     # -- routes -------------------------------------------------------------------------------------------------
     async def leave(self, request: web.Request) -> web.Response:
         """POST /close: the page is leaving (its Stop button, or unload through sendBeacon)."""
-        text = await read_text(request)
-        connection, _ = self.session_of(text)
-        if self.entries[connection].client != request[CLIENT].key:
-            raise web.HTTPNotFound(text="no such live session (already closed?)")
+        connection, _ = self.own_session(request, await read_text(request))
         await self.close(connection)
         return web.Response(status=204)
 
