@@ -80,19 +80,32 @@ def test_every_bad_line_is_named(tmp_path):
              "{not json",
              "[1, 2]",
              json.dumps({"audio": "a.wav", "out": ""}),
-             json.dumps({**good, "out": "frames/%05d.png"})]
+             json.dumps({**good, "out": "frames/%05d.png"}),
+             json.dumps({**good, "out": "v.webm", "codec": "h264"}),
+             json.dumps({**good, "out": "k.mkv", "codec": "ffv1", "crf": 10}),
+             json.dumps({**good, "out": "q.mp4", "crf": 52}),
+             json.dumps({**good, "out": "o.mp4", "camera": {"yaw": 20, "pitch": 95}}),
+             json.dumps({**good, "out": "p.mp4", "camera": [10, 0], "composite": True}),
+             json.dumps({**good, "out": "y.mp4", "camera": {"yaw": 30, "roll": 2}}),
+             json.dumps({**good, "out": "fine.mkv", "camera": {"yaw": -30}, "codec": "ffv1"})]
     (tmp_path / "jobs.jsonl").write_text("\n".join(lines) + "\n")
     with pytest.raises(BatchError) as caught:
         read_jobs(tmp_path / "jobs.jsonl")
     message = str(caught.value)
     expected = {2: "must stay under", 3: "must stay under", 4: "the suffix picks the container",
                 5: "already written by line 1", 7: "sides must be", 8: "composite: expected true or false",
-                9: "unknown field 'camera'", 10: "needs audio or motion", 11: "missing.wav is not a file",
-                12: "not JSON", 13: "a job is a JSON object", 14: "bundle is missing", 15: "image sequences"}
+                9: "camera: expected {", 10: "needs audio or motion", 11: "missing.wav is not a file",
+                12: "not JSON", 13: "a job is a JSON object", 14: "bundle is missing", 15: "image sequences",
+                16: "codec: webm holds vp9, not h264", 17: "crf: ffv1 has no crf", 18: "crf: h264 takes 0..51",
+                19: "pitch -89..89", 20: "a composited frame is seen through", 21: "not 'roll'"}
     for line, text in expected.items():
         assert re.search(rf"^line {line}: .*{re.escape(text)}", message, re.M), (line, message)
     assert "line 1:" not in message and "line 6:" not in message
-    assert "13 bad job line(s)" in message and message.index("line 2:") < message.index("line 12:")
+    (tmp_path / "jobs.jsonl").write_text(lines[-1] + "\n")
+    fine = read_jobs(tmp_path / "jobs.jsonl")[0]
+    assert (fine.camera, fine.composite, fine.codec) == ((-30.0, 0.0), False, "ffv1")  # a camera: the bare head
+    assert "line 22:" not in message and "19 bad job line(s)" in message
+    assert message.index("line 2:") < message.index("line 12:")
     assert "out: expected a relative file name" in message  # line 14 names both of its problems
 
 
@@ -225,3 +238,80 @@ def test_a_killed_worker_leaves_no_final_file_and_the_job_is_retried(clips, tmp_
     assert Manifest(outdir).latest["long.mkv"].attempts == 2
     assert sorted(p.name for p in outdir.iterdir()) == ["a.mkv", "long.mkv", "manifest.jsonl"]
     assert len(decoded(outdir / "long.mkv")) == 200
+
+
+def decoded_audio(path: Path) -> np.ndarray:
+    """Every audio sample of a file (its first channel)."""
+    with av.open(str(path)) as container:
+        return np.concatenate([frame.to_ndarray()[0] for frame in container.decode(audio=0)])
+
+
+def hidden_files(outdir: Path) -> list[str]:
+    return sorted(str(p.relative_to(outdir)) for p in outdir.rglob(".*"))
+
+
+def test_split_jobs_equal_unsplit_renders(clips, tmp_path, speech, clip_export):
+    """Jobs longer than --segment-s: drives made once, segments on 2 workers, joined. On lossless frames (ffv1,
+    and h264 at crf 0) the joined video's frames are the unsplit render's bit for bit, composited ones included
+    (each segment composites into the reference frames of its own place in the clip), and the audio decodes to the
+    same samples; default h264 joins into a file of every frame and the whole sound."""
+    write_wav(clips / "long.wav", speech[:4 * TARGET_SAMPLE_RATE])
+    os.symlink(clip_export.path, clips / "clip.gtb")
+    jobs = write_jobs(clips / "jobs.jsonl", [
+        {"bundle": "speaker.gtb", "audio": "long.wav", "out": "bare.mkv", "resolution": SIZE, "codec": "ffv1"},
+        {"bundle": "clip.gtb", "audio": "c.wav", "out": "clip.mp4", "crf": 0},
+        {"bundle": "speaker.gtb", "audio": "long.wav", "out": "lossy.mp4", "resolution": SIZE,
+         "camera": {"yaw": 25, "pitch": -10}},
+        {"bundle": "speaker.gtb", "audio": "a.wav", "out": "short.webm", "resolution": SIZE}])
+    split = render_jobs(jobs, tmp_path / "split", workers=2, segment_s=0.7, progress=False)
+    whole = render_jobs(jobs, tmp_path / "whole", workers=2, segment_s=None, progress=False)
+    assert not split.failed and not whole.failed and len(split.done) == 4
+    assert split.video_s == pytest.approx(whole.video_s) == pytest.approx(4 + 2 + 4 + 1, abs=0.2)
+    for name in ("bare.mkv", "clip.mp4"):
+        got, want = decoded(tmp_path / "split" / name), decoded(tmp_path / "whole" / name)
+        assert len(got) == len(want) >= 50
+        assert all(np.array_equal(g, w) for g, w in zip(got, want, strict=True)), name
+    assert np.array_equal(decoded_audio(tmp_path / "split" / "clip.mp4"),
+                          decoded_audio(tmp_path / "whole" / "clip.mp4"))
+    lossy, lossy_whole = tmp_path / "split" / "lossy.mp4", tmp_path / "whole" / "lossy.mp4"
+    assert len(decoded(lossy)) == len(decoded(lossy_whole)) == 100
+    assert np.array_equal(decoded_audio(lossy), decoded_audio(lossy_whole))
+    # the orbited camera shows the head from elsewhere: not the bundle camera's frames
+    front = render_jobs(write_jobs(clips / "front.jsonl", [{"bundle": "speaker.gtb", "audio": "long.wav",
+                                                            "out": "lossy.mp4", "resolution": SIZE}]),
+                        tmp_path / "front", workers=1, segment_s=None, progress=False)
+    assert not front.failed
+    assert np.abs(decoded(tmp_path / "front" / "lossy.mp4")[50].astype(int) - decoded(lossy)[50]).mean() > 2
+    for folder in ("split", "whole"):
+        assert hidden_files(tmp_path / folder) == [], folder  # no segment or partial file is left
+    records = Manifest(tmp_path / "split").latest
+    assert {out: r.status for out, r in records.items()} == dict.fromkeys(
+        ["bare.mkv", "clip.mp4", "lossy.mp4", "short.webm"], "ok")
+    assert {out: r.segments for out, r in records.items()} == {"bare.mkv": 6, "clip.mp4": 3, "lossy.mp4": 6,
+                                                               "short.webm": 2}
+    assert {r.segments for r in Manifest(tmp_path / "whole").latest.values()} == {1}
+    # the unsplit render is write_video's: one head with the batch's settings writes the same frames
+    from gaussiantalker.runtime import TalkingHead
+
+    with TalkingHead(clip_export.path, threads=1) as head:
+        direct = head.write_video(tmp_path / "direct.mp4", clips / "c.wav", crf=0)
+    assert all(np.array_equal(g, w) for g, w in zip(decoded(direct), decoded(tmp_path / "split" / "clip.mp4"),
+                                                      strict=True))
+
+
+def test_segment_s_and_the_ray_flag(tmp_path):
+    from gaussiantalker.cli.render import ray_flag_arguments
+
+    assert ray_flag_arguments(["jobs.jsonl", "--ray", "-o", "out"]) == ["jobs.jsonl", "--ray=-", "-o", "out"]
+    assert ray_flag_arguments(["--ray", "jobs.jsonl"]) == ["--ray=-", "jobs.jsonl"]
+    assert ray_flag_arguments(["--ray", "10.0.0.5:6379", "j.csv"]) == ["--ray", "10.0.0.5:6379", "j.csv"]
+    assert ray_flag_arguments(["--ray", "ray://head:10001"]) == ["--ray", "ray://head:10001"]
+    assert ray_flag_arguments(["j.csv", "--ray"]) == ["j.csv", "--ray=-"]
+    (tmp_path / "s.gtb").write_bytes(b"x")
+    (tmp_path / "a.wav").write_bytes(b"x")
+    write_jobs(tmp_path / "jobs.jsonl", [{"bundle": "s.gtb", "audio": "a.wav", "out": "a.mp4"}])
+    with pytest.raises(BatchError, match="segment_s must be at least"):
+        render_jobs(tmp_path / "jobs.jsonl", tmp_path / "out", segment_s=0.01)
+    result = CliRunner().invoke(render_command, [str(tmp_path / "jobs.jsonl"), "-o", str(tmp_path / "out"),
+                                                 "--segment-s", "-3"])
+    assert result.exit_code == 2 and "segment_s must be at least" in result.output

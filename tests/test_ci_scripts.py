@@ -114,7 +114,7 @@ def test_install_asks_apt_for_every_missing_package(tmp_path, uid):
     assert len(sudo) == (0 if uid == 0 else 2), calls
     pips = [call for call in calls if call[0] == "python" and call[1:4] == ["-m", "pip", "install"]]
     assert ["torch==2.13.0"] == [arg for arg in pips[0] if arg.startswith("torch")], "torch (CPU) comes first"
-    assert ".[export,dev,mnn,serve,pipecat,cpu]" in pips[1]
+    assert ".[export,dev,mnn,serve,pipecat,cpu,ray]" in pips[1]
     assert any("opencv-python-headless" in arg for arg in pips[2])
 
 

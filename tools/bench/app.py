@@ -22,6 +22,8 @@
                            number of clients (bench/live_clients.py)
     gt-bench serve-attacks the threat model's attacks on gt-serve (beside an older server with --baseline-server):
                            held or broke, with what each observed (bench/serve_attacks.py)
+    gt-bench batch         gt-render's engines: seconds of video per second for 1, 2 local workers and Ray
+                           actors, a long clip split and whole (bench/batch_rate.py)
     gt-bench pipeline      the pipelined frame loop against the serial one on the CPU splatter, alternating
                            (bench/pipeline_vs_serial.py)
     gt-bench blend-limit   the CPU splatter's blend: its work counts and time per fragment against the same
@@ -633,6 +635,34 @@ def serve_attacks(
     typer.echo(table)
     _write_report(out, "serve-attacks", "Attacks on the live server", result, table,
                   "; each server alone on loopback, `--client-render`, gt-serve with `--secret-file`.")
+
+
+@app.command("batch")
+def batch(
+    bundle: Path = typer.Argument(..., help="a speaker bundle with a translator (.gtb)"),
+    resolution: int = typer.Option(256, "--resolution", min=16, help="square frames of every job"),
+    jobs: int = typer.Option(8, "--jobs", min=1, help="jobs in the throughput list"),
+    job_s: float = typer.Option(6.0, "--job-s", min=0.5, help="seconds of each job"),
+    long_s: float = typer.Option(600.0, "--long-s", min=1.0, help="seconds of the long clip"),
+    segment_s: float = typer.Option(60.0, "--segment-s", min=0.1, help="segments of the long clip"),
+    rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds of the throughput cases"),
+    long_rounds: int = typer.Option(1, "--long-rounds", min=1, help="alternating rounds of the long clip"),
+    ray: bool = typer.Option(True, "--ray/--no-ray", help="bench the Ray engine too (a local Ray)"),
+    out: Path = typer.Option(None, "--out", help="folder for batch.md and batch.json"),
+) -> None:
+    """gt-render's throughput: seconds of video made per second by 1 and 2 local workers and Ray actors, and a
+    long clip split into segments against the same clip whole; extrapolated to many machines."""
+    from .batch_rate import batch_table, run_batch_bench
+
+    if not bundle.is_file():
+        raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
+    result = _stamp(run_batch_bench(bundle, resolution=resolution, jobs=jobs, job_s=job_s, long_s=long_s,
+                                    segment_s=segment_s, rounds=rounds, long_rounds=long_rounds, ray=ray,
+                                    log=typer.echo))
+    table = batch_table(result)
+    typer.echo(table)
+    _write_report(out, "batch", "gt-render: seconds of video per second", result, table,
+                  f"; {jobs} jobs of {job_s:g} s at {resolution}x{resolution}, rounds alternating the engines.")
 
 
 def _live_baseline(script: Path | None, checkout: Path | None):

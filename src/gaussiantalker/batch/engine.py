@@ -1,6 +1,7 @@
 """What an engine is to a batch: it takes checked jobs and an output folder and yields each job's result as it
-finishes. The local engine (batch/local.py) runs worker processes on this machine; another engine (a cluster's)
-implements the same `run`, and the runner above it (batch/runner.py) keeps the manifest and the progress."""
+finishes. The local engine (batch/local.py) runs worker processes on this machine, the Ray engine (batch/ray.py)
+actors on a cluster; both run the jobs' steps through batch/job_steps.py, and the runner above them (batch/runner.py)
+keeps the manifest and the progress."""
 
 from __future__ import annotations
 
@@ -25,13 +26,15 @@ class JobResult:
     seconds: float = 0.0  # wall seconds in the worker
     video_s: float = 0.0  # seconds of video made
     attempts: int = 1
+    segments: int = 1  # files its frames were rendered into (more than one: split, then joined)
 
 
 class Engine(Protocol):
     """Renders jobs into `outdir`, each output renamed onto its final name only when complete."""
 
-    def run(self, jobs: Sequence[Job], outdir: Path) -> Iterator[JobResult]:
-        """Yield one result per job, in the order they finish."""
+    def run(self, jobs: Sequence[Job], outdir: Path, segment_s: float | None = None) -> Iterator[JobResult]:
+        """Yield one result per job, in the order they finish; jobs longer than `segment_s` (None: never) are
+        split into segments (batch/job_steps.py)."""
         ...
 
 

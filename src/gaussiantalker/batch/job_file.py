@@ -8,11 +8,12 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import os
 from pathlib import Path, PurePosixPath
 
 from gaussiantalker.sdk.json_bounds import no_constant
-from gaussiantalker.sdk.video_formats import CONTAINERS
+from gaussiantalker.sdk.video_formats import CODECS, CONTAINERS
 
 from .jobs import BatchError, Job
 
@@ -22,7 +23,8 @@ MAX_LINE_CHARS = 16 * 1024
 MAX_SIDE = 8192  # the largest resolution side a job may ask for
 MAX_NAME_CHARS = 255  # one component of `out` (the usual file-system limit)
 MAX_LISTED = 100  # problems spelled out in one error; the rest are counted
-FIELDS = ("bundle", "audio", "motion", "out", "resolution", "composite")
+FIELDS = ("bundle", "audio", "motion", "out", "resolution", "composite", "camera", "codec", "crf")
+MAX_PITCH = 89.0  # degrees: the orbit's pitch stays short of looking straight down or up
 # Single-file containers: an image sequence is a folder of files, which the manifest's one output digest and the
 # one atomic rename do not describe.
 SUFFIXES = tuple(ext for spec in CONTAINERS.values() if not spec.sequence for ext in spec.extensions)
@@ -144,7 +146,8 @@ def job_from_fields(row: dict, line: int, base: Path) -> Job:
     problems = [f"unknown field {name!r} (known: {', '.join(FIELDS)})" for name in row if name not in FIELDS]
     found: dict = {}
     for name, check in (("bundle", _input), ("audio", _input), ("motion", _input), ("out", _out),
-                        ("resolution", _resolution), ("composite", _composite)):
+                        ("resolution", _resolution), ("composite", _composite), ("camera", _camera),
+                        ("codec", _codec), ("crf", _crf)):
         if row.get(name) is None:
             continue
         try:
@@ -156,9 +159,32 @@ def job_from_fields(row: dict, line: int, base: Path) -> Job:
             problems.append(f"{name} is missing")
     if row.get("audio") is None and row.get("motion") is None:
         problems.append("a job needs audio or motion (or both: the motion plays with the audio muxed in)")
+    problems += _coherent(found)
     if problems:
         raise ValueError("; ".join(problems))
+    if "camera" in found and found.get("composite") is None:
+        found["composite"] = False  # a view from elsewhere is of the bare head
     return Job(line=line, **found)
+
+
+def _coherent(found: dict) -> list[str]:
+    """Problems between fields: a camera on a composited frame, a codec its container does not hold, a crf its
+    codec has no scale for."""
+    problems = []
+    if found.get("camera") is not None and found.get("composite") is True:
+        problems.append("camera: a composited frame is seen through the reference clip's camera; drop composite "
+                        "or set it false")
+    container = _container(found["out"]) if "out" in found else None
+    codec = found.get("codec") or (container.codecs[0] if container is not None else None)
+    if container is not None and codec not in container.codecs:
+        problems.append(f"codec: {container.name} holds {', '.join(container.codecs)}, not {codec}")
+    if found.get("crf") is not None:
+        spec = CODECS.get(codec) if codec is not None else None
+        if spec is not None and spec.crf is None:
+            problems.append(f"crf: {spec.name} has no crf")
+        elif spec is not None and not spec.crf[0] <= found["crf"] <= spec.crf[1]:
+            problems.append(f"crf: {spec.name} takes {spec.crf[0]}..{spec.crf[1]}, got {found['crf']}")
+    return problems
 
 
 def _input(value: object, base: Path) -> Path:
@@ -206,6 +232,52 @@ def _composite(value: object) -> bool:
     if not isinstance(value, bool):
         raise ValueError(f"expected true or false, got {_shown(value)}")
     return value
+
+
+def _container(out: str):
+    """The container an output's suffix picks (`_out` has checked it is one)."""
+    suffix = PurePosixPath(out).suffix.lower()
+    return next(spec for spec in CONTAINERS.values() if suffix in spec.extensions)
+
+
+def _camera(value: object) -> tuple[float, float]:
+    """{"yaw": deg, "pitch": deg}, [yaw, pitch], or CSV text "yaw pitch" / "yaw;pitch"."""
+    if isinstance(value, str):
+        parts = value.replace(";", " ").replace(",", " ").split()
+        try:
+            value = [float(part) for part in parts]
+        except ValueError:
+            raise ValueError(f"expected 'YAW PITCH' in degrees, got {_shown(value)}") from None
+    if isinstance(value, dict):
+        unknown = sorted(set(value) - {"yaw", "pitch"})
+        if unknown:
+            raise ValueError(f"a camera has yaw and pitch (degrees), not {', '.join(map(repr, unknown))}")
+        value = [value.get("yaw", 0.0), value.get("pitch", 0.0)]
+    if not isinstance(value, list | tuple) or len(value) != 2 or not all(_is_real(v) for v in value):
+        raise ValueError(f'expected {{"yaw": degrees, "pitch": degrees}} or [yaw, pitch], got {_shown(value)}')
+    yaw, pitch = float(value[0]), float(value[1])
+    if not (math.isfinite(yaw) and -180.0 <= yaw <= 180.0 and math.isfinite(pitch) and abs(pitch) <= MAX_PITCH):
+        raise ValueError(f"yaw must be -180..180 and pitch -{MAX_PITCH:g}..{MAX_PITCH:g} degrees, got "
+                         f"{_shown(value[0])}, {_shown(value[1])}")
+    return yaw, pitch
+
+
+def _codec(value: object) -> str:
+    if not isinstance(value, str) or value not in CODECS:
+        raise ValueError(f"expected one of {', '.join(CODECS)}, got {_shown(value)}")
+    return value
+
+
+def _crf(value: object) -> int:
+    if isinstance(value, str) and value.strip().isdigit():
+        value = int(value)
+    if not _is_int(value) or not 0 <= value <= 63:
+        raise ValueError(f"expected a whole number 0..63, got {_shown(value)}")
+    return value
+
+
+def _is_real(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def _is_int(value: object) -> bool:

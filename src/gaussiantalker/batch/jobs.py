@@ -29,7 +29,10 @@ class Job:
     audio: Path | None = None
     motion: Path | None = None
     resolution: tuple[int, int] | None = None  # None: the bundle's
-    composite: bool | None = None  # None: whether the bundle has a reference clip
+    composite: bool | None = None  # None: whether the bundle has a reference clip (False with a camera)
+    camera: tuple[float, float] | None = None  # (yaw, pitch) degrees about the head's centre; None: the bundle's
+    codec: str | None = None  # None: the container's default
+    crf: int | None = None  # None: the codec's default
 
     def inputs(self) -> dict[str, Path]:
         """The input files whose digests decide whether a recorded output is still this job's."""
@@ -39,9 +42,10 @@ class Job:
     def settings_digest(self) -> str:
         """sha256 of everything but the input files' contents that decides the output's frames and file."""
         settings = {"version": JOB_FORMAT_VERSION, "out": self.out, "inputs": sorted(self.inputs()),
-                    "resolution": self.resolution, "composite": self.composite}
+                    "resolution": self.resolution, "composite": self.composite, "camera": self.camera,
+                    "codec": self.codec, "crf": self.crf}
         return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()
 
-    def head_key(self) -> tuple[str, tuple[int, int] | None, bool | None]:
+    def head_key(self) -> tuple:
         """What a loaded TalkingHead depends on: jobs with the same key share one head in a worker."""
-        return str(self.bundle), self.resolution, self.composite
+        return str(self.bundle), self.resolution, self.composite, self.camera

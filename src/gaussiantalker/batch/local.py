@@ -1,4 +1,4 @@
-"""The local engine: worker processes on this machine, each keeping its loaded heads between jobs
+"""The local engine: worker processes on this machine, each keeping its loaded heads between calls
 (batch/worker.py), and a pool recreated when a worker dies (docs/batch.md, "The local engine")."""
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from .engine import JobResult, one_line
+from .job_steps import Call, Outcome, run_programs
 from .jobs import Job
-from .outputs import remove_partials
-from .worker import init_worker, render_job
+from .worker import init_worker, run_call
 
-RETRIES = 2  # times a job is rerun after the worker running it died
+RETRIES = 2  # times a call is rerun after the worker running it died
 
 
 def usable_cores() -> int:
@@ -37,59 +37,84 @@ class LocalEngine:
         self.retries = retries
         self.threads = max(1, usable_cores() // self.workers)
 
-    def run(self, jobs: Sequence[Job], outdir: Path) -> Iterator[JobResult]:
-        """Yield each job's result as it finishes; a job whose worker died is rerun on a fresh pool, at most
-        `retries` times (every job running when a pool broke counts it: which worker died is not known)."""
-        pending = deque(jobs)
-        attempts: Counter[str] = Counter()
-        while pending:
-            yield from self._pool_run(pending, attempts, Path(outdir))
-
-    def _pool_run(self, pending: deque[Job], attempts: Counter[str], outdir: Path) -> Iterator[JobResult]:
-        """Run jobs from `pending` on one pool until they are all done or the pool breaks (then the jobs it was
-        running are back at the front of `pending`, or failed once out of retries)."""
-        pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=init_worker, initargs=(self.threads,))
-        running: dict[Future, Job] = {}
-        broken = False
+    def run(self, jobs: Sequence[Job], outdir: Path, segment_s: float | None = None) -> Iterator[JobResult]:
+        """Yield each job's result as it finishes (its steps: batch/job_steps.py)."""
+        calls = ProcessCalls(self.workers, self.threads, self.retries)
         try:
-            while pending or running:
-                # At most one job a worker: each running job is on a worker, so a broken pool's jobs were all started.
-                while pending and not broken and len(running) < self.workers:
-                    job = pending.popleft()
-                    try:
-                        running[pool.submit(render_job, job, str(outdir))] = job
-                    except BrokenProcessPool:
-                        pending.appendleft(job)
-                        broken = True
-                        break
-                    attempts[job.out] += 1
-                if not running:
-                    break
-                finished, _ = wait(running, return_when=FIRST_COMPLETED)
-                for future in finished:
-                    job = running.pop(future)
-                    result = self._result(future, job, attempts[job.out], outdir)
-                    if result is None:
-                        broken = True
-                        pending.appendleft(job)
-                    else:
-                        yield result
+            yield from run_programs(jobs, Path(outdir), segment_s, calls)
         finally:
-            pool.shutdown(wait=True, cancel_futures=True)
+            calls.close()
 
-    def _result(self, future: Future, job: Job, attempt: int, outdir: Path) -> JobResult | None:
-        """The job's result, or None when its worker died and it has retries left."""
+
+class ProcessCalls:
+    """A process pool that runs calls, at most one a worker, recreated when a worker dies: every call that was
+    running then is rerun on the new pool, at most `retries` times (which worker died is not known)."""
+
+    def __init__(self, workers: int, threads: int, retries: int) -> None:
+        self.workers, self.threads, self.retries = workers, threads, retries
+        self.attempts: Counter[str] = Counter()
+        self._pool: ProcessPoolExecutor | None = None
+        self._running: dict[Future, Call] = {}
+        self._retry: deque[Call] = deque()
+
+    def free(self) -> int:
+        return self.workers - len(self._running) - len(self._retry)
+
+    def submit(self, call: Call) -> None:
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                             initializer=init_worker, initargs=(self.threads,))
+        self.attempts[call.key] += 1
         try:
-            result = future.result()
+            self._running[self._pool.submit(run_call, call)] = call
         except BrokenProcessPool:
-            remove_partials(outdir / job.out)
+            self.attempts[call.key] -= 1
+            self._retry.append(call)
+
+    def wait(self) -> list[tuple[Call, Outcome]]:
+        """At least one finished call (calls whose worker died are rerun first, on a fresh pool)."""
+        while True:
+            if self._retry:
+                self._restart()
+            if not self._running:
+                return []
+            finished, _ = wait(self._running, return_when=FIRST_COMPLETED)
+            done = []
+            for future in finished:
+                call = self._running.pop(future)
+                outcome = self._outcome(future, call)
+                if outcome is None:
+                    self._retry.append(call)
+                else:
+                    done.append((call, outcome))
+            if done:
+                return done
+
+    def _outcome(self, future: Future, call: Call) -> Outcome | None:
+        """The call's outcome, or None when its worker died and it has retries left."""
+        attempt = self.attempts[call.key]
+        try:
+            return Outcome(future.result(), attempt)
+        except BrokenProcessPool:
             if attempt <= self.retries:
                 return None
-            return JobResult(job.out, False, reason=f"its worker process died {attempt} times (killed, or out of "
-                             "memory)", attempts=attempt)
+            return Outcome(JobResult(call.job.out, False, reason=f"its worker process died {attempt} times "
+                                     "(killed, or out of memory)", attempts=attempt), attempt)
         except Exception as exc:  # an error the worker could not even return as a result
-            remove_partials(outdir / job.out)
-            return JobResult(job.out, False, reason=one_line(exc), attempts=attempt)
-        return JobResult(result.out, result.ok, result.reason, result.output, result.seconds, result.video_s,
-                         attempt)
+            return Outcome(JobResult(call.job.out, False, reason=one_line(exc), attempts=attempt), attempt)
+
+    def _restart(self) -> None:
+        """A fresh pool (the broken one's other calls fail there too and come back here), the dead calls on it."""
+        if self._running:
+            return  # wait for the broken pool's other futures first: they all fail at once
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        retry, self._retry = self._retry, deque()
+        for call in retry:
+            self.submit(call)
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None

@@ -31,6 +31,7 @@ class Record:
     seconds: float = 0.0  # wall seconds the job took in its worker
     video_s: float = 0.0  # seconds of video it made
     attempts: int = 1
+    segments: int = 1  # files the frames were rendered into, then joined
     extra: dict = field(default_factory=dict)  # fields a later version adds, kept when read back
 
 

@@ -12,13 +12,18 @@ def partial_path(target: Path, pid: int | None = None) -> Path:
     return target.with_name(f".{target.name}.partial-{os.getpid() if pid is None else pid}{target.suffix}")
 
 
+def segment_path(target: Path, index: int) -> Path:
+    """`.NAME.segment-0003.SUFFIX` beside `target`: segment `index` of a split job, in the output's container."""
+    return target.with_name(f".{target.name}.segment-{index:04d}{target.suffix}")
+
+
 def remove_partials(target: Path) -> list[Path]:
-    """Remove what killed workers left for `target`: its partial files and the video writer's own staged files
-    beside them (`..NAME.partial-*`); returns what was removed."""
+    """Remove what a job's steps left beside `target`: partial files, segments and the video writer's own staged
+    files beside them (`..NAME.partial-*`, `..NAME.segment-*`); returns what was removed."""
     if not target.parent.is_dir():
         return []
     removed = []
-    for prefix in (f".{target.name}.partial-", f"..{target.name}.partial-"):
+    for prefix in (f"{dots}{target.name}.{kind}-" for dots in (".", "..") for kind in ("partial", "segment")):
         for path in target.parent.glob(_escaped(prefix) + "*"):
             if path.is_file():
                 path.unlink(missing_ok=True)

@@ -14,10 +14,13 @@ from gaussiantalker.sdk.progress import progress_bar
 from .digests import DigestCache
 from .engine import Engine, JobResult
 from .job_file import read_jobs
+from .job_steps import DEFAULT_SEGMENT_S
 from .jobs import BatchError, Job
 from .local import LocalEngine
 from .manifest import Manifest, Record
 from .outputs import remove_partials
+
+MIN_SEGMENT_S = 0.1  # below it a segment's own costs (a file, a head's first frame) outweigh its frames
 
 
 @dataclass
@@ -38,14 +41,31 @@ class BatchSummary:
 
 
 def render_jobs(jobs_path: str | os.PathLike, outdir: str | os.PathLike, *, workers: int | None = None,
-                force: bool = False, progress: bool = True) -> BatchSummary:
-    """Render a job list file into `outdir` on local worker processes; BatchError (every bad line) before anything
-    renders."""
-    return run_jobs(read_jobs(jobs_path), outdir, LocalEngine(workers), force=force, progress=progress)
+                force: bool = False, progress: bool = True, segment_s: float | None = DEFAULT_SEGMENT_S,
+                ray: bool | str = False) -> BatchSummary:
+    """Render a job list file into `outdir`: on local worker processes, or with `ray` on a Ray cluster (True: the
+    one `RAY_ADDRESS` names, else a local Ray started for the run; a string: that address). Jobs longer than
+    `segment_s` seconds (None: none) render in segments on several workers. BatchError (every bad line) before
+    anything renders."""
+    jobs = read_jobs(jobs_path)
+    check_segment_s(segment_s)
+    if ray is False:
+        return run_jobs(jobs, outdir, LocalEngine(workers), force=force, progress=progress, segment_s=segment_s)
+    from .ray_engine import RayEngine
+
+    with RayEngine(None if ray is True else ray, workers=workers) as engine:
+        return run_jobs(jobs, outdir, engine, force=force, progress=progress, segment_s=segment_s)
+
+
+def check_segment_s(segment_s: float | None) -> None:
+    """BatchError unless `segment_s` is None or a length a segment can have."""
+    if segment_s is not None and not (isinstance(segment_s, int | float) and MIN_SEGMENT_S <= segment_s < 1e9):
+        raise BatchError(f"segment_s must be at least {MIN_SEGMENT_S} seconds (or None: never split), "
+                         f"got {segment_s!r}")
 
 
 def run_jobs(jobs: Sequence[Job], outdir: str | os.PathLike, engine: Engine, *, force: bool = False,
-             progress: bool = True) -> BatchSummary:
+             progress: bool = True, segment_s: float | None = DEFAULT_SEGMENT_S) -> BatchSummary:
     """Render checked jobs into `outdir` with `engine`, skipping those the manifest proves done unless `force`."""
     start = time.perf_counter()
     outdir = Path(outdir)
@@ -66,7 +86,7 @@ def run_jobs(jobs: Sequence[Job], outdir: str | os.PathLike, engine: Engine, *, 
     by_out = {job.out: job for job in todo}
     bar = progress_bar(total=len(jobs), initial=len(summary.skipped), unit="job", disable=not progress)
     try:
-        for result in engine.run(todo, outdir):
+        for result in engine.run(todo, outdir, segment_s):
             job = by_out[result.out]
             manifest.append(_record(job, result, inputs[job.out]))
             if result.ok:
@@ -86,4 +106,4 @@ def run_jobs(jobs: Sequence[Job], outdir: str | os.PathLike, engine: Engine, *, 
 def _record(job: Job, result: JobResult, inputs: dict[str, str]) -> Record:
     return Record(out=job.out, inputs=inputs, settings=job.settings_digest(), status="ok" if result.ok else "failed",
                   output=result.output, reason=result.reason, seconds=round(result.seconds, 3),
-                  video_s=round(result.video_s, 3), attempts=result.attempts)
+                  video_s=round(result.video_s, 3), attempts=result.attempts, segments=result.segments)

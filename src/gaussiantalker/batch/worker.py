@@ -1,5 +1,7 @@
-"""What runs inside a worker process: its loaded TalkingHeads (kept between jobs, a few at most) and one job's
-render into a partial file renamed onto its final name when complete (docs/batch.md, "The local engine")."""
+"""What runs inside a worker (a local process or a Ray actor): its loaded TalkingHeads, kept between calls (a few
+at most), and the three steps of a job (batch/job_steps.py): `start` (a short job rendered whole, or a long one's
+drives made once), `segment` (a range of frames into a file of its own) and `join` (the segments' packets and the
+clip's audio into the output). Every output goes through a partial name renamed when complete (docs/batch.md)."""
 
 from __future__ import annotations
 
@@ -7,19 +9,26 @@ import contextlib
 import os
 import time
 from collections import OrderedDict
+from contextlib import closing
 from pathlib import Path
 
-from gaussiantalker.sdk.errors import GaussianTalkerError
+from gaussiantalker.sdk.errors import GaussianTalkerError, VideoError
 
 from .digests import file_digest
 from .engine import JobResult, one_line
+from .job_steps import Call, SegmentDone, Split
 from .jobs import Job
-from .outputs import partial_path
+from .outputs import partial_path, segment_path
 
 MAX_HEADS = 4  # loaded heads a worker keeps (each holds its bundle's graphs and a splatter)
 # Graph threads of every batch head: the workers are the parallelism, and onnxruntime's results depend on its thread
 # count, so one thread makes a job's frames the same whatever the worker count (docs/batch.md).
 GRAPH_THREADS = 1
+# Depth-sort every frame: with a sort interval a frame's order depends on the frames before it, and a segment or a
+# retried job starts afresh, so only sort_interval=1 makes every frame the same however the clip is cut.
+SORT_INTERVAL = 1
+# Codecs whose segments are not joined (a palette per frame): such jobs render whole.
+UNSPLIT_CODECS = ("gif",)
 _heads: OrderedDict = OrderedDict()
 
 
@@ -40,7 +49,13 @@ def loaded_head(job: Job):
         _heads.move_to_end(key)
         return _heads[key]
     head = TalkingHead(job.bundle, resolution=job.resolution, composite=job.composite, threads=GRAPH_THREADS,
-                       renderer="auto")
+                       renderer="auto", sort_interval=SORT_INTERVAL)
+    try:
+        if job.camera is not None:
+            head.camera = head.orbited_camera(*job.camera)
+    except BaseException:
+        head.close()
+        raise
     _heads[key] = head
     while len(_heads) > MAX_HEADS:
         _heads.popitem(last=False)[1].close()
@@ -55,11 +70,36 @@ def drop_head(job: Job) -> None:
             head.close()
 
 
-def render_job(job: Job, outdir: str) -> JobResult:
-    """Render one job into OUTDIR/job.out through a partial file; a failure removes it and is returned, not
-    raised (the SDK's errors with their message, anything else with its type)."""
+def run_call(call: Call) -> object:
+    """Run one step here: its result, or a failed JobResult with a one-line reason (never raised: the SDK's
+    errors by their message, anything else with its type)."""
+    step = {"start": start_job, "segment": render_segment, "join": join_segments}[call.step]
     start = time.perf_counter()
-    target = Path(outdir) / job.out
+    try:
+        return step(call.job, Path(call.outdir), *call.args)
+    except Exception as exc:
+        if not isinstance(exc, GaussianTalkerError):
+            drop_head(call.job)
+        return JobResult(call.job.out, False, reason=one_line(exc), seconds=time.perf_counter() - start)
+
+
+def start_job(job: Job, outdir: Path, segment_s: float | None) -> JobResult | Split:
+    """A job no longer than `segment_s` (None: any) rendered whole; a longer one's drives made once and cut into
+    segments of `segment_s`."""
+    start = time.perf_counter()
+    head = loaded_head(job)
+    target = outdir / job.out
+    plan = head.plan_video(target, codec=job.codec, crf=job.crf)  # checked before any frame
+    play = head.playback(job.audio, motion=job.motion)
+    per_segment = None if segment_s is None else max(1, round(segment_s * head.fps))
+    if per_segment is None or play.frames <= per_segment or plan.codec.name in UNSPLIT_CODECS:
+        return _render_whole(head, job, target, start)
+    drives = list(head.playback_drives(play))
+    ranges = [(first, min(first + per_segment, len(drives))) for first in range(0, len(drives), per_segment)]
+    return Split(drives, ranges, play.composited, head.fps, time.perf_counter() - start)
+
+
+def _render_whole(head, job: Job, target: Path, start: float) -> JobResult:
     partial = partial_path(target)
     frames = 0
 
@@ -68,15 +108,51 @@ def render_job(job: Job, outdir: str) -> JobResult:
         frames += 1
 
     try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        head = loaded_head(job)
-        head.write_video(partial, job.audio, motion=job.motion, on_frame=count)
+        head.write_video(partial, job.audio, motion=job.motion, codec=job.codec, crf=job.crf, on_frame=count)
         digest = file_digest(partial)
         os.replace(partial, target)
-        return JobResult(job.out, True, output=digest, seconds=time.perf_counter() - start,
-                         video_s=frames / head.fps)
-    except Exception as exc:
+    finally:
         partial.unlink(missing_ok=True)
-        if not isinstance(exc, GaussianTalkerError):
-            drop_head(job)
-        return JobResult(job.out, False, reason=one_line(exc), seconds=time.perf_counter() - start)
+    return JobResult(job.out, True, output=digest, seconds=time.perf_counter() - start, video_s=frames / head.fps)
+
+
+def render_segment(job: Job, outdir: Path, drives: list, index: int, first_frame: int,
+                   composited: bool) -> SegmentDone:
+    """Frames `first_frame`... of the job (their drives given) into segment file `index`, no audio."""
+    from gaussiantalker.runtime.frame_loops import write_frames
+    from gaussiantalker.sdk.video import VideoWriter
+
+    start = time.perf_counter()
+    head = loaded_head(job)
+    plan = head.plan_video(segment_path(outdir / job.out, index), codec=job.codec, crf=job.crf)
+    frames = head.drive_frames(drives, composited=composited, first_frame=first_frame)
+    with closing(frames), VideoWriter(plan.path, head.fps, plan.size, plan=plan) as out:
+        write_frames(out, frames, len(drives), pipelined=head.backend_settings.pipeline is not False, progress=False)
+    return SegmentDone(str(plan.path), len(drives), time.perf_counter() - start)
+
+
+def join_segments(job: Job, outdir: Path, parts: list[SegmentDone]) -> JobResult:
+    """The segments' packets, in order, and the whole clip's audio into the output (no frame decoded or encoded
+    again); the segment files are removed."""
+    from gaussiantalker.sdk.video import VideoWriter
+
+    start = time.perf_counter()
+    head = loaded_head(job)
+    target = outdir / job.out
+    partial = partial_path(target)
+    plan = head.plan_video(partial, codec=job.codec, crf=job.crf)
+    samples = None if job.audio is None else head.driver.load_audio(job.audio)
+    try:
+        with VideoWriter(plan.path, head.fps, plan.size, audio=samples, sample_rate=head.sample_rate, plan=plan,
+                         encoded_like=parts[0].path) as out:
+            for part in parts:
+                if out.append_encoded(part.path) != part.frames:
+                    raise VideoError(f"segment {part.path} holds other than its {part.frames} frames")
+        digest = file_digest(partial)
+        os.replace(partial, target)
+    finally:
+        partial.unlink(missing_ok=True)
+    for part in parts:
+        Path(part.path).unlink(missing_ok=True)
+    frames = sum(part.frames for part in parts)
+    return JobResult(job.out, True, output=digest, seconds=time.perf_counter() - start, video_s=frames / head.fps)

@@ -52,9 +52,10 @@ def bare_frames(renderer: FrameRenderer, drives: Iterable[Drive], output: str, p
             yield renderer.draw(splats, output)
 
 
-def composited_frames(renderer: FrameRenderer, compositor: Compositor, drives: Iterable[Drive], pipelined: bool
-                      ) -> Iterator[np.ndarray]:
-    """Frame t composited into the clip's frame t. Pipelined, where the splatter can (`frames_at_once` > 1),
+def composited_frames(renderer: FrameRenderer, compositor: Compositor, drives: Iterable[Drive], pipelined: bool,
+                      first_frame: int = 0) -> Iterator[np.ndarray]:
+    """Frame t composited into the clip's frame t (the drives are video frames `first_frame`, `first_frame` + 1, ...:
+    a segment of a longer clip). Pipelined, where the splatter can (`frames_at_once` > 1),
     whole frames (deformation, sort, draw, F and the blend) on that many worker threads at once, the reference
     pictures decoded in order on one more; else three stages overlap: the next frames prepared with their reference
     pictures decoded, frame t drawn on this thread, frame t-1 composited (F and the blend) on its own thread, so
@@ -64,12 +65,13 @@ def composited_frames(renderer: FrameRenderer, compositor: Compositor, drives: I
         def composited(drive: Drive, picture: np.ndarray, mask: np.ndarray) -> np.ndarray:
             return compositor.blend(renderer.frame(drive, "rgba_float"), picture, mask)
 
-        pictures = ((drive, *compositor.picture(index)) for index, drive in enumerate(drives))
+        pictures = ((drive, *compositor.picture(index)) for index, drive in enumerate(drives, first_frame))
         with Ahead(pictures, _in_flight(workers), "gt-picture") as ahead:
             yield from in_order(composited, ahead, _in_flight(workers), "gt-frame", workers=workers,
                                 initializer=renderer.begin_worker)
         return
-    prepared = ((renderer.prepare(drive), *compositor.picture(index)) for index, drive in enumerate(drives))
+    prepared = ((renderer.prepare(drive), *compositor.picture(index))
+                for index, drive in enumerate(drives, first_frame))
     if not pipelined:
         for splats, picture, mask in prepared:
             yield compositor.blend(renderer.draw(splats, "rgba_float"), picture, mask)

@@ -17,8 +17,9 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import closing
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -47,6 +48,17 @@ from .translate import SILENCE_GATE_DBFS
 # with alpha), "rgba_float" float32 [H, W, 4] premultiplied (C, 1 - T) as splatted, or (render only) "semantic"
 # uint8 [H, W, 3]: each Gaussian in its region's colour over black (`head.frame_renderer.regions`).
 FrameOutput = Literal["uint8", "float", "rgba", "rgba_float", "semantic"]
+
+
+@dataclass(frozen=True)
+class Playback:
+    """What a video of a head plays (`TalkingHead.playback`): the audio to mux (None: silent), the motion track
+    played instead of the translator (None: the audio drives the translator), frames, and whether composited."""
+
+    samples: np.ndarray | None
+    track: object | None  # a MotionTrack or FlameMotion at the head's fps
+    frames: int
+    composited: bool
 
 
 class TalkingHead:
@@ -101,6 +113,16 @@ class TalkingHead:
     @camera.setter
     def camera(self, camera: Camera) -> None:
         self.frame_renderer.camera = camera
+
+    def orbited_camera(self, yaw_deg: float, pitch_deg: float) -> Camera:
+        """The head's camera swung about the head's centre (the median of its rest-pose Gaussians) by yaw, then
+        pitch (`Camera.orbited`): a view from elsewhere at the same distance; assign it to `head.camera` (bare
+        heads: a composited frame is seen through the reference clip's camera)."""
+        means = self.frame_renderer.deform(self.driver.drive())["means"]
+        finite = means[np.isfinite(means).all(axis=1)]
+        if finite.shape[0] == 0:
+            raise RenderError("the rest pose has no finite Gaussian to orbit about")
+        return self.camera.orbited(yaw_deg, pitch_deg, np.median(finite.astype(np.float64), axis=0))
 
     @property
     def fps(self) -> int:
@@ -209,6 +231,23 @@ class TalkingHead:
         plan = OutputView(self.camera, self.compositor is not None).video_plan(path, alpha=alpha, codec=codec, crf=crf,
                                                                               preset=preset, container=container)
         output = "rgba" if plan.alpha else "uint8"
+        play = self.playback(audio, sample_rate, motion=motion)
+        if play.track is not None:
+            frames = self.frames(head_pose=head_pose, output=output, motion=play.track)
+        else:
+            frames = self.frames(play.samples, self.sample_rate, head_pose, output=output)
+        # closing: a failed write stops the frame loop's worker threads at once, not when the generator is collected
+        with closing(frames), VideoWriter(plan.path, self.fps, plan.size, audio=play.samples,
+                                          sample_rate=self.sample_rate, plan=plan) as out:
+            write_frames(out, frames, play.frames, pipelined=self.backend_settings.pipeline is not False,
+                         progress=progress, on_frame=on_frame)
+        return plan.path
+
+    def playback(self, audio: AudioSource | None = None, sample_rate: int | None = None, *,
+                 motion: MotionSource = None) -> Playback:
+        """What `write_video` plays for these arguments, checked: the audio it muxes, the motion track it plays
+        instead of driving the translator (None: the audio drives it), its frame count and whether the frames are
+        composited. A job split into segments (docs/batch.md) makes its drives and frames from it."""
         driver = self.driver
         samples = None if audio is None else driver.load_audio(audio, sample_rate)
         if driver.rig == FLAME_RIG and samples is None and motion is None and driver.has_translator \
@@ -219,16 +258,25 @@ class TalkingHead:
                 raise RenderError("a composited head follows the reference clip and its audio; play a motion with "
                                   "composite=False")
             track = driver.motion(motion)
-            frames, total = self.frames(head_pose=head_pose, output=output, motion=track), len(track)
-        else:
-            frames = self.frames(samples, self.sample_rate, head_pose, output=output)
-            total = driver.frame_count(samples.shape[0])
-        # closing: a failed write stops the frame loop's worker threads at once, not when the generator is collected
-        with closing(frames), VideoWriter(plan.path, self.fps, plan.size, audio=samples,
-                                          sample_rate=self.sample_rate, plan=plan) as out:
-            write_frames(out, frames, total, pipelined=self.backend_settings.pipeline is not False,
-                         progress=progress, on_frame=on_frame)
-        return plan.path
+            return Playback(samples, track, len(track), composited=False)
+        return Playback(samples, None, driver.frame_count(samples.shape[0]), composited=self.compositor is not None)
+
+    def playback_drives(self, play: Playback) -> Iterator[Drive]:
+        """One drive per frame of a playback (`playback`), as `write_video` makes them."""
+        if play.track is not None:
+            return self.drives(motion=play.track)
+        return self.drives(play.samples, self.sample_rate)
+
+    def drive_frames(self, drives: Iterable[Drive], output: FrameOutput = "uint8", *, composited: bool = False,
+                     first_frame: int = 0) -> Iterator[np.ndarray]:
+        """Frames of explicit drives, pipelined as `frames` makes them; `composited`: drive k into the reference
+        picture of video frame `first_frame` + k (uint8 only), so a segment of a clip gets the unsplit clip's
+        frames bit for bit."""
+        pipelined = self.backend_settings.pipeline is not False
+        if not composited:
+            return bare_frames(self.frame_renderer, drives, output, pipelined)
+        check_composited_output(self.compositor, output)
+        return composited_frames(self.frame_renderer, self.compositor, drives, pipelined, first_frame)
 
     def close(self) -> None:
         """Free the splatter (its GL objects)."""
@@ -241,4 +289,4 @@ class TalkingHead:
         self.close()
 
 
-__all__ = ["TalkingHead", "FrameOutput", "HeadPoseSource"]
+__all__ = ["TalkingHead", "FrameOutput", "HeadPoseSource", "Playback"]

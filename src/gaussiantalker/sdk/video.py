@@ -72,12 +72,17 @@ class VideoWriter:
     staged beside the target (`sdk.files.atomic_path`; an image sequence in a staging folder, `atomic_files`) and
     appears under its name only when complete: a failure leaves no partial video. The audio (mono float samples)
     is muxed where the container holds audio, cut to the frames written.
+
+    With `encoded_like` (a video file written by this class with the same plan), the writer encodes no frames: it
+    copies that file's stream parameters, and `append_encoded` appends the packets of such files one after the
+    other (segments of one clip, joined without decoding them: docs/batch.md, "Long audio").
     """
 
     def __init__(self, path: str | os.PathLike, fps: float, size: tuple[int, int], *,
                  audio: np.ndarray | None = None, sample_rate: int = TARGET_SAMPLE_RATE, alpha: bool = False,
                  codec: str | None = None, crf: int | None = None, preset: str | None = None,
-                 container: str | None = None, plan: VideoPlan | None = None) -> None:
+                 container: str | None = None, plan: VideoPlan | None = None,
+                 encoded_like: str | os.PathLike | None = None) -> None:
         self.plan = plan or plan_video(path, size, alpha=alpha, codec=codec, crf=crf, preset=preset,
                                        container=container)
         self.path = self.plan.path
@@ -88,6 +93,7 @@ class VideoWriter:
         self._audio_written = 0
         self._stack: ExitStack | None = None
         self._output = self._video = self._audio_stream = self._palette = None
+        self._encoded_like = encoded_like
 
     def __enter__(self) -> VideoWriter:
         import av
@@ -101,11 +107,15 @@ class VideoWriter:
             try:
                 self._output = av.open(str(target), "w", format=plan.container.muxer)
                 stack.callback(self._abandon)
-                self._video = self._output.add_stream(plan.codec.encoder, rate=self.rate,
-                                                      options=plan.encoder_options())
-                self._video.width, self._video.height = plan.encoded_size
-                self._video.pix_fmt = plan.pix_fmt
-                self._video.codec_context.open()
+                if self._encoded_like is not None:
+                    with av.open(str(self._encoded_like)) as like:
+                        self._video = self._output.add_stream_from_template(like.streams.video[0])
+                else:
+                    self._video = self._output.add_stream(plan.codec.encoder, rate=self.rate,
+                                                          options=plan.encoder_options())
+                    self._video.width, self._video.height = plan.encoded_size
+                    self._video.pix_fmt = plan.pix_fmt
+                    self._video.codec_context.open()
                 if self.audio is not None:
                     self._audio_stream = self._output.add_stream(plan.container.audio_codec, rate=self.sample_rate,
                                                                  layout="mono")
@@ -120,6 +130,8 @@ class VideoWriter:
         """Append one uint8 frame: [H, W, 3], or [H, W, 4] with alpha."""
         import av
 
+        if self._encoded_like is not None:
+            raise VideoError("a writer made with encoded_like takes encoded files (append_encoded), not frames")
         width, height = self.plan.size
         channels = 4 if self.plan.alpha else 3
         if frame.dtype != np.uint8 or frame.shape != (height, width, channels):
@@ -138,6 +150,43 @@ class VideoWriter:
             self._write_audio_until(self._audio_end(self.frames_written))
         except av.error.FFmpegError as exc:
             raise VideoError(f"writing {self.path} failed at frame {self.frames_written}: {exc.strerror}") from None
+
+    def append_encoded(self, path: str | os.PathLike) -> int:
+        """Append every video packet of `path` (written like `encoded_like`, no audio) after the frames so far,
+        unchanged but for their timestamps, and the audio up to its end; returns the frames appended."""
+        import av
+
+        if self._encoded_like is None:
+            raise VideoError("append_encoded needs a writer made with encoded_like")
+        frame_tb = 1 / self.rate
+        first = self.frames_written
+        try:
+            with av.open(str(path)) as part:
+                stream = part.streams.video[0]
+                packets = [packet for packet in part.demux(stream) if packet.size and packet.pts is not None]
+            # Timestamps in frames of this part (exact at any fps), shifted by the frames before it. Decode order
+            # advances one frame a packet, so a dts the demuxer left unset (Matroska's first ones behind B-frames)
+            # is the next known one minus the packets between them.
+            to_frames = stream.time_base / frame_tb
+            known = [(index, round(p.dts * to_frames)) for index, p in enumerate(packets) if p.dts is not None]
+            anchor_index, anchor_dts = known[0] if known else (0, None)
+            for index, packet in enumerate(packets):
+                packet.pts = first + round(packet.pts * to_frames)
+                if anchor_dts is None:
+                    packet.dts = packet.pts
+                elif packet.dts is None:
+                    packet.dts = first + anchor_dts + index - anchor_index
+                else:
+                    packet.dts = first + round(packet.dts * to_frames)
+                packet.duration = 1
+                packet.time_base = frame_tb
+                packet.stream = self._video
+                self._output.mux(packet)
+            self.frames_written += len(packets)
+            self._write_audio_until(self._audio_end(self.frames_written))
+        except av.error.FFmpegError as exc:
+            raise VideoError(f"joining {path} into {self.path} failed: {exc.strerror}") from None
+        return len(packets)
 
     def _audio_end(self, frames: int) -> int:
         """Audio samples that belong to the first `frames` video frames (all of them for the last frame)."""
@@ -171,7 +220,7 @@ class VideoWriter:
             if self._palette is not None:  # frames the palette filter still holds, if any
                 for paletted in self._palette(None):
                     self._mux(self._video.encode(paletted))
-            for stream in (self._video, self._audio_stream):
+            for stream in (None if self._encoded_like is not None else self._video, self._audio_stream):
                 if stream is not None:
                     self._mux(stream.encode(None))
             self._output.close()

@@ -1,0 +1,121 @@
+"""`gt-render --ray` (batch/ray_engine.py, docs/batch.md) on a two-node Ray cluster started on this machine
+(`ray.cluster_utils.Cluster`: a head and one more node, one CPU each, so the two actors land on different nodes):
+the same job list renders there with frames identical to the local engine's, long jobs split across the nodes; an
+actor process SIGKILLed mid-job is restarted by Ray and its call rerun, every output complete and valid and the
+manifest true.
+
+Bounds: the cluster starts in ~5 s; the renders are the small speaker at 128x128 on 1-8 s clips."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ci_tools import need_module
+from test_batch import SIZE, decoded, decoded_audio, hidden_files, write_jobs
+
+from gaussiantalker.batch import Manifest, render_jobs
+from gaussiantalker.batch.digests import file_digest
+from gaussiantalker.sdk.audio import TARGET_SAMPLE_RATE, load_audio, write_wav
+
+need_module("ray", "ray", module_level=True)
+
+DEMO_SPEECH = Path(__file__).resolve().parents[1] / "samples" / "demo_speech.wav"
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A Ray head and a second node, one CPU each; the tests connect to it by address as a user would."""
+    from ray.cluster_utils import Cluster
+
+    two = Cluster(initialize_head=True, head_node_args={"num_cpus": 1, "include_dashboard": False})
+    two.add_node(num_cpus=1)
+    two.wait_for_nodes()
+    yield two
+    two.shutdown()
+
+
+@pytest.fixture()
+def inputs(tmp_path, small_export) -> Path:
+    folder = tmp_path / "in"
+    folder.mkdir()
+    os.symlink(small_export.path, folder / "speaker.gtb")
+    speech = load_audio(DEMO_SPEECH)
+    for name, seconds in (("a.wav", 1.0), ("long.wav", 3.0), ("eight.wav", 8.0)):
+        write_wav(folder / name, speech[:int(seconds * TARGET_SAMPLE_RATE)])
+    return folder
+
+
+def test_a_two_node_cluster_renders_what_the_local_engine_renders(cluster, inputs, tmp_path):
+    jobs = write_jobs(inputs / "jobs.jsonl", [
+        {"bundle": "speaker.gtb", "audio": "a.wav", "out": "a.mkv", "resolution": SIZE, "codec": "ffv1"},
+        {"bundle": "speaker.gtb", "audio": "long.wav", "out": "long.mkv", "resolution": SIZE, "codec": "ffv1"},
+        {"bundle": "speaker.gtb", "audio": "long.wav", "out": "long.mp4", "resolution": SIZE}])
+    on_ray = render_jobs(jobs, tmp_path / "ray", ray=cluster.address, segment_s=1.0, progress=False)
+    local = render_jobs(jobs, tmp_path / "local", workers=2, segment_s=1.0, progress=False)
+    assert not on_ray.failed and not local.failed and sorted(on_ray.done) == ["a.mkv", "long.mkv", "long.mp4"]
+    for name in ("a.mkv", "long.mkv"):
+        got, want = decoded(tmp_path / "ray" / name), decoded(tmp_path / "local" / name)
+        assert len(got) == len(want) >= 25 and all(np.array_equal(g, w) for g, w in zip(got, want, strict=True))
+    assert len(decoded(tmp_path / "ray" / "long.mp4")) == 75
+    assert np.array_equal(decoded_audio(tmp_path / "ray" / "long.mp4"), decoded_audio(tmp_path / "local" / "long.mp4"))
+    records = Manifest(tmp_path / "ray").latest
+    assert records["long.mkv"].segments == 3 and records["a.mkv"].segments == 1
+    assert all(file_digest(tmp_path / "ray" / out) == r.output for out, r in records.items())
+    assert hidden_files(tmp_path / "ray") == []
+    again = render_jobs(jobs, tmp_path / "ray", ray=cluster.address, progress=False)  # resumes: all done
+    assert sorted(again.skipped) == ["a.mkv", "long.mkv", "long.mp4"] and not again.done
+
+
+def test_the_actors_are_one_per_cpu_on_both_nodes(cluster):
+    from gaussiantalker.batch.ray_engine import ActorCalls, RayEngine
+
+    with RayEngine(cluster.address) as engine:
+        calls = ActorCalls(engine.actor_count(), engine.threads, engine.retries)
+        try:
+            places = calls.places()
+        finally:
+            calls.close()
+    assert len(places) == 2 and len({node for _, node in places}) == 2
+
+
+def test_a_killed_actor_is_restarted_and_its_job_rerun(cluster, inputs, tmp_path):
+    """SIGKILL the actor process writing the 8 s job (its partial file names its pid): no final file then; Ray
+    restarts the actor, reruns the call, and the run ends with every output complete and the manifest true."""
+    jobs = write_jobs(inputs / "jobs.jsonl", [
+        {"bundle": "speaker.gtb", "audio": "eight.wav", "out": "eight.mkv", "resolution": SIZE},
+        {"bundle": "speaker.gtb", "audio": "a.wav", "out": "a.mkv", "resolution": SIZE},
+        {"bundle": "speaker.gtb", "audio": "long.wav", "out": "long.webm", "resolution": SIZE}])
+    outdir = tmp_path / "out"
+    killed: list[tuple[int, bool]] = []
+    stop = threading.Event()
+
+    def kill_the_long_job() -> None:
+        while not stop.is_set() and not killed:
+            for path in outdir.glob("*eight.mkv.partial-*") if outdir.is_dir() else ():
+                pid = int(re.search(r"partial-(\d+)", path.name).group(1))
+                os.kill(pid, signal.SIGKILL)
+                time.sleep(0.05)
+                killed.append((pid, (outdir / "eight.mkv").exists()))
+                break
+            time.sleep(0.005)
+
+    killer = threading.Thread(target=kill_the_long_job)
+    killer.start()
+    try:
+        summary = render_jobs(jobs, outdir, ray=cluster.address, segment_s=None, progress=False)
+    finally:
+        stop.set()
+        killer.join()
+    assert killed and killed[0][1] is False  # killed mid-job, and no final file then
+    assert sorted(summary.done) == ["a.mkv", "eight.mkv", "long.webm"] and not summary.failed, summary.failed
+    assert len(decoded(outdir / "eight.mkv")) == 200 and len(decoded(outdir / "long.webm")) == 75
+    records = Manifest(outdir).latest
+    assert all(r.status == "ok" and file_digest(outdir / out) == r.output for out, r in records.items())
+    assert sorted(p.name for p in outdir.iterdir()) == ["a.mkv", "eight.mkv", "long.webm", "manifest.jsonl"]
