@@ -315,3 +315,64 @@ def test_segment_s_and_the_ray_flag(tmp_path):
     result = CliRunner().invoke(render_command, [str(tmp_path / "jobs.jsonl"), "-o", str(tmp_path / "out"),
                                                  "--segment-s", "-3"])
     assert result.exit_code == 2 and "segment_s must be at least" in result.output
+
+
+def test_jobs_are_checked_against_their_bundles_and_one_run_holds_a_folder(clips, tmp_path, clip_export):
+    """Before anything renders: a file that is not a bundle, compositing asked of a bundle without a reference clip
+    and a motion on a composited head are each named with their line; a second run into a folder that a run holds
+    is refused."""
+    from gaussiantalker.batch.preflight import one_run_at_a_time
+
+    (clips / "fake.gtb").write_bytes(b"not a bundle")
+    os.symlink(clip_export.path, clips / "clip.gtb")
+    (clips / "motion.npy").write_bytes(b"x")
+    jobs = write_jobs(clips / "jobs.jsonl", [
+        {"bundle": "speaker.gtb", "audio": "a.wav", "out": "ok.mp4", "resolution": SIZE},
+        {"bundle": "fake.gtb", "audio": "a.wav", "out": "fake.mp4"},
+        {"bundle": "speaker.gtb", "audio": "a.wav", "out": "odd.mp4", "composite": True},
+        {"bundle": "clip.gtb", "motion": "motion.npy", "out": "clip.mp4"}])
+    outdir = tmp_path / "out"
+    with pytest.raises(BatchError) as caught:
+        render_jobs(jobs, outdir, workers=1, progress=False)
+    message = str(caught.value)
+    assert "3 bad job line(s)" in message and "line 1:" not in message, message
+    assert re.search(r"(?m)^line 2: bundle: .*fake.gtb", message), message
+    assert re.search(r"(?m)^line 3: .*reference clip", message), message
+    assert re.search(r"(?m)^line 4: a composited head follows the reference clip", message), message
+    assert not outdir.exists() or not any(outdir.iterdir())
+    good = write_jobs(clips / "good.jsonl", [{"bundle": "speaker.gtb", "audio": "a.wav", "out": "ok.mkv",
+                                              "resolution": SIZE}])
+    outdir.mkdir(exist_ok=True)
+    with one_run_at_a_time(outdir), pytest.raises(BatchError, match="another gt-render is writing"):
+        render_jobs(good, outdir, workers=1, progress=False)
+    assert render_jobs(good, outdir, workers=1, progress=False).done == ["ok.mkv"]  # free again
+
+
+def test_fps_samples_the_drives_at_the_videos_frame_times(clips, tmp_path, clip_export):
+    """`fps` 50 on the 25 fps small speaker: frame 2k of the bare head is frame k of the 25 fps render bit for bit
+    and frame 2k+1 a blend between neighbours (neither of them); a composited frame takes the nearest speaker frame
+    with its reference picture (frames repeat); split renders at 50 and 30 fps equal the unsplit ones."""
+    os.symlink(clip_export.path, clips / "clip.gtb")
+    lossless = {"resolution": SIZE, "codec": "ffv1"}
+    jobs = write_jobs(clips / "jobs.jsonl", [
+        {"bundle": "speaker.gtb", "audio": "a.wav", "out": "native.mkv", **lossless},
+        {"bundle": "speaker.gtb", "audio": "a.wav", "out": "fifty.mkv", "fps": 50, **lossless},
+        {"bundle": "speaker.gtb", "audio": "b.wav", "out": "thirty.mkv", "fps": 30, **lossless},
+        {"bundle": "clip.gtb", "audio": "a.wav", "out": "clip.mkv", "fps": 50, "codec": "ffv1"}])
+    split = render_jobs(jobs, tmp_path / "split", workers=2, segment_s=0.3, progress=False)
+    whole = render_jobs(jobs, tmp_path / "whole", workers=2, segment_s=None, progress=False)
+    assert not split.failed and not whole.failed
+    assert Manifest(tmp_path / "split").latest["fifty.mkv"].segments == 4
+    for name in ("fifty.mkv", "thirty.mkv", "clip.mkv"):
+        got, want = decoded(tmp_path / "split" / name), decoded(tmp_path / "whole" / name)
+        assert len(got) == len(want) and all(np.array_equal(g, w) for g, w in zip(got, want, strict=True)), name
+    native, fifty = decoded(tmp_path / "whole" / "native.mkv"), decoded(tmp_path / "whole" / "fifty.mkv")
+    assert (len(native), len(fifty), len(decoded(tmp_path / "whole" / "thirty.mkv"))) == (25, 50, 45)
+    assert all(np.array_equal(fifty[2 * k], native[k]) for k in range(25))
+    between = [k for k in range(24) if not np.array_equal(fifty[2 * k + 1], native[k])
+               and not np.array_equal(fifty[2 * k + 1], native[k + 1])]
+    assert len(between) >= 20  # the face moves between most frames, and the blend is neither end
+    clip = decoded(tmp_path / "whole" / "clip.mkv")
+    assert len(clip) == 50 and all(np.array_equal(clip[2 * k + 1], clip[2 * k + 2]) for k in range(24))
+    with av.open(str(tmp_path / "whole" / "thirty.mkv")) as container:
+        assert container.streams.video[0].average_rate == 30

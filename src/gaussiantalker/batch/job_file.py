@@ -13,6 +13,7 @@ import os
 from pathlib import Path, PurePosixPath
 
 from gaussiantalker.sdk.json_bounds import no_constant
+from gaussiantalker.sdk.video import check_fps
 from gaussiantalker.sdk.video_formats import CODECS, CONTAINERS
 
 from .jobs import BatchError, Job
@@ -23,7 +24,7 @@ MAX_LINE_CHARS = 16 * 1024
 MAX_SIDE = 8192  # the largest resolution side a job may ask for
 MAX_NAME_CHARS = 255  # one component of `out` (the usual file-system limit)
 MAX_LISTED = 100  # problems spelled out in one error; the rest are counted
-FIELDS = ("bundle", "audio", "motion", "out", "resolution", "composite", "camera", "codec", "crf")
+FIELDS = ("bundle", "audio", "motion", "out", "resolution", "composite", "camera", "codec", "crf", "fps")
 MAX_PITCH = 89.0  # degrees: the orbit's pitch stays short of looking straight down or up
 # Single-file containers: an image sequence is a folder of files, which the manifest's one output digest and the
 # one atomic rename do not describe.
@@ -51,7 +52,7 @@ def read_jobs(path: str | os.PathLike) -> list[Job]:
     if not jobs and not problems:
         problems.append("no jobs in the file")
     if problems:
-        raise BatchError(_listing(path, sorted(problems, key=_line_number)))
+        raise BatchError(listing(path, sorted(problems, key=_line_number)))
     return jobs
 
 
@@ -61,7 +62,8 @@ def _line_number(problem: str) -> int:
     return int(words[1]) if len(words) == 2 and words[0] == "line" and words[1].isdigit() else 0
 
 
-def _listing(path: Path, problems: list[str]) -> str:
+def listing(path: Path, problems: list[str]) -> str:
+    """One error text for many problems of one file: counted, the first MAX_LISTED spelled out."""
     shown = problems[:MAX_LISTED]
     more = f"\n... and {len(problems) - MAX_LISTED} more" if len(problems) > MAX_LISTED else ""
     return f"{path}: {len(problems)} bad job line(s):\n" + "\n".join(shown) + more
@@ -95,7 +97,7 @@ def _rows(path: Path) -> tuple[list[tuple[int, dict]], list[str]]:
     long = [f"line {n}: {len(text)} characters, more than {MAX_LINE_CHARS}"
             for n, text in enumerate(lines, 1) if len(text) > MAX_LINE_CHARS]
     if long:
-        raise BatchError(_listing(path, long))
+        raise BatchError(listing(path, long))
     return _csv_rows(lines) if suffix == ".csv" else _json_rows(lines)
 
 
@@ -147,7 +149,7 @@ def job_from_fields(row: dict, line: int, base: Path) -> Job:
     found: dict = {}
     for name, check in (("bundle", _input), ("audio", _input), ("motion", _input), ("out", _out),
                         ("resolution", _resolution), ("composite", _composite), ("camera", _camera),
-                        ("codec", _codec), ("crf", _crf)):
+                        ("codec", _codec), ("crf", _crf), ("fps", _fps)):
         if row.get(name) is None:
             continue
         try:
@@ -274,6 +276,18 @@ def _crf(value: object) -> int:
     if not _is_int(value) or not 0 <= value <= 63:
         raise ValueError(f"expected a whole number 0..63, got {_shown(value)}")
     return value
+
+
+def _fps(value: object) -> float:
+    if isinstance(value, str):
+        try:
+            value = float(value)
+        except ValueError:
+            raise ValueError(f"expected frames per second, got {_shown(value)}") from None
+    try:
+        return check_fps(value)
+    except ValueError as exc:
+        raise ValueError(str(exc).removeprefix("fps ")) from None
 
 
 def _is_real(value: object) -> bool:

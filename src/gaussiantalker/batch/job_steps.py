@@ -41,6 +41,7 @@ class Split:
     """What `start` returns for a job longer than a segment: its drives, and the frame range of each segment."""
 
     drives: list
+    shown: list[int]  # the speaker frame each drive's video frame shows (its reference picture when composited)
     ranges: list[tuple[int, int]]  # [first, end) frames of each segment, in order
     composited: bool
     fps: float
@@ -83,7 +84,8 @@ def job_program(job: Job, outdir: Path, segment_s: float | None) -> Program:
     if isinstance(first.value, JobResult):
         return _with_attempts(first.value, first.attempts)
     split: Split = first.value
-    calls = [Call("segment", job, str(outdir), (split.drives[start:end], index, start, split.composited))
+    calls = [Call("segment", job, str(outdir), (split.drives[start:end], index, split.shown[start:end],
+                                                split.composited, split.fps))
              for index, (start, end) in enumerate(split.ranges)]
     del split.drives[:]  # each segment call holds its own slice: this process keeps none
     parts = yield calls
@@ -92,7 +94,7 @@ def job_program(job: Job, outdir: Path, segment_s: float | None) -> Program:
     if failed:
         return _with_attempts(failed[0], attempts)
     done: list[SegmentDone] = [part.value for part in parts]
-    joined = (yield [Call("join", job, str(outdir), (done,))])[0]
+    joined = (yield [Call("join", job, str(outdir), (done, split.fps))])[0]
     result = joined.value
     if result.ok:
         result = JobResult(result.out, True, output=result.output,

@@ -33,6 +33,7 @@ class Job:
     camera: tuple[float, float] | None = None  # (yaw, pitch) degrees about the head's centre; None: the bundle's
     codec: str | None = None  # None: the container's default
     crf: int | None = None  # None: the codec's default
+    fps: float | None = None  # frames per second of the video; None: the speaker's
 
     def inputs(self) -> dict[str, Path]:
         """The input files whose digests decide whether a recorded output is still this job's."""
@@ -43,7 +44,7 @@ class Job:
         """sha256 of everything but the input files' contents that decides the output's frames and file."""
         settings = {"version": JOB_FORMAT_VERSION, "out": self.out, "inputs": sorted(self.inputs()),
                     "resolution": self.resolution, "composite": self.composite, "camera": self.camera,
-                    "codec": self.codec, "crf": self.crf}
+                    "codec": self.codec, "crf": self.crf, "fps": self.fps}
         return hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()
 
     def head_key(self) -> tuple:

@@ -19,6 +19,7 @@ from .jobs import BatchError, Job
 from .local import LocalEngine
 from .manifest import Manifest, Record
 from .outputs import remove_partials
+from .preflight import check_outputs, one_run_at_a_time
 
 MIN_SEGMENT_S = 0.1  # below it a segment's own costs (a file, a head's first frame) outweigh its frames
 
@@ -49,12 +50,14 @@ def render_jobs(jobs_path: str | os.PathLike, outdir: str | os.PathLike, *, work
     anything renders."""
     jobs = read_jobs(jobs_path)
     check_segment_s(segment_s)
+    options = {"force": force, "progress": progress, "segment_s": segment_s, "jobs_name": str(jobs_path)}
     if ray is False:
-        return run_jobs(jobs, outdir, LocalEngine(workers), force=force, progress=progress, segment_s=segment_s)
+        return run_jobs(jobs, outdir, LocalEngine(workers), **options)
     from .ray_engine import RayEngine
 
+    check_outputs(jobs, Path(outdir), jobs_path)  # before a cluster is reached
     with RayEngine(None if ray is True else ray, workers=workers) as engine:
-        return run_jobs(jobs, outdir, engine, force=force, progress=progress, segment_s=segment_s)
+        return run_jobs(jobs, outdir, engine, **options)
 
 
 def check_segment_s(segment_s: float | None) -> None:
@@ -65,13 +68,23 @@ def check_segment_s(segment_s: float | None) -> None:
 
 
 def run_jobs(jobs: Sequence[Job], outdir: str | os.PathLike, engine: Engine, *, force: bool = False,
-             progress: bool = True, segment_s: float | None = DEFAULT_SEGMENT_S) -> BatchSummary:
-    """Render checked jobs into `outdir` with `engine`, skipping those the manifest proves done unless `force`."""
+             progress: bool = True, segment_s: float | None = DEFAULT_SEGMENT_S,
+             jobs_name: str = "job list") -> BatchSummary:
+    """Render checked jobs into `outdir` with `engine`, skipping those the manifest proves done unless `force`:
+    first every job's output is checked against its bundle (BatchError naming each bad one, `jobs_name` the list's
+    name in it), and the folder is locked against a second run."""
     start = time.perf_counter()
     outdir = Path(outdir)
     if outdir.exists() and not outdir.is_dir():
         raise BatchError(f"{outdir}: the output folder is a file")
+    check_outputs(jobs, outdir, jobs_name)
     outdir.mkdir(parents=True, exist_ok=True)
+    with one_run_at_a_time(outdir):
+        return _run_locked(jobs, outdir, engine, force, progress, segment_s, start)
+
+
+def _run_locked(jobs: Sequence[Job], outdir: Path, engine: Engine, force: bool, progress: bool,
+                segment_s: float | None, start: float) -> BatchSummary:
     manifest, digest = Manifest(outdir), DigestCache()
     summary = BatchSummary()
     todo, inputs = [], {}

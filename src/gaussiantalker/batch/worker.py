@@ -91,12 +91,13 @@ def start_job(job: Job, outdir: Path, segment_s: float | None) -> JobResult | Sp
     target = outdir / job.out
     plan = head.plan_video(target, codec=job.codec, crf=job.crf)  # checked before any frame
     play = head.playback(job.audio, motion=job.motion)
-    per_segment = None if segment_s is None else max(1, round(segment_s * head.fps))
-    if per_segment is None or play.frames <= per_segment or plan.codec.name in UNSPLIT_CODECS:
+    fps = job.fps or head.fps
+    per_segment = None if segment_s is None else max(1, round(segment_s * fps))
+    if per_segment is None or play.frames * fps / head.fps <= per_segment or plan.codec.name in UNSPLIT_CODECS:
         return _render_whole(head, job, target, start)
-    drives = list(head.playback_drives(play))
+    drives, shown = head.video_drives(play, job.fps)
     ranges = [(first, min(first + per_segment, len(drives))) for first in range(0, len(drives), per_segment)]
-    return Split(drives, ranges, play.composited, head.fps, time.perf_counter() - start)
+    return Split(drives, shown, ranges, play.composited, fps, time.perf_counter() - start)
 
 
 def _render_whole(head, job: Job, target: Path, start: float) -> JobResult:
@@ -108,30 +109,33 @@ def _render_whole(head, job: Job, target: Path, start: float) -> JobResult:
         frames += 1
 
     try:
-        head.write_video(partial, job.audio, motion=job.motion, codec=job.codec, crf=job.crf, on_frame=count)
+        head.write_video(partial, job.audio, motion=job.motion, codec=job.codec, crf=job.crf, fps=job.fps,
+                         on_frame=count)
         digest = file_digest(partial)
         os.replace(partial, target)
     finally:
         partial.unlink(missing_ok=True)
-    return JobResult(job.out, True, output=digest, seconds=time.perf_counter() - start, video_s=frames / head.fps)
+    return JobResult(job.out, True, output=digest, seconds=time.perf_counter() - start,
+                     video_s=frames / (job.fps or head.fps))
 
 
-def render_segment(job: Job, outdir: Path, drives: list, index: int, first_frame: int,
-                   composited: bool) -> SegmentDone:
-    """Frames `first_frame`... of the job (their drives given) into segment file `index`, no audio."""
+def render_segment(job: Job, outdir: Path, drives: list, index: int, shown: list[int], composited: bool,
+                   fps: float) -> SegmentDone:
+    """A range of the job's frames (their drives, and the speaker frame each shows) into segment file `index` at
+    `fps`, no audio."""
     from gaussiantalker.runtime.frame_loops import write_frames
     from gaussiantalker.sdk.video import VideoWriter
 
     start = time.perf_counter()
     head = loaded_head(job)
     plan = head.plan_video(segment_path(outdir / job.out, index), codec=job.codec, crf=job.crf)
-    frames = head.drive_frames(drives, composited=composited, first_frame=first_frame)
-    with closing(frames), VideoWriter(plan.path, head.fps, plan.size, plan=plan) as out:
+    frames = head.drive_frames(drives, composited=composited, reference_frames=shown)
+    with closing(frames), VideoWriter(plan.path, fps, plan.size, plan=plan) as out:
         write_frames(out, frames, len(drives), pipelined=head.backend_settings.pipeline is not False, progress=False)
     return SegmentDone(str(plan.path), len(drives), time.perf_counter() - start)
 
 
-def join_segments(job: Job, outdir: Path, parts: list[SegmentDone]) -> JobResult:
+def join_segments(job: Job, outdir: Path, parts: list[SegmentDone], fps: float) -> JobResult:
     """The segments' packets, in order, and the whole clip's audio into the output (no frame decoded or encoded
     again); the segment files are removed."""
     from gaussiantalker.sdk.video import VideoWriter
@@ -143,7 +147,7 @@ def join_segments(job: Job, outdir: Path, parts: list[SegmentDone]) -> JobResult
     plan = head.plan_video(partial, codec=job.codec, crf=job.crf)
     samples = None if job.audio is None else head.driver.load_audio(job.audio)
     try:
-        with VideoWriter(plan.path, head.fps, plan.size, audio=samples, sample_rate=head.sample_rate, plan=plan,
+        with VideoWriter(plan.path, fps, plan.size, audio=samples, sample_rate=head.sample_rate, plan=plan,
                          encoded_like=parts[0].path) as out:
             for part in parts:
                 if out.append_encoded(part.path) != part.frames:
@@ -155,4 +159,4 @@ def join_segments(job: Job, outdir: Path, parts: list[SegmentDone]) -> JobResult
     for part in parts:
         Path(part.path).unlink(missing_ok=True)
     frames = sum(part.frames for part in parts)
-    return JobResult(job.out, True, output=digest, seconds=time.perf_counter() - start, video_s=frames / head.fps)
+    return JobResult(job.out, True, output=digest, seconds=time.perf_counter() - start, video_s=frames / fps)

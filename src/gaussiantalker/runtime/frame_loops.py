@@ -7,6 +7,7 @@ the stages overlap instead of adding up. With the CPU splatter whole frames are 
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
@@ -53,25 +54,26 @@ def bare_frames(renderer: FrameRenderer, drives: Iterable[Drive], output: str, p
 
 
 def composited_frames(renderer: FrameRenderer, compositor: Compositor, drives: Iterable[Drive], pipelined: bool,
-                      first_frame: int = 0) -> Iterator[np.ndarray]:
-    """Frame t composited into the clip's frame t (the drives are video frames `first_frame`, `first_frame` + 1, ...:
-    a segment of a longer clip). Pipelined, where the splatter can (`frames_at_once` > 1),
+                      reference_frames: Iterable[int] | None = None) -> Iterator[np.ndarray]:
+    """Frame t composited into the clip's frame t (`reference_frames`: the clip frame of each drive instead, for a
+    segment of a longer clip or another frame rate). Pipelined, where the splatter can (`frames_at_once` > 1),
     whole frames (deformation, sort, draw, F and the blend) on that many worker threads at once, the reference
     pictures decoded in order on one more; else three stages overlap: the next frames prepared with their reference
     pictures decoded, frame t drawn on this thread, frame t-1 composited (F and the blend) on its own thread, so
     the composite costs no frame time when the machine has cores to spare."""
+    indices = itertools.count() if reference_frames is None else reference_frames  # zipped unstrict: count() is endless
     workers = renderer.frames_at_once() if pipelined else 1
     if workers > 1:
         def composited(drive: Drive, picture: np.ndarray, mask: np.ndarray) -> np.ndarray:
             return compositor.blend(renderer.frame(drive, "rgba_float"), picture, mask)
 
-        pictures = ((drive, *compositor.picture(index)) for index, drive in enumerate(drives, first_frame))
+        pictures = ((drive, *compositor.picture(index)) for drive, index in zip(drives, indices, strict=False))
         with Ahead(pictures, _in_flight(workers), "gt-picture") as ahead:
             yield from in_order(composited, ahead, _in_flight(workers), "gt-frame", workers=workers,
                                 initializer=renderer.begin_worker)
         return
     prepared = ((renderer.prepare(drive), *compositor.picture(index))
-                for index, drive in enumerate(drives, first_frame))
+                for drive, index in zip(drives, indices, strict=False))
     if not pipelined:
         for splats, picture, mask in prepared:
             yield compositor.blend(renderer.draw(splats, "rgba_float"), picture, mask)

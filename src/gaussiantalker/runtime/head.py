@@ -20,6 +20,7 @@ import os
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import closing
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 from typing import Literal
 
@@ -30,12 +31,13 @@ from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import AudioError, RenderError
 from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.sdk.rig import ARKIT_RIG, FLAME_RIG, check_drive_rig
-from gaussiantalker.sdk.video import VideoWriter
+from gaussiantalker.sdk.video import VideoWriter, check_fps, frames_at, video_rate
 from gaussiantalker.sdk.video_formats import VideoPlan
 
 from .compositor import check_composited_output
 from .driver import AudioSource, Drive, HeadPoseSource
 from .frame_loops import bare_frames, composited_frames, write_frames
+from .frame_rate import resampled
 from .motions import MotionSource
 from .output import OutputView, output_view
 from .renamed import renamed_attribute, settings_groups
@@ -221,25 +223,34 @@ class TalkingHead:
                     sample_rate: int | None = None, head_pose: HeadPoseSource = None, progress: bool = False,
                     on_frame: Callable[[np.ndarray], None] | None = None, *, alpha: bool | None = None,
                     codec: str | None = None, crf: int | None = None, preset: str | None = None,
-                    container: str | None = None, motion: MotionSource = None) -> Path:
+                    container: str | None = None, motion: MotionSource = None, fps: float | None = None) -> Path:
         """Render and write a video with the audio muxed in (`on_frame` sees each frame); returns the path.
 
         `path` is a file name (the container from its extension or `container`; docs/video.md lists the formats)
         or a VideoPlan (`plan_video`), checked before the first frame is rendered (VideoError). A speaker with a
         translator renders `audio` through it; given a `motion`, or without a translator or audio, it plays the
-        motion (None: the bundle's own) and muxes `audio` if given."""
+        motion (None: the bundle's own) and muxes `audio` if given. `fps`: frames per second of the video (None:
+        the speaker's; another rate samples the drives at its frame times, runtime/frame_rate.py)."""
         plan = OutputView(self.camera, self.compositor is not None).video_plan(path, alpha=alpha, codec=codec, crf=crf,
                                                                               preset=preset, container=container)
         output = "rgba" if plan.alpha else "uint8"
         play = self.playback(audio, sample_rate, motion=motion)
-        if play.track is not None:
+        total = play.frames
+        if fps is not None and video_rate(check_fps(fps)) != video_rate(self.fps):
+            if head_pose is not None:
+                raise RenderError("write_video with fps takes the drives' own head pose; set head_pose at the "
+                                  "speaker's fps")
+            drives, shown = self.video_drives(play, fps)
+            frames, total = self.drive_frames(drives, output, composited=play.composited, reference_frames=shown), \
+                len(drives)
+        elif play.track is not None:
             frames = self.frames(head_pose=head_pose, output=output, motion=play.track)
         else:
             frames = self.frames(play.samples, self.sample_rate, head_pose, output=output)
         # closing: a failed write stops the frame loop's worker threads at once, not when the generator is collected
-        with closing(frames), VideoWriter(plan.path, self.fps, plan.size, audio=play.samples,
+        with closing(frames), VideoWriter(plan.path, fps or self.fps, plan.size, audio=play.samples,
                                           sample_rate=self.sample_rate, plan=plan) as out:
-            write_frames(out, frames, play.frames, pipelined=self.backend_settings.pipeline is not False,
+            write_frames(out, frames, total, pipelined=self.backend_settings.pipeline is not False,
                          progress=progress, on_frame=on_frame)
         return plan.path
 
@@ -267,16 +278,26 @@ class TalkingHead:
             return self.drives(motion=play.track)
         return self.drives(play.samples, self.sample_rate)
 
+    def video_drives(self, play: Playback, fps: float | None = None) -> tuple[list[Drive], list[int]]:
+        """The drives of a playback's video at `fps` (None: the speaker's) and the speaker frame each shows (its
+        reference picture when composited): runtime/frame_rate.py samples them at the video's frame times."""
+        drives = list(self.playback_drives(play))
+        if fps is None or video_rate(check_fps(fps)) == video_rate(self.fps):
+            return drives, list(range(len(drives)))
+        seconds = Fraction(len(drives), self.fps) if play.samples is None else Fraction(len(play.samples),
+                                                                                          self.sample_rate)
+        return resampled(drives, self.fps, fps, frames_at(seconds, fps), blend=not play.composited)
+
     def drive_frames(self, drives: Iterable[Drive], output: FrameOutput = "uint8", *, composited: bool = False,
-                     first_frame: int = 0) -> Iterator[np.ndarray]:
-        """Frames of explicit drives, pipelined as `frames` makes them; `composited`: drive k into the reference
-        picture of video frame `first_frame` + k (uint8 only), so a segment of a clip gets the unsplit clip's
-        frames bit for bit."""
+                     reference_frames: Iterable[int] | None = None) -> Iterator[np.ndarray]:
+        """Frames of explicit drives, pipelined as `frames` makes them; `composited`: each drive into the reference
+        picture of its video frame (`reference_frames`, None: 0, 1, 2, ...; uint8 only), so a segment of a clip
+        gets the unsplit clip's frames bit for bit."""
         pipelined = self.backend_settings.pipeline is not False
         if not composited:
             return bare_frames(self.frame_renderer, drives, output, pipelined)
         check_composited_output(self.compositor, output)
-        return composited_frames(self.frame_renderer, self.compositor, drives, pipelined, first_frame)
+        return composited_frames(self.frame_renderer, self.compositor, drives, pipelined, reference_frames)
 
     def close(self) -> None:
         """Free the splatter (its GL objects)."""

@@ -20,6 +20,25 @@ from .errors import VideoError
 from .files import atomic_files, atomic_path
 from .video_formats import VideoPlan, plan_video
 
+MIN_FPS, MAX_FPS = 1.0, 120.0  # the frame rates a video may be written at (runtime/frame_rate.py)
+
+
+def video_rate(fps: float) -> Fraction:
+    """The exact frame rate a video of `fps` is written at (the writer's: 29.97 stays 2997/100)."""
+    return Fraction(fps).limit_denominator(1001)
+
+
+def check_fps(fps: float) -> float:
+    """`fps` as a float, ValueError unless it is a number in MIN_FPS..MAX_FPS."""
+    if isinstance(fps, bool) or not isinstance(fps, int | float) or not MIN_FPS <= fps <= MAX_FPS:
+        raise ValueError(f"fps must be a number {MIN_FPS:g}..{MAX_FPS:g}, got {fps!r}")
+    return float(fps)
+
+
+def frames_at(duration_s: Fraction, fps: float) -> int:
+    """Frames of a video of `duration_s` at `fps` (the last one partial, as the speaker's own count)."""
+    return max(1, math.ceil(duration_s * video_rate(fps)))
+
 
 def pad_to_whole_frames(audio: np.ndarray, sample_rate: int, fps: float) -> np.ndarray:
     """Zero-pad audio to cover whole video frames, so the audio stream lasts as long as the last (partial) frame.
@@ -86,7 +105,7 @@ class VideoWriter:
         self.plan = plan or plan_video(path, size, alpha=alpha, codec=codec, crf=crf, preset=preset,
                                        container=container)
         self.path = self.plan.path
-        self.rate = Fraction(fps).limit_denominator(1001)
+        self.rate = video_rate(fps)
         self.audio = None if audio is None or not self.plan.with_audio else pad_to_whole_frames(audio, sample_rate, fps)
         self.sample_rate = sample_rate
         self.frames_written = 0
