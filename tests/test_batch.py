@@ -13,6 +13,8 @@ import re
 import signal
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import av
@@ -205,6 +207,32 @@ def test_a_failing_job_is_recorded_and_the_others_finish(clips, tmp_path):
     assert record.status == "failed" and "\n" not in record.reason and record.output is None
 
 
+@contextmanager
+def killing_the_writer_of(outdir: Path, name: str) -> Iterator[list[tuple[int, bool]]]:
+    """While the block runs, SIGKILL the process that writes OUTDIR/name once its partial file appears (the file
+    names its pid); yields the list that gets (pid, whether the final file existed just after)."""
+    killed: list[tuple[int, bool]] = []
+    stop = threading.Event()
+
+    def kill() -> None:
+        while not stop.is_set() and not killed:
+            for path in outdir.glob(f"*{name}.partial-*") if outdir.is_dir() else ():
+                pid = int(re.search(r"partial-(\d+)", path.name).group(1))
+                os.kill(pid, signal.SIGKILL)
+                time.sleep(0.05)
+                killed.append((pid, (outdir / name).exists()))
+                break
+            time.sleep(0.005)
+
+    killer = threading.Thread(target=kill)
+    killer.start()
+    try:
+        yield killed
+    finally:
+        stop.set()
+        killer.join()
+
+
 def test_a_killed_worker_leaves_no_final_file_and_the_job_is_retried(clips, tmp_path, speech):
     """A worker SIGKILLed while it writes a long job: nothing under the final name, and the retry on a fresh pool
     completes it (the manifest records the second attempt)."""
@@ -213,26 +241,8 @@ def test_a_killed_worker_leaves_no_final_file_and_the_job_is_retried(clips, tmp_
         {"bundle": "speaker.gtb", "audio": "long.wav", "out": "long.mkv", "resolution": SIZE},
         {"bundle": "speaker.gtb", "audio": "a.wav", "out": "a.mkv", "resolution": SIZE}])
     outdir = tmp_path / "out"
-    killed: list[tuple[int, bool]] = []
-    stop = threading.Event()
-
-    def kill_the_long_job() -> None:
-        while not stop.is_set() and not killed:
-            for path in outdir.glob("*long.mkv.partial-*") if outdir.is_dir() else ():
-                pid = int(re.search(r"partial-(\d+)", path.name).group(1))
-                os.kill(pid, signal.SIGKILL)
-                time.sleep(0.05)
-                killed.append((pid, (outdir / "long.mkv").exists()))
-                break
-            time.sleep(0.005)
-
-    killer = threading.Thread(target=kill_the_long_job)
-    killer.start()
-    try:
+    with killing_the_writer_of(outdir, "long.mkv") as killed:
         summary = render_jobs(jobs, outdir, workers=2, progress=False)
-    finally:
-        stop.set()
-        killer.join()
     assert killed and killed[0][1] is False  # killed mid-job, and no final file then
     assert sorted(summary.done) == ["a.mkv", "long.mkv"] and not summary.failed
     assert Manifest(outdir).latest["long.mkv"].attempts == 2

@@ -9,16 +9,12 @@ Bounds: the cluster starts in ~5 s; the renders are the small speaker at 128x128
 from __future__ import annotations
 
 import os
-import re
-import signal
-import threading
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from ci_tools import need_module
-from test_batch import SIZE, decoded, decoded_audio, hidden_files, write_jobs
+from test_batch import SIZE, decoded, decoded_audio, hidden_files, killing_the_writer_of, write_jobs
 
 from gaussiantalker.batch import Manifest, render_jobs
 from gaussiantalker.batch.digests import file_digest
@@ -93,26 +89,8 @@ def test_a_killed_actor_is_restarted_and_its_job_rerun(cluster, inputs, tmp_path
         {"bundle": "speaker.gtb", "audio": "a.wav", "out": "a.mkv", "resolution": SIZE},
         {"bundle": "speaker.gtb", "audio": "long.wav", "out": "long.webm", "resolution": SIZE}])
     outdir = tmp_path / "out"
-    killed: list[tuple[int, bool]] = []
-    stop = threading.Event()
-
-    def kill_the_long_job() -> None:
-        while not stop.is_set() and not killed:
-            for path in outdir.glob("*eight.mkv.partial-*") if outdir.is_dir() else ():
-                pid = int(re.search(r"partial-(\d+)", path.name).group(1))
-                os.kill(pid, signal.SIGKILL)
-                time.sleep(0.05)
-                killed.append((pid, (outdir / "eight.mkv").exists()))
-                break
-            time.sleep(0.005)
-
-    killer = threading.Thread(target=kill_the_long_job)
-    killer.start()
-    try:
+    with killing_the_writer_of(outdir, "eight.mkv") as killed:
         summary = render_jobs(jobs, outdir, ray=cluster.address, segment_s=None, progress=False)
-    finally:
-        stop.set()
-        killer.join()
     assert killed and killed[0][1] is False  # killed mid-job, and no final file then
     assert sorted(summary.done) == ["a.mkv", "eight.mkv", "long.webm"] and not summary.failed, summary.failed
     assert len(decoded(outdir / "eight.mkv")) == 200 and len(decoded(outdir / "long.webm")) == 75

@@ -18,8 +18,8 @@ def test_batch_bench_measures_every_case(small_export):
     assert [result["long"][name]["runs"][0]["segments"] for name in ("whole", "split")] == [1, 3]
     assert result["long"]["split"]["runs"][0]["video_s"] == 3.0
     ext = result["extrapolation"]
-    assert ext["ideal_rate"] == ext["per_worker_rate"] * 100 * 16 and ext["driver_jobs_per_s"] > 0
-    assert ext["per_worker_rate"] == 3.0 / result["long"]["whole"]["worker_s"]
-    assert ext["wall_s"] >= ext["work_s"] == ext["jobs"] * ext["job_s"] / (ext["per_worker_rate"] * 1600)
+    assert ext["ideal_rate"] == ext["per_core_rate"] * 100 * 16 and ext["driver_jobs_per_s"] > 0
+    assert ext["per_core_rate"] == result["long"]["split"]["rate"] / result["cores"]
+    assert ext["wall_s"] >= ext["work_s"] == ext["jobs"] * ext["job_s"] / (ext["per_core_rate"] * 1600)
     table = batch_table(result)
     assert "| local x2 |" in table and "split / whole:" in table and "100 machines" in table

@@ -35,8 +35,9 @@ def _write_jobs(folder: Path, bundle: Path, names: list[str], resolution: int) -
     import json
 
     path = folder / f"jobs-{len(names)}-{names[0]}.jsonl"
-    path.write_text("".join(json.dumps({"bundle": str(bundle), "audio": name, "out": f"{Path(name).stem}.mp4",
-                                        "resolution": resolution}) + "\n" for name in names))
+    lines = [json.dumps({"bundle": str(bundle.absolute()), "audio": name, "out": f"{Path(name).stem}.mp4",
+                         "resolution": resolution}) for name in names]
+    path.write_text("".join(line + "\n" for line in lines))
     return path
 
 
@@ -62,7 +63,10 @@ def run_batch_bench(bundle: Path, *, resolution: int = 256, jobs: int = 8, job_s
     from gaussiantalker.sdk.audio import TARGET_SAMPLE_RATE, load_audio, write_wav
 
     speech = load_audio(DEMO_SPEECH)
+    from gaussiantalker.batch.local import usable_cores
+
     result: dict = {"bundle": str(bundle), "resolution": resolution, "jobs": jobs, "job_s": job_s,
+                    "cores": usable_cores(),
                     "long_s": long_s, "segment_s": segment_s, "rounds": rounds, "cases": {}, "long": {}}
     with tempfile.TemporaryDirectory(prefix="gt-bench-batch-") as tmp:
         folder = Path(tmp)
@@ -77,6 +81,7 @@ def run_batch_bench(bundle: Path, *, resolution: int = 256, jobs: int = 8, job_s
 
         engines: dict[str, Callable[[], object]] = {"local x1": lambda: LocalEngine(1),
                                                     "local x2": lambda: LocalEngine(2)}
+        threads = {"local x1": LocalEngine(1).threads, "local x2": LocalEngine(2).threads, "ray x1": 1, "ray x2": 1}
         ray_engine = None
         if ray:
             from gaussiantalker.batch.ray_engine import RayEngine
@@ -101,7 +106,8 @@ def run_batch_bench(bundle: Path, *, resolution: int = 256, jobs: int = 8, job_s
             if ray_engine is not None:
                 ray_engine.__exit__(None, None, None)
         for name, measured in runs.items():
-            result["cases"][name] = {"runs": measured, "rate": statistics.median(r["rate"] for r in measured),
+            result["cases"][name] = {"runs": measured, "threads": threads[name],
+                                     "rate": statistics.median(r["rate"] for r in measured),
                                      "wall_s": statistics.median(r["wall_s"] for r in measured)}
 
         long_runs: dict[str, list[dict]] = {"whole": [], "split": []}
@@ -141,31 +147,32 @@ class _RayWorkers:
 def extrapolate(result: dict, machines: int = 100, cores: int = 16, jobs: int = 10_000, job_s: float = 60.0
                 ) -> dict:
     """What `machines` machines of `cores` cores would do with `jobs` jobs of `job_s` seconds, from this run:
-    one worker's steady rate (the long clip rendered whole: video seconds per second of its worker), a run's
-    fixed cost (the 2-worker case's wall time less its work at that rate: pool start, first head loads), and the
-    driver's own ceiling (fsynced manifest appends per second: every job ends with one)."""
-    whole = result["long"]["whole"]
-    per_worker = result["long_s"] / whole["worker_s"]
+    the rate per core with every core busy (the long clip split over this machine's cores: steady state, head
+    loads and joins included), a run's fixed cost (the 2-worker case's wall time less its work at that rate: pool
+    start, first head loads), and the driver's own ceiling (fsynced manifest appends per second: one a job)."""
+    per_core = result["long"]["split"]["rate"] / result["cores"]
     two = result["cases"]["local x2"]
-    fixed_s = max(0.0, two["wall_s"] - result["jobs"] * result["job_s"] / (2 * per_worker))
+    fixed_s = max(0.0, two["wall_s"] - result["jobs"] * result["job_s"] / (per_core * result["cores"]))
     workers = machines * cores
-    work_s = jobs * job_s / (per_worker * workers)
+    work_s = jobs * job_s / (per_core * workers)
     driver_jobs_per_s = 1000.0 / max(result["manifest_append_ms"], 1e-3)
     wall_s = max(fixed_s + work_s, jobs / driver_jobs_per_s)
     ray_ratio = result["cases"]["ray x2"]["rate"] / two["rate"] if "ray x2" in result["cases"] else None
-    return {"machines": machines, "cores": cores, "jobs": jobs, "job_s": job_s, "per_worker_rate": per_worker,
+    return {"machines": machines, "cores": cores, "jobs": jobs, "job_s": job_s, "per_core_rate": per_core,
             "fixed_s": fixed_s, "work_s": work_s, "wall_s": wall_s, "rate": jobs * job_s / wall_s,
-            "ideal_rate": per_worker * workers, "driver_jobs_per_s": driver_jobs_per_s, "ray_vs_local_x2": ray_ratio,
+            "ideal_rate": per_core * workers, "driver_jobs_per_s": driver_jobs_per_s, "ray_vs_local_x2": ray_ratio,
             # jobs shorter than this finish faster than the driver records them
-            "driver_limit_job_s": workers * per_worker / driver_jobs_per_s}
+            "driver_limit_job_s": workers * per_core / driver_jobs_per_s}
 
 
 def batch_table(result: dict) -> str:
     """The report's tables: the engines' rates, the long clip split and whole, and the extrapolation."""
-    lines = ["| engine | video s / wall s (median) | wall s (median) | vs local x1 |", "|---|---|---|---|"]
+    lines = ["| engine | splatter threads each | video s / wall s (median) | wall s (median) | vs local x1 |",
+             "|---|---|---|---|---|"]
     base = result["cases"]["local x1"]["rate"]
     for name, case in result["cases"].items():
-        lines.append(f"| {name} | {case['rate']:.2f} | {case['wall_s']:.1f} | {case['rate'] / base:.2f}x |")
+        lines.append(f"| {name} | {case.get('threads', '')} | {case['rate']:.2f} | {case['wall_s']:.1f} | "
+                     f"{case['rate'] / base:.2f}x |")
     long = result["long"]
     lines += ["", f"One {result['long_s']:.0f} s clip on 2 local workers:", "",
               "| render | video s / wall s | wall s | worker s | segments |", "|---|---|---|---|---|"]
@@ -176,9 +183,10 @@ def batch_table(result: dict) -> str:
     lines.append(f"\nsplit / whole: {long['split']['rate'] / long['whole']['rate']:.2f}x")
     ext = result["extrapolation"]
     lines += ["", f"Extrapolated to {ext['machines']} machines x {ext['cores']} cores ({ext['jobs']} jobs of "
-              f"{ext['job_s']:.0f} s): one worker renders {ext['per_worker_rate']:.2f} s of video per second "
-              f"(the long clip whole), so the work takes {ext['work_s']:.0f} s on {ext['machines'] * ext['cores']} "
-              f"workers, plus a run's fixed cost of ~{ext['fixed_s']:.1f} s (measured with 2 workers here); the "
+              f"{ext['job_s']:.0f} s): a busy core renders {ext['per_core_rate']:.2f} s of video per second (the "
+              f"long clip split here, every core busy), so the work takes {ext['work_s']:.0f} s on "
+              f"{ext['machines'] * ext['cores']} cores, plus a run's fixed cost of ~{ext['fixed_s']:.1f} s "
+              f"(measured with 2 workers here); the "
               f"driver's manifest appends allow {ext['driver_jobs_per_s']:.0f} jobs a second, so they are not the "
               f"limit until jobs are shorter than {ext['driver_limit_job_s']:.1f} s. "
               f"About {ext['rate']:.0f} s of video per second in all ({ext['wall_s'] / 60:.1f} min for the list)."]
