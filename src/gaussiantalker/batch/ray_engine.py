@@ -1,13 +1,16 @@
 """The Ray engine (extra `ray`): the jobs' steps (batch/job_steps.py) on actors of a Ray cluster, each actor a worker
 keeping its loaded heads between calls, placed by Ray where its CPUs are free (docs/batch.md, "On a Ray cluster").
 
-Ray restarts an actor whose process or node died and reruns the call it was running (`max_restarts`,
-`max_task_retries`); a call that outlives its retries comes back as a failed job. Every node writes the outputs
+Ray restarts an actor whose process or node died (`max_restarts`); the call it was running is rerun on another
+actor (`ActorCalls`); a call that outlives its retries comes back as a failed job. Every node writes the outputs
 under the same OUTDIR path: a shared file system, or object storage mounted at that path."""
 
 from __future__ import annotations
 
 import os
+import signal
+import threading
+from collections import Counter, deque
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -16,6 +19,9 @@ from .job_steps import Call, Outcome, run_programs
 from .jobs import BatchError, Job
 from .local import RETRIES, usable_cores
 
+# How long a run waits for a dead actor to come back when no other actor is left to rerun its call on.
+COMEBACK_S = 300.0
+
 
 def _ray():
     try:
@@ -23,6 +29,16 @@ def _ray():
     except ImportError:
         raise BatchError("--ray needs Ray: pip install 'gaussiantalker[ray]'") from None
     return ray
+
+
+def _restore(handlers: dict) -> None:
+    """Put back the signal handlers `ray.init` replaced: the application's, not Ray's, stay in force (signal
+    handlers can only be set from the main thread; elsewhere ray.init sets none either)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for number, handler in handlers.items():
+        if handler is not None and signal.getsignal(number) is not handler:
+            signal.signal(number, handler)
 
 
 class RayEngine:
@@ -43,11 +59,14 @@ class RayEngine:
         if not ray.is_initialized():
             options = {"address": self.address} if self.address else {"num_cpus": usable_cores(),
                                                                       "include_dashboard": False}
+            handlers = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
             try:
                 ray.init(**options, log_to_driver=False, logging_level="WARNING")
             except (ConnectionError, ValueError, RuntimeError) as exc:
                 raise BatchError(f"cannot reach the Ray cluster at {self.address or 'a local Ray'}: "
                                  f"{one_line(exc)}") from None
+            finally:
+                _restore(handlers)
             self._connected_here = True
         return self
 
@@ -76,47 +95,96 @@ class RayEngine:
 
 class ActorCalls:
     """Calls on a fixed set of actors, one call an actor at a time; a call goes to an idle actor that last ran
-    the same head when there is one (its bundle is loaded there). Written here rather than with
-    `ray.util.ActorPool`, which does not say which call an actor that died was running."""
+    the same head when there is one (its bundle is loaded there).
 
-    def __init__(self, count: int, threads: int, retries: int) -> None:
+    An actor whose process or node died fails the call it was running at once (`max_task_retries=0`); the call is
+    rerun here on another actor, at most `retries` times, while Ray restarts the dead one where a CPU is free
+    (`max_restarts=-1`) and a probe call puts it back among the idle once it answers. Rerunning the call here
+    rather than through Ray's own task retries keeps the pool going when the dead actor cannot come back soon (its
+    node lost, and every other CPU held by the other actors), and counts each call's attempts for the manifest.
+    Written here rather than with `ray.util.ActorPool`, which does not say which call an actor that died was
+    running."""
+
+    def __init__(self, count: int, threads: int, retries: int, *, comeback_s: float = COMEBACK_S) -> None:
         ray = _ray()
         worker_class = ray.remote(BatchActor).options(
-            num_cpus=threads, max_restarts=retries, max_task_retries=retries,
+            num_cpus=threads, max_restarts=-1, max_task_retries=0,
             runtime_env={"env_vars": {"NUMBA_NUM_THREADS": str(threads), "OMP_NUM_THREADS": str(threads)}})
-        self.retries = retries
+        self.retries, self.comeback_s = retries, comeback_s
         self.actors = [worker_class.remote() for _ in range(count)]
         self.idle = list(self.actors)
         self.last_head: dict[int, tuple] = {}
         self.running: dict = {}  # ObjectRef -> (call, actor)
+        self.probing: dict = {}  # ObjectRef of a probe -> an actor that died, until it answers again
+        self.rerun: deque[Call] = deque()  # calls whose actor died, to run again first
+        self.attempts: Counter[str] = Counter()
 
     def free(self) -> int:
-        return len(self.idle)
+        return max(0, len(self.idle) - len(self.rerun))
 
     def submit(self, call: Call) -> None:
         head = call.job.head_key()
         actor = next((a for a in self.idle if self.last_head.get(id(a)) == head), self.idle[0])
         self.idle.remove(actor)
         self.last_head[id(actor)] = head
+        self.attempts[call.key] += 1
         self.running[actor.run.remote(call)] = (call, actor)
 
     def wait(self) -> list[tuple[Call, Outcome]]:
+        """At least one finished call (calls whose actor died are rerun first, on another actor)."""
         ray = _ray()
-        if not self.running:
-            return []
-        ready, _ = ray.wait(list(self.running), num_returns=1)
-        done = []
-        for ref in ready:
-            call, actor = self.running.pop(ref)
-            self.idle.append(actor)
-            try:
-                done.append((call, Outcome(ray.get(ref))))
-            except ray.exceptions.RayActorError:
-                reason = f"its Ray worker died {self.retries + 1} times (killed, out of memory, or its node lost)"
-                done.append((call, Outcome(JobResult(call.job.out, False, reason=reason), self.retries + 1)))
-            except ray.exceptions.RayError as exc:
-                done.append((call, Outcome(JobResult(call.job.out, False, reason=one_line(exc)))))
-        return done
+        while True:
+            while self.rerun and self.idle:
+                self.submit(self.rerun.popleft())
+            if not self.running and not self.rerun:
+                return []
+            waiting_on_probes = not self.running
+            refs = [*self.running, *self.probing]
+            ready = ray.wait(refs, num_returns=1, timeout=self.comeback_s if waiting_on_probes else None)[0] \
+                if refs else []
+            if not ready:  # every actor is dead and none came back
+                return [(call, self._gave_up(call, f"no Ray worker answered for {self.comeback_s:g} s after its "
+                                                   "worker died")) for call in self._drain_rerun()]
+            done = []
+            for ref in ready:
+                if ref in self.probing:
+                    self._probed(ref)
+                    continue
+                call, actor = self.running.pop(ref)
+                try:
+                    value = ray.get(ref)
+                except ray.exceptions.RayActorError:
+                    self.probing[actor.place.remote()] = actor
+                    if self.attempts[call.key] <= self.retries:
+                        self.rerun.append(call)
+                    else:
+                        done.append((call, self._gave_up(call, f"its Ray worker died {self.attempts[call.key]} "
+                                                               "times (killed, out of memory, or its node lost)")))
+                    continue
+                except ray.exceptions.RayError as exc:
+                    value = JobResult(call.job.out, False, reason=one_line(exc))
+                self.idle.append(actor)
+                done.append((call, Outcome(value, self.attempts[call.key])))
+            if done:
+                return done
+
+    def _probed(self, ref) -> None:
+        """A dead actor's probe answered: idle again (restarted), or gone for good."""
+        actor = self.probing.pop(ref)
+        try:
+            _ray().get(ref)
+        except _ray().exceptions.RayError:
+            self.actors.remove(actor)
+            return
+        self.idle.append(actor)
+
+    def _gave_up(self, call: Call, reason: str) -> Outcome:
+        attempts = self.attempts[call.key]
+        return Outcome(JobResult(call.job.out, False, reason=reason, attempts=attempts), attempts)
+
+    def _drain_rerun(self) -> list[Call]:
+        calls, self.rerun = list(self.rerun), deque()
+        return calls
 
     def places(self) -> list[tuple[int, str]]:
         """Each actor's (process id, node id)."""
@@ -126,7 +194,7 @@ class ActorCalls:
         ray = _ray()
         for actor in self.actors:
             ray.kill(actor)
-        self.actors, self.idle, self.running = [], [], {}
+        self.actors, self.idle, self.running, self.probing = [], [], {}, {}
 
 
 class BatchActor:

@@ -43,6 +43,7 @@ def loaded_head(job: Job):
     """The worker's TalkingHead for this job's bundle and output settings, loaded once; the least recently used
     is closed beyond MAX_HEADS."""
     from gaussiantalker.runtime import TalkingHead
+    from gaussiantalker.runtime.playback import orbited_camera
 
     key = job.head_key()
     if key in _heads:
@@ -52,7 +53,7 @@ def loaded_head(job: Job):
                        renderer="auto", sort_interval=SORT_INTERVAL)
     try:
         if job.camera is not None:
-            head.camera = head.orbited_camera(*job.camera)
+            head.camera = orbited_camera(head, *job.camera)
     except BaseException:
         head.close()
         raise
@@ -86,16 +87,18 @@ def run_call(call: Call) -> object:
 def start_job(job: Job, outdir: Path, segment_s: float | None) -> JobResult | Split:
     """A job no longer than `segment_s` (None: any) rendered whole; a longer one's drives made once and cut into
     segments of `segment_s`."""
+    from gaussiantalker.runtime.playback import playback, video_drives
+
     start = time.perf_counter()
     head = loaded_head(job)
     target = outdir / job.out
     plan = head.plan_video(target, codec=job.codec, crf=job.crf)  # checked before any frame
-    play = head.playback(job.audio, motion=job.motion)
+    play = playback(head, job.audio, motion=job.motion)
     fps = job.fps or head.fps
     per_segment = None if segment_s is None else max(1, round(segment_s * fps))
     if per_segment is None or play.frames * fps / head.fps <= per_segment or plan.codec.name in UNSPLIT_CODECS:
         return _render_whole(head, job, target, start)
-    drives, shown = head.video_drives(play, job.fps)
+    drives, shown = video_drives(head, play, job.fps)
     ranges = [(first, min(first + per_segment, len(drives))) for first in range(0, len(drives), per_segment)]
     return Split(drives, shown, ranges, play.composited, fps, time.perf_counter() - start)
 
@@ -124,12 +127,13 @@ def render_segment(job: Job, outdir: Path, drives: list, index: int, shown: list
     """A range of the job's frames (their drives, and the speaker frame each shows) into segment file `index` at
     `fps`, no audio."""
     from gaussiantalker.runtime.frame_loops import write_frames
+    from gaussiantalker.runtime.playback import drive_frames
     from gaussiantalker.sdk.video import VideoWriter
 
     start = time.perf_counter()
     head = loaded_head(job)
     plan = head.plan_video(segment_path(outdir / job.out, index), codec=job.codec, crf=job.crf)
-    frames = head.drive_frames(drives, composited=composited, reference_frames=shown)
+    frames = drive_frames(head, drives, composited=composited, reference_frames=shown)
     with closing(frames), VideoWriter(plan.path, fps, plan.size, plan=plan) as out:
         write_frames(out, frames, len(drives), pipelined=head.backend_settings.pipeline is not False, progress=False)
     return SegmentDone(str(plan.path), len(drives), time.perf_counter() - start)

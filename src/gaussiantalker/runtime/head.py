@@ -17,10 +17,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterator
 from contextlib import closing
-from dataclasses import dataclass
-from fractions import Fraction
 from pathlib import Path
 from typing import Literal
 
@@ -28,18 +26,18 @@ import numpy as np
 
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
-from gaussiantalker.sdk.errors import AudioError, RenderError
+from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.render_settings import RenderSettings
 from gaussiantalker.sdk.rig import ARKIT_RIG, FLAME_RIG, check_drive_rig
-from gaussiantalker.sdk.video import VideoWriter, check_fps, frames_at, video_rate
+from gaussiantalker.sdk.video import VideoWriter
 from gaussiantalker.sdk.video_formats import VideoPlan
 
 from .compositor import check_composited_output
 from .driver import AudioSource, Drive, HeadPoseSource
 from .frame_loops import bare_frames, composited_frames, write_frames
-from .frame_rate import resampled
 from .motions import MotionSource
 from .output import OutputView, output_view
+from .playback import playback, video_frames
 from .renamed import renamed_attribute, settings_groups
 from .settings import BackendSettings, OutputSettings, merged_backend, merged_output
 from .stages import build_stages, bundle_render_settings
@@ -50,17 +48,6 @@ from .translate import SILENCE_GATE_DBFS
 # with alpha), "rgba_float" float32 [H, W, 4] premultiplied (C, 1 - T) as splatted, or (render only) "semantic"
 # uint8 [H, W, 3]: each Gaussian in its region's colour over black (`head.frame_renderer.regions`).
 FrameOutput = Literal["uint8", "float", "rgba", "rgba_float", "semantic"]
-
-
-@dataclass(frozen=True)
-class Playback:
-    """What a video of a head plays (`TalkingHead.playback`): the audio to mux (None: silent), the motion track
-    played instead of the translator (None: the audio drives the translator), frames, and whether composited."""
-
-    samples: np.ndarray | None
-    track: object | None  # a MotionTrack or FlameMotion at the head's fps
-    frames: int
-    composited: bool
 
 
 class TalkingHead:
@@ -115,16 +102,6 @@ class TalkingHead:
     @camera.setter
     def camera(self, camera: Camera) -> None:
         self.frame_renderer.camera = camera
-
-    def orbited_camera(self, yaw_deg: float, pitch_deg: float) -> Camera:
-        """The head's camera swung about the head's centre (the median of its rest-pose Gaussians) by yaw, then
-        pitch (`Camera.orbited`): a view from elsewhere at the same distance; assign it to `head.camera` (bare
-        heads: a composited frame is seen through the reference clip's camera)."""
-        means = self.frame_renderer.deform(self.driver.drive())["means"]
-        finite = means[np.isfinite(means).all(axis=1)]
-        if finite.shape[0] == 0:
-            raise RenderError("the rest pose has no finite Gaussian to orbit about")
-        return self.camera.orbited(yaw_deg, pitch_deg, np.median(finite.astype(np.float64), axis=0))
 
     @property
     def fps(self) -> int:
@@ -230,74 +207,18 @@ class TalkingHead:
         or a VideoPlan (`plan_video`), checked before the first frame is rendered (VideoError). A speaker with a
         translator renders `audio` through it; given a `motion`, or without a translator or audio, it plays the
         motion (None: the bundle's own) and muxes `audio` if given. `fps`: frames per second of the video (None:
-        the speaker's; another rate samples the drives at its frame times, runtime/frame_rate.py)."""
+        the speaker's; another rate samples the drives at its frame times, runtime/playback.py)."""
         plan = OutputView(self.camera, self.compositor is not None).video_plan(path, alpha=alpha, codec=codec, crf=crf,
                                                                               preset=preset, container=container)
         output = "rgba" if plan.alpha else "uint8"
-        play = self.playback(audio, sample_rate, motion=motion)
-        total = play.frames
-        if fps is not None and video_rate(check_fps(fps)) != video_rate(self.fps):
-            if head_pose is not None:
-                raise RenderError("write_video with fps takes the drives' own head pose; set head_pose at the "
-                                  "speaker's fps")
-            drives, shown = self.video_drives(play, fps)
-            frames, total = self.drive_frames(drives, output, composited=play.composited, reference_frames=shown), \
-                len(drives)
-        elif play.track is not None:
-            frames = self.frames(head_pose=head_pose, output=output, motion=play.track)
-        else:
-            frames = self.frames(play.samples, self.sample_rate, head_pose, output=output)
+        play = playback(self, audio, sample_rate, motion=motion)
+        frames, total = video_frames(self, play, output, head_pose, fps)
         # closing: a failed write stops the frame loop's worker threads at once, not when the generator is collected
         with closing(frames), VideoWriter(plan.path, fps or self.fps, plan.size, audio=play.samples,
                                           sample_rate=self.sample_rate, plan=plan) as out:
             write_frames(out, frames, total, pipelined=self.backend_settings.pipeline is not False,
                          progress=progress, on_frame=on_frame)
         return plan.path
-
-    def playback(self, audio: AudioSource | None = None, sample_rate: int | None = None, *,
-                 motion: MotionSource = None) -> Playback:
-        """What `write_video` plays for these arguments, checked: the audio it muxes, the motion track it plays
-        instead of driving the translator (None: the audio drives it), its frame count and whether the frames are
-        composited. A job split into segments (docs/batch.md) makes its drives and frames from it."""
-        driver = self.driver
-        samples = None if audio is None else driver.load_audio(audio, sample_rate)
-        if driver.rig == FLAME_RIG and samples is None and motion is None and driver.has_translator \
-                and driver.motion_track is None:
-            raise AudioError("this speaker's video needs audio (its translator turns speech into motion) or a motion")
-        if motion is not None or samples is None or not driver.has_translator:
-            if self.compositor is not None:
-                raise RenderError("a composited head follows the reference clip and its audio; play a motion with "
-                                  "composite=False")
-            track = driver.motion(motion)
-            return Playback(samples, track, len(track), composited=False)
-        return Playback(samples, None, driver.frame_count(samples.shape[0]), composited=self.compositor is not None)
-
-    def playback_drives(self, play: Playback) -> Iterator[Drive]:
-        """One drive per frame of a playback (`playback`), as `write_video` makes them."""
-        if play.track is not None:
-            return self.drives(motion=play.track)
-        return self.drives(play.samples, self.sample_rate)
-
-    def video_drives(self, play: Playback, fps: float | None = None) -> tuple[list[Drive], list[int]]:
-        """The drives of a playback's video at `fps` (None: the speaker's) and the speaker frame each shows (its
-        reference picture when composited): runtime/frame_rate.py samples them at the video's frame times."""
-        drives = list(self.playback_drives(play))
-        if fps is None or video_rate(check_fps(fps)) == video_rate(self.fps):
-            return drives, list(range(len(drives)))
-        seconds = Fraction(len(drives), self.fps) if play.samples is None else Fraction(len(play.samples),
-                                                                                          self.sample_rate)
-        return resampled(drives, self.fps, fps, frames_at(seconds, fps), blend=not play.composited)
-
-    def drive_frames(self, drives: Iterable[Drive], output: FrameOutput = "uint8", *, composited: bool = False,
-                     reference_frames: Iterable[int] | None = None) -> Iterator[np.ndarray]:
-        """Frames of explicit drives, pipelined as `frames` makes them; `composited`: each drive into the reference
-        picture of its video frame (`reference_frames`, None: 0, 1, 2, ...; uint8 only), so a segment of a clip
-        gets the unsplit clip's frames bit for bit."""
-        pipelined = self.backend_settings.pipeline is not False
-        if not composited:
-            return bare_frames(self.frame_renderer, drives, output, pipelined)
-        check_composited_output(self.compositor, output)
-        return composited_frames(self.frame_renderer, self.compositor, drives, pipelined, reference_frames)
 
     def close(self) -> None:
         """Free the splatter (its GL objects)."""
@@ -310,4 +231,4 @@ class TalkingHead:
         self.close()
 
 
-__all__ = ["TalkingHead", "FrameOutput", "HeadPoseSource", "Playback"]
+__all__ = ["TalkingHead", "FrameOutput", "HeadPoseSource"]
