@@ -153,3 +153,16 @@ def test_a_lost_node_shrinks_the_pool_and_its_job_is_rerun(inputs, tmp_path):
     assert sorted(r.attempts for r in records.values()) == [1, 1, 2]
     assert [len(decoded(outdir / name)) for name in ("one.mkv", "two.mkv", "a.mkv")] == [200, 200, 25]
     assert sorted(p.name for p in outdir.iterdir()) == ["a.mkv", "manifest.jsonl", "one.mkv", "two.mkv"]
+
+
+def test_a_run_with_nothing_to_do_starts_no_ray(inputs, tmp_path, monkeypatch):
+    """Everything done already: the Ray engine never connects, so no cluster is reached (nor a local Ray started)
+    for a run with nothing to render."""
+    import ray
+
+    jobs = write_jobs(inputs / "jobs.jsonl", [{"bundle": "speaker.gtb", "audio": "a.wav", "out": "a.mkv",
+                                               "resolution": SIZE}])
+    assert render_jobs(jobs, tmp_path / "out", workers=1, progress=False).done == ["a.mkv"]
+    monkeypatch.setattr(ray, "init", lambda *args, **kwargs: pytest.fail("ray.init for a run with nothing to do"))
+    again = render_jobs(jobs, tmp_path / "out", ray="127.0.0.1:1", progress=False)
+    assert again.skipped == ["a.mkv"] and not again.done

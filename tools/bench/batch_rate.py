@@ -88,6 +88,7 @@ def run_batch_bench(bundle: Path, *, resolution: int = 256, jobs: int = 8, job_s
 
             start = time.perf_counter()
             ray_engine = RayEngine(None).__enter__()
+            ray_engine.connect()
             result["ray_start_s"] = time.perf_counter() - start
             engines["ray x1"] = lambda: _RayWorkers(ray_engine, 1)
             engines["ray x2"] = lambda: _RayWorkers(ray_engine, 2)

@@ -42,9 +42,10 @@ def _restore(handlers: dict) -> None:
 
 
 class RayEngine:
-    """`with RayEngine(address) as engine:` connects to the cluster at `address` (None: `RAY_ADDRESS`, else a
-    local Ray started for the run) and runs jobs on `workers` actors (None: one per CPU of the cluster), each
-    taking `threads` CPUs (the CPU splatter's threads)."""
+    """`with RayEngine(address) as engine:` connects, at the first run with a job to do, to the cluster at
+    `address` (None: `RAY_ADDRESS`, else a local Ray started for the run; disconnected when the block ends) and runs
+    jobs on `workers` actors (None: one per CPU of the cluster), each taking `threads` CPUs (the CPU splatter's
+    threads)."""
 
     def __init__(self, address: str | None = None, *, workers: int | None = None, threads: int = 1,
                  retries: int = RETRIES) -> None:
@@ -55,20 +56,26 @@ class RayEngine:
         self._connected_here = False
 
     def __enter__(self) -> RayEngine:
-        ray = _ray()
-        if not ray.is_initialized():
-            options = {"address": self.address} if self.address else {"num_cpus": usable_cores(),
-                                                                      "include_dashboard": False}
-            handlers = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
-            try:
-                ray.init(**options, log_to_driver=False, logging_level="WARNING")
-            except (ConnectionError, ValueError, RuntimeError) as exc:
-                raise BatchError(f"cannot reach the Ray cluster at {self.address or 'a local Ray'}: "
-                                 f"{one_line(exc)}") from None
-            finally:
-                _restore(handlers)
-            self._connected_here = True
+        _ray()  # a missing extra is named before any job is looked at
         return self
+
+    def connect(self) -> None:
+        """Join the cluster (or start the local Ray) unless this process is already connected: done by the first
+        run that has a job to do, so a run with nothing left to render starts no Ray."""
+        ray = _ray()
+        if ray.is_initialized():
+            return
+        options = {"address": self.address} if self.address else {"num_cpus": usable_cores(),
+                                                                  "include_dashboard": False}
+        handlers = {number: signal.getsignal(number) for number in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            ray.init(**options, log_to_driver=False, logging_level="WARNING")
+        except (ConnectionError, ValueError, RuntimeError) as exc:
+            raise BatchError(f"cannot reach the Ray cluster at {self.address or 'a local Ray'}: "
+                             f"{one_line(exc)}") from None
+        finally:
+            _restore(handlers)
+        self._connected_here = True
 
     def __exit__(self, *exc) -> None:
         if self._connected_here:
@@ -79,13 +86,15 @@ class RayEngine:
         """The actors a run starts: `workers`, or as many as the cluster's CPUs hold at `threads` each."""
         if self.workers is not None:
             return self.workers
+        self.connect()
         cpus = int(_ray().cluster_resources().get("CPU", 1))
         return max(1, cpus // self.threads)
 
     def run(self, jobs: Sequence[Job], outdir: Path, segment_s: float | None = None) -> Iterator[JobResult]:
         """Yield each job's result as it finishes; the run's actors end with it."""
-        if not self._connected_here and not _ray().is_initialized():
-            raise BatchError("use the Ray engine in a `with RayEngine(...)` block (it connects there)")
+        if not jobs:
+            return
+        self.connect()
         calls = ActorCalls(self.actor_count(), self.threads, self.retries)
         try:
             yield from run_programs(jobs, Path(outdir).absolute(), segment_s, calls)
