@@ -178,34 +178,46 @@ class VideoWriter:
         if self._encoded_like is None:
             raise VideoError("append_encoded needs a writer made with encoded_like")
         frame_tb = 1 / self.rate
-        first = self.frames_written
+        appended = 0
         try:
             with av.open(str(path)) as part:
                 stream = part.streams.video[0]
-                packets = [packet for packet in part.demux(stream) if packet.size and packet.pts is not None]
-            # Timestamps in frames of this part (exact at any fps), shifted by the frames before it. Decode order
-            # advances one frame a packet, so a dts the demuxer left unset (Matroska's first ones behind B-frames)
-            # is the next known one minus the packets between them.
-            to_frames = stream.time_base / frame_tb
-            known = [(index, round(p.dts * to_frames)) for index, p in enumerate(packets) if p.dts is not None]
-            anchor_index, anchor_dts = known[0] if known else (0, None)
-            for index, packet in enumerate(packets):
-                packet.pts = first + round(packet.pts * to_frames)
-                if anchor_dts is None:
-                    packet.dts = packet.pts
-                elif packet.dts is None:
-                    packet.dts = first + anchor_dts + index - anchor_index
-                else:
-                    packet.dts = first + round(packet.dts * to_frames)
-                packet.duration = 1
-                packet.time_base = frame_tb
-                packet.stream = self._video
-                self._output.mux(packet)
-            self.frames_written += len(packets)
+                to_frames = stream.time_base / frame_tb
+                # Timestamps in frames of this part (exact at any fps), shifted by the frames before it. Decode
+                # order advances one frame a packet, so a dts the demuxer left unset (Matroska's first ones behind
+                # B-frames) is the first known one minus the packets between them: those few wait for it.
+                waiting, anchor = [], None
+                for packet in part.demux(stream):
+                    if not packet.size or packet.pts is None:  # the demuxer's end-of-stream marker
+                        continue
+                    if anchor is None and packet.dts is not None:
+                        anchor = appended - round(packet.dts * to_frames)  # decode index minus dts, in frames
+                        for index, held in waiting:
+                            self._mux_copied(held, index - anchor, to_frames)
+                        waiting = []
+                    if anchor is None:
+                        waiting.append((appended, packet))
+                    else:
+                        self._mux_copied(packet, None if packet.dts is not None else appended - anchor, to_frames)
+                    appended += 1
+                for _, held in waiting:  # no dts at all: no reordering, decode order is presentation order
+                    self._mux_copied(held, round(held.pts * to_frames), to_frames)
+            self.frames_written += appended
             self._write_audio_until(self._audio_end(self.frames_written))
         except av.error.FFmpegError as exc:
             raise VideoError(f"joining {path} into {self.path} failed: {exc.strerror}") from None
-        return len(packets)
+        return appended
+
+    def _mux_copied(self, packet, dts_frames: int | None, to_frames: Fraction) -> None:
+        """Mux a packet of an appended part after the frames written so far: its timestamps in frames (dts given
+        in frames, or None: its own), shifted by them."""
+        first = self.frames_written
+        packet.pts = first + round(packet.pts * to_frames)
+        packet.dts = first + (round(packet.dts * to_frames) if dts_frames is None else dts_frames)
+        packet.duration = 1
+        packet.time_base = 1 / self.rate
+        packet.stream = self._video
+        self._output.mux(packet)
 
     def _audio_end(self, frames: int) -> int:
         """Audio samples that belong to the first `frames` video frames (all of them for the last frame)."""
