@@ -55,7 +55,6 @@ def render_jobs(jobs_path: str | os.PathLike, outdir: str | os.PathLike, *, work
         return run_jobs(jobs, outdir, LocalEngine(workers), **options)
     from .ray_engine import RayEngine
 
-    check_outputs(jobs, Path(outdir), jobs_path)  # before a cluster is reached
     with RayEngine(None if ray is True else ray, workers=workers) as engine:
         return run_jobs(jobs, outdir, engine, **options)
 
