@@ -1,6 +1,7 @@
 """Train the built-in voice drivers and measure them: `python samples/train_voice.py` (docs/voice.md).
 
-Speaks the training sentences with espeak-ng (`apt-get install espeak-ng`), trains the audio -> ARKit network on
+Speaks the training sentences with espeak-ng, festival and flite (`apt-get install espeak-ng festival
+festvox-us-slt-hts flite`), trains the audio -> ARKit network on
 their phoneme targets for a fixed number of steps, writes the ARKit model and the FLAME model built on the same
 network (exporter/voice/models/ by default), then measures the ARKit model on held-out voices and sentences and
 writes the bench (docs/bench/voice/ by default). Everything random comes from --seed; the run is a fixed number
@@ -17,7 +18,7 @@ from pathlib import Path
 import torch
 import typer
 
-from gaussiantalker.exporter.voice import corpus, espeak, evaluate, flame_fit, onnx_graph
+from gaussiantalker.exporter.voice import corpus, espeak, evaluate, festival, flame_fit, flite, onnx_graph
 from gaussiantalker.exporter.voice.data import speak
 from gaussiantalker.exporter.voice.model import VoiceConfig, VoiceNet
 from gaussiantalker.exporter.voice.train import TrainSettings, train, training_streams
@@ -40,7 +41,10 @@ def main(
     out_dir: Path = typer.Option(MODELS, "--out-dir", help="where arkit_voice.onnx and flame_voice.onnx go"),
     bench_dir: Path = typer.Option(BENCH, "--bench-dir", help="where voice.json and voice.md go"),
     steps: int = typer.Option(TrainSettings.steps, "--steps", min=1, help="training steps"),
-    utterances: int = typer.Option(TrainSettings.utterances, "--utterances", min=8, help="training utterances"),
+    utterances: int = typer.Option(TrainSettings.utterances, "--utterances", min=8,
+                                   help="espeak-ng training utterances"),
+    natural: int = typer.Option(TrainSettings.natural_utterances, "--natural", min=0,
+                                help="festival and flite training utterances (English)"),
     batch_size: int = typer.Option(TrainSettings.batch_size, "--batch-size", min=1),
     heldout: int = typer.Option(60, "--heldout", min=1, help="held-out clips (training languages)"),
     unseen: int = typer.Option(16, "--unseen", min=0, help="held-out clips in a language never trained on"),
@@ -56,7 +60,13 @@ def main(
     if not espeak.available():
         typer.echo("error: espeak-ng's library is not installed (apt-get install espeak-ng)", err=True)
         raise typer.Exit(2)
-    settings = TrainSettings(steps=steps, utterances=utterances, batch_size=batch_size)
+    missing = [f"{engine}:{voice}" for engine, voices in corpus.TRAIN_FAMILIES.values() for voice in voices
+               if natural and not {"festival": festival, "flite": flite}[engine].available(voice)]
+    if missing:
+        typer.echo(f"error: training voices missing: {', '.join(missing)} (apt-get install festival "
+                   "festvox-us-slt-hts flite; or --natural 0)", err=True)
+        raise typer.Exit(2)
+    settings = TrainSettings(steps=steps, utterances=utterances, natural_utterances=natural, batch_size=batch_size)
     times: dict[str, float] = {}
     start = time.perf_counter()
     if weights is None:
@@ -90,6 +100,7 @@ def main(
     result = evaluate.evaluate(arkit, clips, foreign)
     times["evaluate_seconds"] = round(time.perf_counter() - start, 1)
     chosen = {"--steps": (steps, TrainSettings.steps), "--utterances": (utterances, TrainSettings.utterances),
+              "--natural": (natural, TrainSettings.natural_utterances),
               "--batch-size": (batch_size, TrainSettings.batch_size), "--heldout": (heldout, 60),
               "--unseen": (unseen, 16), "--seed": (seed, 0)}
     command = shlex.join(["python", "samples/train_voice.py"] + [

@@ -3,9 +3,9 @@
 `.ci/install`, `.ci/runtime-only`, `.ci/browser` and `.ci/run` run with a PATH of stubs: `apt-get`, `sudo`,
 `ldconfig`, `ls`, `id`, `python` and the commands the scripts call record their arguments (and the environment
 variables apt-get and the test run need); everything else on that PATH is a link to the real tool.
-`glslangValidator`, `shellcheck`, `espeak-ng`, `nginx`, `chromium` and `npm` are missing, `ldconfig` lists no
-libEGL and `ls` finds no DRI driver, so the install must ask apt-get for every Debian package, as root and through
-sudo as another user.
+`glslangValidator`, `shellcheck`, `espeak-ng`, `festival`, `flite`, `nginx`, `chromium` and `npm` are missing,
+`ldconfig` lists no libEGL and `ls` finds no DRI driver (nor festival's voices), so the install must ask apt-get for
+every Debian package, as root and through sudo as another user.
 Where `.ci/browser` fails, `.ci/run` must still run the suite with CI set and then fail; and the browser tests
 themselves, run in a fresh pytest without chromium (or without the npm renderer), must fail with CI set and skip
 without it. shellcheck lints every script in `.ci/` (CI installs it; elsewhere that test skips).
@@ -27,7 +27,8 @@ ROOT = Path(__file__).resolve().parent.parent
 CI_DIR = ROOT / ".ci"
 # Real tools the scripts use besides the stubbed ones (bash builtins need none).
 REAL_TOOLS = ("bash", "env", "grep", "dirname", "cat", "mktemp", "rm", "wc", "test", "mkdir", "touch", "true")
-DEBIAN_PACKAGES = {"libegl1", "libgl1-mesa-dri", "glslang-tools", "shellcheck", "espeak-ng", "nginx"}
+DEBIAN_PACKAGES = {"libegl1", "libgl1-mesa-dri", "glslang-tools", "shellcheck", "espeak-ng", "nginx", "festival",
+                   "festvox-us-slt-hts", "festvox-kallpc16k", "festvox-kdlpc16k", "flite"}
 
 # Each stub appends one line to $STUB_LOG: its name, then its arguments separated by tabs.
 RECORD = 'printf "%s" "$(basename "$0")" >>"$STUB_LOG"; printf "\\t%s" "$@" >>"$STUB_LOG"; echo >>"$STUB_LOG"\n'
@@ -114,14 +115,16 @@ def test_install_asks_apt_for_every_missing_package(tmp_path, uid):
     assert len(sudo) == (0 if uid == 0 else 2), calls
     pips = [call for call in calls if call[0] == "python" and call[1:4] == ["-m", "pip", "install"]]
     assert ["torch==2.13.0"] == [arg for arg in pips[0] if arg.startswith("torch")], "torch (CPU) comes first"
-    assert ".[export,dev,mnn,serve,pipecat,cpu,ray]" in pips[1]
+    assert ".[export,dev,mnn,serve,pipecat,cpu,ray,voice]" in pips[1]
     assert any("opencv-python-headless" in arg for arg in pips[2])
+    # the real recordings of the lip-sync measurement come at install, from the packages that ship them
+    assert ["python", "-m", "gaussiantalker.exporter.voice.real_speech", "fetch"] in calls
 
 
 def test_install_asks_apt_for_nothing_when_everything_is_there(tmp_path):
     env, log = _stub_path(tmp_path, 0)
     bin_dir = Path(env["PATH"])
-    for tool in ("glslangValidator", "shellcheck", "espeak-ng", "nginx"):
+    for tool in ("glslangValidator", "shellcheck", "espeak-ng", "nginx", "festival", "flite"):
         (bin_dir / tool).symlink_to(bin_dir / "true")
     (bin_dir / "ldconfig").write_text('#!/bin/bash\necho "libEGL.so.1 (libc6,x86-64) => /lib/libEGL.so.1"\n')
     (bin_dir / "ls").write_text("#!/bin/bash\necho /usr/lib/x86_64-linux-gnu/dri/swrast_dri.so\n")

@@ -24,6 +24,9 @@
                            held or broke, with what each observed (bench/serve_attacks.py)
     gt-bench batch         gt-render's engines: seconds of video per second for 1, 2 local workers and Ray
                            actors, a long clip split and whole (bench/batch_rate.py)
+    gt-bench voice         every audio driver (the built-in ARKit and FLAME voices, a bundle's translator) on every
+                           family of voice and on real human speech: lip closure, channels, jaw, lag
+                           (bench/voice_gates.py)
     gt-bench pipeline      the pipelined frame loop against the serial one on the CPU splatter, alternating
                            (bench/pipeline_vs_serial.py)
     gt-bench blend-limit   the CPU splatter's blend: its work counts and time per fragment against the same
@@ -663,6 +666,39 @@ def batch(
     typer.echo(table)
     _write_report(out, "batch", "gt-render: seconds of video per second", result, table,
                   f"; {jobs} jobs of {job_s:g} s at {resolution}x{resolution}, rounds alternating the engines.")
+
+
+@app.command()
+def voice(
+    bundle: list[Path] = typer.Option([], "--bundle", help="also a FLAME bundle's own translator (repeatable)"),
+    arkit_model: Path = typer.Option(None, "--arkit-model", help="the ARKit voice model [default: the committed"
+                                     " one]"),
+    flame_model: Path = typer.Option(None, "--flame-model", help="the FLAME voice model [default: the committed"
+                                     " one]"),
+    clips: int = typer.Option(40, "--clips", min=1, help="clips of each synthetic family"),
+    seed: int = typer.Option(0, "--seed", help="the training run's seed the clips are held out from"),
+    out: Path = typer.Option(None, "--out", help="folder for gates.md and gates.json"),
+) -> None:
+    """Lip-sync of every audio driver on every family of voice and on real human speech (docs/voice.md)."""
+    from gaussiantalker.exporter.voice.paths import ARKIT_MODEL, FLAME_MODEL
+    from gaussiantalker.exporter.voice.real_speech import RealSpeechMissing
+
+    from .voice_gates import run_voice_bench, voice_table
+
+    for path, hint in [(p, "--bundle") for p in bundle] + [(arkit_model, "--arkit-model"),
+                                                           (flame_model, "--flame-model")]:
+        if path is not None and not path.is_file():
+            raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
+    try:
+        result = _stamp(run_voice_bench(arkit_model or ARKIT_MODEL, flame_model or FLAME_MODEL, bundle, clips, seed,
+                                        log=typer.echo))
+    except RealSpeechMissing as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    table = voice_table(result)
+    typer.echo(table)
+    _write_report(out, "gates", "Voice drivers on every family of voice and on real speech", result, table,
+                  f"; {clips} clips per synthetic family; ✓/✗: the goals (docs/voice.md, \"Measurements\").")
 
 
 def _live_baseline(script: Path | None, checkout: Path | None):

@@ -1,11 +1,13 @@
 """What the voice drivers train and are measured on: random sentences in several languages, spoken by espeak-ng
-voices at random rates and pitches (docs/voice.md, "Training data").
+voices, and English ones spoken by festival's and flite's more natural voices, at random rates and pitches
+(docs/voice.md, "Training data" and "Voices").
 
 Sentences are drawn from small word lists (common words rich in the phonemes lips show, written here so nothing is
 downloaded) mixed with pseudo-words (the language's spelling of random syllables, for phoneme combinations the
 lists lack), with commas, full stops, questions and exclamations for phrase rhythm. Training and held-out sets
 come from disjoint seed streams and disjoint voices; `heldout_specs` also checks that none of its sentences is a
-training sentence.
+training sentence. One family of voices is never trained on (HELDOUT_FAMILY: festival's diphone voices), so the
+measurements include voices made another way than any the drivers heard.
 """
 
 from __future__ import annotations
@@ -74,6 +76,18 @@ PITCH_RANGE = (20, 90)
 WORD_GAP = (0, 3)
 
 TRAIN_STREAM, HELDOUT_STREAM = 1, 2  # seed streams: a seed of one stream never draws a sentence of the other
+NATURAL_STREAM = 3  # the festival and flite training sentences' stream
+
+# English voices of other engines (festival.py, flite.py), by family: each voice's own mean pitch (Hz) centres the
+# pitch drawn for it. flite's kal and kal16 are the CMU Kal diphones festival's kal is made of, so they are in no
+# family: they would leak the held-out family into training.
+ENGINES = ("espeak", "festival", "flite")
+TRAIN_FAMILIES: dict[str, tuple[str, dict[str, float]]] = {
+    "festival": ("festival", {"slt_hts": 170.0}),  # an HMM (HTS) voice
+    "flite": ("flite", {"slt": 170.0, "awb": 110.0, "rms": 110.0}),  # statistical (clustergen) voices
+}
+HELDOUT_FAMILY = ("festival-diphone", "festival", {"kal": 105.0, "ked": 105.0})  # LPC diphone voices, never trained
+PITCH_OCTAVES = 0.25  # a voice's pitch drawn within +-this of its own mean
 
 
 @dataclass(frozen=True)
@@ -87,6 +101,16 @@ class Spec:
     pitch: int
     pitch_range: int
     word_gap: int
+    engine: str = "espeak"  # ENGINES: for festival and flite, `rate` sets the tempo and `pitch` the mean F0
+
+    @property
+    def tempo(self) -> float:
+        """festival's and flite's duration factor of `rate` (175 words per minute: 1)."""
+        return 175.0 / self.rate
+
+    def pitch_hz(self, own_hz: float) -> float:
+        """festival's and flite's target mean F0 of `pitch` (0..100, 50 the voice's own `own_hz`)."""
+        return own_hz * 2.0 ** (PITCH_OCTAVES * (self.pitch - 50) / 25.0)
 
 
 def pseudo_word(rng: np.random.Generator) -> str:
@@ -114,6 +138,22 @@ def _spec(language: str, variants: tuple[str, ...], rng: np.random.Generator) ->
                 int(rng.integers(*PITCH_RANGE)), int(rng.integers(WORD_GAP[0], WORD_GAP[1] + 1)))
 
 
+def _family_spec(engine: str, voices: dict[str, float], rng: np.random.Generator) -> Spec:
+    voice = str(rng.choice(sorted(voices)))
+    return Spec(sentence("en", rng), "en", voice, int(rng.integers(*RATE_WPM)), int(rng.integers(*PITCH)), 0, 0,
+                engine)
+
+
+def family_specs(count: int, seed: int, families: dict[str, tuple[str, dict[str, float]]] | None = None,
+                 stream: int = NATURAL_STREAM) -> list[Spec]:
+    """`count` English utterances of other engines' voices (TRAIN_FAMILIES by default), the families in turn,
+    sentences of `stream`."""
+    families = TRAIN_FAMILIES if families is None else families
+    rng = np.random.default_rng([stream, seed])
+    order = sorted(families)
+    return [_family_spec(*families[order[i % len(order)]], rng) for i in range(count)]
+
+
 def training_specs(count: int, seed: int) -> list[Spec]:
     """`count` training utterances: the training languages in turn, training voices."""
     rng = np.random.default_rng([TRAIN_STREAM, seed])
@@ -133,5 +173,6 @@ def heldout_specs(count: int, seed: int, languages: tuple[str, ...] = TRAIN_LANG
     return specs
 
 
-__all__ = ["HELDOUT_VARIANTS", "LANGUAGES", "Spec", "TRAIN_LANGUAGES", "TRAIN_VARIANTS", "UNSEEN_LANGUAGES",
-           "WORDS", "heldout_specs", "pseudo_word", "sentence", "training_specs"]
+__all__ = ["ENGINES", "HELDOUT_FAMILY", "HELDOUT_VARIANTS", "LANGUAGES", "Spec", "TRAIN_FAMILIES", "TRAIN_LANGUAGES",
+           "TRAIN_VARIANTS", "UNSEEN_LANGUAGES", "WORDS", "family_specs", "heldout_specs", "pseudo_word", "sentence",
+           "training_specs"]

@@ -3,9 +3,11 @@ augmented crops the network learns from (docs/voice.md, "Training data").
 
 Utterances are joined into streams of ~STREAM_SECONDS so the network sees speech begin and end after pauses of
 every length (and blinks at them); targets are computed on the whole stream, from its phonemes shifted onto the
-stream's timeline. A crop is then made harder than espeak-ng's clean studio voice: a random gain (-30..+6 dB), a
-first-order tilt of the spectrum (a dull or a bright microphone), noise at 15-45 dB SNR, and a short room reverb.
-Everything random comes from the numpy generator the caller passes: the same seed, the same crops.
+stream's timeline. A crop is then made harder than a synthesiser's clean studio voice: speed perturbation (tempo
+and pitch, the targets stretched with it), a short room reverb, a first-order tilt of the spectrum (a dull or a
+bright microphone), noise at 15-45 dB SNR, the channel of a call (telephone, Opus, a band-limited headset:
+channels.py) and a random gain (-30..+6 dB). Everything random comes from the numpy generator the caller passes:
+the same seed, the same crops.
 """
 
 from __future__ import annotations
@@ -19,10 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
+from gaussiantalker.runtime.translate import resample_rows
 from gaussiantalker.sdk.audio import write_wav
 from gaussiantalker.sdk.progress import progress_bar
 
-from . import espeak
+from . import channels, espeak
 from .corpus import Spec
 from .espeak import PAUSE, Phoneme, Utterance, phonemes_from_json
 from .targets import arkit_targets, frame_count
@@ -36,6 +39,11 @@ GAIN_DB = (-30.0, 6.0)
 TILT = (-0.7, 0.9)  # y[n] = x[n] - a x[n-1]
 NOISE_P, NOISE_SNR_DB = 0.5, (15.0, 45.0)
 REVERB_P, REVERB_RT60_S = 0.3, (0.1, 0.4)
+SPEED_P, SPEED = 0.3, (0.88, 1.12)
+# A call's channel, drawn in CHANNEL_P of the crops: (name, share of those crops).
+CHANNEL_P = 0.35
+CHANNEL_KINDS = (("telephone", 0.3), ("opus", 0.4), ("low_pass", 0.3))
+OPUS_KBPS, LOW_PASS_HZ = (6.0, 24.0), (3500.0, 7000.0)
 
 
 @dataclass
@@ -47,8 +55,28 @@ class Stream:
 
 
 def _speak_chunk(specs: list[Spec]) -> list[Utterance]:
-    """Synthesise specs in order (run in a fresh worker process: see `speak`)."""
-    return [espeak.synthesize(s.text, s.voice, s.rate, s.pitch, s.pitch_range, s.word_gap) for s in specs]
+    """Synthesise specs in order (run in a fresh worker process: see `speak`), each by its engine."""
+    from . import festival, flite  # imported in the worker only: flite's library loads with the module's first use
+    from .corpus import HELDOUT_FAMILY, TRAIN_FAMILIES
+
+    own_pitch = {(engine, voice): hz for engine, voices in [*TRAIN_FAMILIES.values(), HELDOUT_FAMILY[1:]]
+                 for voice, hz in voices.items()}
+    out: list[Utterance] = []
+    k = 0
+    while k < len(specs):  # a run of one engine's specs at a time, so festival speaks a run in one process
+        engine = specs[k].engine
+        run = [specs[k]]
+        while k + len(run) < len(specs) and specs[k + len(run)].engine == engine:
+            run.append(specs[k + len(run)])
+        if engine == "espeak":
+            out += [espeak.synthesize(s.text, s.voice, s.rate, s.pitch, s.pitch_range, s.word_gap) for s in run]
+        else:
+            module = {"festival": festival, "flite": flite}[engine]
+            out += module.synthesize_many([festival.Request(s.text, s.voice, s.tempo,
+                                                            s.pitch_hz(own_pitch[(engine, s.voice)]))
+                                           for s in run])
+        k += len(run)
+    return out
 
 
 def speak(specs: list[Spec], progress: bool = True, desc: str = "espeak-ng", chunk: int = SPEAK_CHUNK
@@ -57,7 +85,8 @@ def speak(specs: list[Spec], progress: bool = True, desc: str = "espeak-ng", chu
 
     Why fresh processes: espeak-ng 1.51 carries state from one utterance to the next, and late in a long run in one
     process a few utterances came out differently from run to run (6 of 1,400 after the 1,250th, measured);
-    starting each chunk from a new library makes the audio a function of the chunk alone."""
+    starting each chunk from a new library makes the audio a function of the chunk alone (and flite's reseeding of
+    libc's rand() never reaches espeak-ng)."""
     bar = progress_bar(total=len(specs), desc=desc, disable=not progress, leave=False)
     chunks = [specs[k:k + chunk] for k in range(0, len(specs), chunk)]
     out: list[Utterance] = []
@@ -105,14 +134,30 @@ def make_streams(utterances: list[Utterance], rng: np.random.Generator) -> list[
     return streams
 
 
-def crop(streams: list[Stream], frames: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """A random crop of `frames` frames: (audio [frames * 640], targets [frames, 52]), streams drawn by length."""
-    lengths = np.array([s.targets.shape[0] - frames + 1 for s in streams], np.float64)
+def crop(streams: list[Stream], frames: int, rng: np.random.Generator, span: int | None = None
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """A random crop of `span` frames (default `frames`): (audio [span * 640], targets [span, 52]), streams drawn
+    by length."""
+    span = frames if span is None else span
+    lengths = np.array([s.targets.shape[0] - span + 1 for s in streams], np.float64)
     if lengths.max() < 1:
-        raise ValueError(f"no stream holds {frames} frames")
+        raise ValueError(f"no stream holds {span} frames")
     stream = streams[int(rng.choice(len(streams), p=np.maximum(lengths, 0) / np.maximum(lengths, 0).sum()))]
-    start = int(rng.integers(stream.targets.shape[0] - frames + 1))
-    return stream.audio[start * 640:(start + frames) * 640].copy(), stream.targets[start:start + frames]
+    start = int(rng.integers(stream.targets.shape[0] - span + 1))
+    return stream.audio[start * 640:(start + span) * 640].copy(), stream.targets[start:start + span]
+
+
+def sped_crop(streams: list[Stream], frames: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A crop of `frames` frames, in SPEED_P of the draws played faster or slower (SPEED): a longer or shorter
+    span of the stream squeezed into `frames` frames of audio, its targets resampled with it."""
+    if rng.random() >= SPEED_P:
+        return crop(streams, frames, rng)
+    factor = float(rng.uniform(*SPEED))
+    audio, targets = crop(streams, frames, rng, span=max(1, int(round(frames * factor))))
+    factor = targets.shape[0] / frames  # the span's whole frames set the exact factor
+    sped = channels.speed(audio, factor)
+    sped = np.pad(sped, (0, max(0, frames * 640 - sped.size)))[: frames * 640]
+    return sped.astype(np.float32), resample_rows(targets, frames).astype(np.float32)
 
 
 def _convolve(x: np.ndarray, kernel: np.ndarray) -> np.ndarray:
@@ -122,7 +167,8 @@ def _convolve(x: np.ndarray, kernel: np.ndarray) -> np.ndarray:
 
 
 def augment(audio: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """A harder copy of clean speech: reverb, tilt, noise, gain (module docstring), clipped to +-1."""
+    """A harder copy of clean speech: reverb, tilt, noise, a call's channel, gain (module docstring), clipped to
+    +-1."""
     x = audio.astype(np.float64)
     speech_rms = np.sqrt(np.mean(x * x)) + 1e-9
     if rng.random() < REVERB_P:
@@ -143,8 +189,21 @@ def augment(audio: np.ndarray, rng: np.random.Generator) -> np.ndarray:
                                (running[401:] - running[:-401]) / 401) if noise.size > 401 else noise.mean()
         noise *= speech_rms / (np.sqrt(np.mean(noise * noise)) + 1e-9) * 10 ** (-rng.uniform(*NOISE_SNR_DB) / 20)
         x = x + noise
+    if rng.random() < CHANNEL_P:
+        x = call_channel(x.astype(np.float32), rng).astype(np.float64)
     x *= 10 ** (rng.uniform(*GAIN_DB) / 20)
     return np.clip(x, -1.0, 1.0).astype(np.float32)
+
+
+def call_channel(x: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One of CHANNEL_KINDS, drawn by its share, at a random bit rate or cut-off."""
+    names, shares = zip(*CHANNEL_KINDS, strict=True)
+    kind = names[int(rng.choice(len(names), p=np.array(shares) / sum(shares)))]
+    if kind == "telephone":
+        return channels.telephone(x)
+    if kind == "opus":
+        return channels.opus(x, float(rng.uniform(*OPUS_KBPS)))
+    return channels.low_pass(x, float(rng.uniform(*LOW_PASS_HZ)))
 
 
 def batch(streams: list[Stream], count: int, frames: int, rng: np.random.Generator, augmented: bool = True
@@ -152,7 +211,7 @@ def batch(streams: list[Stream], count: int, frames: int, rng: np.random.Generat
     """(audio [count, frames * 640], targets [count, frames, 52])."""
     audio, targets = [], []
     for _ in range(count):
-        a, t = crop(streams, frames, rng)
+        a, t = sped_crop(streams, frames, rng) if augmented else crop(streams, frames, rng)
         audio.append(augment(a, rng) if augmented else a)
         targets.append(t)
     return np.stack(audio), np.stack(targets)
@@ -178,4 +237,5 @@ def load_utterance(stem: str | os.PathLike) -> Utterance:
                      meta.get("settings", {}))
 
 
-__all__ = ["Stream", "augment", "batch", "crop", "join", "load_utterance", "make_streams", "save_utterance", "speak"]
+__all__ = ["Stream", "augment", "batch", "call_channel", "crop", "join", "load_utterance", "make_streams",
+           "save_utterance", "speak", "sped_crop"]

@@ -112,9 +112,13 @@ def bilabial_onsets(phonemes: list[Phoneme]) -> list[tuple[float, float]]:
     return runs
 
 
-def closures(weights: np.ndarray, phonemes: list[Phoneme]) -> tuple[int, int, list[float]]:
-    """(onsets closed, onsets, smallest aperture at each onset) for one clip (module docstring)."""
-    aperture = weights[:, JAW] - weights[:, CLOSE]
+def aperture_of(weights: np.ndarray) -> np.ndarray:
+    """The lips' opening of ARKit weights [T, 52]: jawOpen - mouthClose (mouthClose shuts the lips on an open jaw)."""
+    return weights[:, JAW] - weights[:, CLOSE]
+
+
+def closures(aperture: np.ndarray, phonemes: list[Phoneme]) -> tuple[int, int, list[float]]:
+    """(onsets closed, onsets, smallest aperture at each onset) for one clip's aperture [T] (module docstring)."""
     closed, smallest = 0, []
     for start, end in bilabial_onsets(phonemes):
         first = int(np.floor(start * FPS))
@@ -127,10 +131,9 @@ def closures(weights: np.ndarray, phonemes: list[Phoneme]) -> tuple[int, int, li
     return closed, len(smallest), smallest
 
 
-def vowels_open(weights: np.ndarray, phonemes: list[Phoneme]) -> tuple[int, int, list[float]]:
+def vowels_open(aperture: np.ndarray, phonemes: list[Phoneme]) -> tuple[int, int, list[float]]:
     """(vowels that open, vowels, largest aperture in each) for the vowel phonemes of at least one whole frame:
     the guard against a mouth that passes the closure test by never opening."""
-    aperture = weights[:, JAW] - weights[:, CLOSE]
     opened, largest = 0, []
     for phoneme in phonemes:
         symbols = symbols_of(phoneme.ipa)
@@ -250,6 +253,33 @@ def cpu_cost(sess: ort.InferenceSession, seconds: float = 10.0, rounds: int = 5)
             "clip_seconds": seconds}
 
 
+def mouth_measures(clips: list[Clip], apertures: list[np.ndarray], jaws: list[np.ndarray]) -> dict:
+    """Closure at /p b m/, vowels opening, jaw against loudness and the mouth's lag over `clips`, from each
+    clip's aperture [T] and jaw [T] (jawOpen units: mouths.py)."""
+    closed = total = opened = vowels = 0
+    bilabial, vowel_apertures, jaw_r, lags = [], [], [], []
+    for clip, aperture, jaw in zip(clips, apertures, jaws, strict=True):
+        c, n, smallest = closures(aperture, clip.phonemes)
+        closed, total = closed + c, total + n
+        bilabial += smallest
+        c, n, largest = vowels_open(aperture, clip.phonemes)
+        opened, vowels = opened + c, vowels + n
+        vowel_apertures += largest
+        level = loudness(clip.audio, len(jaw))
+        jaw_r.append(pearson(jaw, level))
+        lags.append(lag_frames(jaw, level))
+    return {
+        "closure_share": closed / max(total, 1), "bilabial_onsets": total,
+        "bilabial_aperture_median": float(np.median(bilabial)) if bilabial else float("nan"),
+        "vowel_open_share": opened / max(vowels, 1), "vowels": vowels,
+        "vowel_aperture_median": float(np.median(vowel_apertures)) if vowel_apertures else float("nan"),
+        "jaw_loudness_r_median": float(np.nanmedian(jaw_r)), "jaw_loudness_r_mean": float(np.nanmean(jaw_r)),
+        "lag_ms_median": float(np.median(lags)) * 1000.0 / FPS,
+        "lag_ms_p10_p90": [float(np.percentile(lags, 10)) * 1000.0 / FPS,
+                           float(np.percentile(lags, 90)) * 1000.0 / FPS],
+    }
+
+
 def quality(sess: ort.InferenceSession, clips: list[Clip], channels: list[str] | None = None) -> dict:
     """Agreement, closure and jaw/loudness of the model on `clips` (and the same measures of the targets)."""
     predictions = [run_arkit(sess, clip.audio)[: len(clip.targets)] for clip in clips]
@@ -260,29 +290,7 @@ def quality(sess: ort.InferenceSession, clips: list[Clip], channels: list[str] |
                  for name in channels}
     result: dict = {"clips": len(clips), "frames": int(len(targets)), "agreement_r": agreement}
     for who, tracks in (("model", predictions), ("targets", [clip.targets for clip in clips])):
-        closed = total = opened = vowels = 0
-        apertures, vowel_apertures = [], []
-        jaw_r, lags = [], []
-        for clip, weights in zip(clips, tracks, strict=True):
-            c, n, smallest = closures(weights, clip.phonemes)
-            closed, total = closed + c, total + n
-            apertures += smallest
-            c, n, largest = vowels_open(weights, clip.phonemes)
-            opened, vowels = opened + c, vowels + n
-            vowel_apertures += largest
-            level = loudness(clip.audio, len(weights))
-            jaw_r.append(pearson(weights[:, JAW], level))
-            lags.append(lag_frames(weights[:, JAW], level))
-        result[who] = {
-            "closure_share": closed / max(total, 1), "bilabial_onsets": total,
-            "bilabial_aperture_median": float(np.median(apertures)) if apertures else float("nan"),
-            "vowel_open_share": opened / max(vowels, 1), "vowels": vowels,
-            "vowel_aperture_median": float(np.median(vowel_apertures)) if vowel_apertures else float("nan"),
-            "jaw_loudness_r_median": float(np.nanmedian(jaw_r)), "jaw_loudness_r_mean": float(np.nanmean(jaw_r)),
-            "lag_ms_median": float(np.median(lags)) * 1000.0 / FPS,
-            "lag_ms_p10_p90": [float(np.percentile(lags, 10)) * 1000.0 / FPS,
-                               float(np.percentile(lags, 90)) * 1000.0 / FPS],
-        }
+        result[who] = mouth_measures(clips, [aperture_of(w) for w in tracks], [w[:, JAW] for w in tracks])
     result["rmse_top_channels"] = float(np.sqrt(np.mean([(pred[:, ARKIT_BLENDSHAPES.index(n)] -
                                                           targets[:, ARKIT_BLENDSHAPES.index(n)]) ** 2
                                                          for n in channels])))
@@ -378,6 +386,6 @@ def write_report(result: dict, out_dir: str | os.PathLike, command: str, record:
     (out / "voice.md").write_text(markdown(result, command, record))
 
 
-__all__ = ["Clip", "bilabial_onsets", "closures", "cpu_cost", "evaluate", "lag_frames", "live_frames",
-           "loudness", "make_clip", "offline_frames", "pearson", "quality", "run_arkit", "session", "top_channels",
-           "write_report"]
+__all__ = ["Clip", "aperture_of", "bilabial_onsets", "closures", "cpu_cost", "evaluate", "lag_frames",
+           "live_frames", "loudness", "make_clip", "mouth_measures", "offline_frames", "pearson", "quality",
+           "run_arkit", "session", "top_channels", "write_report"]

@@ -23,7 +23,7 @@ import torch
 from gaussiantalker.sdk.progress import progress_bar
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_COUNT
 
-from .corpus import training_specs
+from .corpus import family_specs, training_specs
 from .data import Stream, batch, make_streams, speak
 from .model import VoiceConfig, VoiceNet, check_receptive_field, count_parameters
 
@@ -48,6 +48,7 @@ class TrainSettings:
     batch_size: int = 12
     crop_frames: int = 100
     utterances: int = 1400
+    natural_utterances: int = 900  # English ones by festival's and flite's voices (corpus.TRAIN_FAMILIES)
     lr: float = 2e-3
     warmup_steps: int = 100
     final_lr_share: float = 0.05
@@ -79,8 +80,10 @@ def _lr_factor(step: int, settings: TrainSettings) -> float:
 
 
 def training_streams(settings: TrainSettings, seed: int, progress: bool = True) -> list[Stream]:
-    """The training streams of a seed: its sentences spoken and joined."""
-    utterances = speak(training_specs(settings.utterances, seed), progress, desc="speaking")
+    """The training streams of a seed: its sentences spoken and joined (other engines' utterances grouped by
+    voice, so a stream is one speaker's, as a call is)."""
+    natural = sorted(family_specs(settings.natural_utterances, seed), key=lambda s: (s.engine, s.voice))
+    utterances = speak(training_specs(settings.utterances, seed) + natural, progress, desc="speaking")
     return make_streams(utterances, np.random.default_rng([seed, 1]))
 
 
