@@ -459,7 +459,7 @@ def differences(strip: Strip) -> list[str]:
 
 
 def markdown(strip: Strip, png: Path, audio: Path, avatar: str, command: str, seconds: float,
-             source: str | None = None) -> str:
+             source: str | None = None, recording: str | None = None) -> str:
     """strip.md: what the strip shows, its columns with jawOpen / mouthClose of both drives, where they differ."""
     fps, text = strip.fps, strip.text
     rows = ["| # | time | phoneme | word | shows | jawOpen model / target | mouthClose model / target | "
@@ -498,12 +498,13 @@ def markdown(strip: Strip, png: Path, audio: Path, avatar: str, command: str, se
         shown = audio.resolve().relative_to(ROOT)
     except ValueError:
         shown = audio
+    said = f"`{shown}`" if recording is None else recording
     lines = [
         "# The built-in voice, frame by frame",
         "",
         f"![{len(strip.columns)} instants of one sentence, the voice model above the phoneme targets]({png.name})",
         "",
-        f"One sentence (`{shown}`, {strip.model.shape[0] / fps:.2f} s: \"{text}\") said by an imported LAM "
+        f"One sentence ({said}, {strip.model.shape[0] / fps:.2f} s: \"{text}\") said by an imported LAM "
         f"avatar ({avatar}) with the built-in voice attached (docs/voice.md), drawn twice at the same "
         f"{fps:g} fps frames, the head held at rest:",
         "",
@@ -546,6 +547,30 @@ def markdown(strip: Strip, png: Path, audio: Path, avatar: str, command: str, se
     return "\n".join(lines)
 
 
+def real_recording(clip_id: str, folder: Path) -> tuple[Path, Path, str]:
+    """A fetched real recording (exporter/voice/real_speech.py) aligned by pocketsphinx, written into `folder` as
+    the wav and phoneme json `make_strip` reads; and how the markdown names it."""
+    from gaussiantalker.exporter.voice import real_speech
+    from gaussiantalker.exporter.voice.align import align
+    from gaussiantalker.exporter.voice.data import save_utterance
+    from gaussiantalker.exporter.voice.espeak import Utterance
+
+    sources = {source.id: source for source in real_speech.CLIPS}
+    if clip_id not in sources:
+        raise GaussianTalkerError(f"--real {clip_id!r}: no such recording (one of {', '.join(sources)})")
+    try:
+        clip = real_speech.load(clips=[sources[clip_id]])[0]
+    except real_speech.RealSpeechMissing as exc:
+        raise GaussianTalkerError(str(exc)) from None
+    alignment = align(clip.audio, clip.transcript)
+    save_utterance(Utterance(clip.transcript, f"real:{clip_id}", clip.audio, alignment.phonemes), folder / clip_id)
+    source = sources[clip_id]
+    quality = "a poor alignment" if alignment.poor else "a good alignment"
+    said = (f"the real recording `{clip_id}` ({source.speaker}; {source.source}), its phonemes aligned to the "
+            f"transcript by pocketsphinx ({quality}: mean score {alignment.mean_score:.2f} nats per frame)")
+    return folder / f"{clip_id}.wav", folder / f"{clip_id}.json", said
+
+
 @app.command()
 def main(
     avatar: Path = typer.Argument(..., help="LAM avatar zip (as LAM_WebRender and OpenAvatarChat ship them)"),
@@ -562,6 +587,8 @@ def main(
     renderer: str = typer.Option(None, "--renderer", help="gl, cpu or auto [default: the bundle's]"),
     max_kb: int = typer.Option(300, "--max-kb", min=1, help="a PNG larger than this is stored in 256 colours"),
     source: str = typer.Option(None, "--source", help="where the avatar comes from, said in the markdown"),
+    real: str = typer.Option(None, "--real", help="say this real recording instead (an id of exporter/voice/"
+                             "real_speech.py, fetched at install), its phonemes aligned by pocketsphinx"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress"),
 ) -> None:
     """Import AVATAR, attach the built-in voice and draw a sentence as the model says it and as its targets do."""
@@ -573,6 +600,9 @@ def main(
         if not avatar.is_file():
             raise GaussianTalkerError(f"avatar zip {avatar} does not exist")
         with tempfile.TemporaryDirectory(prefix="gt-voice-strip-") as folder:
+            recording = None
+            if real is not None:
+                audio, phonemes, recording = real_recording(real, Path(folder))
             bundle = import_with_voice(avatar, Path(folder), progress=not quiet)
             strip = make_strip(bundle, audio, phonemes, output, count=columns, cell=cell, crop=crop,
                                renderer=renderer, max_bytes=max_kb * 1000, log=log)
@@ -581,7 +611,7 @@ def main(
         seconds = time.perf_counter() - start
         markdown_path.parent.mkdir(parents=True, exist_ok=True)
         markdown_path.write_text(markdown(strip, output, audio, f"`{avatar.name}`", command, seconds,
-                                          source),
+                                          source, recording),
                                  encoding="utf-8")
     except GaussianTalkerError as exc:
         typer.echo(f"error: {exc}", err=True)

@@ -148,3 +148,57 @@ def test_bench_voice_end_to_end(tmp_path):
     assert text.count("✓") + text.count("✗") == 2 * 2 * 4 - 2  # two goal families x two drivers x four goals,
     # less the FLAME voice's channel agreement (it has no ARKit channels)
     assert result["drivers"]["ARKit voice"]["ms_per_audio_second"] > 0
+
+
+def test_vocal_tract_warp_moves_a_tone_up_the_bands():
+    """mel_warp(1) is the identity; a 1 kHz tone's band peak moves to about 1.15 kHz's band under factor 1.15,
+    and each warped band is a convex mix of two (no gain)."""
+    import torch
+
+    from gaussiantalker.exporter.voice.model import (
+        FMAX,
+        FMIN,
+        N_MELS,
+        VoiceConfig,
+        VoiceNet,
+        hz_to_mel,
+        mel_to_hz,
+        mel_warp,
+    )
+    from gaussiantalker.exporter.voice.train import warp_voices
+
+    assert np.array_equal(mel_warp(1.0), np.eye(N_MELS, dtype=np.float32))
+    warp = mel_warp(1.15)
+    assert np.allclose(warp.sum(axis=1), 1.0) and (warp >= 0).all()
+    net = VoiceNet(VoiceConfig(channels=8))
+    tone = np.sin(2 * np.pi * 1000 * np.arange(16000) / 16000).astype(np.float32)
+    features = net.features(torch.from_numpy(tone)[None])[0].numpy()
+    centres = mel_to_hz(np.linspace(hz_to_mel(FMIN), hz_to_mel(FMAX), N_MELS + 2))[1:-1]
+    middle = features[:, 130]  # in the tone (the front end puts 88 steps of silence before it)
+    moved = warp @ middle
+    assert abs(centres[int(np.argmax(moved))] / centres[int(np.argmax(middle))] - 1.15) < 0.08
+    rng = np.random.default_rng(0)
+    batch = torch.from_numpy(np.stack([features] * 6))
+    warped = warp_voices(batch, rng)
+    changed = [not torch.equal(warped[k], batch[k]) for k in range(6)]
+    assert any(changed) and not all(changed)  # WARP_P of the crops
+
+
+def test_closure_term_counts_lips_left_open():
+    """The loss grows when the lips stay open on frames the targets close, and not when they close more."""
+    import torch
+
+    from gaussiantalker.exporter.voice.train import CONTEXT_FRAMES, channel_weights, voice_loss
+
+    jaw, close = ARKIT_BLENDSHAPES.index("jawOpen"), ARKIT_BLENDSHAPES.index("mouthClose")
+    target = torch.zeros(1, CONTEXT_FRAMES + 10, 52)
+    target[:, :, jaw] = 0.3
+    target[:, CONTEXT_FRAMES + 3:CONTEXT_FRAMES + 6, close] = 0.3  # closed lips on an open jaw
+    weights = channel_weights()
+    exact = voice_loss(target.clone(), target, weights)
+    opened = target.clone()
+    opened[:, CONTEXT_FRAMES + 3:CONTEXT_FRAMES + 6, close] = 0.2  # aperture 0.1 where the targets close
+    shut = target.clone()
+    shut[:, :, jaw] = 0.25  # the jaw a little less open everywhere: the same squared error, no excess aperture
+    assert float(exact) == 0.0
+    assert float(voice_loss(opened, target, weights)) > 2 * float(voice_loss(shut, target, weights)) > 0

@@ -76,3 +76,28 @@ def test_voice_strip_on_a_synthetic_avatar(lam_voice_bundle, tmp_path):
         (x0, y0), (x1, y1) = origins[0][c], origins[1][c]
         top, bottom = image[y0:y0 + CELL, x0:x0 + CELL], image[y1:y1 + CELL, x1:x1 + CELL]
         assert np.array_equal(top, bottom) == (c % 2 == 1), c
+
+
+def test_real_recording_is_aligned_for_the_strip(tmp_path):
+    """`--real ID`: a fetched real recording and its pocketsphinx phonemes, written as the wav and json the strip
+    reads; an unknown id is refused with the ids there are."""
+    import pytest
+    from ci_tools import need
+
+    from gaussiantalker.exporter.voice import real_speech
+    from gaussiantalker.exporter.voice.data import load_utterance
+    from gaussiantalker.runtime import GaussianTalkerError
+
+    strip_module = _sample()
+    with pytest.raises(GaussianTalkerError, match="no such recording.*librivox-0920"):
+        strip_module.real_recording("nope", tmp_path)
+    try:
+        audio, phonemes, said = strip_module.real_recording("librivox-0920", tmp_path)
+    except GaussianTalkerError as exc:
+        need(str(exc), ".ci/install (python -m gaussiantalker.exporter.voice.real_speech fetch)")
+        raise
+    utterance = load_utterance(audio.with_suffix(""))
+    assert phonemes == audio.with_suffix(".json") and "pocketsphinx" in said and "librivox-0920" in said
+    assert utterance.text == next(c.transcript for c in real_speech.CLIPS if c.id == "librivox-0920")
+    assert sum(p.ipa in ("p", "b", "m") for p in utterance.phonemes) >= 8  # married, more, amiable, woman, might, ...
+    assert abs(utterance.phonemes[-1].end - utterance.seconds) < 1e-3

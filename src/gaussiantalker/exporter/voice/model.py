@@ -76,6 +76,21 @@ def mel_to_hz(mel: np.ndarray) -> np.ndarray:
     return 700.0 * (10.0 ** (np.asarray(mel, np.float64) / 2595.0) - 1.0)
 
 
+def mel_warp(factor: float) -> np.ndarray:
+    """[N_MELS, N_MELS] linear map of log-mel bands to those of the same voice with its spectrum stretched by
+    `factor` (a shorter or longer vocal tract: vocal tract length perturbation, docs/voice.md, "Augmentation"):
+    band k takes the value at frequency centre_k / factor, interpolated between bands, the edge bands held."""
+    centres = mel_to_hz(np.linspace(hz_to_mel(FMIN), hz_to_mel(FMAX), N_MELS + 2))[1:-1]
+    position = np.interp(hz_to_mel(centres / factor), hz_to_mel(centres), np.arange(N_MELS))
+    low = np.clip(np.floor(position).astype(int), 0, N_MELS - 1)
+    high = np.minimum(low + 1, N_MELS - 1)
+    share = position - low
+    out = np.zeros((N_MELS, N_MELS))
+    out[np.arange(N_MELS), low] += 1.0 - share
+    out[np.arange(N_MELS), high] += share
+    return out.astype(np.float32)
+
+
 def mel_matrix() -> np.ndarray:
     """Triangular mel filters [N_MELS, N_BINS] (HTK mel scale, each filter's area normalised to 1 bin)."""
     freqs = np.arange(N_BINS) * SAMPLE_RATE / WINDOW

@@ -5,8 +5,9 @@ generators seeded from it, the initial weights from torch.manual_seed(seed), tra
 steps (never a time budget) at a fixed thread count, and nothing else is random. A run given a `resume` file saves
 its whole state there as it goes and, killed and started again, continues to the same weights.
 Loss: a weighted mean squared error of the 52 weights (CHANNEL_WEIGHTS: the mouth counts most, the closure and
-the jaw most of all) plus VELOCITY_WEIGHT times that of their frame-to-frame changes, over each crop's frames
-after its first CONTEXT_FRAMES (those lack the past the network reads).
+the jaw most of all) plus VELOCITY_WEIGHT times that of their frame-to-frame changes, plus CLOSURE_WEIGHT times the
+lips' excess opening where the targets close them, over each crop's frames after its first CONTEXT_FRAMES (those
+lack the past the network reads). Each crop's log-mel bands may be warped as another vocal tract's (`warp_voices`).
 """
 
 from __future__ import annotations
@@ -25,13 +26,19 @@ from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_COUNT
 
 from .corpus import family_specs, training_specs
 from .data import Stream, batch, make_streams, speak
-from .model import VoiceConfig, VoiceNet, check_receptive_field, count_parameters
+from .model import VoiceConfig, VoiceNet, check_receptive_field, count_parameters, mel_warp
 
 # One thread: the same float reductions on every machine, and on a busy machine two threads of one op wait on
 # each other (docs/voice.md, "Training").
 THREADS = 1
 CONTEXT_FRAMES = 8
 VELOCITY_WEIGHT = 0.5
+# Lips left open where the targets close them (the lips' aperture jawOpen - mouthClose above the target's, on frames
+# whose target aperture is at most CLOSED_APERTURE): the near-misses the closure measure counts, weighted apart.
+CLOSURE_WEIGHT, CLOSED_APERTURE = 8.0, 0.05
+JAW, CLOSE = ARKIT_BLENDSHAPES.index("jawOpen"), ARKIT_BLENDSHAPES.index("mouthClose")
+# Vocal tract length perturbation of a crop's log-mel bands (model.mel_warp): share of crops, factor range.
+WARP_P, WARP_FACTOR = 0.6, (0.86, 1.16)
 # Loss weight per ARKit channel (others 1; channels the targets never move 0.2, so they learn to stay at 0).
 CHANNEL_WEIGHTS = {"jawOpen": 4.0, "mouthClose": 4.0, "mouthPressLeft": 2.0, "mouthPressRight": 2.0,
                    "mouthPucker": 2.0, "mouthFunnel": 2.0, "mouthRollLower": 2.0, "mouthRollUpper": 2.0,
@@ -63,11 +70,27 @@ def channel_weights() -> torch.Tensor:
 
 
 def voice_loss(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """Weighted MSE of the weights and of their frame-to-frame changes (frames after CONTEXT_FRAMES)."""
+    """Weighted MSE of the weights and of their frame-to-frame changes, plus CLOSURE_WEIGHT times the squared
+    excess aperture where the targets close the lips (frames after CONTEXT_FRAMES)."""
     pred, target = pred[:, CONTEXT_FRAMES:], target[:, CONTEXT_FRAMES:]
     value = torch.mean((pred - target) ** 2 * weights)
     velocity = torch.mean((torch.diff(pred, dim=1) - torch.diff(target, dim=1)) ** 2 * weights)
-    return value + VELOCITY_WEIGHT * velocity
+    target_aperture = target[..., JAW] - target[..., CLOSE]
+    excess = torch.relu(pred[..., JAW] - pred[..., CLOSE] - target_aperture)
+    closed = (target_aperture <= CLOSED_APERTURE).to(pred.dtype)
+    closure = torch.sum(excess ** 2 * closed) / torch.clamp(torch.sum(closed), min=1.0)
+    return value + VELOCITY_WEIGHT * velocity + CLOSURE_WEIGHT * closure
+
+
+def warp_voices(features: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+    """Each crop's log-mel bands [B, N_MELS, S] as another vocal tract's in WARP_P of the crops (a factor drawn
+    log-uniformly from WARP_FACTOR): more speakers than the synthesisers have."""
+    out = features.clone()
+    for k in range(features.shape[0]):
+        if rng.random() < WARP_P:
+            factor = float(np.exp(rng.uniform(*np.log(WARP_FACTOR))))
+            out[k] = torch.from_numpy(mel_warp(factor)) @ features[k]
+    return out
 
 
 def _lr_factor(step: int, settings: TrainSettings) -> float:
@@ -145,7 +168,7 @@ def _train(streams: list[Stream], settings: TrainSettings, seed: int, progress: 
     for step in range(len(losses), settings.steps):
         audio, target = batch(streams, settings.batch_size, settings.crop_frames, rng)
         with torch.no_grad():
-            features = model.features(torch.from_numpy(audio))
+            features = warp_voices(model.features(torch.from_numpy(audio)), rng)
         loss = voice_loss(model.forward_features(features), torch.from_numpy(target), weights)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -168,4 +191,5 @@ def _train(streams: list[Stream], settings: TrainSettings, seed: int, progress: 
     return model, record
 
 
-__all__ = ["CHANNEL_WEIGHTS", "TrainSettings", "channel_weights", "train", "training_streams", "voice_loss"]
+__all__ = ["CHANNEL_WEIGHTS", "TrainSettings", "channel_weights", "train", "training_streams", "voice_loss",
+           "warp_voices"]
