@@ -79,7 +79,7 @@ def test_chunking_does_not_change_the_frames(head, speech):
 @pytest.mark.parametrize("lookahead_ms", [0, 160])
 def test_live_agrees_with_offline_frames(head, speech, lookahead_ms):
     """The jaw of frames read while 20 ms chunks arrive follows the offline jaw (goal at 160 ms: r >= 0.95, the
-    figure docs/bench/live.md reports; 0 ms must still follow the speech, r >= 0.8)."""
+    figure docs/bench/live/live.md reports; 0 ms must still follow the speech, r >= 0.8)."""
     expression, jaw_pose = head.driver.translate(speech)
     frames = []
     with head.live(lookahead_ms=lookahead_ms, paced=False, output=None) as live:
@@ -321,7 +321,7 @@ def test_a_consumer_that_stops_reading_cannot_grow_memory(head, speech):
 
 
 def test_gt_bench_live_writes_every_measure(small_export, head, tmp_path):
-    """`gt-bench live` end to end on the small speaker at 32², every measure kept short (docs/bench/live.md is
+    """`gt-bench live` end to end on the small speaker at 32², every measure kept short (docs/bench/live/live.md is
     the full run)."""
     out = tmp_path / "live"
     result = CliRunner().invoke(app, ["live", str(small_export.path), "--size", "32", "--lookaheads", "0,80",

@@ -1,4 +1,4 @@
-"""Live sessions measured (docs/bench/live.md): first-frame latency, agreement with offline frames, barge-in,
+"""Live sessions measured (docs/bench/live/live.md): first-frame latency, agreement with offline frames, barge-in,
 drift over a long session, and how many sessions one process sustains in real time.
 
 Speech is the sample speech (samples/demo_speech.wav). A "real-time producer" pushes 20 ms chunks on a wall-clock
@@ -216,7 +216,7 @@ def sessions(bundle: Path, size: int, speech: np.ndarray, seconds: float, most: 
 
 def run_live_bench(bundle: Path, size: int, lookaheads: list[float], utterances: int, barge_trials: int,
                    drift_minutes: float, session_sizes: list[int], most_sessions: int, renderer: str = "gl") -> dict:
-    """Everything docs/bench/live.md reports, in one run, with the `renderer` that splats ("gl", "cpu", "auto")."""
+    """Everything docs/bench/live/live.md reports, in one run, with the `renderer` that splats ("gl", "cpu", "auto")."""
     with TalkingHead(bundle, resolution=(size, size), composite=False, renderer=renderer) as head:
         speech = sample_speech(head.sample_rate)
         head.render_params()

@@ -1,7 +1,7 @@
 // A frame's Gaussians packed, culled, depth-sorted front to back and split into draw runs: what the Python
-// runtime's `GLSplatter.prepare` does (runtime/splatter.py `pack_gaussians`, `_plan_runs`; runtime/depth_sort.py
-// `view_depth`, `depth_order`; docs/porting.md 3.2-3.4). Pure functions: the sort worker (sort_worker.js) runs them
-// off the main thread, and Node can import them.
+// runtime's `GLSplatter.prepare` does (runtime/splat/common.py `pack_gaussians`; runtime/splat/gl.py `plan_runs`;
+// runtime/splat/depth_sort.py `view_depth`, `depth_order`; docs/porting.md 3.2-3.4). Pure functions: the sort
+// worker (sort_worker.js) runs them off the main thread, and Node can import them.
 
 import { EXTENT_SIGMAS, KEY_LEVELS_16, LOW_PASS_PX2, POINT_BOUND_SAFETY, QUAD_SLACK_PX, RUN_COST_IN_SPLATS }
   from './generated.js';
@@ -116,7 +116,7 @@ function extentRadiusBound(rows, i, camera, limits) {
 }
 
 /** Draw runs [start, stop, asQuads] of the sorted rows: points where a point sprite surely holds the box
- * (`_plan_runs`); all quads when the runs would cost more than points save. */
+ * (`GLSplatter.plan_runs`); all quads when the runs would cost more than points save. */
 export function planRuns(rows, camera, limits, maxPointSize) {
   const n = rows.length / FLOATS_PER_SPLAT;
   if (n === 0) return [];
@@ -133,7 +133,7 @@ export function planRuns(rows, camera, limits, maxPointSize) {
   return runs.length * RUN_COST_IN_SPLATS < points ? runs : [[0, n, true]];
 }
 
-/** `depthOrder` with a sort interval (runtime/depth_sort.py `DepthSorter`): a full sort every `interval` frames,
+/** `depthOrder` with a sort interval (runtime/splat/depth_sort.py `DepthSorter`): a full sort every `interval` frames,
  * the last order reused in between, still culled afresh; a newly visible row, another Gaussian count or another
  * view sorts anew. Calls must come in frame order. */
 export class DepthSorter {

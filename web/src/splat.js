@@ -1,4 +1,4 @@
-// WebGL2 splatter: the Python runtime's GL renderer (runtime/splatter.py `GLSplatter`, docs/porting.md 3.4-3.5)
+// WebGL2 splatter: the Python runtime's GL renderer (runtime/splat/gl.py `GLSplatter`, docs/porting.md 3.4-3.5)
 // with the same GLSL ES 3.00 programs (generated.js, from shaders/), the same draw state and read-back.
 //
 // Framebuffer precision: the contract accumulates in float. RGBA32F needs EXT_color_buffer_float (render to it)

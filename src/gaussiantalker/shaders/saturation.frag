@@ -5,7 +5,7 @@
 // pixels"): a full-screen pass into a depth-only framebuffer that keeps the fragment, so writes depth, where the
 // splats accumulated so far hold 1 - T with T < TRANSMITTANCE_MIN; later splats are depth-tested against it.
 // Rasterisation only (it chooses which fragments later splats try), no contract maths: only main, no torch twin.
-// #defines injected by the runtime after the header (runtime/programs.py shader_defines), used here:
+// #defines injected by the runtime after the header (runtime/splat/programs.py shader_defines), used here:
 //   TRANSMITTANCE_MIN (gaussiantalker.sdk.numerics)
 
 uniform sampler2D u_accumulated;

@@ -5,10 +5,10 @@
 // (src factor ONE_MINUS_DST_ALPHA, dst factor ONE): the framebuffer holds (C, 1 - T).
 // The maths is the numerics contract (docs/numerics.md). Each function names its torch twin in
 // exporter/model/splat_math.py (same name, same arguments); tests/test_mirror_names.py checks it.
-// #defines injected by the runtime after the header (runtime/programs.py shader_defines), never re-typed:
+// #defines injected by the runtime after the header (runtime/splat/programs.py shader_defines), never re-typed:
 //   contract constants, from gaussiantalker.sdk.numerics (the values the torch reference imports), used here:
 //     ALPHA_MAX, ALPHA_MIN, COLOR_LIMIT
-//   the GL renderer's own rasterisation settings (runtime/programs.py): none used here.
+//   the GL renderer's own rasterisation settings (runtime/splat/programs.py): none used here.
 
 flat in vec2 v_center;
 flat in vec3 v_shape;

@@ -5,11 +5,11 @@
 // 4 vertices, triangle strip) per Gaussian; the fragment shader makes every per-pixel decision exactly.
 // The maths is the numerics contract (docs/numerics.md). Each function names its torch twin in
 // exporter/model/splat_math.py (same name, same arguments; uniforms become trailing arguments there), or says that it
-// is not a contract step (runtime/splatter.py NON_CONTRACT_GLSL_FUNCTIONS); tests/test_mirror_names.py checks both.
-// #defines injected by the runtime after the header (runtime/programs.py shader_defines), never re-typed:
+// is not a contract step (runtime/splat/gl.py NON_CONTRACT_GLSL_FUNCTIONS); tests/test_mirror_names.py checks both.
+// #defines injected by the runtime after the header (runtime/splat/programs.py shader_defines), never re-typed:
 //   contract constants, from gaussiantalker.sdk.numerics (the values the torch reference imports), used here:
 //     LOW_PASS_PX2, EXTENT_SIGMAS, ALPHA_MIN, FINITE_LIMIT, DET_MIN_RELATIVE, COV2D_HUGE_PX2
-//   the GL renderer's own rasterisation settings, from runtime/programs.py (no torch counterpart), used here:
+//   the GL renderer's own rasterisation settings, from runtime/splat/programs.py (no torch counterpart), used here:
 //     QUAD_SLACK_PX, BOX_SLACK_REL, SPLAT_POINTS (1: point sprites, 0: instanced quads; set per program)
 
 uniform mat3 u_R;           // world -> camera rotation (R * p applies the camera's R)
