@@ -46,6 +46,8 @@ def main(
     natural: int = typer.Option(TrainSettings.natural_utterances, "--natural", min=0,
                                 help="festival and flite training utterances (English)"),
     batch_size: int = typer.Option(TrainSettings.batch_size, "--batch-size", min=1),
+    closure_weight: float = typer.Option(TrainSettings.closure_weight, "--closure-weight", min=0.0,
+                                         help="weight of lips left open at /p b m/ in the loss"),
     heldout: int = typer.Option(60, "--heldout", min=1, help="held-out clips (training languages)"),
     unseen: int = typer.Option(16, "--unseen", min=0, help="held-out clips in a language never trained on"),
     seed: int = typer.Option(0, "--seed", help="seed of everything random"),
@@ -66,7 +68,8 @@ def main(
         typer.echo(f"error: training voices missing: {', '.join(missing)} (apt-get install festival "
                    "festvox-us-slt-hts flite; or --natural 0)", err=True)
         raise typer.Exit(2)
-    settings = TrainSettings(steps=steps, utterances=utterances, natural_utterances=natural, batch_size=batch_size)
+    settings = TrainSettings(steps=steps, utterances=utterances, natural_utterances=natural, batch_size=batch_size,
+                             closure_weight=closure_weight)
     times: dict[str, float] = {}
     start = time.perf_counter()
     if weights is None:
@@ -101,7 +104,8 @@ def main(
     times["evaluate_seconds"] = round(time.perf_counter() - start, 1)
     chosen = {"--steps": (steps, TrainSettings.steps), "--utterances": (utterances, TrainSettings.utterances),
               "--natural": (natural, TrainSettings.natural_utterances),
-              "--batch-size": (batch_size, TrainSettings.batch_size), "--heldout": (heldout, 60),
+              "--batch-size": (batch_size, TrainSettings.batch_size),
+              "--closure-weight": (closure_weight, TrainSettings.closure_weight), "--heldout": (heldout, 60),
               "--unseen": (unseen, 16), "--seed": (seed, 0)}
     command = shlex.join(["python", "samples/train_voice.py"] + [
         part for flag, (value, default) in chosen.items() if value != default for part in (flag, str(value))])

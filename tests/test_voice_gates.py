@@ -185,7 +185,8 @@ def test_vocal_tract_warp_moves_a_tone_up_the_bands():
 
 
 def test_closure_term_counts_lips_left_open():
-    """The loss grows when the lips stay open on frames the targets close, and not when they close more."""
+    """The loss grows when the lips stay open on frames the targets close for a /p b m/ (pressed), not when they
+    close more, and not on a pause's closed rest."""
     import torch
 
     from gaussiantalker.exporter.voice.train import CONTEXT_FRAMES, channel_weights, voice_loss
@@ -193,7 +194,8 @@ def test_closure_term_counts_lips_left_open():
     jaw, close = ARKIT_BLENDSHAPES.index("jawOpen"), ARKIT_BLENDSHAPES.index("mouthClose")
     target = torch.zeros(1, CONTEXT_FRAMES + 10, 52)
     target[:, :, jaw] = 0.3
-    target[:, CONTEXT_FRAMES + 3:CONTEXT_FRAMES + 6, close] = 0.3  # closed lips on an open jaw
+    target[:, CONTEXT_FRAMES + 3:CONTEXT_FRAMES + 6, close] = 0.3  # closed lips on an open jaw ...
+    target[:, CONTEXT_FRAMES + 3:CONTEXT_FRAMES + 6, ARKIT_BLENDSHAPES.index("mouthPressLeft")] = 0.35  # ... a /b/
     weights = channel_weights()
     exact = voice_loss(target.clone(), target, weights)
     opened = target.clone()
@@ -202,3 +204,8 @@ def test_closure_term_counts_lips_left_open():
     shut[:, :, jaw] = 0.25  # the jaw a little less open everywhere: the same squared error, no excess aperture
     assert float(exact) == 0.0
     assert float(voice_loss(opened, target, weights)) > 2 * float(voice_loss(shut, target, weights)) > 0
+    rest = target.clone()
+    rest[:, CONTEXT_FRAMES + 3:CONTEXT_FRAMES + 6, ARKIT_BLENDSHAPES.index("mouthPressLeft")] = 0.0  # no /b/ there
+    opened_rest = opened.clone()
+    opened_rest[..., ARKIT_BLENDSHAPES.index("mouthPressLeft")] = 0.0
+    assert np.isclose(float(voice_loss(opened_rest, rest, weights)), float(voice_loss(opened_rest, rest, weights, 0.0)))

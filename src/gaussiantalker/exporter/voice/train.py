@@ -5,9 +5,10 @@ generators seeded from it, the initial weights from torch.manual_seed(seed), tra
 steps (never a time budget) at a fixed thread count, and nothing else is random. A run given a `resume` file saves
 its whole state there as it goes and, killed and started again, continues to the same weights.
 Loss: a weighted mean squared error of the 52 weights (CHANNEL_WEIGHTS: the mouth counts most, the closure and
-the jaw most of all) plus VELOCITY_WEIGHT times that of their frame-to-frame changes, plus CLOSURE_WEIGHT times the
-lips' excess opening where the targets close them, over each crop's frames after its first CONTEXT_FRAMES (those
-lack the past the network reads). Each crop's log-mel bands may be warped as another vocal tract's (`warp_voices`).
+the jaw most of all) plus VELOCITY_WEIGHT times that of their frame-to-frame changes, plus closure_weight times
+the lips' excess opening where the targets close them for a /p b m/, over each crop's frames after its first
+CONTEXT_FRAMES (those lack the past the network reads). Each crop's log-mel bands may be warped as another vocal
+tract's (`warp_voices`).
 """
 
 from __future__ import annotations
@@ -33,10 +34,13 @@ from .model import VoiceConfig, VoiceNet, check_receptive_field, count_parameter
 THREADS = 1
 CONTEXT_FRAMES = 8
 VELOCITY_WEIGHT = 0.5
-# Lips left open where the targets close them (the lips' aperture jawOpen - mouthClose above the target's, on frames
-# whose target aperture is at most CLOSED_APERTURE): the near-misses the closure measure counts, weighted apart.
-CLOSURE_WEIGHT, CLOSED_APERTURE = 8.0, 0.05
+# Lips left open where the targets close them for a /p b m/ (the lips' aperture jawOpen - mouthClose above the
+# target's, on frames whose target aperture is at most CLOSED_APERTURE and whose target press is at least
+# PRESSED: a bilabial's, not a pause's rest): the near-misses the closure measure counts, weighted apart
+# (TrainSettings.closure_weight). On every closed frame, pauses included, it closed the mouth everywhere (vowels too).
+CLOSED_APERTURE, PRESSED = 0.05, 0.1
 JAW, CLOSE = ARKIT_BLENDSHAPES.index("jawOpen"), ARKIT_BLENDSHAPES.index("mouthClose")
+PRESS = ARKIT_BLENDSHAPES.index("mouthPressLeft")
 # Vocal tract length perturbation of a crop's log-mel bands (model.mel_warp): share of crops, factor range.
 WARP_P, WARP_FACTOR = 0.6, (0.86, 1.16)
 # Loss weight per ARKit channel (others 1; channels the targets never move 0.2, so they learn to stay at 0).
@@ -51,16 +55,17 @@ MOVING = ("jaw", "mouth", "tongue", "eyeBlink", "browInnerUp", "browOuterUp")
 class TrainSettings:
     """Knobs of a training run (the committed model's: docs/voice.md)."""
 
-    steps: int = 4000
+    steps: int = 5000
     batch_size: int = 12
     crop_frames: int = 100
     utterances: int = 1400
-    natural_utterances: int = 900  # English ones by festival's and flite's voices (corpus.TRAIN_FAMILIES)
+    natural_utterances: int = 1800  # English ones by festival's and flite's voices (corpus.TRAIN_FAMILIES)
     lr: float = 2e-3
     warmup_steps: int = 100
     final_lr_share: float = 0.05
     weight_decay: float = 1e-4
     channels: int = 128
+    closure_weight: float = 3.0  # of the closure term (voice_loss)
 
 
 def channel_weights() -> torch.Tensor:
@@ -69,17 +74,18 @@ def channel_weights() -> torch.Tensor:
     return torch.tensor(weights, dtype=torch.float32)
 
 
-def voice_loss(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """Weighted MSE of the weights and of their frame-to-frame changes, plus CLOSURE_WEIGHT times the squared
-    excess aperture where the targets close the lips (frames after CONTEXT_FRAMES)."""
+def voice_loss(pred: torch.Tensor, target: torch.Tensor, weights: torch.Tensor, closure_weight: float = 3.0
+               ) -> torch.Tensor:
+    """Weighted MSE of the weights and of their frame-to-frame changes, plus `closure_weight` times the squared
+    excess aperture where the targets close the lips for a /p b m/ (frames after CONTEXT_FRAMES)."""
     pred, target = pred[:, CONTEXT_FRAMES:], target[:, CONTEXT_FRAMES:]
     value = torch.mean((pred - target) ** 2 * weights)
     velocity = torch.mean((torch.diff(pred, dim=1) - torch.diff(target, dim=1)) ** 2 * weights)
     target_aperture = target[..., JAW] - target[..., CLOSE]
     excess = torch.relu(pred[..., JAW] - pred[..., CLOSE] - target_aperture)
-    closed = (target_aperture <= CLOSED_APERTURE).to(pred.dtype)
+    closed = ((target_aperture <= CLOSED_APERTURE) & (target[..., PRESS] >= PRESSED)).to(pred.dtype)
     closure = torch.sum(excess ** 2 * closed) / torch.clamp(torch.sum(closed), min=1.0)
-    return value + VELOCITY_WEIGHT * velocity + CLOSURE_WEIGHT * closure
+    return value + VELOCITY_WEIGHT * velocity + closure_weight * closure
 
 
 def warp_voices(features: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
@@ -169,7 +175,8 @@ def _train(streams: list[Stream], settings: TrainSettings, seed: int, progress: 
         audio, target = batch(streams, settings.batch_size, settings.crop_frames, rng)
         with torch.no_grad():
             features = warp_voices(model.features(torch.from_numpy(audio)), rng)
-        loss = voice_loss(model.forward_features(features), torch.from_numpy(target), weights)
+        loss = voice_loss(model.forward_features(features), torch.from_numpy(target), weights,
+                          settings.closure_weight)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
