@@ -11,6 +11,7 @@ pocketsphinx. Also each driver's cost per second of audio on one core.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -40,7 +41,7 @@ def driver_cost(driver, seconds: float = COST_SECONDS, rounds: int = COST_ROUNDS
     return float(np.median(times)) / seconds
 
 
-def run_voice_bench(arkit_model: Path = ARKIT_MODEL, flame_model: Path = FLAME_MODEL, bundles: list[Path] = (),
+def run_voice_bench(arkit_model: Path = ARKIT_MODEL, flame_model: Path = FLAME_MODEL, bundles: Sequence[Path] = (),
                     clips: int = 40, seed: int = 0, progress: bool = True, log=print) -> dict:
     """Clips of every family, every driver measured on them; the result `voice_table` prints."""
     start = time.perf_counter()
