@@ -24,6 +24,7 @@ from gaussiantalker.sdk.audio import to_pcm16
 
 from .arpabet import ipa_of, is_silence
 from .espeak import PAUSE, Phoneme
+from .segments import word_positions
 
 SAMPLE_RATE = 16000  # the en-US acoustic model's rate
 FRAMES_PER_SECOND = 100
@@ -226,12 +227,8 @@ def _phonemes(phones: Sequence[AlignedPhone], words: Sequence[tuple[str, int]], 
               seconds: float) -> list[Phoneme]:
     """Contiguous phonemes over [0, seconds): gaps and silences are PAUSE (adjacent pauses merged), the last one
     stretched or cut to the clip's end; a pause's text position is the next word's (len(transcript) at the end)."""
-    following = len(transcript)
-    positions = [following] * len(phones)
-    for i in range(len(phones) - 1, -1, -1):
-        if phones[i].word is not None:
-            following = words[phones[i].word][1]
-        positions[i] = following
+    positions = word_positions([None if phone.word is None else words[phone.word][1] for phone in phones],
+                               len(transcript))
     out: list[Phoneme] = []
 
     def add(ipa: str, start: float, end: float, position: int) -> None:

@@ -72,6 +72,18 @@ def token_offsets(text: str, tokens: Sequence[str]) -> list[int]:
     return offsets
 
 
+def word_positions(word_offsets: Sequence[int | None], end: int) -> list[int]:
+    """Text position of each phone from its word's character offset (None: a pause, which takes the next word's
+    offset, or `end` after the last word)."""
+    positions = [end] * len(word_offsets)
+    following = end
+    for i in range(len(word_offsets) - 1, -1, -1):
+        if word_offsets[i] is not None:
+            following = word_offsets[i]
+        positions[i] = following
+    return positions
+
+
 def phone_ipa(name: str, stress: int) -> str:
     """IPA of an engine phone, its syllable's stress read as the vowel's stress digit (unstressed "ah" is a schwa)."""
     phone, digit = split_stress(name)
@@ -86,13 +98,8 @@ def phonemes_of(rows: Sequence[Row], tokens: Sequence[str], text: str, seconds: 
     of the segment's word in `text` (a pause: the next word's, or len(text) after the last). ValueError names a
     phone that is not ARPAbet."""
     offsets = token_offsets(text, tokens)
-    position: list[int] = [len(text)] * len(rows)
-    following = len(text)
-    for i in range(len(rows) - 1, -1, -1):
-        token = rows[i].token
-        if token is not None and 0 <= token < len(offsets) and not is_silence(rows[i].name):
-            following = offsets[token]
-        position[i] = following
+    position = word_positions([offsets[row.token] if row.token is not None and 0 <= row.token < len(offsets)
+                               and not is_silence(row.name) else None for row in rows], len(text))
     out: list[Phoneme] = []
     start = 0.0
     for i, row in enumerate(rows):
@@ -106,4 +113,4 @@ def phonemes_of(rows: Sequence[Row], tokens: Sequence[str], text: str, seconds: 
 
 
 __all__ = ["PITCH_RANGE_HZ", "Request", "Row", "TEMPO_RANGE", "clean_text", "phone_ipa", "phonemes_of",
-           "request_problem", "token_offsets"]
+           "request_problem", "token_offsets", "word_positions"]
