@@ -302,6 +302,24 @@ def lam_voice_bundle(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def ga_voice_bundle(tmp_path_factory):
+    """A small synthetic GaussianAvatars avatar (tests/gaussian_avatars.py) with the built-in FLAME voice driver
+    fitted on its own FLAME, exported as an fp32 bundle: a FLAME speaker that audio drives at 25 fps."""
+    from gaussian_avatars import synthetic_flame, write_flame_npz, write_gaussian_avatar
+
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.imports.sources.gaussian_avatars import import_gaussian_avatars
+    from gaussiantalker.exporter.voice.attach import builtin_audio_model
+
+    folder = tmp_path_factory.mktemp("ga_voice")
+    flame_model = synthetic_flame(0)
+    write_gaussian_avatar(folder / "ga", flame_model, n_gaussians=20, frames=2)
+    speaker = import_gaussian_avatars(folder / "ga", write_flame_npz(folder / "flame.npz", flame_model))
+    speaker.audio_model = builtin_audio_model(speaker)
+    return export_bundle(speaker, folder / "avatar.gtb", progress=False).path
+
+
+@pytest.fixture(scope="session")
 def inpaint_export() -> SimpleNamespace:
     """A default-config F (seed 0) with random (non-zero) output weights, so the network's path shows in its
     output, and its ONNX proto as the exporter makes it (`.model`, `.proto`): the session's one torch.onnx export

@@ -7,6 +7,7 @@ without pixels is a Driver alone (runtime/live.py).
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
@@ -15,7 +16,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from gaussiantalker.sdk.audio import load_audio, prepare_audio
-from gaussiantalker.sdk.bundle import Bundle
+from gaussiantalker.sdk.bundle import STREAM_GRAPH, Bundle
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive, HeadPose, pose_track_frame
 from gaussiantalker.sdk.errors import AudioError, BundleError, DriveError
@@ -27,6 +28,7 @@ from .backend import GraphBackend
 from .motions import MotionSource, arkit_motion, flame_motion
 from .timings import Timings
 from .translate import SILENCE_GATE_DBFS, blendshape_params, flame_params, iter_translate
+from .translate_stream import StreamSpec, read_stream_spec
 
 AudioSource = str | os.PathLike | np.ndarray
 HeadPoseSource = Callable[[int], HeadPose] | np.ndarray | HeadPose | None
@@ -107,6 +109,30 @@ class Driver:
         self.timings.record("translator", time.perf_counter() - start)
         return out
 
+    @property
+    def has_stream(self) -> bool:
+        """Whether the bundle's translator also has a streaming graph (docs/live.md, "Streaming translators")."""
+        return STREAM_GRAPH in self.bundle.manifest["graphs"]
+
+    def run_stream(self, audio: np.ndarray, state: np.ndarray, keep: int) -> dict:
+        """One call of the streaming graph (timed): audio [B, n, F], state [B, S], `keep` frames committed."""
+        start = time.perf_counter()
+        out = self.graphs.run(STREAM_GRAPH, {"audio": np.ascontiguousarray(audio, np.float32),
+                                             "state": np.ascontiguousarray(state, np.float32),
+                                             "keep": np.array([keep], np.int64)})
+        self.timings.record("translator_stream", time.perf_counter() - start)
+        return out
+
+    def stream_rows(self, out: dict) -> np.ndarray:
+        """The streaming graph's outputs -> per-frame parameters [B, n, D] (the rows `params_of` gives)."""
+        raise NotImplementedError
+
+    @functools.cached_property
+    def stream_spec(self) -> StreamSpec:
+        """The streaming graph's delay, frame size and rest state (one call of silence, made once)."""
+        inputs = {value["name"]: value["shape"] for value in self.bundle.graph_info(STREAM_GRAPH)["inputs"]}
+        return read_stream_spec(self.run_stream, self.stream_rows, int(inputs["state"][1]), int(inputs["audio"][2]))
+
     def translate_blocks(self, audio: np.ndarray) -> Iterator[np.ndarray]:
         """Audio (speaker rate, mono float32) -> parameter blocks [n, D] in frame order, one window at a time."""
         if not self.has_translator:
@@ -159,6 +185,9 @@ class FlameDriver(Driver):
 
     def params_of(self, out: dict, frames: int) -> np.ndarray:
         return flame_params(out, frames)
+
+    def stream_rows(self, out: dict) -> np.ndarray:
+        return np.concatenate([out["expression"], out["jaw_pose"]], axis=-1)
 
     def drive_from_params(self, params: np.ndarray, head_pose: HeadPose) -> FrameDrive:
         n_expr = self.config.n_expr
@@ -222,6 +251,9 @@ class ArkitDriver(Driver):
 
     def params_of(self, out: dict, frames: int) -> np.ndarray:
         return blendshape_params(out, frames)
+
+    def stream_rows(self, out: dict) -> np.ndarray:
+        return np.asarray(out["blendshapes"], np.float32)
 
     def drive_from_params(self, params: np.ndarray, head_pose: HeadPose) -> BlendshapeDrive:
         return self.drive(params, head_pose)

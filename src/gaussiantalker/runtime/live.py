@@ -32,7 +32,8 @@ from gaussiantalker.sdk.errors import LiveError
 
 from .idle import IdleMotion, IdleTrack, blink_vector
 from .live_audio import ResampledQueue
-from .translate import frame_start, silence_gain
+from .translate import frame_start, silence_gain, silence_gain_of_sums
+from .translate_stream import StreamJob, TranslatorStream, run_stream_jobs
 
 # Frames translated per translator call at most when audio is queued ahead (a long push): bigger batches cost
 # fewer calls but delay the first of them.
@@ -82,6 +83,47 @@ class _Translated:
 
 
 @dataclass
+class _Batch:
+    """Frames [first, first + count) taken off the queues for one translator call: the windowed graph's `window`,
+    or the stream's `job` (None when its rows are final already) and the batch's silence `gain`."""
+
+    first: int
+    count: int
+    shown: list
+    late: bool
+    epoch: int
+    window: np.ndarray | None = None
+    job: StreamJob | None = None
+    gain: float = 1.0
+
+
+class _GateHistory:
+    """Sum, sum of squares and length of each past frame's audio, the last `limit` samples' worth: the silence gate's
+    view of a streaming session's context, which keeps no past audio (zeros at the start, as the windowed path's)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.reset()
+
+    def reset(self) -> None:
+        self.frames: deque[tuple[int, float, float]] = deque([(self.limit, 0.0, 0.0)])
+
+    def push(self, samples: np.ndarray) -> None:
+        values = samples.astype(np.float64)
+        self.frames.append((values.shape[0], float(values.sum()), float(values @ values)))
+        while len(self.frames) > 1 and sum(n for n, _, _ in self.frames) - self.frames[0][0] >= self.limit:
+            self.frames.popleft()
+
+    def gain(self, ahead: np.ndarray, gate_dbfs: float | None) -> float:
+        """The gate's gain over the past frames and `ahead` (the batch's audio and its lookahead)."""
+        values = ahead.astype(np.float64)
+        count = sum(n for n, _, _ in self.frames) + values.shape[0]
+        total = sum(t for _, t, _ in self.frames) + float(values.sum())
+        squares = sum(q for _, _, q in self.frames) + float(values @ values)
+        return silence_gain_of_sums(total, squares, count, gate_dbfs)
+
+
+@dataclass
 class _Plan:
     params: np.ndarray | None  # None: idle
     out_audio: np.ndarray
@@ -112,8 +154,10 @@ class LiveSession:
 
     def __init__(self, head, *, lookahead_ms: float = 160.0, paced: bool = True, context_ms: float = 1000.0,
                  output: str | None = "uint8", audio_rate: int | None = None, idle: IdleMotion | None = None,
-                 max_queued_s: float = MAX_QUEUED_S, min_batch_frames: int = 1) -> None:
-        for name, value in (("lookahead_ms", lookahead_ms), ("context_ms", context_ms), ("max_queued_s", max_queued_s)):
+                 max_queued_s: float = MAX_QUEUED_S, min_batch_frames: int = 1, streaming: bool | None = None,
+                 clock_grid_s: float = 0.0) -> None:
+        for name, value in (("lookahead_ms", lookahead_ms), ("context_ms", context_ms), ("max_queued_s", max_queued_s),
+                            ("clock_grid_s", clock_grid_s)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise LiveError(f"{name} must be a finite number >= 0, got {value!r}")
         if not (isinstance(min_batch_frames, int) and 1 <= min_batch_frames <= MAX_BATCH_FRAMES):
@@ -127,6 +171,9 @@ class LiveSession:
                                 "open it with head.live() to render them")
         if not driver.has_translator:
             driver.run_translator(np.zeros(1, np.float32))  # raises the error that says why and what instead
+        if streaming and not driver.has_stream:
+            raise LiveError("streaming=True, but this bundle's translator has no streaming graph (re-export it; "
+                            "docs/live.md, \"Streaming translators\"); streaming=None uses one where present")
         self.head, self.driver, self.paced, self.output = head, driver, bool(paced), output
         self.fps = float(driver.fps)
         self.lookahead_frames = math.ceil(lookahead_ms * self.fps / 1000.0 - 1e-9)
@@ -140,6 +187,13 @@ class LiveSession:
         self._heard = ResampledQueue(driver.sample_rate)  # what the translator hears
         self._shown = ResampledQueue(self.sample_rate)  # what the frames carry
         self._history = np.zeros(self._speech.span(0, self.context_frames), np.float32)
+        # Streaming (the bundle's translator_stream graph, by default where present): the stream's state replaces
+        # the past audio, whose level the gate history keeps for the silence gate.
+        self._stream = TranslatorStream(driver.stream_spec, self._speech.per_frame) \
+            if (driver.has_stream if streaming is None else streaming) else None
+        self._gate = _GateHistory(self._history.shape[0])
+        self._stream_epoch = 0
+        self._inflight: _Batch | None = None  # taken by stream_job(), translated by the next step()
         self._max_queued = int(max_queued_s * driver.sample_rate)
         names = driver.param_names
         self._size = driver.param_count
@@ -155,6 +209,9 @@ class LiveSession:
         self._error: BaseException | None = None  # what frames() or poll() raised: the session stopped on it
         self._next_index = 0
         self._anchor: tuple[float, int] | None = None  # step(): (time, index) its pacing counts from
+        # step()'s clock starts (and restarts after a lag) on multiples of this: sessions on one grid fall due
+        # together, so a pool runs their translator calls as one (docs/live.md, "Streaming translators").
+        self._clock_grid = float(clock_grid_s)
         self._finished = False
         self._last_spoken: np.ndarray | None = None
         self._frames_since_speech = 0
@@ -210,6 +267,8 @@ class LiveSession:
             self._shown.clear()
             self._translated.clear()
             self._history[:] = 0.0
+            self._gate.reset()
+            self._inflight = None
             self._epoch += 1
             self._flushed = False
             self._cond.notify_all()
@@ -284,7 +343,7 @@ class LiveSession:
             if not self.paced:
                 raise LiveError("step() gives frames at their due time: open the session with paced=True")
             if self._anchor is None:
-                self._anchor = (time.monotonic(), self._next_index)
+                self._anchor = (self._on_grid(time.monotonic()), self._next_index)
         due = self.due
         if due > time.monotonic():
             return None
@@ -294,8 +353,13 @@ class LiveSession:
             return None
         frame = self._make(plan)
         if time.monotonic() - due > MAX_LAG_FRAMES / self.fps:  # behind: re-anchor, as frames() does
-            self._anchor = (time.monotonic(), self._next_index)
+            self._anchor = (self._on_grid(time.monotonic()), self._next_index)
         return frame
+
+    def _on_grid(self, moment: float) -> float:
+        """`moment`, or the first multiple of the clock grid at or after it."""
+        grid = self._clock_grid
+        return math.ceil(moment / grid) * grid if grid > 0 else moment
 
     @property
     def due(self) -> float:
@@ -355,7 +419,8 @@ class LiveSession:
         audio or end) when nothing can be shown. `due` None: never wait and never idle (poll)."""
         while True:
             with self._cond:
-                if self._closed or (self._ended and not len(self._heard.samples) and not self._translated):
+                if self._closed or (self._ended and not len(self._heard.samples) and not self._translated
+                                    and self._inflight is None):
                     return None
                 if due is not None and self.paced and due > time.monotonic():
                     self._cond.wait(due - time.monotonic())  # paced: nothing goes out before its time
@@ -363,18 +428,11 @@ class LiveSession:
                 if self._translated:
                     item = self._translated.popleft()
                     return _Plan(item.params, item.out_audio, late=item.late)
-                count = self._ready_batch()
-                late = False
-                mid_utterance = self._last_spoken is not None and self._frames_since_speech == 0
-                if count < self.min_batch_frames and not self._flushed and not (mid_utterance and self.paced
-                                                                                 and due is not None):
-                    count = 0  # a batch fills before an utterance starts; mid-utterance, what is ready goes now
-                if count == 0 and due is not None and self.paced and mid_utterance \
-                        and len(self._heard.samples) >= self._speech.span(self._next_index, self._next_index + 1):
-                    # Mid-utterance, its own audio is in but its lookahead is late: show it with what is in. (An
-                    # utterance starts only once its first frame's lookahead is in, which gives later frames slack.)
-                    count, late = 1, True
-                if count:
+                count, late, mid_utterance = (0, False, False) if self._inflight is not None else \
+                    self._batch_size(due)
+                if self._inflight is not None:  # taken by stream_job(); a pool may have run its call
+                    job, self._inflight = self._inflight, None
+                elif count:
                     job = self._take_batch(count, late)
                 elif due is None:
                     return None
@@ -383,38 +441,107 @@ class LiveSession:
                     continue
                 else:
                     underrun = mid_utterance and bool(len(self._heard.samples))
-                    self._place(np.zeros(self._speech.span(self._next_index, self._next_index + 1), np.float32))
+                    self._place(np.zeros(self._speech.span(self._next_index, self._next_index + 1), np.float32),
+                                self._next_index, idle=True)
                     return _Plan(None, np.zeros(self._out.span(self._next_index, self._next_index + 1), np.float32),
                                  underrun=underrun)
-            self._translate(*job)
+            self._translate(job)
 
-    def _take_batch(self, count: int, late: bool) -> tuple:
-        """Under the lock: cut `count` frames' audio off the queues and build the translator window."""
+    def _batch_size(self, due: float | None) -> tuple[int, bool, bool]:
+        """Under the lock: (frames to translate now, whether late, whether mid-utterance)."""
+        count = self._ready_batch()
+        late = False
+        mid_utterance = self._last_spoken is not None and self._frames_since_speech == 0
+        if count < self.min_batch_frames and not self._flushed and not (mid_utterance and self.paced
+                                                                         and due is not None):
+            count = 0  # a batch fills before an utterance starts; mid-utterance, what is ready goes now
+        if count == 0 and due is not None and self.paced and mid_utterance \
+                and len(self._heard.samples) >= self._speech.span(self._next_index, self._next_index + 1):
+            # Mid-utterance, its own audio is in but its lookahead is late: show it with what is in. (An
+            # utterance starts only once its first frame's lookahead is in, which gives later frames slack.)
+            count, late = 1, True
+        return count, late, mid_utterance
+
+    def stream_job(self) -> StreamJob | None:
+        """The streaming translator call that the frame due now needs, planned but not run (paced sessions, on the
+        thread that reads them): a pool gathers these from every session with a frame due and runs them as one
+        call (`run_stream_jobs`), then `step()` makes each frame from its rows. None when no call is needed."""
+        with self._cond:
+            if self._stream is None or self._inflight is not None or self._translated or self._closed \
+                    or not self.paced or (self._anchor is not None and self.due > time.monotonic()):
+                return None
+            count, late, _ = self._batch_size(self.due)
+            if not count:
+                return None
+            self._inflight = self._take_batch(count, late)
+            return self._inflight.job
+
+    def _take_batch(self, count: int, late: bool) -> _Batch:
+        """Under the lock: cut `count` frames' audio off the queues and build the translator window (windowed), or
+        hand the stream what is known of the timeline and plan its call (streaming)."""
         first = self._next_index + len(self._translated)
         own = self._speech.span(first, first + count)
         ahead = self._speech.span(first + count, first + count + self.lookahead_frames)
-        window = np.concatenate([self._history, self._heard.samples.peek(own + ahead)])
+        queued = min(own + ahead, len(self._heard.samples))  # the rest is unknown (flushed: silence)
+        known = self._heard.samples.peek(own + ahead)
         speech = self._heard.samples.take(own)
         shown = [self._shown.samples.take(self._out.span(index, index + 1)) for index in range(first, first + count)]
-        self._place(speech)
-        return window, count, shown, late, self._epoch
+        batch = _Batch(first, count, shown, late, self._epoch)
+        if self._stream is None:
+            batch.window = np.concatenate([self._history, known])
+        else:
+            batch.gain = self._gate.gain(known, self.driver.silence_gate_dbfs)
+            self._synced_stream(first).offer(frame_start(first, self._speech.per_frame), known[:queued])
+            batch.job = self._stream.plan(range(first, first + count))
+        self._place(speech, first, count)
+        return batch
 
-    def _place(self, speech: np.ndarray) -> None:
-        """Append shown speech-rate samples to the translator's past context (a sliding window)."""
-        if self._history.shape[0]:
-            self._history = np.concatenate([self._history, speech])[-self._history.shape[0]:]
+    def _synced_stream(self, index: int) -> TranslatorStream:
+        """Under the lock: the stream, restarted at frame `index` if an interrupt() cleared the context since."""
+        if self._stream_epoch != self._epoch:
+            self._stream.reset(frame_start(index, self._speech.per_frame))
+            self._stream_epoch = self._epoch
+        return self._stream
 
-    def _translate(self, window: np.ndarray, count: int, shown: list, late: bool, epoch: int) -> None:
-        """Run the translator on a window outside the lock; keep the batch's frames unless interrupted meanwhile."""
-        frames = self.context_frames + count + self.lookahead_frames
-        params = self.driver.params_of(self.driver.run_translator(window), frames) * np.float32(
-            silence_gain(window, self.driver.silence_gate_dbfs))
+    def _place(self, speech: np.ndarray, first: int, count: int = 1, idle: bool = False) -> None:
+        """Frames [first, first + count)'s shown speech-rate samples join the translator's past context (a sliding
+        window; streaming: the gate's history, and an idle gap's silence the stream)."""
+        if self._stream is None:
+            if self._history.shape[0]:
+                self._history = np.concatenate([self._history, speech])[-self._history.shape[0]:]
+            return
+        start = frame_start(first, self._speech.per_frame)
+        for index in range(first, first + count):
+            lo, hi = frame_start(index, self._speech.per_frame) - start, frame_start(index + 1, self._speech.per_frame)
+            self._gate.push(speech[lo:hi - start])
+        if idle:
+            self._synced_stream(first).idle(start, start + speech.shape[0])
+
+    def _translate(self, batch: _Batch) -> None:
+        """Run the translator outside the lock (windowed: on the batch's window; streaming: the stream's call,
+        unless a pool ran it); keep the batch's frames unless interrupted meanwhile."""
+        if batch.window is not None:
+            frames = self.context_frames + batch.count + self.lookahead_frames
+            params = self.driver.params_of(self.driver.run_translator(batch.window), frames) * np.float32(
+                silence_gain(batch.window, self.driver.silence_gate_dbfs))
+            rows = params[self.context_frames:self.context_frames + batch.count]
+        else:
+            job = batch.job
+            if job is not None and job.rows is None:
+                run_stream_jobs([job], self.driver.run_stream, self.driver.stream_rows)
+            with self._cond:
+                if batch.epoch != self._epoch:
+                    return
+            if job is not None:
+                self._stream.finish(job)
+            gain = np.float32(batch.gain)
+            rows = [self._stream.params(index) * gain for index in range(batch.first, batch.first + batch.count)]
         with self._cond:
-            self.stats.translator_calls += 1
-            if epoch != self._epoch:
+            self.stats.translator_calls += batch.window is not None or batch.job is not None
+            if batch.epoch != self._epoch:
                 return
-            for row, audio in zip(params[self.context_frames:self.context_frames + count], shown, strict=True):
-                self._translated.append(_Translated(row.astype(np.float32), audio, late))
+            for row, audio in zip(rows, batch.shown, strict=True):
+                self._translated.append(_Translated(np.asarray(row, np.float32), audio, batch.late))
 
     def _render(self, plan: _Plan) -> LiveFrame:
         """The plan's drive (idle motion added) rendered; bookkeeping of the ease and the stats."""

@@ -71,6 +71,17 @@ def silence_gain(chunk: np.ndarray, gate_dbfs: float | None = SILENCE_GATE_DBFS,
     return float(np.clip((level_db - gate_dbfs) / ramp_db + 1.0, 0.0, 1.0))
 
 
+def silence_gain_of_sums(total: float, total_squares: float, count: int, gate_dbfs: float | None = SILENCE_GATE_DBFS,
+                         ramp_db: float = SILENCE_GATE_RAMP_DB) -> float:
+    """`silence_gain` of a window known by its samples' sum, sum of squares and count (a live session keeps these
+    per frame instead of its past audio: mean(x^2) - mean(x)^2 is the centred level)."""
+    if gate_dbfs is None:
+        return 1.0
+    mean = total / max(count, 1)
+    level_db = 10.0 * np.log10(max(total_squares / max(count, 1) - mean * mean, 0.0) + 1e-30)
+    return float(np.clip((level_db - gate_dbfs) / ramp_db + 1.0, 0.0, 1.0))
+
+
 def _check_settings(window_frames: int, context_frames: int, crossfade_frames: int) -> None:
     """ValueError for window settings whose cross-fade would need frames no window computed."""
     if window_frames < 1 or context_frames < 0 or crossfade_frames < 0:

@@ -45,6 +45,9 @@ GRAPH_COMPRESSIONS = ("zlib",)
 # The manifest's "driver" of a FLAME speaker that only FLAME parameters drive (no translator graph: an imported
 # avatar without an audio model, or a scene specialised for FLAME drives; docs/bundle-format.md).
 FLAME_DRIVER = "flame"
+# The graph that runs the translator a frame at a time, its state carried between calls (docs/live.md, "Streaming
+# translators"), stored beside the windowed `translator` graph where the translator has a streaming form.
+STREAM_GRAPH = "translator_stream"
 _HEADER = struct.Struct("<8sHHIQ32s")
 
 
@@ -54,6 +57,12 @@ def _align(n: int) -> int:
 
 def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
+
+
+def _content_key(array: np.ndarray, codec: str, chunk: int | None, sparse: bool) -> tuple:
+    """What makes two buffers the same: their values (dtype, shape, bytes) and how they are coded."""
+    data = np.ascontiguousarray(array)
+    return str(data.dtype), tuple(data.shape), hashlib.sha256(data.tobytes()).hexdigest(), codec, chunk, bool(sparse)
 
 
 @dataclass
@@ -66,6 +75,7 @@ class BundleWriter:
     _buffers: dict = field(default_factory=dict)
     _graphs: dict = field(default_factory=dict)
     _stored: dict = field(default_factory=dict)  # buffer name -> its encoded payload (see `decoded_buffer`)
+    _by_content: dict = field(default_factory=dict)  # (dtype, shape, sha256 of the array, codec, chunk, sparse) -> name
 
     def _append(self, data: bytes) -> dict:
         offset = self._size
@@ -93,6 +103,13 @@ class BundleWriter:
             raise BundleError(f"codec {codec!r} produced {len(payload)} bytes for buffer {name!r}")
         self._buffers[name] = entry
         self._stored[name] = payload
+        self._by_content.setdefault(_content_key(array, codec, chunk, sparse), name)
+
+    def find_buffer(self, array: np.ndarray, codec: str = "raw", chunk: int | None = None,
+                    sparse: bool = False) -> str | None:
+        """The name of a buffer already added with the same values and coding (graphs that share weights point
+        at one buffer), None if there is none."""
+        return self._by_content.get(_content_key(np.asarray(array), codec, chunk, sparse))
 
     def decoded_buffer(self, name: str) -> np.ndarray:
         """Buffer `name` as a reader will decode it (a lossy codec's values, not the array that was added)."""

@@ -12,12 +12,17 @@ from collections import deque
 from collections.abc import Callable
 
 from gaussiantalker.runtime import LiveSession
+from gaussiantalker.runtime.translate_stream import StreamJob, run_stream_jobs
 
 from .limits import ServeLimits, TokenBucket
 from .metrics import ServeMetrics
 from .wire import encode_drive, encode_frame_packet
 
 WEBRTC_AUDIO_RATE = 48000  # WebRTC's Opus clock
+# Sessions' frame clocks start on multiples of this, so that a pool thread finds many sessions due at once and
+# runs their streaming translator calls as one (docs/live.md, "Streaming translators"); a session's first frame
+# waits at most this long for it.
+CLOCK_GRID_S = 0.02
 
 
 class DriveSession:
@@ -33,13 +38,13 @@ class DriveSession:
     def __init__(self, driver, lookahead_ms: float, loop: asyncio.AbstractEventLoop, pool: DrivePool,
                  limits: ServeLimits, metrics: ServeMetrics, *, on_error: Callable[[BaseException], None],
                  on_overflow: Callable[[], None], transport: str = "webrtc", batch_frames: int = 1,
-                 context_ms: float = 1000.0) -> None:
+                 context_ms: float = 1000.0, streaming: bool | None = None) -> None:
         self.driver, self._loop, self._on_error, self._on_overflow = driver, loop, on_error, on_overflow
         self.transport, self._limits, self._metrics = transport, limits, metrics
         self.sample_rate = WEBRTC_AUDIO_RATE if transport == "webrtc" else driver.sample_rate
         self.live = LiveSession(driver, lookahead_ms=lookahead_ms, audio_rate=self.sample_rate, output=None,
                                 min_batch_frames=batch_frames, context_ms=context_ms,
-                                max_queued_s=limits.max_queued_s)
+                                max_queued_s=limits.max_queued_s, streaming=streaming, clock_grid_s=CLOCK_GRID_S)
         self.audio = None  # webrtc: the FrameTrack its audio goes to
         self.outbox: asyncio.Queue = asyncio.Queue()  # ws: frame packets (bytes) and JSON (str); None ends write_to
         self.closed = asyncio.Event()
@@ -102,9 +107,22 @@ class DriveSession:
             except ConnectionError:  # the page left; its handler closes the session
                 return
 
+    def prepare(self) -> StreamJob | None:
+        """On its pool thread: the streaming translator call its frame due now needs, for the pool to run with the
+        other sessions' (None: none needed, or the session failed, which advance() then reports)."""
+        if self.error is not None:
+            return None
+        try:
+            return self.live.stream_job()
+        except Exception as exc:
+            self._failed(exc)
+            return None
+
     def advance(self) -> bool:
         """On its pool thread: make and send every frame due now. False once the session has ended (closed, or
         failed: on_error then hears why on the event loop)."""
+        if self.error is not None:
+            return False
         try:
             while True:
                 # The epoch is read before the frame is made: a frame planned after an interrupt() has its epoch,
@@ -117,12 +135,15 @@ class DriveSession:
                 self._metrics.frame_seconds.labels(mode="client-render").observe(time.perf_counter() - began)
                 self._emit(frame, epoch)
         except Exception as exc:
-            self.error = exc
-            try:
-                self._loop.call_soon_threadsafe(self._on_error, exc)
-            except RuntimeError:  # the event loop has closed
-                pass
+            self._failed(exc)
             return False
+
+    def _failed(self, exc: BaseException) -> None:
+        self.error = exc
+        try:
+            self._loop.call_soon_threadsafe(self._on_error, exc)
+        except RuntimeError:  # the event loop has closed
+            pass
 
     def _emit(self, frame, epoch: int) -> None:
         message = encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, epoch)
@@ -228,6 +249,7 @@ class _DriveWorker(threading.Thread):
         while True:
             with self._pool_lock:
                 sessions = list(self.sessions)
+            _translate_together(sessions)
             for session in sessions:
                 if not session.advance():
                     with self._pool_lock:
@@ -242,4 +264,20 @@ class _DriveWorker(threading.Thread):
             self.wake.wait(max(0.0, due - time.monotonic()))
 
 
-__all__ = ["DrivePool", "DriveSession", "WEBRTC_AUDIO_RATE"]
+def _translate_together(sessions: list[DriveSession]) -> None:
+    """One streaming translator call for every session with a frame due now (per driver): each session's step()
+    then finds its rows made. A failed call leaves each job to run alone in its session, which reports its error."""
+    by_driver: dict[int, tuple[object, list[StreamJob]]] = {}
+    for session in sessions:
+        job = session.prepare()
+        if job is not None:
+            by_driver.setdefault(id(session.driver), (session.driver, []))[1].append(job)
+    for driver, jobs in by_driver.values():
+        try:
+            run_stream_jobs(jobs, driver.run_stream, driver.stream_rows)
+        except Exception:  # each session runs its own call again and fails on its own
+            for job in jobs:
+                job.rows = job.state = None
+
+
+__all__ = ["CLOCK_GRID_S", "DrivePool", "DriveSession", "WEBRTC_AUDIO_RATE"]

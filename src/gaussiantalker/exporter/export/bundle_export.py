@@ -13,7 +13,7 @@ import torch
 from tqdm import tqdm
 
 from gaussiantalker.sdk import __version__ as sdk_version
-from gaussiantalker.sdk.bundle import FLAME_DRIVER, BundleWriter
+from gaussiantalker.sdk.bundle import FLAME_DRIVER, STREAM_GRAPH, BundleWriter
 from gaussiantalker.sdk.config import POSE_DIM
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.files import StagedFile
@@ -23,6 +23,7 @@ from gaussiantalker.sdk.scene import Scene
 
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.speaker import Speaker
+from ..voice.stream_graph import stream_model_of
 from . import onnx_export
 from .arkit_graph import ARKIT_DEFORM_INPUTS, ArkitDeformationGraph, arkit_deform_example
 from .deform_graph import DeformationGraph
@@ -240,9 +241,15 @@ def _export_arkit_steps(speaker: ArkitSpeaker, writer: BundleWriter, path: str |
 def _add_audio_model(speaker: Speaker | ArkitSpeaker, writer: BundleWriter, result: ExportResult,
                      settings: ExportSettings) -> None:
     """An imported speaker's attached audio model (ONNX; exporter/imports/audio_model.py) as its translator graph."""
-    if speaker.audio_model is not None:
-        model = convert_precision(onnx.load_from_string(speaker.audio_model), settings.translator_precision)
-        result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
+    if speaker.audio_model is None:
+        return
+    source = onnx.load_from_string(speaker.audio_model)
+    model = convert_precision(source, settings.translator_precision)
+    result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
+    stream = stream_model_of(source)  # the built-in voice streams (docs/live.md); a user's own model does not
+    if stream is not None:
+        result.graphs[STREAM_GRAPH] = add_graph(writer, STREAM_GRAPH, convert_precision(
+            stream, settings.translator_precision), settings.codec_for, share=True)
 
 
 def _add_reference(speaker: Speaker, writer: BundleWriter, result: ExportResult, settings: ExportSettings) -> None:

@@ -82,10 +82,12 @@ def strip_debug_metadata(model: onnx.ModelProto) -> None:
 
 
 def add_graph(writer: BundleWriter, graph_name: str, model: onnx.ModelProto,
-              codec_for: Callable[[str, np.ndarray], tuple[str, int | None]] = lambda buffer, array: ("raw", None)
-              ) -> dict:
+              codec_for: Callable[[str, np.ndarray], tuple[str, int | None]] = lambda buffer, array: ("raw", None),
+              share: bool = False) -> dict:
     """Move the model's large initializers into bundle buffers named `graph_name/...` (each stored with the
-    (codec, chunk) `codec_for(buffer name, array)` picks) and store the graph."""
+    (codec, chunk) `codec_for(buffer name, array)` picks) and store the graph. `share`: an initializer whose values
+    and coding a buffer already added holds points at that buffer instead (a streaming graph beside its windowed
+    one: the same weights, stored once)."""
     model = onnx.ModelProto.FromString(model.SerializeToString())  # never mutate the caller's proto
     strip_debug_metadata(model)
     initializers: dict[str, str] = {}
@@ -95,7 +97,12 @@ def add_graph(writer: BundleWriter, graph_name: str, model: onnx.ModelProto,
             continue
         buffer_name = f"{graph_name}/{re.sub(r'[^A-Za-z0-9_.]+', '_', tensor.name)}"
         codec, chunk = codec_for(buffer_name, array)
-        writer.add_buffer(buffer_name, array, codec=codec, chunk=chunk, sparse=stored_sparse(buffer_name, array))
+        sparse = stored_sparse(buffer_name, array)
+        shared = writer.find_buffer(array, codec, chunk, sparse) if share else None
+        if shared is not None:
+            buffer_name = shared
+        else:
+            writer.add_buffer(buffer_name, array, codec=codec, chunk=chunk, sparse=sparse)
         external_data_helper.set_external_data(tensor, location="bundle", offset=0, length=array.nbytes)
         tensor.ClearField("raw_data")
         for field in ("float_data", "int64_data", "int32_data", "double_data"):

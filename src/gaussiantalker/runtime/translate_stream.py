@@ -1,0 +1,203 @@
+"""A live session's streaming translator: the bundle's `translator_stream` graph fed the session's timeline a frame
+at a time, its state carried from call to call (docs/live.md, "Streaming translators").
+
+The graph's contract: `audio` [B, n, F] (the next n stream frames of F samples), `state` [B, S], `keep` [1] (how many
+of the n frames are committed; the rest is provisional: lookahead not yet arrived, zero-filled) -> per-frame outputs
+[B, n, ...] of stream frames [P - delay, P - delay + n) (P: frames committed before the call), `state_out` [B, S]
+(the state after the committed frames) and `delay_frames` [1]. A stream starts from the rest state, the state
+after a second of silence: what the windowed graph sees before a session's first audio.
+
+A row is final once every frame it reads is committed (row j: frames up to j + delay); rows that read provisional
+frames serve the frame that needs them now and are recomputed later. A rig whose frames are not the stream's (a
+30 fps avatar on the 25 fps voice) takes each frame's parameters at its centre, interpolated between the two
+nearest stream rows.
+
+`StreamJob` separates planning a call from running it, so a pool can run one call for every session with a frame
+due (`run_stream_jobs`: jobs of the same shape are stacked on the batch axis).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from gaussiantalker.sdk.bundle import STREAM_GRAPH
+
+# Frames of silence fed from an all-zero state to reach the rest state; more than any stream's reach (the voice
+# network sees 1 s = 25 frames back), so the rest state no longer depends on where it started.
+REST_FRAMES = 32
+
+RunStream = Callable[[np.ndarray, np.ndarray, int], dict]  # (audio [B, n, F], state [B, S], keep) -> outputs
+RowsOf = Callable[[dict], np.ndarray]  # graph outputs -> rows [B, n, D]
+
+
+@dataclass(frozen=True)
+class StreamSpec:
+    """What a streaming graph says of itself, read once from its rest-state call."""
+
+    delay: int  # frames a row lags the audio it is fed
+    frame_samples: int  # F: samples of one stream frame
+    rest_state: np.ndarray  # [S]
+    rest_row: np.ndarray  # [D]: a row of silence (what rows before a stream's start are)
+
+
+def read_stream_spec(run: RunStream, rows_of: RowsOf, state_size: int, frame_samples: int) -> StreamSpec:
+    """Feed REST_FRAMES frames of silence from an all-zero state: the rest state, the silent row and the delay."""
+    zeros = np.zeros((1, REST_FRAMES, frame_samples), np.float32)
+    out = run(zeros, np.zeros((1, state_size), np.float32), REST_FRAMES)
+    delay = int(np.asarray(out["delay_frames"]).reshape(-1)[0])
+    if not 0 <= delay < REST_FRAMES:
+        raise ValueError(f"the streaming graph says its rows lag {delay} frames; expected 0..{REST_FRAMES - 1}")
+    rows = rows_of(out)
+    return StreamSpec(delay, frame_samples, out["state_out"][0].astype(np.float32), rows[0, -1].astype(np.float32))
+
+
+@dataclass
+class StreamJob:
+    """One planned call of one session's stream: `audio` [n, F] from its committed position, `keep` frames to
+    commit. `outputs` (rows [n, D]) and `state` are filled by `run_stream_jobs`."""
+
+    stream: TranslatorStream
+    audio: np.ndarray
+    keep: int
+    rows: np.ndarray | None = None
+    state: np.ndarray | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.audio.shape[0], self.keep
+
+
+def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) -> int:
+    """Run every job: one graph call per distinct (frames, keep), the sessions stacked on the batch axis. Returns
+    the number of calls made."""
+    groups: dict[tuple[int, int], list[StreamJob]] = {}
+    for job in jobs:
+        groups.setdefault(job.shape, []).append(job)
+    for (_, keep), group in groups.items():
+        audio = np.stack([job.audio for job in group])
+        state = np.stack([job.stream.state for job in group])
+        out = run(audio, state, keep)
+        rows = rows_of(out)
+        for k, job in enumerate(group):
+            job.rows, job.state = rows[k], out["state_out"][k]
+    return len(groups)
+
+
+class TranslatorStream:
+    """One session's stream over its timeline (speech-rate samples): `offer` what is known of the timeline,
+    `plan` the call that the next rig frames need, `finish` with its results, then read `params`."""
+
+    def __init__(self, spec: StreamSpec, rig_samples_per_frame: float) -> None:
+        self.spec = spec
+        self.rig_spf = float(rig_samples_per_frame)
+        self.aligned = math.isclose(self.rig_spf, spec.frame_samples)  # rig frames are stream frames
+        self.reset(0)
+
+    def reset(self, position: int) -> None:
+        """Restart from the rest state with stream frame 0 at timeline sample `position` (a session's start, a
+        barge-in: what the windowed path's cleared context is)."""
+        self.origin = int(position)
+        self.state = self.spec.rest_state.copy()
+        self.committed = 0  # stream frames in the state
+        self.known = np.zeros(0, np.float32)  # timeline samples from the committed position on, as far as known
+        self.final: dict[int, np.ndarray] = {}  # stream frame -> its final row
+        self.quiet = REST_FRAMES * self.spec.frame_samples  # silent samples at the end of what was committed
+        self._provisional: dict[int, np.ndarray] = {}
+
+    @property
+    def known_end(self) -> int:
+        """The timeline sample up to which the stream knows the audio."""
+        return self.origin + self.committed * self.spec.frame_samples + self.known.shape[0]
+
+    def offer(self, start: int, samples: np.ndarray) -> None:
+        """Timeline samples [start, start + len) are known (queued speech, its lookahead): the stream keeps those
+        past what it already holds."""
+        end = self.known_end
+        if start > end:  # a gap nobody offered is silence
+            self.offer(end, np.zeros(start - end, np.float32))
+            end = start
+        new = samples[end - start:]
+        if new.shape[0]:
+            self.known = np.concatenate([self.known, new.astype(np.float32, copy=False)])
+
+    def idle(self, start: int, stop: int) -> None:
+        """Timeline samples [start, stop) are an idle gap (silence), every frame before it made. Once a second of
+        silence ends what the stream knows, it restarts at rest at `stop` instead (the state after that much
+        silence is the rest state), so an idle session holds and computes nothing."""
+        self.offer(start, np.zeros(0, np.float32))
+        spoken = np.flatnonzero(self.known)
+        silent = self.known.shape[0] - 1 - int(spoken[-1]) if spoken.shape[0] else self.quiet + self.known.shape[0]
+        if silent + stop - max(start, self.known_end) >= REST_FRAMES * self.spec.frame_samples:
+            self.reset(stop)  # every frame before the gap is made: what the stream still knew of it is not needed
+        else:
+            self.offer(start, np.zeros(stop - start, np.float32))
+
+    def _span(self, frame: int) -> tuple[int, int]:
+        """(first, last) stream frames whose rows rig frame `frame` reads."""
+        start = frame * self.rig_spf
+        if self.aligned:
+            index = int(round((start - self.origin) / self.spec.frame_samples))
+            return index, index
+        centre = (start + self.rig_spf / 2 - self.origin) / self.spec.frame_samples - 0.5
+        first = math.floor(centre)
+        return first, first + 1
+
+    def plan(self, frames: range) -> StreamJob | None:
+        """The call rig frames `frames` still need (None: their rows are final already): every known whole frame
+        committed, the frames after them provisional (the known samples, then zeros)."""
+        if all(self._has_final(j) for f in frames for j in self._span(f)):
+            return None
+        size = self.spec.frame_samples
+        needed = self._span(frames[-1])[1] + self.spec.delay + 1  # stream frames the last row reads
+        count = max(needed - self.committed, 1)
+        keep = min(self.known.shape[0] // size, count)
+        audio = np.zeros(count * size, np.float32)
+        have = min(self.known.shape[0], count * size)
+        audio[:have] = self.known[:have]
+        return StreamJob(self, audio.reshape(count, size), keep)
+
+    def _has_final(self, index: int) -> bool:
+        return index < 0 or index in self.final
+
+    def finish(self, job: StreamJob) -> None:
+        """Take a run job's rows and state: committed frames leave `known`, final rows are kept."""
+        size, first = self.spec.frame_samples, self.committed - self.spec.delay
+        final_end = self.committed + job.keep - self.spec.delay  # rows before it read committed frames only
+        self._provisional = {}
+        for k, row in enumerate(job.rows):
+            index = first + k
+            (self.final if index < final_end else self._provisional)[index] = row
+        committed = job.audio[:job.keep].reshape(-1)
+        silent = committed.shape[0] if not np.any(committed) else committed.shape[0] - 1 - int(
+            np.flatnonzero(committed)[-1])
+        self.quiet = self.quiet + silent if silent == committed.shape[0] else silent
+        self.state = np.asarray(job.state, np.float32)
+        self.committed += job.keep
+        self.known = self.known[job.keep * size:]
+
+    def _row(self, index: int) -> np.ndarray:
+        if index < 0:
+            return self.spec.rest_row
+        row = self.final.get(index)
+        return row if row is not None else self._provisional[index]
+
+    def params(self, frame: int) -> np.ndarray:
+        """Rig frame `frame`'s parameters [D] from the rows planned and run for it; older rows are dropped."""
+        first, last = self._span(frame)
+        if first == last:
+            value = self._row(first)
+        else:
+            centre = (frame * self.rig_spf + self.rig_spf / 2 - self.origin) / self.spec.frame_samples - 0.5
+            weight = np.float32(centre - first)
+            value = (1 - weight) * self._row(first) + weight * self._row(last)
+        for index in [i for i in self.final if i < first]:
+            del self.final[index]
+        return value
+
+
+__all__ = ["REST_FRAMES", "STREAM_GRAPH", "StreamJob", "StreamSpec", "TranslatorStream", "read_stream_spec",
+           "run_stream_jobs"]

@@ -1,0 +1,278 @@
+"""The built-in voice's streaming graph (exporter/voice/stream_graph.py) and live sessions that run it
+(runtime/translate_stream.py, runtime/live.py; docs/live.md, "Streaming translators").
+
+Tolerances: the streaming graph computes the windowed graph's convolutions over other lengths, so sums may be
+ordered differently; on weights in 0..1 (and FLAME expressions up to ~3) float32 rounding stays below 1e-5, the
+bound held for every rig whose frames are the voice's (25 fps). A 30 fps rig reads the 25 fps rows at its frames'
+centres: there the bound is against that interpolation of the whole clip's rows (the windowed path, which resamples
+each window on its own, is off by up to ~0.3 from it; the test reports it).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+from ci_tools import need
+
+from gaussiantalker.exporter.voice.data import load_utterance
+from gaussiantalker.exporter.voice.paths import ARKIT_MODEL, FLAME_MODEL
+from gaussiantalker.exporter.voice.stream_graph import delay_frames, is_voice_graph, state_parts, stream_model_of
+from gaussiantalker.runtime import LiveSession
+from gaussiantalker.runtime.stages import open_driver
+from gaussiantalker.runtime.translate_stream import REST_FRAMES, StreamJob, run_stream_jobs
+from gaussiantalker.sdk.bundle import STREAM_GRAPH, Bundle
+from gaussiantalker.sdk.errors import LiveError
+
+HELDOUT = Path(__file__).resolve().parent / "data" / "voice_heldout"
+FRAME = 640
+EXACT = 1e-5  # float32 rounding of the same convolutions summed in another order
+
+
+def _unseen_speech() -> list[np.ndarray]:
+    """Speech no training voice spoke: the held-out espeak-ng clip, and the real recordings where fetched."""
+    clips = [load_utterance(HELDOUT).audio]
+    from gaussiantalker.exporter.voice import real_speech
+
+    try:
+        clips += [clip.audio for clip in real_speech.load()[:3]]
+    except real_speech.RealSpeechMissing as exc:
+        need(str(exc), ".ci/install (its real-speech fetch step)")
+    return clips
+
+
+def _sessions(path: Path) -> tuple[ort.InferenceSession, ort.InferenceSession]:
+    model = onnx.load(str(path))
+    return (ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]),
+            ort.InferenceSession(stream_model_of(model).SerializeToString(), providers=["CPUExecutionProvider"]))
+
+
+def _rest(stream: ort.InferenceSession) -> np.ndarray:
+    size = stream.get_inputs()[1].shape[1]
+    out = stream.run(["state_out"], {"audio": np.zeros((1, REST_FRAMES, FRAME), np.float32),
+                                     "state": np.zeros((1, size), np.float32), "keep": np.array([REST_FRAMES])})
+    return out[0]
+
+
+@pytest.mark.parametrize("path", [ARKIT_MODEL, FLAME_MODEL], ids=["arkit", "flame"])
+def test_the_stream_gives_the_windowed_graphs_rows(path):
+    """Fed a frame at a time, or in uneven calls whose tails are provisional (zeros standing in for lookahead not
+    yet in, not committed), from the rest state: every row equals the windowed graph's on the whole clip."""
+    windowed, stream = _sessions(path)
+    names = [o.name for o in windowed.get_outputs()]
+    delay = int(stream.run(["delay_frames"], {"audio": np.zeros((1, 1, FRAME), np.float32), "state": _rest(stream),
+                                              "keep": np.array([1])})[0][0])
+    assert delay == 4  # 160 ms: the network's reach into the future, in frames
+    rng = np.random.default_rng(0)
+    for audio in _unseen_speech():
+        frames = audio.shape[0] // FRAME
+        audio = audio[:frames * FRAME]
+        expected = windowed.run(names, {"audio": audio[None]})
+        fed = np.concatenate([audio, np.zeros(delay * FRAME, np.float32)]).reshape(-1, FRAME)
+        state, rows, position = _rest(stream), [], 0
+        while position < fed.shape[0]:
+            keep = int(min(rng.integers(1, 6), fed.shape[0] - position))
+            provisional = int(rng.integers(0, 3))
+            chunk = np.concatenate([fed[position:position + keep], np.zeros((provisional, FRAME), np.float32)])
+            out = stream.run(names + ["state_out"], {"audio": chunk[None], "state": state, "keep": np.array([keep])})
+            rows.append([o[0, :keep] for o in out[:-1]])
+            if provisional:  # a provisional tail: the rows the windowed graph gives with zeros after the audio
+                ahead = np.concatenate([fed[:position + keep].reshape(-1), np.zeros(provisional * FRAME,
+                                                                                    np.float32)])
+                padded = windowed.run(names, {"audio": ahead[None]})
+                first = position - delay
+                for k, name in enumerate(names):
+                    got, want = out[k][0, max(-first, 0):], padded[k][0, max(first, 0):]
+                    count = min(got.shape[0], want.shape[0])
+                    assert np.abs(got[:count] - want[:count]).max() < EXACT, name
+            state, position = out[-1], position + keep
+        for k, name in enumerate(names):
+            got = np.concatenate([r[k] for r in rows])[delay:delay + frames]
+            assert got.shape == expected[k][0].shape
+            assert np.abs(got - expected[k][0]).max() < EXACT, name
+
+
+def test_sessions_batched_in_one_call_get_their_own_rows():
+    """Three streams at different places in different clips, stacked on the batch axis in one call (what the live
+    server's pool does), each get the rows and state they get alone."""
+    _, stream = _sessions(ARKIT_MODEL)
+    clips = _unseen_speech()[:1] * 3
+    states = [_rest(stream) for _ in clips]
+    chunks = [clip[(7 + 5 * k) * FRAME:(8 + 5 * k) * FRAME].reshape(1, 1, FRAME) for k, clip in enumerate(clips)]
+    alone = [stream.run(None, {"audio": c, "state": s, "keep": np.array([1])})
+             for c, s in zip(chunks, states, strict=True)]
+
+    class Fake:
+        def __init__(self, state):
+            self.state = state[0]
+
+    jobs = [StreamJob(Fake(s), c[0], 1) for c, s in zip(chunks, states, strict=True)]
+
+    def run(audio, state, keep):
+        names = [o.name for o in stream.get_outputs()]
+        feeds = {"audio": audio, "state": state, "keep": np.array([keep])}
+        return dict(zip(names, stream.run(names, feeds), strict=True))
+
+    assert run_stream_jobs(jobs, run, lambda out: out["blendshapes"]) == 1
+    for job, single in zip(jobs, alone, strict=True):
+        assert np.abs(job.rows - single[0][0]).max() < EXACT and np.abs(job.state - single[1][0]).max() < EXACT
+
+
+def test_stream_layout_follows_the_network():
+    """The state's parts and the delay come from the network's blocks; only the built-in voice has a stream."""
+    model = onnx.load(str(ARKIT_MODEL))
+    assert is_voice_graph(model)
+    stream = stream_model_of(model)
+    size = [d.dim_value for d in stream.graph.input[1].type.tensor_type.shape.dim][1]
+    from gaussiantalker.exporter.voice.model import VoiceConfig
+
+    config = VoiceConfig()
+    assert size == sum(part.size for part in state_parts(config)) and delay_frames(config) == 4
+    other = onnx.ModelProto.FromString(model.SerializeToString())
+    other.producer_name = "someone else"
+    assert stream_model_of(other) is None
+
+
+def _drive_rows(frames) -> np.ndarray:
+    rows = []
+    for frame in frames:
+        drive = frame.drive
+        values = [drive.blendshapes] if hasattr(drive, "blendshapes") else [drive.expression, drive.flame_pose]
+        rows.append(np.concatenate([np.ravel(v) for v in values]))
+    return np.stack(rows)
+
+
+def _live(driver, pushes, streaming: bool, **options) -> tuple[np.ndarray, LiveSession]:
+    """A free-running session fed `pushes` (arrays, or "interrupt"/"flush"), every frame read."""
+    frames = []
+    with LiveSession(driver, output=None, paced=False, streaming=streaming, **options) as live:
+        for item in pushes:
+            if isinstance(item, str):
+                getattr(live, item)()
+                frames += live.poll()
+            else:
+                live.push(item, 16000)
+                frames += live.poll()
+        live.end()
+        frames += list(live.frames())
+    return _drive_rows(frames), live
+
+
+def _pushes(audio: np.ndarray) -> list:
+    """Speech in uneven chunks, a barge-in in the middle, more speech after it."""
+    cut = np.cumsum([3000, 320, 7777, 640, 12000])
+    pieces = np.split(audio[:cut[-1]], cut[:-1])
+    return [*pieces, "interrupt", audio[cut[-1]:cut[-1] + 20000], "flush", audio[:9000]]
+
+
+def test_a_live_session_streams_the_built_in_flame_voice(ga_voice_bundle):
+    """A 25 fps FLAME avatar: the streaming session's drives equal the windowed session's (chunked pushes, a
+    barge-in, a flush, lookahead 160 and 80 ms), with fewer translator computations; streaming=False keeps the
+    windowed path."""
+    driver = open_driver(ga_voice_bundle)
+    assert driver.has_stream and driver.stream_spec.delay == 4
+    for audio in _unseen_speech()[:2]:
+        for lookahead in (160.0, 80.0):
+            windowed, _ = _live(driver, _pushes(audio), False, lookahead_ms=lookahead)
+            streamed, live = _live(driver, _pushes(audio), True, lookahead_ms=lookahead)
+            assert windowed.shape == streamed.shape and live.stats.translator_calls > 0
+            assert np.abs(windowed - streamed).max() < EXACT * 4, lookahead  # FLAME: the maps' sums on top
+
+
+def test_a_30_fps_avatar_reads_the_stream_at_its_frame_centres(lam_voice_bundle):
+    """A LAM avatar plays at 30 fps; the voice's rows are 25 fps. The stream interpolates them at each frame's
+    centre: within 5e-3 of that interpolation of the whole clip's rows (loud speech: no gate applies). Not to
+    rounding: a frame's later row can reach up to 40 ms past the session's lookahead, which a free-running session
+    given audio in two pushes fills with zeros for the frames just before the first push ends (1.3e-3 measured)."""
+    driver = open_driver(lam_voice_bundle)
+    windowed_graph, _ = _sessions(ARKIT_MODEL)
+    audio = _unseen_speech()[0]
+    audio = np.clip(audio * (0.5 / np.abs(audio).max()), -1, 1)  # loud: the silence gate stays open
+    streamed, _ = _live(driver, [audio[:5000], audio[5000:]], True)
+    windowed, _ = _live(driver, [audio[:5000], audio[5000:]], False)
+    padded = np.concatenate([audio, np.zeros(5 * FRAME, np.float32)])  # the windowed graph cuts a short tail
+    whole = windowed_graph.run(None, {"audio": padded[None]})[0][0]
+    count = min(streamed.shape[0], int(audio.shape[0] / (16000 / 30)))
+    centres = (np.arange(count) + 0.5) * 25 / 30 - 0.5
+    exact = np.stack([np.interp(centres, np.arange(whole.shape[0]), whole[:, k]) for k in range(52)], 1)
+    # frame 0's centre lies before the clip's first row: the stream blends in the silent row there
+    assert np.abs(streamed[1:count] - exact[1:]).max() < 5e-3
+    print(f"30 fps: windowed session off the interpolation by up to {np.abs(windowed[1:count] - exact[1:]).max():.3f}")
+
+
+def test_a_bundle_carries_the_stream_beside_its_translator_sharing_weights(lam_voice_bundle, small_export):
+    """The streaming graph's weights are the translator's buffers (stored once); a speaker without the built-in
+    voice has no stream, and asking for one is a clear error."""
+    bundle = Bundle(lam_voice_bundle)
+    assert STREAM_GRAPH in bundle.graph_names()
+    stream_buffers = set(bundle.graph_info(STREAM_GRAPH)["initializers"].values())
+    assert stream_buffers and stream_buffers <= set(bundle.graph_info("translator")["initializers"].values())
+    driver = open_driver(small_export.path)
+    assert not driver.has_stream
+    with pytest.raises(LiveError, match="no streaming graph"):
+        LiveSession(driver, output=None, streaming=True)
+
+
+def test_an_idle_streaming_session_holds_and_computes_nothing(ga_voice_bundle):
+    """Idle frames after speech: once a second of silence has passed, the stream restarts at rest and its known
+    audio stays empty, so a quiet session costs no translator calls."""
+    import itertools
+
+    driver = open_driver(ga_voice_bundle)
+    live = LiveSession(driver, output=None, paced=False, streaming=True)
+    live.push(_unseen_speech()[0][:8000], 16000)
+    live.flush()
+    frames = live.frames()  # free-running: idle frames as fast as they are read once the speech is out
+    first = list(itertools.islice(frames, 80))
+    assert first[0].speaking and not first[-1].speaking
+    calls = live.stats.translator_calls
+    more = list(itertools.islice(frames, 50))
+    assert not any(f.speaking for f in more) and live.stats.translator_calls == calls
+    assert live._stream.known.shape[0] == 0 and live._stream.committed == 0
+    live.close()
+
+
+def test_paced_sessions_share_one_translator_call_per_tick(ga_voice_bundle):
+    """Four paced sessions on one clock grid, stepped as the live server's pool does (every session's planned
+    call gathered, run as one, then each steps): one call per tick for all of them, and each session's drives are
+    those it makes stepped alone."""
+    import time
+
+    driver = open_driver(ga_voice_bundle)
+    speech = _unseen_speech()[0][:16000]
+    starts = [0, 1600, 5000, 9000]
+
+    def sessions():
+        out = []
+        for offset in starts:
+            live = LiveSession(driver, output=None, paced=True, streaming=True, clock_grid_s=0.04)
+            live.push(np.concatenate([np.zeros(offset, np.float32), speech]), 16000)
+            live.end()
+            live._anchor = (time.monotonic() - 100.0, 0)  # every frame due now: no waiting in a test
+            out.append(live)
+        return out
+
+    def rows_of(lives, together: bool):
+        frames, calls = [[] for _ in lives], 0
+        while not all(live.finished for live in lives):
+            if together:
+                jobs = [job for live in lives if (job := live.stream_job()) is not None]
+                if jobs:
+                    calls += run_stream_jobs(jobs, driver.run_stream, driver.stream_rows)
+            for k, live in enumerate(lives):
+                if not live.finished:
+                    live._anchor = (time.monotonic() - 100.0, live._next_index)
+                    frame = live.step()
+                    if frame is not None:
+                        frames[k].append(frame)
+        return [_drive_rows(f) for f in frames], calls
+
+    alone, _ = rows_of(sessions(), False)
+    together, calls = rows_of(sessions(), True)
+    ticks = max(len(r) for r in together)
+    assert calls <= ticks  # one call per tick at most, whatever the number of sessions
+    for a, b in zip(alone, together, strict=True):
+        assert a.shape == b.shape and np.abs(a - b).max() < EXACT * 4
