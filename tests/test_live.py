@@ -358,7 +358,25 @@ def test_gt_bench_live_batching_writes_its_table(small_export, tmp_path):
     assert rows[1]["frames"] == rows[4]["frames"] == 50
     assert rows[1]["translator_calls"] >= 45 and rows[4]["translator_calls"] <= rows[1]["translator_calls"] / 4 + 2
     assert all(row["jaw_r"] >= 0.9 and row["cpu_ms_per_speech_s"] > 0 for row in rows.values())
-    assert "| 4 |" in (out / "live-batching.md").read_text()
+    assert "`--batch-frames 4` | 160 ms |" in (out / "live-batching.md").read_text()
+
+
+def test_gt_bench_live_batching_compares_the_streaming_translator(lam_voice_bundle, tmp_path):
+    """`gt-bench live-batching --stream` on a bundle whose voice streams, at two lookaheads: the stream makes a
+    call per frame (a frame's work each, cheaper than a window a frame), its mouth follows the offline one."""
+    out = tmp_path / "stream"
+    result = CliRunner().invoke(app, ["live-batching", str(lam_voice_bundle), "--seconds", "2", "--rounds", "1",
+                                      "--batch-frames", "1", "--stream", "--lookahead-ms", "80,160", "--out",
+                                      str(out)])
+    assert result.exit_code == 0, result.output
+    rows = {(row["mode"], row["lookahead_ms"]): row for row in json.loads((out / "live-batching.json").read_text())
+            ["rows"]}
+    assert set(rows) == {(mode, ms) for mode in ("K=1", "stream") for ms in (80.0, 160.0)}
+    for ms in (80.0, 160.0):
+        stream, windowed = rows[("stream", ms)], rows[("K=1", ms)]
+        assert stream["frames"] == windowed["frames"] == 60 and stream["translator_calls"] >= 55
+        assert stream["mouth_r"] >= 0.9 and stream["cpu_ms_per_speech_s"] > 0
+    assert "| streaming | 80 ms |" in (out / "live-batching.md").read_text()
 
 
 def test_step_paces_frames_on_the_callers_schedule(head, speech):

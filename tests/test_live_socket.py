@@ -182,3 +182,43 @@ def test_a_bad_page_is_told_why_and_its_session_ends(server, start, raw, message
         time.sleep(0.05)
     assert json.loads(_get(port, "/health")) == {"sessions": 0, "driver_threads": 0}
     assert out.get("closed") in (None, aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.CLOSING)
+
+
+@pytest.fixture(scope="module")
+def stream_server(ga_voice_bundle):
+    """gt-serve --client-render on a bundle whose translator streams (the built-in FLAME voice)."""
+    module = _server_module()
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    process = serving([sys.executable, "-m", "gaussiantalker.cli.serve", str(ga_voice_bundle), "--port", str(port),
+                       "--client-render", "--debug", "--drain-s", "1"],
+                      f"http://127.0.0.1:{port}/readyz", 120, name="gt-serve")
+    yield module, port
+    process.terminate()
+    log = process.communicate(timeout=30)[0]
+    assert "Traceback" not in log, log[-3000:]
+
+
+def test_streaming_sessions_share_translator_calls(stream_server):
+    """Four sessions at once on a streaming bundle: each gets every frame in order with the voice's samples and a
+    face that speaks, and /metrics shows translator calls that served more than one session (the pool's batch)."""
+    module, port = stream_server
+
+    async def together():
+        return await asyncio.gather(*[_session(port, {"source": "file", "chunk_ms": 20}, frames=60)
+                                      for _ in range(4)])
+
+    for out in asyncio.run(together()):
+        decoded = [module.decode_frame_packet(p) for p in out["packets"]]
+        assert [d["drive"]["index"] for d in decoded] == list(range(60))
+        speaking = [d for d in decoded if d["drive"]["speaking"]]
+        assert len(speaking) >= 30 and all(d["audio"].shape == (640,) for d in decoded)
+        values = np.stack([d["drive"]["values"] for d in speaking])
+        assert np.all(np.isfinite(values)) and np.ptp(values, axis=0).max() > 0.05  # the face moves
+    metrics = _get(port, "/metrics").decode()
+    count = float(next(line.split()[-1] for line in metrics.splitlines()
+                       if line.startswith("gt_serve_translator_batch_sessions_count")))
+    single = float(next(line.split()[-1] for line in metrics.splitlines()
+                        if line.startswith('gt_serve_translator_batch_sessions_bucket{le="1.0"}')))
+    assert count > 0 and single < count, (single, count)

@@ -1,4 +1,4 @@
-"""The built-in voice's streaming graph (exporter/voice/stream_graph.py) and live sessions that run it
+"""The built-in voice's streaming graph (exporter/export/voice_stream.py) and live sessions that run it
 (runtime/translate_stream.py, runtime/live.py; docs/live.md, "Streaming translators").
 
 Tolerances: the streaming graph computes the windowed graph's convolutions over other lengths, so sums may be
@@ -16,11 +16,11 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
-from ci_tools import need
+from ci_tools import need, need_module
 
+from gaussiantalker.exporter.export.voice_stream import is_voice_graph, stream_model_of, voice_layout
 from gaussiantalker.exporter.voice.data import load_utterance
 from gaussiantalker.exporter.voice.paths import ARKIT_MODEL, FLAME_MODEL
-from gaussiantalker.exporter.voice.stream_graph import delay_frames, is_voice_graph, state_parts, stream_model_of
 from gaussiantalker.runtime import LiveSession
 from gaussiantalker.runtime.stages import open_driver
 from gaussiantalker.runtime.translate_stream import REST_FRAMES, StreamJob, run_stream_jobs
@@ -53,7 +53,8 @@ def _sessions(path: Path) -> tuple[ort.InferenceSession, ort.InferenceSession]:
 def _rest(stream: ort.InferenceSession) -> np.ndarray:
     size = stream.get_inputs()[1].shape[1]
     out = stream.run(["state_out"], {"audio": np.zeros((1, REST_FRAMES, FRAME), np.float32),
-                                     "state": np.zeros((1, size), np.float32), "keep": np.array([REST_FRAMES])})
+                                     "state": np.zeros((1, size), np.float32),
+                                     "keep": np.array([REST_FRAMES], np.float32)})
     return out[0]
 
 
@@ -64,7 +65,7 @@ def test_the_stream_gives_the_windowed_graphs_rows(path):
     windowed, stream = _sessions(path)
     names = [o.name for o in windowed.get_outputs()]
     delay = int(stream.run(["delay_frames"], {"audio": np.zeros((1, 1, FRAME), np.float32), "state": _rest(stream),
-                                              "keep": np.array([1])})[0][0])
+                                              "keep": np.array([1], np.float32)})[0][0])
     assert delay == 4  # 160 ms: the network's reach into the future, in frames
     rng = np.random.default_rng(0)
     for audio in _unseen_speech():
@@ -77,7 +78,8 @@ def test_the_stream_gives_the_windowed_graphs_rows(path):
             keep = int(min(rng.integers(1, 6), fed.shape[0] - position))
             provisional = int(rng.integers(0, 3))
             chunk = np.concatenate([fed[position:position + keep], np.zeros((provisional, FRAME), np.float32)])
-            out = stream.run(names + ["state_out"], {"audio": chunk[None], "state": state, "keep": np.array([keep])})
+            feeds = {"audio": chunk[None], "state": state, "keep": np.array([keep], np.float32)}
+            out = stream.run(names + ["state_out"], feeds)
             rows.append([o[0, :keep] for o in out[:-1]])
             if provisional:  # a provisional tail: the rows the windowed graph gives with zeros after the audio
                 ahead = np.concatenate([fed[:position + keep].reshape(-1), np.zeros(provisional * FRAME,
@@ -102,7 +104,7 @@ def test_sessions_batched_in_one_call_get_their_own_rows():
     clips = _unseen_speech()[:1] * 3
     states = [_rest(stream) for _ in clips]
     chunks = [clip[(7 + 5 * k) * FRAME:(8 + 5 * k) * FRAME].reshape(1, 1, FRAME) for k, clip in enumerate(clips)]
-    alone = [stream.run(None, {"audio": c, "state": s, "keep": np.array([1])})
+    alone = [stream.run(None, {"audio": c, "state": s, "keep": np.array([1], np.float32)})
              for c, s in zip(chunks, states, strict=True)]
 
     class Fake:
@@ -113,24 +115,28 @@ def test_sessions_batched_in_one_call_get_their_own_rows():
 
     def run(audio, state, keep):
         names = [o.name for o in stream.get_outputs()]
-        feeds = {"audio": audio, "state": state, "keep": np.array([keep])}
+        feeds = {"audio": audio, "state": state, "keep": np.array([keep], np.float32)}
         return dict(zip(names, stream.run(names, feeds), strict=True))
 
-    assert run_stream_jobs(jobs, run, lambda out: out["blendshapes"]) == 1
+    assert run_stream_jobs(jobs, run, lambda out: out["blendshapes"]) == [3]
     for job, single in zip(jobs, alone, strict=True):
         assert np.abs(job.rows - single[0][0]).max() < EXACT and np.abs(job.state - single[1][0]).max() < EXACT
 
 
 def test_stream_layout_follows_the_network():
-    """The state's parts and the delay come from the network's blocks; only the built-in voice has a stream."""
+    """The state's parts and the delay are read from the windowed graph's blocks; only the built-in voice has a
+    stream."""
     model = onnx.load(str(ARKIT_MODEL))
     assert is_voice_graph(model)
-    stream = stream_model_of(model)
-    size = [d.dim_value for d in stream.graph.input[1].type.tensor_type.shape.dim][1]
-    from gaussiantalker.exporter.voice.model import VoiceConfig
+    layout = voice_layout(model)
+    from gaussiantalker.exporter.voice.model import SAMPLES_PER_FRAME, VoiceConfig
 
     config = VoiceConfig()
-    assert size == sum(part.size for part in state_parts(config)) and delay_frames(config) == 4
+    assert layout.blocks == config.blocks and layout.channels == config.channels
+    assert layout.frame_samples == SAMPLES_PER_FRAME and layout.delay_frames == 4
+    stream = stream_model_of(model)
+    size = [d.dim_value for d in stream.graph.input[1].type.tensor_type.shape.dim][1]
+    assert size == sum(part.size for part in layout.state_parts()) == 4056
     other = onnx.ModelProto.FromString(model.SerializeToString())
     other.producer_name = "someone else"
     assert stream_model_of(other) is None
@@ -261,7 +267,7 @@ def test_paced_sessions_share_one_translator_call_per_tick(ga_voice_bundle):
             if together:
                 jobs = [job for live in lives if (job := live.stream_job()) is not None]
                 if jobs:
-                    calls += run_stream_jobs(jobs, driver.run_stream, driver.stream_rows)
+                    calls += len(run_stream_jobs(jobs, driver.run_stream, driver.stream_rows))
             for k, live in enumerate(lives):
                 if not live.finished:
                     live._anchor = (time.monotonic() - 100.0, live._next_index)
@@ -276,3 +282,21 @@ def test_paced_sessions_share_one_translator_call_per_tick(ga_voice_bundle):
     assert calls <= ticks  # one call per tick at most, whatever the number of sessions
     for a, b in zip(alone, together, strict=True):
         assert a.shape == b.shape and np.abs(a - b).max() < EXACT * 4
+
+
+def test_the_mnn_backend_runs_the_stream(tmp_path):
+    """A bundle exported with --mnn carries the streaming graph as an MNN model too, and a live session on the MNN
+    backend gives the onnxruntime session's drives (1e-4: MNN's own kernels)."""
+    need_module("MNN", "mnn")
+    from lam_avatars import write_avatar_zip
+
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.imports.sources.lam import import_lam
+    from gaussiantalker.exporter.voice.attach import builtin_audio_model
+
+    speaker = import_lam(write_avatar_zip(tmp_path / "avatar.zip"), progress=False)
+    speaker.audio_model = builtin_audio_model(speaker)
+    path = export_bundle(speaker, tmp_path / "avatar.gtb", progress=False, mnn=True).path
+    audio = _unseen_speech()[0][:24000]
+    rows = [_live(open_driver(path, backend=backend), [audio], True)[0] for backend in ("onnxruntime", "mnn")]
+    assert rows[0].shape == rows[1].shape and np.abs(rows[0] - rows[1]).max() < 1e-4

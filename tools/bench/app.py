@@ -494,23 +494,31 @@ def _write_report(out: Path | None, name: str, title: str, result: dict, table: 
 
 @app.command("live-batching")
 def live_batching(
-    bundle: Path = typer.Argument(..., help="a FLAME speaker bundle with a translator (.gtb)"),
+    bundle: Path = typer.Argument(..., help="a speaker bundle with a translator (.gtb)"),
     audio: Path = typer.Option(Path("samples/demo_speech.wav"), "--audio", help="the voice"),
     batch_frames: str = typer.Option("1,4,8", "--batch-frames", help="comma-separated K (min_batch_frames)"),
     seconds: float = typer.Option(8.0, "--seconds", min=1.0, help="seconds of the voice"),
     rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds (CPU: their median)"),
     context_ms: float = typer.Option(1000.0, "--context-ms", min=0.0, help="the translator's past context"),
+    stream: bool = typer.Option(False, "--stream", help="also the bundle's streaming translator (docs/live.md)"),
+    lookahead_ms: str = typer.Option("160", "--lookahead-ms", help="comma-separated lookaheads (ms)"),
     out: Path = typer.Option(None, "--out", help="folder for live-batching.md and live-batching.json"),
 ) -> None:
-    """Live sessions' translator calls, CPU per second of speech and drive accuracy per min_batch_frames, with a
-    voice pushed in 20 ms chunks (docs/live.md)."""
+    """Live sessions' translator calls, CPU per second of speech and drive accuracy per min_batch_frames (and the
+    streaming translator with --stream) and lookahead, with a voice pushed in 20 ms chunks (docs/live.md)."""
 
     from .live_batching import live_batching_table, run_live_batching
 
     batches = _numbers(batch_frames, int, "--batch-frames")
+    lookaheads = _numbers(lookahead_ms, float, "--lookahead-ms")
     if not batches or not all(1 <= b <= 8 for b in batches):
         raise typer.BadParameter("whole numbers in 1..8", param_hint="--batch-frames")
-    result = run_live_batching(bundle, audio, batches, seconds, rounds, context_ms)
+    if not lookaheads or min(lookaheads) < 0:
+        raise typer.BadParameter("lookaheads >= 0 ms", param_hint="--lookahead-ms")
+    try:
+        result = run_live_batching(bundle, audio, batches, seconds, rounds, context_ms, stream, tuple(lookaheads))
+    except ValueError as error:
+        raise typer.BadParameter(str(error), param_hint="BUNDLE") from None
     _stamp(result)
     table = live_batching_table(result)
     typer.echo(table)

@@ -254,11 +254,13 @@ class ServerSettings:
     lookahead_ms: float = 160.0
     batch_frames: int = 1
     context_ms: float = 1000.0
+    streaming: bool = True  # False: gt-serve --no-stream (a baseline from before streaming never streams)
 
     def arguments(self) -> list[str]:
         """The options both servers' command lines share."""
         return ["--client-render", "--audio", str(SPEECH), "--lookahead-ms", str(self.lookahead_ms),
-                "--batch-frames", str(self.batch_frames), "--context-ms", str(self.context_ms)]
+                "--batch-frames", str(self.batch_frames), "--context-ms", str(self.context_ms),
+                *([] if self.streaming else ["--no-stream"])]
 
 
 @dataclass(frozen=True)
@@ -302,6 +304,12 @@ class Baseline:
         changed = subprocess.run(["git", "-C", str(self.checkout), "diff", "--quiet", "HEAD", "--", "src"],
                                  capture_output=True).returncode != 0
         return probe.stdout.strip() + ("+changes" if changed else "")
+
+    def arguments(self) -> list[str]:
+        """Options of its own: an older gt-serve (a script that runs `gaussiantalker.cli.serve`) runs without a
+        secret, so it opens /health, which the bench reads, with --debug."""
+        text = self.script.read_text(errors="replace") if self.script.is_file() else ""
+        return ["--debug"] if "gaussiantalker.cli.serve" in text or self.script.name == "serve.py" else []
 
     def describe(self) -> dict:
         """The baseline as the report names it; ValueError where its package would not be its checkout's."""
@@ -390,7 +398,8 @@ def _start_baseline_server(baseline: Baseline, bundle: Path, settings: ServerSet
     """The baseline script on a free loopback port, on its checkout's package, once /health answers."""
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
-    command = [sys.executable, str(baseline.script), str(bundle), "--port", str(port), *settings.arguments()]
+    command = [sys.executable, str(baseline.script), str(bundle), "--port", str(port), *settings.arguments(),
+               *baseline.arguments()]
     log_path = folder / "baseline.log"
     process = serving(command, f"{url}/health", SERVER_START_S, name=baseline.script.name, log_path=log_path,
                       cwd=baseline.src, env=baseline.env())

@@ -63,6 +63,9 @@ def serve(
                                      "translator call at least (docs/live.md)"),
     context_ms: float = typer.Option(1000.0, "--context-ms", min=0.0, help="client-render: past audio the "
                                      "translator sees"),
+    stream: bool = typer.Option(True, "--stream/--no-stream", help="client-render: run the bundle's streaming "
+                                "translator where it has one, every due session's frame in one call (docs/live.md, "
+                                "\"Streaming translators\"); --no-stream: the windowed translator"),
     web_root: Path = typer.Option(None, "--web-root", help="client-render: the web player's folder (web/ with "
                                   "its npm install) [default: the checkout's]"),
 ) -> None:
@@ -100,7 +103,7 @@ def serve(
     options = ServeOptions(client_render=client_render, secret=secret, allow_origins=tuple(allow_origin),
                            allow_hosts=listen_hosts(host, allow_host), debug=debug, limits=limits, size=size,
                            lookahead_ms=lookahead_ms, renderer=renderer, audio=audio, batch_frames=batch_frames,
-                           context_ms=context_ms, web_root=web_root)
+                           context_ms=context_ms, web_root=web_root, streaming=stream)
     try:
         app = make_app(bundle, options)
     except (ValueError, GaussianTalkerError) as error:

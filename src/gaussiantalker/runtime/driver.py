@@ -119,7 +119,7 @@ class Driver:
         start = time.perf_counter()
         out = self.graphs.run(STREAM_GRAPH, {"audio": np.ascontiguousarray(audio, np.float32),
                                              "state": np.ascontiguousarray(state, np.float32),
-                                             "keep": np.array([keep], np.int64)})
+                                             "keep": np.array([keep], np.float32)})
         self.timings.record("translator_stream", time.perf_counter() - start)
         return out
 

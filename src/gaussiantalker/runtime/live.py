@@ -171,7 +171,8 @@ class LiveSession:
                                 "open it with head.live() to render them")
         if not driver.has_translator:
             driver.run_translator(np.zeros(1, np.float32))  # raises the error that says why and what instead
-        if streaming and not driver.has_stream:
+        has_stream = getattr(driver, "has_stream", False)  # a duck-typed driver (an evaluation's) may not say
+        if streaming and not has_stream:
             raise LiveError("streaming=True, but this bundle's translator has no streaming graph (re-export it; "
                             "docs/live.md, \"Streaming translators\"); streaming=None uses one where present")
         self.head, self.driver, self.paced, self.output = head, driver, bool(paced), output
@@ -190,7 +191,7 @@ class LiveSession:
         # Streaming (the bundle's translator_stream graph, by default where present): the stream's state replaces
         # the past audio, whose level the gate history keeps for the silence gate.
         self._stream = TranslatorStream(driver.stream_spec, self._speech.per_frame) \
-            if (driver.has_stream if streaming is None else streaming) else None
+            if (has_stream if streaming is None else streaming) else None
         self._gate = _GateHistory(self._history.shape[0])
         self._stream_epoch = 0
         self._inflight: _Batch | None = None  # taken by stream_job(), translated by the next step()

@@ -71,9 +71,9 @@ class StreamJob:
         return self.audio.shape[0], self.keep
 
 
-def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) -> int:
+def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) -> list[int]:
     """Run every job: one graph call per distinct (frames, keep), the sessions stacked on the batch axis. Returns
-    the number of calls made."""
+    the sessions of each call made."""
     groups: dict[tuple[int, int], list[StreamJob]] = {}
     for job in jobs:
         groups.setdefault(job.shape, []).append(job)
@@ -84,7 +84,7 @@ def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) 
         rows = rows_of(out)
         for k, job in enumerate(group):
             job.rows, job.state = rows[k], out["state_out"][k]
-    return len(groups)
+    return [len(group) for group in groups.values()]
 
 
 class TranslatorStream:

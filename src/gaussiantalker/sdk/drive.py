@@ -35,6 +35,8 @@ def _vector(name: str, value, size: int | None) -> np.ndarray:
         raise DriveError(f"{name} must be an array of real numbers, got {type(value).__name__}: {exc}") from exc
     if array.ndim != 1 or (size is not None and array.shape != (size,)):
         raise DriveError(f"{name} must have shape ({'N' if size is None else size},), got {tuple(array.shape)}")
+    if (np.abs(array) <= MAX_DRIVE_MAGNITUDE).all():  # one pass for the usual case (NaN compares False)
+        return array.astype(np.float32)
     bad = np.flatnonzero(~np.isfinite(array))
     if bad.size:
         raise DriveError(f"{name} has non-finite values: {name}[{bad[0]}] = {array[bad[0]]} "

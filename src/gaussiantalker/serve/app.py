@@ -37,6 +37,7 @@ class ServeOptions:
     batch_frames: int = 1  # client-render: frames per translator call at least
     context_ms: float = 1000.0  # client-render: past audio the translator sees
     web_root: Path | None = None  # client-render: the web player's folder (default: the checkout's web/)
+    streaming: bool = True  # client-render: the bundle's streaming translator where it has one
 
 
 def make_app(bundle: Path, options: ServeOptions | None = None) -> web.Application:
@@ -72,7 +73,7 @@ def make_app(bundle: Path, options: ServeOptions | None = None) -> web.Applicati
     else:
         add_client_render_routes(app, bundle, sessions, limits, metrics, files, lookahead_ms=options.lookahead_ms,
                                  batch_frames=options.batch_frames, context_ms=options.context_ms,
-                                 web_root=options.web_root)
+                                 web_root=options.web_root, streaming=options.streaming)
     sessions.route(app)
     add_operations_routes(app, sessions, metrics)
     return app

@@ -42,7 +42,7 @@ def default_web_root() -> Path:
 
 def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessions, limits: ServeLimits,
                              metrics: ServeMetrics, files: VoiceFiles, *, lookahead_ms: float, batch_frames: int,
-                             context_ms: float, web_root: Path | None = None) -> None:
+                             context_ms: float, web_root: Path | None = None, streaming: bool = True) -> None:
     """The page and the web player's modules, the bundle, /live, /offer, /interrupt and /drives."""
     # One intra-op thread: the sessions' pool threads are the parallelism.
     driver = open_driver(bundle, threads=1)
@@ -56,7 +56,8 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
     def new_session(loop, transport: str, on_error, on_overflow) -> DriveSession:
         return DriveSession(driver, lookahead_ms, loop, webrtc_pool if transport == "webrtc" else pool, limits,
                             metrics, on_error=on_error, on_overflow=on_overflow, transport=transport,
-                            batch_frames=batch_frames, context_ms=context_ms)
+                            batch_frames=batch_frames, context_ms=context_ms,
+                            streaming=None if streaming else False)
 
     async def page(request: web.Request) -> web.Response:
         return web.Response(text=PAGE.read_text(encoding="utf-8"), content_type="text/html",

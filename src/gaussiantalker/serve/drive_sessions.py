@@ -41,6 +41,9 @@ class DriveSession:
                  context_ms: float = 1000.0, streaming: bool | None = None) -> None:
         self.driver, self._loop, self._on_error, self._on_overflow = driver, loop, on_error, on_overflow
         self.transport, self._limits, self._metrics = transport, limits, metrics
+        # the labelled series each frame counts in, looked up once
+        self._frame_seconds = metrics.frame_seconds.labels(mode="client-render")
+        self._frames = metrics.frames.labels(mode="client-render")
         self.sample_rate = WEBRTC_AUDIO_RATE if transport == "webrtc" else driver.sample_rate
         self.live = LiveSession(driver, lookahead_ms=lookahead_ms, audio_rate=self.sample_rate, output=None,
                                 min_batch_frames=batch_frames, context_ms=context_ms,
@@ -132,7 +135,7 @@ class DriveSession:
                 frame = self.live.step()
                 if frame is None:
                     return not self.live.finished
-                self._metrics.frame_seconds.labels(mode="client-render").observe(time.perf_counter() - began)
+                self._frame_seconds.observe(time.perf_counter() - began)
                 self._emit(frame, epoch)
         except Exception as exc:
             self._failed(exc)
@@ -149,7 +152,7 @@ class DriveSession:
         message = encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, epoch)
         self.stats["frames"] += 1
         self.stats["speaking_frames"] += frame.speaking
-        self._metrics.frames.labels(mode="client-render").inc()
+        self._frames.inc()
         late = self.live.stats.late_frames
         if late > self._late_counted:
             self._metrics.late_frames.labels(mode="client-render").inc(late - self._late_counted)
@@ -160,11 +163,15 @@ class DriveSession:
         if epoch != self._last_epoch:
             self._last_epoch = epoch
             told = {"interrupt": {"epoch": epoch, "index": frame.index}}
-        try:
-            self._loop.call_soon_threadsafe(self._deliver, sent, told)
-        except RuntimeError:  # the event loop has closed: nobody reads the session any more
-            self.live.close()
-            return
+        batch = getattr(_tick, "deliveries", None)
+        if batch is not None:  # a pool thread hands the event loop a tick's frames at once (_DriveWorker.run)
+            batch.append((self, sent, told))
+        else:
+            try:
+                self._loop.call_soon_threadsafe(self._deliver, sent, told)
+            except RuntimeError:  # the event loop has closed: nobody reads the session any more
+                self.live.close()
+                return
         if self.audio is not None:
             self.audio.put(frame)
 
@@ -203,6 +210,30 @@ class DriveSession:
     def summary(self) -> dict:
         return {"mode": "client-render", "transport": self.transport, **self.stats, "fps": self.driver.fps,
                 "late_frames": self.live.stats.late_frames, "interrupts": self.live.stats.interrupts}
+
+
+# A pool thread's frames of one tick, delivered to the event loop in one call: a wake-up of the loop per frame (a
+# self-pipe write and a callback each) was a large share of the server's CPU at a hundred sessions.
+_tick = threading.local()
+
+
+def _deliver_all(deliveries: list) -> None:
+    """On the event loop: a tick's frames, each to its session, in order."""
+    for session, message, told in deliveries:
+        session._deliver(message, told)
+
+
+def _post(deliveries: list) -> None:
+    """Hand `deliveries` to their sessions' event loop(s); a closed loop closes its sessions."""
+    by_loop: dict[int, tuple] = {}
+    for item in deliveries:
+        by_loop.setdefault(id(item[0]._loop), (item[0]._loop, []))[1].append(item)
+    for loop, items in by_loop.values():
+        try:
+            loop.call_soon_threadsafe(_deliver_all, items)
+        except RuntimeError:  # the event loop has closed: nobody reads these sessions any more
+            for session, _, _ in items:
+                session.live.close()
 
 
 class DrivePool:
@@ -250,10 +281,18 @@ class _DriveWorker(threading.Thread):
             with self._pool_lock:
                 sessions = list(self.sessions)
             _translate_together(sessions)
-            for session in sessions:
-                if not session.advance():
-                    with self._pool_lock:
-                        self.sessions.remove(session)
+            _tick.deliveries, ended = [], []
+            try:
+                for session in sessions:
+                    if not session.advance():
+                        with self._pool_lock:
+                            self.sessions.remove(session)
+                        ended.append(session)
+            finally:
+                deliveries, _tick.deliveries = _tick.deliveries, None
+                if deliveries:
+                    _post(deliveries)
+                for session in ended:  # after its last frames went to the loop: stop() may end its outbox now
                     session.ended()
             with self._pool_lock:
                 if not self.sessions:
@@ -274,10 +313,13 @@ def _translate_together(sessions: list[DriveSession]) -> None:
             by_driver.setdefault(id(session.driver), (session.driver, []))[1].append(job)
     for driver, jobs in by_driver.values():
         try:
-            run_stream_jobs(jobs, driver.run_stream, driver.stream_rows)
+            calls = run_stream_jobs(jobs, driver.run_stream, driver.stream_rows)
         except Exception:  # each session runs its own call again and fails on its own
             for job in jobs:
                 job.rows = job.state = None
+        else:
+            for count in calls:
+                sessions[0]._metrics.translator_batch.observe(count)
 
 
 __all__ = ["CLOCK_GRID_S", "DrivePool", "DriveSession", "WEBRTC_AUDIO_RATE"]

@@ -24,6 +24,10 @@ class ServeMetrics:
         self.frame_seconds = Histogram(
             "gt_serve_frame_seconds", "Time to make one frame's drive (client-render) or image (pixel)", ["mode"],
             buckets=(0.001, 0.002, 0.005, 0.01, 0.02, 0.04, 0.08, 0.16, 0.32, 0.64, 1.28), registry=registry)
+        self.translator_batch = Histogram(
+            "gt_serve_translator_batch_sessions", "Sessions whose frames one streaming translator call made (the "
+            "pool runs every due session's call as one)", buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256),
+            registry=registry)
         self.refusals = Counter("gt_serve_refusals", "Requests or sessions refused, by reason", ["reason"],
                                 registry=registry)
         self.connections = Gauge("gt_serve_connections", "TCP connections open now", registry=registry)

@@ -23,7 +23,6 @@ from gaussiantalker.sdk.scene import Scene
 
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.speaker import Speaker
-from ..voice.stream_graph import stream_model_of
 from . import onnx_export
 from .arkit_graph import ARKIT_DEFORM_INPUTS, ArkitDeformationGraph, arkit_deform_example
 from .deform_graph import DeformationGraph
@@ -35,6 +34,7 @@ from .presets import ExportSettings, Preset, get_preset, group_of, parse_referen
 from .prune import apply_budget
 from .specialise import Specialisation, specialise
 from .translator_graph import translator_onnx
+from .voice_stream import stream_model_of
 
 DEFORM_INPUTS = ["expression", "flame_pose", "head_translation", "camera_center"]
 DEFORM_OUTPUTS = ["means", "cov3d", "rgb", "opacity"]

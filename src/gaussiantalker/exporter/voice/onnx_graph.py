@@ -20,6 +20,7 @@ import onnx
 import torch
 from onnx import TensorProto, helper, numpy_helper
 
+from ..export.onnx_build import OPSET, VOICE_PRODUCER, Graph, channel_norm, conv, silu
 from .model import (
     HOP,
     LOG_FLOOR,
@@ -33,61 +34,18 @@ from .model import (
     VoiceNet,
 )
 
-OPSET = 17
-PRODUCER = "gaussiantalker voice"
-
-
-class _Graph:
-    """Nodes and initializers under construction, with unique value names."""
-
-    def __init__(self) -> None:
-        self.nodes: list[onnx.NodeProto] = []
-        self.initializers: list[onnx.TensorProto] = []
-        self.count = 0
-
-    def name(self, hint: str) -> str:
-        self.count += 1
-        return f"{hint}_{self.count}"
-
-    def const(self, hint: str, value) -> str:
-        name = self.name(hint)
-        self.initializers.append(numpy_helper.from_array(np.asarray(value), name))
-        return name
-
-    def op(self, op_type: str, inputs: list[str], hint: str | None = None, output: str | None = None,
-           **attributes) -> str:
-        out = output or self.name(hint or op_type.lower())
-        self.nodes.append(helper.make_node(op_type, inputs, [out], name=self.name(op_type), **attributes))
-        return out
+PRODUCER = VOICE_PRODUCER
 
 
 def _weights(module: torch.nn.Module) -> dict[str, np.ndarray]:
     return {key: value.detach().cpu().numpy().astype(np.float32) for key, value in module.state_dict().items()}
 
 
-def _conv(g: _Graph, x: str, weights: dict, prefix: str, pads: tuple[int, int] = (0, 0), stride: int = 1,
-          dilation: int = 1) -> str:
-    w = g.const(f"{prefix}.weight", weights[f"{prefix}.weight"])
-    b = g.const(f"{prefix}.bias", weights[f"{prefix}.bias"])
-    return g.op("Conv", [x, w, b], prefix, pads=list(pads), strides=[stride], dilations=[dilation])
+def _norm(g: Graph, x: str, weights: dict, prefix: str) -> str:
+    return channel_norm(g, x, weights, prefix, NORM_EPS)
 
 
-def _silu(g: _Graph, x: str) -> str:
-    return g.op("Mul", [x, g.op("Sigmoid", [x])], "silu")
-
-
-def _norm(g: _Graph, x: str, weights: dict, prefix: str) -> str:
-    mean = g.op("ReduceMean", [x], "mean", axes=[1], keepdims=1)
-    centred = g.op("Sub", [x, mean], "centred")
-    var = g.op("ReduceMean", [g.op("Mul", [centred, centred])], "var", axes=[1], keepdims=1)
-    std = g.op("Sqrt", [g.op("Add", [var, g.const("eps", np.float32(NORM_EPS))])], "std")
-    scaled = g.op("Div", [centred, std], "scaled")
-    gamma = g.const(f"{prefix}.weight", weights[f"{prefix}.weight"][None, :, None])
-    beta = g.const(f"{prefix}.bias", weights[f"{prefix}.bias"][None, :, None])
-    return g.op("Add", [g.op("Mul", [scaled, gamma]), beta], prefix)
-
-
-def _network(g: _Graph, model: VoiceNet, audio: str) -> str:
+def _network(g: Graph, model: VoiceNet, audio: str) -> str:
     """Nodes from `audio` [1, S] to the clipped ARKit weights [1, T, 52]; returns that value's name."""
     w = _weights(model)
     i64 = np.int64
@@ -113,22 +71,22 @@ def _network(g: _Graph, model: VoiceNet, audio: str) -> str:
                           g.const("log_scale", np.float32(LOG_SCALE))], "logmel")
     # network
     half_steps = STEPS_PER_FRAME // 2
-    x = _silu(g, _conv(g, logmel, w, "input", (half_steps, half_steps), stride=STEPS_PER_FRAME))
+    x = silu(g, conv(g, logmel, w, "input", (half_steps, half_steps), stride=STEPS_PER_FRAME))
     for k, block in enumerate(model.blocks):
         p = f"blocks.{k}"
-        h = _silu(g, _norm(g, x, w, f"{p}.norm"))
-        h = _silu(g, _conv(g, h, w, f"{p}.dilated.conv", block.dilated.pads, dilation=block.dilated.conv.dilation[0]))
-        x = g.op("Add", [x, _conv(g, h, w, f"{p}.mix")], f"{p}.out")
-    h = _silu(g, _norm(g, x, w, "head_norm"))
-    h = _silu(g, _conv(g, h, w, "head_conv.conv", model.head_conv.pads))
-    out = g.op("Transpose", [_conv(g, h, w, "head")], "per_frame", perm=[0, 2, 1])
+        h = silu(g, _norm(g, x, w, f"{p}.norm"))
+        h = silu(g, conv(g, h, w, f"{p}.dilated.conv", block.dilated.pads, dilation=block.dilated.conv.dilation[0]))
+        x = g.op("Add", [x, conv(g, h, w, f"{p}.mix")], f"{p}.out")
+    h = silu(g, _norm(g, x, w, "head_norm"))
+    h = silu(g, conv(g, h, w, "head_conv.conv", model.head_conv.pads))
+    out = g.op("Transpose", [conv(g, h, w, "head")], "per_frame", perm=[0, 2, 1])
     out = g.op("Slice", [out, g.const("first", np.array([SILENCE_BEFORE], i64)),
                          g.const("last", np.array([-SILENCE_AFTER], i64)), g.const("axis", np.array([1], i64))],
                "frames_kept")
     return g.op("Clip", [out, g.const("lo", np.float32(0.0)), g.const("hi", np.float32(1.0))], "weights")
 
 
-def _model(g: _Graph, outputs: list[tuple[str, int]], doc: str) -> onnx.ModelProto:
+def _model(g: Graph, outputs: list[tuple[str, int]], doc: str) -> onnx.ModelProto:
     graph = helper.make_graph(
         g.nodes, "voice", [helper.make_tensor_value_info("audio", TensorProto.FLOAT, [1, "samples"])],
         [helper.make_tensor_value_info(name, TensorProto.FLOAT, [1, "frames", width]) for name, width in outputs],
@@ -142,7 +100,7 @@ def _model(g: _Graph, outputs: list[tuple[str, int]], doc: str) -> onnx.ModelPro
 
 def arkit_model(model: VoiceNet, doc: str = "") -> onnx.ModelProto:
     """The ARKit graph: `audio` [1, S] -> `blendshapes` [1, T, 52]."""
-    g = _Graph()
+    g = Graph()
     weights = _network(g, model, "audio")
     g.op("Identity", [weights], output="blendshapes")
     return _model(g, [("blendshapes", model.config.outputs)], doc)
@@ -151,7 +109,7 @@ def arkit_model(model: VoiceNet, doc: str = "") -> onnx.ModelProto:
 def flame_model(model: VoiceNet, expression_map: np.ndarray, jaw_map: np.ndarray, doc: str = "") -> onnx.ModelProto:
     """The FLAME graph: `audio` [1, S] -> `expression` [1, T, E] (weights @ expression_map [52, E]) and
     `jaw_pose` [1, T, 3] (weights @ jaw_map [52, 3])."""
-    g = _Graph()
+    g = Graph()
     weights = _network(g, model, "audio")
     g.op("MatMul", [weights, g.const("expression_map", expression_map.astype(np.float32))], output="expression")
     g.op("MatMul", [weights, g.const("jaw_map", jaw_map.astype(np.float32))], output="jaw_pose")
