@@ -522,7 +522,7 @@ def live_batching(
     _stamp(result)
     table = live_batching_table(result)
     typer.echo(table)
-    _write_report(out, "live-batching", "Live sessions: translator calls per min_batch_frames", result, table,
+    _write_report(out, "live-batching", "Live sessions: the translator's calls, CPU and accuracy", result, table,
                   f"; {result['speech_s']:g} s of speech in 20 ms chunks, free-running, one thread; {rounds} "
                   "alternating rounds.")
 

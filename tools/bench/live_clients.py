@@ -305,11 +305,14 @@ class Baseline:
                                  capture_output=True).returncode != 0
         return probe.stdout.strip() + ("+changes" if changed else "")
 
-    def arguments(self) -> list[str]:
+    def arguments(self, max_sessions: int) -> list[str]:
         """Options of its own: an older gt-serve (a script that runs `gaussiantalker.cli.serve`) runs without a
-        secret, so it opens /health, which the bench reads, with --debug."""
+        secret, so it opens /health, which the bench reads, with --debug, and every load client is the same
+        address, so the sessions one client may hold are raised to the round's N."""
         text = self.script.read_text(errors="replace") if self.script.is_file() else ""
-        return ["--debug"] if "gaussiantalker.cli.serve" in text or self.script.name == "serve.py" else []
+        if "gaussiantalker.cli.serve" not in text and self.script.name != "serve.py":
+            return []
+        return ["--debug", "--max-sessions", str(max_sessions), "--max-sessions-per-client", str(max_sessions)]
 
     def describe(self) -> dict:
         """The baseline as the report names it; ValueError where its package would not be its checkout's."""
@@ -394,12 +397,13 @@ def _start_new_server(bundle: Path, settings: ServerSettings, folder: Path, max_
     return Server("new", process, url, command, log_path, secret=read_secret(secret_path))
 
 
-def _start_baseline_server(baseline: Baseline, bundle: Path, settings: ServerSettings, folder: Path) -> Server:
+def _start_baseline_server(baseline: Baseline, bundle: Path, settings: ServerSettings, folder: Path,
+                           max_sessions: int) -> Server:
     """The baseline script on a free loopback port, on its checkout's package, once /health answers."""
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
     command = [sys.executable, str(baseline.script), str(bundle), "--port", str(port), *settings.arguments(),
-               *baseline.arguments()]
+               *baseline.arguments(max_sessions)]
     log_path = folder / "baseline.log"
     process = serving(command, f"{url}/health", SERVER_START_S, name=baseline.script.name, log_path=log_path,
                       cwd=baseline.src, env=baseline.env())
@@ -589,10 +593,10 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
     logs: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="gt-bench-live-clients-") as folder:
         try:
+            cap = max(DEFAULT_MAX_SESSIONS, max(counts))
             if baseline is not None:
-                servers.append(_start_baseline_server(baseline, bundle, settings, Path(folder)))
-            servers.append(_start_new_server(bundle, settings, Path(folder), max(DEFAULT_MAX_SESSIONS,
-                                                                                 max(counts))))
+                servers.append(_start_baseline_server(baseline, bundle, settings, Path(folder), cap))
+            servers.append(_start_new_server(bundle, settings, Path(folder), cap))
             pooled = _alternate(servers, counts, rounds, speak_s, idle_s, chunk_ms, transport, log)
         finally:
             for server in servers:

@@ -99,7 +99,10 @@ class _Batch:
 
 class _GateHistory:
     """Sum, sum of squares and length of each past frame's audio, the last `limit` samples' worth: the silence gate's
-    view of a streaming session's context, which keeps no past audio (zeros at the start, as the windowed path's)."""
+    view of a streaming session's context, which keeps no past audio (zeros at the start, as the windowed path's).
+    Running totals (float64, rebuilt from the frames every REBUILD pushes so rounding cannot pile up)."""
+
+    REBUILD = 256
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
@@ -107,20 +110,26 @@ class _GateHistory:
 
     def reset(self) -> None:
         self.frames: deque[tuple[int, float, float]] = deque([(self.limit, 0.0, 0.0)])
+        self.count, self.total, self.squares, self._pushes = self.limit, 0.0, 0.0, 0
 
     def push(self, samples: np.ndarray) -> None:
         values = samples.astype(np.float64)
-        self.frames.append((values.shape[0], float(values.sum()), float(values @ values)))
-        while len(self.frames) > 1 and sum(n for n, _, _ in self.frames) - self.frames[0][0] >= self.limit:
-            self.frames.popleft()
+        entry = (values.shape[0], float(values.sum()), float(values @ values))
+        self.frames.append(entry)
+        self.count, self.total, self.squares = self.count + entry[0], self.total + entry[1], self.squares + entry[2]
+        while len(self.frames) > 1 and self.count - self.frames[0][0] >= self.limit:
+            n, t, q = self.frames.popleft()
+            self.count, self.total, self.squares = self.count - n, self.total - t, self.squares - q
+        self._pushes += 1
+        if self._pushes % self.REBUILD == 0:
+            self.total = sum(t for _, t, _ in self.frames)
+            self.squares = sum(q for _, _, q in self.frames)
 
     def gain(self, ahead: np.ndarray, gate_dbfs: float | None) -> float:
         """The gate's gain over the past frames and `ahead` (the batch's audio and its lookahead)."""
         values = ahead.astype(np.float64)
-        count = sum(n for n, _, _ in self.frames) + values.shape[0]
-        total = sum(t for _, t, _ in self.frames) + float(values.sum())
-        squares = sum(q for _, _, q in self.frames) + float(values @ values)
-        return silence_gain_of_sums(total, squares, count, gate_dbfs)
+        return silence_gain_of_sums(self.total + float(values.sum()), self.squares + float(values @ values),
+                                    self.count + values.shape[0], gate_dbfs)
 
 
 @dataclass

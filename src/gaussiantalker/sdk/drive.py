@@ -26,6 +26,9 @@ def _vector(name: str, value, size: int | None) -> np.ndarray:
         if size is None:
             raise DriveError(f"{name} is missing")
         return np.zeros(size, np.float32)
+    if isinstance(value, np.ndarray) and value.dtype == np.float32 and value.ndim == 1 and \
+            (size is None or value.shape[0] == size) and (not value.size or np.abs(value).max() <= MAX_DRIVE_MAGNITUDE):
+        return value.copy()  # the usual case (a driver's own rows), in one pass: NaN compares False
     try:  # float64 first: a finite value too large for float32 must read as "too large", not as "inf"
         array = np.asarray(value)
         if np.iscomplexobj(array):
