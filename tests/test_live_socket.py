@@ -222,3 +222,19 @@ def test_streaming_sessions_share_translator_calls(stream_server):
     single = float(next(line.split()[-1] for line in metrics.splitlines()
                         if line.startswith('gt_serve_translator_batch_sessions_bucket{le="1.0"}')))
     assert count > 0 and single < count, (single, count)
+
+
+def test_the_load_bench_runs_an_older_gt_serve_as_its_baseline(tmp_path):
+    """`gt-bench live-clients --baseline-server` takes a script that runs an older commit's gt-serve: the bench opens
+    its admin routes (--debug: it has no secret) and lifts its per-client cap (every load client is one address),
+    and names it gt-serve in the report; a live_server.py sample gets neither."""
+    from tools.bench.live_clients import Baseline
+
+    wrapper = tmp_path / "serve_main.py"
+    wrapper.write_text("from gaussiantalker.cli.serve import main\n\nmain()\n")
+    sample = tmp_path / "live_server.py"
+    sample.write_text("print('a sample server')\n")
+    assert Baseline(wrapper, tmp_path).arguments(100) == ["--debug", "--max-sessions", "100",
+                                                          "--max-sessions-per-client", "100"]
+    assert Baseline(sample, tmp_path).arguments(100) == []
+    assert Baseline(wrapper, tmp_path).is_gt_serve and not Baseline(sample, tmp_path).is_gt_serve

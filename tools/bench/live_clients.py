@@ -265,7 +265,8 @@ class ServerSettings:
 
 @dataclass(frozen=True)
 class Baseline:
-    """An older server script (`samples/live_server.py` of an earlier commit) and the checkout of that commit
+    """An older server script (`samples/live_server.py` of an earlier commit, or a script that runs that commit's
+    gt-serve: `from gaussiantalker.cli.serve import main; main()`) and the checkout of that commit
     whose `src/` it imports (put first on PYTHONPATH, and its working folder, so the package it loads is that
     commit's and not this checkout's editable install)."""
 
@@ -305,19 +306,24 @@ class Baseline:
                                  capture_output=True).returncode != 0
         return probe.stdout.strip() + ("+changes" if changed else "")
 
+    @property
+    def is_gt_serve(self) -> bool:
+        """Whether the script runs an older gt-serve (`gaussiantalker.cli.serve`), not a live_server.py sample."""
+        text = self.script.read_text(errors="replace") if self.script.is_file() else ""
+        return "gaussiantalker.cli.serve" in text or self.script.name == "serve.py"
+
     def arguments(self, max_sessions: int) -> list[str]:
         """Options of its own: an older gt-serve (a script that runs `gaussiantalker.cli.serve`) runs without a
         secret, so it opens /health, which the bench reads, with --debug, and every load client is the same
         address, so the sessions one client may hold are raised to the round's N."""
-        text = self.script.read_text(errors="replace") if self.script.is_file() else ""
-        if "gaussiantalker.cli.serve" not in text and self.script.name != "serve.py":
+        if not self.is_gt_serve:
             return []
         return ["--debug", "--max-sessions", str(max_sessions), "--max-sessions-per-client", str(max_sessions)]
 
     def describe(self) -> dict:
         """The baseline as the report names it; ValueError where its package would not be its checkout's."""
         return {"script": str(self.script), "checkout": str(self.checkout), "commit": self.commit(),
-                "package": str(self.package())}
+                "package": str(self.package()), "name": "gt-serve" if self.is_gt_serve else self.script.name}
 
 
 def baseline_checkout(script: Path) -> Path | None:
@@ -662,7 +668,7 @@ def baseline_name(result: dict) -> str:
 
 def _comparison_table(result: dict) -> str:
     """Per N: the baseline's row, gt-serve's, and gt-serve's over the baseline's."""
-    old_name = f"{baseline_name(result)} live_server.py"
+    old_name = f"{baseline_name(result)} {result['baseline'].get('name', 'live_server.py')}"
     lines = ["| N | server | late frames | first frame p50 | server CPU s per session-s | barge-in p50 | failed |",
              "|---:|---|---:|---:|---:|---:|---:|"]
     for old, new, ratio in zip(result["baseline"]["runs"], result["runs"], result["ratios"], strict=True):
@@ -689,4 +695,4 @@ def live_clients_table(result: dict) -> str:
         return new
     old = _detail_table(result["baseline"]["runs"], result["baseline"]["largest_n_within_5pct_late"], tolerance)
     return (f"{_comparison_table(result)}\n\ngt-serve (tokens on):\n\n{new}\n\n{baseline_name(result)} "
-            f"live_server.py:\n\n{old}")
+            f"{result['baseline'].get('name', 'live_server.py')}:\n\n{old}")
