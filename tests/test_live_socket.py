@@ -13,6 +13,7 @@ import struct
 import sys
 import time
 import urllib.request
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -27,22 +28,28 @@ ROOT = Path(__file__).resolve().parents[1]
 # -- a server on loopback --------------------------------------------------------------------------------------
 
 
-@pytest.fixture(scope="module")
-def server(small_export):
+def _serve(bundle) -> Iterator[tuple]:
+    """gt-serve --client-render on `bundle`, on a free loopback port; after the module, its log holds no traceback
+    and a line for each session's start and end."""
     module = _server_module()
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     # --debug: the admin routes (/health, /drives) without tokens, on loopback (tests/test_serve_security.py has
     # the tokens)
-    process = serving([sys.executable, "-m", "gaussiantalker.cli.serve", str(small_export.path), "--port",
-                       str(port), "--client-render", "--debug", "--drain-s", "1"],
+    process = serving([sys.executable, "-m", "gaussiantalker.cli.serve", str(bundle), "--port", str(port),
+                       "--client-render", "--debug", "--drain-s", "1"],
                       f"http://127.0.0.1:{port}/readyz", 120, name="gt-serve")
     yield module, port
     process.terminate()
     log = process.communicate(timeout=30)[0]
     assert "Traceback" not in log, log[-3000:]
     assert log.count("started: client-render, ws") == log.count("ended after"), log[-3000:]  # a line each
+
+
+@pytest.fixture(scope="module")
+def server(small_export):
+    yield from _serve(small_export.path)
 
 
 def _get(port: int, path: str) -> bytes:
@@ -187,17 +194,7 @@ def test_a_bad_page_is_told_why_and_its_session_ends(server, start, raw, message
 @pytest.fixture(scope="module")
 def stream_server(ga_voice_bundle):
     """gt-serve --client-render on a bundle whose translator streams (the built-in FLAME voice)."""
-    module = _server_module()
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    process = serving([sys.executable, "-m", "gaussiantalker.cli.serve", str(ga_voice_bundle), "--port", str(port),
-                       "--client-render", "--debug", "--drain-s", "1"],
-                      f"http://127.0.0.1:{port}/readyz", 120, name="gt-serve")
-    yield module, port
-    process.terminate()
-    log = process.communicate(timeout=30)[0]
-    assert "Traceback" not in log, log[-3000:]
+    yield from _serve(ga_voice_bundle)
 
 
 def test_streaming_sessions_share_translator_calls(stream_server):
