@@ -37,6 +37,8 @@ class SampleFifo:
 
     def peek(self, count: int) -> np.ndarray:
         """The first `count` samples (a copy), zero-padded when fewer are queued."""
+        if count <= len(self):  # the usual case: one copy, no zero fill
+            return self._buffer[self._start:self._start + count].copy()
         out = np.zeros(count, np.float32)
         held = min(count, len(self))
         out[:held] = self._buffer[self._start:self._start + held]
