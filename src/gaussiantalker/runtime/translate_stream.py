@@ -58,7 +58,7 @@ def read_stream_spec(run: RunStream, rows_of: RowsOf, state_size: int, frame_sam
 @dataclass
 class StreamJob:
     """One planned call of one session's stream: `audio` [n, F] from its committed position, `keep` frames to
-    commit. `outputs` (rows [n, D]) and `state` are filled by `run_stream_jobs`."""
+    commit. `rows` [n, D] and `state` (after the committed frames) are filled by `run_stream_jobs`."""
 
     stream: TranslatorStream
     audio: np.ndarray
