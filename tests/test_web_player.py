@@ -109,15 +109,19 @@ def speech_wav(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def lam_bundle(tmp_path_factory) -> tuple[Path, Path]:
-    """A small synthetic LAM avatar (tests/lam_avatars.py) imported and exported, and a motion file for it."""
+    """A small synthetic LAM avatar (tests/lam_avatars.py) imported with the built-in voice as `gt-import lam` does
+    (so the page also opens its translator and streaming translator graphs) and exported, and a motion file for it."""
     from lam_avatars import motion_json, write_avatar_zip
 
     from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.exporter.imports.sources.lam import import_lam
+    from gaussiantalker.exporter.voice.attach import builtin_audio_model
 
     folder = tmp_path_factory.mktemp("web_lam")
     path = folder / "avatar.gtb"
-    export_bundle(import_lam(write_avatar_zip(folder / "avatar.zip"), progress=False), path, progress=False)
+    speaker = import_lam(write_avatar_zip(folder / "avatar.zip"), progress=False)
+    speaker.audio_model = builtin_audio_model(speaker)
+    export_bundle(speaker, path, progress=False)
     motion = folder / "bsData.json"
     motion.write_text(json.dumps(motion_json()))
     return path, motion
