@@ -67,8 +67,7 @@ def silence_gain(chunk: np.ndarray, gate_dbfs: float | None = SILENCE_GATE_DBFS,
     if gate_dbfs is None:
         return 1.0
     centred = chunk.astype(np.float64) - float(np.mean(chunk, dtype=np.float64))  # the level the translator sees
-    level_db = 10.0 * np.log10(float(np.mean(centred * centred)) + 1e-30)
-    return float(np.clip((level_db - gate_dbfs) / ramp_db + 1.0, 0.0, 1.0))
+    return _gain_of_power(float(np.mean(centred * centred)), gate_dbfs, ramp_db)
 
 
 def silence_gain_of_sums(total: float, total_squares: float, count: int, gate_dbfs: float | None = SILENCE_GATE_DBFS,
@@ -78,7 +77,12 @@ def silence_gain_of_sums(total: float, total_squares: float, count: int, gate_db
     if gate_dbfs is None:
         return 1.0
     mean = total / max(count, 1)
-    level_db = 10.0 * np.log10(max(total_squares / max(count, 1) - mean * mean, 0.0) + 1e-30)
+    return _gain_of_power(max(total_squares / max(count, 1) - mean * mean, 0.0), gate_dbfs, ramp_db)
+
+
+def _gain_of_power(power: float, gate_dbfs: float, ramp_db: float) -> float:
+    """The gate's gain for a window whose centred mean power is `power`: linear in dB over the ramp."""
+    level_db = 10.0 * np.log10(power + 1e-30)
     return float(np.clip((level_db - gate_dbfs) / ramp_db + 1.0, 0.0, 1.0))
 
 

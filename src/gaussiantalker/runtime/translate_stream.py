@@ -24,8 +24,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gaussiantalker.sdk.bundle import STREAM_GRAPH
-
 # Frames of silence fed from an all-zero state to reach the rest state; more than any stream's reach (the voice
 # network sees 1 s = 25 frames back), so the rest state no longer depends on where it started.
 REST_FRAMES = 32
@@ -87,6 +85,12 @@ def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) 
     return [len(group) for group in groups.values()]
 
 
+def _trailing_silence(samples: np.ndarray) -> int:
+    """How many zeros end `samples` (all of them when nothing is spoken)."""
+    spoken = np.flatnonzero(samples)
+    return samples.shape[0] - 1 - int(spoken[-1]) if spoken.shape[0] else samples.shape[0]
+
+
 class TranslatorStream:
     """One session's stream over its timeline (speech-rate samples): `offer` what is known of the timeline,
     `plan` the call that the next rig frames need, `finish` with its results, then read `params`."""
@@ -129,21 +133,24 @@ class TranslatorStream:
         silence ends what the stream knows, it restarts at rest at `stop` instead (the state after that much
         silence is the rest state), so an idle session holds and computes nothing."""
         self.offer(start, np.zeros(0, np.float32))
-        spoken = np.flatnonzero(self.known)
-        silent = self.known.shape[0] - 1 - int(spoken[-1]) if spoken.shape[0] else self.quiet + self.known.shape[0]
+        silent = _trailing_silence(self.known)
+        if silent == self.known.shape[0]:  # nothing spoken since the committed audio's own silent end
+            silent += self.quiet
         if silent + stop - max(start, self.known_end) >= REST_FRAMES * self.spec.frame_samples:
             self.reset(stop)  # every frame before the gap is made: what the stream still knew of it is not needed
         else:
             self.offer(start, np.zeros(stop - start, np.float32))
 
+    def _centre(self, frame: int) -> float:
+        """Rig frame `frame`'s centre on the stream's row grid (row j's centre at j)."""
+        return (frame * self.rig_spf + self.rig_spf / 2 - self.origin) / self.spec.frame_samples - 0.5
+
     def _span(self, frame: int) -> tuple[int, int]:
         """(first, last) stream frames whose rows rig frame `frame` reads."""
-        start = frame * self.rig_spf
         if self.aligned:
-            index = int(round((start - self.origin) / self.spec.frame_samples))
+            index = int(round((frame * self.rig_spf - self.origin) / self.spec.frame_samples))
             return index, index
-        centre = (start + self.rig_spf / 2 - self.origin) / self.spec.frame_samples - 0.5
-        first = math.floor(centre)
+        first = math.floor(self._centre(frame))
         return first, first + 1
 
     def plan(self, frames: range) -> StreamJob | None:
@@ -172,8 +179,7 @@ class TranslatorStream:
             index = first + k
             (self.final if index < final_end else self._provisional)[index] = row
         committed = job.audio[:job.keep].reshape(-1)
-        silent = committed.shape[0] if not np.any(committed) else committed.shape[0] - 1 - int(
-            np.flatnonzero(committed)[-1])
+        silent = _trailing_silence(committed)
         self.quiet = self.quiet + silent if silent == committed.shape[0] else silent
         self.state = np.asarray(job.state, np.float32)
         self.committed += job.keep
@@ -191,13 +197,12 @@ class TranslatorStream:
         if first == last:
             value = self._row(first)
         else:
-            centre = (frame * self.rig_spf + self.rig_spf / 2 - self.origin) / self.spec.frame_samples - 0.5
-            weight = np.float32(centre - first)
+            weight = np.float32(self._centre(frame) - first)
             value = (1 - weight) * self._row(first) + weight * self._row(last)
         for index in [i for i in self.final if i < first]:
             del self.final[index]
         return value
 
 
-__all__ = ["REST_FRAMES", "STREAM_GRAPH", "StreamJob", "StreamSpec", "TranslatorStream", "read_stream_spec",
+__all__ = ["REST_FRAMES", "StreamJob", "StreamSpec", "TranslatorStream", "read_stream_spec",
            "run_stream_jobs"]

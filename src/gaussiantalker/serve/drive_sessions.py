@@ -167,11 +167,7 @@ class DriveSession:
         if batch is not None:  # a pool thread hands the event loop a tick's frames at once (_DriveWorker.run)
             batch.append((self, sent, told))
         else:
-            try:
-                self._loop.call_soon_threadsafe(self._deliver, sent, told)
-            except RuntimeError:  # the event loop has closed: nobody reads the session any more
-                self.live.close()
-                return
+            _post([(self, sent, told)])
         if self.audio is not None:
             self.audio.put(frame)
 
