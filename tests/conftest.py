@@ -48,7 +48,8 @@ def replaying_onnx_exports(protos: Sequence) -> Iterator[list]:
 
 def _export_recording(speaker, path, **export_kwargs) -> SimpleNamespace:
     """Export `speaker` to `path` (with `export_kwargs`: a scene, a preset...), keeping the ONNX protos torch.onnx
-    made (translator, deform, then inpaint where the speaker has F) and the ExportResult (`.result`)."""
+    made (translator, translator_stream, deform, then inpaint where the speaker has F) and the ExportResult
+    (`.result`)."""
     import gaussiantalker.exporter.export.onnx_export as onnx_export_module
     from gaussiantalker.exporter.export.bundle_export import export_bundle
 
@@ -106,10 +107,11 @@ class RebindError(AssertionError):
 
 
 def graph_modules(speaker) -> list:
-    """The modules export_bundle turns into ONNX graphs, in export order: translator, deform."""
+    """The modules export_bundle turns into ONNX graphs, in export order: translator, its streaming form, deform."""
     from gaussiantalker.exporter.export.deform_graph import DeformationGraph
+    from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream
 
-    return [speaker.translator, DeformationGraph(speaker)]
+    return [speaker.translator, MotionTranslatorStream(speaker.translator), DeformationGraph(speaker)]
 
 
 def _plain(value) -> bool:
@@ -196,16 +198,17 @@ def rebinding_onnx_exports(recorded: SimpleNamespace) -> Iterator[list]:
 
 @contextlib.contextmanager
 def rebinding_the_translator(recorded: SimpleNamespace) -> Iterator[None]:
-    """Within the block, exporting a translator of the recorded speaker's kind rebinds its recorded graph (as
-    `rebinding_onnx_exports` does); every other graph is exported by torch.onnx."""
+    """Within the block, exporting a translator of the recorded speaker's kind, or its streaming form, rebinds its
+    recorded graph (as `rebinding_onnx_exports` does); every other graph is exported by torch.onnx."""
     import gaussiantalker.exporter.export.onnx_export as onnx_export_module
 
     real_export_onnx = onnx_export_module.export_onnx
-    translator = recorded.speaker.translator
+    recorded_modules = graph_modules(recorded.speaker)[:2]
 
     def export(module, *args, **kwargs):
-        if type(module) is type(translator):
-            return _rebind_onnx(recorded.protos[0], module, translator)
+        for proto, recorded_module in zip(recorded.protos, recorded_modules, strict=False):
+            if type(module) is type(recorded_module):
+                return _rebind_onnx(proto, module, recorded_module)
         return real_export_onnx(module, *args, **kwargs)
 
     with pytest.MonkeyPatch.context() as patch:
@@ -341,8 +344,9 @@ def inpaint_export() -> SimpleNamespace:
 @pytest.fixture(scope="session")
 def clip_export(small_export, inpaint_export, tmp_path_factory) -> SimpleNamespace:
     """The small speaker with a small demo clip and a random F (tests/clip_speaker.py), saved (`.checkpoint`) and
-    exported (`.path`, `.protos`: translator, deform, inpaint): the session's recorded graphs rebound to its
-    weights, so no torch.onnx runs (the composited frames' parity checks would catch a graph that is not F's)."""
+    exported (`.path`, `.protos`: translator, translator_stream, deform, inpaint): the session's recorded graphs
+    rebound to its weights, so no torch.onnx runs (the composited frames' parity checks would catch a graph that is
+    not F's)."""
     from clip_speaker import make_clip_speaker
 
     from gaussiantalker.exporter.export.checkpoint import save_checkpoint

@@ -32,7 +32,7 @@ import gaussiantalker.exporter.export.onnx_export as onnx_export_module
 from gaussiantalker.exporter.export.bundle_export import export_bundle
 from gaussiantalker.exporter.export.checkpoint import load_checkpoint, save_checkpoint
 from gaussiantalker.runtime import TalkingHead
-from gaussiantalker.sdk.bundle import _HEADER, HEADER_SIZE, Bundle, _align
+from gaussiantalker.sdk.bundle import _HEADER, ALIGN, HEADER_SIZE, Bundle, _align
 from gaussiantalker.sdk.errors import BundleError, CheckpointError
 
 HEAD_SIZE = (32, 32)
@@ -43,7 +43,7 @@ HEAD_SIZE = (32, 32)
 
 @pytest.fixture(scope="module")
 def real(small_speaker, small_export, tmp_path_factory) -> SimpleNamespace:
-    """The small speaker's session bundle, copied here, with its two ONNX protos (later exports skip torch.onnx)."""
+    """The small speaker's session bundle, copied here, with its ONNX protos (later exports skip torch.onnx)."""
     root = tmp_path_factory.mktemp("stability_files")
     shutil.copy(small_export.path, root / "good.gtb")
     protos = small_export.protos
@@ -105,6 +105,20 @@ def _with_manifest(real: SimpleNamespace, edit, path: Path, header_version: tupl
     header += b"\0" * (HEADER_SIZE - len(header))
     path.write_bytes(header + raw + b"\0" * (_align(len(raw)) - len(raw)) + real.data[real.payload_start:])
     return path
+
+
+def _with_padding(real: SimpleNamespace, path: Path) -> SimpleNamespace:
+    """`real`, or where its manifest fills its last 64 bytes (no zero padding after it) the same manifest written
+    with a space more at its end, so that padding follows it."""
+    manifest_len = _HEADER.unpack_from(real.data)[4]
+    if manifest_len % ALIGN:
+        return real
+    raw = real.data[HEADER_SIZE:HEADER_SIZE + manifest_len] + b" "
+    header = _HEADER.pack(b"GTBUNDLE", *real.manifest["version"], 0, len(raw), hashlib.sha256(raw).digest())
+    header += b"\0" * (HEADER_SIZE - len(header))
+    data = header + raw + b"\0" * (_align(len(raw)) - len(raw)) + real.data[real.payload_start:]
+    path.write_bytes(data)
+    return SimpleNamespace(data=data, payload_start=Bundle(path).payload_start)
 
 
 def _flipped(real: SimpleNamespace, offset: int, path: Path) -> Path:
@@ -188,10 +202,11 @@ def test_flipped_byte_in_header_field(real, tmp_path, stability, offset, field, 
 def test_flipped_byte_in_manifest_and_its_padding(real, tmp_path, stability):
     """A flip in the manifest fails its digest; one in the zero padding after it is refused too."""
     manifest_len = _HEADER.unpack_from(real.data)[4]
-    cases = ((HEADER_SIZE + manifest_len // 2, "manifest", "manifest checksum mismatch"),
-             (real.payload_start - 1, "padding after the manifest", "padding after the manifest"))
-    for offset, case, expected in cases:
-        path = _flipped(real, offset, tmp_path / "flip.gtb")
+    padded = _with_padding(real, tmp_path / "padded.gtb")
+    cases = ((real, HEADER_SIZE + manifest_len // 2, "manifest", "manifest checksum mismatch"),
+             (padded, padded.payload_start - 1, "padding after the manifest", "padding after the manifest"))
+    for source, offset, case, expected in cases:
+        path = _flipped(source, offset, tmp_path / "flip.gtb")
         for exc in (_bundle_refuses(path), _runtime_refuses(path)):
             assert expected in _text(exc, path)
         stability.record("bundle", f"flipped byte in the {case}", _observed(exc, path))
@@ -516,8 +531,9 @@ def test_export_failing_mid_write_keeps_the_good_bundle(real, tmp_path, monkeypa
 
 
 def test_export_failing_between_graphs_writes_nothing(real, tmp_path, monkeypatch, stability):
-    """The deform graph's export raises: nothing at all appears under the output name or beside it."""
-    protos = iter(real.protos[:1])
+    """The deform graph's export raises (after the translator's two): nothing at all appears under the output name
+    or beside it."""
+    protos = iter(real.protos[:2])
 
     def translator_then_fail(*args, **kwargs):
         for proto in protos:
@@ -541,8 +557,8 @@ import gaussiantalker.exporter.export.onnx_export as onnx_export
 import gaussiantalker.sdk.bundle as bundle
 import gaussiantalker.sdk.files as files
 
-translator, deform, marker, pause_after, *cli_args = sys.argv[1:]
-protos = iter([onnx.load_model_from_string(Path(p).read_bytes()) for p in (translator, deform)])
+graphs, marker, pause_after, *cli_args = sys.argv[1:]
+protos = iter([onnx.load_model_from_string(Path(p).read_bytes()) for p in graphs.split(os.pathsep)])
 onnx_export.export_onnx = lambda *args, **kwargs: next(protos)
 
 
@@ -580,8 +596,9 @@ def _cli_paused_mid_write(real, checkpoint, work: Path, out: Path) -> subprocess
         (work / f"graph{index}.onnx").write_bytes(proto.SerializeToString())
     (work / "pausing_cli.py").write_text(_PAUSING_CLI)
     marker = work / "paused"
-    process = subprocess.Popen([sys.executable, str(work / "pausing_cli.py"), str(work / "graph0.onnx"),
-                                str(work / "graph1.onnx"), str(marker), str(len(real.data) // 2),
+    graphs = os.pathsep.join(str(work / f"graph{index}.onnx") for index in range(len(real.protos)))
+    process = subprocess.Popen([sys.executable, str(work / "pausing_cli.py"), graphs, str(marker),
+                                str(len(real.data) // 2),
                                 str(checkpoint.path), "-o", str(out), "-q"],
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     deadline = time.monotonic() + 120

@@ -16,10 +16,10 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
-from ci_tools import need, need_module
+from ci_tools import need_module
+from unseen_speech import unseen_speech
 
 from gaussiantalker.exporter.export.voice_stream import is_voice_graph, stream_model_of, voice_layout
-from gaussiantalker.exporter.voice.data import load_utterance
 from gaussiantalker.exporter.voice.paths import ARKIT_MODEL, FLAME_MODEL
 from gaussiantalker.runtime import LiveSession
 from gaussiantalker.runtime.stages import open_driver
@@ -27,21 +27,8 @@ from gaussiantalker.runtime.translate_stream import REST_FRAMES, StreamJob, run_
 from gaussiantalker.sdk.bundle import STREAM_GRAPH, Bundle
 from gaussiantalker.sdk.errors import LiveError
 
-HELDOUT = Path(__file__).resolve().parent / "data" / "voice_heldout"
 FRAME = 640
 EXACT = 1e-5  # float32 rounding of the same convolutions summed in another order
-
-
-def _unseen_speech() -> list[np.ndarray]:
-    """Speech no training voice spoke: the held-out espeak-ng clip, and the real recordings where fetched."""
-    clips = [load_utterance(HELDOUT).audio]
-    from gaussiantalker.exporter.voice import real_speech
-
-    try:
-        clips += [clip.audio for clip in real_speech.load()[:3]]
-    except real_speech.RealSpeechMissing as exc:
-        need(str(exc), ".ci/install (its real-speech fetch step)")
-    return clips
 
 
 def _sessions(path: Path) -> tuple[ort.InferenceSession, ort.InferenceSession]:
@@ -68,7 +55,7 @@ def test_the_stream_gives_the_windowed_graphs_rows(path):
                                               "keep": np.array([1], np.float32)})[0][0])
     assert delay == 4  # 160 ms: the network's reach into the future, in frames
     rng = np.random.default_rng(0)
-    for audio in _unseen_speech():
+    for audio in unseen_speech():
         frames = audio.shape[0] // FRAME
         audio = audio[:frames * FRAME]
         expected = windowed.run(names, {"audio": audio[None]})
@@ -101,7 +88,7 @@ def test_sessions_batched_in_one_call_get_their_own_rows():
     """Three streams at different places in different clips, stacked on the batch axis in one call (what the live
     server's pool does), each get the rows and state they get alone."""
     _, stream = _sessions(ARKIT_MODEL)
-    clips = _unseen_speech()[:1] * 3
+    clips = unseen_speech()[:1] * 3
     states = [_rest(stream) for _ in clips]
     chunks = [clip[(7 + 5 * k) * FRAME:(8 + 5 * k) * FRAME].reshape(1, 1, FRAME) for k, clip in enumerate(clips)]
     alone = [stream.run(None, {"audio": c, "state": s, "keep": np.array([1], np.float32)})
@@ -184,7 +171,7 @@ def test_a_live_session_streams_the_built_in_flame_voice(ga_voice_bundle):
     windowed path."""
     driver = open_driver(ga_voice_bundle)
     assert driver.has_stream and driver.stream_spec.delay == 4
-    for audio in _unseen_speech()[:2]:
+    for audio in unseen_speech()[:2]:
         for lookahead in (160.0, 80.0):
             windowed, _ = _live(driver, _pushes(audio), False, lookahead_ms=lookahead)
             streamed, live = _live(driver, _pushes(audio), True, lookahead_ms=lookahead)
@@ -199,7 +186,7 @@ def test_a_30_fps_avatar_reads_the_stream_at_its_frame_centres(lam_voice_bundle)
     given audio in two pushes fills with zeros for the frames just before the first push ends (1.3e-3 measured)."""
     driver = open_driver(lam_voice_bundle)
     windowed_graph, _ = _sessions(ARKIT_MODEL)
-    audio = _unseen_speech()[0]
+    audio = unseen_speech()[0]
     audio = np.clip(audio * (0.5 / np.abs(audio).max()), -1, 1)  # loud: the silence gate stays open
     streamed, _ = _live(driver, [audio[:5000], audio[5000:]], True)
     windowed, _ = _live(driver, [audio[:5000], audio[5000:]], False)
@@ -213,14 +200,21 @@ def test_a_30_fps_avatar_reads_the_stream_at_its_frame_centres(lam_voice_bundle)
     print(f"30 fps: windowed session off the interpolation by up to {np.abs(windowed[1:count] - exact[1:]).max():.3f}")
 
 
-def test_a_bundle_carries_the_stream_beside_its_translator_sharing_weights(lam_voice_bundle, small_export):
-    """The streaming graph's weights are the translator's buffers (stored once); a speaker without the built-in
-    voice has no stream, and asking for one is a clear error."""
+def test_a_bundle_carries_the_stream_beside_its_translator_sharing_weights(lam_voice_bundle, small_export,
+                                                                           replay_onnx_exports, monkeypatch,
+                                                                           tmp_path):
+    """The streaming graph's weights are the translator's buffers (stored once); a bundle without a stream (one
+    exported before streaming) plays windowed, and asking it for a stream is a clear error."""
+    import gaussiantalker.exporter.export.bundle_export as bundle_export
+
     bundle = Bundle(lam_voice_bundle)
     assert STREAM_GRAPH in bundle.graph_names()
     stream_buffers = set(bundle.graph_info(STREAM_GRAPH)["initializers"].values())
     assert stream_buffers and stream_buffers <= set(bundle.graph_info("translator")["initializers"].values())
-    driver = open_driver(small_export.path)
+    monkeypatch.setattr(bundle_export, "translator_stream_onnx", lambda translator: None)
+    replay_onnx_exports([small_export.protos[0], small_export.protos[2]])  # translator, deform
+    older = bundle_export.export_bundle(small_export.speaker, tmp_path / "older.gtb", progress=False).path
+    driver = open_driver(older)
     assert not driver.has_stream
     with pytest.raises(LiveError, match="no streaming graph"):
         LiveSession(driver, output=None, streaming=True)
@@ -233,7 +227,7 @@ def test_an_idle_streaming_session_holds_and_computes_nothing(ga_voice_bundle):
 
     driver = open_driver(ga_voice_bundle)
     live = LiveSession(driver, output=None, paced=False, streaming=True)
-    live.push(_unseen_speech()[0][:8000], 16000)
+    live.push(unseen_speech()[0][:8000], 16000)
     live.flush()
     frames = live.frames()  # free-running: idle frames as fast as they are read once the speech is out
     first = list(itertools.islice(frames, 80))
@@ -252,7 +246,7 @@ def test_paced_sessions_share_one_translator_call_per_tick(ga_voice_bundle):
     import time
 
     driver = open_driver(ga_voice_bundle)
-    speech = _unseen_speech()[0][:16000]
+    speech = unseen_speech()[0][:16000]
     starts = [0, 1600, 5000, 9000]
 
     def sessions():
@@ -301,6 +295,6 @@ def test_the_mnn_backend_runs_the_stream(tmp_path):
     speaker = import_lam(write_avatar_zip(tmp_path / "avatar.zip"), progress=False)
     speaker.audio_model = builtin_audio_model(speaker)
     path = export_bundle(speaker, tmp_path / "avatar.gtb", progress=False, mnn=True).path
-    audio = _unseen_speech()[0][:24000]
+    audio = unseen_speech()[0][:24000]
     rows = [_live(open_driver(path, backend=backend), [audio], True)[0] for backend in ("onnxruntime", "mnn")]
     assert rows[0].shape == rows[1].shape and np.abs(rows[0] - rows[1]).max() < 1e-4

@@ -171,6 +171,88 @@ def test_flame_speaker_from_audio_matches_the_python_runtime(player_ready, page,
     _check_frames(page, python_frames, indexes)
 
 
+def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> np.ndarray:
+    """What the page's AudioStream (web/src/stream.js) makes of `audio` pushed `chunk` samples at a time, in numpy
+    on onnxruntime: the same graph calls (every whole frame committed at once, at most 50 a call; at the end the
+    partial frame and the delay zero-padded), each stream row gated over its live window, rig frames at their
+    centres."""
+    from gaussiantalker.runtime.stages import open_driver
+    from gaussiantalker.runtime.translate import CONTEXT_FRAMES, silence_gain
+
+    driver = open_driver(bundle)
+    spec = driver.stream_spec
+    size, delay = spec.frame_samples, spec.delay
+    state, pending, committed, rows = spec.rest_state[None], np.zeros(0, np.float32), 0, []
+    past = np.zeros(0, np.float32)  # every committed sample
+
+    def commit(pending, state, committed):
+        nonlocal past
+        while pending.shape[0] >= size:
+            count = min(pending.shape[0] // size, 50)
+            block = pending[:count * size]
+            out = driver.run_stream(block.reshape(1, count, size), state, count)
+            state, past = out["state_out"], np.concatenate([past, block])
+            for k, row in enumerate(driver.stream_rows(out)[0]):
+                j = committed - delay + k
+                if j >= 0:
+                    lo, hi = (j - CONTEXT_FRAMES) * size, (j + delay + 1) * size
+                    window = np.concatenate([np.zeros(max(0, -lo), np.float32), past[max(lo, 0):hi]])
+                    rows.append(row * np.float32(silence_gain(window)))
+            committed, pending = committed + count, pending[count * size:]
+        return pending, state, committed
+
+    for start in range(0, audio.shape[0], chunk):
+        pending = np.concatenate([pending, audio[start:start + chunk]])
+        pending, state, committed = commit(pending, state, committed)
+    tail = np.zeros((-(-pending.shape[0] // size) + delay) * size, np.float32)
+    tail[:pending.shape[0]] = pending
+    commit(tail, state, committed)
+    rig_spf = driver.samples_per_frame
+    frames = int(np.ceil(audio.shape[0] / rig_spf - 1e-9))
+    if abs(rig_spf - size) < 1e-9:
+        return np.stack(rows[:frames])
+    table = np.stack([spec.rest_row, *rows])  # row -1 is the rest row
+    out = []
+    for f in range(frames):
+        centre = (f * rig_spf + rig_spf / 2) / size - 0.5
+        i = int(np.floor(centre))
+        w = np.float32(centre - i)
+        left, right = table[i + 1], table[min(i + 2, len(table) - 1)]
+        out.append(left * (np.float32(1) - w) + right * w)
+    return np.stack(out)
+
+
+@pytest.mark.parametrize("rig", ["flame", "arkit"])
+def test_audio_pushed_as_it_arrives_plays_through_the_streaming_translator(player_ready, page, small_export,
+                                                                           lam_bundle, speech_wav, rig, tmp_path):
+    """Voice pushed in 20 ms chunks through the page's streaming translator (the small speaker's Motion Translator
+    at 25 fps; a LAM avatar's built-in voice at 30 fps): frames come while it arrives, the stream's delay behind
+    it; the rows are the same graph calls' in Python within 1e-4 relative, the bound of the windowed translator's
+    rows (onnxruntime-web's wasm kernels against onnxruntime's, through 100 calls that carry the state: 1.3e-5
+    measured), and they follow the whole clip's offline drive."""
+    from gaussiantalker.sdk.audio import load_audio, write_wav
+
+    bundle = small_export.path if rig == "flame" else lam_bundle[0]
+    path = tmp_path / "speech4.wav"
+    write_wav(path, load_audio(speech_wav)[:4 * 16000])
+    audio = load_audio(path)  # as the page decodes it: 16-bit samples
+    info = page.load(bundle, size=SIZE)
+    assert info["rig"] == rig
+    result = page.stream_drive(path, chunk=320)
+    rows = page.drive_rows()
+    expected = _stream_reference(bundle, audio, 320)
+    assert result["frames"] == rows.shape[0] == expected.shape[0] == int(np.ceil(4 * info["fps"] - 1e-9))
+    assert result["ready"][-1] < result["frames"]  # the last frames wait for end(): their lookahead
+    assert result["ready"][-1] >= result["frames"] - (result["delay"] + 2) * info["fps"] / 25
+    assert np.abs(rows - expected).max() <= 1e-4 * max(1.0, float(np.abs(expected).max()))
+    page.drive(audio=path)
+    offline = page.drive_rows()
+    busiest = np.argsort(offline.var(axis=0))[::-1][:10]
+    r = np.mean([np.corrcoef(rows[:, c], offline[:, c])[0, 1] for c in busiest])
+    print(f"{rig}: streamed rows against the whole clip's, the ten busiest channels' r {r:.3f}")
+    assert r >= 0.9
+
+
 def test_novel_camera_matches_the_python_runtime(player_ready, page, small_export, speech_wav):
     from gaussiantalker.sdk.camera import Camera
 
@@ -416,9 +498,9 @@ def _sample_page_status(browser, url: str) -> str:
 
 
 def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export, ga_bundle):
-    """samples/web/index.html: a bundle and a WAV by URL, the first frame on its canvas, and playback on the
-    audio clock drawing frames (WebAudio allowed to start without a gesture, as a click would); a FLAME avatar with
-    its flame_param.npz as the motion."""
+    """samples/web/index.html: a bundle and a WAV by URL, its audio streamed as it plays (the bundle has a streaming
+    translator) and frames drawn on the audio clock (WebAudio allowed to start without a gesture, as a click would);
+    a FLAME avatar with its flame_param.npz as the motion, its first frame on the canvas."""
     import time
 
     from tools.browser.chromium import Chromium
@@ -434,10 +516,11 @@ def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export, g
             status = _sample_page_status(browser, f"{page}?bundle={avatar}&motion={params}")
             assert status.endswith("ready: 8 frames") and "flame speaker" in status, status
             status = _sample_page_status(browser, f"{page}?bundle={bundle}&audio={audio}")
-            assert status.endswith("ready: 250 frames"), status
+            assert status.endswith("ready: 250 frames, translated while they play (streaming)"), status
             browser.evaluate("window.gtSample.play()")
             time.sleep(1.5)
-            playing = browser.evaluate("[window.gtSample.state.playing, window.gtSample.state.context.currentTime]")
+            playing = browser.evaluate("[window.gtSample.state.playing, window.gtSample.state.context.currentTime, "
+                                       "window.gtSample.state.drawn]")
             red = browser.evaluate("(() => { const c = document.getElementById('view'); const d = c.getContext('2d')"
                                    ".getImageData(0, 0, c.width, c.height).data; let lo = 255, hi = 0; "
                                    "for (let i = 0; i < d.length; i += 4) { lo = Math.min(lo, d[i]); "
@@ -445,5 +528,5 @@ def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export, g
             browser.evaluate("window.gtSample.stop()")
     finally:
         server.close()
-    assert playing[0] and playing[1] > 1.0, playing
+    assert playing[0] and playing[1] > 1.0 and playing[2] >= 1, playing  # frames drawn from the stream
     assert red[0] < 200 < red[1], f"the canvas shows a head over the background (red channel {red})"

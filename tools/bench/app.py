@@ -31,6 +31,8 @@
                            (bench/pipeline_vs_serial.py)
     gt-bench blend-limit   the CPU splatter's blend: its work counts and time per fragment against the same
                            kernel at full occupancy (bench/blend_limit.py)
+    gt-bench translator-stream  a speaker's Motion Translator streamed against its windowed live calls and offline
+                           drive on unseen speech, and a session-frame's cost each way (bench/translator_stream.py)
 
 The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
 still work: `gaussiantalker.cli.bench` rewrites them to their subcommand.
@@ -527,6 +529,36 @@ def live_batching(
                   "alternating rounds.")
 
 
+@app.command("translator-stream")
+def translator_stream(
+    checkpoint: Path = typer.Argument(..., help="a speaker checkpoint with a Motion Translator (.ckpt)"),
+    refresh: str = typer.Option("0,2,4", "--refresh", help="comma-separated refreshed frames to compare"),
+    batch_frames: str = typer.Option("1,8", "--batch-frames", help="comma-separated frames a call"),
+    rounds: int = typer.Option(20, "--rounds", min=1, help="alternating timing rounds (medians)"),
+    out: Path = typer.Option(None, "--out", help="folder for translator-stream.md and translator-stream.json"),
+) -> None:
+    """A speaker's Motion Translator streamed against its windowed live calls and its offline drive on unseen
+    speech, per number of refreshed frames, and what a session-frame costs each way (docs/live.md)."""
+    from gaussiantalker.exporter.export.checkpoint import load_checkpoint
+
+    from .translator_stream import run_cost, run_quality, translator_stream_table
+
+    refreshes, batches = _numbers(refresh, int, "--refresh"), _numbers(batch_frames, int, "--batch-frames")
+    if not refreshes or min(refreshes) < 0 or not batches or not all(1 <= b <= 8 for b in batches):
+        raise typer.BadParameter("refresh >= 0 and frames a call in 1..8", param_hint="--refresh/--batch-frames")
+    speaker = load_checkpoint(checkpoint)
+    if getattr(speaker, "translator", None) is None:
+        raise typer.BadParameter(f"{checkpoint}: the speaker has no Motion Translator", param_hint="CHECKPOINT")
+    cases = [(sessions, n) for sessions in (1, 100) for n in batches]
+    result = {"quality": run_quality(speaker.translator, refreshes, batches),
+              "cost": run_cost(speaker.translator, refreshes, cases, rounds)}
+    _stamp(result)
+    table = translator_stream_table(result)
+    typer.echo(table)
+    _write_report(out, "translator-stream", "The Motion Translator streamed: quality and cost", result, table,
+                  f"; torch modules for quality, onnxruntime on one thread for cost ({rounds} alternating rounds).")
+
+
 @app.command("web-presets")
 def web_presets(
     speakers: list[str] = typer.Argument(..., help="LABEL=CHECKPOINT[:audio=WAV|:motion=FILE], one per speaker"),
@@ -580,6 +612,8 @@ def live_clients(
     baseline_checkout: Path = typer.Option(None, "--baseline-checkout", help="a checkout of the baseline's commit "
                                            "(`git worktree add DIR COMMIT`): its src/ is what the baseline imports "
                                            "[default: the checkout the script lies in]"),
+    baseline_bundle: Path = typer.Option(None, "--baseline-bundle", help="the bundle the baseline serves [default: "
+                                         "BUNDLE], e.g. the same speaker as the baseline's commit exports it"),
     rounds: int = typer.Option(1, "--rounds", min=1, help="rounds per N and server (with a baseline: old, new, "
                                "old, new ...)"),
     out: Path = typer.Option(None, "--out", help="folder for live-clients.md and live-clients.json"),
@@ -602,7 +636,7 @@ def live_clients(
         raise typer.BadParameter("ws, webrtc or both", param_hint="--transport")
     if not batches or not all(1 <= b <= 8 for b in batches):
         raise typer.BadParameter("whole numbers in 1..8", param_hint="--batch-frames")
-    baseline = _live_baseline(baseline_server, baseline_checkout)
+    baseline = _live_baseline(baseline_server, baseline_checkout, baseline_bundle)
     import os
 
     result = {"load_at_start": os.getloadavg(), "runs": []}
@@ -709,14 +743,17 @@ def voice(
                   f"; {clips} clips per synthetic family; ✓/✗: the goals (docs/voice.md, \"Measurements\").")
 
 
-def _live_baseline(script: Path | None, checkout: Path | None):
+def _live_baseline(script: Path | None, checkout: Path | None, bundle: Path | None = None):
     """`gt-bench live-clients`' baseline (a live_clients.Baseline, or None without --baseline-server)."""
     from .live_clients import Baseline, baseline_checkout
 
     if script is None:
-        if checkout is not None:
-            raise typer.BadParameter("needs --baseline-server", param_hint="--baseline-checkout")
+        for value, hint in ((checkout, "--baseline-checkout"), (bundle, "--baseline-bundle")):
+            if value is not None:
+                raise typer.BadParameter("needs --baseline-server", param_hint=hint)
         return None
+    if bundle is not None and not bundle.is_file():
+        raise typer.BadParameter(f"{bundle}: no such file", param_hint="--baseline-bundle")
     if not script.is_file():
         raise typer.BadParameter(f"{script}: no such file", param_hint="--baseline-server")
     checkout = checkout or baseline_checkout(script)
@@ -725,7 +762,7 @@ def _live_baseline(script: Path | None, checkout: Path | None):
                                  param_hint="--baseline-checkout")
     if not (checkout / "src" / "gaussiantalker").is_dir():
         raise typer.BadParameter(f"{checkout} has no src/gaussiantalker", param_hint="--baseline-checkout")
-    baseline = Baseline(script.resolve(), checkout.resolve())
+    baseline = Baseline(script.resolve(), checkout.resolve(), bundle.resolve() if bundle is not None else None)
     try:
         typer.echo(f"baseline: {baseline.script} on {baseline.package().parent.parent}")
     except ValueError as error:  # it would import another checkout's package (this one's editable install)

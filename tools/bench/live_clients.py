@@ -272,6 +272,7 @@ class Baseline:
 
     script: Path
     checkout: Path
+    bundle: Path | None = None  # the bundle it serves (None: the new server's), e.g. the speaker as its commit exports
 
     @property
     def src(self) -> Path:
@@ -323,7 +324,8 @@ class Baseline:
     def describe(self) -> dict:
         """The baseline as the report names it; ValueError where its package would not be its checkout's."""
         return {"script": str(self.script), "checkout": str(self.checkout), "commit": self.commit(),
-                "package": str(self.package()), "name": "gt-serve" if self.is_gt_serve else self.script.name}
+                "package": str(self.package()), "name": "gt-serve" if self.is_gt_serve else self.script.name,
+                "bundle": None if self.bundle is None else str(self.bundle)}
 
 
 def baseline_checkout(script: Path) -> Path | None:
@@ -408,7 +410,8 @@ def _start_baseline_server(baseline: Baseline, bundle: Path, settings: ServerSet
     """The baseline script on a free loopback port, on its checkout's package, once /health answers."""
     port = _free_port()
     url = f"http://127.0.0.1:{port}"
-    command = [sys.executable, str(baseline.script), str(bundle), "--port", str(port), *settings.arguments(),
+    command = [sys.executable, str(baseline.script), str(baseline.bundle or bundle), "--port", str(port),
+               *settings.arguments(),
                *baseline.arguments(max_sessions)]
     log_path = folder / "baseline.log"
     process = serving(command, f"{url}/health", SERVER_START_S, name=baseline.script.name, log_path=log_path,

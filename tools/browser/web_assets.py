@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from gaussiantalker.runtime import translate
+from gaussiantalker.runtime import translate, translate_stream
 from gaussiantalker.runtime.splat.depth_sort import KEY_LEVELS_16
 from gaussiantalker.runtime.splat.gl import POINT_BOUND_SAFETY, RUN_COST_IN_SPLATS
 from gaussiantalker.runtime.splat.programs import PROGRAMS, QUAD_SLACK_PX, program_sources
@@ -50,6 +50,7 @@ def constants() -> dict[str, object]:
         "KEY_LEVELS_16": KEY_LEVELS_16, "MAX_RATIO": zip_reader.MAX_RATIO, "MIN_BUDGET": zip_reader.MIN_BUDGET,
         "MAX_NPZ_BYTES": zip_reader.MAX_NPZ_BYTES, "MAX_NDIM": zip_reader.MAX_NDIM,
         "FLAME_MOTION_KEYS": [list(pair) for pair in MOTION_KEYS], "TABLE_POSE_COLUMNS": TABLE_POSE_COLUMNS,
+        "REST_FRAMES": translate_stream.REST_FRAMES,
         **wire.js_constants(),
     }
 

@@ -172,6 +172,12 @@ class WebPlayerPage:
                                                             "fps": fps}}
         return self.call(f"window.gtWeb.drive({json.dumps(request)})")
 
+    def stream_drive(self, audio: str | os.PathLike, chunk: int) -> dict:
+        """Make the page's drive by pushing an audio file through its streaming translator, `chunk` samples at a
+        time (at the speaker's rate), then ending the stream: {frames, ready (frames after each push), delay}."""
+        request = {"audio": self.serve(audio), "chunk": int(chunk)}
+        return self.call(f"window.gtWeb.streamDrive({json.dumps(request)})")
+
     def render(self, index: int, output: str = "uint8") -> tuple[np.ndarray, dict]:
         """Frame `index` of the drive: uint8 [H, W, 3] (output "float": float32), and its per-step timings (s)."""
         reply = self.call(f"window.gtWeb.render({int(index)}, {json.dumps(output)})")

@@ -2,6 +2,7 @@
 // player, makes a drive from an audio or motion URL, and renders frames, returning their RGB bytes as base64.
 
 import { readBundle } from '../src/bundle.js';
+import { decodeAudio } from '../src/drive.js';
 import { Player } from '../src/player.js';
 
 let player = null;
@@ -53,6 +54,18 @@ window.gtWeb = {
     else if (weights) drive = player.driveFromWeights(weights.rows, weights.fps);
     else drive = player.driveFromMotion(motion ? await fetchBytes(motion) : null, motion ?? 'motion');
     return { frames: drive.frames, translate: player.translateSeconds ?? null };
+  },
+
+  /** Audio through the streaming translator: the file decoded at the speaker's rate, pushed `chunk` samples at a
+   * time, then ended; the drive is the stream's. */
+  async streamDrive({ audio, chunk }) {
+    const samples = await decodeAudio(await fetchBytes(audio), player.sampleRate);
+    const stream = await player.openAudioStream();
+    const ready = [];
+    for (let i = 0; i < samples.length; i += chunk) ready.push(await stream.push(samples.subarray(i, i + chunk)));
+    await stream.end();
+    drive = stream.drive();
+    return { frames: drive.frames, ready, delay: stream.delay };
   },
 
   /** The drive's rows (FLAME: expression then jaw; ARKit: weights) as float32 base64, [frames, width]. */

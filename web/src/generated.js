@@ -45,6 +45,7 @@ export const MAX_NPZ_BYTES = 2147483648;
 export const MAX_NDIM = 32;
 export const FLAME_MOTION_KEYS = [["expr", null], ["rotation", 3], ["neck_pose", 3], ["jaw_pose", 3], ["eyes_pose", 6], ["translation", 3]];
 export const TABLE_POSE_COLUMNS = 18;
+export const REST_FRAMES = 32;
 export const WIRE_VERSION = 1;
 export const DRIVE_MAGIC = [71, 84, 76, 68];
 export const DRIVE_VERSION = 1;

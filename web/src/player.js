@@ -3,6 +3,8 @@
 //
 //   const player = await Player.load(bytes, { name: 'speaker.gtb', width: 512, height: 512 });
 //   const drive = await player.driveFromAudioFile(wavBytes);      // or driveFromMotion(file), driveFromAudio(...)
+//   const stream = await player.openAudioStream();                // or audio pushed as it arrives:
+//   await stream.push(samples); ... await stream.end();          //   stream.drive() holds the frames ready
 //   const frame = await player.renderFrame(drive, 0);             // {pixels: Uint8Array RGB, width, height, timings}
 //   await player.renderToCanvas(drive, 0, canvas);                 // the same frame drawn on a 2D canvas
 //   player.release();
@@ -20,6 +22,7 @@ import { flameMotionAtFps, flameMotionFromTable, parseFlameMotion, readFlameMoti
 import { ARKIT_BLENDSHAPES, TABLE_POSE_COLUMNS } from './generated.js';
 import { GraphBackendError, GraphSessions } from './graphs.js';
 import { RenderError, WebGLSplatter } from './splat.js';
+import { AudioStream } from './stream.js';
 
 export { AudioError, BundleError, Camera, DriveError, GraphBackendError, RenderError };
 
@@ -208,6 +211,18 @@ export class Player {
     const { rows, width, frames } = await translateAudio(run, audio, this.rig.samplesPerFrame, { paramsOf });
     this.translateSeconds = (performance.now() - start) / 1000;
     return this._drive(rows, width, frames);
+  }
+
+  /**
+   * Audio pushed as it arrives, through the bundle's streaming translator (docs/web.md, "Streaming audio"):
+   * `await stream.push(samples)` (mono float32 at `player.sampleRate`) and `await stream.end()` return the frames
+   * ready; `stream.drive()` is their drive. A DriveError for a bundle without a streaming graph.
+   */
+  async openAudioStream() {
+    const rowsOf = this.rig.kind === 'flame' ? (out) => flameParams(out, out.expression.dims[1])
+      : (out) => ({ rows: out.blendshapes.data, width: out.blendshapes.dims[2] });
+    return AudioStream.open(this.graphs, this.bundle, { rowsOf, rigSamplesPerFrame: this.rig.samplesPerFrame,
+      makeDrive: (rows, width, frames) => this._drive(rows, width, frames) });
   }
 
   /**

@@ -33,7 +33,7 @@ from .onnx_export import add_graph
 from .presets import ExportSettings, Preset, get_preset, group_of, parse_reference
 from .prune import apply_budget
 from .specialise import Specialisation, specialise
-from .translator_graph import translator_onnx
+from .translator_graph import translator_onnx, translator_stream_onnx
 from .voice_stream import stream_model_of
 
 DEFORM_INPUTS = ["expression", "flame_pose", "head_translation", "camera_center"]
@@ -170,6 +170,7 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
     elif spec is None or spec.has_translator:
         model = convert_precision(translator_onnx(speaker.translator, example_frames), settings.translator_precision)
         result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
+        _add_stream(writer, result, settings, translator_stream_onnx(speaker.translator))
     steps.update()
 
     steps.set_postfix_str("deformation graph")
@@ -246,7 +247,13 @@ def _add_audio_model(speaker: Speaker | ArkitSpeaker, writer: BundleWriter, resu
     source = onnx.load_from_string(speaker.audio_model)
     model = convert_precision(source, settings.translator_precision)
     result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
-    stream = stream_model_of(source)  # the built-in voice streams (docs/live.md); a user's own model does not
+    _add_stream(writer, result, settings, stream_model_of(source))  # a user's own model has none
+
+
+def _add_stream(writer: BundleWriter, result: ExportResult, settings: ExportSettings,
+                stream: onnx.ModelProto | None) -> None:
+    """The translator's streaming graph, if it has one (live sessions run it: docs/live.md, "Streaming
+    translators"), at the translator's precision; its weights are the translator's buffers, stored once."""
     if stream is not None:
         result.graphs[STREAM_GRAPH] = add_graph(writer, STREAM_GRAPH, convert_precision(
             stream, settings.translator_precision), settings.codec_for, share=True)

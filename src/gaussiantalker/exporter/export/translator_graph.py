@@ -8,6 +8,7 @@ import onnx
 import torch
 
 from ..model.translator import MotionTranslator, check_audio_length, count_parameters
+from ..model.translator_stream import MotionTranslatorStream
 from . import onnx_export  # the module, not its function: tests swap `onnx_export.export_onnx` for a replay
 
 # Largest audio length the exported graph accepts, in video frames (10 minutes at 25 fps).
@@ -34,3 +35,25 @@ def export_translator_onnx(model: MotionTranslator, path: str | Path, example_fr
     proto = translator_onnx(model, example_frames)
     large = count_parameters(model) * 4 > 1.5e9
     onnx.save_model(proto, str(path), save_as_external_data=large, location=Path(path).name + ".data")
+
+
+def translator_stream_onnx(model: MotionTranslator):
+    """The translator's streaming form (exporter/model/translator_stream.py) as an ONNX model proto, or None when
+    its feature encoder cannot stream on the frame grid.
+
+    Inputs "audio" [B, n, 640], "state" [B, S], "keep" [1] float32; outputs "expression" [B, n, n_expr], "jaw_pose"
+    [B, n, 3], "state_out" [B, S], "delay_frames" [1] int64. Batch and frames are dynamic (a live server stacks its
+    sessions on the batch axis)."""
+    try:
+        stream = MotionTranslatorStream(model.eval())
+    except ValueError:
+        return None
+    spf = model.samples_per_frame
+    example = (0.1 * torch.randn(2, 3, spf, generator=torch.Generator().manual_seed(0)),
+               torch.zeros(2, stream.state_size), torch.tensor([2.0]))
+    batch = torch.export.Dim("batch", min=1, max=4096)
+    frames = torch.export.Dim("frames", min=1, max=MAX_EXPORT_FRAMES)
+    return onnx_export.export_onnx(stream.eval(), example, ["audio", "state", "keep"],
+                                   ["expression", "jaw_pose", "state_out", "delay_frames"],
+                                   dynamic_shapes={"audio": {0: batch, 1: frames}, "state": {0: batch},
+                                                   "keep": None})

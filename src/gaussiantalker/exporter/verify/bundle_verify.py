@@ -38,6 +38,7 @@ import torch
 
 from gaussiantalker.runtime.composite import crop_box
 from gaussiantalker.runtime.head import TalkingHead
+from gaussiantalker.sdk.bundle import STREAM_GRAPH
 from gaussiantalker.sdk.drive import track_row
 from gaussiantalker.sdk.image import max_abs_error, psnr_db, to_uint8
 from gaussiantalker.sdk.progress import progress_bar
@@ -46,6 +47,7 @@ from ..export.probes import driven_clip, motion_clip, plays_audio, speech_clip
 from ..export.speech import synth_speech
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.speaker import Speaker
+from ..model.translator_stream import MotionTranslatorStream
 from .compositing import composite_reference
 from .random_inputs import random_blendshape_drives, random_crops, random_drives
 
@@ -144,6 +146,30 @@ def verify_translator(speaker: Speaker, head: TalkingHead, frame_counts=(25, 33)
         out = head.frame_renderer.graphs.run("translator", {"audio": audio[None]})
         stats.append(_compare(expression.numpy(), out["expression"]))
         stats.append(_compare(jaw.numpy(), out["jaw_pose"]))
+    return _merge(stats, tolerance)
+
+
+def verify_translator_stream(speaker: Speaker, head: TalkingHead, frames: int = 40, seed: int = 2,
+                             tolerance: float | None = GRAPH_RTOL) -> dict | None:
+    """The streaming translator graph vs its torch module (None where the bundle has none or the speaker has no
+    torch translator: the built-in voice's stream is built from its windowed graph, tests/test_voice_stream.py),
+    fed a speech-like clip in uneven calls, some with a provisional frame after them."""
+    if STREAM_GRAPH not in head.bundle.manifest["graphs"] or not plays_audio(speaker):
+        return None
+    module = MotionTranslatorStream(speaker.translator).eval()
+    spf = speaker.config.samples_per_frame
+    audio = speech_clip(speaker, frames, seed).reshape(frames, spf)
+    state = np.zeros((1, module.state_size), np.float32)
+    stats, position, sizes = [], 0, (1, 3, 2, 5)
+    while position < frames:
+        keep = min(sizes[len(stats) % len(sizes)], frames - position)
+        chunk = np.concatenate([audio[position:position + keep], np.zeros((len(stats) % 2, spf), np.float32)])
+        out = head.driver.run_stream(chunk[None], state, keep)
+        with torch.no_grad():
+            expected = module(torch.from_numpy(chunk[None]), torch.from_numpy(state), torch.tensor([float(keep)]))
+        stats += [_compare(value.numpy(), out[name]) for name, value in
+                  zip(("expression", "jaw_pose", "state_out"), expected[:3], strict=True)]
+        state, position = out["state_out"], position + keep
     return _merge(stats, tolerance)
 
 
@@ -336,6 +362,12 @@ def _agreement_cases(speaker: Speaker, head: TalkingHead, seed: int = 0) -> list
         for i, frames in enumerate((25, 33)):
             cases.append(("translator", {"audio": np.ascontiguousarray(speech_clip(speaker, frames, seed + i)[None],
                                                                        np.float32)}))
+        if STREAM_GRAPH in head.bundle.manifest["graphs"]:  # two sessions from rest, uneven calls
+            rest = np.stack([head.driver.stream_spec.rest_state] * 2)
+            spf = speaker.config.samples_per_frame
+            for frames, keep in ((3, 2), (1, 1)):
+                audio = speech_clip(speaker, 2 * frames, seed + frames).reshape(2, frames, spf)
+                cases.append((STREAM_GRAPH, {"audio": audio, "state": rest, "keep": np.array([keep], np.float32)}))
     center = head.camera.center.astype(np.float32)[None]
     for drive in _random_drives(speaker, 4, seed):
         cases.append(("deform", {**drive.graph_inputs(), "camera_center": center}))
@@ -389,6 +421,9 @@ def verify_bundle(speaker: Speaker, bundle_path, *, frames: int = 25, resolution
         head.bundle.verify_all()
         graphs = {"translator": verify_translator(speaker, head, tolerance=tolerances.graph_rtol),
                   "deform": verify_deformation(speaker, head, tolerance=tolerances.graph_rtol)}
+        stream = verify_translator_stream(speaker, head, tolerance=tolerances.graph_rtol)
+        if stream is not None:
+            graphs[STREAM_GRAPH] = stream
         frame_report = verify_frames(speaker, head, frames, tolerances=tolerances, progress=progress)
         views = verify_views(speaker, head, views=min(frames, len(VIEW_ORBITS)), tolerances=tolerances)
         composited = None

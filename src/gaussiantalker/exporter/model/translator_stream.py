@@ -1,0 +1,217 @@
+"""The Motion Translator's streaming form (docs/live.md, "Streaming translators"): state in, state out, the
+convolutional feature encoder run once per sample, the transformers over a fixed window.
+
+    audio [B, n, 640] (the next n frames of the session's timeline), state [B, S], keep [1] (float32, a whole
+    number: how many of the n frames are committed; the rest is provisional, e.g. zeros for lookahead not yet in)
+      -> expression [B, n, n_expr], jaw_pose [B, n, 3]: the rows of frames [P - delay, P - delay + n) (P: frames
+         committed before the call)
+      -> state_out [B, S]: the state after the first `keep` frames (provisional frames never enter it)
+      -> delay_frames [1] (int64)
+
+What a call computes is what the windowed graph computes in a live session (context frames of past, the frames,
+delay frames of lookahead: one window of context + delay + n frames), except where the windowed graph would
+recompute the past:
+
+* The feature encoder (7 strided convolutions, ~75% of a live window's cost) runs on each sample once. Each layer
+  keeps the last few inputs its kernel still needs (`ConvPlan`); a layer that reads past its input's end (the first
+  layer's kernel reads 2 samples into the next feature) makes its last outputs from zero padding, as the windowed
+  graph does at a window's end, and recomputes them from real inputs in the next call.
+* The normalisations the windowed graph takes over its whole window (the waveform's mean and variance, then the
+  first convolution's per-channel GroupNorm) come from per-frame statistics of the same window kept in the state,
+  combined exactly (Chan's pooled variance). They normalise the call's new samples; the kept features of earlier
+  frames keep the normalisation they were made with. That is the one approximation: its cost is measured on unseen
+  speech in docs/live.md.
+* The window's features (context + delay frames) are kept; the transformers (positional convolution, encoder,
+  decoder) run over the window of kept and new features, as the windowed graph's do, since their attention looks at
+  every frame of the window.
+
+`ConvPlan` derives each layer's kept inputs from its kernel, stride and padding, so any translator config whose
+layers align streams. The module is exported to ONNX beside the windowed graph (exporter/export/translator_graph.py).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from gaussiantalker.sdk.config import AUDIO_NORM_EPS, FEATURES_PER_FRAME
+
+from .translator import MotionTranslator, aligned_padding, conv_kernels
+
+# The live session's defaults (docs/live.md): one second of context, 160 ms of lookahead, at 25 fps.
+STREAM_CONTEXT_FRAMES = 25
+STREAM_DELAY_FRAMES = 4
+# Frames whose features each call makes again from their audio with the newest statistics: as many as the delay,
+# so a frame's features are kept only once the window reaches its own lookahead, as the windowed call that makes
+# its row sees it (docs/live.md, "The speaker's own translator", has what fewer cost).
+STREAM_REFRESH_FRAMES = STREAM_DELAY_FRAMES
+
+
+@dataclass(frozen=True)
+class LayerPlan:
+    """How one convolution streams: it keeps `keep` inputs, its input lags the frame grid by `lag_in` steps (its
+    last `lag_in` inputs are provisional), its outputs by `lag_out`; `right_pad` zeros end its input, as the
+    windowed graph's padding does."""
+
+    kernel: int
+    stride: int
+    keep: int
+    lag_in: int
+    lag_out: int
+    right_pad: int
+    rate_in: int  # inputs per video frame
+
+
+def conv_plan(kernels: tuple[int, ...], strides: tuple[int, ...], samples_per_frame: int) -> tuple[LayerPlan, ...]:
+    """Each layer's streaming plan. Output m reads inputs [s*m - p, s*m - p + k); a call that brings inputs up to
+    the grid position A + N - lag (exact) must give outputs up to A/s + N/s - lag_out exactly, so
+    lag_out = ceil((lag + k - p - s) / s) and the first output needs keep = s * lag_out + p - lag kept inputs.
+    Raises ValueError for a layer that cannot stream on the frame grid."""
+    plans, lag, rate = [], 0, samples_per_frame
+    for kernel, stride in zip(kernels, strides, strict=True):
+        pad = aligned_padding(kernel, stride)
+        lag_out = max(0, math.ceil((lag + kernel - pad - stride) / stride))
+        keep = stride * lag_out + pad - lag
+        if keep < 0 or rate % stride:
+            raise ValueError(f"a convolution (kernel {kernel}, stride {stride}) does not stream on the frame grid")
+        plans.append(LayerPlan(kernel, stride, keep, lag, lag_out, kernel - stride - pad, rate))
+        lag, rate = lag_out, rate // stride
+    return tuple(plans)
+
+
+def _pooled(means: torch.Tensor, variances: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and variance over the last axis's equal-sized groups, each weighted 1 (counted) or 0 (not), from each
+    group's own mean and variance (Chan's pooled form: no cancellation)."""
+    count = weights.sum()
+    mean = (means * weights).sum(dim=-1, keepdim=True) / count
+    spread = means - mean
+    return mean, ((variances + spread * spread) * weights).sum(dim=-1, keepdim=True) / count
+
+
+def _framed_stats(values: torch.Tensor, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """values [B, C, frames * r] -> per-frame mean and variance [B, C, frames]."""
+    framed = values.reshape(values.shape[0], values.shape[1], frames, -1)
+    mean = framed.mean(dim=-1)
+    centred = framed - mean.unsqueeze(-1)
+    return mean, (centred * centred).mean(dim=-1)
+
+
+def _take(buffer: torch.Tensor, start: torch.Tensor, length: int) -> torch.Tensor:
+    """buffer[..., start:start + length] with a tensor start (a Gather in the graph)."""
+    index = start + torch.arange(length, dtype=torch.int64, device=buffer.device)
+    return buffer.index_select(-1, index)
+
+
+class MotionTranslatorStream(nn.Module):
+    """A MotionTranslator fed a frame at a time (module docstring); `translator`'s weights, nothing of its own."""
+
+    def __init__(self, translator: MotionTranslator, context_frames: int = STREAM_CONTEXT_FRAMES,
+                 delay_frames: int = STREAM_DELAY_FRAMES, refresh_frames: int = STREAM_REFRESH_FRAMES) -> None:
+        super().__init__()
+        cfg = translator.cfg
+        self.translator = translator
+        self.context_frames, self.delay_frames = int(context_frames), int(delay_frames)
+        self.refresh_frames = int(refresh_frames)
+        if self.context_frames < 0 or self.delay_frames < 1 or not 0 <= self.refresh_frames <= self.context_frames:
+            raise ValueError("a stream needs context_frames >= 0, delay_frames >= 1 and refresh_frames in "
+                             "0..context_frames")
+        self.samples_per_frame = int(translator.samples_per_frame)
+        self.plans = conv_plan(conv_kernels(cfg.conv_strides), tuple(cfg.conv_strides), self.samples_per_frame)
+        self.feature_lag = self.plans[-1].lag_out
+        self.window_frames = self.context_frames + self.delay_frames  # frames of statistics and features kept
+        # features kept as made: those of the window's frames before the refreshed ones
+        self.window_features = FEATURES_PER_FRAME * (self.window_frames - self.refresh_frames) - self.feature_lag
+        if self.window_features < 0:
+            raise ValueError("the stream's window is shorter than its feature encoder's lag")
+        self.channels, self.dim = cfg.conv_channels, cfg.encoder_dim
+        first = translator.audio_encoder.feature_extractor.conv_layers[0]
+        self.conv0_rate = self.samples_per_frame // self.plans[0].stride  # first-layer outputs per frame
+        if first.layer_norm is None:
+            raise ValueError("the feature encoder's first convolution has no GroupNorm")
+        if any(layer.layer_norm is not None for layer in translator.audio_encoder.feature_extractor.conv_layers[1:]):
+            raise ValueError("only the feature encoder's first convolution may carry a GroupNorm")
+        self.group_norm_eps = float(first.layer_norm.eps)
+        self.state_parts = self._state_parts()
+        self.state_size = sum(math.prod(shape) for _, shape in self.state_parts)
+
+    def _state_parts(self) -> list[tuple[str, tuple[int, ...]]]:
+        """The flat state's parts in order, each [*shape] per session."""
+        w = self.window_frames
+        parts = [("audio_stats", (2, w)), ("conv0_stats", (2, self.channels, w)),
+                 ("refresh_audio", (1, self.refresh_frames * self.samples_per_frame))]
+        for i, plan in enumerate(self.plans):
+            parts.append((f"conv{i}", (1 if i == 0 else self.channels, plan.keep)))
+        parts.append(("features", (self.dim, self.window_features)))
+        return parts
+
+    def _split_state(self, state: torch.Tensor) -> dict[str, torch.Tensor]:
+        sizes = [math.prod(shape) for _, shape in self.state_parts]
+        pieces = torch.split(state, sizes, dim=1)
+        return {name: piece.reshape(state.shape[0], *shape)
+                for (name, shape), piece in zip(self.state_parts, pieces, strict=True)}
+
+    def forward(self, audio: torch.Tensor, state: torch.Tensor, keep: torch.Tensor):
+        batch, frames = audio.shape[0], audio.shape[1]
+        kept = self._split_state(state)
+        keep_frames = keep.reshape(1).to(torch.int64)
+        spf, refresh = self.samples_per_frame, self.refresh_frames
+        new_samples = audio.reshape(batch, 1, frames * spf)
+        samples = torch.cat([kept["refresh_audio"], new_samples], dim=-1)  # frames [P - refresh, P + n)
+        new_state = {"refresh_audio": _take(samples, keep_frames * spf, refresh * spf)}
+
+        # The waveform's mean and variance over the window (kept frames + new ones).
+        audio_mean, audio_var = _framed_stats(new_samples, frames)  # [B, 1, n]
+        means = torch.cat([kept["audio_stats"][:, 0:1], audio_mean], dim=-1)
+        variances = torch.cat([kept["audio_stats"][:, 1:2], audio_var], dim=-1)
+        # Statistics count the kept frames and the committed new ones: provisional zeros would skew them.
+        weights = torch.cat([torch.ones(self.window_frames), (torch.arange(frames) < keep_frames).to(audio.dtype)])
+        _, window_var = _pooled(means, variances, weights)
+        audio_scale = torch.rsqrt(window_var + AUDIO_NORM_EPS)  # [B, 1, 1]
+        new_stats = {"audio_stats": torch.cat([means, variances], dim=1)}
+
+        x = samples
+        for i, (plan, layer) in enumerate(zip(self.plans, self.translator.audio_encoder.feature_extractor.conv_layers,
+                                              strict=True)):
+            buffer = torch.cat([kept[f"conv{i}"], x], dim=-1)  # inputs from frame P - refresh on
+            new_state[f"conv{i}"] = _take(buffer, keep_frames * plan.rate_in, plan.keep)
+            if plan.right_pad:
+                buffer = F.pad(buffer, (0, plan.right_pad))
+            y = F.conv1d(buffer, layer.conv.weight, None, plan.stride)
+            if i == 0:
+                y = self._normalise_first(y, frames, audio_scale, weights, kept, new_stats, layer)
+            x = F.gelu(y)
+        encoder = self.translator.audio_encoder
+        features = encoder.feature_projection(encoder.feature_norm(x.transpose(1, 2)))  # [B, 2(r + n) + lag, D]
+        window = torch.cat([kept["features"], features.transpose(1, 2)], dim=-1)  # [B, D, 2 * (W + n)]
+        new_state["features"] = _take(window, keep_frames * FEATURES_PER_FRAME, self.window_features)
+        for name in ("audio_stats", "conv0_stats"):
+            new_state[name] = _take(new_stats[name], keep_frames, self.window_frames)
+
+        hidden = encoder.encoder(encoder.pos_conv_embed(window.transpose(1, 2)))
+        hidden = hidden + self.translator.identity.weight[self.translator.speaker_id]
+        params = self.translator.motion_decoder(hidden)  # [B, W + n, n_expr + 3]
+        rows = params[:, self.context_frames:self.context_frames + frames]
+        state_out = torch.cat([new_state[name].reshape(batch, -1) for name, _ in self.state_parts], dim=1)
+        n_expr = self.translator.n_expr
+        delay = torch.full((1,), self.delay_frames, dtype=torch.int64)
+        return rows[..., :n_expr], rows[..., n_expr:], state_out, delay
+
+    def _normalise_first(self, raw: torch.Tensor, frames: int, audio_scale: torch.Tensor, weights: torch.Tensor,
+                         kept: dict[str, torch.Tensor], new_stats: dict[str, torch.Tensor], layer) -> torch.Tensor:
+        """The first convolution's GroupNorm over the window, on the raw waveform's convolution: with the
+        waveform normalised as x' = (x - m) * a, conv(x') = a * (conv(x) - m * sum(w)), so GroupNorm(conv(x'))
+        = a * (conv(x) - mean) / sqrt(a^2 * var + eps) with conv(x)'s own per-channel mean and variance."""
+        # the new frames' outputs (the refreshed frames' statistics are kept); the last output read padding
+        exact = raw[..., self.refresh_frames * self.conv0_rate:(self.refresh_frames + frames) * self.conv0_rate]
+        conv_mean, conv_var = _framed_stats(exact, frames)  # [B, C, n]
+        means = torch.cat([kept["conv0_stats"][:, 0], conv_mean], dim=-1)
+        variances = torch.cat([kept["conv0_stats"][:, 1], conv_var], dim=-1)
+        new_stats["conv0_stats"] = torch.stack([means, variances], dim=1)
+        mean, var = _pooled(means, variances, weights)
+        normalised = audio_scale * (raw - mean) * torch.rsqrt(audio_scale * audio_scale * var + self.group_norm_eps)
+        norm = layer.layer_norm
+        return normalised * norm.weight[:, None] + norm.bias[:, None]

@@ -1,0 +1,169 @@
+"""`gt-bench translator-stream`: a speaker's Motion Translator streamed against its windowed live calls and its
+offline drive, on unseen speech, per number of refreshed frames; and what a frame costs each way (docs/live.md,
+"The speaker's own translator").
+
+Quality: each clip (the held-out espeak-ng clip and every real recording `.ci/install` fetched) goes through the
+torch modules as a live session would call them, a frame a call (or 8): the windowed translator on its window
+(1 s of context, the frames, 160 ms of lookahead, zeros before the clip), the streaming module from its rest state.
+Each is scored against the whole clip's offline drive: the mean correlation over the ten channels that move most
+offline. Cost: the exported graphs in onnxruntime on one thread, sessions stacked on the batch axis as the live
+server's pool stacks them, alternating, medians.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+BUSIEST = 10
+FRAME = 640
+
+
+def _busiest_r(got: np.ndarray, offline: np.ndarray) -> float:
+    variance = offline.var(axis=0)
+    busiest = [c for c in np.argsort(variance)[::-1][:BUSIEST] if variance[c] > 1e-8]
+    return float(np.mean([np.corrcoef(got[:, c], offline[:, c])[0, 1] for c in busiest]))
+
+
+def _offline(translator, audio: np.ndarray) -> np.ndarray:
+    with torch.no_grad():
+        expression, jaw = translator(torch.from_numpy(audio[None]))
+    return torch.cat([expression, jaw], -1)[0].numpy()
+
+
+def _windowed(translator, audio: np.ndarray, batch: int, context: int, delay: int) -> np.ndarray:
+    """Rows of a live session's windowed calls: for frames [p, p + batch), the window [p - context, p + batch +
+    delay), zeros outside the clip."""
+    frames = audio.shape[0] // FRAME
+    padded = np.concatenate([np.zeros(context * FRAME, np.float32), audio, np.zeros((delay + batch) * FRAME,
+                                                                                    np.float32)])
+    rows = []
+    with torch.no_grad():
+        for p in range(0, frames, batch):
+            window = padded[p * FRAME:(p + context + batch + delay) * FRAME]
+            expression, jaw = translator(torch.from_numpy(window[None]))
+            rows.append(torch.cat([expression, jaw], -1)[0, context:context + batch].numpy())
+    return np.concatenate(rows)[:frames]
+
+
+def _streamed(stream, audio: np.ndarray, batch: int) -> np.ndarray:
+    """Rows of the streaming module fed `batch` frames a call from its rest state (the delay's zeros after)."""
+    from gaussiantalker.runtime.translate_stream import REST_FRAMES
+
+    frames, delay = audio.shape[0] // FRAME, stream.delay_frames
+    fed = np.concatenate([audio, np.zeros((delay + batch) * FRAME, np.float32)]).reshape(-1, FRAME)
+    rows = []
+    with torch.no_grad():
+        state = stream(torch.zeros(1, REST_FRAMES, FRAME), torch.zeros(1, stream.state_size),
+                       torch.tensor([float(REST_FRAMES)]))[2]
+        for p in range(0, frames + delay, batch):
+            chunk = torch.from_numpy(fed[p:p + batch][None])
+            expression, jaw, state, _ = stream(chunk, state, torch.tensor([float(chunk.shape[1])]))
+            rows.append(torch.cat([expression, jaw], -1)[0].numpy())
+    return np.concatenate(rows)[delay:delay + frames]
+
+
+def unseen_clips() -> list[tuple[str, np.ndarray]]:
+    """(name, 16 kHz audio cut to whole frames): the held-out espeak-ng clip, then the fetched real recordings."""
+    from gaussiantalker.exporter.voice import real_speech
+    from gaussiantalker.exporter.voice.data import load_utterance
+
+    held_out = Path(__file__).resolve().parents[2] / "tests" / "data" / "voice_heldout"
+    clips = [("held-out espeak-ng", load_utterance(held_out).audio)]
+    clips += [(clip.id, clip.audio) for clip in real_speech.load()]
+    return [(name, audio[:audio.shape[0] // FRAME * FRAME].astype(np.float32)) for name, audio in clips]
+
+
+def run_quality(translator, refresh: list[int], batches: list[int]) -> dict:
+    """Per clip and mode, the busiest channels' r against offline; the means."""
+    from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream
+
+    translator = translator.eval()
+    streams = {r: MotionTranslatorStream(translator, refresh_frames=r).eval() for r in refresh}
+    first = next(iter(streams.values()))
+    context, delay = first.context_frames, first.delay_frames
+    modes = [f"windowed, {b} a call" for b in batches] + [f"stream, refresh {r}, {b} a call"
+                                                           for r in refresh for b in batches]
+    rows = []
+    for name, audio in unseen_clips():
+        offline = _offline(translator, audio)
+        scores = {f"windowed, {b} a call": _busiest_r(_windowed(translator, audio, b, context, delay), offline)
+                  for b in batches}
+        for r, stream in streams.items():
+            for b in batches:
+                scores[f"stream, refresh {r}, {b} a call"] = _busiest_r(_streamed(stream, audio, b), offline)
+        rows.append({"clip": name, "seconds": audio.shape[0] / 16000, "r": scores})
+    means = {mode: float(np.mean([row["r"][mode] for row in rows])) for mode in modes}
+    return {"modes": modes, "clips": rows, "mean_r": means, "context_frames": context, "delay_frames": delay}
+
+
+def run_cost(translator, refresh: list[int], cases: list[tuple[int, int]], rounds: int) -> list[dict]:
+    """Per (sessions B, frames a call n): ms a session-frame of the windowed graph (B calls of one window) and of
+    each streaming graph (one call, B stacked), onnxruntime on one thread, alternating rounds, medians."""
+    import onnxruntime as ort
+
+    from gaussiantalker.exporter.export.onnx_export import export_onnx
+    from gaussiantalker.exporter.export.translator_graph import translator_onnx
+    from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    windowed = ort.InferenceSession(translator_onnx(translator).SerializeToString(), options,
+                                    providers=["CPUExecutionProvider"])
+    streams = {}
+    for r in refresh:
+        module = MotionTranslatorStream(translator.eval(), refresh_frames=r).eval()
+        batch, frames = torch.export.Dim("batch", min=1, max=4096), torch.export.Dim("frames", min=1, max=4096)
+        example = (torch.zeros(2, 3, FRAME), torch.zeros(2, module.state_size), torch.tensor([2.0]))
+        proto = export_onnx(module, example, ["audio", "state", "keep"],
+                            ["expression", "jaw_pose", "state_out", "delay_frames"],
+                            {"audio": {0: batch, 1: frames}, "state": {0: batch}, "keep": None})
+        streams[r] = (ort.InferenceSession(proto.SerializeToString(), options, providers=["CPUExecutionProvider"]),
+                      module.state_size, module.context_frames + module.delay_frames)
+    rng = np.random.default_rng(0)
+    out = []
+    for sessions, n in cases:
+        timings: dict[str, list[float]] = {}
+        window_frames = next(iter(streams.values()))[2] + n
+        window = (0.1 * rng.standard_normal((1, window_frames * FRAME))).astype(np.float32)
+        audio = (0.1 * rng.standard_normal((sessions, n, FRAME))).astype(np.float32)
+        for _ in range(rounds):
+            start = time.perf_counter()
+            for _ in range(sessions):
+                windowed.run(None, {"audio": window})
+            timings.setdefault("windowed", []).append(time.perf_counter() - start)
+            for r, (session, size, _) in streams.items():
+                state = np.zeros((sessions, size), np.float32)
+                start = time.perf_counter()
+                session.run(None, {"audio": audio, "state": state, "keep": np.array([n], np.float32)})
+                timings.setdefault(f"stream, refresh {r}", []).append(time.perf_counter() - start)
+        per_frame = {mode: 1000 * float(np.median(t)) / (sessions * n) for mode, t in timings.items()}
+        out.append({"sessions": sessions, "frames_a_call": n, "ms_per_session_frame": per_frame})
+    return out
+
+
+def translator_stream_table(result: dict) -> str:
+    """The quality table (per clip, then the mean) and the cost table."""
+    quality, modes = result["quality"], result["quality"]["modes"]
+    lines = ["| clip | s | " + " | ".join(modes) + " |", "|---|---:|" + "---:|" * len(modes)]
+    for row in quality["clips"]:
+        lines.append(f"| {row['clip']} | {row['seconds']:.1f} | "
+                     + " | ".join(f"{row['r'][m]:.3f}" for m in modes) + " |")
+    lines.append("| **mean** | | " + " | ".join(f"**{quality['mean_r'][m]:.3f}**" for m in modes) + " |")
+    lines.append("")
+    lines.append(f"The ten channels that move most offline, their mean r against the whole clip's drive; a live "
+                 f"window holds {quality['context_frames']} frames of context and {quality['delay_frames']} of "
+                 "lookahead.")
+    cost_modes = list(result["cost"][0]["ms_per_session_frame"])
+    lines += ["", "| sessions | frames a call | " + " | ".join(f"{m} (ms a session-frame)" for m in cost_modes)
+              + " |", "|---:|---:|" + "---:|" * len(cost_modes)]
+    for row in result["cost"]:
+        values = row["ms_per_session_frame"]
+        base = values["windowed"]
+        lines.append(f"| {row['sessions']} | {row['frames_a_call']} | " + " | ".join(
+            f"{values[m]:.3f}" + ("" if m == "windowed" else f" ({base / values[m]:.1f}× less)") for m in cost_modes)
+            + " |")
+    return "\n".join(lines)
