@@ -1,5 +1,6 @@
-"""The Motion Translator's streaming form (docs/live.md, "Streaming translators"): state in, state out, the
-convolutional feature encoder run once per sample, the transformers over a fixed window.
+"""The Motion Translator's streaming form (docs/live.md, "The speaker's own translator"): state in, state out, the
+convolutional feature encoder run on each call's new frames and a few refreshed ones, the transformers over a fixed
+window.
 
     audio [B, n, 640] (the next n frames of the session's timeline), state [B, S], keep [1] (float32, a whole
     number: how many of the n frames are committed; the rest is provisional, e.g. zeros for lookahead not yet in)
@@ -12,20 +13,22 @@ What a call computes is what the windowed graph computes in a live session (cont
 delay frames of lookahead: one window of context + delay + n frames), except where the windowed graph would
 recompute the past:
 
-* The feature encoder (7 strided convolutions, ~75% of a live window's cost) runs on each sample once. Each layer
-  keeps the last few inputs its kernel still needs (`ConvPlan`); a layer that reads past its input's end (the first
-  layer's kernel reads 2 samples into the next feature) makes its last outputs from zero padding, as the windowed
-  graph does at a window's end, and recomputes them from real inputs in the next call.
+* The feature encoder (7 strided convolutions, ~75% of a live window's cost) runs on the call's new frames and
+  the last `refresh_frames` before them. Each layer keeps the last few inputs its kernel still needs (`conv_plan`);
+  a layer that reads past its input's end (the first layer's kernel reads 2 samples into the next feature) makes
+  its last outputs from zero padding, as the windowed graph does at a window's end, and recomputes them from real
+  inputs in the next call.
 * The normalisations the windowed graph takes over its whole window (the waveform's mean and variance, then the
   first convolution's per-channel GroupNorm) come from per-frame statistics of the same window kept in the state,
-  combined exactly (Chan's pooled variance). They normalise the call's new samples; the kept features of earlier
-  frames keep the normalisation they were made with. That is the one approximation: its cost is measured on unseen
-  speech in docs/live.md.
+  combined exactly (Chan's pooled variance). They normalise the new and refreshed frames; the kept features of
+  older frames keep the normalisation they were made with. That is the one approximation, measured on unseen
+  speech in docs/live.md (refreshing as many frames as the delay keeps a frame's features only once the window
+  reaches its lookahead, as the windowed call that makes its row sees it).
 * The window's features (context + delay frames) are kept; the transformers (positional convolution, encoder,
   decoder) run over the window of kept and new features, as the windowed graph's do, since their attention looks at
   every frame of the window.
 
-`ConvPlan` derives each layer's kept inputs from its kernel, stride and padding, so any translator config whose
+`conv_plan` derives each layer's kept inputs from its kernel, stride and padding, so any translator config whose
 layers align streams. The module is exported to ONNX beside the windowed graph (exporter/export/translator_graph.py).
 """
 
