@@ -489,6 +489,33 @@ def test_render_settings_match_the_python_runtime(player_ready, page, small_expo
     _check_frames(page, python_frames, indexes)
 
 
+def test_the_page_orbits_and_zooms_as_the_python_camera_does(player_ready, page, small_export):
+    """Camera.orbited (yaw about the camera's up axis, then pitch about its right axis, about a target) and a dolly
+    toward the target give the Python camera's R and t within 1e-9; the head centre is the median rest-pose
+    Gaussian of the Python runtime (`orbited_camera`), within 1e-5 m (float32 means)."""
+    from gaussiantalker.runtime import TalkingHead
+
+    page.load(small_export.path, size=SIZE)
+    with TalkingHead(small_export.path, resolution=SIZE) as head:
+        means = head.frame_renderer.deform(head.driver.drive())["means"]
+        centre = np.median(means.astype(np.float64), axis=0)
+        camera = head.camera
+    assert np.abs(np.array(page.call("window.gtWeb.headCentre()")) - centre).max() < 1e-5
+    for yaw, pitch, distance in ((30.0, 0.0, 1.0), (-75.0, 40.0, 0.6), (190.0, -10.0, 2.5)):
+        request = {"camera": camera.to_dict(), "yaw": yaw, "pitch": pitch, "target": centre.tolist(),
+                   "distance": distance}
+        got = page.call(f"window.gtWeb.orbit({json.dumps(request)})")
+        orbited = camera.orbited(yaw, pitch, centre)
+        eye = centre + distance * (orbited.center - centre)
+        assert np.abs(np.array(got["R"]) - orbited.R).max() < 1e-9
+        assert np.abs(np.array(got["t"]) + orbited.R @ eye).max() < 1e-9
+
+
+CANVAS_SUM = ("(() => { const c = document.getElementById('view'); const d = c.getContext('2d')"
+              ".getImageData(0, 0, c.width, c.height).data; let sum = 0; for (let i = 0; i < d.length; i++) "
+              "sum = (sum * 31 + d[i]) % 1000000007; return sum; })()")
+
+
 def _sample_page_status(browser, url: str) -> str:
     """Open samples/web/index.html at `url` and wait for its bundle (and drive) to load; its status text."""
     browser.navigate(url)
@@ -500,7 +527,8 @@ def _sample_page_status(browser, url: str) -> str:
 def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export, ga_bundle):
     """samples/web/index.html: a bundle and a WAV by URL, its audio streamed as it plays (the bundle has a streaming
     translator) and frames drawn on the audio clock (WebAudio allowed to start without a gesture, as a click would);
-    a FLAME avatar with its flame_param.npz as the motion, its first frame on the canvas."""
+    a FLAME avatar with its flame_param.npz as the motion, its first frame on the canvas, orbited and zoomed and
+    back (the same pixels)."""
     import time
 
     from tools.browser.chromium import Chromium
@@ -515,6 +543,11 @@ def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export, g
             page = f"{server.url}/web/samples/web/index.html"
             status = _sample_page_status(browser, f"{page}?bundle={avatar}&motion={params}")
             assert status.endswith("ready: 8 frames") and "flame speaker" in status, status
+            before = browser.evaluate(CANVAS_SUM)
+            browser.evaluate("window.gtSample.look({yaw: 60, distance: 0.7})")  # what a drag and a wheel do
+            orbited = browser.evaluate(CANVAS_SUM)
+            browser.evaluate("window.gtSample.look({yaw: 0, pitch: 0, distance: 1})")  # a double click
+            assert browser.evaluate(CANVAS_SUM) == before != orbited
             status = _sample_page_status(browser, f"{page}?bundle={bundle}&audio={audio}")
             assert status.endswith("ready: 250 frames, translated while they play (streaming)"), status
             browser.evaluate("window.gtSample.play()")

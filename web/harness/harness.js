@@ -2,6 +2,7 @@
 // player, makes a drive from an audio or motion URL, and renders frames, returning their RGB bytes as base64.
 
 import { readBundle } from '../src/bundle.js';
+import { Camera } from '../src/camera.js';
 import { decodeAudio } from '../src/drive.js';
 import { Player } from '../src/player.js';
 
@@ -73,6 +74,16 @@ window.gtWeb = {
     const rows = drive.rows;
     return { frames: drive.frames, width: drive.width,
       data: base64(new Uint8Array(rows.buffer, rows.byteOffset, rows.byteLength)) };
+  },
+
+  /** The player's camera swung about `target` and dollied (Camera.orbited, Camera.dollied): its dict. */
+  orbit({ camera, yaw, pitch, target, distance }) {
+    return Camera.fromDict(camera).orbited(yaw, pitch, target).dollied(distance, target).toDict();
+  },
+
+  /** The player's head centre (Player.headCentre). */
+  headCentre() {
+    return player.headCentre();
   },
 
   setCamera(camera) {

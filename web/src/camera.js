@@ -13,6 +13,21 @@ export class CameraError extends Error {
 
 const finite = (v) => typeof v === 'number' && Number.isFinite(v);
 
+const matvec = (M, v) => M.map((row) => row[0] * v[0] + row[1] * v[1] + row[2] * v[2]);
+const transpose = (M) => [0, 1, 2].map((j) => M.map((row) => row[j]));
+const matmul = (A, B) => A.map((row) => [0, 1, 2].map((j) => row[0] * B[0][j] + row[1] * B[1][j] + row[2] * B[2][j]));
+
+/** [3][3] rotation by `angle` radians about `axis` (normalised; Rodrigues, as sdk/camera.py `_axis_rotation`). */
+function axisRotation(axis, angle) {
+  const n = Math.hypot(...axis);
+  const [x, y, z] = axis.map((v) => v / n);
+  const k = [[0, -z, y], [z, 0, -x], [-y, x, 0]];
+  const kk = matmul(k, k);
+  const s = Math.sin(angle);
+  const c = 1 - Math.cos(angle);
+  return [0, 1, 2].map((i) => [0, 1, 2].map((j) => (i === j ? 1 : 0) + s * k[i][j] + c * kk[i][j]));
+}
+
 export class Camera {
   /** `R` 3x3 rows, `t` [3]. */
   constructor({ width, height, fx, fy, cx, cy, R, t, near = DEFAULT_NEAR }) {
@@ -55,6 +70,32 @@ export class Camera {
   center() {
     const { R, t } = this;
     return [0, 1, 2].map((j) => -(R[0][j] * t[0] + R[1][j] * t[1] + R[2][j] * t[2]));
+  }
+
+  /** This camera swung around `target` [3]: by yaw about its own up axis, then by pitch about its right axis, same
+   * intrinsics and distance (`Camera.orbited`): a novel view of what it looks at. */
+  orbited(yawDeg, pitchDeg, target) {
+    if (![yawDeg, pitchDeg, ...target].every(finite) || target.length !== 3) {
+      throw new CameraError('orbit yaw, pitch and target must be finite numbers (target: 3)');
+    }
+    let turn = axisRotation(this.R[1].map((v) => -v), yawDeg * Math.PI / 180);
+    turn = matmul(axisRotation(matvec(turn, this.R[0]), pitchDeg * Math.PI / 180), turn);
+    const c = this.center();
+    const offset = matvec(turn, [0, 1, 2].map((k) => c[k] - target[k]));
+    const eye = [0, 1, 2].map((k) => target[k] + offset[k]);
+    const R = matmul(this.R, transpose(turn));
+    return new Camera({ ...this.toDict(), R, t: matvec(R, eye).map((v) => -v) });
+  }
+
+  /** This camera moved along its view toward `target` [3] (factor < 1) or away (> 1): a zoom that keeps the
+   * intrinsics. */
+  dollied(factor, target) {
+    if (!(finite(factor) && factor > 0) || target.length !== 3 || !target.every(finite)) {
+      throw new CameraError('dolly factor must be a finite number > 0 and target 3 finite numbers');
+    }
+    const c = this.center();
+    const eye = [0, 1, 2].map((k) => target[k] + factor * (c[k] - target[k]));
+    return new Camera({ ...this.toDict(), t: matvec(this.R, eye).map((v) => -v) });
   }
 
   /** (x_min, x_max, y_min, y_max) of x/z and y/z before the projection Jacobian (docs/numerics.md). */

@@ -189,6 +189,28 @@ export class Player {
     this.camera = c;
   }
 
+  /** The head's centre [3]: the median of its rest-pose Gaussians (the point the Python runtime's
+   * `orbited_camera` swings about); orbit with `player.setCamera(player.camera.orbited(yaw, pitch, centre))`. */
+  async headCentre() {
+    const names = this.rig.names ?? ARKIT_BLENDSHAPES;
+    const width = this.rig.kind === 'flame' ? this.rig.nExpr + 3 : names.length;
+    const rest = new Drive({ rig: this.rig.kind, rows: new Float32Array(width), width, frames: 1, rigNames: names });
+    const { data } = (await this.graphs.run('deform', rest.graphInputs(0, this.camera.center()))).means;
+    const centre = [0, 1, 2].map((axis) => {
+      const values = [];
+      for (let i = 0; i + 2 < data.length; i += 3) {
+        if (Number.isFinite(data[i]) && Number.isFinite(data[i + 1]) && Number.isFinite(data[i + 2])) {
+          values.push(data[i + axis]);
+        }
+      }
+      values.sort((a, b) => a - b);
+      const mid = values.length >> 1;
+      return values.length % 2 ? values[mid] : (values[mid - 1] + values[mid]) / 2;
+    });
+    if (!centre.every(Number.isFinite)) throw new RenderError('the rest pose has no finite Gaussian to orbit about');
+    return centre;
+  }
+
   /** The drive of an audio clip: mono float32 `samples` at `sampleRate` (resampled to the speaker's rate). */
   async driveFromAudio(samples, sampleRate) {
     const audio = await resampleAudio(samples, sampleRate, this.sampleRate);
