@@ -175,3 +175,12 @@ def test_the_bench_compares_the_stream_with_the_windowed_calls(small_speaker, mo
     assert set(cost[0]["ms_per_session_frame"]) == {"windowed", "stream, refresh 4"}
     table = bench.translator_stream_table({"quality": quality, "cost": cost})
     assert "| held-out |" in table and "| 2 | 1 |" in table and "× less" in table
+
+
+def test_the_stream_gets_its_onnxruntime_session_on_first_use(small_export):
+    """Opening a bundle checks the streaming graph with the others but builds its session only when a live session
+    first runs it: offline rendering never pays for it."""
+    driver = open_driver(small_export.path)
+    assert driver.has_stream and STREAM_GRAPH not in driver.graphs.sessions
+    assert driver.stream_spec.delay == 4  # the first call
+    assert STREAM_GRAPH in driver.graphs.sessions

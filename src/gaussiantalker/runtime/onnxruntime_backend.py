@@ -4,16 +4,18 @@ A bundle's graphs hold no weights: each weight is a bundle buffer (decoded by it
 an external initializer, so ORT still constant-folds and pre-packs it like an inline weight. Before onnxruntime
 sees a graph, every graph and buffer is read and checksummed and checked against the manifest
 (runtime/bundle_checks.py): onnxruntime would otherwise go looking on disk for external data the bundle does not
-supply.
+supply. A graph only live sessions run (the streaming translator) is checked with the rest but gets its session on
+first use.
 """
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
 
-from gaussiantalker.sdk.bundle import Bundle
+from gaussiantalker.sdk.bundle import STREAM_GRAPH, Bundle
 from gaussiantalker.sdk.errors import BundleError
 
 from .bundle_checks import (
@@ -27,6 +29,9 @@ from .bundle_checks import (
 # The most of onnxruntime's reason a BundleError quotes (its messages carry C++ signatures and may span lines; a
 # refusal is one line, docs/untrusted-input.md).
 MAX_REASON_CHARS = 400
+# Graphs only some uses run (a live session streams; offline rendering never does): read and checked with the
+# others, their session opened on first use (the demo speaker's stream: 90 ms of a 430 ms open).
+ON_FIRST_USE = (STREAM_GRAPH,)
 
 
 @dataclass
@@ -51,7 +56,10 @@ class OnnxRuntimeBackend:
             check_speaker_bundle(bundle)
         # Everything is read and checked before the first session is built: damage anywhere fails fast.
         loaded = {name: _load_graph(bundle, name) for name in bundle.graph_names()}
-        self.sessions = {name: self._open(bundle, name, graph) for name, graph in loaded.items()}
+        self._waiting = {name: graph for name, graph in loaded.items() if name in ON_FIRST_USE}
+        self._opening = threading.Lock()  # a live server's pool threads may ask for one at once
+        self.sessions = {name: self._open(bundle, name, graph) for name, graph in loaded.items()
+                         if name not in ON_FIRST_USE}
         if speaker:  # after check_signature: the declared shapes are now known to be the graphs' own
             check_expression_width(bundle)
 
@@ -77,9 +85,15 @@ class OnnxRuntimeBackend:
     def run(self, graph: str, inputs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Run `graph` on `inputs` (name -> array); every output by name."""
         session = self.sessions.get(graph)
+        if session is None and graph in self._waiting:
+            with self._opening:
+                if graph in self._waiting:
+                    self.sessions[graph] = self._open(self.bundle, graph, self._waiting[graph])
+                    del self._waiting[graph]
+            session = self.sessions[graph]
         if session is None:
             raise BundleError(f"{self.bundle.path}: bundle has no graph {graph!r} (it holds: "
-                              f"{', '.join(sorted(self.sessions)) or 'no graphs'})")
+                              f"{', '.join(sorted(self.bundle.graph_names())) or 'no graphs'})")
         names = [o.name for o in session.get_outputs()]
         return dict(zip(names, session.run(names, inputs), strict=True))
 
