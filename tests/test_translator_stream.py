@@ -26,6 +26,7 @@ from gaussiantalker.runtime import LiveSession
 from gaussiantalker.runtime.stages import open_driver
 from gaussiantalker.runtime.translate_stream import REST_FRAMES
 from gaussiantalker.sdk.bundle import STREAM_GRAPH, Bundle
+from tools.bench.translator_stream import busiest_r
 
 FRAME = 640
 
@@ -116,13 +117,6 @@ def test_the_bundle_graph_is_its_torch_module(small_export):
         state = out["state_out"]
 
 
-def _busiest_r(got: np.ndarray, reference: np.ndarray, channels: int = 10) -> float:
-    """Mean correlation over the reference's busiest channels (largest variance; constant ones never count)."""
-    variance = reference.var(axis=0)
-    busiest = [c for c in np.argsort(variance)[::-1][:channels] if variance[c] > 1e-8]
-    return float(np.mean([np.corrcoef(got[:, c], reference[:, c])[0, 1] for c in busiest]))
-
-
 def _live_rows(driver, audio: np.ndarray, streaming: bool, **options) -> tuple[np.ndarray, LiveSession]:
     """A free-running session fed `audio` in uneven chunks then flushed: every frame's expression and jaw."""
     frames = []
@@ -152,8 +146,8 @@ def test_live_sessions_stream_the_speakers_translator(small_export, batch_frames
         assert live._stream is not None and streamed.shape == windowed.shape
         offline = np.stack([_row(drive) for drive in driver.drives(audio, 16000)])
         count = min(offline.shape[0], streamed.shape[0])
-        live_r = _busiest_r(streamed, windowed)
-        stream_offline, windowed_offline = (_busiest_r(rows[:count], offline[:count]) for rows in (streamed, windowed))
+        live_r = busiest_r(streamed, windowed)
+        stream_offline, windowed_offline = (busiest_r(rows[:count], offline[:count]) for rows in (streamed, windowed))
         print(f"batch {batch_frames}: stream~windowed live r {live_r:.3f}; against offline: stream "
               f"{stream_offline:.3f}, windowed live {windowed_offline:.3f}")
         assert live_r >= 0.85

@@ -22,10 +22,11 @@ BUSIEST = 10
 FRAME = 640
 
 
-def _busiest_r(got: np.ndarray, offline: np.ndarray) -> float:
-    variance = offline.var(axis=0)
-    busiest = [c for c in np.argsort(variance)[::-1][:BUSIEST] if variance[c] > 1e-8]
-    return float(np.mean([np.corrcoef(got[:, c], offline[:, c])[0, 1] for c in busiest]))
+def busiest_r(got: np.ndarray, reference: np.ndarray, channels: int = BUSIEST) -> float:
+    """Mean correlation over the reference's busiest channels (largest variance; constant ones never count)."""
+    variance = reference.var(axis=0)
+    busiest = [c for c in np.argsort(variance)[::-1][:channels] if variance[c] > 1e-8]
+    return float(np.mean([np.corrcoef(got[:, c], reference[:, c])[0, 1] for c in busiest]))
 
 
 def _offline(translator, audio: np.ndarray) -> np.ndarray:
@@ -90,11 +91,11 @@ def run_quality(translator, refresh: list[int], batches: list[int]) -> dict:
     rows = []
     for name, audio in unseen_clips():
         offline = _offline(translator, audio)
-        scores = {f"windowed, {b} a call": _busiest_r(_windowed(translator, audio, b, context, delay), offline)
+        scores = {f"windowed, {b} a call": busiest_r(_windowed(translator, audio, b, context, delay), offline)
                   for b in batches}
         for r, stream in streams.items():
             for b in batches:
-                scores[f"stream, refresh {r}, {b} a call"] = _busiest_r(_streamed(stream, audio, b), offline)
+                scores[f"stream, refresh {r}, {b} a call"] = busiest_r(_streamed(stream, audio, b), offline)
         rows.append({"clip": name, "seconds": audio.shape[0] / 16000, "r": scores})
     means = {mode: float(np.mean([row["r"][mode] for row in rows])) for mode in modes}
     return {"modes": modes, "clips": rows, "mean_r": means, "context_frames": context, "delay_frames": delay}
@@ -105,8 +106,7 @@ def run_cost(translator, refresh: list[int], cases: list[tuple[int, int]], round
     each streaming graph (one call, B stacked), onnxruntime on one thread, alternating rounds, medians."""
     import onnxruntime as ort
 
-    from gaussiantalker.exporter.export.onnx_export import export_onnx
-    from gaussiantalker.exporter.export.translator_graph import translator_onnx
+    from gaussiantalker.exporter.export.translator_graph import translator_onnx, translator_stream_onnx
     from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream
 
     options = ort.SessionOptions()
@@ -115,12 +115,8 @@ def run_cost(translator, refresh: list[int], cases: list[tuple[int, int]], round
                                     providers=["CPUExecutionProvider"])
     streams = {}
     for r in refresh:
-        module = MotionTranslatorStream(translator.eval(), refresh_frames=r).eval()
-        batch, frames = torch.export.Dim("batch", min=1, max=4096), torch.export.Dim("frames", min=1, max=4096)
-        example = (torch.zeros(2, 3, FRAME), torch.zeros(2, module.state_size), torch.tensor([2.0]))
-        proto = export_onnx(module, example, ["audio", "state", "keep"],
-                            ["expression", "jaw_pose", "state_out", "delay_frames"],
-                            {"audio": {0: batch, 1: frames}, "state": {0: batch}, "keep": None})
+        module = MotionTranslatorStream(translator.eval(), refresh_frames=r)
+        proto = translator_stream_onnx(translator, refresh_frames=r)
         streams[r] = (ort.InferenceSession(proto.SerializeToString(), options, providers=["CPUExecutionProvider"]),
                       module.state_size, module.context_frames + module.delay_frames)
     rng = np.random.default_rng(0)
