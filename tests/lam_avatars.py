@@ -66,6 +66,7 @@ class AvatarSpec:
     skip: tuple[str, ...] = ()
     vertex_order_length: int | None = None
     extra_names: tuple[str, ...] = ()
+    neck_below: float | None = None  # vertices lower than this (m, from HEAD_CENTRE) skinned to the neck, not the head
 
 
 def rest_vertices(spec: AvatarSpec) -> np.ndarray:
@@ -174,11 +175,17 @@ def skin_glb(spec: AvatarSpec) -> bytes:
     deltas = morph_deltas(spec)
     targets = [{"POSITION": glb.sparse_accessor(deltas.get(name, np.zeros_like(rest)))} for name in names]
     count = rest.shape[0]
-    joints = glb.view(np.tile(np.array([2, 0, 0, 0], np.uint16), (count, 1)).tobytes())
-    glb.doc["accessors"].append({"bufferView": joints, "componentType": 5123, "count": count, "type": "VEC4"})
+    skin_joint = np.full(count, 2, np.uint16)  # skin joint 2, the head
+    if spec.neck_below is not None:
+        skin_joint[rest[:, 1] - HEAD_CENTRE[1] < spec.neck_below] = 1  # the neck
+    if "joint index" in spec.skip:
+        skin_joint[0] = 7  # the skin has 3 joints
+    joints_view = glb.view(np.stack([skin_joint] + [np.zeros(count, np.uint16)] * 3, 1).tobytes())
+    glb.doc["accessors"].append({"bufferView": joints_view, "componentType": 5123, "count": count, "type": "VEC4"})
+    joints = len(glb.doc["accessors"]) - 1
     weights = glb.accessor(np.tile([1.0, 0.0, 0.0, 0.0], (count, 1)), "VEC4")
-    primitive = {"attributes": {"POSITION": glb.accessor(rest, "VEC3"), "JOINTS_0": len(glb.doc["accessors"]) - 2,
-                                "WEIGHTS_0": weights}, "targets": targets}
+    primitive = {"attributes": {"POSITION": glb.accessor(rest, "VEC3"), "JOINTS_0": joints, "WEIGHTS_0": weights},
+                 "targets": targets}
     inverse_bind = np.stack([np.linalg.inv(m).T for m in rest_worlds()])  # column-major, as glTF stores them
     nodes = _skeleton_nodes()
     nodes[0]["children"] = [1, 4]

@@ -31,6 +31,8 @@
                            (bench/pipeline_vs_serial.py)
     gt-bench blend-limit   the CPU splatter's blend: its work counts and time per fragment against the same
                            kernel at full occupancy (bench/blend_limit.py)
+    gt-bench framing       imported avatars' head box in the frame, source camera against portrait framing
+                           (bench/framing.py)
     gt-bench translator-stream  a speaker's Motion Translator streamed against its windowed live calls and offline
                            drive on unseen speech, and a session-frame's cost each way (bench/translator_stream.py)
 
@@ -557,6 +559,26 @@ def translator_stream(
     typer.echo(table)
     _write_report(out, "translator-stream", "The Motion Translator streamed: quality and cost", result, table,
                   f"; torch modules for quality, onnxruntime on one thread for cost ({rounds} alternating rounds).")
+
+
+@app.command("framing")
+def framing(
+    avatars: list[Path] = typer.Argument(..., help="LAM avatar zips and GaussianAvatars output folders"),
+    flame: Path = typer.Option(None, "--flame", help="the FLAME model (.pkl or npz) of the GaussianAvatars folders"),
+    out: Path = typer.Option(None, "--out", help="folder for framing.md, framing.json and a PNG per avatar"),
+) -> None:
+    """Imported avatars in their bundle's frame: the source's camera against portrait framing (docs/import.md)."""
+    from .framing import framing_table, run_framing
+
+    for path in avatars:
+        if not path.exists() or (path.is_dir() and flame is None):
+            raise typer.BadParameter(f"{path}: no such avatar, or a GaussianAvatars folder without --flame",
+                                     param_hint="AVATARS")
+    result = _stamp(run_framing(avatars, flame, out))
+    table = framing_table(result)
+    typer.echo(table)
+    _write_report(out, "framing", "Imported avatars' framing: source camera and portrait", result, table,
+                  "; rest pose, 512x512, the runtime's frames (PNGs: source left, portrait right).")
 
 
 @app.command("web-presets")

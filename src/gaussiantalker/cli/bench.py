@@ -12,7 +12,8 @@ from .extras import require_export_extra
 # it checked them, each with the subcommand it is now and the options that mode read (the others it ignored).
 BENCH_COMMANDS = ("frames", "sweep", "compare", "composite", "backends", "video", "clip-codecs", "clip-crf", "lam-web",
                   "avatar", "surface", "early-stop", "live", "live-clients", "renderers", "pipeline", "web-presets",
-                  "live-batching", "blend-limit", "serve-attacks", "batch", "voice", "translator-stream")
+                  "live-batching", "blend-limit", "serve-attacks", "batch", "voice", "translator-stream",
+                  "framing")
 LEGACY_BENCH_MODES = (
     ("--backends", "backends", ("--checkpoint", "--sizes", "--seconds", "--rounds", "--out")),
     ("--composite", "composite", ("--checkpoint", "--seconds", "--rounds", "--out")),

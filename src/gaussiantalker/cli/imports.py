@@ -40,6 +40,9 @@ def lam(
                                      "at 30 fps; docs/import.md)"),
     no_voice: bool = typer.Option(False, "--no-voice", help="attach no audio model: motion files drive the avatar, "
                                   "audio does not [default: the built-in voice driver, docs/voice.md]"),
+    camera: str = typer.Option("portrait", "--camera", help="the bundle's camera: portrait (the head's box "
+                               "47.5% of the frame's height, centred, docs/import.md) or source (LAM's renderer's "
+                               "fixed camera)"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
 ) -> None:
     """Import a LAM avatar (an ARKit speaker: 52 blendshape weights drive it; docs/import.md)."""
@@ -51,12 +54,13 @@ def lam(
     if covariance not in COVARIANCE_MODES:
         raise typer.BadParameter(f"--covariance must be one of {', '.join(COVARIANCE_MODES)}, got {covariance!r}")
     _check_voice_options(audio_model, no_voice)
+    _check_camera(camera)
     output = output or avatar.with_suffix(".ckpt")
     start = time.perf_counter()
     try:
         model = None if audio_model is None else load_audio_model(audio_model)  # a bad model fails first
         speaker = import_lam(avatar, LamOptions(clip=clip, renderer_weight_scale=not raw_weights,
-                                                covariance=covariance), progress=not quiet)
+                                                covariance=covariance, camera=camera), progress=not quiet)
         if model is None and not no_voice:
             model = builtin_audio_model(speaker)
         speaker.audio_model = model
@@ -93,6 +97,9 @@ def gaussian_avatars(
     no_voice: bool = typer.Option(False, "--no-voice", help="attach no audio model: FLAME parameters and motion "
                                   "files drive the avatar, audio does not [default: the built-in voice driver with "
                                   "its expressions fitted on your FLAME, docs/voice.md]"),
+    camera: str = typer.Option("portrait", "--camera", help="the bundle's camera: portrait (the head's box 47.5% of "
+                               "the frame's height, centred, docs/import.md) or source (GaussianAvatars' viewer: the "
+                               "mesh at 80% of the height)"),
 ) -> None:
     """Import a GaussianAvatars avatar (a FLAME speaker: FLAME parameters or its tracked motion drive it)."""
     from gaussiantalker.exporter.export.checkpoint import save_checkpoint
@@ -102,6 +109,7 @@ def gaussian_avatars(
     from gaussiantalker.exporter.voice.attach import builtin_audio_model
 
     _check_voice_options(audio_model, no_voice)
+    _check_camera(camera)
     try:
         colour = tuple(float(c) for c in background.split(","))
     except ValueError:
@@ -115,7 +123,7 @@ def gaussian_avatars(
     try:
         model = None if audio_model is None else load_audio_model(audio_model, flame_outputs(GA_N_EXPR))
         speaker = import_gaussian_avatars(avatar, flame_model, GaussianAvatarsOptions(
-            iteration=iteration, fps=fps, resolution=resolution, background=colour))
+            iteration=iteration, fps=fps, resolution=resolution, background=colour, camera=camera))
         if model is None and not no_voice:
             model = builtin_audio_model(speaker)
         speaker.audio_model = model
@@ -168,6 +176,14 @@ def _check_voice_options(audio_model: Path | None, no_voice: bool) -> None:
     """--audio-model and --no-voice contradict each other."""
     if audio_model is not None and no_voice:
         raise typer.BadParameter("give --audio-model (attach that model) or --no-voice (attach none), not both")
+
+
+def _check_camera(camera: str) -> None:
+    """--camera names a framing."""
+    from gaussiantalker.exporter.imports.portrait import CAMERA_CHOICES
+
+    if camera not in CAMERA_CHOICES:
+        raise typer.BadParameter(f"--camera must be one of {', '.join(CAMERA_CHOICES)}, got {camera!r}")
 
 
 def _attached(audio_model: Path | None, model: bytes | None) -> str:

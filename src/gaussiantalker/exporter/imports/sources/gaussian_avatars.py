@@ -29,13 +29,14 @@ from gaussiantalker.sdk.rig import SCALED_TRIANGLE_BINDING
 from ...model.flame import FlameArrays
 from ...model.speaker import Speaker
 from ..formats.gaussian_ply import read_gaussian_ply
+from ..portrait import CAMERA_CHOICES, head_box, portrait_camera
 from .gaussian_avatars_flame import GA_N_EXPR, GA_N_SHAPE, fold_static_offset, load_gaussian_avatars_flame
 
 PLY_NAME = "point_cloud.ply"
 PARAMS_NAME = "flame_param.npz"
 ITERATION_DIR = re.compile(r"iteration_(\d+)\Z")
-# The default camera: GaussianAvatars' viewer's vertical field of view, framing the first tracked frame's head
-# (FLAME's frame: y up, the face toward +z) so that its height fills HEAD_FILL of the image.
+# The source camera (`--camera source`): GaussianAvatars' viewer's vertical field of view, framing the first tracked
+# frame's mesh (FLAME's frame: y up, the face toward +z) so that its height fills HEAD_FILL of the image.
 CAMERA_FOV_DEG = 20.0
 HEAD_FILL = 0.8
 DEFAULT_RESOLUTION = 512
@@ -53,6 +54,7 @@ class GaussianAvatarsOptions:
     fps: float = DEFAULT_FPS
     resolution: int = DEFAULT_RESOLUTION
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    camera: str = "portrait"  # or "source": GaussianAvatars' viewer's framing
 
 
 def find_avatar(path: str | os.PathLike, iteration: int | None = None) -> Path:
@@ -140,12 +142,33 @@ def _bounded(values: np.ndarray) -> bool:
     return bool(np.isfinite(values).all() and (values.size == 0 or np.abs(values).max() <= MAX_DRIVE_MAGNITUDE))
 
 
-def avatar_camera(speaker: Speaker, resolution: int) -> Camera:
-    """A front camera (from +z, y up) on the first tracked frame's head, its height HEAD_FILL of the image."""
+def first_frame_vertices(speaker: Speaker) -> np.ndarray:
+    """The mesh [V, 3] of the first tracked frame."""
     with torch.no_grad():
         drive = speaker.motion_drive(0)
         inputs = drive.graph_inputs()
-        vertices = speaker.vertices(*(torch.from_numpy(inputs[k]) for k in speaker.drive_inputs))[0].numpy()
+        return speaker.vertices(*(torch.from_numpy(inputs[k]) for k in speaker.drive_inputs))[0].numpy()
+
+
+def head_vertices(arrays: FlameArrays) -> np.ndarray:
+    """Which vertices FLAME's skinning moves mostly (over half their weight) with the neck joint and the joints
+    below it (jaw, eyes): the head, not the base of the neck, which follows the root."""
+    weights = arrays.lbs_weights.astype(np.float64)
+    return weights[:, 1:].sum(axis=1) > weights[:, 0]
+
+
+def first_frame_head_box(speaker: Speaker) -> tuple[np.ndarray, np.ndarray]:
+    """The head's box (docs/import.md, "Portrait framing") of the first tracked frame's head vertices (all of them
+    when the skinning puts none on the head)."""
+    vertices = first_frame_vertices(speaker)
+    on_head = head_vertices(speaker.flame_arrays)
+    return head_box(vertices[on_head] if on_head.any() else vertices)
+
+
+def avatar_camera(speaker: Speaker, resolution: int) -> Camera:
+    """GaussianAvatars' viewer's framing (`--camera source`): a front camera (from +z, y up) on the first tracked
+    frame's mesh, its height HEAD_FILL of the image."""
+    vertices = first_frame_vertices(speaker)
     low, high = vertices.min(0), vertices.max(0)
     centre = (low + high) / 2.0
     half_height = max(float(high[1] - low[1]), 1e-6) / 2.0 / HEAD_FILL
@@ -159,6 +182,8 @@ def import_gaussian_avatars(path: str | os.PathLike, flame: str | os.PathLike | 
     """Read a GaussianAvatars avatar with the user's FLAME model (`flame`: its .pkl or npz, or arrays already
     loaded with the teeth) into a Speaker; ImportFormatError / CheckpointError naming what is wrong."""
     options = options or GaussianAvatarsOptions()
+    if options.camera not in CAMERA_CHOICES:
+        raise ValueError(f"camera must be one of {', '.join(CAMERA_CHOICES)}, got {options.camera!r}")
     folder = find_avatar(path, options.iteration)
     arrays = flame if isinstance(flame, FlameArrays) else load_gaussian_avatars_flame(flame)
     shape, offset, motion = read_flame_params(folder / PARAMS_NAME, arrays.n_vertices, options.fps)
@@ -175,12 +200,15 @@ def import_gaussian_avatars(path: str | os.PathLike, flame: str | os.PathLike | 
                       options.background, torch.from_numpy(pose_track), translator=False,
                       motion_track=torch.from_numpy(motion.table))
     _set_gaussians(speaker, cloud)
+    low, high = first_frame_head_box(speaker)
     try:
-        speaker.camera = avatar_camera(speaker, options.resolution)
+        speaker.camera = avatar_camera(speaker, options.resolution) if options.camera == "source" else \
+            portrait_camera(low, high, options.resolution, options.resolution)
     except CameraError as exc:
         raise ImportFormatError(f"{folder}: no default camera frames the first tracked frame's head ({exc})") from None
     speaker.source = {"format": "gaussian-avatars", "iteration": folder.name, "motion_fps": float(options.fps),
-                      "motion_frames": len(motion)}
+                      "motion_frames": len(motion), "camera": options.camera,
+                      "head_box": [low.tolist(), high.tolist()]}
     return speaker.eval()
 
 
@@ -199,5 +227,5 @@ def _set_gaussians(speaker: Speaker, cloud) -> None:
         weight.zero_()
 
 
-__all__ = ["GaussianAvatarsOptions", "avatar_camera", "find_avatar", "import_gaussian_avatars",
-           "read_bound_gaussians", "read_flame_params"]
+__all__ = ["GaussianAvatarsOptions", "avatar_camera", "find_avatar", "first_frame_head_box", "head_vertices",
+           "import_gaussian_avatars", "read_bound_gaussians", "read_flame_params"]

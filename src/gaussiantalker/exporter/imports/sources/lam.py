@@ -33,6 +33,7 @@ from ..formats.gltf import (
     animation_names,
     as_dict,
     as_list,
+    chain,
     clip_duration,
     load_glb,
     node_names,
@@ -41,6 +42,7 @@ from ..formats.gltf import (
     sampled_world,
     world_matrix,
 )
+from ..portrait import CAMERA_CHOICES, head_box, portrait_camera
 
 REQUIRED_MEMBERS = ("skin.glb", "offset.ply")
 OPTIONAL_MEMBERS = ("animation.glb", "vertex_order.json", "bsData.json")
@@ -60,6 +62,9 @@ LAM_CAMERA_PITCH_DEG = -10.0
 LAM_CAMERA_FOV_DEG = 50.0
 LAM_REFERENCE_CENTER = (-0.0013, 1.6523, 0.0151)
 LAM_REFERENCE_HEIGHT = 0.2936
+# The portrait camera frames the Gaussians on vertices the head bone moves (not the neck and chest) when at least this
+# share of them are (LAM's: 95%); else all of them.
+MIN_HEAD_SHARE = 0.1
 # Opacity logit of a Gaussian whose 8-bit opacity is 0 in the renderer: sigmoid 2e-9, far below the contract's
 # 1/255 alpha floor, so it is never drawn either.
 OPACITY_ZERO_LOGIT = -20.0
@@ -76,13 +81,15 @@ MAX_CLIP_SECONDS = 600.0
 @dataclass
 class LamOptions:
     """Import choices: which animation clip is the head-pose track, whether to fold the renderer's weight scales,
-    how covariances follow the head, the head bone's name."""
+    how covariances follow the head, the head bone's name, the default camera (portrait framing or the renderer's
+    own)."""
 
     clip: str | None = None  # None: the first clip named *idle*, else the first clip
     renderer_weight_scale: bool = True
     renderer_colours: bool = True  # colours and opacities in the renderer's 8 bits
     covariance: str = "static"
     head_bone: str = HEAD_BONE
+    camera: str = "portrait"
 
 
 def rotation_vector(matrix: np.ndarray) -> np.ndarray:
@@ -197,7 +204,10 @@ def _coordinates(values: np.ndarray) -> bool:
 
 
 def read_rig(data: bytes, options: LamOptions, member: str = "skin.glb"):
-    """(gltf, rest [V, 3], morphs [52, V, 3] in ARKIT_BLENDSHAPES order, pivot [3], head node, target names)."""
+    """(gltf, rest [V, 3], morphs [52, V, 3] in ARKIT_BLENDSHAPES order, pivot [3], head node, target names, which
+    vertices the head bone moves [V] bool or None)."""
+    if options.camera not in CAMERA_CHOICES:
+        raise ValueError(f"camera must be one of {', '.join(CAMERA_CHOICES)}, got {options.camera!r}")
     gltf = load_glb(data, member)
     mesh, primitive = _mesh_primitive(gltf)
     position = as_dict(primitive.get("attributes") or {}, "primitive attributes", member).get("POSITION")
@@ -223,7 +233,32 @@ def read_rig(data: bytes, options: LamOptions, member: str = "skin.glb"):
         scale = LAM_WEIGHT_SCALE.get(name, 1.0) if options.renderer_weight_scale else 1.0
         morphs[ARKIT_BLENDSHAPES.index(name)] = delta * scale
     head, world = _head_joint(gltf, options.head_bone)
-    return gltf, rest, morphs, world[:3, 3].copy(), head, names
+    return gltf, rest, morphs, world[:3, 3].copy(), head, names, head_vertices(gltf, primitive, head, rest.shape[0])
+
+
+def head_vertices(gltf: Gltf, primitive: dict, head: int, count: int) -> np.ndarray | None:
+    """Which of the head mesh's `count` vertices the skin moves mostly (over half their weight) with the head bone
+    and the bones below it (the head, not the neck and chest), or None when the mesh has no skin weights;
+    ImportFormatError for weights that are not [count, k] rows or name a joint the skin lacks."""
+    attributes = primitive.get("attributes") or {}
+    if attributes.get("JOINTS_0") is None or attributes.get("WEIGHTS_0") is None:
+        return None
+    joints = read_accessor(gltf, attributes["JOINTS_0"])
+    weights = read_accessor(gltf, attributes["WEIGHTS_0"])
+    skin_joints = as_list(as_dict(gltf.items("skins")[0], "skin 0", gltf.member).get("joints"), "skin 0 joints",
+                          gltf.member)
+    if joints.shape != weights.shape or joints.shape[0] != count or joints.ndim != 2 or joints.shape[1] == 0 \
+            or joints.dtype.kind not in "iu" or not np.isfinite(weights).all():
+        raise ImportFormatError(f"{gltf.member}: the head mesh's JOINTS_0 and WEIGHTS_0 must be integer and finite "
+                                f"rows, one per vertex ({count}), of the same width")
+    if joints.size and not 0 <= int(joints.min()) <= int(joints.max()) < len(skin_joints):
+        raise ImportFormatError(f"{gltf.member}: JOINTS_0 names joints {int(joints.min())} to {int(joints.max())}; "
+                                f"the skin has {len(skin_joints)}")
+    n_nodes = len(gltf.items("nodes"))
+    below_head = np.array([isinstance(node, int) and not isinstance(node, bool) and 0 <= node < n_nodes
+                           and head in chain(gltf, node) for node in skin_joints], dtype=bool)
+    weights = weights.astype(np.float64)
+    return (weights * below_head[joints]).sum(axis=1) > weights.sum(axis=1) / 2.0
 
 
 def head_pose_track(skin: Gltf, head: int, data: bytes, options: LamOptions, fps: int,
@@ -291,7 +326,7 @@ def _import_members(path: str | os.PathLike, members: dict[str, bytes], options:
                     ) -> ArkitSpeaker:
     """import_lam's work on the zip's members (ImportFormatError naming the member and field)."""
     steps.set_postfix_str("skin.glb")
-    skin, rest, morphs, pivot, head, target_names = read_rig(members["skin.glb"], options)
+    skin, rest, morphs, pivot, head, target_names, on_head = read_rig(members["skin.glb"], options)
     steps.update()
     steps.set_postfix_str("offset.ply")
     cloud = read_gaussian_ply(members["offset.ply"], "offset.ply")
@@ -314,14 +349,17 @@ def _import_members(path: str | os.PathLike, members: dict[str, bytes], options:
         except DriveError as exc:
             raise ImportFormatError(str(exc)) from None
     steps.update()
-    return _speaker(cloud, rest, morphs, pivot, options, pose_track, motion, {
+    return _speaker(cloud, rest, morphs, pivot, options, pose_track, motion, on_head, {
         "format": "lam", "file": Path(path).name, "morph_targets": target_names, "pose_clip": clip,
+        "camera": options.camera,
         "renderer_weight_scale": LAM_WEIGHT_SCALE if options.renderer_weight_scale else None,
         "dropped": ["f_rest (the renderer draws SH degree 0)"] if cloud.f_rest.shape[1] else []})
 
 
-def _speaker(cloud, rest, morphs, pivot, options: LamOptions, pose_track, motion, source: dict) -> ArkitSpeaker:
-    """The ArkitSpeaker of read avatar parts, with LAM's default framing."""
+def _speaker(cloud, rest, morphs, pivot, options: LamOptions, pose_track, motion, on_head: np.ndarray | None,
+             source: dict) -> ArkitSpeaker:
+    """The ArkitSpeaker of read avatar parts, its camera a portrait of the head (`on_head`: the Gaussians the head
+    bone moves, None: all) or LAM's renderer's framing."""
     config = ArkitRig(covariance=options.covariance, fps=LAM_FPS)
     rig = BlendshapeRig(torch.from_numpy(rest), torch.from_numpy(morphs), torch.from_numpy(pivot))
     gaussians = VertexBoundGaussians(torch.arange(cloud.count), sh_degree=0, covariance=options.covariance)
@@ -334,9 +372,15 @@ def _speaker(cloud, rest, morphs, pivot, options: LamOptions, pose_track, motion
         gaussians.opacity_logit.copy_(torch.from_numpy(opacity_logit))
         gaussians.sh.copy_(torch.from_numpy((rgb - 0.5) / SH_C0)[:, None, :])
     centres = rest + cloud.xyz
-    low, high = np.percentile(centres, 1, axis=0), np.percentile(centres, 99, axis=0)
+    framed = on_head is not None and on_head.mean() >= MIN_HEAD_SHARE
+    head_low, head_high = head_box(centres[on_head] if framed else centres)
+    source = {**source, "head_box": [head_low.tolist(), head_high.tolist()]}
     try:
-        camera = lam_camera((low + high) / 2.0, float(high[1] - low[1]))
+        if options.camera == "source":
+            low, high = np.percentile(centres, 1, axis=0), np.percentile(centres, 99, axis=0)
+            camera = lam_camera((low + high) / 2.0, float(high[1] - low[1]))
+        else:
+            camera = portrait_camera(head_low, head_high, 512, 512)
     except CameraError as exc:
         raise ImportFormatError(f"skin.glb, offset.ply: no default camera frames the Gaussians ({exc})") from None
     return ArkitSpeaker(config, rig, gaussians, camera, (1.0, 1.0, 1.0), None if pose_track is None else
