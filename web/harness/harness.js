@@ -1,10 +1,7 @@
 // What `gt-web` (tools/browser/web_harness.py) drives over the DevTools protocol: window.gtWeb loads a bundle into the
 // player, makes a drive from an audio or motion URL, and renders frames, returning their RGB bytes as base64.
 
-import { readBundle } from '../src/bundle.js';
-import { Camera } from '../src/camera.js';
-import { decodeAudio } from '../src/drive.js';
-import { Player } from '../src/player.js';
+import { Camera, Player, decodeAudio, readBundle } from 'gaussiantalker-web';
 
 let player = null;
 let drive = null;
