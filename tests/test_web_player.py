@@ -171,6 +171,44 @@ def test_flame_speaker_from_audio_matches_the_python_runtime(player_ready, page,
     _check_frames(page, python_frames, indexes)
 
 
+def test_a_bundle_with_a_reference_clip_plays_composited(player_ready, page, clip_export):
+    """The small speaker with its clip and F: audio's frames composited into the clip in the page (WebCodecs H.264,
+    the PNG masks, F in onnxruntime-web) against the Python runtime's composited frames, at the clip's size and
+    resized; at least 40 dB (the page converts the pictures' 4:2:0 to RGB itself, up to 3 levels from libswscale,
+    and resizes by area averaging, not swscale's filter). Pixels outside every mask's crop are the clip's own."""
+    from gaussiantalker.runtime import TalkingHead
+
+    audio = ROOT / "samples" / "demo_speech.wav"
+    with TalkingHead(clip_export.path, renderer="gl") as head:
+        size = head.frame_size
+        frames = list(head.frames(audio))
+        indexes = [0, 7, len(frames) - 1]
+        expected = [frames[i] for i in indexes]
+        pictures = [head.compositor.picture(i)[0] for i in indexes]
+    info = page.load(clip_export.path)
+    assert info["composited"] and tuple(info["size"]) == size
+    assert page.drive(audio=audio)["frames"] == len(frames)
+    for index, reference, picture in zip(indexes, expected, pictures, strict=True):
+        frame, timings = page.render(index)
+        assert frame.shape == reference.shape and "composite" in timings and "reference" in timings
+        assert psnr_db(reference, frame) >= MIN_PSNR_DB, (index, psnr_db(reference, frame))
+        assert psnr_db(picture, frame) < psnr_db(reference, frame)  # the head is in it, not the clip alone
+    with pytest.raises(RuntimeError, match="composited frames are uint8 RGB"):
+        page.render(0, output="rgba_float")
+    half = (size[0] // 2 // 2 * 2, size[1] // 2 // 2 * 2)
+    info = page.load(clip_export.path, size=half)
+    assert info["composited"] and tuple(info["size"]) == half
+    page.drive(audio=audio)
+    with TalkingHead(clip_export.path, renderer="gl", resolution=half) as head:
+        reference = list(head.frames(audio))[7]
+    frame, _ = page.render(7)
+    assert psnr_db(reference, frame) >= MIN_PSNR_DB, psnr_db(reference, frame)
+    info = page.load(clip_export.path, size=SIZE, composite=False)
+    assert not info["composited"] and tuple(info["size"]) == SIZE
+    with pytest.raises(RuntimeError, match="seen through the reference clip's camera"):
+        page.load(clip_export.path, camera=head.camera.to_dict())
+
+
 def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> np.ndarray:
     """What the page's AudioStream (web/src/stream.js) makes of `audio` pushed `chunk` samples at a time, in numpy
     on onnxruntime: the same graph calls (every whole frame committed at once, at most 50 a call; at the end the

@@ -19,7 +19,7 @@ from gaussiantalker.runtime import translate, translate_stream
 from gaussiantalker.runtime.splat.depth_sort import KEY_LEVELS_16
 from gaussiantalker.runtime.splat.gl import POINT_BOUND_SAFETY, RUN_COST_IN_SPLATS
 from gaussiantalker.runtime.splat.programs import PROGRAMS, QUAD_SLACK_PX, program_sources
-from gaussiantalker.sdk import numerics, zip_reader
+from gaussiantalker.sdk import numerics, reference_clip, zip_reader
 from gaussiantalker.sdk.drive import MAX_DRIVE_MAGNITUDE
 from gaussiantalker.sdk.flame_motion import MOTION_KEYS, TABLE_POSE_COLUMNS
 from gaussiantalker.sdk.motion import DEFAULT_MOTION_FPS, MAX_MOTION_FILE_BYTES, MAX_MOTION_FRAMES
@@ -51,6 +51,7 @@ def constants() -> dict[str, object]:
         "MAX_NPZ_BYTES": zip_reader.MAX_NPZ_BYTES, "MAX_NDIM": zip_reader.MAX_NDIM,
         "FLAME_MOTION_KEYS": [list(pair) for pair in MOTION_KEYS], "TABLE_POSE_COLUMNS": TABLE_POSE_COLUMNS,
         "REST_FRAMES": translate_stream.REST_FRAMES,
+        "CROP_MARGIN_PX": reference_clip.CROP_MARGIN_PX, "CROP_MULTIPLE": reference_clip.CROP_MULTIPLE,
         **wire.js_constants(),
     }
 

@@ -61,20 +61,23 @@ def parse_frames(text: str) -> list[int]:
 
 
 def _python_frames(bundle: Path, audio: Path | None, motion: Path | None, frames: list[int],
-                   size: tuple[int, int], camera: dict | None, settings: dict) -> tuple[list[np.ndarray], dict]:
-    """The same frames from the Python runtime (GL renderer, the same render settings), and its median per-step
-    seconds."""
+                   size: tuple[int, int] | None, camera: dict | None, settings: dict, composite: bool = False
+                   ) -> tuple[list[np.ndarray], dict]:
+    """The same frames from the Python runtime (GL renderer, the same render settings, composited or not as the
+    page's), and its median per-step seconds."""
     from itertools import islice
 
     from gaussiantalker.runtime.head import TalkingHead
     from gaussiantalker.sdk.camera import Camera
 
     kwargs = {"camera": Camera.from_dict(camera)} if camera else {}
-    with TalkingHead(bundle, resolution=size, renderer="gl", composite=False, **kwargs, **settings) as head:
-        drives = list(islice(head.drives(audio) if audio else head.drives(motion=motion), max(frames) + 1))
-        out = []
-        for index in frames:
-            out.append(head.render(drives[index]))
+    with TalkingHead(bundle, resolution=size, renderer="gl", composite=composite, **kwargs, **settings) as head:
+        if composite:  # composited frames come from frames(): each drive composited into its clip picture
+            made = list(islice(head.frames(audio) if audio else head.frames(motion=motion), max(frames) + 1))
+            out = [made[index] for index in frames]
+        else:
+            drives = list(islice(head.drives(audio) if audio else head.drives(motion=motion), max(frames) + 1))
+            out = [head.render(drives[index]) for index in frames]
         median = {stage: float(np.median(values[-len(frames):])) for stage, values in head.timings.items()}
     return out, median
 
@@ -88,7 +91,11 @@ def render(
                                        help="motion file: LAM's JSON for an ARKit speaker, a FLAME motion npz "
                                             "(GaussianAvatars' flame_param.npz) for a FLAME one"),
     frames: str = typer.Option("0", "--frames", help="comma-separated frame indexes, e.g. 0,10,20"),
-    size: str = typer.Option("512x512", "--size", help="output WIDTHxHEIGHT (the bundle camera resized)"),
+    size: str = typer.Option(None, "--size", help="output WIDTHxHEIGHT (the camera resized) [default: the "
+                             "bundle camera's size, the reference clip's when composited]"),
+    composite: bool = typer.Option(None, "--composite/--bare", help="audio's frames composited into the bundle's "
+                                   "reference clip, or the bare head [default: composited where the bundle has a "
+                                   "clip and an inpainting graph]"),
     camera: Path | None = typer.Option(None, "--camera", exists=True, dir_okay=False,
                                        help="a camera JSON (Camera.to_dict keys) instead of the bundle's"),
     out: Path = typer.Option(..., "-o", "--out", help="folder for frame_NNNNN.png (and timings.json)"),
@@ -108,10 +115,11 @@ def render(
     if graphs not in ("auto", "wasm", "webgpu"):
         raise typer.BadParameter(f"--graphs must be auto, wasm or webgpu, got {graphs!r}")
     wanted = parse_frames(frames)
-    width, height = parse_size(size)
+    wanted_size = parse_size(size) if size else None
     camera_dict = json.loads(camera.read_text()) if camera else None
-    if camera_dict:
-        camera_dict = {**camera_dict, "width": width, "height": height} if "width" not in camera_dict else camera_dict
+    if camera_dict and "width" not in camera_dict:
+        width, height = wanted_size or (512, 512)
+        camera_dict = {**camera_dict, "width": width, "height": height}
     out.mkdir(parents=True, exist_ok=True)
     # The bundle's runtime defaults, overridden where given: the player's names, and the Python runtime's.
     settings = {name: value for name, value in (("render_target", render_target), ("render_scale", render_scale),
@@ -122,11 +130,12 @@ def render(
     if quads:
         web_settings["pointSprites"] = False
     web_settings["graphs"] = graphs
-    report: dict = {"bundle": str(bundle), "size": [width, height], "settings": settings, "quads": quads,
-                    "frames": {}}
+    report: dict = {"bundle": str(bundle), "settings": settings, "quads": quads, "frames": {}}
     try:
         with WebPlayerPage(extra_flags=WEBGPU_FLAGS if graphs == "webgpu" else ()) as page:
-            info = page.load(bundle, size=(width, height), camera=camera_dict, settings=web_settings)
+            info = page.load(bundle, size=wanted_size, camera=camera_dict, settings=web_settings, composite=composite)
+            width, height = info["size"]
+            report.update(size=[width, height], composited=info["composited"])
             drive = page.drive(audio=audio, motion=motion)
             over = [i for i in wanted if i >= drive["frames"]]
             if over:
@@ -149,14 +158,15 @@ def render(
         raise typer.Exit(1) from None
     adapter = info["graphs"]["adapter"]
     backend = info["graphs"]["name"] + (f" on {adapter['vendor']} {adapter['architecture']}" if adapter else "")
-    typer.echo(f"wrote {len(wanted)} frames ({width}x{height}) to {out} [{info['precision']} framebuffer, "
+    kind = "composited" if info["composited"] else "bare head"
+    typer.echo(f"wrote {len(wanted)} {kind} frames ({width}x{height}) to {out} [{info['precision']} framebuffer, "
                f"{info['renderer']}; graphs {backend}]")
     if compare:
         from gaussiantalker.sdk.image import psnr_db
 
         start = time.perf_counter()
-        python_frames, python_steps = _python_frames(bundle, audio, motion, wanted, (width, height), camera_dict,
-                                                     settings)
+        python_frames, python_steps = _python_frames(bundle, audio, motion, wanted, wanted_size, camera_dict,
+                                                     settings, composite=info["composited"])
         report["python_steps"] = python_steps
         report["python_seconds"] = time.perf_counter() - start
         typer.echo("Python runtime (GL), median: " + "  ".join(

@@ -135,11 +135,13 @@ class WebPlayerPage:
         return self.call(f"window.gtWeb.check({json.dumps(url)}, {json.dumps(Path(bundle).name)})")
 
     def load(self, bundle: str | os.PathLike, size: tuple[int, int] | None = None, camera: dict | None = None,
-             background=None, settings: dict | None = None) -> dict:
+             background=None, settings: dict | None = None, composite: bool | None = None) -> dict:
         """Load a bundle into the player (the output `size` resizes the camera; `settings` overrides the bundle's
-        runtime defaults: renderTarget, renderScale, sortKeyBits, sortInterval); returns what the page reports."""
+        runtime defaults: renderTarget, renderScale, sortKeyBits, sortInterval; `composite`: the player's option,
+        None its default); returns what the page reports (`composited`: whether audio's frames are composited)."""
         request = {"url": self.serve(bundle), "name": Path(bundle).name, "camera": camera, "settings": settings,
-                   "background": None if background is None else [float(c) for c in background]}
+                   "background": None if background is None else [float(c) for c in background],
+                   "composite": composite}
         if size is not None:
             request.update(width=int(size[0]), height=int(size[1]))
         start = time.perf_counter()

@@ -36,12 +36,14 @@ window.gtWeb = {
     return { dtype, shape, data: base64(new Uint8Array(data.buffer, data.byteOffset, data.byteLength)) };
   },
 
-  async load({ url, name, width, height, camera, background, threads, settings }) {
+  async load({ url, name, width, height, camera, background, threads, settings, composite }) {
     if (player) await player.release();
     player = await Player.load(await fetchBytes(url), { name, width, height, camera: camera ?? undefined,
-      background: background ?? undefined, threads: threads ?? 1, ...(settings ?? {}) });
+      background: background ?? undefined, threads: threads ?? 1, composite: composite ?? undefined,
+      ...(settings ?? {}) });
     const gl = player.splatter;
     return { rig: player.rig.kind, fps: player.fps, sampleRate: player.sampleRate, size: player.frameSize,
+      composited: player.composited,
       gaussians: player.bundle.manifest.gaussians ?? null, precision: gl.precision, fallback: gl.fallback,
       renderer: gl.renderer, maxPointSize: gl.maxPointSize, extensions: gl.extensions, load: player.loadTimings,
       settings: player.settings, graphs: player.graphs.backend };

@@ -16,11 +16,13 @@ import { BundleError, readBundle } from './bundle.js';
 import { Camera } from './camera.js';
 import {
   AudioError, blendshapeParams, decodeAudio, Drive, DriveError, flameParams, motionAtFps, readMotion, parseMotion,
-  resampleAudio, translateAudio,
+  resampleAudio, trackRow, translateAudio,
 } from './drive.js';
 import { flameMotionAtFps, flameMotionFromTable, parseFlameMotion, readFlameMotion, withExpressions } from './flame_motion.js';
 import { ARKIT_BLENDSHAPES, TABLE_POSE_COLUMNS } from './generated.js';
 import { GraphBackendError, GraphSessions } from './graphs.js';
+import { compositeFrame } from './composite.js';
+import { ReferenceClip } from './reference.js';
 import { RenderError, WebGLSplatter } from './splat.js';
 import { AudioStream } from './stream.js';
 
@@ -118,6 +120,33 @@ class SortWorker {
   }
 }
 
+/** The reference clip a player composites into (null: the bare head), per Player.load's `composite` option. */
+async function openReference(bundle, graphs, poseTrack, options) {
+  const hasClip = bundle.manifest.reference !== undefined && bundle.manifest.reference !== null;
+  const composite = options.composite ?? (hasClip && graphs.has('inpaint'));
+  if (!composite) return null;
+  if (!hasClip) {
+    throw new RenderError(`${bundle.name}: composite: true needs a bundle with a reference clip (docs/compositing.md)`);
+  }
+  if (!graphs.has('inpaint')) {
+    throw new RenderError(`${bundle.name}: this bundle composites with the OpenCV fallback (it has no inpainting `
+      + 'graph), which the page lacks: composite: false plays the bare head');
+  }
+  if (options.camera !== undefined) {
+    throw new RenderError("a composited frame is seen through the reference clip's camera; pass composite: false "
+      + 'to draw the bare head through your own camera');
+  }
+  const clipCamera = bundle.manifest.reference.camera ?? {};
+  const size = options.width !== undefined || options.height !== undefined
+    ? [options.width ?? clipCamera.width, options.height ?? clipCamera.height] : null;
+  const reference = await ReferenceClip.open(bundle, size);
+  if (!poseTrack || poseTrack.rows !== reference.count) {
+    throw new BundleError(`${bundle.name}: the reference clip has ${reference.count} frames but the pose track has `
+      + `${poseTrack ? poseTrack.rows : 0} rows`);
+  }
+  return reference;
+}
+
 export class Player {
   constructor(fields) {
     Object.assign(this, fields);
@@ -128,8 +157,10 @@ export class Player {
    * errors), `width`/`height` (the output size; the bundle camera is resized to it), `camera` (a Camera or its
    * dict, replacing the bundle's), `background` ([r, g, b]), `renderTarget`/`renderScale`/`sortKeyBits`/
    * `sortInterval` (override the bundle's runtime_defaults, docs/precision.md), `pointSprites` (false: quads only),
-   * `canvas` (the WebGL2 canvas; default an OffscreenCanvas), and the graph options of GraphSessions.open
-   * (`graphs`: 'auto', 'wasm' or 'webgpu'; `threads`; or `ort` with `executionProviders`).
+   * `canvas` (the WebGL2 canvas; default an OffscreenCanvas), `composite` (a bundle with a reference clip and an
+   * inpainting graph draws audio's frames into the clip by default, as the Python runtime does: docs/compositing.md;
+   * false: the bare head), and the graph options of GraphSessions.open (`graphs`: 'auto', 'wasm' or 'webgpu';
+   * `threads`; or `ort` with `executionProviders`).
    */
   static async load(source, options = {}) {
     const timings = {};
@@ -169,13 +200,20 @@ export class Player {
     }
     const splatter = new WebGLSplatter({ canvas: options.canvas ?? null, renderTarget: settings.render_target,
       pointSprites: options.pointSprites ?? true });
+    start = performance.now();
+    const reference = await openReference(bundle, graphs, poseTrack, options);
+    if (reference) timings.reference = (performance.now() - start) / 1000;
     const player = new Player({ bundle, rig, graphs, poseTrack, motionTrack: track('motion_track'), settings,
-      background, splatter, sorter: new SortWorker(), loadTimings: timings, lastTimings: null });
-    player.setCamera(options.camera ?? Camera.fromDict(bundle.manifest.camera), options.width, options.height);
+      background, splatter, sorter: new SortWorker(), reference, loadTimings: timings, lastTimings: null });
+    if (reference) player.setCamera(reference.outputCamera);
+    else player.setCamera(options.camera ?? Camera.fromDict(bundle.manifest.camera), options.width, options.height);
     return player;
   }
 
   get fps() { return this.rig.fps; }
+
+  /** Whether audio's frames are composited into the bundle's reference clip (Player.load's `composite`). */
+  get composited() { return this.reference !== null; }
 
   get sampleRate() { return this.rig.sampleRate; }
 
@@ -232,7 +270,7 @@ export class Player {
     const paramsOf = this.rig.kind === 'arkit' ? blendshapeParams : flameParams;
     const { rows, width, frames } = await translateAudio(run, audio, this.rig.samplesPerFrame, { paramsOf });
     this.translateSeconds = (performance.now() - start) / 1000;
-    return this._drive(rows, width, frames);
+    return this._drive(rows, width, frames, true);
   }
 
   /**
@@ -244,7 +282,7 @@ export class Player {
     const rowsOf = this.rig.kind === 'flame' ? (out) => flameParams(out, out.expression.dims[1])
       : (out) => ({ rows: out.blendshapes.data, width: out.blendshapes.dims[2] });
     return AudioStream.open(this.graphs, this.bundle, { rowsOf, rigSamplesPerFrame: this.rig.samplesPerFrame,
-      makeDrive: (rows, width, frames) => this._drive(rows, width, frames) });
+      makeDrive: (rows, width, frames) => this._drive(rows, width, frames, true) });
   }
 
   /**
@@ -311,14 +349,47 @@ export class Player {
     return this.driveFromMotion({ names: ARKIT_BLENDSHAPES, metadata: { fps }, frames }, 'weights');
   }
 
-  _drive(rows, width, frames) {
-    return new Drive({ rig: this.rig.kind, rows, width, frames, poseTrack: this.poseTrack?.data ?? null,
+  /** A drive on the bundle's pose track; `fromAudio`: frame i sees the reference clip's picture at i. */
+  _drive(rows, width, frames, fromAudio = false) {
+    const drive = new Drive({ rig: this.rig.kind, rows, width, frames, poseTrack: this.poseTrack?.data ?? null,
       rigNames: this.rig.names ?? ARKIT_BLENDSHAPES });
+    drive.followsClip = fromAudio;
+    return drive;
   }
 
   /** Frame `index` of `drive` -> {pixels, width, height, timings} (`output` as WebGLSplatter.draw: 'uint8' RGB
    * top row first, 'float', 'rgba_float'). timings: graphs, sort, upload, draw, readback in seconds. */
   async renderFrame(drive, index, { output = 'uint8' } = {}) {
+    if (this.reference && drive.followsClip) {
+      if (output !== 'uint8') {
+        throw new RenderError(`composited frames are uint8 RGB; output '${output}' needs the bare head: `
+          + 'Player.load(..., { composite: false })');
+      }
+      return this._compositedFrame(drive, index);
+    }
+    return this._headFrame(drive, index, output);
+  }
+
+  /** Frame `index` of an audio drive composited into the reference clip's picture at that frame (the clip played
+   * forth and back, as the pose track): the head's premultiplied render, the picture, its mask and F. */
+  async _compositedFrame(drive, index) {
+    const head = await this._headFrame(drive, index, 'rgba_float');
+    let start = performance.now();
+    const row = trackRow(this.reference.count, index);
+    const [picture, mask] = await Promise.all([this.reference.frame(row), this.reference.mask(row)]);
+    const timings = { ...head.timings, reference: (performance.now() - start) / 1000 };
+    start = performance.now();
+    const { width, height } = head;
+    const inpaint = async ({ image, mask: masks, coverage }, h, w) => (await this.graphs.run('inpaint', {
+      image: { data: image, dims: [1, 3, h, w] }, mask: { data: masks, dims: [1, 1, h, w] },
+      coverage: { data: coverage, dims: [1, 1, h, w] } })).inpainted.data;
+    const pixels = await compositeFrame(head.pixels, picture, mask, width, height, inpaint);
+    timings.composite = (performance.now() - start) / 1000;
+    this.lastTimings = timings;
+    return { pixels, width, height, timings, splats: head.splats };
+  }
+
+  async _headFrame(drive, index, output) {
     const timings = {};
     let start = performance.now();
     const out = await this.graphs.run('deform', drive.graphInputs(index, this.camera.center()));

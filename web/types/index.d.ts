@@ -133,6 +133,9 @@ export interface PlayerOptions {
   pointSprites?: boolean;
   /** The WebGL2 canvas to draw with (default: an OffscreenCanvas). */
   canvas?: HTMLCanvasElement | OffscreenCanvas | null;
+  /** Audio's frames composited into the bundle's reference clip (default: where it has a clip and an inpainting
+   * graph), at the clip's size or width x height; false: the bare head. */
+  composite?: boolean;
   graphs?: GraphBackend;
   /** onnxruntime-web wasm threads (default 1). */
   threads?: number;
@@ -149,6 +152,9 @@ export interface FrameTimings {
   upload?: number;
   draw?: number;
   readback?: number;
+  /** Composited frames: decoding the clip's picture and mask, and the inpainting graph with the blend. */
+  reference?: number;
+  composite?: number;
 }
 
 export interface Frame {
@@ -188,6 +194,8 @@ export class Player {
   readonly frameSize: [number, number];
   readonly camera: Camera;
   readonly bundle: Bundle;
+  /** Whether audio's frames are composited into the bundle's reference clip. */
+  readonly composited: boolean;
   /** Draw through another camera (a novel view), resized to width x height when given. */
   setCamera(camera: Camera | CameraDict, width?: number, height?: number): void;
   /** The median rest-pose Gaussian: the point to orbit about. */
@@ -204,6 +212,8 @@ export class Player {
                   where?: string): Drive;
   /** ARKit speakers: weights [frames x 52] in ARKIT_BLENDSHAPES order, flat or rows, at `fps`. */
   driveFromWeights(weights: ArrayLike<number> | number[][], fps?: number): Drive;
+  /** Frame `index`; an audio drive of a composited player gives composited uint8 frames (other outputs need the
+   * bare head). */
   renderFrame(drive: DrawableDrive, index: number, options?: { output?: FrameOutput }): Promise<Frame>;
   /** The frame put on a 2D canvas (resized to it). */
   renderToCanvas(drive: DrawableDrive, index: number, canvas: HTMLCanvasElement | OffscreenCanvas): Promise<Frame>;
