@@ -19,9 +19,10 @@ from gaussiantalker.runtime import translate, translate_stream
 from gaussiantalker.runtime.splat.depth_sort import KEY_LEVELS_16
 from gaussiantalker.runtime.splat.gl import POINT_BOUND_SAFETY, RUN_COST_IN_SPLATS
 from gaussiantalker.runtime.splat.programs import PROGRAMS, QUAD_SLACK_PX, program_sources
-from gaussiantalker.sdk import numerics, reference_clip, zip_reader
+from gaussiantalker.sdk import bundle, codecs, numerics, reference_clip, zip_reader
 from gaussiantalker.sdk.drive import MAX_DRIVE_MAGNITUDE
 from gaussiantalker.sdk.flame_motion import MOTION_KEYS, TABLE_POSE_COLUMNS
+from gaussiantalker.sdk.json_bounds import MAX_JSON_DEPTH
 from gaussiantalker.sdk.motion import DEFAULT_MOTION_FPS, MAX_MOTION_FILE_BYTES, MAX_MOTION_FRAMES
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES
 from gaussiantalker.serve import wire
@@ -48,10 +49,18 @@ def constants() -> dict[str, object]:
         "EXTENT_SIGMAS": numerics.EXTENT_SIGMAS, "LOW_PASS_PX2": numerics.LOW_PASS_PX2,
         "FOV_CLAMP_MARGIN": numerics.FOV_CLAMP_MARGIN, "DEFAULT_NEAR": numerics.DEFAULT_NEAR,
         "KEY_LEVELS_16": KEY_LEVELS_16, "MAX_RATIO": zip_reader.MAX_RATIO, "MIN_BUDGET": zip_reader.MIN_BUDGET,
-        "MAX_NPZ_BYTES": zip_reader.MAX_NPZ_BYTES, "MAX_NDIM": zip_reader.MAX_NDIM,
+        "MAX_NPZ_BYTES": zip_reader.MAX_NPZ_BYTES, "MAX_NDIM": codecs.MAX_NDIM,
         "FLAME_MOTION_KEYS": [list(pair) for pair in MOTION_KEYS], "TABLE_POSE_COLUMNS": TABLE_POSE_COLUMNS,
         "REST_FRAMES": translate_stream.REST_FRAMES,
         "CROP_MARGIN_PX": reference_clip.CROP_MARGIN_PX, "CROP_MULTIPLE": reference_clip.CROP_MULTIPLE,
+        # The bundle's header and bounds (sdk/bundle.py), and its buffer codecs' tables (sdk/codecs.py).
+        "MAGIC": bundle.MAGIC.decode("ascii"), "FORMAT_MAJOR": bundle.FORMAT_MAJOR, "HEADER_SIZE": bundle.HEADER_SIZE,
+        "HEADER_LAYOUT": {name: list(span) for name, span in bundle.header_layout().items()},
+        "ALIGN": bundle.ALIGN, "MAX_MANIFEST_BYTES": bundle.MAX_MANIFEST_BYTES, "MAX_JSON_DEPTH": MAX_JSON_DEPTH,
+        "MAX_GRAPH_BYTES": bundle.MAX_GRAPH_BYTES, "GRAPH_COMPRESSIONS": list(bundle.GRAPH_COMPRESSIONS),
+        "DTYPE_TABLE": {name: list(entry) for name, entry in codecs.dtype_table().items()},
+        "MAX_CHUNK": codecs.MAX_CHUNK, "MAX_ELEMENTS": codecs.MAX_ELEMENTS, "INDEX_TYPES": list(codecs.INDEX_TYPES),
+        "QUANT_BITS": list(codecs.QUANT_BITS),
         **wire.js_constants(),
     }
 

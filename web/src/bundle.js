@@ -4,17 +4,22 @@
 // checks, and refuses"); every size is bounded by the bytes present, no count in the file is trusted.
 
 import { BundleError, decodeBuffer, expectedNbytes } from './codecs.js';
+import {
+  ALIGN, FORMAT_MAJOR, GRAPH_COMPRESSIONS, HEADER_LAYOUT, HEADER_SIZE, MAGIC, MAX_GRAPH_BYTES, MAX_JSON_DEPTH,
+  MAX_MANIFEST_BYTES,
+} from './generated.js';
 
-export { BundleError };
-export const MAGIC = 'GTBUNDLE';
-export const FORMAT_MAJOR = 1;
-export const HEADER_SIZE = 64;
-export const ALIGN = 64;
-export const MAX_MANIFEST_BYTES = 16 * 1024 * 1024;
-// Objects and arrays nested deeper than this are refused, as sdk/json_bounds.py refuses them (MAX_JSON_DEPTH).
-export const MAX_JSON_DEPTH = 64;
+// The header's layout, bounds and magic come from sdk/bundle.py through generated.js (one definition).
+export { ALIGN, BundleError, FORMAT_MAJOR, HEADER_SIZE, MAGIC, MAX_GRAPH_BYTES, MAX_JSON_DEPTH, MAX_MANIFEST_BYTES };
+// Objects and arrays nested deeper than MAX_JSON_DEPTH are refused, as sdk/json_bounds.py refuses them.
 export const MAX_MANIFEST_DEPTH = MAX_JSON_DEPTH;
-export const MAX_GRAPH_BYTES = 2 ** 31 - 1;
+const [MAGIC_AT, MAGIC_SIZE] = HEADER_LAYOUT.magic;
+const [MAJOR_AT] = HEADER_LAYOUT.major;
+const [MINOR_AT] = HEADER_LAYOUT.minor;
+const [RESERVED_AT] = HEADER_LAYOUT.reserved;
+const [LENGTH_AT] = HEADER_LAYOUT.manifest_length;
+const [DIGEST_AT] = HEADER_LAYOUT.manifest_sha256;
+const [PADDING_AT] = HEADER_LAYOUT.padding;
 
 const align = (n) => Math.ceil(n / ALIGN) * ALIGN;
 const isInt = (v) => Number.isSafeInteger(v);
@@ -189,18 +194,18 @@ export async function readBundle(buffer, { name = 'bundle', verifyChecksums = tr
   const fail = (why) => new BundleError(`${name}: ${why}`);
   if (size < HEADER_SIZE) throw fail(`truncated inside the header (${size} of ${HEADER_SIZE} bytes)`);
   const header = new DataView(bytes.buffer, bytes.byteOffset, HEADER_SIZE);
-  const magic = bytes.subarray(0, 8);
+  const magic = bytes.subarray(MAGIC_AT, MAGIC_AT + MAGIC_SIZE);
   if (String.fromCharCode(...magic) !== MAGIC) throw fail(`not a GaussianTalker bundle (bad magic ${bytesRepr(magic)})`);
-  const major = header.getUint16(8, true);
-  const minor = header.getUint16(10, true);
+  const major = header.getUint16(MAJOR_AT, true);
+  const minor = header.getUint16(MINOR_AT, true);
   if (major !== FORMAT_MAJOR) {
     throw fail(`bundle format version ${major}.${minor} is not supported by this runtime (reads ${FORMAT_MAJOR}.x); `
       + 're-export with a matching gt-export');
   }
-  if (header.getUint32(12, true) !== 0 || bytes.subarray(56, 64).some((b) => b !== 0)) {
+  if (header.getUint32(RESERVED_AT, true) !== 0 || bytes.subarray(PADDING_AT, HEADER_SIZE).some((b) => b !== 0)) {
     throw fail('reserved header bytes are not zero (corrupt header)');
   }
-  const manifestLength = header.getBigUint64(16, true);
+  const manifestLength = header.getBigUint64(LENGTH_AT, true);
   if (manifestLength > BigInt(MAX_MANIFEST_BYTES)) {
     throw fail(`manifest claims ${manifestLength} bytes, over the ${MAX_MANIFEST_BYTES} limit (corrupt header)`);
   }
@@ -211,7 +216,7 @@ export async function readBundle(buffer, { name = 'bundle', verifyChecksums = tr
   }
   const manifestBytes = bytes.subarray(HEADER_SIZE, HEADER_SIZE + length);
   const digest = new Uint8Array(await crypto.subtle.digest('SHA-256', manifestBytes));
-  if (!digest.every((b, i) => b === bytes[24 + i])) throw fail('manifest checksum mismatch (corrupt manifest or header)');
+  if (!digest.every((b, i) => b === bytes[DIGEST_AT + i])) throw fail('manifest checksum mismatch (corrupt manifest or header)');
   let manifest;
   try {
     const text = new TextDecoder('utf-8', { fatal: true }).decode(manifestBytes);
@@ -312,8 +317,9 @@ function checkEntries(name, manifest, payloadStart, size) {
     for (const kind of ['inputs', 'outputs']) checkTensorList(`${name}: ${what} ${kind}`, entry[kind]);
     const compression = entry.compression;
     if (compression !== undefined && compression !== null) {
-      if (compression !== 'zlib') {
-        throw fail(`${what} has unknown compression '${String(compression).slice(0, 40)}' (this runtime reads: zlib)`);
+      if (!GRAPH_COMPRESSIONS.includes(compression)) {
+        throw fail(`${what} has unknown compression '${String(compression).slice(0, 40)}' (this runtime reads: `
+          + `${GRAPH_COMPRESSIONS.join(', ')})`);
       }
       const raw = entry.raw_nbytes;
       if (!(isInt(raw) && raw >= 0 && raw <= MAX_GRAPH_BYTES)) {

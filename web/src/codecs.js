@@ -3,6 +3,10 @@
 // are computed in double precision and rounded once to the dtype, so the decoded weights equal the Python
 // runtime's bit for bit.
 
+import {
+  DTYPE_TABLE, INDEX_TYPES, MAX_CHUNK, MAX_ELEMENTS as MAX_ELEMENTS_NUMBER, MAX_NDIM, QUANT_BITS,
+} from './generated.js';
+
 export class BundleError extends Error {
   constructor(message) {
     super(message);
@@ -10,26 +14,25 @@ export class BundleError extends Error {
   }
 }
 
-// dtype -> [ONNX TensorProto.DataType, bytes per element, typed array constructor]
-export const DTYPES = {
-  float32: [1, 4, Float32Array],
-  float16: [10, 2, Uint16Array], // raw half-float bits (JS has no portable Float16Array yet)
-  int32: [6, 4, Int32Array],
-  int64: [7, 8, BigInt64Array],
-  int8: [3, 1, Int8Array],
-  uint8: [2, 1, Uint8Array],
-  uint16: [4, 2, Uint16Array],
-  uint32: [12, 4, Uint32Array],
-};
+// The dtypes' ONNX codes and sizes, the bounds and the codecs' parameters come from sdk/codecs.py through
+// generated.js (one definition); only each dtype's typed array is the browser's own.
+const ARRAYS = { float32: Float32Array, float16: Uint16Array, int32: Int32Array, int64: BigInt64Array,
+  int8: Int8Array, uint8: Uint8Array, uint16: Uint16Array, uint32: Uint32Array }; // float16: raw half bits
+
+/** dtype -> [ONNX TensorProto.DataType, bytes per element, typed array constructor]. */
+export const DTYPES = Object.fromEntries(Object.entries(DTYPE_TABLE).map(([name, [code, size]]) => {
+  const array = ARRAYS[name];
+  if (!array || array.BYTES_PER_ELEMENT !== size) throw new Error(`codecs.js has no ${size}-byte array for ${name}`);
+  return [name, [code, size, array]];
+}));
 export const ONNX_DTYPES = Object.fromEntries(Object.entries(DTYPES).map(([name, [code]]) => [code, name]));
-export const MAX_CHUNK = 1 << 20;
-export const MAX_NDIM = 32;
-export const MAX_ELEMENTS = 1n << 56n;
-const INDEX_TYPES = { uint8: [1, Uint8Array], uint16: [2, Uint16Array], uint32: [4, Uint32Array] };
+export { MAX_CHUNK, MAX_NDIM };
+export const MAX_ELEMENTS = BigInt(MAX_ELEMENTS_NUMBER);
+const INDEX_ARRAYS = Object.fromEntries(INDEX_TYPES.map((name) => [name, [DTYPES[name][1], DTYPES[name][2]]]));
 const INTEGER_MAX = { int32: 2 ** 31 - 1, int64: Number.MAX_SAFE_INTEGER, int8: 127, uint8: 255, uint16: 65535,
   uint32: 2 ** 32 - 1 };
 const FLOAT32_MAX = 3.4028234663852886e38;
-const QUANT_BITS = { q16: 16, q8: 8, q4: 4 };
+const QUANT_CODECS = Object.fromEntries(QUANT_BITS.map((bits) => [`q${bits}`, bits]));
 
 const isFloat = (dtype) => dtype.startsWith('float');
 
@@ -42,8 +45,9 @@ function chunkParam(params, codec) {
 }
 
 function indexType(params) {
-  if (!Object.hasOwn(INDEX_TYPES, params.stored)) {
-    throw new BundleError(`codec 'index' needs stored in uint8, uint16, uint32, got ${JSON.stringify(params.stored)}`);
+  if (!Object.hasOwn(INDEX_ARRAYS, params.stored)) {
+    throw new BundleError(`codec 'index' needs stored in ${INDEX_TYPES.join(', ')}, got `
+      + `${JSON.stringify(params.stored)}`);
   }
   return params.stored;
 }
@@ -97,7 +101,7 @@ export function expectedNbytes(codec, dtype, shape, params) {
   if (!['raw', 'fp16', 'q16', 'q8', 'q4', 'index'].includes(codec)) {
     throw new BundleError(`unknown buffer codec '${codec}' (known: raw, fp16, q16, q8, q4, index)`);
   }
-  const floatOnly = codec === 'fp16' || codec in QUANT_BITS;
+  const floatOnly = codec === 'fp16' || Object.hasOwn(QUANT_CODECS, codec);
   if (floatOnly && !isFloat(dtype)) {
     throw new BundleError(`codec '${codec}' cannot decode to dtype '${dtype}' (floating-point only)`);
   }
@@ -116,8 +120,8 @@ export function expectedNbytes(codec, dtype, shape, params) {
   }
   if (codec === 'raw') return n * BigInt(DTYPES[dtype][1]);
   if (codec === 'fp16') return 2n * n;
-  if (codec === 'index') return n * BigInt(INDEX_TYPES[indexType(params)][0]);
-  const bits = BigInt(QUANT_BITS[codec]);
+  if (codec === 'index') return n * BigInt(INDEX_ARRAYS[indexType(params)][0]);
+  const bits = BigInt(QUANT_CODECS[codec]);
   const chunk = BigInt(chunkParam(params, codec));
   return 8n * ((n + chunk - 1n) / chunk) + (n * bits + 7n) / 8n;
 }
@@ -170,7 +174,7 @@ function view(bytes, Type) {
 }
 
 function decodeQuantised(bytes, dtype, n, params, codec) {
-  const bits = QUANT_BITS[codec];
+  const bits = QUANT_CODECS[codec];
   const levels = 2 ** bits - 1;
   const chunk = chunkParam(params, codec);
   const chunks = Math.ceil(n / chunk);
@@ -209,8 +213,8 @@ export function decodeBuffer(bytes, codec, dtype, shape, params) {
     const halves = view(bytes, Uint16Array);
     return dtype === 'float16' ? halves : Float32Array.from(halves, halfToFloat);
   }
-  if (codec in QUANT_BITS) return decodeQuantised(bytes, dtype, n, params, codec);
-  const stored = view(bytes, INDEX_TYPES[indexType(params)][1]);
+  if (Object.hasOwn(QUANT_CODECS, codec)) return decodeQuantised(bytes, dtype, n, params, codec);
+  const stored = view(bytes, INDEX_ARRAYS[indexType(params)][1]);
   let largest = 0;
   for (const v of stored) largest = v > largest ? v : largest;
   if (largest > INTEGER_MAX[dtype]) {

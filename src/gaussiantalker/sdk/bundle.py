@@ -48,7 +48,22 @@ FLAME_DRIVER = "flame"
 # The graph that runs the translator a frame at a time, its state carried between calls (docs/live.md, "Streaming
 # translators"), stored beside the windowed `translator` graph where the translator has a streaming form.
 STREAM_GRAPH = "translator_stream"
-_HEADER = struct.Struct("<8sHHIQ32s")
+# The header's fields in order (little-endian struct codes), padded with zeros to HEADER_SIZE: the one layout,
+# which web/src/generated.js carries to the browser player as HEADER_LAYOUT (docs/bundle-format.md, "Header").
+HEADER_FIELDS = (("magic", "8s"), ("major", "H"), ("minor", "H"), ("reserved", "I"), ("manifest_length", "Q"),
+                 ("manifest_sha256", "32s"))
+_HEADER = struct.Struct("<" + "".join(code for _, code in HEADER_FIELDS))
+
+
+def header_layout() -> dict[str, tuple[int, int]]:
+    """Each header field's (offset, size) in bytes, and "padding": where the zero padding starts and its size."""
+    layout, offset = {}, 0
+    for name, code in HEADER_FIELDS:
+        size = struct.calcsize("<" + code)
+        layout[name] = (offset, size)
+        offset += size
+    layout["padding"] = (offset, HEADER_SIZE - offset)
+    return layout
 
 
 def _align(n: int) -> int:

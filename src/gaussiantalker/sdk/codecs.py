@@ -56,6 +56,14 @@ MAX_NDIM = 32
 MAX_ELEMENTS = 1 << 56
 # Unsigned types the `index` codec may store, smallest first.
 INDEX_TYPES = ("uint8", "uint16", "uint32")
+# Bits per value of the quantising codecs (`q16`, `q8`, `q4`).
+QUANT_BITS = (16, 8, 4)
+
+
+def dtype_table() -> dict[str, tuple[int, int]]:
+    """Each supported dtype's (ONNX TensorProto.DataType code, bytes per element): what the browser player's
+    codecs read from web/src/generated.js."""
+    return {name: (code, np.dtype(name).itemsize) for name, code, _ in _DTYPES}
 # What a decoded float32 value may reach: a quantised chunk whose minimum + step * max code exceeds it is damaged.
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 
@@ -224,7 +232,7 @@ CODECS: dict[str, Codec] = {
     "fp16": Codec(_encode_fp16, _decode_fp16, lambda dtype, shape, params: 2 * _count(shape), float_only=True,
                   lossless=False),
     **{f"q{bits}": Codec(_quant_encoder(bits), _quant_decoder(bits), _quant_nbytes(bits), float_only=True,
-                         lossless=False) for bits in (16, 8, 4)},
+                         lossless=False) for bits in QUANT_BITS},
     "index": Codec(_encode_index, _decode_index,
                    lambda dtype, shape, params: _count(shape) * np.dtype(_index_type(params)).itemsize,
                    int_only=True),

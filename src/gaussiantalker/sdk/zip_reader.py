@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .codecs import MAX_NDIM
+
 # Uncompressed size a member may state per compressed byte (plus MIN_BUDGET): deflate's own limit is 1032:1, so
 # only bzip2 or lzma bombs and lying headers exceed it.
 MAX_RATIO = 1100
@@ -34,7 +36,6 @@ READ_ERRORS = (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, Valu
 NPY_MAGIC = b"\x93NUMPY"
 # dtype kinds an npz array may have: booleans, integers, floats and strings (FLAME npz files record their version).
 NPZ_KINDS = "biufUS"
-MAX_NDIM = 32
 _DRIVE = re.compile(r"[A-Za-z]:")
 
 

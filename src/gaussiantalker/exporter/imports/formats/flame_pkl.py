@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gaussiantalker.sdk.codecs import MAX_NDIM
 from gaussiantalker.sdk.errors import CheckpointError, ImportFormatError
 from gaussiantalker.sdk.files import atomic_path
 from gaussiantalker.sdk.zip_reader import read_npz
@@ -171,7 +172,6 @@ def _stand_in(base: type[_StandIn], path: str, **attrs: object) -> type[_StandIn
 _TYPE_STRING = re.compile(r"[<>|=]?(?:b1|\?|[iu][1248]|f[248]|c(?:8|16)|[SU][0-9]{0,9})\Z")
 # A pickled dtype's state: (version, byte order, subarray, names, fields, elsize, alignment, flags[, metadata]).
 _DTYPE_STATE_LENGTHS = (8, 9)
-_MAX_NDIM = 32
 
 
 def _canonical_type(spec: object) -> np.dtype:
@@ -244,7 +244,7 @@ def _shape(shape: object, what: str) -> tuple[int, ...]:
     """An array shape from the file: a tuple of non-negative Python ints."""
     if isinstance(shape, int) and not isinstance(shape, bool):
         shape = (shape,)
-    if (not isinstance(shape, tuple) or len(shape) > _MAX_NDIM
+    if (not isinstance(shape, tuple) or len(shape) > MAX_NDIM
             or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape)):
         raise PickleRefused(f"{what} with shape {shape!r}")
     return shape
