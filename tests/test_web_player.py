@@ -562,11 +562,11 @@ def _sample_page_status(browser, url: str) -> str:
     return browser.evaluate("document.getElementById('status').textContent")
 
 
-def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export, ga_bundle):
+def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export, ga_bundle, clip_export):
     """samples/web/index.html: a bundle and a WAV by URL, its audio streamed as it plays (the bundle has a streaming
     translator) and frames drawn on the audio clock (WebAudio allowed to start without a gesture, as a click would);
     a FLAME avatar with its flame_param.npz as the motion, its first frame on the canvas, orbited and zoomed and
-    back (the same pixels)."""
+    back (the same pixels); a bundle with a reference clip shown composited at the clip's size, not orbited."""
     import time
 
     from tools.browser.chromium import Chromium
@@ -577,8 +577,17 @@ def test_sample_page_plays_a_bundle_with_its_audio(player_ready, small_export, g
         bundle = server.add("small.gtb", small_export.path)
         audio = server.add("speech.wav", ROOT / "samples" / "demo_speech.wav")
         avatar, params = server.add("avatar.gtb", ga_bundle[0]), server.add("flame_param.npz", ga_bundle[1])
+        clip = server.add("clip.gtb", clip_export.path)
         with Chromium(window=(640, 720), extra_flags=("--autoplay-policy=no-user-gesture-required",)) as browser:
             page = f"{server.url}/web/samples/web/index.html"
+            status = _sample_page_status(browser, f"{page}?bundle={clip}&audio={audio}")
+            assert "composited into its reference clip" in status, status
+            camera = "JSON.stringify(window.gtSample.state.player.camera.toDict())"
+            before = browser.evaluate(camera)
+            browser.evaluate("window.gtSample.look({yaw: 60, distance: 0.7})")  # no orbiting a composited bundle
+            assert browser.evaluate(camera) == before
+            width, height = browser.evaluate("window.gtSample.state.player.frameSize")
+            assert f"{width}x{height} composited" in status and json.loads(before)["width"] == width
             status = _sample_page_status(browser, f"{page}?bundle={avatar}&motion={params}")
             assert status.endswith("ready: 8 frames") and "flame speaker" in status, status
             before = browser.evaluate(CANVAS_SUM)
