@@ -15,8 +15,8 @@
 //                                   being heard, the clock the drives are drawn on
 
 import {
-  ARKIT_BLENDSHAPES, DRIVE_HEADER_BYTES, DRIVE_MAGIC, DRIVE_VERSION, FRAME_HEADER_BYTES, PACKET_MAGIC, PACKET_VERSION,
-  POSE_VALUES, RIG_CODES, SPEAKING_FLAG,
+  ARKIT_BLENDSHAPES, DRIVE_HEADER_BYTES, DRIVE_LAYOUT, DRIVE_MAGIC, DRIVE_VERSION, FRAME_HEADER_BYTES, PACKET_LAYOUT,
+  PACKET_MAGIC, PACKET_VERSION, POSE_VALUES, RIG_CODES, SPEAKING_FLAG,
 } from './generated.js';
 
 export { DRIVE_HEADER_BYTES, FRAME_HEADER_BYTES };
@@ -29,7 +29,10 @@ export class DriveFormatError extends Error {
 }
 
 // The wire format (gaussiantalker.serve.wire, docs/serve.md): a drive message is little-endian, a DRIVE_HEADER_BYTES
-// header then `count` float32; its constants come from generated.js.
+// header then `count` float32; its constants and its headers' field offsets come from generated.js.
+const offsets = (layout) => Object.fromEntries(Object.entries(layout).map(([name, [at]]) => [name, at]));
+const DRIVE_AT = offsets(DRIVE_LAYOUT);
+const PACKET_AT = offsets(PACKET_LAYOUT);
 
 /** A drive message (ArrayBuffer or a typed array) -> its fields; DriveFormatError for one that is truncated, lies
  * about its count, or is of an unknown kind. No count is trusted beyond the bytes present. */
@@ -41,19 +44,19 @@ export function decodeDrive(message) {
   }
   if (!DRIVE_MAGIC.every((b, i) => bytes[i] === b)) throw new DriveFormatError('not a drive message (bad magic)');
   const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
-  const version = view.getUint8(4);
-  const rig = view.getUint8(5);
-  const flags = view.getUint8(6);
-  const dtype = view.getUint8(7);
+  const version = view.getUint8(DRIVE_AT.version);
+  const rig = view.getUint8(DRIVE_AT.rig);
+  const flags = view.getUint8(DRIVE_AT.flags);
+  const dtype = view.getUint8(DRIVE_AT.dtype);
   if (version !== DRIVE_VERSION || dtype !== 0) {
     throw new DriveFormatError(`drive message version ${version} dtype ${dtype}: only version ${DRIVE_VERSION} float32 is read`);
   }
   if (!(rig in POSE_VALUES)) throw new DriveFormatError(`drive message has unknown rig code ${rig}`);
-  const index = view.getUint32(8, true);
-  const epoch = view.getUint32(12, true);
-  const pts = view.getFloat64(16, true);
-  const count = view.getUint16(24, true);
-  const split = view.getUint16(26, true);
+  const index = view.getUint32(DRIVE_AT.index, true);
+  const epoch = view.getUint32(DRIVE_AT.epoch, true);
+  const pts = view.getFloat64(DRIVE_AT.pts, true);
+  const count = view.getUint16(DRIVE_AT.count, true);
+  const split = view.getUint16(DRIVE_AT.split, true);
   const body = bytes.length - DRIVE_HEADER_BYTES;
   if (count * 4 !== body) {
     throw new DriveFormatError(`drive message claims ${count} values (${count * 4} bytes) but carries ${body} bytes`);
@@ -202,12 +205,12 @@ export function decodeFramePacket(message) {
   }
   if (!PACKET_MAGIC.every((b, i) => bytes[i] === b)) throw new DriveFormatError('not a frame packet (bad magic)');
   const view = new DataView(bytes.buffer, bytes.byteOffset, bytes.byteLength);
-  const version = view.getUint8(4);
-  const dtype = view.getUint8(5);
+  const version = view.getUint8(PACKET_AT.version);
+  const dtype = view.getUint8(PACKET_AT.dtype);
   if (version !== PACKET_VERSION || dtype !== 0) {
     throw new DriveFormatError(`frame packet version ${version} audio dtype ${dtype}: only version ${PACKET_VERSION} int16 is read`);
   }
-  const driveBytes = view.getUint32(8, true);
+  const driveBytes = view.getUint32(PACKET_AT.drive_bytes, true);
   const rest = bytes.length - FRAME_HEADER_BYTES;
   if (driveBytes > rest) {
     throw new DriveFormatError(

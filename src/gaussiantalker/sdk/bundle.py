@@ -20,13 +20,13 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import struct
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from .binary_layout import field_layout, fields_struct
 from .codecs import decode_buffer, encode_buffer, expected_nbytes
 from .errors import BundleError
 from .files import StagedFile, atomic_write
@@ -52,18 +52,12 @@ STREAM_GRAPH = "translator_stream"
 # which web/src/generated.js carries to the browser player as HEADER_LAYOUT (docs/bundle-format.md, "Header").
 HEADER_FIELDS = (("magic", "8s"), ("major", "H"), ("minor", "H"), ("reserved", "I"), ("manifest_length", "Q"),
                  ("manifest_sha256", "32s"))
-_HEADER = struct.Struct("<" + "".join(code for _, code in HEADER_FIELDS))
+_HEADER = fields_struct(HEADER_FIELDS)
 
 
 def header_layout() -> dict[str, tuple[int, int]]:
     """Each header field's (offset, size) in bytes, and "padding": where the zero padding starts and its size."""
-    layout, offset = {}, 0
-    for name, code in HEADER_FIELDS:
-        size = struct.calcsize("<" + code)
-        layout[name] = (offset, size)
-        offset += size
-    layout["padding"] = (offset, HEADER_SIZE - offset)
-    return layout
+    return {**field_layout(HEADER_FIELDS), "padding": (_HEADER.size, HEADER_SIZE - _HEADER.size)}
 
 
 def _align(n: int) -> int:

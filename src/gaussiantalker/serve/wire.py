@@ -5,11 +5,11 @@ constants from web/src/generated.js, which is generated from `js_constants()` an
 from __future__ import annotations
 
 import math
-import struct
 
 import numpy as np
 
 from gaussiantalker.sdk.audio import to_pcm16
+from gaussiantalker.sdk.binary_layout import field_layout, fields_struct
 
 WIRE_VERSION = 1  # the version this module writes, in every drive message and frame packet
 
@@ -28,7 +28,9 @@ WIRE_VERSION = 1  # the version this module writes, in every drive message and f
 #   26 u16  split: where the expression (FLAME) or the weights (ARKit) end; count - split is the pose (18 or 6)
 DRIVE_MAGIC = b"GTLD"
 DRIVE_VERSION = WIRE_VERSION
-DRIVE_HEADER = struct.Struct("<4sBBBBIIdHH")
+DRIVE_FIELDS = (("magic", "4s"), ("version", "B"), ("rig", "B"), ("flags", "B"), ("dtype", "B"), ("index", "I"),
+                ("epoch", "I"), ("pts", "d"), ("count", "H"), ("split", "H"))
+DRIVE_HEADER = fields_struct(DRIVE_FIELDS)
 RIG_CODES = {"flame": 0, "arkit": 1}
 POSE_VALUES = {0: 18, 1: 6}  # values after `split`: FLAME flame_pose + translation, ARKit rotation + translation
 SPEAKING_FLAG = 1
@@ -42,7 +44,8 @@ SPEAKING_FLAG = 1
 #   12      the drive message, then the frame's audio (what is left: whole int16 samples, zeros while idle)
 PACKET_MAGIC = b"GTLF"
 PACKET_VERSION = WIRE_VERSION
-PACKET_HEADER = struct.Struct("<4sBBHI")
+PACKET_FIELDS = (("magic", "4s"), ("version", "B"), ("dtype", "B"), ("reserved", "H"), ("drive_bytes", "I"))
+PACKET_HEADER = fields_struct(PACKET_FIELDS)
 
 # -- control messages (JSON text) ---------------------------------------------------------------------------------
 # The page's start message: {"source": one of START_SOURCES, "chunk_ms", "text", "mic_rate"}; the server's answer:
@@ -143,6 +146,8 @@ def js_constants() -> dict[str, object]:
         "DRIVE_HEADER_BYTES": DRIVE_HEADER.size, "POSE_VALUES": {str(k): v for k, v in POSE_VALUES.items()},
         "RIG_CODES": RIG_CODES, "SPEAKING_FLAG": SPEAKING_FLAG, "PACKET_MAGIC": list(PACKET_MAGIC),
         "PACKET_VERSION": PACKET_VERSION, "FRAME_HEADER_BYTES": PACKET_HEADER.size,
+        "DRIVE_LAYOUT": {name: list(span) for name, span in field_layout(DRIVE_FIELDS).items()},
+        "PACKET_LAYOUT": {name: list(span) for name, span in field_layout(PACKET_FIELDS).items()},
         "START_SOURCES": list(START_SOURCES), "MIC_RATE_RANGE": list(MIC_RATE_RANGE),
         "CLOSE_GOING_AWAY": CLOSE_GOING_AWAY, "CLOSE_POLICY": CLOSE_POLICY, "CLOSE_TRY_AGAIN": CLOSE_TRY_AGAIN,
     }
