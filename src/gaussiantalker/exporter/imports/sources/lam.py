@@ -29,14 +29,15 @@ from ...model.vertex_binding import VertexBoundGaussians
 from ..formats.avatar_zip import read_avatar_zip
 from ..formats.gaussian_ply import read_gaussian_ply
 from ..formats.gltf import (
+    MAX_DEPTH,
     Gltf,
     animation_names,
     as_dict,
     as_list,
-    chain,
     clip_duration,
     load_glb,
     node_names,
+    parents,
     parse_json,
     read_accessor,
     sampled_world,
@@ -236,6 +237,27 @@ def read_rig(data: bytes, options: LamOptions, member: str = "skin.glb"):
     return gltf, rest, morphs, world[:3, 3].copy(), head, names, head_vertices(gltf, primitive, head, rest.shape[0])
 
 
+def _below(gltf: Gltf, head: int, joints: list) -> list[bool]:
+    """For each joint (a node index), whether it is `head` or lies below it in the node tree. One walk up the tree
+    per node at most (results shared along each path; a path longer than MAX_DEPTH, or a cycle, is not below), so
+    a hostile skin of many joints costs linear time."""
+    up, known = parents(gltf), {head: True}
+    n_nodes = len(gltf.items("nodes"))
+
+    def below(node) -> bool:
+        if isinstance(node, bool) or not isinstance(node, int) or not 0 <= node < n_nodes:
+            return False
+        path, current = [], node
+        while current is not None and current not in known and len(path) <= MAX_DEPTH:
+            path.append(current)
+            current = up.get(current)
+        result = known.get(current, False)
+        known.update((visited, result) for visited in path)
+        return result
+
+    return [below(node) for node in joints]
+
+
 def head_vertices(gltf: Gltf, primitive: dict, head: int, count: int) -> np.ndarray | None:
     """Which of the head mesh's `count` vertices the skin moves mostly (over half their weight) with the head bone
     and the bones below it (the head, not the neck and chest), or None when the mesh has no skin weights;
@@ -254,9 +276,7 @@ def head_vertices(gltf: Gltf, primitive: dict, head: int, count: int) -> np.ndar
     if joints.size and not 0 <= int(joints.min()) <= int(joints.max()) < len(skin_joints):
         raise ImportFormatError(f"{gltf.member}: JOINTS_0 names joints {int(joints.min())} to {int(joints.max())}; "
                                 f"the skin has {len(skin_joints)}")
-    n_nodes = len(gltf.items("nodes"))
-    below_head = np.array([isinstance(node, int) and not isinstance(node, bool) and 0 <= node < n_nodes
-                           and head in chain(gltf, node) for node in skin_joints], dtype=bool)
+    below_head = np.array(_below(gltf, head, skin_joints), dtype=bool)
     weights = weights.astype(np.float64)
     return (weights * below_head[joints]).sum(axis=1) > weights.sum(axis=1) / 2.0
 
