@@ -160,9 +160,12 @@ def test_gaussian_avatars_default_camera_is_a_portrait_of_the_head(ga_folder):
 def test_framing_bench_reports_both_cameras(lam_zip, tmp_path):
     from tools.bench.framing import framing_table, run_framing
 
-    result = run_framing([lam_zip], None, tmp_path)
+    result = run_framing([lam_zip], None, tmp_path, rounds=1)
     rows = result["avatar.zip"]
+    assert rows["portrait"]["frame_ms"] > 0 and rows["source"]["frame_ms"] > 0
     assert rows["portrait"]["head_box_height"] == pytest.approx(PORTRAIT_FILL, abs=1e-6)
     assert rows["source"]["head_box_height"] != pytest.approx(PORTRAIT_FILL, abs=0.01)
     assert 0 < rows["source"]["covered"] < rows["portrait"]["covered"] < 1
-    assert "| avatar.zip |" in framing_table(result) and (tmp_path / "avatar.zip.png").is_file()
+    table = framing_table(result)
+    assert table.count("| avatar.zip |") == 2 and "portrait / source" in table
+    assert (tmp_path / "avatar.zip.png").is_file()
