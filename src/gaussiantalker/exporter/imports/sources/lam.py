@@ -396,8 +396,8 @@ def _speaker(cloud, rest, morphs, pivot, options: LamOptions, pose_track, motion
     head_low, head_high = head_box(centres[on_head] if framed else centres)
     source = {**source, "head_box": [head_low.tolist(), head_high.tolist()]}
     try:
-        if options.camera == "source":
-            low, high = np.percentile(centres, 1, axis=0), np.percentile(centres, 99, axis=0)
+        if options.camera == "source":  # placed on all the Gaussians' box, as LAM's renderer frames its avatars
+            low, high = head_box(centres)
             camera = lam_camera((low + high) / 2.0, float(high[1] - low[1]))
         else:
             camera = portrait_camera(head_low, head_high, 512, 512)
