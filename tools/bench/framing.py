@@ -1,7 +1,7 @@
 """`gt-bench framing`: how imported avatars sit in their bundle's frame, the source's camera against portrait framing
 (docs/import.md, "Portrait framing"):
 
-    gt-bench framing p2-1.zip concierge.zip --ga /tmp/ga20k/avatar --flame /tmp/ga20k/flame.npz --out docs/bench/framing
+    gt-bench framing p2-1.zip concierge.zip /tmp/ga20k/avatar --flame /tmp/ga20k/flame.npz --out docs/bench/framing
 
 Per avatar and camera: the head's box (the importer's own, recorded in the checkpoint's source) as a fraction of
 the frame's height, its centre's offset from the frame's centre, and the share of the 512x512 frame the avatar covers
@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from gaussiantalker.exporter.export.bundle_export import export_bundle
-from gaussiantalker.exporter.imports.portrait import box_height_fill
+from gaussiantalker.exporter.imports.portrait import box_height_fill, projected
 from gaussiantalker.sdk.camera import Camera
 
 CAMERAS = ("source", "portrait")
@@ -45,9 +45,7 @@ def import_avatar(path: Path, camera: str, flame: Path | None):
 
 def box_centre_offset(camera: Camera, low: np.ndarray, high: np.ndarray) -> float:
     """How far the box's projected centre lies from the frame's centre, as a fraction of the frame's height."""
-    centre = (np.asarray(low) + np.asarray(high)) / 2.0
-    view = np.asarray(camera.R) @ centre + np.asarray(camera.t)
-    x, y = camera.fx * view[0] / view[2] + camera.cx, camera.fy * view[1] / view[2] + camera.cy
+    x, y = projected(camera, (np.asarray(low) + np.asarray(high)) / 2.0)[0]
     return float(np.hypot(x - camera.width / 2.0, y - camera.height / 2.0) / camera.height)
 
 

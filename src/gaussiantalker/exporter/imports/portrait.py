@@ -45,16 +45,23 @@ def portrait_camera(low: np.ndarray, high: np.ndarray, width: int, height: int, 
     return Camera.looking_at(eye, centre, (0.0, 1.0, 0.0), width, height, fov_y_deg)
 
 
+def projected(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """Pixel positions [N, 2] (column, row) of world `points` [N, 3] in `camera`'s image; ValueError for a point
+    not in front of the camera."""
+    view = np.asarray(points, dtype=np.float64).reshape(-1, 3) @ np.asarray(camera.R).T + np.asarray(camera.t)
+    if not (view[:, 2] > 0).all():
+        raise ValueError("a point lies behind the camera")
+    return np.stack([camera.fx * view[:, 0] / view[:, 2] + camera.cx, camera.fy * view[:, 1] / view[:, 2] + camera.cy],
+                    axis=1)
+
+
 def box_height_fill(camera: Camera, low: np.ndarray, high: np.ndarray) -> float:
     """How much of the frame's height the box [low, high] covers in `camera`'s image (its 8 corners projected; all
     must lie in front of the camera)."""
     corners = np.array([[x, y, z] for x in (low[0], high[0]) for y in (low[1], high[1]) for z in (low[2], high[2])])
-    view = corners @ np.asarray(camera.R).T + np.asarray(camera.t)
-    if not (view[:, 2] > 0).all():
-        raise ValueError("the box reaches behind the camera")
-    rows = camera.fy * view[:, 1] / view[:, 2] + camera.cy
+    rows = projected(camera, corners)[:, 1]
     return float((rows.max() - rows.min()) / camera.height)
 
 
 __all__ = ["BOX_PERCENTILES", "CAMERA_CHOICES", "PORTRAIT_FILL", "PORTRAIT_FOV_DEG", "box_height_fill", "head_box",
-           "portrait_camera"]
+           "portrait_camera", "projected"]
