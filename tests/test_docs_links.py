@@ -45,3 +45,40 @@ def test_relative_links_resolve(page: Path):
     broken = [target for target in relative_links(page.read_text(encoding="utf-8"))
               if not (page.parent / target.split("#", 1)[0]).exists()]
     assert not broken, f"{page.relative_to(ROOT)}: links to missing files: {broken}"
+
+
+BENCH = ROOT / "docs" / "bench"
+
+
+def cited_in(pages_text: str, path: Path) -> bool:
+    """Whether `path` (a file under docs/bench) is named by the pages: by its path (from the repository or from
+    docs/), by a folder above it up to docs/bench, or as the companion of a file so named (the same name but the
+    suffix: the JSON or plot a bench writes beside its page)."""
+    def named(candidate: Path) -> bool:
+        for ancestor in (candidate, *candidate.parents):
+            if ancestor == BENCH:
+                return False
+            for spelling in (ancestor.relative_to(ROOT), ancestor.relative_to(ROOT / "docs")):
+                if str(spelling) in pages_text:
+                    return True
+        return False
+
+    return named(path) or any(named(other) for other in path.parent.glob(path.stem + ".*") if other != path)
+
+
+def test_bench_citation_check_sees_paths_folders_and_companions(tmp_path):
+    page = "see bench/live/live.md and docs/bench/zen5/ and bench/sweep-demo.md"
+    assert cited_in(page, BENCH / "live" / "live.md")
+    assert cited_in(page, BENCH / "zen5" / "vs-d674d5e" / "live-now.md")
+    assert cited_in(page, BENCH / "sweep-demo.json")
+    assert not cited_in(page, BENCH / "live-128" / "live.md")
+    assert not cited_in("see bench/", BENCH / "live" / "live.md")
+
+
+def test_every_bench_output_is_cited_by_a_page():
+    """docs/bench holds what the pages cite and nothing else (docs/README.md indexes it): an output no page names
+    is an archive nobody reads, so remove it or cite it."""
+    pages_text = "\n".join(page.read_text(encoding="utf-8") for page in PAGES if BENCH not in page.parents)
+    orphans = [str(path.relative_to(ROOT)) for path in sorted(BENCH.rglob("*"))
+               if path.is_file() and not cited_in(pages_text, path)]
+    assert not orphans, f"docs/bench files no page names (outside docs/bench): {orphans}"

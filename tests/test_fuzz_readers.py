@@ -1173,7 +1173,7 @@ def test_manifest_background_must_be_three_finite_numbers(lam_bundle, tmp_path, 
     ("R", [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 10**400]], "entry [2, 2] is 1000"),
     ("t", [0.0, 0.0, 1e39], "t[2] = 1e+39"),
     ("R", [[2.0, 0, 0], [0, 2.0, 0], [0, 0, 2.0]], "det 8"),
-    ("fx", "x" * 5000, "could not convert string to float: 'xxx"),
+    ("fx", "x" * 5000, "fx must be a real number, got 'xxx"),
 ], ids=["R of strings", "R 300x300 of strings", "R holding 10^400", "t = 1e39", "R scaled by 2", "fx 5,000 x's"])
 def test_manifest_camera_refusals_are_short(lam_bundle, tmp_path, field, value, words):
     """A manifest camera holding strings, huge numbers or a scaled R: the refusal describes the shape and the first

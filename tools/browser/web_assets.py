@@ -16,10 +16,13 @@ import sys
 from pathlib import Path
 
 from gaussiantalker.runtime import translate, translate_stream
+from gaussiantalker.runtime.onnx_wire import MAX_MESSAGE_DEPTH
+from gaussiantalker.runtime.splat.common import FLOATS_PER_SPLAT
 from gaussiantalker.runtime.splat.depth_sort import KEY_LEVELS_16
 from gaussiantalker.runtime.splat.gl import POINT_BOUND_SAFETY, RUN_COST_IN_SPLATS
 from gaussiantalker.runtime.splat.programs import PROGRAMS, QUAD_SLACK_PX, program_sources
-from gaussiantalker.sdk import bundle, codecs, numerics, reference_clip, zip_reader
+from gaussiantalker.sdk import bundle, camera, codecs, config, numerics, reference_clip, zip_reader
+from gaussiantalker.sdk.audio import MAX_SAMPLE_MAGNITUDE
 from gaussiantalker.sdk.drive import MAX_DRIVE_MAGNITUDE
 from gaussiantalker.sdk.flame_motion import MOTION_KEYS, TABLE_POSE_COLUMNS
 from gaussiantalker.sdk.json_bounds import MAX_JSON_DEPTH
@@ -43,15 +46,21 @@ def constants() -> dict[str, object]:
         "WINDOW_FRAMES": translate.WINDOW_FRAMES, "CONTEXT_FRAMES": translate.CONTEXT_FRAMES,
         "CROSSFADE_FRAMES": translate.CROSSFADE_FRAMES, "SILENCE_GATE_DBFS": translate.SILENCE_GATE_DBFS,
         "SILENCE_GATE_RAMP_DB": translate.SILENCE_GATE_RAMP_DB, "MAX_DRIVE_MAGNITUDE": MAX_DRIVE_MAGNITUDE,
+        "MAX_SAMPLE_MAGNITUDE": MAX_SAMPLE_MAGNITUDE,
         "DEFAULT_MOTION_FPS": DEFAULT_MOTION_FPS, "MAX_MOTION_FRAMES": MAX_MOTION_FRAMES,
         "MAX_MOTION_FILE_BYTES": MAX_MOTION_FILE_BYTES, "RUN_COST_IN_SPLATS": RUN_COST_IN_SPLATS,
         "POINT_BOUND_SAFETY": POINT_BOUND_SAFETY, "QUAD_SLACK_PX": QUAD_SLACK_PX,
         "EXTENT_SIGMAS": numerics.EXTENT_SIGMAS, "LOW_PASS_PX2": numerics.LOW_PASS_PX2,
         "FOV_CLAMP_MARGIN": numerics.FOV_CLAMP_MARGIN, "DEFAULT_NEAR": numerics.DEFAULT_NEAR,
-        "KEY_LEVELS_16": KEY_LEVELS_16, "MAX_RATIO": zip_reader.MAX_RATIO, "MIN_BUDGET": zip_reader.MIN_BUDGET,
+        # The camera model's conventions and bounds (sdk/camera.py, sdk/numerics.py).
+        "CAMERA_KEYS": list(camera.CAMERA_KEYS), "MAX_IMAGE_SIDE": camera.MAX_IMAGE_SIDE,
+        "FLOAT32_MAX": camera.FLOAT32_MAX, "MIN_FOCAL_PX": camera.MIN_FOCAL_PX,
+        "ROTATION_TOLERANCE": camera.ROTATION_TOLERANCE,
+        "KEY_LEVELS_16": KEY_LEVELS_16, "FLOATS_PER_SPLAT": FLOATS_PER_SPLAT, "MAX_MESSAGE_DEPTH": MAX_MESSAGE_DEPTH,
+        "MAX_RATIO": zip_reader.MAX_RATIO, "MIN_BUDGET": zip_reader.MIN_BUDGET,
         "MAX_NPZ_BYTES": zip_reader.MAX_NPZ_BYTES, "MAX_NDIM": codecs.MAX_NDIM,
         "FLAME_MOTION_KEYS": [list(pair) for pair in MOTION_KEYS], "TABLE_POSE_COLUMNS": TABLE_POSE_COLUMNS,
-        "REST_FRAMES": translate_stream.REST_FRAMES,
+        "REST_FRAMES": translate_stream.REST_FRAMES, "FEATURES_PER_FRAME": config.FEATURES_PER_FRAME,
         "CROP_MARGIN_PX": reference_clip.CROP_MARGIN_PX, "CROP_MULTIPLE": reference_clip.CROP_MULTIPLE,
         # The bundle's header and bounds (sdk/bundle.py), and its buffer codecs' tables (sdk/codecs.py).
         "MAGIC": bundle.MAGIC.decode("ascii"), "FORMAT_MAJOR": bundle.FORMAT_MAJOR, "HEADER_SIZE": bundle.HEADER_SIZE,

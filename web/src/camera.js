@@ -2,7 +2,9 @@
 // pixel (x, y) centred at (x + 0.5, y + 0.5). Every number is a double here, as in Python; the splatter uploads
 // float32 uniforms.
 
-import { DEFAULT_NEAR, FOV_CLAMP_MARGIN } from './generated.js';
+import {
+  CAMERA_KEYS, DEFAULT_NEAR, FLOAT32_MAX, FOV_CLAMP_MARGIN, MAX_IMAGE_SIDE, MIN_FOCAL_PX, ROTATION_TOLERANCE,
+} from './generated.js';
 
 export class CameraError extends Error {
   constructor(message) {
@@ -16,6 +18,8 @@ const finite = (v) => typeof v === 'number' && Number.isFinite(v);
 const matvec = (M, v) => M.map((row) => row[0] * v[0] + row[1] * v[1] + row[2] * v[2]);
 const transpose = (M) => [0, 1, 2].map((j) => M.map((row) => row[j]));
 const matmul = (A, B) => A.map((row) => [0, 1, 2].map((j) => row[0] * B[0][j] + row[1] * B[1][j] + row[2] * B[2][j]));
+const det = (M) => M[0][0] * (M[1][1] * M[2][2] - M[1][2] * M[2][1]) - M[0][1] * (M[1][0] * M[2][2] - M[1][2] * M[2][0])
+  + M[0][2] * (M[1][0] * M[2][1] - M[1][1] * M[2][0]);
 
 /** [3][3] rotation by `angle` radians about `axis` (normalised; Rodrigues, as sdk/camera.py `_axis_rotation`). */
 function axisRotation(axis, angle) {
@@ -28,34 +32,68 @@ function axisRotation(axis, angle) {
   return [0, 1, 2].map((i) => [0, 1, 2].map((j) => (i === j ? 1 : 0) + s * k[i][j] + c * kk[i][j]));
 }
 
+/** A rows x cols array of numbers (t: rows 3, cols 0 for a flat [3]), as sdk/camera.py `_matrix` takes it. */
+function checkedMatrix(name, value, rows, cols) {
+  const isRow = (row, n) => Array.isArray(row) && row.length === n && row.every((v) => typeof v === 'number');
+  if (!(Array.isArray(value) && value.length === rows && value.every((row) => (cols ? isRow(row, cols)
+    : typeof row === 'number')))) {
+    throw new CameraError(`camera ${name} must be a ${cols ? `${rows}x${cols}` : rows} array of real numbers`);
+  }
+  return cols ? value.map((row) => row.slice()) : value.slice();
+}
+
+/** The checks of sdk/camera.py `Camera.validate`: every number usable in float32, R a proper rotation. */
+function validate({ width, height, fx, fy, cx, cy, near, R, t }) {
+  for (const [name, v] of [['width', width], ['height', height]]) {
+    if (!(Number.isInteger(v) && v >= 1 && v <= MAX_IMAGE_SIDE)) {
+      throw new CameraError(`camera ${name} must be an integer in 1..${MAX_IMAGE_SIDE}, got ${v}`);
+    }
+  }
+  for (const [name, v] of [['fx', fx], ['fy', fy], ['cx', cx], ['cy', cy], ['near', near]]) {
+    if (typeof v !== 'number') throw new CameraError(`camera ${name} must be a real number, got ${typeof v}`);
+  }
+  for (const [name, v] of [['fx', fx], ['fy', fy]]) {
+    if (!(v >= MIN_FOCAL_PX && v <= FLOAT32_MAX)) {
+      throw new CameraError(`camera focal length ${name} must be finite and > 0 (within float32), got ${v}`);
+    }
+  }
+  for (const [name, v] of [['cx', cx], ['cy', cy]]) {
+    if (!(Math.abs(v) <= FLOAT32_MAX)) throw new CameraError(`camera principal point ${name} must be finite, got ${v}`);
+  }
+  if (!(near > 0 && near <= FLOAT32_MAX)) throw new CameraError(`camera near plane must be finite and > 0, got ${near}`);
+  if (![...R.flat(), ...t].every((v) => Math.abs(v) <= FLOAT32_MAX)) {
+    throw new CameraError('camera extrinsics R and t must be finite (float32)');
+  }
+  // numpy's allclose(R R^T, I) with ROTATION_TOLERANCE as both its relative and absolute tolerance
+  const product = matmul(R, transpose(R));
+  const orthonormal = product.every((row, i) => row.every((v, j) => {
+    const identity = i === j ? 1 : 0;
+    return Math.abs(v - identity) <= ROTATION_TOLERANCE + ROTATION_TOLERANCE * identity;
+  }));
+  if (!orthonormal || det(R) < 0) throw new CameraError('camera R must be a proper rotation (orthonormal to 1e-5, det +1)');
+}
+
 export class Camera {
-  /** `R` 3x3 rows, `t` [3]. */
+  /** `R` 3x3 rows, `t` [3]; checked as sdk/camera.py checks a camera (CameraError naming the first unusable field). */
   constructor({ width, height, fx, fy, cx, cy, R, t, near = DEFAULT_NEAR }) {
-    if (!(Number.isInteger(width) && Number.isInteger(height) && width >= 1 && height >= 1 && width <= 16384
-          && height <= 16384)) {
-      throw new CameraError(`camera width and height must be integers in 1..16384, got ${width}x${height}`);
-    }
-    if (![fx, fy, cx, cy, near].every(finite) || !(fx > 0 && fy > 0 && near > 0)) {
-      throw new CameraError('camera fx, fy (> 0), cx, cy and near (> 0) must be finite numbers');
-    }
-    if (!(Array.isArray(R) && R.length === 3 && R.every((row) => Array.isArray(row) && row.length === 3
-          && row.every(finite)) && Array.isArray(t) && t.length === 3 && t.every(finite))) {
-      throw new CameraError('camera R must be 3x3 and t 3 finite numbers');
-    }
-    Object.assign(this, { width, height, fx, fy, cx, cy, near });
-    this.R = R.map((row) => row.slice());
-    this.t = t.slice();
+    const fields = { width, height, fx, fy, cx, cy, near, R: checkedMatrix('R', R, 3, 3), t: checkedMatrix('t', t, 3, 0) };
+    validate(fields);
+    Object.assign(this, fields);
   }
 
-  /** A camera from its manifest description (`Camera.to_dict`). */
+  /** A camera from its manifest description (`Camera.to_dict`): every key but "near" present, none converted. */
   static fromDict(data) {
-    if (data === null || typeof data !== 'object') throw new CameraError('camera description is not an object');
-    return new Camera({ ...data, near: data.near ?? DEFAULT_NEAR });
+    if (data === null || typeof data !== 'object' || Array.isArray(data)) {
+      throw new CameraError('camera description must be an object');
+    }
+    const missing = CAMERA_KEYS.slice(0, -1).filter((key) => !Object.hasOwn(data, key));
+    if (missing.length) throw new CameraError(`camera description is incomplete: missing ${missing.join(', ')}`);
+    const fields = Object.fromEntries(CAMERA_KEYS.slice(0, -1).map((key) => [key, data[key]]));
+    return new Camera({ ...fields, near: Object.hasOwn(data, 'near') ? data.near : DEFAULT_NEAR });
   }
 
   toDict() {
-    const { width, height, fx, fy, cx, cy, R, t, near } = this;
-    return { width, height, fx, fy, cx, cy, R, t, near };
+    return Object.fromEntries(CAMERA_KEYS.map((key) => [key, this[key]]));
   }
 
   /** The same view at another resolution: intrinsics scale with the image (`Camera.resized`). */

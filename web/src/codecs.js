@@ -4,7 +4,7 @@
 // runtime's bit for bit.
 
 import {
-  DTYPE_TABLE, INDEX_TYPES, MAX_CHUNK, MAX_ELEMENTS as MAX_ELEMENTS_NUMBER, MAX_NDIM, QUANT_BITS,
+  DTYPE_TABLE, FLOAT32_MAX, INDEX_TYPES, MAX_CHUNK, MAX_ELEMENTS as MAX_ELEMENTS_NUMBER, MAX_NDIM, QUANT_BITS,
 } from './generated.js';
 
 export class BundleError extends Error {
@@ -31,7 +31,6 @@ export const MAX_ELEMENTS = BigInt(MAX_ELEMENTS_NUMBER);
 const INDEX_ARRAYS = Object.fromEntries(INDEX_TYPES.map((name) => [name, [DTYPES[name][1], DTYPES[name][2]]]));
 const INTEGER_MAX = { int32: 2 ** 31 - 1, int64: Number.MAX_SAFE_INTEGER, int8: 127, uint8: 255, uint16: 65535,
   uint32: 2 ** 32 - 1 };
-const FLOAT32_MAX = 3.4028234663852886e38;
 const QUANT_CODECS = Object.fromEntries(QUANT_BITS.map((bits) => [`q${bits}`, bits]));
 
 const isFloat = (dtype) => dtype.startsWith('float');

@@ -3,10 +3,11 @@
 // runtime/splat/depth_sort.py `view_depth`, `depth_order`; docs/porting.md 3.2-3.4). Pure functions: the sort
 // worker (sort_worker.js) runs them off the main thread, and Node can import them.
 
-import { EXTENT_SIGMAS, KEY_LEVELS_16, LOW_PASS_PX2, POINT_BOUND_SAFETY, QUAD_SLACK_PX, RUN_COST_IN_SPLATS }
-  from './generated.js';
+import {
+  EXTENT_SIGMAS, FLOATS_PER_SPLAT, KEY_LEVELS_16, LOW_PASS_PX2, POINT_BOUND_SAFETY, QUAD_SLACK_PX, RUN_COST_IN_SPLATS,
+} from './generated.js';
 
-export const FLOATS_PER_SPLAT = 13;
+export { FLOATS_PER_SPLAT };
 const f32 = Math.fround;
 
 /** Deform outputs (means [N*3], cov3d [N*6], rgb [N*3], opacity [N]) -> rows [N*13] (`pack_gaussians`). */

@@ -11,7 +11,7 @@
 
 import {
   ARKIT_BLENDSHAPES, CONTEXT_FRAMES, CROSSFADE_FRAMES, DEFAULT_MOTION_FPS, MAX_DRIVE_MAGNITUDE, MAX_MOTION_FILE_BYTES,
-  MAX_MOTION_FRAMES, SILENCE_GATE_DBFS, SILENCE_GATE_RAMP_DB, TABLE_POSE_COLUMNS, WINDOW_FRAMES,
+  MAX_MOTION_FRAMES, MAX_SAMPLE_MAGNITUDE, SILENCE_GATE_DBFS, SILENCE_GATE_RAMP_DB, TABLE_POSE_COLUMNS, WINDOW_FRAMES,
 } from './generated.js';
 import { MAX_JSON_DEPTH, nestsDeeperThan } from './bundle.js';
 
@@ -30,10 +30,9 @@ export class AudioError extends Error {
 }
 
 const f32 = Math.fround;
-const MAX_SAMPLE_MAGNITUDE = 2 ** 31;
 
 /** Python's round(): halves to even. */
-function roundHalfEven(x) {
+export function roundHalfEven(x) {
   const r = Math.round(x);
   return Math.abs(x % 1) === 0.5 && r % 2 !== 0 ? r - 1 : r;
 }

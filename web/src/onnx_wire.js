@@ -13,8 +13,9 @@
 // .data_type 2, .name 8, .raw_data 9, .external_data 13, .data_location 14 (1 = EXTERNAL).
 
 import { BundleError, ONNX_DTYPES } from './codecs.js';
+import { MAX_MESSAGE_DEPTH } from './generated.js';
 
-export const MAX_MESSAGE_DEPTH = 100;
+export { MAX_MESSAGE_DEPTH };
 
 function varint(bytes, pos) {
   let result = 0n;

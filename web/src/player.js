@@ -16,10 +16,10 @@ import { BundleError, readBundle } from './bundle.js';
 import { Camera } from './camera.js';
 import {
   AudioError, blendshapeParams, decodeAudio, Drive, DriveError, flameParams, motionAtFps, readMotion, parseMotion,
-  resampleAudio, trackRow, translateAudio,
+  resampleAudio, roundHalfEven, trackRow, translateAudio,
 } from './drive.js';
 import { flameMotionAtFps, flameMotionFromTable, parseFlameMotion, readFlameMotion, withExpressions } from './flame_motion.js';
-import { ARKIT_BLENDSHAPES, TABLE_POSE_COLUMNS } from './generated.js';
+import { ARKIT_BLENDSHAPES, FEATURES_PER_FRAME, TABLE_POSE_COLUMNS } from './generated.js';
 import { GraphBackendError, GraphSessions } from './graphs.js';
 import { compositeFrame } from './composite.js';
 import { ReferenceClip } from './reference.js';
@@ -27,14 +27,6 @@ import { RenderError, WebGLSplatter } from './splat.js';
 import { AudioStream } from './stream.js';
 
 export { AudioError, BundleError, Camera, DriveError, GraphBackendError, RenderError };
-
-const FEATURES_PER_FRAME = 2; // the translator's audio features per video frame (sdk/config.py)
-
-/** Python's round() for the draw size: halves to even. */
-function roundHalfEven(x) {
-  const r = Math.round(x);
-  return Math.abs(x % 1) === 0.5 && r % 2 !== 0 ? r - 1 : r;
-}
 
 const firstBytes = (bytes) => (bytes instanceof ArrayBuffer ? new Uint8Array(bytes, 0, Math.min(bytes.byteLength, 4))
   : bytes instanceof Uint8Array ? bytes.subarray(0, 4) : new Uint8Array(0));

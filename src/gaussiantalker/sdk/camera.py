@@ -14,6 +14,11 @@ from .errors import CameraError
 from .numerics import DEFAULT_NEAR, FOV_CLAMP_MARGIN
 
 MAX_IMAGE_SIDE = 16384
+# How far R R^T may be from the identity (numpy's allclose, this as both its tolerances): a rotation written to JSON
+# and read back stays one.
+ROTATION_TOLERANCE = 1e-5
+# The keys of a camera's description (`Camera.to_dict`), in order; "near" may be absent (DEFAULT_NEAR).
+CAMERA_KEYS = ("width", "height", "fx", "fy", "cx", "cy", "R", "t", "near")
 
 # Both renderers compute in float32, so every camera number must survive the conversion: finite in float32, and
 # focal lengths at least the smallest normal float32 (below it fx would become 0 or lose its precision on a GPU).
@@ -43,7 +48,8 @@ def _numbers(array: np.ndarray) -> str:
 
 
 def _is_real(value) -> bool:
-    if isinstance(value, str | bytes):
+    """Whether `value` is a real number: not a string, and not a boolean (JSON's `true` is not the number 1)."""
+    if isinstance(value, str | bytes | bool | np.bool_):
         return False
     try:
         float(value)
@@ -71,7 +77,7 @@ def _describe(value) -> str:
 def _image_side(name: str, value) -> int:
     """An image side as int, or CameraError naming it (NaN, inf, None, strings and fractions included)."""
     try:
-        valid = float(value) == int(value) and 1 <= int(value) <= MAX_IMAGE_SIDE and not isinstance(value, str)
+        valid = _is_real(value) and float(value) == int(value) and 1 <= int(value) <= MAX_IMAGE_SIDE
     except (TypeError, ValueError, OverflowError):
         valid = False
     if not valid:
@@ -80,8 +86,8 @@ def _image_side(name: str, value) -> int:
 
 
 def _real(name: str, value) -> float:
-    """A real number as float, or CameraError naming it (None, strings, complex)."""
-    if isinstance(value, str | bytes):
+    """A real number as float, or CameraError naming it (None, strings, booleans, complex)."""
+    if isinstance(value, str | bytes | bool | np.bool_):
         raise CameraError(f"camera {name} must be a real number, got {_quote(value)}")
     try:
         return float(value)
@@ -92,15 +98,18 @@ def _real(name: str, value) -> float:
 
 
 def _matrix(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
-    """A float64 array of exactly `shape`, or CameraError naming it."""
+    """A float64 array of exactly `shape`, or CameraError naming it (strings and booleans are not numbers here
+    either, though numpy would convert them)."""
     try:
         array = np.array(value, dtype=np.float64)
+        if not all(_is_real(entry) for entry in np.asarray(value, dtype=object).reshape(-1)):
+            raise ValueError("not real numbers")
     except (TypeError, ValueError, OverflowError):
         raise CameraError(f"camera {name} must be a {shape} array of real numbers within float range, got "
                           f"{_describe(value)}") from None
-    if array.size != int(np.prod(shape)):
+    if array.shape != shape:
         raise CameraError(f"camera {name} must have shape {shape}, got {array.shape}")
-    return array.reshape(shape)
+    return array
 
 
 def _axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -156,7 +165,8 @@ class Camera:
                 where = ", ".join(map(str, bad[0]))
                 raise CameraError(f"camera extrinsics {name} must be finite (float32), got {name}[{where}] = "
                                   f"{float(value[tuple(bad[0])])!r}")
-        if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-5) or np.linalg.det(self.R) < 0:
+        orthonormal = np.allclose(self.R @ self.R.T, np.eye(3), rtol=ROTATION_TOLERANCE, atol=ROTATION_TOLERANCE)
+        if not orthonormal or np.linalg.det(self.R) < 0:
             error = float(np.abs(self.R @ self.R.T - np.eye(3)).max())
             raise CameraError("camera R must be a proper rotation (orthonormal to 1e-5, det +1), got "
                               f"{_numbers(self.R)} (|R R^T - I| up to {error:.3g}, det {np.linalg.det(self.R):.3g})")
@@ -196,13 +206,15 @@ class Camera:
 
     @classmethod
     def from_dict(cls, data: dict) -> Camera:
-        """Inverse of to_dict; raises CameraError on a missing key."""
-        try:
-            return cls(int(data["width"]), int(data["height"]), float(data["fx"]), float(data["fy"]),
-                       float(data["cx"]), float(data["cy"]), np.asarray(data["R"]), np.asarray(data["t"]),
-                       float(data.get("near", DEFAULT_NEAR)))
-        except (KeyError, TypeError, ValueError, OverflowError) as exc:
-            raise CameraError(f"camera description is incomplete or malformed: {_line(str(exc), 200)}") from exc
+        """Inverse of to_dict; raises CameraError naming a missing key or the first unusable value (each value is
+        checked as it is, so "512" or 512.5 is not a width)."""
+        if not isinstance(data, dict):
+            raise CameraError(f"camera description must be an object, got {type(data).__name__}")
+        missing = [key for key in CAMERA_KEYS[:-1] if key not in data]
+        if missing:
+            raise CameraError(f"camera description is incomplete: missing {', '.join(missing)}")
+        values = {key: data[key] for key in CAMERA_KEYS[:-1]}
+        return cls(**values, near=data.get("near", DEFAULT_NEAR))
 
     def orbited(self, yaw_deg: float, pitch_deg: float, target) -> Camera:
         """This camera swung around `target` [3]: by yaw about its own up axis, then by pitch about its right axis
