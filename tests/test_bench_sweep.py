@@ -64,6 +64,22 @@ def test_unknown_cases_are_a_cli_error():
     assert result.exit_code == 2 and "no sweep case matches 'zoom'" in result.output
 
 
+@pytest.mark.parametrize("renderers", ["vulkan", "", "gl,metal"])
+def test_unknown_renderers_are_a_cli_error(renderers):
+    result = CliRunner().invoke(app, ["sweep", "--renderers", renderers])
+    assert result.exit_code == 2 and "renderers must be gl, cpu or both" in result.output
+
+
+def test_steady_frame_time_is_the_clip_rate_of_a_bursty_loop():
+    """A loop that hands over frames two at a time (gaps 0 and 2T) runs at T a frame: the mean gap after the
+    warm-up, not the median (which would be 0 or 2T)."""
+    from tools.bench.worker import steady_frame_ms
+
+    walls = [0.5, 0.4] + [0.0, 0.02] * 20
+    assert steady_frame_ms(walls, warmup=2) == pytest.approx(10.0)
+    assert steady_frame_ms([0.01] * 3, warmup=5) == pytest.approx(10.0)  # a clip shorter than the warm-up
+
+
 def test_ssim_of_constant_frames_is_the_luminance_term():
     """Flat frames have no variance, so SSIM = (2ab + C1) / (a^2 + b^2 + C1) exactly; equal frames give 1."""
     a, b = 100, 140
@@ -137,3 +153,23 @@ def test_tiny_sweep_end_to_end(small_export, replay_onnx_exports, tmp_path):
 
     png = plot_sweep([sweep], tmp_path / "sweep.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_sweep_measures_each_splatter_against_its_own_reference(small_export, replay_onnx_exports):
+    """`--renderers gl,cpu`: every case drawn by both splatters in the same rounds, one sweep per splatter named by
+    it, each case's ratio and quality taken against `quality` drawn by the same splatter."""
+    from tools.bench.sweep import sweep_speaker_renderers
+
+    replay_onnx_exports(small_export.protos)
+    cases = select_cases(sweep_cases(), "sort keys")
+    sweeps = sweep_speaker_renderers("small speaker", small_export.speaker, cases, sizes=[64], seconds=0.5,
+                                     rounds=1, renderers=("gl", "cpu"), warmup=2, progress=False)
+    assert [s.speaker for s in sweeps] == ["small speaker, OpenGL splatter", "small speaker, CPU splatter"]
+    for sweep, renderer in zip(sweeps, ("gl", "cpu"), strict=True):
+        reference, knob = sweep.cases[REFERENCE], sweep.cases["sort keys 16-bit"]
+        assert reference["renderer"] == knob["renderer"] == renderer
+        assert math.isinf(reference["sizes"]["64"]["quality"]["head_psnr_db"])  # against its own splatter's frames
+        assert reference["sizes"]["64"]["fps_vs_reference"] == 1.0
+        assert 20.0 < knob["sizes"]["64"]["quality"]["head_psnr_db"] <= math.inf
+    report = format_report(sweeps, {"cores": 2}, "gt-bench sweep --renderers gl,cpu")
+    assert "small speaker, OpenGL splatter" in report and "small speaker, CPU splatter" in report

@@ -140,13 +140,20 @@ def sweep(
     seconds: float = typer.Option(6.0, "--seconds", help="audio length of each case"),
     rounds: int = typer.Option(3, "--rounds", min=1, help="alternating rounds per case"),
     out: Path = typer.Option(Path("bench-sweep"), "--out", help="folder for sweep.md, sweep.json and sweep.png"),
+    renderers: str = typer.Option("gl", "--renderers", help="the splatters each case is drawn with, side by side in "
+                                  "the same rounds (comma-separated: gl, cpu); each gets its own tables"),
 ) -> None:
     """Every speed/accuracy knob alone and every preset side by side (alternating rounds) on the demo speaker and
     a larger synthetic one."""
     if skip_demo and sweep_gaussians == 0:
         raise typer.BadParameter("--skip-demo needs a synthetic speaker (--sweep-gaussians > 0)",
                                  param_hint="--skip-demo")
-    _sweep(checkpoint, gaussians, sweep_gaussians, sizes, seconds, rounds, cases, out, skip_demo, scene)
+    chosen_renderers = tuple(dict.fromkeys(name.strip() for name in renderers.split(",") if name.strip()))
+    if not chosen_renderers or not set(chosen_renderers) <= {"gl", "cpu"}:
+        raise typer.BadParameter(f"renderers must be gl, cpu or both (comma-separated), got {renderers!r}",
+                                 param_hint="--renderers")
+    _sweep(checkpoint, gaussians, sweep_gaussians, sizes, seconds, rounds, cases, out, skip_demo, scene,
+           chosen_renderers)
 
 
 @app.command()
@@ -822,7 +829,8 @@ def _compare_with_baseline(baseline: Path, gaussians: int, sizes: str, seconds: 
 
 
 def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seconds: float, rounds: int,
-           cases: str | None, out: Path, skip_demo: bool = False, scene: Path | None = None) -> None:
+           cases: str | None, out: Path, skip_demo: bool = False, scene: Path | None = None,
+           renderers: tuple[str, ...] = ("gl",)) -> None:
     """`gt-bench sweep`: see bench/sweep.py; writes the markdown report, the JSON and (with matplotlib) the plot."""
     from dataclasses import asdict
 
@@ -832,7 +840,7 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
     from gaussiantalker.sdk.files import atomic_write
 
     from .report import format_report, plot_sweep
-    from .sweep import scene_cases, select_cases, sweep_cases, sweep_speaker
+    from .sweep import scene_cases, select_cases, sweep_cases, sweep_speaker_renderers
 
     try:
         if scene is not None:
@@ -858,8 +866,9 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
         synthetic.translator.load_state_dict(demo.translator.state_dict())  # the same speech, more Gaussians
         speakers.append(("synthetic speaker", synthetic))
     out.mkdir(parents=True, exist_ok=True)
-    sweeps = [sweep_speaker(name, speaker, chosen, sizes=size_list, seconds=seconds, rounds=rounds)
-              for name, speaker in speakers]
+    sweeps = [sweep for name, speaker in speakers
+              for sweep in sweep_speaker_renderers(name, speaker, chosen, sizes=size_list, seconds=seconds,
+                                                   rounds=rounds, renderers=renderers)]
     machine = machine_info()
     command = "gt-bench " + " ".join(sys.argv[1:])
     report = format_report(sweeps, machine, command)

@@ -14,8 +14,9 @@ avatar zip or a GaussianAvatars output directory with the user's FLAME model:
   region (the pixels whose fp32 coverage, output="rgba_float" alpha, exceeds 1/255); median and minimum.
 * Speed (tools/bench/avatar_speed.py): alternating rounds of playing the avatar's fp32 and `fast` bundles
   through `TalkingHead.frames(motion=...)` and the demo speaker's fp32 bundle (its bare head) through
-  `TalkingHead.frames(audio)`, the same number of frames each at 512x512; steady-state median ms per frame (the
-  first frames left out) per round, medians over rounds.
+  `TalkingHead.frames(audio)`, the same number of frames each at 512x512; steady-state ms per frame (the mean
+  gap once the first frames are left out: the CPU splatter's loop hands frames over in bursts) per round, medians
+  over rounds.
 
 The motion is a table `head.driver.motion` takes for either rig: ARKit weights [T, 52] or a FLAME table [T, E + 18].
 `--presets` (a subset holding quality) and `--verify-frames` trim the costs of a large avatar on a small machine: a
@@ -318,8 +319,8 @@ def format_report(result: dict) -> str:
               f"`TalkingHead.frames(motion=...)` (the motion above from its start, "
               f"with {_pose_words(result)}), the demo "
               f"speaker's fp32 bundle ({fps['demo_gaussians']:,} Gaussians, bare head) through "
-              "`TalkingHead.frames(audio)` (its translator included). Steady-state median ms per frame "
-              f"(the first {WARMUP_FRAMES} frames left out), medians over rounds.", "",
+              "`TalkingHead.frames(audio)` (its translator included). Steady-state ms per frame (the mean gap "
+              f"once the first {WARMUP_FRAMES} frames are left out), medians over rounds.", "",
               "| case | ms/frame per round | FPS per round | median ms/frame | median FPS | × demo FPS |",
               "|---|---|---|---|---|---|"]
     for label, case in fps["cases"].items():

@@ -15,7 +15,9 @@ from gaussiantalker.exporter.export.speech import synth_speech
 from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.sdk.progress import progress_bar
 
-WARMUP_FRAMES = 5  # first frames of each played clip left out of the steady-state median
+from .worker import steady_frame_ms
+
+WARMUP_FRAMES = 5  # first frames of each played clip left out of the steady-state rate
 DEMO_LABEL = "demo speaker fp32"
 
 
@@ -31,8 +33,8 @@ def timed_play(frames) -> list[float]:
 
 
 def steady_ms(walls: list[float]) -> float:
-    """Median ms per frame once the pipeline is full (WARMUP_FRAMES left out, fewer on a short clip)."""
-    return 1e3 * statistics.median(walls[min(WARMUP_FRAMES, len(walls) // 2):])
+    """Ms per frame once the pipeline is full (`steady_frame_ms`, WARMUP_FRAMES left out)."""
+    return steady_frame_ms(walls, WARMUP_FRAMES)
 
 
 def fps_rounds(avatar_bundles: dict[str, Path], demo_bundle: Path, motion: np.ndarray, frames: int, rounds: int,

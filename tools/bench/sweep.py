@@ -7,6 +7,9 @@ alternate the cases (the order reversed every other round) at each size: machine
 and ratios are taken within a round. Each round reloads the bundle (load time) and plays the clip through
 `TalkingHead.frames` (frame time and FPS, then per-stage medians). The first round's frames are compared with
 the fp32 bundle's frames of the same audio (`quality.py`: head and mouth PSNR/SSIM, translator FLAME error).
+With several splatters (`--renderers gl,cpu`), every case is measured with each in the same rounds, and each
+splatter's ratios and quality are taken against `quality` drawn by that splatter: a preset's trade on the renderer
+a user's machine picks.
 """
 
 from __future__ import annotations
@@ -29,6 +32,8 @@ from .quality import clip_quality, reference_clip
 from .worker import STAGES
 
 REFERENCE = "quality"  # the fp32 bundle every case is compared with (the `quality` preset)
+# TalkingHead's splatters by their `renderer` name, as the report names them.
+RENDERER_NAMES = {"gl": "OpenGL splatter", "cpu": "CPU splatter"}
 
 
 @dataclass(frozen=True)
@@ -133,74 +138,99 @@ def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar) -> dict[str
 
 
 def sweep_speaker(name: str, speaker, cases: list[SweepCase], *, sizes: list[int], seconds: float, rounds: int,
-                  warmup: int = 5, progress: bool = True) -> SpeakerSweep:
-    """Measure every case on one speaker (see the module docstring)."""
+                  warmup: int = 5, progress: bool = True, renderer: str = "gl") -> SpeakerSweep:
+    """Measure every case on one speaker with one splatter (see the module docstring)."""
+    return sweep_speaker_renderers(name, speaker, cases, sizes=sizes, seconds=seconds, rounds=rounds, warmup=warmup,
+                                   progress=progress, renderers=(renderer,))[0]
+
+
+def sweep_name(speaker: str, renderer: str, renderers: tuple[str, ...]) -> str:
+    """A speaker's sweep as the report names it: with its splatter where the run measured more than one."""
+    return speaker if len(renderers) == 1 else f"{speaker}, {RENDERER_NAMES.get(renderer, renderer)}"
+
+
+def sweep_speaker_renderers(name: str, speaker, cases: list[SweepCase], *, sizes: list[int], seconds: float,
+                            rounds: int, renderers: tuple[str, ...] = ("gl",), warmup: int = 5,
+                            progress: bool = True) -> list[SpeakerSweep]:
+    """Measure every case on one speaker with each splatter in `renderers` (TalkingHead's `renderer`), every
+    (case, splatter) pair in its own worker and all of them alternating in each round; one SpeakerSweep per
+    splatter, its ratios and quality against `quality` drawn by the same splatter (module docstring)."""
     from gaussiantalker.exporter.export.speech import synth_speech
     from gaussiantalker.runtime.head import TalkingHead
     from gaussiantalker.sdk.audio import write_wav
 
-    result = SpeakerSweep(name, speaker.gaussians.count)
+    results = {r: SpeakerSweep(sweep_name(name, r, renderers), speaker.gaussians.count) for r in renderers}
     labels = [c.name for c in cases]
+    runs_of = [(label, r) for r in renderers for label in labels]  # what a round alternates
     by_name = {c.name: c for c in cases}
     distinct = len({c.bundle_key for c in cases})
-    bar = progress_bar(total=distinct + len(sizes) * rounds * len(cases) + len(cases), unit="run", disable=not progress,
-               desc=f"gt-bench sweep {name}")
+    bar = progress_bar(total=distinct + len(sizes) * rounds * len(runs_of) + len(runs_of), unit="run",
+                       disable=not progress, desc=f"gt-bench sweep {name}")
     with tempfile.TemporaryDirectory(prefix="gt-sweep-") as tmp_name:
         tmp = Path(tmp_name)
         audio = tmp / "speech.wav"
         samples = synth_speech(seconds, seed=7)
         write_wav(audio, samples)
         bundles = _export_bundles(speaker, cases, tmp, bar)
-        workers = {label: Version.make(f"case{i}", this_version_root(), tmp) for i, label in enumerate(labels)}
-        for label in labels:
-            bundle = bundles[by_name[label].bundle_key]
-            result.cases[label] = {"group": by_name[label].group, "preset": by_name[label].preset,
-                                   "scene": by_name[label].scene,
-                                   "export": asdict(by_name[label].export), "runtime": by_name[label].runtime,
-                                   "bundle_bytes": bundle["bytes"], "gaussians": bundle["gaussians"],
-                                   "export_s": bundle["export_s"], "sizes": {}}
+        workers = {run: Version.make(f"case{i}", this_version_root(), tmp) for i, run in enumerate(runs_of)}
+        for renderer, result in results.items():
+            for label in labels:
+                bundle = bundles[by_name[label].bundle_key]
+                result.cases[label] = {"group": by_name[label].group, "preset": by_name[label].preset,
+                                       "scene": by_name[label].scene, "renderer": renderer,
+                                       "export": asdict(by_name[label].export), "runtime": by_name[label].runtime,
+                                       "bundle_bytes": bundle["bytes"], "gaussians": bundle["gaussians"],
+                                       "export_s": bundle["export_s"], "sizes": {}}
         try:
             for worker in workers.values():
                 worker.start(tmp)
             for size in sizes:
-                runs: dict[str, list[dict]] = {label: [] for label in labels}
-                for round_index, label in alternating(labels, rounds):
-                    bar.set_postfix_str(f"{size}² round {round_index + 1}: {label}")
-                    save = str(tmp / f"frames-{labels.index(label)}-{size}.npy") if round_index == 0 else None
-                    runs[label].append(workers[label].ask(
+                runs: dict[tuple[str, str], list[dict]] = {run: [] for run in runs_of}
+                for round_index, (label, renderer) in alternating(runs_of, rounds):
+                    bar.set_postfix_str(f"{size}² round {round_index + 1}: {label} ({renderer})")
+                    save = str(_frames_path(tmp, runs_of, (label, renderer), size)) if round_index == 0 else None
+                    settings = {**by_name[label].runtime, "renderer": renderer}
+                    runs[label, renderer].append(workers[label, renderer].ask(
                         op="frames", bundle=bundles[by_name[label].bundle_key]["path"], size=size, audio=str(audio),
-                        warmup=warmup, settings=by_name[label].runtime, save=save, reopen=True))
+                        warmup=warmup, settings=settings, save=save, reopen=True))
                     bar.update()
                 for worker in workers.values():
                     worker.ask(op="release")
-                _record_size(result, runs, size)
+                for renderer, result in results.items():
+                    _record_size(result, {label: runs[label, renderer] for label in labels}, size)
                 bar.set_postfix_str(f"{size}²: quality")
                 flames = {}
                 for index, label in enumerate(labels):  # each case's translator output, in its own process
                     translated = tmp / f"flame-{index}.npz"
                     if not translated.exists():
-                        workers[label].ask(op="translate", bundle=bundles[by_name[label].bundle_key]["path"],
-                                           audio=str(audio), save=str(translated))
+                        workers[label, renderers[0]].ask(op="translate", bundle=bundles[by_name[label].bundle_key]
+                                                         ["path"], audio=str(audio), save=str(translated))
                     flames[label] = np.load(translated)
                 reference_flame = flames[REFERENCE]
-                with TalkingHead(bundles[by_name[REFERENCE].bundle_key]["path"], resolution=(size, size),
-                                 renderer="gl") as head:
-                    reference = reference_clip(head, samples,
-                                               np.load(tmp / f"frames-{labels.index(REFERENCE)}-{size}.npy"),
-                                               reference_flame["expression"], reference_flame["jaw"])
-                for index, label in enumerate(labels):
-                    flame = flames[label]
-                    frames = np.load(tmp / f"frames-{index}-{size}.npy")
-                    result.cases[label]["sizes"][str(size)]["quality"] = clip_quality(
-                        reference, frames, flame["expression"], flame["jaw"])
-            for label in labels:
-                result.cases[label]["peak_rss_mb"] = workers[label].ask(op="memory")["peak_rss_mb"]
+                for renderer, result in results.items():
+                    with TalkingHead(bundles[by_name[REFERENCE].bundle_key]["path"], resolution=(size, size),
+                                     renderer=renderer) as head:
+                        reference = reference_clip(head, samples,
+                                                   np.load(_frames_path(tmp, runs_of, (REFERENCE, renderer), size)),
+                                                   reference_flame["expression"], reference_flame["jaw"])
+                    for label in labels:
+                        flame = flames[label]
+                        frames = np.load(_frames_path(tmp, runs_of, (label, renderer), size))
+                        result.cases[label]["sizes"][str(size)]["quality"] = clip_quality(
+                            reference, frames, flame["expression"], flame["jaw"])
+            for (label, renderer), worker in workers.items():
+                results[renderer].cases[label]["peak_rss_mb"] = worker.ask(op="memory")["peak_rss_mb"]
                 bar.update()
         finally:
             bar.close()
             for worker in workers.values():
                 worker.stop()
-    return result
+    return list(results.values())
+
+
+def _frames_path(tmp: Path, runs_of: list[tuple[str, str]], run: tuple[str, str], size: int) -> Path:
+    """Where the first round of `run` (case, splatter) saves its frames at `size`."""
+    return tmp / f"frames-{runs_of.index(run)}-{size}.npy"
 
 
 def _record_size(result: SpeakerSweep, runs: dict[str, list[dict]], size: int) -> None:
@@ -220,4 +250,5 @@ def _record_size(result: SpeakerSweep, runs: dict[str, list[dict]], size: int) -
         }
 
 
-__all__ = ["REFERENCE", "SpeakerSweep", "SweepCase", "scene_cases", "select_cases", "sweep_cases", "sweep_speaker"]
+__all__ = ["REFERENCE", "RENDERER_NAMES", "SpeakerSweep", "SweepCase", "scene_cases", "select_cases", "sweep_cases",
+           "sweep_name", "sweep_speaker", "sweep_speaker_renderers"]
