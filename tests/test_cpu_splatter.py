@@ -516,11 +516,12 @@ def test_semantic_and_alpha_outputs_match_gl(small_export, small_drives):
         assert psnr_db(mine.astype(np.float64) / scale, theirs.astype(np.float64) / scale) >= MIN_PSNR_8BIT, output
 
 
-def test_fused_prepare_keeps_the_numpy_order_and_culls():
-    """`cpu_sort.sorted_packed_rows` (the CPU splatter's prepare at the default sort) returns exactly the rows of
-    numpy's `pack_gaussians(...)[depth_order(...)]` on scenes built to split them: equal depths (the stable order
-    decides), rows at and just in front of the near plane, NaN and infinities in every column, overflowing depths,
-    signed zeros and denormals; seeded, 300 scenes."""
+@pytest.mark.parametrize("key_bits", [32, 16])
+def test_fused_prepare_keeps_the_numpy_order_and_culls(key_bits):
+    """`cpu_sort.sorted_packed_rows` (the CPU splatter's prepare when it sorts every frame) returns exactly the rows
+    of numpy's `pack_gaussians(...)[depth_order(..., key_bits)]` on scenes built to split them: equal depths (the
+    stable order decides), rows at and just in front of the near plane, NaN and infinities in every column,
+    overflowing depths, signed zeros and denormals; seeded, 300 scenes, with 32-bit and 16-bit keys."""
     from gaussiantalker.runtime.splat.common import checked_gaussians, pack_gaussians
     from gaussiantalker.runtime.splat.cpu_sort import sorted_packed_rows
     from gaussiantalker.runtime.splat.depth_sort import depth_order
@@ -543,14 +544,15 @@ def test_fused_prepare_keeps_the_numpy_order_and_culls():
         camera = axis_camera if case % 5 == 0 else tilted_camera
         arrays = (rows[:, 0:3], rows[:, 3:9], rows[:, 9:12], rows[:, 12])
         packed = pack_gaussians(*arrays)
-        expected = packed[depth_order(packed, camera)]
-        got = sorted_packed_rows(*checked_gaussians(*arrays), camera)
+        expected = packed[depth_order(packed, camera, key_bits)]
+        got = sorted_packed_rows(*checked_gaussians(*arrays), camera, key_bits)
         assert got.shape == expected.shape and np.array_equal(got.view(np.uint32), expected.view(np.uint32)), case
 
 
-def test_prepare_takes_the_numpy_path_for_the_sort_knobs():
-    """With a sort knob set the CPU splatter prepares through `DepthSorter` (the knobs' numpy path): on depths that
-    tie at 16 bits but not at 32, the 16-bit splatter keeps index order and the default one sorts exactly."""
+def test_prepare_sorts_by_the_key_bits_asked_for():
+    """The CPU splatter's prepare honours `sort_key_bits` (16-bit keys through the fused passes, as 32-bit ones):
+    on depths that tie at 16 bits but not at 32, the 16-bit splatter keeps index order and the default one sorts
+    exactly; with a sort interval it goes through `DepthSorter` and gives the same first order."""
     from gaussiantalker.runtime.splat.common import pack_gaussians
     from gaussiantalker.runtime.splat.depth_sort import depth_order
 
@@ -567,3 +569,5 @@ def test_prepare_takes_the_numpy_path_for_the_sort_knobs():
     coarse = CPUSplatter(settings=RenderSettings(sort_key_bits=16))
     assert np.array_equal(coarse.prepare(*arrays, camera).rows, packed[quantised])
     assert np.array_equal(CPUSplatter().prepare(*arrays, camera).rows, packed[exact])
+    every_other = CPUSplatter(settings=RenderSettings(sort_key_bits=16, sort_interval=2))
+    assert np.array_equal(every_other.prepare(*arrays, camera).rows, packed[quantised])

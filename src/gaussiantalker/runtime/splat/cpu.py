@@ -658,12 +658,14 @@ class CPUSplatter:
         self.warm_up_seconds = time.perf_counter() - start
 
     def prepare(self, means, cov3d, rgb, opacity, camera: Camera) -> PreparedSplats:
-        """Validate, pack and depth-sort (no shared state: safe on a worker thread). At the contract's sort (every
-        frame, 32-bit keys) this runs the fused numba passes of `cpu_sort`, else the sort knobs' numpy path."""
+        """Validate, pack and depth-sort (no shared state: safe on a worker thread). Sorting every frame (32-bit
+        keys, the contract's, or 16-bit ones) this runs the fused numba passes of `cpu_sort`; with a sort interval,
+        `DepthSorter`'s numpy path."""
         start = time.perf_counter()
-        if self._sorter.interval == 1 and self._sorter.key_bits == 32:
+        if self._sorter.interval == 1:
             camera, output_size = draw_camera(self.settings, camera)
-            rows = cpu_sort.sorted_packed_rows(*checked_gaussians(means, cov3d, rgb, opacity), camera)
+            rows = cpu_sort.sorted_packed_rows(*checked_gaussians(means, cov3d, rgb, opacity), camera,
+                                               self._sorter.key_bits)
         else:
             rows, camera, output_size = sorted_rows(self._sorter, self.settings, means, cov3d, rgb, opacity,
                                                     camera)

@@ -1,6 +1,7 @@
-"""The CPU splatter's `prepare` at the contract's default sort: cull, depth-order and pack a frame's Gaussians in
-two numba passes and one sort of 64-bit keys, instead of numpy's pack, finiteness reduction and gather
-(docs/speed.md, "The steps since"). The order is `depth_order`'s exactly (docs/numerics.md): a stable sort
+"""The CPU splatter's `prepare` when it sorts every frame (32-bit keys, the contract's, or 16-bit ones): cull,
+depth-order and pack a frame's Gaussians in two numba passes and one sort (of 64-bit keys, or of 16-bit ones as
+`stable_argsort_16bit` makes them), instead of numpy's pack, finiteness reduction and gather (docs/speed.md, "The
+steps since"). The order is `depth_order`'s exactly (docs/numerics.md): a stable sort
 on float32 view depth, rows behind the near plane or holding a non-finite value culled.
 
 numpy's version makes three [N, 13] temporaries (the packed rows, their finiteness, the gathered rows) and walks
@@ -18,7 +19,7 @@ from gaussiantalker.sdk.camera import Camera
 
 from ..jit import njit
 from .common import FLOATS_PER_SPLAT
-from .depth_sort import stable_argsort_positive
+from .depth_sort import stable_argsort_16bit, stable_argsort_positive
 
 _CULLED = np.float32(np.inf)  # a culled Gaussian's depth: its key sorts after every kept one (kept depths are finite)
 
@@ -57,17 +58,19 @@ def _gather(means, cov3d, rgb, opacity, order, rows):
 
 
 def sorted_packed_rows(means: np.ndarray, cov3d: np.ndarray, rgb: np.ndarray, opacity: np.ndarray,
-                       camera: Camera) -> np.ndarray:
-    """`pack_gaussians(...)[depth_order(..., camera)]` for checked float32 arrays (`checked_gaussians`): the rows
-    [n, 13] to draw, front to back."""
+                       camera: Camera, key_bits: int = 32) -> np.ndarray:
+    """`pack_gaussians(...)[depth_order(..., camera, key_bits)]` for checked float32 arrays (`checked_gaussians`):
+    the rows [n, 13] to draw, front to back (`key_bits` 16: depth quantised as `stable_argsort_16bit` does)."""
     n = means.shape[0]
     depth = np.empty(n, dtype=np.float32)
     r = camera.R[2].astype(np.float32)
     _depths(means, cov3d, rgb, opacity, r, np.float32(camera.t[2]), np.float32(camera.near), depth)
-    # +inf's bits order after every finite positive float32's, so the culled come last in the stable order
-    kept = n - int(np.count_nonzero(depth == _CULLED))
-    order = stable_argsort_positive(depth)[:kept]
-    rows = np.empty((kept, FLOATS_PER_SPLAT), dtype=np.float32)
+    if key_bits == 16:  # the kept depths alone set the 16-bit keys' range, as depth_order's do
+        kept_index = np.flatnonzero(depth != _CULLED)
+        order = kept_index[stable_argsort_16bit(depth[kept_index])]
+    else:  # +inf's bits order after every finite positive float32's, so the culled come last in the stable order
+        order = stable_argsort_positive(depth)[:n - int(np.count_nonzero(depth == _CULLED))]
+    rows = np.empty((order.shape[0], FLOATS_PER_SPLAT), dtype=np.float32)
     _gather(means, cov3d, rgb, opacity, order, rows)
     return rows
 
