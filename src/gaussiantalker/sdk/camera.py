@@ -102,7 +102,8 @@ def _matrix(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
     either, though numpy would convert them)."""
     try:
         array = np.array(value, dtype=np.float64)
-        if not all(_is_real(entry) for entry in np.asarray(value, dtype=object).reshape(-1)):
+        numeric = isinstance(value, np.ndarray) and value.dtype.kind in "fiu"  # a renderer's own camera: no walk
+        if not numeric and not all(_is_real(entry) for entry in np.asarray(value, dtype=object).reshape(-1)):
             raise ValueError("not real numbers")
     except (TypeError, ValueError, OverflowError):
         raise CameraError(f"camera {name} must be a {shape} array of real numbers within float range, got "
