@@ -143,7 +143,8 @@ def test_bad_input_gives_clear_errors_in_process(in_process_dir):
                           (["--preset", "fast", "--codec", "fp16"], "give --preset or --codec, not both"),
                           (["--flame-codec", "q4/x"], "only q16/q8/q4 take a chunk size"),
                           (["--inpaint-codec", "q9"], "inpaint: unknown codec 'q9'"),
-                          (["--reference-codec", "crf:60"], "unknown reference clip setting 'crf:60'"),
+                          (["--reference-codec", "crf:60"],
+                           "reference clip setting 'crf:60': an H.264 CRF must be an integer 0..51"),
                           (["--gaussian-budget", "lots"], "--gaussian-budget must be a whole number or a percentage")):
         result = _invoke(app, ["speaker.ckpt", "-o", "x.gtb", *args], expect=2)
         assert message in result.stderr + result.stdout, args

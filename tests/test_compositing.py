@@ -566,11 +566,13 @@ def test_reference_crf_reencodes_the_frames_only(clip_export, replay_onnx_export
 
 
 def test_reference_knob_in_presets_and_without_a_clip(clip_export, small_export, replay_onnx_exports, tmp_path):
-    """A preset re-encodes the clip at its own CRF (the same bytes as `EncodedClip.reencoded`); a speaker without a
-    clip exports the same entries whatever the knob says."""
+    """A preset re-encodes the clip as its knob says (the same bytes as `EncodedClip.reencoded`: frames in groups of
+    pictures, masks as H.264), and the manifest records the new layout; a speaker without a clip exports the same
+    entries whatever the knob says."""
     from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.exporter.export.presets import PRESETS, ExportSettings, parse_reference
     from gaussiantalker.sdk.bundle import Bundle
+    from gaussiantalker.sdk.reference_clip import mask_entry
 
     replay_onnx_exports(clip_export.protos)
     preset = PRESETS["balanced"]
@@ -580,7 +582,9 @@ def test_reference_knob_in_presets_and_without_a_clip(clip_export, small_export,
     assert bundle.manifest["export_settings"]["reference"] == preset.export.reference
     expected = clip_export.speaker.reference.reencoded(parse_reference(preset.export.reference))
     assert [bundle.buffer(frame_entry(i)).tobytes() for i in range(CLIP_FRAMES)] == expected.frames
-    assert expected.masks == clip_export.speaker.reference.masks
+    assert [bundle.buffer(mask_entry(i)).tobytes() for i in range(CLIP_FRAMES)] == expected.masks
+    assert bundle.manifest["reference"] == expected.layout.to_dict()
+    assert (expected.layout.gop, expected.layout.mask_codec) == (25, "h264")
 
     replay_onnx_exports(small_export.protos)
     bare = tmp_path / "bare.gtb"

@@ -169,6 +169,31 @@ def test_damaged_runtime_defaults_are_a_bundle_error(defaults, message):
         bundle_render_settings(bundle)
 
 
+@pytest.mark.parametrize("by_renderer, message", [
+    ({"metal": {}}, "runtime_defaults_by_renderer must be a table keyed by gl or cpu, got \\['metal'\\]"),
+    ([], "runtime_defaults_by_renderer must be a table keyed by gl or cpu, got list"),
+    ({"cpu": {"zoom": 1}}, "unknown runtime defaults \\['zoom'\\]"),
+    ({"cpu": {"render_scale": 0}}, "render_scale must be a number"),
+])
+def test_damaged_per_renderer_defaults_are_a_bundle_error(by_renderer, message):
+    manifest = {"runtime_defaults": {}, "runtime_defaults_by_renderer": by_renderer}
+    bundle = SimpleNamespace(path="b.gtb", manifest=manifest)
+    with pytest.raises(BundleError, match=message):
+        bundle_render_settings(bundle, splatter="cpu")
+
+
+def test_per_renderer_defaults_are_taken_for_the_splatter_that_draws():
+    """A bundle's `runtime_defaults_by_renderer` entry replaces its `runtime_defaults` on that splatter only."""
+    manifest = {"runtime_defaults": {"render_scale": 0.75},
+                "runtime_defaults_by_renderer": {"cpu": {"render_scale": 0.5}}}
+    bundle = SimpleNamespace(path="b.gtb", manifest=manifest)
+    assert bundle_render_settings(bundle, splatter="gl") == RenderSettings(render_scale=0.75)
+    assert bundle_render_settings(bundle, splatter="cpu") == RenderSettings(render_scale=0.5)
+    assert bundle_render_settings(bundle, splatter="cpu", render_scale=1.0) == RenderSettings()
+    del manifest["runtime_defaults_by_renderer"]
+    assert bundle_render_settings(bundle, splatter="cpu") == RenderSettings(render_scale=0.75)
+
+
 def test_contributions_sum_to_each_frames_coverage(small_speaker):
     """Each frame's blend weights sum to its coverage 1 - T per pixel, so the measured contributions must too."""
     drives = [FrameDrive.make(small_speaker.config.n_expr),
@@ -201,7 +226,9 @@ def test_pruning_keeps_the_largest_contributors_in_order(small_speaker):
     ({"blendshape_rank": 0}, "blendshape_rank must be >= 1"),
     ({"gaussian_budget": 1.5}, "gaussian_budget must be a fraction"),
     ({"gaussian_budget": -1}, "gaussian_budget must be a fraction"),
-    ({"reference": "crf:52"}, r"unknown reference clip setting 'crf:52' \(allowed: keep, or crf:N"),
+    ({"reference": "crf:52"}, r"reference clip setting 'crf:52': an H.264 CRF must be an integer 0..51, got 52 "
+                              r"\(allowed: keep, or crf:N\[,gop:K\]\[,mask-crf:M\]"),
+    ({"reference": "crf:20,gop:0"}, "'crf:20,gop:0': a clip's pictures per group must be an integer in 1..100000"),
     ({"reference": "crf:-1"}, "unknown reference clip setting 'crf:-1'"),
     ({"reference": "crf:"}, "unknown reference clip setting 'crf:'"),
     ({"reference": "crf:2.5"}, "unknown reference clip setting 'crf:2.5'"),

@@ -209,6 +209,34 @@ def test_a_bundle_with_a_reference_clip_plays_composited(player_ready, page, cli
         page.load(clip_export.path, camera=head.camera.to_dict())
 
 
+def test_a_clip_in_groups_of_pictures_with_h264_masks_plays_composited(player_ready, page, clip_export,
+                                                                       replay_onnx_exports, tmp_path):
+    """The small clip coded as `gt-export --reference-codec crf:23,gop:3,mask-crf:10` (its 4 frames in groups of 3
+    and 1, masks as H.264 luma): the page decodes a group at a time, forth and back as the clip plays, and
+    composites within MIN_PSNR_DB of the Python runtime's frames (the same bound and reasons as the intra clip's)."""
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.export.presets import ExportSettings
+    from gaussiantalker.runtime import TalkingHead
+    from gaussiantalker.sdk.drive import track_row
+
+    replay_onnx_exports(clip_export.protos)
+    path = tmp_path / "groups.gtb"
+    export_bundle(clip_export.speaker, path, settings=ExportSettings(reference="crf:23,gop:3,mask-crf:10"),
+                  progress=False)
+    audio = ROOT / "samples" / "demo_speech.wav"
+    with TalkingHead(path, renderer="gl") as head:
+        assert (head.reference.layout.gop, head.reference.layout.mask_codec) == (3, "h264")
+        frames = list(head.frames(audio))
+    indexes = [0, 3, 4, 5, 6, 7, 2]  # clip rows 0, 3, 2, 1, 0, 1, 2: both groups, both directions, and a jump back
+    assert {track_row(len(head.reference), i) for i in indexes} == {0, 1, 2, 3}
+    info = page.load(path)
+    assert info["composited"]
+    page.drive(audio=audio)
+    for index in indexes:
+        frame, _ = page.render(index)
+        assert psnr_db(frames[index], frame) >= MIN_PSNR_DB, (index, psnr_db(frames[index], frame))
+
+
 def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> np.ndarray:
     """What the page's AudioStream (web/src/stream.js) makes of `audio` pushed `chunk` samples at a time, in numpy
     on onnxruntime: the same graph calls (every whole frame committed at once, at most 50 a call; at the end the

@@ -301,6 +301,9 @@ def clip_crf(
     checkpoint: Path = typer.Option(..., "--checkpoint", help="a speaker with a reference clip"),
     crfs: str = typer.Option(None, "--crfs", help="x264 CRFs of the clip to measure against the clip as stored, "
                              "comma-separated [default: bench/clip_crf.py's CLIP_CRFS, 18,23,28,33]"),
+    codings: str = typer.Option("", "--codings", help="more clip settings to measure, as gt-export "
+                                "--reference-codec takes them, separated by ';' (e.g. 'crf:20,gop:25;crf:33,gop:25,"
+                                "mask-crf:24')"),
     presets: str = typer.Option(None, "--presets", help="presets whose whole files to compare, comma-separated "
                                 "(the first is the reference; empty: none) [default: all, quality first]"),
     seconds: float = typer.Option(6.0, "--seconds", help="audio played through each bundle"),
@@ -308,7 +311,8 @@ def clip_crf(
 ) -> None:
     """The reference clip's codec knob (`gt-export --reference-codec`): clip and bundle bytes against the PSNR of
     the clip and of the composited frames; the presets' whole-file sizes (docs/compositing.md)."""
-    from gaussiantalker.exporter.export.presets import PRESETS
+    from gaussiantalker.exporter.export.presets import PRESETS, parse_reference
+    from gaussiantalker.sdk.errors import BundleError
 
     from .clip_crf import CLIP_CRFS, run_clip_crf_bench
 
@@ -320,7 +324,14 @@ def clip_crf(
     unknown = [p for p in chosen if p not in PRESETS]
     if unknown:
         raise typer.BadParameter(f"unknown preset(s) {unknown} (known: {', '.join(PRESETS)})", param_hint="--presets")
-    typer.echo(run_clip_crf_bench(checkpoint, crf_values, chosen, seconds, out / "clip-crf.md"))
+    coding_values = tuple(c.strip() for c in codings.split(";") if c.strip())
+    for coding in coding_values:
+        try:
+            parse_reference(coding)
+        except BundleError as exc:
+            raise typer.BadParameter(str(exc), param_hint="--codings") from None
+    typer.echo(run_clip_crf_bench(checkpoint, crf_values, chosen, seconds, out / "clip-crf.md",
+                                  codings=coding_values))
 
 
 @app.command("lam-web")

@@ -70,9 +70,11 @@ def export(
     blendshape_rank: int = typer.Option(None, "--blendshape-rank", min=1, help="rank of the blendshape matrix"),
     gaussian_budget: str = typer.Option(None, "--gaussian-budget", help="keep N Gaussians (or P%), the largest "
                                         "contributors over a driven clip and a head-pose sweep"),
-    reference: str = typer.Option(None, "--reference-codec", help="the reference clip's frames: keep (as the "
-                                  "checkpoint stores them) or crf:N (re-encoded with x264 at CRF N, 0-51: larger "
-                                  "is smaller and coarser; masks stay lossless; docs/compositing.md)"),
+    reference: str = typer.Option(None, "--reference-codec", help="the reference clip: keep (as the checkpoint "
+                                  "stores it) or crf:N[,gop:K][,mask-crf:M]: frames re-encoded with x264 at CRF N "
+                                  "(0-51: larger is smaller and coarser), in groups of K pictures (default 1: each "
+                                  "frame alone), masks as H.264 at CRF M (default: kept lossless; "
+                                  "docs/compositing.md)"),
     scene: Path = typer.Option(None, "--scene", help="compile the bundle for a scene (TOML/JSON, docs/scene.md): "
                                "leave out what it never uses, record it in the bundle"),
     mnn: bool = typer.Option(False, "--mnn", help="also store every graph as an MNN model, for "

@@ -15,7 +15,6 @@ for the bare head), built from the bundle by runtime/stages.py. Settings come in
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from collections.abc import Callable, Iterator
 from contextlib import closing
@@ -40,7 +39,7 @@ from .output import OutputView, output_view
 from .playback import playback, video_frames
 from .renamed import renamed_attribute, settings_groups
 from .settings import BackendSettings, OutputSettings, merged_backend, merged_output
-from .stages import build_stages, bundle_render_settings
+from .stages import build_stages, render_settings_by_splatter
 from .translate import SILENCE_GATE_DBFS
 
 # What a frame is returned as: "uint8" [H, W, 3] (the composited frame when compositing), "float" float32 [H, W, 3]
@@ -80,12 +79,12 @@ class TalkingHead:
         merged = merged_backend(backend, threads=threads, shader_target=shader_target, renderer=renderer,
                                 pipeline=pipeline)
         label = "backend.threads" if isinstance(backend, BackendSettings) and threads is None else "threads"
-        self.render_settings = bundle_render_settings(self.bundle, render_settings, merged.threads, label,
-                                                      render_scale=render_scale, render_target=render_target,
-                                                      sort_interval=sort_interval, sort_key_bits=sort_key_bits)
-        self.backend_settings = dataclasses.replace(merged, threads=self.render_settings.graph_threads)
-        stages = build_stages(self.bundle, self.render_settings, self.output_settings, self.backend_settings,
-                              gl_context=gl_context, silence_gate_dbfs=silence_gate_dbfs)
+        by_splatter = render_settings_by_splatter(self.bundle, render_settings, merged.threads, label,
+                                                  render_scale=render_scale, render_target=render_target,
+                                                  sort_interval=sort_interval, sort_key_bits=sort_key_bits)
+        stages = build_stages(self.bundle, by_splatter, self.output_settings, merged, gl_context=gl_context,
+                              silence_gate_dbfs=silence_gate_dbfs)
+        self.render_settings, self.backend_settings = stages.render, stages.backend
         self.driver, self.frame_renderer, self.compositor = stages.driver, stages.frame_renderer, stages.compositor
         self.renderer, self.reference, self.timings = stages.renderer, stages.reference, stages.timings
 

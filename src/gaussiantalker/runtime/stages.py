@@ -5,6 +5,7 @@ need is read and checked here, at load, so a damaged bundle fails before the fir
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass
 
@@ -14,7 +15,7 @@ from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.reference_clip import ReferenceClip
-from gaussiantalker.sdk.render_settings import RenderSettings
+from gaussiantalker.sdk.render_settings import SPLATTERS, RenderSettings, stored_defaults
 from gaussiantalker.sdk.rig import ARKIT_RIG, ArkitRig, rig_kind
 from gaussiantalker.sdk.scene import Scene, SceneError, SceneGuard
 
@@ -41,17 +42,28 @@ class Stages:
     renderer: str
     reference: ReferenceClip | None
     timings: Timings
+    render: RenderSettings  # the settings of the splatter that draws
+    backend: BackendSettings  # with the graph threads of `render`
 
 
 def bundle_render_settings(bundle: Bundle, render: RenderSettings | None = None, threads: int | None = None,
-                           threads_label: str = "threads", **shortcuts) -> RenderSettings:
-    """The render settings: `render` (None: the bundle's stored runtime defaults, BundleError if damaged) with the
-    app's shortcut keywords (None: keep the value; SettingsError if bad or given twice)."""
+                           threads_label: str = "threads", splatter: str = "gl", **shortcuts) -> RenderSettings:
+    """The render settings for `splatter` ("gl" or "cpu"): `render` (None: the runtime defaults the bundle stores for
+    that splatter, BundleError if damaged) with the app's shortcut keywords (None: keep the value; SettingsError if
+    bad or given twice)."""
     try:
-        preset = RenderSettings.from_dict(bundle.manifest.get("runtime_defaults", {}))
+        preset = stored_defaults(bundle.manifest, splatter)
     except (TypeError, ValueError) as exc:
         raise BundleError(f"{bundle.path}: manifest 'runtime_defaults' is invalid: {exc}") from None
     return merged_render(preset, render, threads, threads_label, **shortcuts)
+
+
+def render_settings_by_splatter(bundle: Bundle, render: RenderSettings | None = None, threads: int | None = None,
+                                threads_label: str = "threads", **shortcuts) -> dict[str, RenderSettings]:
+    """`bundle_render_settings` for each splatter a head may draw with (`SPLATTERS`): the renderer is chosen after
+    the settings are checked, and the bundle's defaults may differ between the two."""
+    return {splatter: bundle_render_settings(bundle, render, threads, threads_label, splatter, **shortcuts)
+            for splatter in SPLATTERS}
 
 
 def read_rig(bundle: Bundle) -> SpeakerConfig | ArkitRig:
@@ -96,13 +108,17 @@ def read_scene(bundle: Bundle, config: SpeakerConfig | ArkitRig) -> tuple[Scene 
         raise BundleError(f"{bundle.path}: manifest 'scene' is invalid: {exc}") from None
 
 
-def build_stages(bundle: Bundle, render: RenderSettings, output: OutputSettings, backend: BackendSettings, *,
-                 gl_context=None, silence_gate_dbfs: float | None) -> Stages:
-    """The stages of a head playing `bundle` with these (merged) settings."""
+def build_stages(bundle: Bundle, render: RenderSettings | dict[str, RenderSettings], output: OutputSettings,
+                 backend: BackendSettings, *, gl_context=None, silence_gate_dbfs: float | None) -> Stages:
+    """The stages of a head playing `bundle` with these (merged) settings; `render` may hold one RenderSettings per
+    splatter (`render_settings_by_splatter`), the chosen splatter's are used, and the backend's graph threads are
+    theirs."""
+    by_splatter = render if isinstance(render, dict) else dict.fromkeys(SPLATTERS, render)
     # The renderer is chosen first (a GL splatter made to choose it is released if anything below fails): the
     # graphs' threads depend on it, and the CPU splatter's kernels load last, after the bundle is checked.
-    choice = choose_splatter(backend.renderer, gl_context=gl_context, settings=render,
-                             shader_target=backend.shader_target)
+    choice = choose_splatter(backend.renderer, gl_context=gl_context, settings=by_splatter["gl"],
+                             shader_target=backend.shader_target, cpu_settings=by_splatter["cpu"])
+    backend = dataclasses.replace(backend, threads=choice.settings.graph_threads)
     try:
         return _build_stages(bundle, render, output, backend, choice, silence_gate_dbfs)
     except BaseException:
@@ -138,7 +154,7 @@ def _build_stages(bundle: Bundle, render: RenderSettings, output: OutputSettings
     regions = Regions(bundle) if "regions" in manifest else None
     frame_renderer = FrameRenderer(graphs, splatter, view.camera, background, rig=driver.rig, scene=scene,
                                    scene_guard=scene_guard, regions=regions, timings=timings, where=str(bundle.path))
-    return Stages(driver, frame_renderer, compositor, choice.renderer, reference, timings)
+    return Stages(driver, frame_renderer, compositor, choice.renderer, reference, timings, choice.settings, backend)
 
 
 def _driver(bundle: Bundle, graphs: GraphBackend, rig, timings: Timings,
@@ -157,5 +173,6 @@ def open_driver(bundle: str | os.PathLike | Bundle, *, backend: str = "onnxrunti
                    silence_gate_dbfs)
 
 
-__all__ = ["Stages", "build_stages", "graph_threads", "open_driver", "bundle_render_settings", "read_background",
+__all__ = ["Stages", "build_stages", "graph_threads", "open_driver", "bundle_render_settings",
+           "render_settings_by_splatter", "read_background",
            "read_rig", "read_scene"]

@@ -1,46 +1,44 @@
 """A speaker's reference clip: its original video frames I_ori, facial masks M and the camera that aligns them.
 
 The composited frame is I = (1 - M) I_ori + M F(I_gau + (1 - M) I_ori) (docs/compositing.md). A clip is stored
-encoded, one entry per frame and per mask (intra-only H.264 frames, 8-bit PNG masks; the choice is measured in
-docs/compositing.md), so a player decodes any frame alone, one at a time, and never holds the decoded clip. Frame i is
-aligned with row i of the speaker's pose track; the clip is played forth and back like the track
-(`drive.track_row`).
-
-Encoding and decoding go through PyAV (libavcodec), which the runtime already needs for video out.
+encoded, one entry per frame and per mask: H.264 frames, intra-only or in groups of pictures, and 8-bit PNG or H.264
+masks (`sdk/clip_codec.py`; the choices are measured in docs/compositing.md). A player decodes a frame from its
+group's keyframe on and holds at most one group of decoded pictures. Frame i is aligned with row i of the speaker's
+pose track; the clip is played forth and back like the track (`drive.track_row`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from fractions import Fraction
 
 import av
 import numpy as np
 
 from .camera import Camera
-from .errors import BundleError, CameraError, GaussianTalkerError
+from .clip_codec import (
+    FRAME_CODECS,
+    H264_COLOUR_TAGS,
+    H264_CRF,
+    MASK_CODECS,
+    MASK_LEVELS,
+    MASK_PNG_FILTER,
+    MAX_H264_CRF,
+    GroupDecoder,
+    ReferenceClipError,
+    _decode,
+    _encode,
+    check_crf,
+    decode_group,
+    encode_frame,
+    encode_mask,
+    encode_mask_stream,
+    encode_stream,
+    luma_levels,
+    quantise_mask,
+)
+from .errors import BundleError, CameraError
 
-# Stored codec name -> (libavcodec encoder, decoder). Frames: intra-only H.264, every frame its own keyframe so it
-# decodes alone (fewer bytes than JPEG at the same PSNR on the demo clip: docs/compositing.md); masks: 8-bit grey
-# PNG (lossless).
-FRAME_CODECS = {"h264": ("libx264", "h264")}
-MASK_CODECS = {"png": ("png", "png")}
-# The PNG row filter of stored masks: "up" (each row minus the one above). On the demo clip's masks it decodes 3.2x
-# faster than the Paeth filter libavcodec's encoder chose by default (0.42 against 1.35 ms at 480x600, once per
-# composited frame) and the files are 4% smaller; "none" is smaller still but decodes a little slower
-# (docs/compositing.md, "The reference clip"). Any filter decodes: bundles with Paeth masks play as before.
-MASK_PNG_FILTER = "up"
-# x264 constant-rate factor of stored frames: 18 keeps the demo clip visually lossless (its PSNR:
-# docs/compositing.md, "The reference clip"). An export may re-encode a clip at a larger CRF (`reencode_frame`;
-# the `reference` export knob, docs/precision.md).
-H264_CRF = 18
-# x264's CRF range for 8-bit pictures: 0 (lossless) .. 51 (coarsest).
-MAX_H264_CRF = 51
-# The colour description written into each frame's H.264 stream (its VUI): what swscale's RGB -> yuv420p conversion
-# does (the BT.601 matrix, limited range) on sRGB pictures, so a native decoder that honours the tags converts back
-# exactly as the runtime does, and one that guesses from the size (BT.709 for HD) is told otherwise.
-H264_COLOUR_TAGS = "colorprim=bt709:transfer=iec61966-2-1:colormatrix=bt470bg:range=tv"
 MAX_CLIP_FRAMES = 100_000
 # A mask must have at least this many pixels at M >= 0.5: a clip "with no face in the mask" is refused.
 MIN_FACE_PIXELS = 16
@@ -49,12 +47,7 @@ MIN_FACE_PIXELS = 16
 # padded to (the generator pools by 2 and has up to 3 stride-2 levels).
 CROP_MARGIN_PX = 16
 CROP_MULTIPLE = 16
-_MASK_LEVELS = 255.0
-
-
-class ReferenceClipError(GaussianTalkerError, ValueError):
-    """A reference clip is unusable: counts or sizes disagree, a mask is out of range or empty, a frame is not
-    decodable. Callers add where the clip came from (a checkpoint or a bundle)."""
+_MASK_LEVELS = MASK_LEVELS
 
 
 def frame_entry(index: int) -> str:
@@ -69,13 +62,15 @@ def mask_entry(index: int) -> str:
 
 @dataclass(frozen=True)
 class ClipLayout:
-    """What the manifest (and checkpoint) records about a clip: frame count, codecs and the aligning camera
-    (its width and height are the clip's frame size)."""
+    """What the manifest (and checkpoint) records about a clip: frame count, codecs, the aligning camera (its
+    width and height are the clip's frame size) and `gop`, the pictures per group of every H.264 stream in the clip
+    (1: each entry decodes alone)."""
 
     count: int
     camera: Camera
     frame_codec: str = "h264"
     mask_codec: str = "png"
+    gop: int = 1
 
     def __post_init__(self) -> None:
         if not (isinstance(self.count, int) and 1 <= self.count <= MAX_CLIP_FRAMES):
@@ -91,6 +86,9 @@ class ClipLayout:
         if self.mask_codec not in MASK_CODECS:
             raise ReferenceClipError(f"reference clip 'mask_codec' {self.mask_codec!r} is not one of "
                                      f"{sorted(MASK_CODECS)}")
+        if isinstance(self.gop, bool) or not isinstance(self.gop, int) or not 1 <= self.gop <= MAX_CLIP_FRAMES:
+            raise ReferenceClipError(f"reference clip 'gop' must be an integer in 1..{MAX_CLIP_FRAMES}, "
+                                     f"got {self.gop!r}")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -98,15 +96,18 @@ class ClipLayout:
         return self.camera.width, self.camera.height
 
     def to_dict(self) -> dict:
-        return {"count": self.count, "camera": self.camera.to_dict(), "frame_codec": self.frame_codec,
+        """The manifest's `reference` table; `gop` only when above 1, so an intra-only clip's table is what players
+        written before groups of pictures read."""
+        data = {"count": self.count, "camera": self.camera.to_dict(), "frame_codec": self.frame_codec,
                 "mask_codec": self.mask_codec}
+        return data | ({"gop": self.gop} if self.gop > 1 else {})
 
     @classmethod
     def from_dict(cls, data) -> ClipLayout:
         """Inverse of to_dict; ReferenceClipError naming the bad field."""
         if not isinstance(data, dict):
             raise ReferenceClipError(f"reference clip description must be a table, got {type(data).__name__}")
-        unknown = sorted(set(data) - {"count", "camera", "frame_codec", "mask_codec"})
+        unknown = sorted(set(data) - {"count", "camera", "frame_codec", "mask_codec", "gop"})
         if unknown:
             raise ReferenceClipError(f"reference clip has unknown field(s) {unknown}")
         try:
@@ -117,68 +118,25 @@ class ClipLayout:
             raise ReferenceClipError(f"reference clip 'camera' is invalid: {exc}") from None
         count = data.get("count")
         return cls(count if not isinstance(count, bool) else None, camera, data.get("frame_codec", "h264"),
-                   data.get("mask_codec", "png"))
+                   data.get("mask_codec", "png"), data.get("gop", 1))
 
 
-def _encode(encoder: str, frame: av.VideoFrame, pix_fmt: str, options: dict[str, str]) -> bytes:
-    """One picture -> one self-contained packet (a fresh encoder each time: no state shared between frames)."""
-    try:
-        context = av.CodecContext.create(encoder, "w")
-    except av.error.FFmpegError as exc:
-        raise ReferenceClipError(f"this PyAV build cannot encode with {encoder}: {exc}") from None
-    context.width, context.height, context.pix_fmt = frame.width, frame.height, pix_fmt
-    context.time_base = Fraction(1, 25)
-    context.gop_size = 1
-    context.options = options
-    picture = frame.reformat(format=pix_fmt)
-    picture.pts = 0
-    packets = context.encode(picture) + context.encode(None)
-    return b"".join(bytes(packet) for packet in packets)
+@dataclass(frozen=True)
+class ClipCoding:
+    """How an export re-encodes a clip (the `reference` export knob, docs/precision.md): the frames' x264 CRF, the
+    pictures per group of every H.264 stream, and the masks' CRF (None: the masks are kept as stored)."""
 
+    crf: int
+    gop: int = 1
+    mask_crf: int | None = None
 
-def _check_crf(crf: int) -> int:
-    if isinstance(crf, bool) or not isinstance(crf, int | np.integer) or not 0 <= crf <= MAX_H264_CRF:
-        raise ReferenceClipError(f"an H.264 CRF must be an integer 0..{MAX_H264_CRF}, got {crf!r}")
-    return int(crf)
-
-
-def _encode_h264(picture: av.VideoFrame, codec: str, crf: int) -> bytes:
-    return _encode(FRAME_CODECS[codec][0], picture, "yuv420p",
-                   {"crf": str(_check_crf(crf)), "bf": "0", "x264-params": H264_COLOUR_TAGS})
-
-
-def encode_frame(rgb: np.ndarray, codec: str = "h264", crf: int = H264_CRF) -> bytes:
-    """uint8 [H, W, 3] RGB (even sides) -> one intra-coded H.264 frame (4:2:0, CRF `crf`, colour tags
-    H264_COLOUR_TAGS)."""
-    rgb = np.ascontiguousarray(rgb)
-    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
-        raise ReferenceClipError(f"a reference frame must be uint8 [H, W, 3], got {rgb.dtype} {list(rgb.shape)}")
-    return _encode_h264(av.VideoFrame.from_ndarray(rgb, format="rgb24"), codec, crf)
-
-
-def quantise_mask(mask: np.ndarray) -> np.ndarray:
-    """float [H, W] in [0, 1] -> the uint8 levels a mask is stored as (round(M * 255))."""
-    return np.floor(np.asarray(mask, dtype=np.float32) * np.float32(_MASK_LEVELS) + np.float32(0.5)).astype(np.uint8)
-
-
-def encode_mask(mask: np.ndarray, codec: str = "png") -> bytes:
-    """float [H, W] in [0, 1] (checked by `check_mask`) -> 8-bit grey PNG of round(M * 255)."""
-    frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(quantise_mask(mask)), format="gray")
-    return _encode(MASK_CODECS[codec][0], frame, "gray", {"pred": MASK_PNG_FILTER})
-
-
-def _decode(codec: str, data: bytes, label: str) -> av.VideoFrame:
-    """The one picture of a self-contained packet (a fresh decoder, flushed: no state shared between frames)."""
-    if not data:
-        raise ReferenceClipError(f"{label} is empty")
-    try:
-        decoder = av.CodecContext.create(codec, "r")
-        frames = decoder.decode(av.Packet(bytes(data))) + decoder.decode(None)
-    except (av.error.FFmpegError, ValueError) as exc:
-        raise ReferenceClipError(f"{label} is not decodable as {codec}: {exc}") from None
-    if len(frames) != 1:
-        raise ReferenceClipError(f"{label} is not decodable as {codec}: {len(frames)} pictures in the entry")
-    return frames[0]
+    def __post_init__(self) -> None:
+        check_crf(self.crf)
+        if self.mask_crf is not None:
+            check_crf(self.mask_crf)
+        if isinstance(self.gop, bool) or not isinstance(self.gop, int) or not 1 <= self.gop <= MAX_CLIP_FRAMES:
+            raise ReferenceClipError(f"a clip's pictures per group must be an integer in 1..{MAX_CLIP_FRAMES}, "
+                                     f"got {self.gop!r}")
 
 
 def _check_size(label: str, picture: av.VideoFrame, size: tuple[int, int]) -> None:
@@ -186,34 +144,42 @@ def _check_size(label: str, picture: av.VideoFrame, size: tuple[int, int]) -> No
         raise ReferenceClipError(f"{label} is {picture.width}x{picture.height}, the clip is {size[0]}x{size[1]}")
 
 
-def decode_frame(data: bytes, layout: ClipLayout, label: str) -> np.ndarray:
-    """One encoded frame -> uint8 [H, W, 3] RGB, checked against the clip's size."""
-    picture = _decode(FRAME_CODECS[layout.frame_codec][1], data, label)
+def _frame_rgb(picture: av.VideoFrame, layout: ClipLayout, label: str) -> np.ndarray:
     _check_size(label, picture, layout.size)
     return picture.to_ndarray(format="rgb24")
 
 
-def reencode_frame(data: bytes, layout: ClipLayout, label: str, crf: int) -> bytes:
-    """One stored frame re-encoded at CRF `crf` (intra-only, the same colour tags). The decoded 4:2:0 picture goes
-    to the encoder as it is, so the only loss added is the new encode's (no RGB round trip)."""
-    picture = _decode(FRAME_CODECS[layout.frame_codec][1], data, label)
+def _mask_levels(picture: av.VideoFrame, layout: ClipLayout, label: str) -> np.ndarray:
     _check_size(label, picture, layout.size)
-    if picture.format.name != "yuv420p":
-        raise ReferenceClipError(f"{label} must be 4:2:0 (yuv420p), got pixel format {picture.format.name}")
-    return _encode_h264(picture, layout.frame_codec, crf)
-
-
-def decode_mask_levels(data: bytes, layout: ClipLayout, label: str) -> np.ndarray:
-    """One encoded mask -> its uint8 levels [H, W] (M * 255); a colour or 16-bit PNG is refused."""
-    picture = _decode(MASK_CODECS[layout.mask_codec][1], data, label)
-    _check_size(label, picture, layout.size)
+    if layout.mask_codec == "h264":
+        return luma_levels(picture, label)
     if picture.format.name != "gray":
         raise ReferenceClipError(f"{label} must be an 8-bit grey image, got pixel format {picture.format.name}")
     return picture.to_ndarray()
 
 
+def decode_frame(data: bytes, layout: ClipLayout, label: str) -> np.ndarray:
+    """One self-contained encoded frame (a keyframe) -> uint8 [H, W, 3] RGB, checked against the clip's size."""
+    return _frame_rgb(_decode(FRAME_CODECS[layout.frame_codec][1], data, label), layout, label)
+
+
+def reencode_frame(data: bytes, layout: ClipLayout, label: str, crf: int) -> bytes:
+    """One stored intra frame re-encoded at CRF `crf` (intra-only, the same colour tags). The decoded 4:2:0 picture
+    goes to the encoder as it is, so the only loss added is the new encode's (no RGB round trip)."""
+    picture = _decode(FRAME_CODECS[layout.frame_codec][1], data, label)
+    _check_size(label, picture, layout.size)
+    if picture.format.name != "yuv420p":
+        raise ReferenceClipError(f"{label} must be 4:2:0 (yuv420p), got pixel format {picture.format.name}")
+    return encode_stream([picture], layout.size, crf, 1, H264_COLOUR_TAGS, label)[0]
+
+
+def decode_mask_levels(data: bytes, layout: ClipLayout, label: str) -> np.ndarray:
+    """One self-contained encoded mask -> its uint8 levels [H, W] (M * 255); a colour or 16-bit PNG is refused."""
+    return _mask_levels(_decode(MASK_CODECS[layout.mask_codec][1], data, label), layout, label)
+
+
 def decode_mask(data: bytes, layout: ClipLayout, label: str) -> np.ndarray:
-    """One encoded mask -> float32 [H, W] in [0, 1] (its 8-bit levels / 255)."""
+    """One self-contained encoded mask -> float32 [H, W] in [0, 1] (its 8-bit levels / 255)."""
     return decode_mask_levels(data, layout, label).astype(np.float32) / np.float32(_MASK_LEVELS)
 
 
@@ -233,6 +199,28 @@ def check_mask(mask: np.ndarray, size: tuple[int, int], label: str) -> np.ndarra
     if int((mask >= 0.5).sum()) < MIN_FACE_PIXELS:
         raise ReferenceClipError(f"{label} has no face in it (fewer than {MIN_FACE_PIXELS} pixels at M >= 0.5)")
     return mask.astype(np.float32)
+
+
+def _pictures(codec: str, entries: list[bytes], gop: int, label: Callable[[int], str]) -> Iterator[av.VideoFrame]:
+    """Every picture of a stored stream, in order, decoded group by group."""
+    for first in range(0, len(entries), gop):
+        indices = range(first, min(len(entries), first + gop))
+        yield from decode_group(codec, (entries[i] for i in indices), [label(i) for i in indices])
+
+
+def _held(picture: np.ndarray) -> np.ndarray:
+    """A decoded picture a group decoder holds and hands out again: read-only, so no caller changes it for the
+    next."""
+    picture.setflags(write=False)
+    return picture
+
+
+def _frame_label(index: int) -> str:
+    return f"reference frame {index}"
+
+
+def _mask_label(index: int) -> str:
+    return f"reference mask {index}"
 
 
 @dataclass
@@ -260,6 +248,16 @@ class EncodedClip:
             raise ReferenceClipError("a reference clip needs at least one frame")
         return cls(ClipLayout(len(encoded_frames), camera), encoded_frames, encoded_masks)
 
+    def frame_pictures(self) -> Iterator[av.VideoFrame]:
+        """Every frame's decoded 4:2:0 picture, in order (one group of pictures decoded at a time)."""
+        return _pictures(FRAME_CODECS[self.layout.frame_codec][1], self.frames, self.layout.gop, _frame_label)
+
+    def mask_levels(self) -> Iterator[np.ndarray]:
+        """Every mask's uint8 levels [H, W], in order."""
+        gop = self.layout.gop if self.layout.mask_codec == "h264" else 1
+        pictures = _pictures(MASK_CODECS[self.layout.mask_codec][1], self.masks, gop, _mask_label)
+        return (_mask_levels(picture, self.layout, _mask_label(index)) for index, picture in enumerate(pictures))
+
     def check(self, track_frames: int | None) -> None:
         """Decode every entry once: counts agree with each other and the pose track, sizes match, masks have a
         face. Run at export, so a bundle never holds a clip that fails mid-video."""
@@ -271,18 +269,30 @@ class EncodedClip:
         if track_frames != self.layout.count:
             raise ReferenceClipError(f"reference clip has {self.layout.count} frames but the pose track has "
                                      f"{track_frames} rows (one pose per frame)")
-        for index in range(self.layout.count):
-            decode_frame(self.frames[index], self.layout, f"reference frame {index}")
-            mask = decode_mask(self.masks[index], self.layout, f"reference mask {index}")
-            check_mask(mask, self.layout.size, f"reference mask {index}")
+        for index, picture in enumerate(self.frame_pictures()):
+            _frame_rgb(picture, self.layout, _frame_label(index))
+        for index, levels in enumerate(self.mask_levels()):
+            check_mask(levels.astype(np.float32) / np.float32(_MASK_LEVELS), self.layout.size, _mask_label(index))
 
-    def reencoded(self, crf: int) -> EncodedClip:
-        """This clip with every frame re-encoded at CRF `crf` (`reencode_frame`); the masks (lossless) and the
-        layout are kept as they are."""
-        _check_crf(crf)
-        frames = [reencode_frame(data, self.layout, f"reference frame {index}", crf)
-                  for index, data in enumerate(self.frames)]
-        return EncodedClip(self.layout, frames, list(self.masks))
+    def reencoded(self, coding: ClipCoding | int) -> EncodedClip:
+        """This clip re-encoded as `coding` says (a bare int: the frames at that CRF, intra-only, masks kept). The
+        decoded 4:2:0 pictures go to the encoder as they are, so the only loss added is the new encode's."""
+        coding = ClipCoding(coding) if not isinstance(coding, ClipCoding) else coding
+        size = self.layout.size
+        frames = encode_stream(self.frame_pictures(), size, coding.crf, coding.gop, H264_COLOUR_TAGS,
+                               "reference frames")
+        masks, mask_codec = list(self.masks), self.layout.mask_codec
+        if coding.mask_crf is not None:
+            masks = encode_mask_stream(self.mask_levels(), size, coding.mask_crf, coding.gop, "reference masks")
+            mask_codec = "h264"
+        elif mask_codec == "h264" and coding.gop != self.layout.gop:
+            raise ReferenceClipError(f"masks stored as H.264 in groups of {self.layout.gop} cannot be kept in a clip "
+                                     f"re-grouped by {coding.gop}: give the masks a CRF too")
+        if len(frames) != self.layout.count or len(masks) != self.layout.count:
+            raise ReferenceClipError(f"re-encoding gave {len(frames)} frames and {len(masks)} masks for a clip of "
+                                     f"{self.layout.count}")
+        layout = ClipLayout(self.layout.count, self.layout.camera, self.layout.frame_codec, mask_codec, coding.gop)
+        return EncodedClip(layout, frames, masks)
 
     @property
     def frame_bytes(self) -> int:
@@ -296,10 +306,10 @@ class EncodedClip:
 
 
 class ReferenceClip:
-    """A bundle's reference clip, decoded one frame at a time (optionally resized to an output size).
+    """A bundle's reference clip, decoded one group of pictures at a time (optionally resized to an output size).
 
     Opening it reads every entry once to check its checksum and decodes the first frame and mask, so a damaged
-    clip is refused at load, never mid-video; after that only the entry a frame needs is read.
+    clip is refused at load, never mid-video; after that only the entries a frame's group needs are read.
     """
 
     def __init__(self, bundle, size: tuple[int, int] | None = None) -> None:
@@ -319,6 +329,14 @@ class ReferenceClip:
         for index in range(len(self)):  # checksums of every entry: BundleError naming a damaged one
             bundle.buffer(frame_entry(index))
             bundle.buffer(mask_entry(index))
+        layout = self.layout
+        self._frames = GroupDecoder(FRAME_CODECS[layout.frame_codec][1], len(self), layout.gop,
+                                    lambda i: bundle.buffer(frame_entry(i)).tobytes(), self._convert_frame,
+                                    lambda i: f"reference frame {i}")
+        self._masks = GroupDecoder(MASK_CODECS[layout.mask_codec][1], len(self),
+                                   layout.gop if layout.mask_codec == "h264" else 1,
+                                   lambda i: bundle.buffer(mask_entry(i)).tobytes(), self._convert_mask,
+                                   lambda i: f"reference mask {i}")
         try:
             self.frame(0)
             self.mask(0)
@@ -345,16 +363,23 @@ class ReferenceClip:
         frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(picture), format=pix_fmt)
         return frame.reformat(width=self.size[0], height=self.size[1], interpolation="AREA").to_ndarray()
 
+    def _convert_frame(self, picture: av.VideoFrame, index: int) -> np.ndarray:
+        return _held(self._resized(_frame_rgb(picture, self.layout, f"reference frame {index}"), "rgb24"))
+
+    def _convert_mask(self, picture: av.VideoFrame, index: int) -> np.ndarray:
+        return _held(self._resized(_mask_levels(picture, self.layout, f"reference mask {index}"), "gray"))
+
     def frame(self, index: int) -> np.ndarray:
-        """Original frame I_ori `index`: uint8 [H, W, 3] RGB at the output size."""
-        index = self._index(index)
-        data = self.bundle.buffer(frame_entry(index)).tobytes()
-        return self._resized(decode_frame(data, self.layout, f"reference frame {index}"), "rgb24")
+        """Original frame I_ori `index`: uint8 [H, W, 3] RGB at the output size (read-only: held for the next call)."""
+        return self._frames[self._index(index)]
 
     def mask(self, index: int) -> np.ndarray:
         """Facial mask M `index`: float32 [H, W] in [0, 1] at the output size."""
-        index = self._index(index)
-        data = self.bundle.buffer(mask_entry(index)).tobytes()
-        levels = decode_mask_levels(data, self.layout, f"reference mask {index}")
-        return self._resized(levels, "gray").astype(np.float32) / np.float32(_MASK_LEVELS)
+        return self._masks[self._index(index)].astype(np.float32) / np.float32(_MASK_LEVELS)
 
+
+__all__ = ["CROP_MARGIN_PX", "CROP_MULTIPLE", "FRAME_CODECS", "H264_COLOUR_TAGS", "H264_CRF", "MASK_CODECS",
+           "MASK_PNG_FILTER", "MAX_CLIP_FRAMES", "MAX_H264_CRF", "MIN_FACE_PIXELS", "ClipCoding", "ClipLayout",
+           "EncodedClip", "ReferenceClip", "ReferenceClipError", "_encode", "check_mask", "decode_frame",
+           "decode_mask", "decode_mask_levels", "encode_frame", "encode_mask", "frame_entry", "mask_entry",
+           "quantise_mask", "reencode_frame"]

@@ -97,7 +97,25 @@ class RenderSettings:
         return RenderSettings(**{**self.to_dict(), **{k: v for k, v in overrides.items() if v is not None}})
 
 
+# The splatters a bundle may store its own defaults for (manifest `runtime_defaults_by_renderer`): a preset's
+# settings can differ between the OpenGL splatter and the CPU splatter, whose costs lie elsewhere (docs/precision.md,
+# "On both splatters").
+SPLATTERS = ("gl", "cpu")
+
+
+def stored_defaults(manifest: dict, splatter: str) -> RenderSettings:
+    """The render settings a bundle stores for `splatter` ("gl" or "cpu"): its `runtime_defaults_by_renderer` entry
+    where it has one, else its `runtime_defaults`; ValueError names a bad table."""
+    by_splatter = manifest.get("runtime_defaults_by_renderer", {})
+    if not isinstance(by_splatter, dict) or not set(by_splatter) <= set(SPLATTERS):
+        raise ValueError(f"runtime_defaults_by_renderer must be a table keyed by {' or '.join(SPLATTERS)}, got "
+                         f"{sorted(by_splatter) if isinstance(by_splatter, dict) else type(by_splatter).__name__}")
+    if splatter in by_splatter:
+        return RenderSettings.from_dict(by_splatter[splatter])
+    return RenderSettings.from_dict(manifest.get("runtime_defaults", {}))
+
+
 __all__ = [
     "EXPERIMENTAL_FIELDS", "MAX_EARLY_STOPS", "MAX_SORT_INTERVAL", "MIN_RENDER_SCALE", "RENDER_TARGETS",
-    "SORT_KEY_BITS", "RenderSettings",
+    "SORT_KEY_BITS", "SPLATTERS", "RenderSettings", "stored_defaults",
 ]

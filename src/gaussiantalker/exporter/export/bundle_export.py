@@ -134,6 +134,9 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         "precision": label,
         "export_settings": asdict(settings),
         "runtime_defaults": chosen.runtime.to_dict() if chosen is not None else {},
+        **({"runtime_defaults_by_renderer": {name: settings.to_dict() for name, settings in
+                                             chosen.runtime_by_renderer.items()}}
+           if chosen is not None and chosen.runtime_by_renderer else {}),
         "gaussians": speaker.gaussians.count,
         "exporter": {"sdk": sdk_version, "torch": torch.__version__, "python": platform.python_version()},
         **({} if spec is None else {"scene": spec.scene.to_dict(),
@@ -141,7 +144,7 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     })
     # A scene fixes its own camera and background: the reference clip (seen through another camera) is left out.
     if spec is None and getattr(speaker, "reference", None) is not None:
-        writer.metadata["reference"] = speaker.reference.layout.to_dict()
+        writer.metadata["reference"] = speaker.reference.layout.to_dict()  # re-encoding may change it (_add_reference)
         writer.metadata["inpaint"] = {"generator": "learned" if speaker.inpaint is not None else "opencv_fallback",
                                       "crop_margin": CROP_MARGIN_PX, "crop_multiple": CROP_MULTIPLE}
     steps = progress_bar(total=5 if mnn else 4, desc="gt-export", unit="step", disable=not progress)
@@ -261,18 +264,19 @@ def _add_stream(writer: BundleWriter, result: ExportResult, settings: ExportSett
 
 def _add_reference(speaker: Speaker, writer: BundleWriter, result: ExportResult, settings: ExportSettings) -> None:
     """The reference clip's encoded frames and masks (one entry each, decoded once here so a bundle never holds
-    a clip that fails mid-video; the frames re-encoded at the `reference` knob's CRF when it names one, the masks
-    always as they are) and the inpainting generator's graph, if the speaker has them."""
+    a clip that fails mid-video; re-encoded as the `reference` knob says when it names a coding) and the
+    inpainting generator's graph, if the speaker has them."""
     clip = speaker.reference
     if clip is None:
         return
     try:
-        crf = parse_reference(settings.reference)
-        if crf is not None:
-            clip = clip.reencoded(crf)
+        coding = parse_reference(settings.reference)
+        if coding is not None:
+            clip = clip.reencoded(coding)
         clip.check(None if speaker.pose_track is None else int(speaker.pose_track.shape[0]))
     except ReferenceClipError as exc:
         raise BundleError(f"cannot export the reference clip: {exc}") from None
+    writer.metadata["reference"] = clip.layout.to_dict()
     for index, (frame, mask) in enumerate(zip(clip.frames, clip.masks, strict=True)):
         writer.add_buffer(frame_entry(index), np.frombuffer(frame, dtype=np.uint8))
         writer.add_buffer(mask_entry(index), np.frombuffer(mask, dtype=np.uint8))

@@ -15,7 +15,7 @@ import numpy as np
 
 from gaussiantalker.sdk.codecs import CODECS, MAX_CHUNK
 from gaussiantalker.sdk.errors import BundleError
-from gaussiantalker.sdk.reference_clip import MAX_H264_CRF
+from gaussiantalker.sdk.reference_clip import MAX_CLIP_FRAMES, MAX_H264_CRF, ClipCoding, ReferenceClipError
 from gaussiantalker.sdk.render_settings import RenderSettings
 
 # Buffer groups a codec is chosen for, and which bundle buffers (by glob on the buffer name) belong to each.
@@ -62,17 +62,27 @@ def parse_codec(spec: str) -> tuple[str, int | None]:
     return name, int(chunk_text)
 
 
-def parse_reference(spec: str) -> int | None:
-    """The reference-clip knob's value: "keep" (the clip's frames stored as the checkpoint holds them: None) or
-    "crf:N" (every frame re-encoded with x264 at CRF N: N)."""
+def parse_reference(spec: str) -> ClipCoding | None:
+    """The reference-clip knob's value: "keep" (the clip stored as the checkpoint holds it: None) or
+    "crf:N[,gop:K][,mask-crf:M]": the frames re-encoded with x264 at CRF N, in groups of K pictures (1, intra-only,
+    when not given), and the masks coded as H.264 at CRF M in the same groups (kept as stored when not given)."""
     text = str(spec)
     if text == "keep":
         return None
-    name, _, crf = text.partition(":")
-    if name != "crf" or not crf.isdigit() or not 0 <= int(crf) <= MAX_H264_CRF:
-        raise BundleError(f"unknown reference clip setting {spec!r} (allowed: keep, or crf:N with N an integer "
-                          f"0..{MAX_H264_CRF}, e.g. crf:28; docs/compositing.md)")
-    return int(crf)
+    allowed = (f"allowed: keep, or crf:N[,gop:K][,mask-crf:M] with N and M integers 0..{MAX_H264_CRF} and K an "
+               f"integer 1..{MAX_CLIP_FRAMES}, e.g. crf:28,gop:25,mask-crf:24; docs/compositing.md")
+    values: dict[str, int] = {}
+    for item in text.split(","):
+        name, _, value = item.strip().partition(":")
+        if name not in ("crf", "gop", "mask-crf") or name in values or not value.isdigit():
+            raise BundleError(f"unknown reference clip setting {spec!r} ({allowed})")
+        values[name] = int(value)
+    if "crf" not in values:
+        raise BundleError(f"reference clip setting {spec!r} names no crf ({allowed})")
+    try:
+        return ClipCoding(values["crf"], values.get("gop", 1), values.get("mask-crf"))
+    except ReferenceClipError as exc:
+        raise BundleError(f"reference clip setting {spec!r}: {exc} ({allowed})") from None
 
 
 def group_of(buffer: str) -> str:
@@ -84,7 +94,7 @@ def group_of(buffer: str) -> str:
 @dataclass(frozen=True)
 class ExportSettings:
     """Export-time knobs: a buffer codec per group, the translator graph's precision, model-size truncations, and
-    how the reference clip's frames are stored (`reference`: "keep" or "crf:N", `parse_reference`)."""
+    how the reference clip is stored (`reference`: "keep" or "crf:N[,gop:K][,mask-crf:M]", `parse_reference`)."""
 
     gaussians: str = "raw"
     sh: str = "raw"
@@ -96,7 +106,7 @@ class ExportSettings:
     sh_degree: int | None = None  # keep SH bands up to this degree (None: all)
     blendshape_rank: int | None = None  # rank of the speaker blendshape matrix (None: full)
     gaussian_budget: float | None = None  # keep this fraction (<= 1) or number (> 1) of Gaussians (None: all)
-    reference: str = "keep"  # the reference clip's frames: as stored, or re-encoded at an x264 CRF ("crf:28")
+    reference: str = "keep"  # the reference clip: as stored, or re-encoded ("crf:28,gop:25,mask-crf:24")
 
     def __post_init__(self) -> None:
         for group in CODEC_GROUPS:
@@ -177,6 +187,13 @@ class Preset:
     export: ExportSettings
     runtime: RenderSettings = field(default_factory=RenderSettings)
     min_head_psnr_db: float | None = None  # 8-bit PSNR over the head region vs the fp32 speaker's frames
+    # A splatter's own runtime defaults where they differ from `runtime` ("cpu": the CPU splatter's), stored in the
+    # bundle's `runtime_defaults_by_renderer` so that the runtime picks them for the splatter it draws with.
+    runtime_by_renderer: dict[str, RenderSettings] = field(default_factory=dict)
+
+    def runtime_for(self, splatter: str) -> RenderSettings:
+        """The runtime defaults of this preset on `splatter` ("gl" or "cpu")."""
+        return self.runtime_by_renderer.get(splatter, self.runtime)
 
 
 # Buffer codecs of the reduced presets: per-Gaussian values 8-bit (barycentrics, rest sizes 16-bit), SH bands 4-bit,
@@ -192,7 +209,8 @@ _REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4/64", "flame
 # mask, where the frame is the clip itself (inside it the clip costs 10-20 dB less). On the demo clip, minimum over
 # 150 frames: balanced CRF 20 (outside the mask 50.9 dB, bound 47), mobile 28 (42.2, 39), compact 33 (39.8, 35),
 # fast 38 (36.9, 29). `quality` keeps the clip as stored (CRF 18).
-_CLIP_CRF = {"balanced": "crf:20", "compact": "crf:33", "fast": "crf:38", "mobile": "crf:28"}
+_CLIP_CRF = {"balanced": "crf:16,gop:25,mask-crf:6", "compact": "crf:33,gop:25,mask-crf:30",
+             "fast": "crf:38,gop:25,mask-crf:30", "mobile": "crf:28,gop:25,mask-crf:24"}
 
 # The presets, chosen from measurements on the demo speaker (docs/precision.md has the table and the command).
 # `min_head_psnr_db` is what `gt-export --verify` holds a preset to; each sits below what the preset measured, by the

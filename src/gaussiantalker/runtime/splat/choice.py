@@ -78,15 +78,18 @@ class SplatterChoice:
 
 
 def choose_splatter(renderer: str, *, gl_context=None, settings: RenderSettings | None = None,
-                    shader_target: str = "330") -> SplatterChoice:
-    """The choice `make_splatter` makes (the module's docstring), with the CPU splatter not yet built."""
-    if settings is not None and not isinstance(settings, RenderSettings):  # a wrong call, not a GL that cannot run
-        raise SettingsError(f"settings must be a RenderSettings, got {type(settings).__name__}")
+                    shader_target: str = "330", cpu_settings: RenderSettings | None = None) -> SplatterChoice:
+    """The choice `make_splatter` makes (the module's docstring), with the CPU splatter not yet built. `settings`
+    are the GL splatter's and, unless `cpu_settings` are given, the CPU splatter's too."""
+    cpu_settings = settings if cpu_settings is None else cpu_settings
+    for given in (settings, cpu_settings):  # a wrong call, not a GL that cannot run
+        if given is not None and not isinstance(given, RenderSettings):
+            raise SettingsError(f"settings must be a RenderSettings, got {type(given).__name__}")
     if renderer == "cpu":
         if not cpu_splatter_available():
             raise SettingsError(f"renderer='cpu' needs numba, the cpu extra: {CPU_EXTRA_HINT}")
         _report(renderer, "cpu", "asked for")
-        return SplatterChoice("cpu", None, settings)
+        return SplatterChoice("cpu", None, cpu_settings)
     if renderer == "gl" or gl_context is not None:
         splatter = GLSplatter(gl_context, settings=settings, shader_target=shader_target)
         _report(renderer, "gl", "asked for" if renderer == "gl" else "the app gave a GL context to draw in")
@@ -100,7 +103,7 @@ def choose_splatter(renderer: str, *, gl_context=None, settings: RenderSettings 
             raise RenderError(f"renderer='auto' has nothing to draw with: OpenGL cannot run here ({exc}), and the "
                               f"CPU splatter needs numba, which is not installed: {CPU_EXTRA_HINT}") from exc
         _report(renderer, "cpu", f"OpenGL cannot run here: {exc}")
-        return SplatterChoice("cpu", None, settings)
+        return SplatterChoice("cpu", None, cpu_settings)
     gl_renderer = str(splatter.ctx.info.get("GL_RENDERER", ""))
     if not is_software_renderer(gl_renderer):
         _report(renderer, "gl", f"the GL renderer {gl_renderer!r} is not a software rasterizer")
@@ -111,7 +114,7 @@ def choose_splatter(renderer: str, *, gl_context=None, settings: RenderSettings 
         return SplatterChoice("gl", splatter, settings)
     splatter.release()
     _report(renderer, "cpu", f"the GL renderer {gl_renderer!r} is a software rasterizer")
-    return SplatterChoice("cpu", None, settings)
+    return SplatterChoice("cpu", None, cpu_settings)
 
 
 def make_splatter(renderer: str, *, gl_context=None, settings: RenderSettings | None = None,
