@@ -137,3 +137,43 @@ def test_inconsistent_or_damaged_groups_are_refused():
     with pytest.raises(ReferenceClipError, match="reference frame 5 is empty"):
         reference.frame(6)
     np.testing.assert_array_equal(reference.frame(2), ReferenceClip(_bundle(grouped)).frame(2))
+
+
+def test_fuzzed_entries_give_pictures_or_a_clip_error():
+    """Hostile entries (the checksums aside: a bundle writer can sign anything): bytes flipped, entries cut short,
+    swapped or emptied, in a clip of groups with H.264 masks. Every frame and mask asked for, forth and back, is a
+    picture of the clip's shape or a ReferenceClipError (BundleError at load) naming an entry; nothing else
+    escapes, and no mask leaves [0, 1]."""
+    clip, _, _ = _clip()
+    grouped = clip.reencoded(ClipCoding(23, gop=4, mask_crf=10))
+    rng = np.random.default_rng(2)
+    width, height = SIZE
+    for _trial in range(60):
+        frames, masks = list(grouped.frames), list(grouped.masks)
+        for _edit in range(int(rng.integers(1, 4))):
+            entries = frames if rng.random() < 0.5 else masks
+            index = int(rng.integers(len(entries)))
+            data = bytearray(entries[index])
+            kind = rng.integers(4)
+            if kind == 0 and data:
+                for at in rng.integers(0, len(data), int(rng.integers(1, 8))):
+                    data[at] ^= int(rng.integers(1, 256))
+            elif kind == 1:
+                data = data[:int(rng.integers(0, len(data) + 1))]
+            elif kind == 2:
+                data = bytearray(entries[int(rng.integers(len(entries)))])
+            else:
+                data = bytearray(rng.integers(0, 256, int(rng.integers(0, 64)), dtype=np.uint8).tobytes())
+            entries[index] = bytes(data)
+        try:
+            reference = ReferenceClip(_bundle(EncodedClip(grouped.layout, frames, masks)))
+        except BundleError as exc:
+            assert "reference" in str(exc)
+            continue
+        for index in [track_row(FRAMES, i) for i in range(2 * FRAMES)]:
+            try:
+                assert reference.frame(index).shape == (height, width, 3)
+                mask = reference.mask(index)
+                assert mask.shape == (height, width) and mask.min() >= 0 and mask.max() <= 1
+            except ReferenceClipError as exc:
+                assert "reference" in str(exc)
