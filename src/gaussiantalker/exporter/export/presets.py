@@ -203,12 +203,13 @@ class Preset:
 # 42.7 dB (bound 47), with both in chunks of 64 48.3 dB, for 0.18 MB more (docs/precision.md, "Presets").
 _REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4/64", "flame": "q4/64", "translator": "q8",
                    "inpaint": "q8"}
-# The reference clip's frames (`reference`; the measured table: docs/compositing.md, "The clip's codec"). Each reduced
-# preset takes the largest measured x264 CRF whose composited frames stay at least 3 dB above the preset's
-# `min_head_psnr_db` (the clip's error at most half the error the bound allows) in their worst region: outside the
-# mask, where the frame is the clip itself (inside it the clip costs 10-20 dB less). On the demo clip, minimum over
-# 150 frames: balanced CRF 20 (outside the mask 50.9 dB, bound 47), mobile 28 (42.2, 39), compact 33 (39.8, 35),
-# fast 38 (36.9, 29). `quality` keeps the clip as stored (CRF 18).
+# The reference clip (`reference`; the measured table: docs/compositing.md, "The clip's codec"). Each reduced preset
+# stores the clip in groups of 25 pictures (10x fewer bytes than intra pictures of lower quality on the demo clip)
+# with H.264 masks, and takes the largest measured x264 CRF whose composited frames stay at least 3 dB above the
+# preset's `min_head_psnr_db` (the clip's error at most half the error the bound allows) outside the mask, where the
+# frame is the clip itself. On the demo clip, minimum over 150 frames, outside / inside the mask: balanced CRF 16,
+# masks 6 (50.2 / 49.1 dB, bound 47: the masks 2.1 dB from it, PNG masks would miss the 5x size goal), mobile 28, 24
+# (43.6 / 47.9, 39), compact 33, 30 (39.6 / 47.2, 35), fast 38, 30 (36.2 / 46.8, 29). `quality` keeps the clip.
 _CLIP_CRF = {"balanced": "crf:16,gop:25,mask-crf:6", "compact": "crf:33,gop:25,mask-crf:30",
              "fast": "crf:38,gop:25,mask-crf:30", "mobile": "crf:28,gop:25,mask-crf:24"}
 
@@ -218,12 +219,12 @@ _CLIP_CRF = {"balanced": "crf:16,gop:25,mask-crf:6", "compact": "crf:33,gop:25,m
 # gt-export's default 256x256; docs/precision.md, "Presets").
 PRESETS: dict[str, Preset] = {
     "quality": Preset("quality", "fp32 everything: parity with the torch speaker (>= 50 dB)", ExportSettings()),
-    "balanced": Preset("balanced", "quantised buffers, nothing dropped, the clip at CRF 20: ~3x smaller with the "
-                       "demo clip (5.4x the bare head) at ~49 dB",
+    "balanced": Preset("balanced", "quantised buffers, nothing dropped, the clip in groups of pictures: ~5.5x "
+                       "smaller with the demo clip at ~48 dB",
                        ExportSettings(**_REDUCED_CODECS, reference=_CLIP_CRF["balanced"]), min_head_psnr_db=47.0),
     "compact": Preset("compact", "smallest bundle: 65% of the Gaussians, SH degree 0, rank-2 blendshapes, 4-bit "
-                      "translator and inpainting generator, FLAME bases in chunks of 256, the clip at CRF 33: ~7x "
-                      "smaller with the demo clip (14x the bare head) at ~36 dB on the demo speaker",
+                      "translator and inpainting generator, FLAME bases in chunks of 256, the clip in groups of "
+                      "pictures: ~14x smaller with the demo clip at ~36 dB on the demo speaker",
                       ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "blendshapes": "q4", "flame": "q4",
                                         "inpaint": "q4"},
                                      sh_degree=0, blendshape_rank=2, gaussian_budget=0.65,
