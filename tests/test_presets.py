@@ -182,6 +182,32 @@ def test_damaged_per_renderer_defaults_are_a_bundle_error(by_renderer, message):
         bundle_render_settings(bundle, splatter="cpu")
 
 
+def test_a_preset_with_its_own_cpu_defaults_stores_them_and_the_cpu_splatter_takes_them(small_export, reduced_export,
+                                                                                        replay_onnx_exports, tmp_path):
+    """A preset whose CPU splatter defaults differ (`Preset.runtime_by_renderer`) writes them to the manifest beside
+    its `runtime_defaults`; a head drawing with each splatter plays that splatter's, and the backend's graph threads
+    follow them; an app's keyword overrides either."""
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.export.presets import Preset
+
+    assert "runtime_defaults_by_renderer" not in Bundle(reduced_export("fast")).manifest  # none where they agree
+    preset = Preset("split", "GL and CPU defaults differ", ExportSettings(), RenderSettings(render_scale=0.75),
+                    runtime_by_renderer={"cpu": RenderSettings(render_scale=0.5, graph_threads=1)})
+    replay_onnx_exports(small_export.protos)
+    path = tmp_path / "split.gtb"
+    export_bundle(small_export.speaker, path, preset=preset, progress=False)
+    manifest = Bundle(path).manifest
+    assert manifest["runtime_defaults"] == RenderSettings(render_scale=0.75).to_dict()
+    assert manifest["runtime_defaults_by_renderer"] == {"cpu": {**RenderSettings().to_dict(), "render_scale": 0.5,
+                                                               "graph_threads": 1}}
+    for renderer, expected in (("gl", preset.runtime), ("cpu", preset.runtime_for("cpu"))):
+        with TalkingHead(path, renderer=renderer, resolution=(64, 64)) as head:
+            assert head.renderer == renderer and head.render_settings == expected
+            assert head.backend_settings.threads == expected.graph_threads
+        with TalkingHead(path, renderer=renderer, resolution=(64, 64), render_scale=1.0) as head:
+            assert head.render_settings.render_scale == 1.0
+
+
 def test_per_renderer_defaults_are_taken_for_the_splatter_that_draws():
     """A bundle's `runtime_defaults_by_renderer` entry replaces its `runtime_defaults` on that splatter only."""
     manifest = {"runtime_defaults": {"render_scale": 0.75},
