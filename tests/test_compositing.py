@@ -72,16 +72,17 @@ def test_frames_carry_the_colour_tags_of_their_conversion():
     change nothing for the runtime: the same picture encoded without them decodes to the same pixels."""
     import av
 
-    from gaussiantalker.sdk.reference_clip import H264_CRF, _decode, _encode, encode_frame
+    from gaussiantalker.sdk.reference_clip import H264_CRF, decode_picture, encode_frame, encode_picture
 
     ramp = np.linspace(0, 200, 64)[None, :, None] + np.linspace(0, 50, 48)[:, None, None] + [0, 20, 40]
     rgb = np.clip(ramp, 0, 255).astype(np.uint8)
-    tagged = _decode("h264", encode_frame(rgb), "tagged")
+    tagged = decode_picture("h264", encode_frame(rgb), "tagged")
     assert (tagged.colorspace, tagged.color_range) == (av.video.reformatter.Colorspace.ITU601,
                                                       av.video.reformatter.ColorRange.MPEG)
     assert (tagged.color_primaries, tagged.color_trc) == (1, 13)  # BT.709 primaries, IEC 61966-2-1 (sRGB)
-    untagged = _decode("h264", _encode("libx264", av.VideoFrame.from_ndarray(rgb, format="rgb24"), "yuv420p",
-                                       {"crf": str(H264_CRF), "bf": "0"}), "untagged")
+    picture = av.VideoFrame.from_ndarray(rgb, format="rgb24")
+    untagged = decode_picture("h264", encode_picture("libx264", picture, "yuv420p",
+                                                     {"crf": str(H264_CRF), "bf": "0"}), "untagged")
     assert untagged.colorspace != tagged.colorspace  # what older bundles hold: unspecified
     np.testing.assert_array_equal(tagged.to_ndarray(format="rgb24"), untagged.to_ndarray(format="rgb24"))
 
@@ -528,7 +529,7 @@ def test_reference_crf_reencodes_the_frames_only(clip_export, replay_onnx_export
     from gaussiantalker.exporter.export.presets import ExportSettings
     from gaussiantalker.runtime import TalkingHead
     from gaussiantalker.sdk.bundle import Bundle
-    from gaussiantalker.sdk.reference_clip import _decode
+    from gaussiantalker.sdk.reference_clip import decode_picture
 
     replay_onnx_exports(clip_export.protos)
     path = tmp_path / "crf.gtb"
@@ -547,7 +548,7 @@ def test_reference_crf_reencodes_the_frames_only(clip_export, replay_onnx_export
                                             if n.startswith("reference/"))
     bundle = Bundle(path)
     for index in range(CLIP_FRAMES):  # each entry one intra picture with the stored frames' colour description
-        picture = _decode("h264", bundle.buffer(frame_entry(index)).tobytes(), "frame")
+        picture = decode_picture("h264", bundle.buffer(frame_entry(index)).tobytes(), "frame")
         assert picture.key_frame and picture.pict_type == av.video.frame.PictureType.I
         assert (picture.colorspace, picture.color_range, picture.color_primaries, picture.color_trc) == \
             (av.video.reformatter.Colorspace.ITU601, av.video.reformatter.ColorRange.MPEG, 1, 13)

@@ -83,7 +83,7 @@ def _context(encoder: str, width: int, height: int, pix_fmt: str, options: dict[
     return context
 
 
-def _encode(encoder: str, frame: av.VideoFrame, pix_fmt: str, options: dict[str, str]) -> bytes:
+def encode_picture(encoder: str, frame: av.VideoFrame, pix_fmt: str, options: dict[str, str]) -> bytes:
     """One picture -> one self-contained packet (a fresh encoder each time: no state shared between frames)."""
     context = _context(encoder, frame.width, frame.height, pix_fmt, options)
     context.gop_size = 1
@@ -99,7 +99,7 @@ def encode_stream(pictures: Iterable[av.VideoFrame], size: tuple[int, int], crf:
     as `encode_frame`). ReferenceClipError if the encoder's packets do not follow that pattern."""
     options = _h264_options(crf, tags, gop)
     if gop == 1:
-        return [_encode("libx264", _fresh(picture), "yuv420p", options) for picture in pictures]
+        return [encode_picture("libx264", _fresh(picture), "yuv420p", options) for picture in pictures]
     context = _context("libx264", *size, "yuv420p", options)
     packets = []
     for index, picture in enumerate(pictures):
@@ -126,7 +126,7 @@ def encode_frame(rgb: np.ndarray, codec: str = "h264", crf: int = H264_CRF) -> b
     rgb = np.ascontiguousarray(rgb)
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise ReferenceClipError(f"a reference frame must be uint8 [H, W, 3], got {rgb.dtype} {list(rgb.shape)}")
-    return _encode(FRAME_CODECS[codec][0], av.VideoFrame.from_ndarray(rgb, format="rgb24"), "yuv420p",
+    return encode_picture(FRAME_CODECS[codec][0], av.VideoFrame.from_ndarray(rgb, format="rgb24"), "yuv420p",
                    _h264_options(crf, H264_COLOUR_TAGS, 1))
 
 
@@ -138,7 +138,7 @@ def quantise_mask(mask: np.ndarray) -> np.ndarray:
 def encode_mask(mask: np.ndarray, codec: str = "png") -> bytes:
     """float [H, W] in [0, 1] (checked by `check_mask`) -> 8-bit grey PNG of round(M * 255)."""
     frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(quantise_mask(mask)), format="gray")
-    return _encode(MASK_CODECS[codec][0], frame, "gray", {"pred": MASK_PNG_FILTER})
+    return encode_picture(MASK_CODECS[codec][0], frame, "gray", {"pred": MASK_PNG_FILTER})
 
 
 def mask_picture(levels: np.ndarray) -> av.VideoFrame:
@@ -154,7 +154,7 @@ def encode_mask_stream(levels: Iterable[np.ndarray], size: tuple[int, int], crf:
     return encode_stream((mask_picture(mask) for mask in levels), size, crf, gop, H264_MASK_TAGS, label)
 
 
-def _decode(codec: str, data: bytes, label: str) -> av.VideoFrame:
+def decode_picture(codec: str, data: bytes, label: str) -> av.VideoFrame:
     """The one picture of a self-contained packet (a fresh decoder, flushed: no state shared between frames)."""
     if not data:
         raise ReferenceClipError(f"{label} is empty")
@@ -248,5 +248,5 @@ class GroupDecoder(Generic[T]):
 
 __all__ = ["FRAME_CODECS", "GOP_ENCODER_PRESET", "H264_COLOUR_TAGS", "H264_CRF", "H264_MASK_TAGS", "MASK_CODECS",
            "MASK_LEVELS", "MASK_PNG_FILTER", "MAX_H264_CRF", "GroupDecoder", "ReferenceClipError", "check_crf",
-           "decode_group", "encode_frame", "encode_mask", "encode_mask_stream", "encode_stream", "luma_levels",
-           "mask_picture", "quantise_mask"]
+           "decode_group", "decode_picture", "encode_frame", "encode_mask", "encode_mask_stream", "encode_picture",
+           "encode_stream", "luma_levels", "mask_picture", "quantise_mask"]

@@ -26,13 +26,13 @@ from .clip_codec import (
     MAX_H264_CRF,
     GroupDecoder,
     ReferenceClipError,
-    _decode,
-    _encode,
     check_crf,
     decode_group,
+    decode_picture,
     encode_frame,
     encode_mask,
     encode_mask_stream,
+    encode_picture,
     encode_stream,
     luma_levels,
     quantise_mask,
@@ -160,13 +160,13 @@ def _mask_levels(picture: av.VideoFrame, layout: ClipLayout, label: str) -> np.n
 
 def decode_frame(data: bytes, layout: ClipLayout, label: str) -> np.ndarray:
     """One self-contained encoded frame (a keyframe) -> uint8 [H, W, 3] RGB, checked against the clip's size."""
-    return _frame_rgb(_decode(FRAME_CODECS[layout.frame_codec][1], data, label), layout, label)
+    return _frame_rgb(decode_picture(FRAME_CODECS[layout.frame_codec][1], data, label), layout, label)
 
 
 def reencode_frame(data: bytes, layout: ClipLayout, label: str, crf: int) -> bytes:
     """One stored intra frame re-encoded at CRF `crf` (intra-only, the same colour tags). The decoded 4:2:0 picture
     goes to the encoder as it is, so the only loss added is the new encode's (no RGB round trip)."""
-    picture = _decode(FRAME_CODECS[layout.frame_codec][1], data, label)
+    picture = decode_picture(FRAME_CODECS[layout.frame_codec][1], data, label)
     _check_size(label, picture, layout.size)
     if picture.format.name != "yuv420p":
         raise ReferenceClipError(f"{label} must be 4:2:0 (yuv420p), got pixel format {picture.format.name}")
@@ -175,7 +175,7 @@ def reencode_frame(data: bytes, layout: ClipLayout, label: str, crf: int) -> byt
 
 def decode_mask_levels(data: bytes, layout: ClipLayout, label: str) -> np.ndarray:
     """One self-contained encoded mask -> its uint8 levels [H, W] (M * 255); a colour or 16-bit PNG is refused."""
-    return _mask_levels(_decode(MASK_CODECS[layout.mask_codec][1], data, label), layout, label)
+    return _mask_levels(decode_picture(MASK_CODECS[layout.mask_codec][1], data, label), layout, label)
 
 
 def decode_mask(data: bytes, layout: ClipLayout, label: str) -> np.ndarray:
@@ -380,6 +380,6 @@ class ReferenceClip:
 
 __all__ = ["CROP_MARGIN_PX", "CROP_MULTIPLE", "FRAME_CODECS", "H264_COLOUR_TAGS", "H264_CRF", "MASK_CODECS",
            "MASK_PNG_FILTER", "MAX_CLIP_FRAMES", "MAX_H264_CRF", "MIN_FACE_PIXELS", "ClipCoding", "ClipLayout",
-           "EncodedClip", "ReferenceClip", "ReferenceClipError", "_encode", "check_mask", "decode_frame",
-           "decode_mask", "decode_mask_levels", "encode_frame", "encode_mask", "frame_entry", "mask_entry",
-           "quantise_mask", "reencode_frame"]
+           "EncodedClip", "ReferenceClip", "ReferenceClipError", "check_mask", "decode_frame", "decode_mask",
+           "decode_mask_levels", "decode_picture", "encode_frame", "encode_mask", "encode_picture", "frame_entry",
+           "mask_entry", "quantise_mask", "reencode_frame"]
