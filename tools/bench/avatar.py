@@ -12,7 +12,7 @@ avatar zip or a GaussianAvatars output directory with the user's FLAME model:
   own runtime defaults, at frames sampled evenly over a motion (`TalkingHead.drives(motion=...)`: an ARKit avatar's
   weights with its pose track, a FLAME avatar's parameters with their own head pose); 8-bit PSNR over the head
   region (the pixels whose fp32 coverage, output="rgba_float" alpha, exceeds 1/255); median and minimum.
-* Speed (tools/bench/avatar_speed.py): alternating rounds of playing the avatar's fp32 and `fast` bundles
+* Speed (tools/bench/avatar_speed.py): alternating rounds of playing the avatar's bundle of each preset exported
   through `TalkingHead.frames(motion=...)` and the demo speaker's fp32 bundle (its bare head) through
   `TalkingHead.frames(audio)`, the same number of frames each at 512x512; steady-state ms per frame (the mean
   gap once the first frames are left out: the CPU splatter's loop hands frames over in bursts) per round, medians
@@ -51,7 +51,7 @@ from .avatar_speed import WARMUP_FRAMES, fps_rounds
 from .frames import machine_info
 
 REFERENCE = "quality"  # the fp32 preset: every other preset's frames are compared with its frames
-FPS_PRESETS = ("quality", "fast")  # the avatar's bundles played in the speed rounds
+FPS_PRESETS = ("quality", "balanced", "compact", "fast", "mobile")  # the avatar's bundles played in the speed rounds
 SIZE = 512  # square frame side of the quality and speed measures
 HEAD_COVERAGE = 1.0 / 255.0  # the head region: fp32 coverage above this
 # Random ARKit drives (when an ARKit avatar ships no motion and none is given): a new key pose every KEY_FRAMES
@@ -219,7 +219,8 @@ def run_avatar_bench(avatar: Path, motion: Path | None, samples: int, fps_second
         demo = demo_speaker(demo_checkpoint, demo_gaussians)
         demo_bundle = folder / "demo.gtb"
         export_bundle(demo, demo_bundle, progress=True)
-        speed = fps_rounds({name: exports[name]["path"] for name in FPS_PRESETS if name in exports}, demo_bundle, table,
+        played = {name: exports[name]["path"] for name in FPS_PRESETS if name in exports}
+        speed = fps_rounds(played, demo_bundle, table,
                            max(2, int(round(fps_seconds * fps))), rounds, SIZE)
         speed["demo_gaussians"] = demo.gaussians.count
     reference_bytes = exports[REFERENCE]["bytes"]
