@@ -177,3 +177,20 @@ def test_fuzzed_entries_give_pictures_or_a_clip_error():
                 assert mask.shape == (height, width) and mask.min() >= 0 and mask.max() <= 1
             except ReferenceClipError as exc:
                 assert "reference" in str(exc)
+
+
+def test_a_picture_of_another_size_fails_its_group_every_time_it_is_asked_for():
+    """A keyframe of another clip's size inside a group decodes, but is refused when converted; the group is then
+    decoded afresh on the next request, so later frames never come out one place off."""
+    clip, _, _ = _clip()
+    grouped = clip.reencoded(ClipCoding(23, gop=4))
+    other = EncodedClip.from_arrays([np.zeros((16, 32, 3), np.uint8)], [np.ones((16, 32), np.float32)],
+                                    Camera(32, 16, 20.0, 20.0, 16.0, 8.0)).reencoded(ClipCoding(23))
+    frames = [*grouped.frames[:2], other.frames[0], *grouped.frames[3:]]
+    reference = ReferenceClip(_bundle(EncodedClip(grouped.layout, frames, grouped.masks)))
+    for _attempt in range(2):
+        with pytest.raises(ReferenceClipError, match="reference frame 2 is 32x16, the clip is 48x32"):
+            reference.frame(3)
+    truth = ReferenceClip(_bundle(grouped))
+    np.testing.assert_array_equal(reference.frame(1), truth.frame(1))
+    np.testing.assert_array_equal(reference.frame(5), truth.frame(5))

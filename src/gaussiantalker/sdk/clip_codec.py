@@ -229,20 +229,16 @@ class GroupDecoder(Generic[T]):
             group, offset = divmod(index, self.gop)
             if group != self._group:
                 first, end = group * self.gop, min(self.count, (group + 1) * self.gop)
-                self._group, self._held = None, []
                 packets = (self._packet(i) for i in range(first, end))
                 self._pictures = decode_group(self.codec, packets, [self._label(i) for i in range(first, end)])
-                self._group = group
-            while len(self._held) <= offset:
-                position = group * self.gop + len(self._held)
-                try:
-                    picture = next(self._pictures)
-                except StopIteration:  # decode_group raises before it runs short; kept for a clear message
-                    raise ReferenceClipError(f"{self._label(position)} did not decode") from None
-                except ReferenceClipError:
-                    self._group, self._held = None, []
-                    raise
-                self._held.append(self._convert(picture, position))
+                self._group, self._held = group, []
+            try:  # offset < the group's length, so decode_group gives the picture or raises
+                while len(self._held) <= offset:
+                    position = group * self.gop + len(self._held)
+                    self._held.append(self._convert(next(self._pictures), position))
+            except ReferenceClipError:  # a failed group is decoded afresh when next asked for
+                self._group, self._held = None, []
+                raise
             return self._held[offset]
 
 
