@@ -47,7 +47,6 @@ MIN_FACE_PIXELS = 16
 # padded to (the generator pools by 2 and has up to 3 stride-2 levels).
 CROP_MARGIN_PX = 16
 CROP_MULTIPLE = 16
-_MASK_LEVELS = MASK_LEVELS
 
 
 def frame_entry(index: int) -> str:
@@ -58,6 +57,12 @@ def frame_entry(index: int) -> str:
 def mask_entry(index: int) -> str:
     """Bundle entry holding encoded mask `index`."""
     return f"reference/mask/{index:05d}"
+
+
+def _check_gop(gop, what: str) -> None:
+    """ReferenceClipError naming `what` unless `gop` is an integer 1..MAX_CLIP_FRAMES (pictures per group)."""
+    if isinstance(gop, bool) or not isinstance(gop, int) or not 1 <= gop <= MAX_CLIP_FRAMES:
+        raise ReferenceClipError(f"{what} must be an integer in 1..{MAX_CLIP_FRAMES}, got {gop!r}")
 
 
 @dataclass(frozen=True)
@@ -86,9 +91,7 @@ class ClipLayout:
         if self.mask_codec not in MASK_CODECS:
             raise ReferenceClipError(f"reference clip 'mask_codec' {self.mask_codec!r} is not one of "
                                      f"{sorted(MASK_CODECS)}")
-        if isinstance(self.gop, bool) or not isinstance(self.gop, int) or not 1 <= self.gop <= MAX_CLIP_FRAMES:
-            raise ReferenceClipError(f"reference clip 'gop' must be an integer in 1..{MAX_CLIP_FRAMES}, "
-                                     f"got {self.gop!r}")
+        _check_gop(self.gop, "reference clip 'gop'")
 
     @property
     def size(self) -> tuple[int, int]:
@@ -134,9 +137,7 @@ class ClipCoding:
         check_crf(self.crf)
         if self.mask_crf is not None:
             check_crf(self.mask_crf)
-        if isinstance(self.gop, bool) or not isinstance(self.gop, int) or not 1 <= self.gop <= MAX_CLIP_FRAMES:
-            raise ReferenceClipError(f"a clip's pictures per group must be an integer in 1..{MAX_CLIP_FRAMES}, "
-                                     f"got {self.gop!r}")
+        _check_gop(self.gop, "a clip's pictures per group")
 
 
 def _check_size(label: str, picture: av.VideoFrame, size: tuple[int, int]) -> None:
@@ -180,7 +181,7 @@ def decode_mask_levels(data: bytes, layout: ClipLayout, label: str) -> np.ndarra
 
 def decode_mask(data: bytes, layout: ClipLayout, label: str) -> np.ndarray:
     """One self-contained encoded mask -> float32 [H, W] in [0, 1] (its 8-bit levels / 255)."""
-    return decode_mask_levels(data, layout, label).astype(np.float32) / np.float32(_MASK_LEVELS)
+    return decode_mask_levels(data, layout, label).astype(np.float32) / np.float32(MASK_LEVELS)
 
 
 def check_mask(mask: np.ndarray, size: tuple[int, int], label: str) -> np.ndarray:
@@ -269,10 +270,10 @@ class EncodedClip:
         if track_frames != self.layout.count:
             raise ReferenceClipError(f"reference clip has {self.layout.count} frames but the pose track has "
                                      f"{track_frames} rows (one pose per frame)")
-        for index, picture in enumerate(self.frame_pictures()):
-            _frame_rgb(picture, self.layout, _frame_label(index))
+        for index, picture in enumerate(self.frame_pictures()):  # sizes only: no RGB conversion needed
+            _check_size(_frame_label(index), picture, self.layout.size)
         for index, levels in enumerate(self.mask_levels()):
-            check_mask(levels.astype(np.float32) / np.float32(_MASK_LEVELS), self.layout.size, _mask_label(index))
+            check_mask(levels.astype(np.float32) / np.float32(MASK_LEVELS), self.layout.size, _mask_label(index))
 
     def reencoded(self, coding: ClipCoding | int) -> EncodedClip:
         """This clip re-encoded as `coding` says (a bare int: the frames at that CRF, intra-only, masks kept). The
@@ -375,7 +376,7 @@ class ReferenceClip:
 
     def mask(self, index: int) -> np.ndarray:
         """Facial mask M `index`: float32 [H, W] in [0, 1] at the output size."""
-        return self._masks[self._index(index)].astype(np.float32) / np.float32(_MASK_LEVELS)
+        return self._masks[self._index(index)].astype(np.float32) / np.float32(MASK_LEVELS)
 
 
 __all__ = ["CROP_MARGIN_PX", "CROP_MULTIPLE", "FRAME_CODECS", "H264_COLOUR_TAGS", "H264_CRF", "MASK_CODECS",

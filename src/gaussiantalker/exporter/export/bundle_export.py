@@ -142,9 +142,9 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         **({} if spec is None else {"scene": spec.scene.to_dict(),
                                     "specialisation": [asdict(r) for r in spec.removals]}),
     })
-    # A scene fixes its own camera and background: the reference clip (seen through another camera) is left out.
+    # A scene fixes its own camera and background: the reference clip (seen through another camera) is left out;
+    # the manifest's `reference` layout is written with the clip's entries (`_add_reference`).
     if spec is None and getattr(speaker, "reference", None) is not None:
-        writer.metadata["reference"] = speaker.reference.layout.to_dict()  # re-encoding may change it (_add_reference)
         writer.metadata["inpaint"] = {"generator": "learned" if speaker.inpaint is not None else "opencv_fallback",
                                       "crop_margin": CROP_MARGIN_PX, "crop_multiple": CROP_MULTIPLE}
     steps = progress_bar(total=5 if mnn else 4, desc="gt-export", unit="step", disable=not progress)
