@@ -120,6 +120,10 @@ def play(
                                       "order in between (1-60) [default: the bundle's preset, else 1]"),
     sort_key_bits: int = typer.Option(None, "--sort-key-bits", help="32: exact depth; 16: depth quantised to "
                                       "65536 levels, faster [default: the bundle's preset, else 32]"),
+    alpha_min: float = typer.Option(None, "--alpha-min", help="CPU splatter: skip contributions with a smaller "
+                                    "alpha (1/255-0.1) [default: the bundle's preset, else 1/255]"),
+    max_draw_pixels: int = typer.Option(None, "--max-draw-pixels", help="draw at most about this many pixels, "
+                                        "then upscale [default: the bundle's preset, else no cap]"),
     no_pipeline: bool = typer.Option(False, "--no-pipeline", help="one frame stage after another on one thread "
                                      "(the same frames; by default neighbouring frames' stages overlap)"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),
@@ -144,7 +148,7 @@ def play(
                            backend_settings=BackendSettings(backend, threads=threads, renderer=renderer,
                                                             pipeline=not no_pipeline),
                            render_scale=render_scale, render_target=render_target, sort_interval=sort_interval,
-                           sort_key_bits=sort_key_bits)
+                           sort_key_bits=sort_key_bits, alpha_min=alpha_min, max_draw_pixels=max_draw_pixels)
         window = None
         if show:
             headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))

@@ -173,3 +173,38 @@ def test_sweep_measures_each_splatter_against_its_own_reference(small_export, re
         assert 20.0 < knob["sizes"]["64"]["quality"]["head_psnr_db"] <= math.inf
     report = format_report(sweeps, {"cores": 2}, "gt-bench sweep --renderers gl,cpu")
     assert "small speaker, OpenGL splatter" in report and "small speaker, CPU splatter" in report
+
+
+def _case(preset: str | None, bundle_bytes: int, whole_bytes: int | None, fps_ratio: float, psnr: float) -> dict:
+    """One swept case as `sweep_speaker_renderers` records it, at 512² only."""
+    quality = {"head_psnr_db": psnr, "head_ssim": 0.99, "mouth_psnr_db": psnr, "mouth_ssim": 0.99,
+               "flame_max_abs": 0.0}
+    at = {"load_s": 0.1, "stages_ms": dict.fromkeys(("translator", "deformation", "sort", "upload", "draw",
+                                                     "readback"), 1.0),
+          "fps": 100.0 * fps_ratio, "fps_vs_reference": fps_ratio, "quality": quality}
+    return {"preset": preset, "bundle_bytes": bundle_bytes, "whole_bytes": whole_bytes, "gaussians": 1000,
+            "peak_rss_mb": 100.0, "sizes": {"512": at}}
+
+
+def test_size_goals_are_on_the_whole_file_where_the_sweep_weighed_it():
+    """With the presets' whole files weighed (a speaker with a reference clip), the report shows them beside the
+    bare head's bundle and the size goals judge them; without, the bare head's bundle as before."""
+    from tools.bench.sweep import SpeakerSweep
+
+    def sweep(whole: bool) -> SpeakerSweep:
+        result = SpeakerSweep("demo", 1000)
+        result.cases = {REFERENCE: _case(REFERENCE, 14_000_000, 18_000_000 if whole else None, 1.0, math.inf),
+                        "balanced": _case("balanced", 3_000_000, 3_300_000 if whole else None, 1.0, 48.0)}
+        return result
+
+    weighed, bare = sweep(True), sweep(False)
+    rows = {row["goal"]: row for row in goal_rows(weighed) if row["preset"] == "balanced"}
+    assert rows["smaller"]["whole_file"] and rows["smaller"]["measured"] == pytest.approx(18 / 3.3)
+    assert rows["smaller"]["met"]
+    report = format_report([weighed], {"cores": 2}, "gt-bench sweep")
+    assert "whole file MB (× smaller)" in report and "| 3.30 (5.5) |" in report
+    assert "whole file × smaller | ≥ 5 | 5.45 | met" in report
+    rows = {row["goal"]: row for row in goal_rows(bare) if row["preset"] == "balanced"}
+    assert not rows["smaller"]["whole_file"] and rows["smaller"]["measured"] == pytest.approx(14 / 3.0)
+    assert not rows["smaller"]["met"]
+    assert "whole file" not in format_report([bare], {"cores": 2}, "gt-bench sweep")

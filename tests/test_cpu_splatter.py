@@ -26,6 +26,7 @@ from gaussiantalker.runtime.splat.common import FRAME_OUTPUTS
 from gaussiantalker.runtime.splat.cpu import CPUSplatter, exp_approx, upscale_bilinear
 from gaussiantalker.runtime.splat.gl import GLSplatter
 from gaussiantalker.sdk import numerics
+from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import RenderError
 from gaussiantalker.sdk.image import psnr_db, to_uint8
@@ -257,6 +258,82 @@ def test_render_scale_upscales_like_gl(gl):
         assert _psnr8(mine, theirs) >= 45.0
     finally:
         gl_scaled.release()
+
+
+@pytest.mark.parametrize("cut", [0.02, 0.05, 0.1])
+def test_alpha_min_is_the_contract_with_its_alpha_test_raised(monkeypatch, cut):
+    """`RenderSettings(alpha_min=a)` draws what the contract draws with ALPHA_MIN = a in its alpha test (the
+    reference with that constant patched), within the reference bound; and it only ever removes fragments: the
+    counting blend blends fewer of them than at the contract's 1/255. The reliability fade keeps 1/255 on the CPU;
+    these Gaussians are far from their cut, where the fade is 1 for either constant."""
+    from gaussiantalker.exporter.model import splat_math
+
+    arrays, camera = _numpy(random_scene(9, n=120, camera=off_centre_camera(48, 36), px_sigma=(1.0, 6.0)))
+    contract = CPUSplatter().render(*arrays, camera, BACKGROUND, output="float")
+    frame = CPUSplatter(settings=RenderSettings(alpha_min=cut)).render(*arrays, camera, BACKGROUND, output="float")
+    monkeypatch.setattr(splat_math, "ALPHA_MIN", cut)
+    want = _reference(arrays, camera)
+    assert np.isfinite(frame).all()
+    assert np.abs(frame - want).max() <= FLOAT_TOL
+    assert np.abs(frame - contract).max() > 1e-3  # the cut changes the frame: the check above has teeth
+    counts = {}
+    for alpha_min in (numerics.ALPHA_MIN, cut):
+        prepared = CPUSplatter().prepare(*arrays, camera)
+        totals = np.zeros(len(cs.BLEND_COUNTS), dtype=np.int64)
+        cs.splat_frame(prepared.rows, prepared.camera, totals, alpha_min=alpha_min)
+        counts[alpha_min] = dict(zip(cs.BLEND_COUNTS, totals.tolist(), strict=True))
+    assert counts[cut]["fragments"] < counts[numerics.ALPHA_MIN]["fragments"]
+    assert counts[cut]["pairs_binned"] <= counts[numerics.ALPHA_MIN]["pairs_binned"]
+
+
+def test_alpha_min_at_its_largest_on_saturating_stacks_stays_finite(cpu):
+    """The largest cut on the stacked scene (termination, depth ties, late faint Gaussians): finite, and no pixel
+    gains coverage it did not have at the contract's cut (a cut only removes contributions)."""
+    arrays, camera = _numpy(stacked_scene())
+    for output in ("float", "rgba_float"):
+        contract = cpu.render(*arrays, camera, BACKGROUND, output=output)
+        cut = CPUSplatter(settings=RenderSettings(alpha_min=0.1)).render(*arrays, camera, BACKGROUND, output=output)
+        assert np.isfinite(cut).all()
+        if output == "rgba_float":
+            assert (cut[..., 3] <= contract[..., 3] + 1e-6).all()
+
+
+def test_an_8bit_render_target_upscales_the_bytes_within_a_level():
+    """With render_target="uint8" and a render scale, the CPU splatter keeps the drawn frame in 8 bits and
+    upscales the bytes (as GL's 8-bit framebuffer does): within one level of the float frame's upscale, converted
+    once, and exactly the bytes' bilinear samples rounded to the nearest level. Colours stay within 0..1 here:
+    beyond it the 8 bits clamp before the upscale, the floats after it (GL's 8-bit framebuffer clamps first too)."""
+    arrays, camera = _numpy(random_scene(11, n=150, camera=off_centre_camera(64, 48), px_sigma=(1.0, 5.0)))
+    arrays[2] = np.clip(arrays[2], 0.0, 1.0)
+    as_bytes = CPUSplatter(settings=RenderSettings(render_scale=0.6, render_target="uint8"))
+    as_floats = CPUSplatter(settings=RenderSettings(render_scale=0.6))
+    frame = as_bytes.render(*arrays, camera, BACKGROUND)
+    assert frame.shape == (48, 64, 3) and frame.dtype == np.uint8
+    reference = as_floats.render(*arrays, camera, BACKGROUND)
+    assert np.abs(frame.astype(int) - reference.astype(int)).max() <= 1
+    assert RenderSettings(render_scale=0.6).draw_size(64, 48) == (38, 29)
+    drawn = CPUSplatter().render(*arrays, camera.resized(38, 29), BACKGROUND)  # the frame at its drawn size
+    samples = upscale_bilinear(drawn.astype(np.float32), 64, 48)
+    assert np.abs(frame.astype(np.float64) - samples).max() <= 0.5 + 1e-4
+    assert as_bytes.render(*arrays, camera, BACKGROUND, output="float").dtype == np.float32  # other outputs: floats
+
+
+def test_max_draw_pixels_caps_the_drawn_frame_on_both_splatters(gl):
+    """A frame past the pixel cap is drawn at the scale that fits (here exactly 1/2: the frame of render_scale
+    0.5, bit for bit on the CPU), a frame within it at its render scale; GL draws the same size."""
+    arrays, camera = _numpy(random_scene(12, n=80, camera=off_centre_camera(64, 48)))
+    capped = RenderSettings(render_scale=0.75, max_draw_pixels=32 * 24)
+    assert capped.draw_size(64, 48) == (32, 24) and capped.draw_size(32, 24) == (24, 18)
+    half = CPUSplatter(settings=RenderSettings(render_scale=0.5)).render(*arrays, camera, BACKGROUND, output="float")
+    mine = CPUSplatter(settings=capped).render(*arrays, camera, BACKGROUND, output="float")
+    np.testing.assert_array_equal(mine, half)
+    gl_capped = GLSplatter(settings=capped)
+    try:
+        prepared = gl_capped.prepare(*arrays, camera)
+        assert (prepared.camera.width, prepared.camera.height) == (32, 24)
+        assert _psnr8(gl_capped.render(*arrays, camera, BACKGROUND, output="float"), mine) >= 45.0  # as render scale
+    finally:
+        gl_capped.release()
 
 
 def test_upscale_bilinear_is_exact_on_linear_ramps():
@@ -495,12 +572,19 @@ def test_nan_drives_are_refused_before_the_cpu_splatter(small_export):
 
 @pytest.mark.parametrize("preset", ["quality", "balanced", "compact", "fast", "mobile"])
 def test_presets_match_gl(small_export, reduced_export, small_drives, preset):
-    """Every preset's bundle and render settings, CPU vs GL (GL's framebuffer in float32: the CPU always blends in
-    float32, so an 8-bit or float16 framebuffer is a GL-only loss). `fast` draws at 3/4 size: the upscale's
-    bilinear weights are 8-bit in llvmpipe's sampler, so its bound is that of the render-scale test (45 dB)."""
+    """Every preset's bundle and its GL render settings, CPU vs GL (GL's framebuffer in float32: the CPU always
+    blends in float32, so an 8-bit or float16 framebuffer is a GL-only loss). Both draw with the same settings: a
+    preset's own CPU settings (`fast`'s alpha cut) are a trade of their own, measured in docs/precision.md. `fast`
+    draws at 3/4 size: the upscale's bilinear weights are 8-bit in llvmpipe's sampler, so its bound is that of the
+    render-scale test (45 dB)."""
+    from dataclasses import replace
+
+    from gaussiantalker.sdk.render_settings import stored_defaults
+
     path = small_export.path if preset == "quality" else reduced_export(preset)  # quality: the fp32 default
-    cpu = _head_frames(path, "cpu", small_drives, resolution=(96, 96), render_target="float32")
-    gl = _head_frames(path, "gl", small_drives, resolution=(96, 96), render_target="float32")
+    settings = replace(stored_defaults(Bundle(path).manifest, "gl"), render_target="float32")
+    cpu = _head_frames(path, "cpu", small_drives, resolution=(96, 96), render_settings=settings)
+    gl = _head_frames(path, "gl", small_drives, resolution=(96, 96), render_settings=settings)
     bound = 45.0 if preset == "fast" else MIN_PSNR_8BIT
     for mine, theirs in zip(cpu, gl, strict=True):
         assert psnr_db(mine.astype(np.float64) / 255, theirs.astype(np.float64) / 255) >= bound

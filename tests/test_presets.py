@@ -27,6 +27,7 @@ from gaussiantalker.exporter.verify.bundle_verify import (
 )
 from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.runtime.stages import bundle_render_settings
+from gaussiantalker.sdk import numerics
 from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.drive import FrameDrive, HeadPose
@@ -75,13 +76,22 @@ def test_compact_preset_prunes_truncates_and_stays_within_its_bound(small_speake
 
 
 def test_fast_preset_plays_with_its_stored_runtime_defaults(small_speaker, reduced_export):
+    """`fast` stores its GL defaults and its own on the CPU splatter (at most 256² pixels drawn, contributions under
+    alpha 0.03 skipped, exact sort keys); each splatter plays its own, and an app's keywords override either."""
     path = reduced_export("fast")
-    with TalkingHead(path) as head:
-        assert head.render_settings == get_preset("fast").runtime
-    with TalkingHead(path, render_scale=1.0, render_target="float32", sort_key_bits=32) as head:  # an app's own
-        assert head.render_settings == RenderSettings()
-    with TalkingHead(path, sort_key_bits=32) as head:  # an override keeps the other stored defaults
+    preset = get_preset("fast")
+    assert preset.runtime_for("cpu") == RenderSettings(render_scale=0.75, render_target="uint8", alpha_min=0.03,
+                                                       max_draw_pixels=256 * 256)
+    for renderer in ("gl", "cpu"):
+        with TalkingHead(path, renderer=renderer) as head:
+            assert head.render_settings == preset.runtime_for(renderer)
+    with TalkingHead(path, renderer="gl", render_scale=1.0, render_target="float32", sort_key_bits=32) as head:
+        assert head.render_settings == RenderSettings()  # an app's own
+    with TalkingHead(path, renderer="gl", sort_key_bits=32) as head:  # an override keeps the other stored defaults
         assert head.render_settings == RenderSettings(render_scale=0.75, render_target="uint8")
+    with TalkingHead(path, renderer="cpu", alpha_min=numerics.ALPHA_MIN) as head:
+        assert head.render_settings == RenderSettings(render_scale=0.75, render_target="uint8",
+                                                      max_draw_pixels=256 * 256)
     _verify(small_speaker, path, "fast")
 
 
@@ -190,7 +200,7 @@ def test_a_preset_with_its_own_cpu_defaults_stores_them_and_the_cpu_splatter_tak
     from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.exporter.export.presets import Preset
 
-    assert "runtime_defaults_by_renderer" not in Bundle(reduced_export("fast")).manifest  # none where they agree
+    assert "runtime_defaults_by_renderer" not in Bundle(reduced_export("mobile")).manifest  # none where they agree
     preset = Preset("split", "GL and CPU defaults differ", ExportSettings(), RenderSettings(render_scale=0.75),
                     runtime_by_renderer={"cpu": RenderSettings(render_scale=0.5, graph_threads=1)})
     replay_onnx_exports(small_export.protos)

@@ -6,7 +6,9 @@ source"), run by node on seeded cases against their Python reference:
   ramp, through a stand-in translator whose outputs copy samples of its window (no arithmetic of its own, so any
   difference is the windowing's);
 * the camera model's checks (web/src/camera.js `Camera.fromDict` against sdk/camera.py `Camera.from_dict`), over
-  valid cameras and each field set to values a manifest could hold.
+  valid cameras and each field set to values a manifest could hold;
+* the size a frame is drawn at (web/src/camera.js `drawnSize` against `RenderSettings.draw_size`), over render
+  scales and pixel caps.
 
 Needs node (.ci/browser's npm brings it in CI, where this test fails without it)."""
 
@@ -26,6 +28,7 @@ from ci_tools import BROWSER_INSTALL, need
 from gaussiantalker.runtime.translate import SILENCE_GATE_DBFS, SILENCE_GATE_RAMP_DB, translate_audio
 from gaussiantalker.sdk.camera import Camera
 from gaussiantalker.sdk.errors import CameraError
+from gaussiantalker.sdk.render_settings import RenderSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 CASES = {"ci": 200, "heavy": 2000}
@@ -37,8 +40,8 @@ EXPRESSION_WIDTH = 3
 SCRIPT = """
 import fs from 'node:fs';
 import { translateAudio } from %(drive_js)s;
-import { Camera, CameraError } from %(camera_js)s;
-const { windows, cameras } = JSON.parse(fs.readFileSync(%(cases)s, 'utf8'));
+import { Camera, CameraError, drawnSize } from %(camera_js)s;
+const { windows, cameras, draws } = JSON.parse(fs.readFileSync(%(cases)s, 'utf8'));
 const floats = (text) => new Float32Array(new Uint8Array(Buffer.from(text, 'base64')).buffer);
 const fake = (spf) => async (chunk) => {
   const frames = Math.round(chunk.length / spf);
@@ -64,7 +67,8 @@ const verdicts = cameras.map((data) => {
     return error instanceof CameraError ? 'refused' : `crashed: ${error}`;
   }
 });
-console.log(JSON.stringify({ rows, verdicts }));
+const sizes = draws.map((d) => drawnSize(d, d.width, d.height));
+console.log(JSON.stringify({ rows, verdicts, sizes }));
 """
 
 
@@ -130,13 +134,27 @@ def _camera_cases(count: int, seed: int) -> list[object]:
     return cases
 
 
-def _node(windows: list[dict], cameras: list[object], folder: Path) -> dict:
+def _draw_cases(count: int, seed: int) -> list[dict]:
+    """Frame sizes with render scales and pixel caps around the frame's own pixel count, where the two languages'
+    rounding of the drawn size could part."""
+    rng = np.random.default_rng(seed)
+    cases = []
+    for _ in range(count):
+        width, height = int(rng.integers(1, 2049)), int(rng.integers(1, 2049))
+        scale = float(rng.choice([1.0, 0.75, 0.5, 0.1, rng.uniform(0.1, 1.0)]))
+        cap = rng.choice([None, 1, width * height, int(width * height * rng.uniform(0.01, 1.2)) + 1])
+        cases.append({"width": width, "height": height, "render_scale": scale,
+                      "max_draw_pixels": None if cap is None else int(cap)})
+    return cases
+
+
+def _node(windows: list[dict], cameras: list[object], folder: Path, draws: list[dict] = ()) -> dict:
     node = shutil.which("node")
     need(None if node else "node is missing (Debian's npm brings it)", BROWSER_INSTALL)
     listing = folder / "cases.json"
     listing.write_text(json.dumps({
         "windows": [{**case, "audio": base64.b64encode(case["audio"].tobytes()).decode()} for case in windows],
-        "cameras": cameras}))
+        "cameras": cameras, "draws": list(draws)}))
     script = folder / "twins.mjs"
     script.write_text(SCRIPT % {"drive_js": json.dumps((ROOT / "web" / "src" / "drive.js").as_uri()),
                                 "camera_js": json.dumps((ROOT / "web" / "src" / "camera.js").as_uri()),
@@ -156,10 +174,14 @@ def _python_verdict(data: object) -> str:
 
 @pytest.mark.parametrize("run, seed", [pytest.param("ci", 0, id="ci"),
                                        pytest.param("heavy", 1000, id="heavy", marks=pytest.mark.heavy)])
-def test_window_plan_gate_and_crossfades_and_camera_checks_match_python(tmp_path, run, seed):
+def test_window_plan_gate_crossfades_camera_checks_and_draw_sizes_match_python(tmp_path, run, seed):
     windows = _window_cases(CASES[run], seed)
     cameras = _camera_cases(CASES[run], seed + 1)
-    web = _node(windows, cameras, tmp_path)
+    draws = _draw_cases(CASES[run], seed + 2)
+    web = _node(windows, cameras, tmp_path, draws)
+    for case, size in zip(draws, web["sizes"], strict=True):
+        settings = RenderSettings(render_scale=case["render_scale"], max_draw_pixels=case["max_draw_pixels"])
+        assert tuple(size) == settings.draw_size(case["width"], case["height"]), case
 
     gains_moved = 0
     for index, case in enumerate(windows):

@@ -865,8 +865,11 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--cases") from None
     size_list = [int(s) for s in sizes.split(",")]
+    whole = None
     if checkpoint is not None:
         demo = load_checkpoint(checkpoint)
+        if demo.reference is not None and any(case.preset for case in chosen):
+            whole = load_checkpoint(checkpoint)  # the presets' whole files: the head, the clip and the inpainter
         demo.reference = demo.inpaint = None  # the bare head (compositing: tools/bench/composite_cost.py)
     else:
         typer.echo("building the demo speaker (its translator trains for a few minutes; --checkpoint skips this)")
@@ -879,7 +882,8 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
     out.mkdir(parents=True, exist_ok=True)
     sweeps = [sweep for name, speaker in speakers
               for sweep in sweep_speaker_renderers(name, speaker, chosen, sizes=size_list, seconds=seconds,
-                                                   rounds=rounds, renderers=renderers)]
+                                                   rounds=rounds, renderers=renderers,
+                                                   whole_speaker=whole if speaker is demo else None)]
     machine = machine_info()
     command = "gt-bench " + " ".join(sys.argv[1:])
     report = format_report(sweeps, machine, command)

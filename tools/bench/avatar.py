@@ -9,7 +9,8 @@ avatar zip or a GaussianAvatars output directory with the user's FLAME model:
   `verify_bundle`'s time on the fp32 bundle at its defaults (25 frames at 256x256) with its minimum 8-bit PSNR and
   its novel views' minimum.
 * Quality: each preset's frames against the fp32 bundle's, rendered by the runtime at 512x512 with each bundle's
-  own runtime defaults, at frames sampled evenly over a motion (`TalkingHead.drives(motion=...)`: an ARKit avatar's
+  own runtime defaults on the splatter a plain `TalkingHead` picks (the speed rounds' one), at frames sampled
+  evenly over a motion (`TalkingHead.drives(motion=...)`: an ARKit avatar's
   weights with its pose track, a FLAME avatar's parameters with their own head pose); 8-bit PSNR over the head
   region (the pixels whose fp32 coverage, output="rgba_float" alpha, exceeds 1/255); median and minimum.
 * Speed (tools/bench/avatar_speed.py): alternating rounds of playing the avatar's bundle of each preset exported
@@ -44,6 +45,7 @@ from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.sdk.files import atomic_write
 from gaussiantalker.sdk.flame_motion import FlameMotion
 from gaussiantalker.sdk.image import psnr_db
+from gaussiantalker.sdk.numerics import ALPHA_MIN
 from gaussiantalker.sdk.progress import progress_bar
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_RIG
 
@@ -149,11 +151,12 @@ def timed_costs(load: Callable[[], object], folder: Path, rounds: int, presets: 
 
 def render_at(bundle: Path, motion: np.ndarray, indices: np.ndarray, bar, coverage: bool = False
               ) -> tuple[np.ndarray, np.ndarray | None, dict]:
-    """uint8 frames [S, SIZE, SIZE, 3] of `bundle` (its own runtime defaults) at frames `indices` of `motion` (its
-    `motion_drives`), the coverage masks when asked, and the render settings the bundle picked."""
+    """uint8 frames [S, SIZE, SIZE, 3] of `bundle` (its own runtime defaults, on the splatter a plain TalkingHead
+    picks, the one the speed rounds play on) at frames `indices` of `motion` (its `motion_drives`), the coverage
+    masks when asked, and the render settings the bundle picked with the splatter that drew."""
     frames, masks = [], []
     wanted = set(indices.tolist())
-    with TalkingHead(bundle, resolution=(SIZE, SIZE), composite=False, renderer="gl") as head:
+    with TalkingHead(bundle, resolution=(SIZE, SIZE), composite=False) as head:
         for index, drive in enumerate(head.drives(motion=motion)):
             if index not in wanted:
                 continue
@@ -161,7 +164,7 @@ def render_at(bundle: Path, motion: np.ndarray, indices: np.ndarray, bar, covera
             if coverage:
                 masks.append(head.render(drive, output="rgba_float")[..., 3] > HEAD_COVERAGE)
             bar.update()
-        settings = dataclasses.asdict(head.render_settings)
+        settings = {**dataclasses.asdict(head.render_settings), "renderer": head.renderer}
     return np.stack(frames), (np.stack(masks) if coverage else None), settings
 
 
@@ -245,9 +248,12 @@ def run_avatar_bench(avatar: Path, motion: Path | None, samples: int, fps_second
 
 def _runtime_line(settings: dict) -> str:
     """The render settings a bundle played with, briefly."""
+    extras = [f"{settings['graph_threads']} graph thread(s)" if settings.get("graph_threads") else "",
+              f"alpha cut {settings['alpha_min']:.3g}" if settings.get("alpha_min", ALPHA_MIN) != ALPHA_MIN else "",
+              f"at most {settings['max_draw_pixels']:,} px" if settings.get("max_draw_pixels") else "",
+              f"{settings['renderer']} splatter" if settings.get("renderer") else ""]
     return (f"scale {settings['render_scale']:g}, {settings['render_target']}, sort keys "
-            f"{settings['sort_key_bits']} bits" + (f", {settings['graph_threads']} graph thread(s)"
-                                                    if settings.get("graph_threads") else ""))
+            f"{settings['sort_key_bits']} bits" + "".join(f", {extra}" for extra in extras if extra))
 
 
 def _rounds(values: list[float], spec: str) -> str:
@@ -305,7 +311,8 @@ def format_report(result: dict) -> str:
                      f"{preset['bundle_mb']:.2f} | {preset['smaller_than_fp32']:.1f} | {preset['gaussians']:,} |")
     lines += ["", f"## Quality against the fp32 bundle at {quality['size']}x{quality['size']}", "",
               f"{len(quality['frames'])} frames sampled evenly from {quality['motion']}, the head following "
-              f"{_pose_words(result)}; each bundle with its own runtime defaults. Head region: the pixels whose fp32 "
+              f"{_pose_words(result)}; each bundle with its own runtime defaults on the splatter that plays it in the "
+              "speed rounds below. Head region: the pixels whose fp32 "
               f"coverage exceeds 1/255 (median {result['presets'][REFERENCE]['head_pixels_median']:,} pixels a "
               "frame). 8-bit PSNR.", "",
               "| preset | runtime defaults | head PSNR median dB | head PSNR min dB |", "|---|---|---|---|"]

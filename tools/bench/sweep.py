@@ -77,6 +77,8 @@ def sweep_cases() -> list[SweepCase]:
     cases += [runtime(f"render scale {s}", "render scale", render_scale=s) for s in (0.75, 0.5)]
     cases += [runtime(f"sort every {k} frames", "sort interval", sort_interval=k) for k in (2, 4)]
     cases += [runtime("sort keys 16-bit", "sort key bits", sort_key_bits=16)]
+    cases += [runtime(f"alpha cut {a}", "alpha cut", alpha_min=a) for a in (0.02, 0.05)]
+    cases += [runtime("draw at most 256²", "pixel cap", max_draw_pixels=256 * 256)]
     cases += [runtime("graph threads 1", "graph threads", threads=1)]
     cases += [SweepCase(name, "preset", preset.export, preset=name) for name, preset in PRESETS.items()
               if name != REFERENCE]
@@ -114,8 +116,10 @@ class SpeakerSweep:
     cases: dict[str, dict] = field(default_factory=dict)
 
 
-def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar) -> dict[str, dict]:
-    """Export each distinct bundle once: key -> {path, bytes, gaussians, export_s}."""
+def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar, whole_speaker=None) -> dict[str, dict]:
+    """Export each distinct bundle once: key -> {path, bytes, gaussians, export_s}; with `whole_speaker` (the
+    speaker with its reference clip and inpainter) each preset's whole file too, weighed and deleted
+    ("whole_bytes")."""
     from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.sdk.scene import load_scene
 
@@ -133,6 +137,12 @@ def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar) -> dict[str
             result = export_bundle(speaker, path, settings=case.export, progress=False, scene=scene)
         bundles[case.bundle_key] = {"path": str(path), "bytes": path.stat().st_size, "gaussians": result.gaussians,
                                     "export_s": time.perf_counter() - start}
+        if whole_speaker is not None and case.preset and case.scene is None:
+            bar.set_postfix_str(f"export {case.name}, whole file")
+            whole = tmp / "whole.gtb"
+            export_bundle(whole_speaker, whole, preset=case.preset, progress=False)
+            bundles[case.bundle_key]["whole_bytes"] = whole.stat().st_size
+            whole.unlink()
         bar.update()
     return bundles
 
@@ -151,10 +161,11 @@ def sweep_name(speaker: str, renderer: str, renderers: tuple[str, ...]) -> str:
 
 def sweep_speaker_renderers(name: str, speaker, cases: list[SweepCase], *, sizes: list[int], seconds: float,
                             rounds: int, renderers: tuple[str, ...] = ("gl",), warmup: int = 5,
-                            progress: bool = True) -> list[SpeakerSweep]:
+                            progress: bool = True, whole_speaker=None) -> list[SpeakerSweep]:
     """Measure every case on one speaker with each splatter in `renderers` (TalkingHead's `renderer`), every
     (case, splatter) pair in its own worker and all of them alternating in each round; one SpeakerSweep per
-    splatter, its ratios and quality against `quality` drawn by the same splatter (module docstring)."""
+    splatter, its ratios and quality against `quality` drawn by the same splatter (module docstring). With
+    `whole_speaker` (the same speaker with its reference clip) the presets' whole files are weighed too."""
     from gaussiantalker.exporter.export.speech import synth_speech
     from gaussiantalker.runtime.head import TalkingHead
     from gaussiantalker.sdk.audio import write_wav
@@ -171,7 +182,7 @@ def sweep_speaker_renderers(name: str, speaker, cases: list[SweepCase], *, sizes
         audio = tmp / "speech.wav"
         samples = synth_speech(seconds, seed=7)
         write_wav(audio, samples)
-        bundles = _export_bundles(speaker, cases, tmp, bar)
+        bundles = _export_bundles(speaker, cases, tmp, bar, whole_speaker)
         workers = {run: Version.make(f"case{i}", this_version_root(), tmp) for i, run in enumerate(runs_of)}
         for renderer, result in results.items():
             for label in labels:
@@ -179,7 +190,8 @@ def sweep_speaker_renderers(name: str, speaker, cases: list[SweepCase], *, sizes
                 result.cases[label] = {"group": by_name[label].group, "preset": by_name[label].preset,
                                        "scene": by_name[label].scene, "renderer": renderer,
                                        "export": asdict(by_name[label].export), "runtime": by_name[label].runtime,
-                                       "bundle_bytes": bundle["bytes"], "gaussians": bundle["gaussians"],
+                                       "bundle_bytes": bundle["bytes"], "whole_bytes": bundle.get("whole_bytes"),
+                                       "gaussians": bundle["gaussians"],
                                        "export_s": bundle["export_s"], "sizes": {}}
         try:
             for worker in workers.values():

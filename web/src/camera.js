@@ -5,6 +5,17 @@
 import {
   CAMERA_KEYS, DEFAULT_NEAR, FLOAT32_MAX, FOV_CLAMP_MARGIN, MAX_IMAGE_SIDE, MIN_FOCAL_PX, ROTATION_TOLERANCE,
 } from './generated.js';
+import { roundHalfEven } from './drive.js';
+
+/** The size a (width, height) frame is drawn at under render settings `{render_scale, max_draw_pixels}`: its
+ * render scale, or less where that would pass the pixel cap (`RenderSettings.draw_size` in sdk/render_settings.py,
+ * whose `round` rounds halves to even). */
+export function drawnSize(settings, width, height) {
+  let scale = settings.render_scale;
+  const cap = settings.max_draw_pixels ?? null;
+  if (cap !== null && width * height * scale * scale > cap) scale = Math.sqrt(cap / (width * height));
+  return [Math.max(1, roundHalfEven(width * scale)), Math.max(1, roundHalfEven(height * scale))];
+}
 
 export class CameraError extends Error {
   constructor(message) {

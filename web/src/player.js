@@ -13,7 +13,7 @@
 // (sort_worker.js) -> WebGL2 splatting (splat.js) -> read back. What is not done yet: docs/web.md.
 
 import { BundleError, readBundle } from './bundle.js';
-import { Camera } from './camera.js';
+import { Camera, drawnSize } from './camera.js';
 import {
   AudioError, blendshapeParams, decodeAudio, Drive, DriveError, flameParams, motionAtFps, readMotion, parseMotion,
   resampleAudio, roundHalfEven, trackRow, translateAudio,
@@ -67,11 +67,12 @@ function rigOf(bundle) {
 
 /** The bundle's runtime_defaults as the player uses them (sdk/render_settings.py names and defaults). */
 function renderSettings(bundle, overrides) {
-  const d = { render_scale: 1.0, render_target: 'float32', sort_interval: 1, sort_key_bits: 32,
+  const d = { render_scale: 1.0, render_target: 'float32', sort_interval: 1, sort_key_bits: 32, max_draw_pixels: null,
     ...(bundle.manifest.runtime_defaults ?? {}), ...overrides };
   if (!(d.render_scale >= 0.1 && d.render_scale <= 1) || !['float32', 'float16', 'uint8'].includes(d.render_target)
       || ![16, 32].includes(d.sort_key_bits) || !(Number.isInteger(d.sort_interval) && d.sort_interval >= 1
-      && d.sort_interval <= 60)) {
+      && d.sort_interval <= 60) || !(d.max_draw_pixels === null
+      || (Number.isInteger(d.max_draw_pixels) && d.max_draw_pixels >= 1))) {
     throw new BundleError(`${bundle.name}: manifest 'runtime_defaults' is invalid: ${JSON.stringify(d).slice(0, 200)}`);
   }
   return d;
@@ -387,8 +388,7 @@ export class Player {
     const out = await this.graphs.run('deform', drive.graphInputs(index, this.camera.center()));
     timings.graphs = (performance.now() - start) / 1000;
     const [width, height] = this.frameSize;
-    const scale = this.settings.render_scale;
-    const drawSize = [Math.max(1, roundHalfEven(width * scale)), Math.max(1, roundHalfEven(height * scale))];
+    const drawSize = drawnSize(this.settings, width, height);
     const camera = drawSize[0] === width && drawSize[1] === height ? this.camera : this.camera.resized(...drawSize);
     start = performance.now();
     // Copies the worker may own (onnxruntime-web's output tensors are views into its wasm memory).

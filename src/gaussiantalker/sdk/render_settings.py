@@ -3,7 +3,10 @@ its defaults) and the runtime (`TalkingHead` arguments override them). docs/prec
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
+
+from . import numerics
 
 # Framebuffer precision: the format the splats are blended into (moderngl texture dtypes).
 RENDER_TARGETS = {"float32": "f4", "float16": "f2", "uint8": "f1"}
@@ -11,6 +14,8 @@ MIN_RENDER_SCALE = 0.1
 MAX_SORT_INTERVAL = 60  # frames; a longer-lived depth order is wrong for any moving head
 SORT_KEY_BITS = (32, 16)
 MAX_EARLY_STOPS = 8  # segment boundaries; each costs a full-screen pass and a GL flush
+# The largest alpha cut-off: a tenth of the way to full opacity; past it a Gaussian's soft edge is cut to its core.
+MAX_ALPHA_MIN = 0.1
 # Fields that are experiments, off by default and not in the presets or the knob sweep (docs/precision.md).
 EXPERIMENTAL_FIELDS = frozenset({"early_stop"})
 
@@ -41,7 +46,13 @@ class RenderSettings:
     else every core for onnxruntime);
     `early_stop`: experimental, off by default (docs/numerics.md, "Early stop of saturated pixels"): fractions of
     the depth-sorted Gaussians after which the splatter marks pixels whose transmittance is below the contract's
-    TRANSMITTANCE_MIN, so that later Gaussians skip them (() : off; e.g. (0.5,))."""
+    TRANSMITTANCE_MIN, so that later Gaussians skip them (() : off; e.g. (0.5,));
+    `alpha_min`: the CPU splatter skips each contribution whose alpha is below this, the contract's ALPHA_MIN (1/255)
+    by default, up to MAX_ALPHA_MIN: fewer fragments, at the cost of each Gaussian's faintest rim (docs/precision.md,
+    "Alpha cut-off"); the GL splatter's shaders keep the contract's;
+    `max_draw_pixels`: draw at most about this many pixels (None: no cap): a larger frame is drawn at the scale that
+    fits, the smaller of it and `render_scale`, then upscaled, so a frame's draw costs at most so much at any output
+    size while small frames keep their detail."""
 
     render_scale: float = 1.0
     render_target: str = "float32"
@@ -49,6 +60,8 @@ class RenderSettings:
     sort_key_bits: int = 32
     graph_threads: int | None = None
     early_stop: tuple[float, ...] = ()
+    alpha_min: float = numerics.ALPHA_MIN
+    max_draw_pixels: int | None = None
 
     def __post_init__(self) -> None:
         scale = self.render_scale
@@ -66,15 +79,31 @@ class RenderSettings:
         if threads is not None and (isinstance(threads, bool) or not isinstance(threads, int) or threads < 1):
             raise ValueError(f"graph_threads must be a whole number >= 1 or None, got {threads!r}")
         object.__setattr__(self, "early_stop", _early_stop(self.early_stop))
+        cut = self.alpha_min
+        if isinstance(cut, bool) or not isinstance(cut, int | float) or not numerics.ALPHA_MIN <= cut <= MAX_ALPHA_MIN:
+            raise ValueError(f"alpha_min must be a number in {numerics.ALPHA_MIN:.6g} (1/255, the contract's) .. "
+                             f"{MAX_ALPHA_MIN}, got {cut!r}")
+        object.__setattr__(self, "alpha_min", float(cut))
+        cap = self.max_draw_pixels
+        if cap is not None and (isinstance(cap, bool) or not isinstance(cap, int) or cap < 1):
+            raise ValueError(f"max_draw_pixels must be a whole number >= 1 or None, got {cap!r}")
 
     def draw_size(self, width: int, height: int) -> tuple[int, int]:
-        """The framebuffer size a (width, height) frame is drawn at."""
-        return max(1, round(width * self.render_scale)), max(1, round(height * self.render_scale))
+        """The framebuffer size a (width, height) frame is drawn at: `render_scale` of it, or less where that
+        would pass `max_draw_pixels`."""
+        scale = self.render_scale
+        if self.max_draw_pixels is not None and width * height * scale * scale > self.max_draw_pixels:
+            scale = math.sqrt(self.max_draw_pixels / (width * height))
+        return max(1, round(width * scale)), max(1, round(height * scale))
 
     def to_dict(self) -> dict:
-        """The settings as a manifest table; `early_stop` only when set, so bundles without it stay readable by
-        runtimes that predate it."""
+        """The settings as a manifest table; `early_stop`, `alpha_min` and `max_draw_pixels` only when set, so
+        bundles without them stay readable by runtimes that predate them."""
         data = asdict(self)
+        if data["alpha_min"] == numerics.ALPHA_MIN:
+            del data["alpha_min"]
+        if data["max_draw_pixels"] is None:
+            del data["max_draw_pixels"]
         if not data["early_stop"]:
             del data["early_stop"]
         else:
@@ -116,6 +145,6 @@ def stored_defaults(manifest: dict, splatter: str) -> RenderSettings:
 
 
 __all__ = [
-    "EXPERIMENTAL_FIELDS", "MAX_EARLY_STOPS", "MAX_SORT_INTERVAL", "MIN_RENDER_SCALE", "RENDER_TARGETS",
-    "SORT_KEY_BITS", "SPLATTERS", "RenderSettings", "stored_defaults",
+    "EXPERIMENTAL_FIELDS", "MAX_ALPHA_MIN", "MAX_EARLY_STOPS", "MAX_SORT_INTERVAL", "MIN_RENDER_SCALE",
+    "RENDER_TARGETS", "SORT_KEY_BITS", "SPLATTERS", "RenderSettings", "stored_defaults",
 ]

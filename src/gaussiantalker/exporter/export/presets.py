@@ -213,6 +213,13 @@ _REDUCED_CODECS = {"gaussians": "q8", "sh": "q4", "blendshapes": "q4/64", "flame
 _CLIP_CRF = {"balanced": "crf:16,gop:25,mask-crf:6", "compact": "crf:33,gop:25,mask-crf:30",
              "fast": "crf:38,gop:25,mask-crf:30", "mobile": "crf:28,gop:25,mask-crf:24"}
 
+# `fast` on the CPU splatter, whose frame is spread over the deformation graph, the sort, the projection and the
+# blend rather than llvmpipe's fragments (docs/precision.md, "On both splatters"): the blend shrinks with the pixels
+# drawn and the alpha cut, so it draws at most 256x256 pixels (a 512x512 frame at half size; gt-export --verify's
+# 256x256 frames keep the 3/4 scale, as on GL) and skips contributions under alpha 0.03, and it sorts by exact keys
+# (16-bit ones are slower there). Chosen over the same demo clip at 512x512, alternating with `quality`: caps of
+# 288², 272² and 256² with alpha 0.03 measured 2.01x / 39.1 dB, 2.07x / 38.2 dB and 2.16x / 37.2 dB; alpha 0.04
+# added 0.03x and cost no head PSNR at 288² (the alpha cut alone: docs/precision.md, "Alpha cut-off").
 # The presets, chosen from measurements on the demo speaker (docs/precision.md has the table and the command).
 # `min_head_psnr_db` is what `gt-export --verify` holds a preset to; each sits below what the preset measured, by the
 # spread seen between clips and resolutions (`fast` draws at 3/4 size, which costs more at small sizes such as
@@ -230,9 +237,12 @@ PRESETS: dict[str, Preset] = {
                                      sh_degree=0, blendshape_rank=2, gaussian_budget=0.65,
                                      reference=_CLIP_CRF["compact"]), min_head_psnr_db=35.0),
     "fast": Preset("fast", "fastest frames: 60% of the Gaussians, drawn at 3/4 size into an 8-bit framebuffer, "
-                   "16-bit depth-sort keys: ~2.7x the frame rate at ~41 dB",
+                   "16-bit depth-sort keys (on the CPU splatter: at most 256x256 pixels drawn, alpha under 0.03 "
+                   "skipped): ~2.4x the frame rate at ~41 dB on GL, ~2.1x at ~37 dB on the CPU splatter",
                    ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6, reference=_CLIP_CRF["fast"]),
-                   RenderSettings(render_scale=0.75, render_target="uint8", sort_key_bits=16), min_head_psnr_db=29.0),
+                   RenderSettings(render_scale=0.75, render_target="uint8", sort_key_bits=16), min_head_psnr_db=29.0,
+                   runtime_by_renderer={"cpu": RenderSettings(render_scale=0.75, render_target="uint8",
+                                                              alpha_min=0.03, max_draw_pixels=256 * 256)}),
     "mobile": Preset("mobile", "for phones and WebGL 2 (docs/porting.md): fp16 buffers, 60% of the Gaussians, an "
                      "RGBA16F framebuffer (GLES 3.0's renderable float, docs/shaders.md), 16-bit depth-sort keys, one "
                      "graph thread: ~1.4x the frame rate at ~48 dB",

@@ -179,9 +179,10 @@ _ROWS_CHUNK = 16  # image rows a thread of `_over_background` claims at a time
 
 
 @njit(parallel=True, nogil=True, cache=True, error_model="numpy")
-def _project(rows, R, t, intr, limits, width, height, params, boxes, workers):
+def _project(rows, R, t, intr, limits, width, height, params, boxes, workers, alpha_min):
     """Contract steps of each sorted Gaussian (float32, as exporter/model/splat_math.py computes them):
-    params [n, _PARAMS] as `_PARAMS` lists, boxes [n, 4] (x0, x1, y0, y1) of pixels that can reach ALPHA_MIN,
+    params [n, _PARAMS] as `_PARAMS` lists, boxes [n, 4] (x0, x1, y0, y1) of pixels that can reach `alpha_min`
+    (the contract's ALPHA_MIN unless a setting raises it),
     x0 = -1 where the Gaussian is culled or misses the image. Rows are finite with z >= near (`depth_order`)."""
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     x_min, x_max, y_min, y_max = limits[0], limits[1], limits[2], limits[3]
@@ -279,11 +280,11 @@ def _project(rows, R, t, intr, limits, width, height, params, boxes, workers):
                         and math.isfinite(a) and math.isfinite(b) and math.isfinite(c)):
                     continue
                 opacity = rows[i, 12] * fade  # the opacity as composited
-                if opacity < _ALPHA_MIN:  # alpha <= opacity (exp <= 1): no pixel can pass
+                if opacity < alpha_min:  # alpha <= opacity (exp <= 1): no pixel can pass
                     continue
                 # Box: the extent square intersected with the alpha >= ALPHA_MIN ellipse of this quadratic form,
                 # |dx| <= sqrt(2 L (det' + b^2) / c), |dy| <= sqrt(2 L c), L = ln(255 opacity); in float64, widened.
-                level = 2.0 * math.log(float(opacity) / float(_ALPHA_MIN))
+                level = 2.0 * math.log(float(opacity) / float(alpha_min))
                 det_abs = float(det) * float(s) * float(s)  # det(cov2d) as the conic uses it
                 reach_x = math.sqrt(max(level * (det_abs + float(b) * float(b)) / float(c), 0.0))
                 reach_y = math.sqrt(max(level * float(c), 0.0))
@@ -365,7 +366,8 @@ def _blend_source(counting: bool):
     that draws frames has no counting code; the counts would need integer sums inside the block loop, which keep
     it from 8-wide vectors)."""
 
-    def blend_tiles(params, start, lists, tiles_x, width, height, out, counts, order, workers, background, bytes_out):
+    def blend_tiles(params, start, lists, tiles_x, width, height, out, counts, order, workers, background, bytes_out,
+                    alpha_min):
         """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99
         clamp, skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN. With
         a non-empty bytes_out [H, W, 3] (uint8), that receives C + T background in 8 bits instead (`_over_pixel`), and
@@ -494,7 +496,7 @@ def _blend_source(counting: bool):
                                 a = alpha if abs(dx) <= (reach1 if lower else reach0) else _ZERO
                                 a = a if power <= _ZERO else _ZERO
                                 a = a if t_old > _ZERO else _ZERO
-                                used = a >= _ALPHA_MIN
+                                used = a >= alpha_min
                                 t_new = t_old * (_ONE - a)
                                 added = (a if t_new >= _T_MIN else _ZERO) if used else _ZERO
                                 stop_probe = t_new if used else _ONE  # below T_MIN: used, and T would fall under it
@@ -562,12 +564,14 @@ def _aligned_rows(n: int) -> np.ndarray:
 
 
 def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = None, *,
-                background: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
+                background: np.ndarray | None = None, alpha_min: float = numerics.ALPHA_MIN
+                ) -> tuple[np.ndarray, float, float]:
     """(C, T) [H, W, 4] float32 of depth-sorted, culled rows [n, 13]; also the set-up and blend seconds. `counts`
     (int64 [len(BLEND_COUNTS)]), when given, receives the blend's work totals from the counting twin of the blend
     (the same pixels; compiled on first use, about 20 s). With `background` (float32 [3]) the frame is the 8-bit
     [H, W, 3] over that background instead, written by the blend as each tile ends: `_convert(..., "uint8")`'s
-    bytes without the float frame between."""
+    bytes without the float frame between. `alpha_min` replaces the contract's ALPHA_MIN in the alpha test and in
+    the boxes (`RenderSettings.alpha_min`; the reliability fade keeps the contract's)."""
     start = time.perf_counter()
     width, height = int(camera.width), int(camera.height)
     n = len(rows)
@@ -578,7 +582,7 @@ def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = No
     workers = numba.get_num_threads()  # one per thread; each claims its work as it goes (`claim`)
     if n:
         _project(rows, camera.R.astype(np.float32), camera.t.astype(np.float32), intrinsics, limits, width, height,
-                 params, boxes, workers)
+                 params, boxes, workers, _F(alpha_min))
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
     tile_start, lists = _bin(boxes, tiles_x, tiles_y, workers)
     setup = time.perf_counter() - start
@@ -590,7 +594,8 @@ def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = No
     per_tile = np.zeros((tiles_x * tiles_y if counts is not None else 0, len(BLEND_COUNTS)), dtype=np.int64)
     kernel = _blend_tiles if counts is None else _counting_kernel()
     order = np.argsort(tile_start[:-1] - tile_start[1:], kind="stable")  # the longest lists first
-    kernel(params, tile_start, lists, tiles_x, width, height, out, per_tile, order, workers, background, bytes_out)
+    kernel(params, tile_start, lists, tiles_x, width, height, out, per_tile, order, workers, background, bytes_out,
+           _F(alpha_min))
     seconds = time.perf_counter() - start
     if counts is not None:
         counts[:] = per_tile.sum(axis=0)
@@ -608,6 +613,11 @@ def upscale_bilinear(image: np.ndarray, width: int, height: int) -> np.ndarray:
         return (np.clip(lo, 0, size_in - 1).astype(np.intp), np.clip(lo + 1, 0, size_in - 1).astype(np.intp),
                 1 - frac, frac)
 
+    if image.dtype == np.uint8:
+        out = np.empty((height, width, image.shape[2]), dtype=np.uint8)
+        _upscale_bytes(np.ascontiguousarray(image), *axis(height, image.shape[0]), *axis(width, image.shape[1]), out,
+                       numba.get_num_threads())
+        return out
     image = np.ascontiguousarray(image, dtype=np.float32)
     out = np.empty((height, width, image.shape[2]), dtype=np.float32)
     _upscale(image, *axis(height, image.shape[0]), *axis(width, image.shape[1]), out)
@@ -629,6 +639,47 @@ def _upscale(image, y0, y1, wy0, wy1, x0, x1, wx0, wx1, out):
                 out[y, x, c] = at_left * wx0[x] + at_right * wx1[x]
 
 
+@njit(inline="always", cache=True, error_model="numpy")
+def _byte_row(image, row, x0, x1, wx0, wx1, into):
+    """into[x * C + c] = row `row` of the 8-bit image blended horizontally at output column x (float32)."""
+    channels = image.shape[2]
+    for x in range(x0.shape[0]):
+        left, right, w_left, w_right = x0[x], x1[x], wx0[x], wx1[x]
+        for c in range(channels):
+            into[x * channels + c] = _F(image[row, left, c]) * w_left + _F(image[row, right, c]) * w_right
+
+
+# Separable, unlike `_upscale`: each input row is blended horizontally once, and the vertical blend of two such rows
+# is contiguous (vector code); an 8-bit frame costs a third of the float frame's upscale and conversion.
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
+def _upscale_bytes(image, y0, y1, wy0, wy1, x0, x1, wx0, wx1, out, workers):
+    """`_upscale` of an 8-bit frame into an 8-bit frame, each value rounded to the nearest level: what GL's
+    upscale pass computes from an 8-bit framebuffer (a LINEAR UNORM8 texture written to UNORM8). Threads claim
+    _ROWS_CHUNK output rows at a time."""
+    height, row_size = out.shape[0], out.shape[1] * out.shape[2]
+    taken = np.zeros(1, dtype=np.int64)
+    for _worker in prange(workers):
+        rows = np.empty((2, row_size), dtype=np.float32)  # the horizontal blends of input rows held[0], held[1]
+        held = np.full(2, -1, dtype=np.int64)
+        flat = out.reshape(height, row_size)
+        while True:
+            first = claim(taken) * _ROWS_CHUNK
+            if first >= height:
+                break
+            for y in range(first, min(first + _ROWS_CHUNK, height)):
+                for k, source in enumerate((y0[y], y1[y])):
+                    if held[k] != source:
+                        if held[1 - k] == source:
+                            rows[k, :] = rows[1 - k, :]
+                        else:
+                            _byte_row(image, source, x0, x1, wx0, wx1, rows[k])
+                        held[k] = source
+                w_top, w_bottom = wy0[y], wy1[y]
+                top, bottom, target = rows[0], rows[1], flat[y]
+                for i in range(row_size):
+                    target[i] = np.uint8(top[i] * w_top + bottom[i] * w_bottom + _HALF)
+
+
 # Most frames a loop draws at once (`CPUSplatter.frames_at_once`): each holds its sorted rows, parameters and
 # pixels (about 3 MB at 20k Gaussians and 512x512), so this bounds that memory on machines with many cores.
 MAX_FRAMES_AT_ONCE = 8
@@ -637,8 +688,10 @@ MAX_FRAMES_AT_ONCE = 8
 class CPUSplatter:
     """`GLSplatter`'s interface (prepare, draw, render, release, last_timings, the same outputs) on the CPU.
 
-    `settings`: the render settings; render_scale and the sort knobs work as on GL, render_target does not apply
-    (the CPU always blends in float32, the contract's precision). `threads`: numba threads for the kernels (None:
+    `settings`: the render settings; render_scale, max_draw_pixels and the sort knobs work as on GL. The CPU always
+    blends in float32, the contract's precision; with render_target "uint8" a frame drawn at a render scale is kept
+    in 8 bits before its upscale, as GL's 8-bit framebuffer is (an 8-bit frame then skips the float frame's upscale
+    and conversion). alpha_min applies on this splatter only. `threads`: numba threads for the kernels (None:
     numba's default, every core). Construction compiles (first run) or loads (cached) the kernels."""
 
     def __init__(self, *, settings: RenderSettings | None = None, threads: int | None = None) -> None:
@@ -686,13 +739,20 @@ class CPUSplatter:
         if self.threads is not None:
             numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
         # 8 bits at the drawn size: the blend writes them as each tile ends (timed as "draw"; "readback" is 0)
-        fused = output == "uint8" and prepared.output_size is None
+        # With an 8-bit render target a scaled frame is stored in 8 bits too, then its bytes upscaled, as GL's 8-bit
+        # framebuffer is
+        fused = output == "uint8" and (prepared.output_size is None or self.settings.render_target == "uint8")
         try:
             frame, timings["upload"], timings["draw"] = splat_frame(prepared.rows, prepared.camera,
-                                                                    background=background if fused else None)
+                                                                    background=background if fused else None,
+                                                                    alpha_min=self.settings.alpha_min)
         finally:
             numba.set_num_threads(previous)
         if fused:
+            if prepared.output_size is not None:
+                start = time.perf_counter()
+                frame = upscale_bilinear(frame, *prepared.output_size)
+                timings["draw"] += time.perf_counter() - start
             self.last_timings = timings
             return frame
         if prepared.output_size is not None:
@@ -810,6 +870,7 @@ def warm_up() -> None:
     exp_approx(np.zeros(1, dtype=np.float32))
     cpu_sort.warm_up()
     upscale_bilinear(frame, 4, 3)
+    upscale_bilinear(np.zeros((2, 3, 3), dtype=np.uint8), 4, 3)
     _WARM = True
 
 
