@@ -171,9 +171,11 @@ def test_a_sparse_buffer_decodes_to_its_zeros_and_its_codecs_values(tmp_path, co
     array = _sparse_array(shape, zeros)
     payload, params = encode_buffer(array, codec, sparse=True)
     nnz = int(np.count_nonzero(array))
-    assert params["sparse"] == {"nnz": nnz}
+    mask_nbytes = params["sparse"].get("mask_zlib", -(-array.size // 8))  # zlib where that was smaller
+    assert params["sparse"] == {"nnz": nnz, **({"mask_zlib": mask_nbytes} if "mask_zlib" in params["sparse"] else {})}
+    assert mask_nbytes <= -(-array.size // 8)
     inner = {key: value for key, value in params.items() if key != "sparse"}
-    assert len(payload) == -(-array.size // 8) + expected_nbytes(codec, "float32", (nnz,), inner)
+    assert len(payload) == mask_nbytes + expected_nbytes(codec, "float32", (nnz,), inner)
     assert expected_nbytes(codec, "float32", shape, params) == len(payload)
     writer = BundleWriter()
     writer.add_buffer("w", array, codec, sparse=True)
@@ -205,6 +207,72 @@ def test_a_damaged_sparse_entry_is_refused_on_open(tmp_path, edit, message):
     writer.write(tmp_path / "b.gtb")
     with pytest.raises(BundleError, match=message):
         Bundle(tmp_path / "b.gtb")
+
+
+def _runs_array(seed: int = 3) -> np.ndarray:
+    """A morph basis in miniature: 12 shapes, each moving one run of 300-900 of 6,000 coordinates."""
+    rng = np.random.default_rng(seed)
+    array = np.zeros((12, 6000), np.float32)
+    for row in array:
+        start = int(rng.integers(0, 5000))
+        row[start: start + int(rng.integers(300, 900))] = rng.normal(size=1) * 1e-3 + 1e-4
+    return array
+
+
+@pytest.mark.parametrize("codec", ["raw", "q8"])
+def test_a_mask_in_runs_is_stored_deflated_and_decodes_exactly(tmp_path, codec):
+    """A mask of long runs (a morph basis: one region per shape) is stored as its zlib stream, far smaller than the
+    bitmask, and a bundle round-trips it; the manifest alone still says the stored size."""
+    array = _runs_array()
+    payload, params = encode_buffer(array, codec, sparse=True)
+    bitmask = -(-array.size // 8)
+    assert 0 < params["sparse"]["mask_zlib"] < bitmask / 20
+    assert expected_nbytes(codec, "float32", array.shape, params) == len(payload)
+    writer = BundleWriter()
+    writer.add_buffer("w", array, codec, sparse=True)
+    writer.write(tmp_path / "b.gtb")
+    decoded = Bundle(tmp_path / "b.gtb").buffer("w")
+    assert np.array_equal(decoded == 0, array == 0)
+    if codec == "raw":
+        np.testing.assert_array_equal(decoded, array)
+
+
+def _deflated(mask_bytes: bytes) -> bytes:
+    import zlib
+
+    return zlib.compress(mask_bytes, 9)
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda z, m: z[:-1], "does not inflate to exactly|damaged"),  # cut short: checksum incomplete
+    (lambda z, m: z[:2] + bytes([z[2] ^ 0xFF]) + z[3:], "damaged|does not inflate"),  # a flipped DEFLATE byte
+    (lambda z, m: z[:-4] + bytes(4), "damaged"),  # a wrong checksum
+    (lambda z, m: _deflated(m + b"\0"), "does not inflate to exactly its 9000 bytes"),  # a longer mask
+    (lambda z, m: _deflated(m[:-1]), "does not inflate to exactly its 9000 bytes"),  # a shorter one
+    (lambda z, m: z + b"\0", "does not inflate to exactly"),  # bytes after the stream
+    (lambda z, m: _deflated(bytes(10 ** 6)), "does not inflate to exactly its 9000 bytes"),  # a zip bomb, bounded
+])
+def test_a_damaged_deflated_mask_is_refused_on_decode(damage, message):
+    """Every way a zlib mask can be wrong is a BundleError that names it (payloads edited directly, with the
+    manifest's `mask_zlib` following them: in a bundle the checksum would catch the bytes first)."""
+    from gaussiantalker.sdk.codecs import decode_buffer
+
+    array = _runs_array()
+    payload, params = encode_buffer(array, "raw", sparse=True)
+    stored = params["sparse"]["mask_zlib"]
+    mask = np.packbits(array.reshape(-1) != 0, bitorder="little").tobytes()
+    assert len(mask) == 9000 and _deflated(mask) == payload[:stored]  # 72,000 elements: 9,000 bytes
+    damaged = damage(payload[:stored], mask)
+    edited = {**params, "sparse": {**params["sparse"], "mask_zlib": len(damaged)}}
+    with pytest.raises(BundleError, match=message):
+        decode_buffer(damaged + payload[stored:], "raw", "float32", array.shape, edited)
+
+
+@pytest.mark.parametrize("zipped", [-1, True, 1.5, "10", 9000 + 5 + 6 + 1])
+def test_a_mask_size_the_mask_cannot_have_is_refused_from_the_manifest(zipped):
+    """`mask_zlib` is a whole number no larger than zlib's stored-block bound of the mask (9,011 bytes here)."""
+    with pytest.raises(BundleError, match="optionally \"mask_zlib\": M, at most 9011 bytes"):
+        expected_nbytes("raw", "float32", (12, 6000), {"sparse": {"nnz": 10, "mask_zlib": zipped}})
 
 
 def test_a_sparse_mask_that_disagrees_with_nnz_is_refused_on_decode():

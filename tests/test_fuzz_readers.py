@@ -558,7 +558,8 @@ def test_fuzz_flame_motion_npz(ga_avatar, tmp_path, heavy, seed):
 
 @pytest.fixture(scope="module")
 def small_bundle(tmp_path_factory) -> bytes:
-    """A bundle with a buffer in every codec, two sparse ones, and a compressed and a stored graph."""
+    """A bundle with a buffer in every codec, three sparse ones (one with its mask deflated), and a compressed and a
+    stored graph."""
     from gaussiantalker.sdk.bundle import BundleWriter
 
     rng = np.random.default_rng(3)
@@ -570,6 +571,10 @@ def small_bundle(tmp_path_factory) -> bytes:
     mostly_zero = np.where(rng.random((6, 50)) < 0.8, 0.0, values).astype(np.float32)
     writer.add_buffer("w/sparse_raw", mostly_zero, codec="raw", sparse=True)
     writer.add_buffer("w/sparse_q8", mostly_zero, codec="q8", chunk=16, sparse=True)
+    runs = np.zeros((4, 400), np.float32)  # a morph basis's kind: one run per row, so its mask is stored deflated
+    for row, start in enumerate((0, 90, 250, 300)):
+        runs[row, start: start + 100] = values[row, :50].repeat(2)
+    writer.add_buffer("w/sparse_runs", runs, codec="q8", chunk=16, sparse=True)
     writer.add_buffer("raw_ids", np.arange(7, dtype=np.int32))
     io_spec = [{"name": "x", "dtype": "float32", "shape": [1, "n"]}]
     writer.add_graph("g", b"\x08\x07" + bytes(200), io_spec, io_spec, {"w": "w/q8"})
@@ -587,7 +592,8 @@ def _bundle_with_manifest(data: bytes, manifest: bytes) -> bytes:
 
     length = struct.unpack_from("<Q", data, 16)[0]
     payload = data[HEADER_SIZE + _align(length):]
-    header = _HEADER.pack(MAGIC, 1, 1, 0, len(manifest), hashlib.sha256(manifest).digest())
+    header = _HEADER.pack(MAGIC, *struct.unpack_from("<HH", data, 8), 0, len(manifest),
+                          hashlib.sha256(manifest).digest())  # the bundle's own format version
     header += b"\0" * (HEADER_SIZE - len(header))
     return header + manifest + b"\0" * (_align(len(manifest)) - len(manifest)) + payload
 
@@ -649,7 +655,7 @@ def _relayout(manifest: dict, blobs: dict[tuple[str, str], bytes]) -> bytes:
         payload += blob + b"\0" * (_align(len(blob)) - len(blob))
     manifest["payload_size"] = len(payload)
     text = dumps(manifest)
-    header = _HEADER.pack(MAGIC, 1, 1, 0, len(text), hashlib.sha256(text).digest())
+    header = _HEADER.pack(MAGIC, *manifest["version"], 0, len(text), hashlib.sha256(text).digest())
     header += b"\0" * (HEADER_SIZE - len(header))
     return header + text + b"\0" * (_align(len(text)) - len(text)) + bytes(payload)
 

@@ -46,7 +46,8 @@ import { readBundle, BundleError } from %(bundle_js)s;
 import { readMotion, motionAtFps, DriveError } from %(drive_js)s;
 import { decodeDrive, DriveFormatError } from %(live_js)s;
 const { kind, paths } = JSON.parse(fs.readFileSync(%(list)s, 'utf8'));
-// Only the FLAME motion reader needs the npm install (fflate inflates); the other readers run on node alone.
+// The bundle reader (its deflated sparse masks) and the FLAME motion reader need the npm install (fflate
+// inflates); the other readers run on node alone.
 const { flameMotionAtFps, readFlameMotion } = kind === 'flame_motion' ? await import(%(flame_motion_js)s) : {};
 const read = {
   bundle: async (path) => {
@@ -264,6 +265,68 @@ def test_fuzz_the_web_flame_motion_reader(tmp_path, run, seed):
                           tmp_path)
     loaded = sum(r["verdict"] == "loaded" for r in web)
     assert 0 < loaded < len(cases), loaded  # the cases reach both ends
+
+
+def test_the_web_reader_decodes_and_refuses_deflated_masks_as_python_does(tmp_path):
+    """`decodeBuffer` (web/src/codecs.js) against sdk/codecs.py `decode_buffer` on a sparse buffer whose mask is
+    stored deflated, intact and damaged every way tests/test_codecs.py damages it, plus seeded byte flips and cuts
+    of the stream: the same values where Python decodes, refused where Python refuses (with the manifest's
+    `mask_zlib` following each payload, as a bundle's checksum would otherwise catch the bytes first)."""
+    import base64
+    import zlib
+
+    from test_codecs import _runs_array
+
+    from gaussiantalker.sdk.codecs import decode_buffer, encode_buffer
+
+    node = shutil.which("node")
+    need(None if node else "node is missing (Debian's npm brings it)", BROWSER_INSTALL)
+    array = _runs_array()
+    payload, params = encode_buffer(array, "q8", 16, sparse=True)
+    stored = params["sparse"]["mask_zlib"]
+    stream, values = payload[:stored], payload[stored:]
+    mask = np.packbits(array.reshape(-1) != 0, bitorder="little").tobytes()
+    rng = np.random.default_rng(0)
+    streams = [stream, stream[:-1], stream[:-4] + bytes(4), stream + b"\0", zlib.compress(mask + b"\0"),
+               zlib.compress(mask[:-1]), zlib.compress(bytes(10 ** 6)), b"", stream[:2]]
+    for _ in range(60):
+        damaged = bytearray(stream)
+        if rng.random() < 0.5:
+            damaged[rng.integers(len(damaged))] ^= 1 << int(rng.integers(8))
+        else:
+            damaged = damaged[: rng.integers(len(damaged))]
+        streams.append(bytes(damaged))
+    cases = []
+    for data in streams:
+        case_params = {**params, "sparse": {**params["sparse"], "mask_zlib": len(data)}}
+        try:
+            want = decode_buffer(data + values, "q8", "float32", array.shape, case_params).tobytes()
+        except BundleError:
+            want = None
+        cases.append({"payload": base64.b64encode(data + values).decode(), "params": case_params,
+                      "want": None if want is None else base64.b64encode(want).decode()})
+    (tmp_path / "cases.json").write_text(json.dumps({"shape": list(array.shape), "cases": cases}))
+    script = tmp_path / "masks.mjs"
+    script.write_text(f"""
+import fs from 'node:fs';
+import {{ BundleError, decodeBuffer }} from {json.dumps((ROOT / "web" / "src" / "codecs.js").as_uri())};
+const {{ shape, cases }} = JSON.parse(fs.readFileSync({json.dumps(str(tmp_path / "cases.json"))}, 'utf8'));
+console.log(JSON.stringify(cases.map(({{ payload, params }}) => {{
+  try {{
+    const values = decodeBuffer(new Uint8Array(Buffer.from(payload, 'base64')), 'q8', 'float32', shape, params);
+    return Buffer.from(values.buffer, values.byteOffset, values.byteLength).toString('base64');
+  }} catch (error) {{
+    if (error instanceof BundleError) return null;
+    return `crashed: ${{error}}`;
+  }}
+}})));
+""")
+    done = subprocess.run([node, str(script)], capture_output=True, text=True, timeout=NODE_TIMEOUT_S)
+    assert done.returncode == 0, done.stderr[-2000:]
+    web = json.loads(done.stdout)
+    wrong = [index for index, (case, got) in enumerate(zip(cases, web, strict=True)) if case["want"] != got]
+    assert not wrong, [(index, web[index] if web[index] is None else str(web[index])[:40]) for index in wrong[:10]]
+    assert cases[0]["want"] is not None and sum(case["want"] is None for case in cases) > 50
 
 
 def test_the_web_npy_reader_reads_dtypes_as_numpy_does(tmp_path):

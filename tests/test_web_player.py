@@ -433,8 +433,8 @@ def test_graphs_run_on_webgpu_where_asked(player_ready, webgpu_page, page, small
 
 @pytest.fixture(scope="module")
 def tiny_bundle(tmp_path_factory) -> Path:
-    """A bundle of one buffer per codec, three sparse ones (and a stand-in graph): what the reader checks needs no
-    real graphs."""
+    """A bundle of one buffer per codec, four sparse ones, one with its mask deflated (and a stand-in graph): what
+    the reader checks needs no real graphs."""
     rng = np.random.default_rng(0)
     writer = BundleWriter({"note": "codecs"})
     values = rng.normal(size=(7, 37)).astype(np.float32)
@@ -444,6 +444,11 @@ def tiny_bundle(tmp_path_factory) -> Path:
     mostly_zero = np.where(rng.random(values.shape) < 0.8, 0.0, values).astype(np.float32)  # a morph basis's kind
     for codec in ("raw", "fp16", "q8"):
         writer.add_buffer(f"sparse/{codec}", mostly_zero, codec, chunk=16 if codec == "q8" else None, sparse=True)
+    runs = np.zeros((9, 2000), np.float32)  # one run per row: the mask is stored deflated (`mask_zlib`)
+    for row in range(9):
+        start = int(rng.integers(0, 1700))
+        runs[row, start: start + 300] = rng.normal(size=300)
+    writer.add_buffer("sparse/runs", runs, "q8", chunk=16, sparse=True)
     writer.add_buffer("faces", rng.integers(0, 3000, size=(50, 3)).astype(np.int64), "index")
     writer.add_buffer("pose_track", rng.normal(size=(5, 6)).astype(np.float32))
     writer.add_graph("stand_in", b"not an onnx model, never run" * 40, inputs=[], outputs=[])

@@ -3,6 +3,8 @@
 // are computed in double precision and rounded once to the dtype, so the decoded weights equal the Python
 // runtime's bit for bit.
 
+import { Unzlib } from 'fflate';
+
 import {
   DTYPE_TABLE, FLOAT32_MAX, INDEX_TYPES, MAX_CHUNK, MAX_ELEMENTS as MAX_ELEMENTS_NUMBER, MAX_NDIM, QUANT_BITS,
 } from './generated.js';
@@ -51,24 +53,79 @@ function indexType(params) {
   return params.stored;
 }
 
-/** A sparse entry's [nnz, the inner codec's params] (sdk/codecs.py `_sparse_param`), or BundleError. */
+/** The most bytes zlib's stream of `nbytes` bytes takes (sdk/codecs.py `_zlib_bound`), a BigInt. */
+function zlibBound(nbytes) {
+  return nbytes + 5n * (nbytes / 65535n + 1n) + 6n;
+}
+
+/** A sparse entry's [nnz, the zlib mask's stored bytes or null, the inner codec's params] (sdk/codecs.py
+ * `_sparse_param`), or BundleError. */
 function sparseParam(params, n) {
   const sparse = params.sparse;
   const plain = sparse !== null && typeof sparse === 'object' && !Array.isArray(sparse);
   const nnz = plain ? sparse.nnz : undefined;
-  if (!Number.isInteger(nnz) || nnz < 0 || BigInt(nnz) > n || Object.keys(sparse).length !== 1) {
-    throw new BundleError(`sparse buffer needs {"nnz": K} with 0 <= K <= ${n} (its element count), got `
-      + `${JSON.stringify(sparse)}`.slice(0, 80));
+  const zipped = plain && Object.hasOwn(sparse, 'mask_zlib') ? sparse.mask_zlib : null;
+  const bound = zlibBound((n + 7n) / 8n);
+  if (!Number.isInteger(nnz) || nnz < 0 || BigInt(nnz) > n
+      || Object.keys(sparse).some((key) => key !== 'nnz' && key !== 'mask_zlib')
+      || (zipped !== null && !(Number.isInteger(zipped) && zipped >= 0 && BigInt(zipped) <= bound))) {
+    throw new BundleError(`sparse buffer needs {"nnz": K} with 0 <= K <= ${n} (its element count), and `
+      + `optionally "mask_zlib": M, at most ${bound} bytes; got ${JSON.stringify(sparse)}`.slice(0, 200));
   }
   const { sparse: _, ...inner } = params;
-  return [nnz, inner];
+  return [nnz, zipped, inner];
 }
 
-/** A sparse buffer: the bitmask of its nonzero elements (C order, lowest bit first), then the codec's payload of
- * those values; scattered into zeros. The mask must mark exactly nnz elements and leave its spare bits clear. */
-function decodeSparse(bytes, codec, dtype, n, params) {
-  const [nnz, inner] = sparseParam(params, BigInt(n));
+/** Adler-32 of `bytes` (RFC 1950), which fflate's inflater does not check and Python's zlib does. */
+function adler32(bytes) {
+  let a = 1;
+  let b = 0;
+  for (let i = 0; i < bytes.length; i += 3800) { // 3800 sums stay exact in doubles before the modulo
+    const end = Math.min(i + 3800, bytes.length);
+    for (let k = i; k < end; k++) {
+      a += bytes[k];
+      b += a;
+    }
+    a %= 65521;
+    b %= 65521;
+  }
+  return ((b << 16) | a) >>> 0;
+}
+
+/** The bitmask a zlib-stored mask holds (sdk/codecs.py `_inflated_mask`): exactly `nbytes` bytes, the stream
+ * complete and its checksum (the last four bytes) right; BundleError otherwise. Output past the mask is never kept.
+ * fflate does not say where the DEFLATE data ended, so bytes between its end and the checksum, which Python
+ * refuses, are not looked at; the mask is still exactly the checksummed one. */
+function inflatedMask(stored, nbytes) {
+  const mask = new Uint8Array(nbytes);
+  let produced = 0;
+  let overflow = false;
+  const inflater = new Unzlib((chunk) => {
+    const room = nbytes - produced;
+    if (chunk.length > room) overflow = true;
+    mask.set(chunk.subarray(0, Math.max(room, 0)), produced);
+    produced += Math.min(chunk.length, Math.max(room, 0));
+  });
+  try {
+    inflater.push(stored, true);
+  } catch (error) {
+    throw new BundleError(`sparse buffer's zlib mask is damaged (${error.message})`);
+  }
+  const view = new DataView(stored.buffer, stored.byteOffset, stored.byteLength);
+  if (overflow || produced !== nbytes || stored.length < 6 || view.getUint32(stored.length - 4) !== adler32(mask)) {
+    throw new BundleError(`sparse buffer's zlib mask does not inflate to exactly its ${nbytes} bytes`);
+  }
+  return mask;
+}
+
+/** A sparse buffer: the bitmask of its nonzero elements (C order, lowest bit first; stored as it is or as a zlib
+ * stream), then the codec's payload of those values; scattered into zeros. The mask must mark exactly nnz elements
+ * and leave its spare bits clear. */
+function decodeSparse(payload, codec, dtype, n, params) {
+  const [nnz, zipped, inner] = sparseParam(params, BigInt(n));
   const maskBytes = Math.ceil(n / 8);
+  const stored = zipped === null ? maskBytes : zipped;
+  const bytes = zipped === null ? payload : inflatedMask(payload.subarray(0, stored), maskBytes);
   let marked = 0;
   for (let i = 0; i < maskBytes; i++) {
     let byte = bytes[i];
@@ -78,7 +135,7 @@ function decodeSparse(bytes, codec, dtype, n, params) {
     for (; byte; byte &= byte - 1) marked += 1;
   }
   if (marked !== nnz) throw new BundleError(`sparse buffer's mask marks ${marked} nonzero elements, its nnz says ${nnz}`);
-  const values = decodeBuffer(bytes.subarray(maskBytes), codec, dtype, [nnz], inner);
+  const values = decodeBuffer(payload.subarray(stored), codec, dtype, [nnz], inner);
   const out = new values.constructor(n);
   for (let i = 0, k = 0; i < n; i++) {
     if (bytes[i >> 3] & (1 << (i & 7))) out[i] = values[k++];
@@ -114,8 +171,8 @@ export function expectedNbytes(codec, dtype, shape, params) {
   }
   const n = count(shape);
   if (Object.hasOwn(params, 'sparse')) {
-    const [nnz, inner] = sparseParam(params, n);
-    return (n + 7n) / 8n + expectedNbytes(codec, dtype, [nnz], inner);
+    const [nnz, zipped, inner] = sparseParam(params, n);
+    return (zipped === null ? (n + 7n) / 8n : BigInt(zipped)) + expectedNbytes(codec, dtype, [nnz], inner);
   }
   if (codec === 'raw') return n * BigInt(DTYPES[dtype][1]);
   if (codec === 'fp16') return 2n * n;

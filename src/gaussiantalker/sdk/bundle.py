@@ -34,7 +34,9 @@ from .json_bounds import MAX_JSON_DEPTH, MAX_JSON_INT, nests_deeper_than, no_con
 
 MAGIC = b"GTBUNDLE"
 FORMAT_MAJOR = 1
-FORMAT_MINOR = 1  # 1.1: graphs may be stored zlib-compressed ("compression": "zlib", "raw_nbytes")
+# 1.1: graphs may be stored zlib-compressed ("compression": "zlib", "raw_nbytes"); 1.2: so may sparse buffers'
+# masks ("sparse": {"nnz": K, "mask_zlib": M})
+FORMAT_MINOR = 2
 HEADER_SIZE = 64
 ALIGN = 64
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024

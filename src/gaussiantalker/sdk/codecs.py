@@ -16,12 +16,16 @@ happens once, when a bundle is loaded (graph weights become float32 initializers
 Any codec may be made sparse (params `"sparse": {"nnz": K}`): the payload is then a bitmask of the array's
 nonzero elements (one bit per element in C order, the first in the lowest bit of byte 0, `ceil(count / 8)` bytes,
 spare bits zero), followed by the codec's own payload of those K values as a 1-D array. A morph basis that is
-mostly zeros (an avatar's blendshapes each move one region of the face) takes a fraction of its dense bytes.
+mostly zeros (an avatar's blendshapes each move one region of the face) takes a fraction of its dense bytes. With
+`"sparse": {"nnz": K, "mask_zlib": M}` the bitmask is stored as a zlib stream (RFC 1950) of M bytes, which must
+inflate to exactly the bitmask's bytes: the nonzeros of a morph basis lie in runs (one face region per shape), so
+the mask deflates about 6x (docs/bundle-format.md, "Codecs").
 """
 
 from __future__ import annotations
 
 import json
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -242,18 +246,45 @@ CODECS: dict[str, Codec] = {
 # -- the sparse layer --------------------------------------------------------------------------------------------
 
 
-def _sparse_param(params: dict, count: int) -> tuple[int, dict]:
-    """(nnz, the inner codec's params) of a sparse entry; BundleError for a malformed or impossible nnz."""
+def _is_count(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _sparse_param(params: dict, count: int) -> tuple[int, int | None, dict]:
+    """(nnz, the zlib mask's stored bytes or None for a plain bitmask, the inner codec's params) of a sparse entry;
+    BundleError for a malformed or impossible one."""
     sparse = params.get("sparse")
     nnz = sparse.get("nnz") if isinstance(sparse, dict) else None
-    if not isinstance(nnz, int) or isinstance(nnz, bool) or not 0 <= nnz <= count or len(sparse) != 1:
-        raise BundleError(f"sparse buffer needs {{\"nnz\": K}} with 0 <= K <= {count} (its element count), got "
+    zipped = sparse.get("mask_zlib") if isinstance(sparse, dict) else None
+    if (not _is_count(nnz) or nnz > count or set(sparse) - {"nnz", "mask_zlib"}
+            or ("mask_zlib" in sparse and not (_is_count(zipped) and zipped <= _zlib_bound(_mask_nbytes(count))))):
+        raise BundleError(f"sparse buffer needs {{\"nnz\": K}} with 0 <= K <= {count} (its element count), and "
+                          f"optionally \"mask_zlib\": M, at most {_zlib_bound(_mask_nbytes(count))} bytes; got "
                           f"{json.dumps(sparse)[:80]}")
-    return nnz, {key: value for key, value in params.items() if key != "sparse"}
+    return nnz, zipped, {key: value for key, value in params.items() if key != "sparse"}
 
 
 def _mask_nbytes(count: int) -> int:
     return -(-count // 8)
+
+
+def _zlib_bound(nbytes: int) -> int:
+    """The most bytes zlib's stream of `nbytes` bytes takes (stored blocks: 5 bytes per 65,535, plus the 2-byte
+    header and 4-byte checksum), so a mask's claimed size is bounded by the mask it stands for."""
+    return nbytes + 5 * (nbytes // 65535 + 1) + 6
+
+
+def _inflated_mask(stored: bytes, nbytes: int) -> bytes:
+    """The bitmask a zlib-stored mask holds: exactly `nbytes` bytes, the stream complete and its checksum right,
+    nothing after it; BundleError otherwise. Inflating stops one byte past the mask, however the stream claims."""
+    inflater = zlib.decompressobj()
+    try:
+        mask = inflater.decompress(stored, nbytes + 1)
+    except zlib.error as exc:
+        raise BundleError(f"sparse buffer's zlib mask is damaged ({exc})") from None
+    if len(mask) != nbytes or not inflater.eof or inflater.unused_data or inflater.unconsumed_tail:
+        raise BundleError(f"sparse buffer's zlib mask does not inflate to exactly its {nbytes} bytes")
+    return mask
 
 
 def decode_buffer(payload: bytes, codec_name: str, dtype: str, shape: tuple[int, ...], params: dict) -> np.ndarray:
@@ -262,15 +293,17 @@ def decode_buffer(payload: bytes, codec_name: str, dtype: str, shape: tuple[int,
     if "sparse" not in params:
         return codec.decode(payload, dtype, shape, params)
     count = _count(shape)
-    nnz, inner = _sparse_param(params, count)
+    nnz, zipped, inner = _sparse_param(params, count)
     mask_bytes = _mask_nbytes(count)
-    mask = np.unpackbits(np.frombuffer(payload, np.uint8, mask_bytes), bitorder="little")
+    stored = mask_bytes if zipped is None else zipped
+    packed = payload[:stored] if zipped is None else _inflated_mask(payload[:stored], mask_bytes)
+    mask = np.unpackbits(np.frombuffer(packed, np.uint8, mask_bytes), bitorder="little")
     if mask[count:].any():
         raise BundleError("sparse buffer's mask has bits set past its last element")
     mask = mask[:count].astype(bool)
     if int(mask.sum()) != nnz:
         raise BundleError(f"sparse buffer's mask marks {int(mask.sum())} nonzero elements, its nnz says {nnz}")
-    values = codec.decode(payload[mask_bytes:], dtype, (nnz,), inner)
+    values = codec.decode(payload[stored:], dtype, (nnz,), inner)
     out = np.zeros(count, dtype)
     out[mask] = values
     return out.reshape(shape)
@@ -306,20 +339,27 @@ def expected_nbytes(codec_name: str, dtype: str, shape: tuple[int, ...], params:
                           f"than {MAX_ELEMENTS} elements)")
     shape, params = tuple(int(d) for d in shape), params or {}
     if "sparse" in params:
-        nnz, inner = _sparse_param(params, _count(shape))
-        return _mask_nbytes(_count(shape)) + codec.stored_nbytes(dtype, (nnz,), inner)
+        nnz, zipped, inner = _sparse_param(params, _count(shape))
+        mask = _mask_nbytes(_count(shape)) if zipped is None else zipped
+        return mask + codec.stored_nbytes(dtype, (nnz,), inner)
     return codec.stored_nbytes(dtype, shape, params)
 
 
 def encode_buffer(array: np.ndarray, codec_name: str, chunk: int | None = None,
                   sparse: bool = False) -> tuple[bytes, dict]:
     """Encode `array` with codec `codec_name` (quantised codecs: `chunk` values per chunk, default 256); `sparse`:
-    only its nonzero elements, after a bitmask of where they are (a -0.0 is stored as a zero)."""
+    only its nonzero elements, after a bitmask of where they are (a -0.0 is stored as a zero), zlib-compressed
+    where that is smaller."""
     if sparse:
         flat = np.ascontiguousarray(array).reshape(-1)
         mask = flat != 0
         payload, params = encode_buffer(flat[mask], codec_name, chunk)
-        return np.packbits(mask, bitorder="little").tobytes() + payload, {**params, "sparse": {"nnz": int(mask.sum())}}
+        packed = np.packbits(mask, bitorder="little").tobytes()
+        zipped = zlib.compress(packed, 9)
+        layout = {"nnz": int(mask.sum())}
+        if len(zipped) < len(packed):
+            packed, layout = zipped, {**layout, "mask_zlib": len(zipped)}
+        return packed + payload, {**params, "sparse": layout}
     codec = get_codec(codec_name)
     if chunk is not None and codec_name.startswith("q"):
         _chunk_param({"chunk": chunk}, codec_name)

@@ -282,8 +282,9 @@ def _project(rows, R, t, intr, limits, width, height, params, boxes, workers, al
                 opacity = rows[i, 12] * fade  # the opacity as composited
                 if opacity < alpha_min:  # alpha <= opacity (exp <= 1): no pixel can pass
                     continue
-                # Box: the extent square intersected with the alpha >= ALPHA_MIN ellipse of this quadratic form,
-                # |dx| <= sqrt(2 L (det' + b^2) / c), |dy| <= sqrt(2 L c), L = ln(255 opacity); in float64, widened.
+                # Box: the extent square intersected with the alpha >= alpha_min ellipse of this quadratic form,
+                # |dx| <= sqrt(2 L (det' + b^2) / c), |dy| <= sqrt(2 L c), L = ln(opacity / alpha_min); in float64,
+                # widened.
                 level = 2.0 * math.log(float(opacity) / float(alpha_min))
                 det_abs = float(det) * float(s) * float(s)  # det(cov2d) as the conic uses it
                 reach_x = math.sqrt(max(level * (det_abs + float(b) * float(b)) / float(c), 0.0))
@@ -369,7 +370,7 @@ def _blend_source(counting: bool):
     def blend_tiles(params, start, lists, tiles_x, width, height, out, counts, order, workers, background, bytes_out,
                     alpha_min):
         """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99
-        clamp, skipped below ALPHA_MIN or for a positive power) and the stop before T would fall below T_MIN. With
+        clamp, skipped below `alpha_min` or for a positive power) and the stop before T would fall below T_MIN. With
         a non-empty bytes_out [H, W, 3] (uint8), that receives C + T background in 8 bits instead (`_over_pixel`), and
         `out` is not written."""
         n_tiles = start.shape[0] - 1
