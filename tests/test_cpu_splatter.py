@@ -298,6 +298,26 @@ def test_alpha_min_at_its_largest_on_saturating_stacks_stays_finite(cpu):
             assert (cut[..., 3] <= contract[..., 3] + 1e-6).all()
 
 
+def test_the_gl_splatter_says_it_keeps_the_contracts_alpha_cut(gl, caplog):
+    """An alpha cut asked of the OpenGL splatter is named in a warning, and its frames are the plain ones: its
+    shaders test alpha against the contract's 1/255."""
+    import logging
+
+    arrays, camera = _numpy(random_scene(9, n=120, camera=off_centre_camera(48, 36), px_sigma=(1.0, 6.0)))
+    with caplog.at_level(logging.WARNING, logger="gaussiantalker.runtime"):
+        cut = GLSplatter(settings=RenderSettings(alpha_min=0.05))
+    try:
+        assert "alpha_min=0.05 applies on the CPU splatter only" in caplog.text
+        frame = cut.render(*arrays, camera, BACKGROUND, output="float")
+        np.testing.assert_array_equal(frame, gl.render(*arrays, camera, BACKGROUND, output="float"))
+    finally:
+        cut.release()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="gaussiantalker.runtime"):
+        GLSplatter().release()
+    assert "alpha_min" not in caplog.text
+
+
 def test_an_8bit_render_target_upscales_the_bytes_within_a_level():
     """With render_target="uint8" and a render scale, the CPU splatter keeps the drawn frame in 8 bits and
     upscales the bytes (as GL's 8-bit framebuffer does): within one level of the float frame's upscale, converted

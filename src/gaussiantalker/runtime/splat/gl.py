@@ -49,6 +49,7 @@ docs/numerics.md, "Early stop of saturated pixels").
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import OrderedDict
 
@@ -66,6 +67,8 @@ from .common import ALPHA_OUTPUTS, FLOATS_PER_SPLAT, FRAME_OUTPUTS, STAGES, Prep
 from .depth_sort import DepthSorter
 from .gl_context import check_shader_target, create_context
 from .programs import QUAD_SLACK_PX, build_programs, set_camera_uniforms
+
+logger = logging.getLogger("gaussiantalker.runtime")
 
 # GLSL functions in shaders/ that are rasterisation, not contract maths: they choose which fragments are tried
 # (the pixel box, where a point sprite goes, the primitive of a culled Gaussian) and never what a pixel gets, so
@@ -196,6 +199,10 @@ class GLSplatter:
         except ValueError as exc:
             raise RenderError(str(exc)) from None
         self.settings = settings or RenderSettings()
+        if self.settings.alpha_min != numerics.ALPHA_MIN:
+            logger.warning("alpha_min=%g applies on the CPU splatter only: the OpenGL splatter's shaders skip "
+                           "contributions below the contract's 1/255 (docs/precision.md, \"Alpha cut-off\")",
+                           self.settings.alpha_min)
         self.shader_target = shader_target
         self._sorter = DepthSorter(self.settings.sort_interval, self.settings.sort_key_bits)
         self._owns_ctx = ctx is None
