@@ -865,15 +865,14 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--cases") from None
     size_list = [int(s) for s in sizes.split(",")]
-    whole = None
     if checkpoint is not None:
         demo = load_checkpoint(checkpoint)
-        if demo.reference is not None and any(case.preset for case in chosen):
-            whole = load_checkpoint(checkpoint)  # the presets' whole files: the head, the clip and the inpainter
-        demo.reference = demo.inpaint = None  # the bare head (compositing: tools/bench/composite_cost.py)
     else:
         typer.echo("building the demo speaker (its translator trains for a few minutes; --checkpoint skips this)")
         demo, _ = make_demo_speaker(gaussians)
+    # The cases play the bare head (compositing: tools/bench/composite_cost.py); with a preset among them and a clip
+    # in the speaker, the sweep also weighs the presets' whole files (the head, the clip, F).
+    whole_files = demo.reference is not None and any(case.preset for case in chosen)
     speakers = [] if skip_demo else [("demo speaker", demo)]
     if large > 0:
         synthetic, _ = make_demo_speaker(large, seed=1, train_seconds=0, progress=False, config=demo.config)
@@ -883,7 +882,7 @@ def _sweep(checkpoint: Path | None, gaussians: int, large: int, sizes: str, seco
     sweeps = [sweep for name, speaker in speakers
               for sweep in sweep_speaker_renderers(name, speaker, chosen, sizes=size_list, seconds=seconds,
                                                    rounds=rounds, renderers=renderers,
-                                                   whole_speaker=whole if speaker is demo else None)]
+                                                   whole_files=whole_files and speaker is demo)]
     machine = machine_info()
     command = "gt-bench " + " ".join(sys.argv[1:])
     report = format_report(sweeps, machine, command)

@@ -16,10 +16,8 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import tempfile
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +33,7 @@ from gaussiantalker.sdk.drive import track_row
 from gaussiantalker.sdk.image import psnr_db
 from gaussiantalker.sdk.progress import progress_bar
 
+from .bare_head import without_clip
 from .report import GOALS
 
 CLIP_CRFS = (18, 23, 28, 33)  # the knob's values measured after "keep" (18: the CRF the clip is stored at)
@@ -49,17 +48,6 @@ def clip_settings(crfs: tuple[int, ...] = CLIP_CRFS, codings: tuple[str, ...] = 
     head, which has no clip."""
     return [ExportSettings(reference="keep"), *(ExportSettings(reference=f"crf:{crf}") for crf in crfs),
             *(ExportSettings(reference=coding) for coding in codings)]
-
-
-@contextlib.contextmanager
-def without_clip(speaker: Speaker) -> Iterator[Speaker]:
-    """`speaker` without its reference clip and inpainting generator within the block (restored after)."""
-    saved = speaker.reference, speaker.inpaint
-    speaker.reference = speaker.inpaint = None
-    try:
-        yield speaker
-    finally:
-        speaker.reference, speaker.inpaint = saved
 
 
 def _stats(values: list[float]) -> dict[str, float]:

@@ -27,6 +27,7 @@ from gaussiantalker.exporter.export.presets import PRESETS, ExportSettings
 from gaussiantalker.sdk.progress import progress_bar
 from gaussiantalker.sdk.render_settings import RenderSettings
 
+from .bare_head import without_clip
 from .compare import Version, alternating, this_version_root
 from .quality import clip_quality, reference_clip
 from .worker import STAGES
@@ -116,10 +117,10 @@ class SpeakerSweep:
     cases: dict[str, dict] = field(default_factory=dict)
 
 
-def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar, whole_speaker=None) -> dict[str, dict]:
-    """Export each distinct bundle once: key -> {path, bytes, gaussians, export_s}; with `whole_speaker` (the
-    speaker with its reference clip and inpainter) each preset's whole file too, weighed and deleted
-    ("whole_bytes")."""
+def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar, whole_files: bool = False) -> dict[str, dict]:
+    """Export each distinct bundle of the bare head once: key -> {path, bytes, gaussians, export_s}; with
+    `whole_files` (a speaker with its reference clip and inpainter) each preset's whole file too, weighed and
+    deleted ("whole_bytes")."""
     from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.sdk.scene import load_scene
 
@@ -131,16 +132,17 @@ def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar, whole_speak
         path = tmp / f"bundle-{len(bundles)}.gtb"
         start = time.perf_counter()
         scene = None if case.scene is None else load_scene(case.scene)
-        if case.preset:
-            result = export_bundle(speaker, path, preset=case.preset, progress=False, scene=scene)
-        else:
-            result = export_bundle(speaker, path, settings=case.export, progress=False, scene=scene)
+        with without_clip(speaker) as bare:
+            if case.preset:
+                result = export_bundle(bare, path, preset=case.preset, progress=False, scene=scene)
+            else:
+                result = export_bundle(bare, path, settings=case.export, progress=False, scene=scene)
         bundles[case.bundle_key] = {"path": str(path), "bytes": path.stat().st_size, "gaussians": result.gaussians,
                                     "export_s": time.perf_counter() - start}
-        if whole_speaker is not None and case.preset and case.scene is None:
+        if whole_files and case.preset and case.scene is None:
             bar.set_postfix_str(f"export {case.name}, whole file")
             whole = tmp / "whole.gtb"
-            export_bundle(whole_speaker, whole, preset=case.preset, progress=False)
+            export_bundle(speaker, whole, preset=case.preset, progress=False)
             bundles[case.bundle_key]["whole_bytes"] = whole.stat().st_size
             whole.unlink()
         bar.update()
@@ -161,11 +163,12 @@ def sweep_name(speaker: str, renderer: str, renderers: tuple[str, ...]) -> str:
 
 def sweep_speaker_renderers(name: str, speaker, cases: list[SweepCase], *, sizes: list[int], seconds: float,
                             rounds: int, renderers: tuple[str, ...] = ("gl",), warmup: int = 5,
-                            progress: bool = True, whole_speaker=None) -> list[SpeakerSweep]:
+                            progress: bool = True, whole_files: bool = False) -> list[SpeakerSweep]:
     """Measure every case on one speaker with each splatter in `renderers` (TalkingHead's `renderer`), every
     (case, splatter) pair in its own worker and all of them alternating in each round; one SpeakerSweep per
-    splatter, its ratios and quality against `quality` drawn by the same splatter (module docstring). With
-    `whole_speaker` (the same speaker with its reference clip) the presets' whole files are weighed too."""
+    splatter, its ratios and quality against `quality` drawn by the same splatter (module docstring). The cases
+    play the bare head; with `whole_files` (a speaker with its reference clip) the presets' whole files are weighed
+    too."""
     from gaussiantalker.exporter.export.speech import synth_speech
     from gaussiantalker.runtime.head import TalkingHead
     from gaussiantalker.sdk.audio import write_wav
@@ -182,7 +185,7 @@ def sweep_speaker_renderers(name: str, speaker, cases: list[SweepCase], *, sizes
         audio = tmp / "speech.wav"
         samples = synth_speech(seconds, seed=7)
         write_wav(audio, samples)
-        bundles = _export_bundles(speaker, cases, tmp, bar, whole_speaker)
+        bundles = _export_bundles(speaker, cases, tmp, bar, whole_files)
         workers = {run: Version.make(f"case{i}", this_version_root(), tmp) for i, run in enumerate(runs_of)}
         for renderer, result in results.items():
             for label in labels:
