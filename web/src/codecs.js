@@ -101,10 +101,10 @@ function inflatedMask(stored, nbytes) {
   let produced = 0;
   let overflow = false;
   const inflater = new Unzlib((chunk) => {
-    const room = nbytes - produced;
-    if (chunk.length > room) overflow = true;
-    mask.set(chunk.subarray(0, Math.max(room, 0)), produced);
-    produced += Math.min(chunk.length, Math.max(room, 0));
+    const kept = chunk.subarray(0, Math.max(nbytes - produced, 0)); // never past the mask
+    overflow ||= kept.length < chunk.length;
+    mask.set(kept, produced);
+    produced += kept.length;
   });
   try {
     inflater.push(stored, true);

@@ -256,10 +256,11 @@ def _sparse_param(params: dict, count: int) -> tuple[int, int | None, dict]:
     sparse = params.get("sparse")
     nnz = sparse.get("nnz") if isinstance(sparse, dict) else None
     zipped = sparse.get("mask_zlib") if isinstance(sparse, dict) else None
+    bound = _zlib_bound(_mask_nbytes(count))
     if (not _is_count(nnz) or nnz > count or set(sparse) - {"nnz", "mask_zlib"}
-            or ("mask_zlib" in sparse and not (_is_count(zipped) and zipped <= _zlib_bound(_mask_nbytes(count))))):
+            or ("mask_zlib" in sparse and not (_is_count(zipped) and zipped <= bound))):
         raise BundleError(f"sparse buffer needs {{\"nnz\": K}} with 0 <= K <= {count} (its element count), and "
-                          f"optionally \"mask_zlib\": M, at most {_zlib_bound(_mask_nbytes(count))} bytes; got "
+                          f"optionally \"mask_zlib\": M, at most {bound} bytes; got "
                           f"{json.dumps(sparse)[:80]}")
     return nnz, zipped, {key: value for key, value in params.items() if key != "sparse"}
 
