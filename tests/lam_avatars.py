@@ -67,10 +67,11 @@ class AvatarSpec:
     vertex_order_length: int | None = None
     extra_names: tuple[str, ...] = ()
     neck_below: float | None = None  # vertices lower than this (m, from HEAD_CENTRE) skinned to the neck, not the head
+    subdivided: bool = False  # the grid's triangles split in four, as LAM's subdivided FLAME (indices written)
 
 
-def rest_vertices(spec: AvatarSpec) -> np.ndarray:
-    """[V, 3] an ellipsoid around HEAD_CENTRE (metres)."""
+def _grid_vertices(spec: AvatarSpec) -> np.ndarray:
+    """[rings x segments, 3] an ellipsoid around HEAD_CENTRE (metres)."""
     theta = np.linspace(0.15, np.pi - 0.15, spec.rings)
     phi = np.linspace(0, 2 * np.pi, spec.segments, endpoint=False)
     t, p = np.meshgrid(theta, phi, indexing="ij")
@@ -78,21 +79,62 @@ def rest_vertices(spec: AvatarSpec) -> np.ndarray:
     return points.reshape(-1, 3) + HEAD_CENTRE
 
 
+def _grid_faces(spec: AvatarSpec) -> np.ndarray:
+    """[F, 3] two triangles per quad of the ring grid (closed round the segments)."""
+    ring, seg = np.meshgrid(np.arange(spec.rings - 1), np.arange(spec.segments), indexing="ij")
+    here, right = ring * spec.segments + seg, ring * spec.segments + (seg + 1) % spec.segments
+    below, below_right = here + spec.segments, right + spec.segments
+    return np.concatenate([np.stack([here, right, below], -1).reshape(-1, 3),
+                           np.stack([right, below_right, below], -1).reshape(-1, 3)])
+
+
+def _edges(spec: AvatarSpec) -> np.ndarray:
+    """[E, 2] the grid's edges (a < b), in the order their midpoint vertices follow the grid's."""
+    faces = _grid_faces(spec)
+    edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
+    return np.unique(edges, axis=0)
+
+
+def mesh_faces(spec: AvatarSpec) -> np.ndarray:
+    """[F, 3] the head mesh's triangles: the grid's, or each split in four through its edges' midpoints."""
+    faces = _grid_faces(spec)
+    if not spec.subdivided:
+        return faces
+    edges = _edges(spec)
+    mid_of = {tuple(e): len(_grid_vertices(spec)) + k for k, e in enumerate(edges.tolist())}
+    out = []
+    for a, b, c in faces.tolist():
+        ab, bc, ca = (mid_of[tuple(sorted(pair))] for pair in ((a, b), (b, c), (c, a)))
+        out += [(a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)]
+    return np.array(out, np.int64)
+
+
+def rest_vertices(spec: AvatarSpec) -> np.ndarray:
+    """[V, 3] the head mesh's vertices (metres): the grid's, then (subdivided) each edge's midpoint."""
+    grid = _grid_vertices(spec)
+    if not spec.subdivided:
+        return grid
+    edges = _edges(spec)
+    return np.concatenate([grid, (grid[edges[:, 0]] + grid[edges[:, 1]]) / 2])
+
+
 def morph_deltas(spec: AvatarSpec) -> dict[str, np.ndarray]:
-    """name -> [V, 3] delta (zero where the morph does not reach)."""
-    rest = rest_vertices(spec) - HEAD_CENTRE
+    """name -> [V, 3] delta (zero where the morph does not reach); an edge's midpoint moves as the mean of its
+    ends, as a subdivided mesh's morph targets do."""
+    rest = _grid_vertices(spec) - HEAD_CENTRE
+    edges = _edges(spec)
     out = {}
     for name, (where, delta) in MORPHS.items():
         d = np.zeros_like(rest)
         d[where(rest)] = delta
-        out[name] = d
+        out[name] = np.concatenate([d, (d[edges[:, 0]] + d[edges[:, 1]]) / 2]) if spec.subdivided else d
     return out
 
 
 def gaussians(spec: AvatarSpec) -> dict[str, np.ndarray]:
     """Per-vertex Gaussian attributes as offset.ply stores them."""
     rng = np.random.default_rng(spec.seed)
-    count = spec.rings * spec.segments
+    count = rest_vertices(spec).shape[0]
     rotation = rng.normal(size=(count, 4))
     return {"xyz": rng.uniform(-0.004, 0.004, (count, 3)), "f_dc": rng.uniform(0.05, 0.95, (count, 3)),
             "opacity": rng.uniform(1.0, 4.0, count), "scale": np.log(rng.uniform(0.006, 0.014, (count, 3))),
@@ -186,6 +228,10 @@ def skin_glb(spec: AvatarSpec) -> bytes:
     weights = glb.accessor(np.tile([1.0, 0.0, 0.0, 0.0], (count, 1)), "VEC4")
     primitive = {"attributes": {"POSITION": glb.accessor(rest, "VEC3"), "JOINTS_0": joints, "WEIGHTS_0": weights},
                  "targets": targets}
+    if spec.subdivided:
+        glb.doc["accessors"].append({"bufferView": glb.view(mesh_faces(spec).astype(np.uint32).tobytes()),
+                                     "componentType": 5125, "count": mesh_faces(spec).size, "type": "SCALAR"})
+        primitive["indices"] = len(glb.doc["accessors"]) - 1
     inverse_bind = np.stack([np.linalg.inv(m).T for m in rest_worlds()])  # column-major, as glTF stores them
     nodes = _skeleton_nodes()
     nodes[0]["children"] = [1, 4]
@@ -267,7 +313,7 @@ def write_avatar_zip(path: str | Path, spec: AvatarSpec | None = None) -> Path:
     """Write a LAM-format avatar zip (members in `spec.folder`, with macOS junk beside them) and return its path."""
     spec = spec or AvatarSpec()
     path = Path(path)
-    count = spec.rings * spec.segments
+    count = rest_vertices(spec).shape[0]
     members = {"skin.glb": skin_glb(spec), "offset.ply": offset_ply(spec), "animation.glb": animation_glb(spec),
                "vertex_order.json": json.dumps(list(range(spec.vertex_order_length or count))).encode()}
     if spec.motion:

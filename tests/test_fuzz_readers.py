@@ -15,6 +15,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import signal
 import struct
 import time
@@ -145,9 +146,10 @@ RUNS = [pytest.param(False, 0, id="ci"), pytest.param(True, 1000, id="heavy", ma
 
 @pytest.fixture(scope="module")
 def lam_members(tmp_path_factory) -> dict[str, bytes]:
-    from lam_avatars import write_avatar_zip
+    from lam_avatars import AvatarSpec, write_avatar_zip
 
-    path = write_avatar_zip(tmp_path_factory.mktemp("fuzz_lam") / "avatar.zip")
+    # subdivided: its skin.glb carries the mesh's triangles (an `indices` accessor) for the mutations to reach too
+    path = write_avatar_zip(tmp_path_factory.mktemp("fuzz_lam") / "avatar.zip", AvatarSpec(subdivided=True))
     with zipfile.ZipFile(path) as archive:
         return {info.filename: archive.read(info) for info in archive.infolist()}
 
@@ -948,8 +950,8 @@ LAM_HOLES = {
     "zero scale on the head's chain": ("skin.glb", lambda m: _glb_edit(m, "skin.glb", lambda d: d["nodes"][2].update(
         scale=[0, 0, 0])), "rest transform is degenerate"),
     "clip of 10^9 seconds": ("animation.glb", lambda m: _clip_time(m, 1e9), "lasts 1e+09 s"),
-    "PLY of 10^12 vertices": ("offset.ply", lambda m: m["avatar/offset.ply"].replace(b"element vertex 96",
-                                                                                   b"element vertex 1000000000000"),
+    "PLY of 10^12 vertices": ("offset.ply", lambda m: re.sub(rb"element vertex \d+", b"element vertex 1000000000000",
+                                                             m["avatar/offset.ply"], count=1),
                               "declares 1000000000000 'vertex' rows"),
     "PLY field f_rest_x": ("offset.ply", lambda m: m["avatar/offset.ply"].replace(b"property float nz",
                                                                                 b"property float f_rest_x"),
@@ -958,8 +960,14 @@ LAM_HOLES = {
                          "over the 524288 frame limit"),
     "bsData weight 10^400": ("bsData.json", lambda m: m["avatar/bsData.json"].replace(
         b'"weights": [0.0', b'"weights": [1' + b"0" * 400, 1), "must be numbers"),
-    "vertex_order of lists": ("vertex_order.json", lambda m: b"[[1]" + b", 1" * 95 + b"]", "vertex indices"),
+    "vertex_order of lists": ("vertex_order.json", lambda m: b"[[1]" + b", 1" * (_ply_rows(m) - 1) + b"]",
+                              "vertex indices"),
 }
+
+
+def _ply_rows(members: dict[str, bytes]) -> int:
+    """The avatar's vertex count, as its offset.ply declares it."""
+    return int(re.search(rb"element vertex (\d+)", members["avatar/offset.ply"]).group(1))
 
 
 def _clip_time(members: dict[str, bytes], seconds: float) -> bytes:

@@ -110,18 +110,22 @@ def speech_wav(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def lam_bundle(tmp_path_factory) -> tuple[Path, Path]:
     """A small synthetic LAM avatar (tests/lam_avatars.py) imported with the built-in voice as `gt-import lam` does
-    (so the page also opens its translator and streaming translator graphs) and exported, and a motion file for it."""
-    from lam_avatars import motion_json, write_avatar_zip
+    (so the page also opens its translator and streaming translator graphs) and exported, and a motion file for it.
+    Its mesh is subdivided like LAM's and exported with its edge vertices derived in the graph (`midpoints`, what the
+    reduced presets do), so the page runs that graph too."""
+    from lam_avatars import AvatarSpec, motion_json, write_avatar_zip
 
     from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.export.presets import ExportSettings
     from gaussiantalker.exporter.imports.sources.lam import import_lam
     from gaussiantalker.exporter.voice.attach import builtin_audio_model
 
     folder = tmp_path_factory.mktemp("web_lam")
     path = folder / "avatar.gtb"
-    speaker = import_lam(write_avatar_zip(folder / "avatar.zip"), progress=False)
+    speaker = import_lam(write_avatar_zip(folder / "avatar.zip", AvatarSpec(subdivided=True)), progress=False)
     speaker.audio_model = builtin_audio_model(speaker)
-    export_bundle(speaker, path, progress=False)
+    export_bundle(speaker, path, settings=ExportSettings(midpoints=True), progress=False)
+    assert Bundle(path).has_buffer("deform/midpoint_ends")
     motion = folder / "bsData.json"
     motion.write_text(json.dumps(motion_json()))
     return path, motion

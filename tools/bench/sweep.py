@@ -74,6 +74,7 @@ def sweep_cases() -> list[SweepCase]:
     cases += [knob(f"SH degree {d}", "SH degree", sh_degree=d) for d in (2, 1, 0)]
     cases += [knob(f"blendshape rank {r}", "blendshape rank", blendshape_rank=r) for r in (6, 4, 2)]
     cases += [knob(f"budget {round(100 * b)}%", "Gaussian budget", gaussian_budget=b) for b in (0.7, 0.5)]
+    cases += [knob("midpoints derived", "midpoints", midpoints=True)]  # an ARKit rig's only: FLAME speakers as stored
     cases += [runtime(f"framebuffer {t}", "framebuffer", render_target=t) for t in ("float16", "uint8")]
     cases += [runtime(f"render scale {s}", "render scale", render_scale=s) for s in (0.75, 0.5)]
     cases += [runtime(f"sort every {k} frames", "sort interval", sort_interval=k) for k in (2, 4)]

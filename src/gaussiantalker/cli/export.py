@@ -75,6 +75,9 @@ def export(
                                   "(0-51: larger is smaller and coarser), in groups of K pictures (default 1: each "
                                   "frame alone), masks as H.264 at CRF M (default: kept lossless; "
                                   "docs/compositing.md)"),
+    midpoints: bool = typer.Option(None, "--midpoints/--no-midpoints", help="an imported avatar's subdivided mesh: "
+                                   "derive its edge vertices' morph targets from their ends instead of storing them "
+                                   "(within 10 µm; the reduced presets do)"),
     scene: Path = typer.Option(None, "--scene", help="compile the bundle for a scene (TOML/JSON, docs/scene.md): "
                                "leave out what it never uses, record it in the bundle"),
     mnn: bool = typer.Option(False, "--mnn", help="also store every graph as an MNN model, for "
@@ -97,7 +100,7 @@ def export(
         knobs = {"gaussians": gaussians, "sh": sh, "blendshapes": blendshapes, "flame": flame,
                  "translator": translator, "inpaint": inpaint, "translator_precision": translator_precision,
                  "sh_degree": sh_degree, "blendshape_rank": blendshape_rank,
-                 "gaussian_budget": _budget(gaussian_budget), "reference": reference}
+                 "gaussian_budget": _budget(gaussian_budget), "reference": reference, "midpoints": midpoints}
         settings, chosen = _settings(preset, codec, knobs)
         speaker = load_checkpoint(checkpoint)
         # The bundle is staged beside the output and placed there only once it is complete (and, with --verify,

@@ -30,7 +30,8 @@ def arkit_payload(speaker: ArkitSpeaker) -> dict:
         "config": speaker.config.to_dict(),
         "sh_degree": g.sh_degree,
         "blendshape_rig": {"rest": speaker.rig.rest.clone(), "morphs": speaker.rig.morphs.clone(),
-                           "pivot": speaker.rig.pivot.clone()},
+                           "pivot": speaker.rig.pivot.clone(),
+                           **({} if speaker.rig.faces is None else {"faces": speaker.rig.faces.clone()})},
         "gaussians": {"vertex": g.vertex.clone(), **{k: getattr(g, k).detach().clone() for k in _GAUSSIAN_KEYS}},
         "camera": speaker.camera.to_dict(),
         "background": list(speaker.background),
@@ -139,6 +140,11 @@ def load_arkit_payload(path: Path, payload: dict) -> ArkitSpeaker:
     count = rest.shape[0]
     morphs = _tensor(path, "blendshape_rig 'morphs'", rig_data.get("morphs"), (len(config.blendshapes), count, 3))
     pivot = _tensor(path, "blendshape_rig 'pivot'", rig_data.get("pivot"), (3,))
+    faces = rig_data.get("faces")  # optional: checkpoints before it lack it
+    if faces is not None:
+        faces = _tensor(path, "blendshape_rig 'faces'", faces, (None, 3), floating=False)
+        if faces.numel() and not 0 <= int(faces.min()) <= int(faces.max()) < count:
+            raise CheckpointError(f"checkpoint {path}: blendshape_rig 'faces' indexes vertices outside [0, {count})")
     vertex = _tensor(path, "gaussians 'vertex'", g.get("vertex"), (None,), floating=False)
     n = vertex.shape[0]
     if n and (int(vertex.min()) < 0 or int(vertex.max()) >= count):
@@ -154,7 +160,7 @@ def load_arkit_payload(path: Path, payload: dict) -> ArkitSpeaker:
     with torch.no_grad():
         for key, value in values.items():
             getattr(gaussians, key).copy_(value)
-    speaker = ArkitSpeaker(config, BlendshapeRig(rest, morphs, pivot), gaussians, camera, background,
+    speaker = ArkitSpeaker(config, BlendshapeRig(rest, morphs, pivot, faces), gaussians, camera, background,
                            optional_track(path, payload, "pose_track", 6),
                            optional_track(path, payload, "motion_track", len(config.blendshapes)),
                            source_from(path, payload))

@@ -233,7 +233,7 @@ def _export_arkit_steps(speaker: ArkitSpeaker, writer: BundleWriter, path: str |
     steps.update()
     steps.set_postfix_str("deformation graph")
     args, dynamic = arkit_deform_example(speaker)
-    graph = ArkitDeformationGraph(speaker, sh_degree=settings.sh_degree)
+    graph = ArkitDeformationGraph(speaker, sh_degree=settings.sh_degree, midpoints=settings.midpoints)
     model = onnx_export.export_onnx(graph, args, ARKIT_DEFORM_INPUTS, DEFORM_OUTPUTS, dynamic)
     result.graphs["deform"] = add_graph(writer, "deform", model, settings.codec_for)
     steps.update()

@@ -93,8 +93,9 @@ def group_of(buffer: str) -> str:
 
 @dataclass(frozen=True)
 class ExportSettings:
-    """Export-time knobs: a buffer codec per group, the translator graph's precision, model-size truncations, and
-    how the reference clip is stored (`reference`: "keep" or "crf:N[,gop:K][,mask-crf:M]", `parse_reference`)."""
+    """Export-time knobs: a buffer codec per group, the translator graph's precision, model-size truncations, an
+    ARKit rig's midpoint vertices derived (`midpoints`), and how the reference clip is stored (`reference`: "keep"
+    or "crf:N[,gop:K][,mask-crf:M]", `parse_reference`)."""
 
     gaussians: str = "raw"
     sh: str = "raw"
@@ -107,6 +108,9 @@ class ExportSettings:
     blendshape_rank: int | None = None  # rank of the speaker blendshape matrix (None: full)
     gaussian_budget: float | None = None  # keep this fraction (<= 1) or number (> 1) of Gaussians (None: all)
     reference: str = "keep"  # the reference clip: as stored, or re-encoded ("crf:28,gop:25,mask-crf:24")
+    # An ARKit rig's edge vertices (a subdivided mesh's) derived from their ends instead of stored, within 10 µm
+    # (exporter/export/morph_midpoints.py; a rig whose checkpoint holds its triangles: LAM imports)
+    midpoints: bool = False
 
     def __post_init__(self) -> None:
         for group in CODEC_GROUPS:
@@ -136,7 +140,8 @@ class ExportSettings:
     def lossless(self) -> bool:
         codecs_lossless = all(CODECS[parse_codec(getattr(self, g))[0]].lossless for g in CODEC_GROUPS)
         return (codecs_lossless and self.translator_precision == "fp32" and self.sh_degree is None
-                and self.blendshape_rank is None and self.gaussian_budget is None and self.reference == "keep")
+                and self.blendshape_rank is None and self.gaussian_budget is None and self.reference == "keep"
+                and not self.midpoints)
 
     def head_settings(self) -> ExportSettings:
         """These settings with the reference clip stored as it is: what the head's frames depend on (`gt-export
@@ -228,25 +233,26 @@ PRESETS: dict[str, Preset] = {
     "quality": Preset("quality", "fp32 everything: parity with the torch speaker (>= 50 dB)", ExportSettings()),
     "balanced": Preset("balanced", "quantised buffers, nothing dropped, the clip in groups of pictures: ~5.5x "
                        "smaller with the demo clip at ~48 dB",
-                       ExportSettings(**_REDUCED_CODECS, reference=_CLIP_CRF["balanced"]), min_head_psnr_db=47.0),
+                       ExportSettings(**_REDUCED_CODECS, midpoints=True, reference=_CLIP_CRF["balanced"]),
+                       min_head_psnr_db=47.0),
     "compact": Preset("compact", "smallest bundle: 65% of the Gaussians, SH degree 0, rank-2 blendshapes, 4-bit "
                       "translator and inpainting generator, FLAME bases in chunks of 256, the clip in groups of "
                       "pictures: ~14x smaller with the demo clip at ~36 dB on the demo speaker",
                       ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "blendshapes": "q4", "flame": "q4",
                                         "inpaint": "q4"},
-                                     sh_degree=0, blendshape_rank=2, gaussian_budget=0.65,
+                                     sh_degree=0, blendshape_rank=2, gaussian_budget=0.65, midpoints=True,
                                      reference=_CLIP_CRF["compact"]), min_head_psnr_db=35.0),
     "fast": Preset("fast", "fastest frames: 60% of the Gaussians, drawn at 3/4 size into an 8-bit framebuffer, "
                    "16-bit depth-sort keys (on the CPU splatter: at most 256x256 pixels drawn, alpha under 0.03 "
                    "skipped): ~2.4x the frame rate at ~41 dB on GL, ~2.1x at ~37 dB on the CPU splatter",
-                   ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6, reference=_CLIP_CRF["fast"]),
+                   ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6, midpoints=True, reference=_CLIP_CRF["fast"]),
                    RenderSettings(render_scale=0.75, render_target="uint8", sort_key_bits=16), min_head_psnr_db=29.0,
                    runtime_by_renderer={"cpu": RenderSettings(render_scale=0.75, render_target="uint8",
                                                               alpha_min=0.03, max_draw_pixels=256 * 256)}),
     "mobile": Preset("mobile", "for phones and WebGL 2 (docs/porting.md): fp16 buffers, 60% of the Gaussians, an "
                      "RGBA16F framebuffer (GLES 3.0's renderable float, docs/shaders.md), 16-bit depth-sort keys, one "
                      "graph thread: ~1.4x the frame rate at ~48 dB",
-                     ExportSettings(**dict.fromkeys(CODEC_GROUPS, "fp16"), gaussian_budget=0.6,
+                     ExportSettings(**dict.fromkeys(CODEC_GROUPS, "fp16"), gaussian_budget=0.6, midpoints=True,
                                     reference=_CLIP_CRF["mobile"]),
                      RenderSettings(render_target="float16", sort_key_bits=16, graph_threads=1), min_head_psnr_db=39.0),
 }

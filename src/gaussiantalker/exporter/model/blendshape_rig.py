@@ -14,9 +14,12 @@ from .flame_lbs import rodrigues
 
 
 class BlendshapeRig(nn.Module):
-    """Rest vertices [V, 3], morph deltas [K, V, 3] (K = the rig's blendshape names), head pivot [3]."""
+    """Rest vertices [V, 3], morph deltas [K, V, 3] (K = the rig's blendshape names), head pivot [3], and the mesh's
+    triangles [F, 3] where known (None: not known). The triangles move nothing; the exporter reads the mesh's edges
+    from them (exporter/export/morph_midpoints.py)."""
 
-    def __init__(self, rest: torch.Tensor, morphs: torch.Tensor, pivot: torch.Tensor) -> None:
+    def __init__(self, rest: torch.Tensor, morphs: torch.Tensor, pivot: torch.Tensor,
+                 faces: torch.Tensor | None = None) -> None:
         super().__init__()
         if rest.ndim != 2 or rest.shape[1] != 3 or morphs.ndim != 3 or morphs.shape[1:] != rest.shape:
             raise ValueError(f"rig shapes do not fit: rest {list(rest.shape)} (want [V, 3]), morphs "
@@ -24,6 +27,11 @@ class BlendshapeRig(nn.Module):
         self.register_buffer("rest", rest.float().clone())
         self.register_buffer("morphs", morphs.float().clone())
         self.register_buffer("pivot", pivot.float().reshape(3).clone())
+        if faces is not None and (faces.ndim != 2 or faces.shape[1] != 3 or faces.is_floating_point()
+                                  or (faces.numel() and not 0 <= int(faces.min()) <= int(faces.max()) < rest.shape[0])):
+            raise ValueError(f"rig faces must be [F, 3] integer vertex indices below {rest.shape[0]}, got "
+                             f"{list(faces.shape)} {faces.dtype}")
+        self.register_buffer("faces", None if faces is None else faces.long().clone())
 
     @property
     def n_vertices(self) -> int:

@@ -206,7 +206,7 @@ def _coordinates(values: np.ndarray) -> bool:
 
 def read_rig(data: bytes, options: LamOptions, member: str = "skin.glb"):
     """(gltf, rest [V, 3], morphs [52, V, 3] in ARKIT_BLENDSHAPES order, pivot [3], head node, target names, which
-    vertices the head bone moves [V] bool or None)."""
+    vertices the head bone moves [V] bool or None, the mesh's triangles [F, 3] or None)."""
     if options.camera not in CAMERA_CHOICES:
         raise ValueError(f"camera must be one of {', '.join(CAMERA_CHOICES)}, got {options.camera!r}")
     gltf = load_glb(data, member)
@@ -234,7 +234,21 @@ def read_rig(data: bytes, options: LamOptions, member: str = "skin.glb"):
         scale = LAM_WEIGHT_SCALE.get(name, 1.0) if options.renderer_weight_scale else 1.0
         morphs[ARKIT_BLENDSHAPES.index(name)] = delta * scale
     head, world = _head_joint(gltf, options.head_bone)
-    return gltf, rest, morphs, world[:3, 3].copy(), head, names, head_vertices(gltf, primitive, head, rest.shape[0])
+    return (gltf, rest, morphs, world[:3, 3].copy(), head, names, head_vertices(gltf, primitive, head, rest.shape[0]),
+            mesh_triangles(gltf, primitive, rest.shape[0]))
+
+
+def mesh_triangles(gltf: Gltf, primitive: dict, count: int) -> np.ndarray | None:
+    """The head mesh's triangles [F, 3] (its `indices`), or None when it has none or draws another kind of primitive.
+    LAM's renderer draws no triangles; the exporter reads the mesh's edges from them (docs/import.md)."""
+    if primitive.get("indices") is None or primitive.get("mode", 4) != 4:
+        return None
+    indices = read_accessor(gltf, primitive["indices"])
+    if indices.dtype.kind not in "iu" or indices.size % 3 or indices.ndim != 2 or indices.shape[1] != 1 \
+            or (indices.size and not 0 <= int(indices.min()) <= int(indices.max()) < count):
+        raise ImportFormatError(f"{gltf.member}: the head mesh's indices must be SCALAR integers, three a triangle, "
+                                f"each below its {count} vertices")
+    return indices.reshape(-1, 3).astype(np.int64)
 
 
 def _below(gltf: Gltf, head: int, joints: list) -> list[bool]:
@@ -346,7 +360,7 @@ def _import_members(path: str | os.PathLike, members: dict[str, bytes], options:
                     ) -> ArkitSpeaker:
     """import_lam's work on the zip's members (ImportFormatError naming the member and field)."""
     steps.set_postfix_str("skin.glb")
-    skin, rest, morphs, pivot, head, target_names, on_head = read_rig(members["skin.glb"], options)
+    skin, rest, morphs, pivot, head, target_names, on_head, faces = read_rig(members["skin.glb"], options)
     steps.update()
     steps.set_postfix_str("offset.ply")
     cloud = read_gaussian_ply(members["offset.ply"], "offset.ply")
@@ -369,19 +383,21 @@ def _import_members(path: str | os.PathLike, members: dict[str, bytes], options:
         except DriveError as exc:
             raise ImportFormatError(str(exc)) from None
     steps.update()
-    return _speaker(cloud, rest, morphs, pivot, options, pose_track, motion, on_head, {
+    return _speaker(cloud, (rest, morphs, pivot, faces), options, pose_track, motion, on_head, {
         "format": "lam", "file": Path(path).name, "morph_targets": target_names, "pose_clip": clip,
         "camera": options.camera,
         "renderer_weight_scale": LAM_WEIGHT_SCALE if options.renderer_weight_scale else None,
         "dropped": ["f_rest (the renderer draws SH degree 0)"] if cloud.f_rest.shape[1] else []})
 
 
-def _speaker(cloud, rest, morphs, pivot, options: LamOptions, pose_track, motion, on_head: np.ndarray | None,
+def _speaker(cloud, rig_parts: tuple, options: LamOptions, pose_track, motion, on_head: np.ndarray | None,
              source: dict) -> ArkitSpeaker:
-    """The ArkitSpeaker of read avatar parts, its camera a portrait of the head (`on_head`: the Gaussians the head
-    bone moves, None: all) or LAM's renderer's framing."""
+    """The ArkitSpeaker of read avatar parts (`rig_parts`: rest, morphs, pivot, faces or None), its camera a portrait
+    of the head (`on_head`: the Gaussians the head bone moves, None: all) or LAM's renderer's framing."""
     config = ArkitRig(covariance=options.covariance, fps=LAM_FPS)
-    rig = BlendshapeRig(torch.from_numpy(rest), torch.from_numpy(morphs), torch.from_numpy(pivot))
+    rest, morphs, pivot, faces = rig_parts
+    rig = BlendshapeRig(torch.from_numpy(rest), torch.from_numpy(morphs), torch.from_numpy(pivot),
+                        None if faces is None else torch.from_numpy(faces))
     gaussians = VertexBoundGaussians(torch.arange(cloud.count), sh_degree=0, covariance=options.covariance)
     rgb, opacity_logit = renderer_colours(cloud.f_dc, cloud.opacity) if options.renderer_colours else \
         (np.clip(cloud.f_dc, 0.0, 1.0), cloud.opacity)
