@@ -7,7 +7,6 @@ speech it hears. Skips without chromium or the serve extra, except where CI is s
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 import time
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import pytest
 from ci_tools import need_chromium, need_module
+from serve_clients import free_port
 
 from tools.bench.live_clients import serving
 from tools.browser.chromium import Chromium
@@ -39,12 +39,6 @@ def _requirements() -> None:
 def browser_tools() -> None:
     """_requirements as a fixture: named before small_export, it skips (or fails) before the speaker is made."""
     _requirements()
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def _server(bundle: Path, port: int, python: tuple[str, ...] = ("-m", "gaussiantalker.cli.serve")) \
@@ -81,7 +75,7 @@ def _seconds_until_closed(port: int, timeout: float) -> float:
 
 
 def test_browser_receives_the_head_talking_with_its_microphone(browser_tools, small_export):
-    port = _free_port()
+    port = free_port()
     server = _server(small_export.path, port)
     try:
         with Chromium(extra_flags=MEDIA_FLAGS) as browser:
@@ -110,7 +104,7 @@ def _leave_mid_reply(small_export, leave) -> float:
     """Start the 10 s sample speech in a page, let `leave(browser, port, page)` end it after 25 frames, check that
     the server logged no error, and return the seconds `leave` measured."""
     _requirements()
-    port = _free_port()
+    port = free_port()
     server = _server(small_export.path, port)
     page = f"http://127.0.0.1:{port}/?source=file&autostart=1"
     try:
@@ -202,7 +196,7 @@ def test_a_session_that_fails_is_logged_once_told_to_the_page_and_closed(browser
     made: each is logged once with its traceback, the page is told in one line without the error's text (the data
     channel's error, or the offer's answer) and leaves, the session and its render thread are gone within 10 s, and
     the server then serves a page that works."""
-    port = _free_port()
+    port = free_port()
     server = _server(small_export.path, port, ("-c", FAILING_SERVER))
     page = f"http://127.0.0.1:{port}/?source=file&autostart=1"
     messages = ["injected render failure from frame 25", "injected render failure from frame 0",

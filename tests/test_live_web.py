@@ -15,7 +15,6 @@ from __future__ import annotations
 import base64
 import json
 import shutil
-import socket
 import struct
 import subprocess
 import sys
@@ -27,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from ci_tools import BROWSER_INSTALL, need, need_chromium, need_module
-from serve_clients import SECRET
+from serve_clients import SECRET, free_port
 
 from tools.bench.live_clients import serving
 
@@ -284,12 +283,6 @@ def live_web_ready() -> None:
     need_module("aiortc", "serve")
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 def start_server(bundle: Path, port: int, timeout: float = 120.0) -> subprocess.Popen:
     """gt-serve --client-render serving `bundle` on `port` with tokens (tests/serve_clients.py SECRET), once it
     answers."""
@@ -362,7 +355,7 @@ def run_live_page(bundle: Path, transport: str = "ws", speak_s: float = 3.0, aft
     from tools.browser.chromium import Chromium
 
     server = _server_module()
-    port = _free_port()
+    port = free_port()
     process = start_server(bundle, port)
     try:
         with Chromium(window=(400, 500), extra_flags=FLAGS) as browser:
@@ -525,7 +518,7 @@ def test_page_talks_with_its_microphone_over_the_socket(live_web_ready, small_ex
     from tools.browser.chromium import Chromium
 
     server = _server_module()
-    port = _free_port()
+    port = free_port()
     process = start_server(small_export.path, port)
     try:
         with Chromium(window=(400, 500), extra_flags=MIC_FLAGS) as browser:
