@@ -13,9 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
 import re
-import shutil
 import signal
 import struct
 import subprocess
@@ -24,10 +22,12 @@ import time
 import urllib.request
 from pathlib import Path
 
+import pytest
 from ci_tools import need, need_module
 from serve_clients import SECRET, free_port
 
 from tools.bench.live_clients import serving
+from tools.bench.replicas import nginx_binary, nginx_config
 
 ROOT = Path(__file__).resolve().parents[1]
 CLIENTS = 6
@@ -38,18 +38,9 @@ LATE_S = 0.1  # a frame this long behind its session's best arrival is late (doc
 
 
 def _nginx() -> str:
-    path = shutil.which("nginx") or ("/usr/sbin/nginx" if os.access("/usr/sbin/nginx", os.X_OK) else None)
+    path = nginx_binary()
     need(None if path else "nginx is not installed (Debian: apt-get install nginx)", ".ci/install (nginx)")
     return path
-
-
-def nginx_config(listen: int, replicas: list[int], backend: int) -> str:
-    """deploy/nginx.conf with these ports for its 8080 (nginx), 8081/8082 (the replicas) and 8090 (backend)."""
-    text = (ROOT / "deploy" / "nginx.conf").read_text()
-    for old, new in (("8080", listen), ("8081", replicas[0]), ("8082", replicas[1]), ("8090", backend)):
-        text, count = re.subn(rf"127\.0\.0\.1:{old}\b", f"127.0.0.1:{new}", text)
-        assert count >= 1, old
-    return text
 
 
 def _get_json(url: str):
@@ -161,6 +152,33 @@ class Deployment:
             if process.poll() is None:
                 process.terminate()
         return [process.communicate(timeout=30)[0] for process in self.processes]
+
+
+def test_nginx_config_lists_every_replica():
+    """deploy/nginx.conf with K replicas: one upstream line each, as its own two are written, and its other ports."""
+    text = nginx_config(9000, [9001, 9002, 9003], 9004)
+    assert re.findall(r"^\s*server 127\.0\.0\.1:(\d+) max_fails=1 fail_timeout=10s;$", text, re.M) == \
+        ["9001", "9002", "9003"]
+    assert "listen 127.0.0.1:9000;" in text and "server 127.0.0.1:9004;" in text
+    settings = "\n".join(line for line in text.splitlines() if not line.lstrip().startswith("#"))
+    assert not re.search(r"127\.0\.0\.1:80[89]\d\b", settings)  # deploy/nginx.conf's own ports: none left
+    with pytest.raises(ValueError, match="at least one replica"):
+        nginx_config(9000, [], 9004)
+
+
+def test_the_load_bench_runs_replicas_behind_nginx(small_export):
+    """`gt-bench live-clients --replicas 2`: two gt-serve processes behind nginx take the load clients' sessions,
+    every drive arrives, and the server's CPU is all its processes'."""
+    _nginx()
+    need_module("aiohttp", "serve")
+    from tools.bench.live_clients import run_live_clients_bench, server_name
+
+    result = run_live_clients_bench(small_export.path, [4], speak_s=1.0, idle_s=0.5, log=lambda line: None,
+                                    transport="ws", replicas=2)
+    row = result["runs"][0]
+    assert result["server"]["replicas"] == 2 and row["clients"] == 4 and row["failed"] == 0, row
+    assert row["missing_frames"] == 0 and row["server_cpu_s"] > 0 and result["server_log_error_lines"] == 0, row
+    assert server_name(result) == "2 gt-serve replicas behind nginx"
 
 
 def test_a_replica_killed_mid_speech_hands_its_pages_to_the_other(small_export, tmp_path):

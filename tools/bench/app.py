@@ -659,6 +659,9 @@ def live_clients(
                                          "BUNDLE], e.g. the same speaker as the baseline's commit exports it"),
     rounds: int = typer.Option(1, "--rounds", min=1, help="rounds per N and server (with a baseline: old, new, "
                                "old, new ...)"),
+    replicas: int = typer.Option(1, "--replicas", min=1, max=8, help="gt-serve processes behind nginx "
+                                 "(deploy/nginx.conf; docs/serve.md, \"Replicas behind a load balancer\"); 1: "
+                                 "one process, no nginx"),
     out: Path = typer.Option(None, "--out", help="folder for live-clients.md and live-clients.json"),
 ) -> None:
     """Client-render live sessions (gt-serve --client-render, tokens on) under N concurrent load clients: late
@@ -687,7 +690,8 @@ def live_clients(
         typer.echo(f"{kind}: voice in {chunk:g} ms chunks, {batch} frames per translator call at least")
         result["runs"].append(run_live_clients_bench(bundle, counts, lookahead_ms, speak_s, chunk_ms=chunk,
                                                      log=typer.echo, transport=kind, batch_frames=batch,
-                                                     context_ms=context_ms, baseline=baseline, rounds=rounds))
+                                                     context_ms=context_ms, baseline=baseline, rounds=rounds,
+                                                     replicas=replicas))
     result["load_at_end"] = os.getloadavg()
     _stamp(result)
     table = "\n\n".join(f"{TRANSPORT_NAMES[run['transport']]}, voice pushed in {run['chunk_ms']:g} ms chunks at "

@@ -63,9 +63,19 @@ TRANSPORT_NAMES = {"ws": "One WebSocket a session (frame packets: drive + int16 
 
 
 def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+    return _free_ports(1)[0]
+
+
+def _free_ports(count: int) -> list[int]:
+    """`count` distinct loopback ports nothing listens on (held together while chosen, so none repeats)."""
+    sockets = [socket.socket() for _ in range(count)]
+    try:
+        for sock in sockets:
+            sock.bind(("127.0.0.1", 0))
+        return [sock.getsockname()[1] for sock in sockets]
+    finally:
+        for sock in sockets:
+            sock.close()
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -347,6 +357,14 @@ class Server:
     log_path: Path
     secret: bytes | None = None
     runs: list[dict] = field(default_factory=list)  # its rows, one per N and round
+    # Replicas behind a load balancer: `process` is the balancer (nginx), `replicas` the gt-serve processes whose
+    # /health answers at `replica_urls`; every process's CPU counts.
+    replicas: list[subprocess.Popen] = field(default_factory=list)
+    replica_urls: list[str] = field(default_factory=list)
+
+    def cpu_seconds(self) -> float:
+        """CPU seconds so far of every process serving its sessions."""
+        return sum(_cpu_seconds(process.pid) for process in [self.process, *self.replicas])
 
     def client_tokens(self, count: int, tag: str) -> list[str | None]:
         """A token per load client, each with its own subject (gt-serve caps sessions per subject)."""
@@ -363,8 +381,9 @@ class Server:
             from gaussiantalker.serve import mint_token
 
             headers = _auth(mint_token(self.secret, 60.0, subject="gt-bench-admin", admin=True))
-        request = urllib.request.Request(f"{self.url}/health", headers=headers)
-        return json.loads(urllib.request.urlopen(request, timeout=10).read())["sessions"]
+        return sum(json.loads(urllib.request.urlopen(urllib.request.Request(f"{url}/health", headers=headers),
+                                                     timeout=10).read())["sessions"]
+                   for url in self.replica_urls or [self.url])
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Wait until every session has closed (before the next round); False if some are open at `timeout`."""
@@ -376,33 +395,75 @@ class Server:
         return False
 
     def stop(self) -> dict:
-        """Stop it; its log's tail and how many of its lines name an error or a traceback."""
-        self.process.terminate()
-        try:
-            self.process.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
-        text = self.log_path.read_text(errors="replace") if self.log_path.is_file() else ""
+        """Stop it (replicas first, then their balancer); its log's tail and how many of its lines name an error
+        or a traceback (every replica's log, for replicas)."""
+        for process in [*self.replicas, self.process]:
+            process.terminate()
+            try:
+                process.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+        logs = [self.log_path.with_name(f"{self.log_path.stem}-{k}.log") for k in range(len(self.replicas))]
+        text = "".join(path.read_text(errors="replace") for path in logs or [self.log_path] if path.is_file())
         errors = sum(" ERROR " in line or "Traceback" in line for line in text.splitlines())
         return {"log_tail": text[-2000:], "log_error_lines": errors}
 
 
-def _start_new_server(bundle: Path, settings: ServerSettings, folder: Path, max_sessions: int) -> Server:
-    """gt-serve on a free loopback port, tokens on (a fresh secret in `folder`), once /readyz answers."""
+def _start_new_server(bundle: Path, settings: ServerSettings, folder: Path, max_sessions: int,
+                      replicas: int = 1) -> Server:
+    """gt-serve on a free loopback port, tokens on (a fresh secret in `folder`), once /readyz answers; with
+    `replicas` > 1, that many gt-serve processes sharing the secret behind nginx (deploy/nginx.conf: least_conn,
+    WebSockets passed through), the clients sent to nginx."""
     from gaussiantalker.serve import new_secret, read_secret
 
     secret_path = folder / "secret.txt"
     descriptor = os.open(secret_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     with os.fdopen(descriptor, "w") as file:
         file.write(new_secret() + "\n")
-    port = _free_port()
-    url = f"http://127.0.0.1:{port}"
-    command = [sys.executable, "-m", SERVE_MODULE, str(bundle), "--port", str(port), "--secret-file",
-               str(secret_path), "--max-sessions", str(max_sessions), *settings.arguments()]
-    log_path = folder / "gt-serve.log"
-    process = serving(command, f"{url}/readyz", SERVER_START_S, name="gt-serve", log_path=log_path)
-    return Server("new", process, url, command, log_path, secret=read_secret(secret_path))
+    secret = read_secret(secret_path)
+
+    def start(port: int, log_path: Path) -> tuple[subprocess.Popen, list[str]]:
+        command = [sys.executable, "-m", SERVE_MODULE, str(bundle), "--port", str(port), "--secret-file",
+                   str(secret_path), "--max-sessions", str(max_sessions), *settings.arguments()]
+        return serving(command, f"http://127.0.0.1:{port}/readyz", SERVER_START_S, name=f"gt-serve :{port}",
+                       log_path=log_path), command
+
+    if replicas == 1:
+        port = _free_port()
+        process, command = start(port, folder / "gt-serve.log")
+        return Server("new", process, f"http://127.0.0.1:{port}", command, folder / "gt-serve.log", secret=secret)
+    return _start_replicas(start, folder, replicas, secret)
+
+
+def _start_replicas(start, folder: Path, replicas: int, secret: bytes) -> Server:
+    """`replicas` gt-serve processes (`start(port, log_path)`) behind nginx on loopback."""
+    from .replicas import nginx_binary, nginx_config
+
+    nginx = nginx_binary()
+    if nginx is None:
+        raise RuntimeError("--replicas needs nginx, the load balancer in front of them (Debian: apt-get install "
+                           "nginx; docs/serve.md, \"Replicas behind a load balancer\")")
+    *ports, listen, backend = _free_ports(replicas + 2)
+    started: list[subprocess.Popen] = []
+    try:
+        command = []
+        for k, port in enumerate(ports):
+            process, command = start(port, folder / f"gt-serve-{k}.log")
+            started.append(process)
+        prefix = folder / "nginx"
+        (prefix / "logs").mkdir(parents=True)
+        (prefix / "nginx.conf").write_text(nginx_config(listen, ports, backend))
+        url = f"http://127.0.0.1:{listen}"
+        balancer = serving([nginx, "-p", str(prefix), "-c", str(prefix / "nginx.conf")], f"{url}/readyz", 30,
+                           name="nginx", log_path=prefix / "logs" / "stdout.log")
+    except BaseException:
+        for process in started:
+            process.kill()
+            process.wait()
+        raise
+    return Server("new", balancer, url, [nginx, "+", *command], folder / "gt-serve.log", secret=secret,
+                  replicas=started, replica_urls=[f"http://127.0.0.1:{port}" for port in ports])
 
 
 def _start_baseline_server(baseline: Baseline, bundle: Path, settings: ServerSettings, folder: Path,
@@ -444,9 +505,9 @@ def _run_round(server: Server, n: int, index: int, speak_s: float, idle_s: float
     """N load clients against `server` once: the round's row and its clients' records."""
     tokens = server.client_tokens(n, f"n{n}-r{index}")
     load_before = os.getloadavg()
-    cpu_before, started = _cpu_seconds(server.process.pid), time.monotonic()
+    cpu_before, started = server.cpu_seconds(), time.monotonic()
     clients = _run_clients(server.url, tokens, speak_s, idle_s, chunk_ms, transport)
-    cpu_s, wall_s = _cpu_seconds(server.process.pid) - cpu_before, time.monotonic() - started
+    cpu_s, wall_s = server.cpu_seconds() - cpu_before, time.monotonic() - started
     row = {"server": server.label, "n": n, "round": index, **_analyse(clients, cpu_s, wall_s),
            "load_before": load_before, "load_after": os.getloadavg()}
     row["drained"] = server.wait_idle()  # every session closed before the next round
@@ -590,10 +651,12 @@ def _analyse(clients: list[dict], cpu_s: float, wall_s: float) -> dict:
 def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float = 160.0,
                            speak_s: float = SPEAK_S, idle_s: float = IDLE_S, chunk_ms: float = 20.0,
                            log=print, transport: str = "webrtc", batch_frames: int = 1,
-                           context_ms: float = 1000.0, baseline: Baseline | None = None, rounds: int = 1) -> dict:
-    """Start gt-serve (tokens on) and, with `baseline`, the baseline script, then for each N `rounds` rounds of
-    its load clients on `transport` ("webrtc": audio track and data channel; "ws": one WebSocket) against each
-    server in turn; returns gt-serve's figures per N (`runs`), the baseline's and the ratios."""
+                           context_ms: float = 1000.0, baseline: Baseline | None = None, rounds: int = 1,
+                           replicas: int = 1) -> dict:
+    """Start gt-serve (tokens on; `replicas` > 1: that many behind nginx) and, with `baseline`, the baseline
+    script, then for each N `rounds` rounds of its load clients on `transport` ("webrtc": audio track and data
+    channel; "ws": one WebSocket) against each server in turn; returns gt-serve's figures per N (`runs`), the
+    baseline's and the ratios."""
     if transport not in TRANSPORTS:
         raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
     settings = ServerSettings(lookahead_ms, batch_frames, context_ms)
@@ -605,7 +668,7 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
             cap = max(DEFAULT_MAX_SESSIONS, max(counts))
             if baseline is not None:
                 servers.append(_start_baseline_server(baseline, bundle, settings, Path(folder), cap))
-            servers.append(_start_new_server(bundle, settings, Path(folder), cap))
+            servers.append(_start_new_server(bundle, settings, Path(folder), cap, replicas))
             pooled = _alternate(servers, counts, rounds, speak_s, idle_s, chunk_ms, transport, log)
         finally:
             for server in servers:
@@ -615,7 +678,7 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
               "round_runs": [row for server in servers for row in server.runs], "rounds": rounds,
               "late_tolerance_ms": 1000 * LATE_TOLERANCE_S, "speak_s": speak_s, "idle_s": idle_s,
               "lookahead_ms": lookahead_ms, "chunk_ms": chunk_ms, "transport": transport, "batch_frames": batch_frames,
-              "context_ms": context_ms, "server": {"command": new.command, "tokens": True},
+              "context_ms": context_ms, "server": {"command": new.command, "tokens": True, "replicas": replicas},
               "server_log_tail": logs["new"]["log_tail"], "server_log_error_lines": logs["new"]["log_error_lines"],
               "baseline": None, "ratios": None}
     if baseline is not None:
@@ -662,6 +725,12 @@ def _detail_table(runs: list[dict], largest: int, tolerance_ms: float) -> str:
     return "\n".join(lines)
 
 
+def server_name(result: dict) -> str:
+    """gt-serve as a table names it: one process, or its replicas behind nginx."""
+    replicas = result.get("server", {}).get("replicas", 1)
+    return "gt-serve" if replicas == 1 else f"{replicas} gt-serve replicas behind nginx"
+
+
 def baseline_name(result: dict) -> str:
     """The baseline as a table names it: its commit's short hash, or its script."""
     baseline = result["baseline"]
@@ -675,7 +744,7 @@ def _comparison_table(result: dict) -> str:
     lines = ["| N | server | late frames | first frame p50 | server CPU s per session-s | barge-in p50 | failed |",
              "|---:|---|---:|---:|---:|---:|---:|"]
     for old, new, ratio in zip(result["baseline"]["runs"], result["runs"], result["ratios"], strict=True):
-        for name, row in ((old_name, old), ("gt-serve (tokens)", new)):
+        for name, row in ((old_name, old), (f"{server_name(result)} (tokens)", new)):
             lines.append(f"| {row['n']} | {name} | {100 * row['late_share']:.1f}% | "
                          f"{_ms(row['first_frame']['p50_ms'])} ms | {_cpu(row['cpu_s_per_session_s'])} | "
                          f"{_ms(row['barge_in']['p50_ms'])} ms | {row['failed']} |")
@@ -697,5 +766,5 @@ def live_clients_table(result: dict) -> str:
     if not result.get("baseline"):
         return new
     old = _detail_table(result["baseline"]["runs"], result["baseline"]["largest_n_within_5pct_late"], tolerance)
-    return (f"{_comparison_table(result)}\n\ngt-serve (tokens on):\n\n{new}\n\n{baseline_name(result)} "
+    return (f"{_comparison_table(result)}\n\n{server_name(result)} (tokens on):\n\n{new}\n\n{baseline_name(result)} "
             f"{result['baseline'].get('name', 'live_server.py')}:\n\n{old}")

@@ -93,7 +93,6 @@ class ArkitDeformationGraph(nn.Module):
         rgb = torch.clamp_min(rgb + 0.5, 0.0)
         return means.transpose(1, 2), cov3d.transpose(1, 2), rgb.transpose(1, 2), self.opacity
 
-
     def _morphed(self, stored: torch.Tensor, batch: int, n: int) -> torch.Tensor:
         """Each Gaussian's morph offset [B, 3, N] from the stored vertices' [B, 3S]: derived (midpoint) vertices as
         the mean of their two ends, then each Gaussian's row (docs/deformation.md, "Midpoint vertices")."""
