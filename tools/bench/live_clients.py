@@ -84,6 +84,15 @@ def _cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def _children(pid: int) -> list[int]:
+    """The running child processes of `pid` (nginx's workers under its master)."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        text = (task / "children").read_text() if (task / "children").is_file() else ""
+        found += [int(child) for child in text.split()]
+    return found
+
+
 def _auth(token: str | None) -> dict[str, str]:
     """The headers that carry a client's token (none for a server without tokens)."""
     return {"Authorization": f"Bearer {token}"} if token else {}
@@ -358,13 +367,16 @@ class Server:
     secret: bytes | None = None
     runs: list[dict] = field(default_factory=list)  # its rows, one per N and round
     # Replicas behind a load balancer: `process` is the balancer (nginx), `replicas` the gt-serve processes whose
-    # /health answers at `replica_urls`; every process's CPU counts.
+    # /health answers at `replica_urls`; every process's CPU counts. `command`: the last replica's.
     replicas: list[subprocess.Popen] = field(default_factory=list)
     replica_urls: list[str] = field(default_factory=list)
 
     def cpu_seconds(self) -> float:
-        """CPU seconds so far of every process serving its sessions."""
-        return sum(_cpu_seconds(process.pid) for process in [self.process, *self.replicas])
+        """CPU seconds so far of every process serving its sessions (a balancer's workers too)."""
+        if not self.replicas:
+            return _cpu_seconds(self.process.pid)
+        pids = [*(replica.pid for replica in self.replicas), self.process.pid, *_children(self.process.pid)]
+        return sum(_cpu_seconds(pid) for pid in dict.fromkeys(pids))
 
     def client_tokens(self, count: int, tag: str) -> list[str | None]:
         """A token per load client, each with its own subject (gt-serve caps sessions per subject)."""
@@ -462,8 +474,8 @@ def _start_replicas(start, folder: Path, replicas: int, secret: bytes) -> Server
             process.kill()
             process.wait()
         raise
-    return Server("new", balancer, url, [nginx, "+", *command], folder / "gt-serve.log", secret=secret,
-                  replicas=started, replica_urls=[f"http://127.0.0.1:{port}" for port in ports])
+    return Server("new", balancer, url, command, folder / "gt-serve.log", secret=secret, replicas=started,
+                  replica_urls=[f"http://127.0.0.1:{port}" for port in ports])
 
 
 def _start_baseline_server(baseline: Baseline, bundle: Path, settings: ServerSettings, folder: Path,
