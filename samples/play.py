@@ -122,8 +122,9 @@ def play(
                                       "65536 levels, faster [default: the bundle's preset, else 32]"),
     alpha_min: float = typer.Option(None, "--alpha-min", help="CPU splatter: skip contributions with a smaller "
                                     "alpha (1/255-0.1) [default: the bundle's preset, else 1/255]"),
-    max_draw_pixels: int = typer.Option(None, "--max-draw-pixels", help="draw at most about this many pixels, "
-                                        "then upscale [default: the bundle's preset, else no cap]"),
+    max_draw_pixels: int = typer.Option(None, "--max-draw-pixels", min=0, help="draw at most about this many "
+                                        "pixels, then upscale; 0: no cap [default: the bundle's preset, else no "
+                                        "cap]"),
     no_pipeline: bool = typer.Option(False, "--no-pipeline", help="one frame stage after another on one thread "
                                      "(the same frames; by default neighbouring frames' stages overlap)"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bar"),

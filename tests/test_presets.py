@@ -92,6 +92,11 @@ def test_fast_preset_plays_with_its_stored_runtime_defaults(small_speaker, reduc
     with TalkingHead(path, renderer="cpu", alpha_min=numerics.ALPHA_MIN) as head:
         assert head.render_settings == RenderSettings(render_scale=0.75, render_target="uint8",
                                                       max_draw_pixels=256 * 256)
+    with TalkingHead(path, renderer="cpu", max_draw_pixels=0) as head:  # 0 removes the stored cap
+        assert head.render_settings == RenderSettings(render_scale=0.75, render_target="uint8", alpha_min=0.03)
+    with TalkingHead(path, renderer="cpu", render_settings=RenderSettings(max_draw_pixels=64 * 64),
+                     max_draw_pixels=None) as head:
+        assert head.render_settings.max_draw_pixels == 64 * 64
     _verify(small_speaker, path, "fast")
 
 

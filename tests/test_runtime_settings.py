@@ -119,6 +119,17 @@ def test_groups_are_frozen_and_compared_by_value():
     assert BackendSettings("mnn", 2) == BackendSettings(name="mnn", threads=2, shader_target="330")
 
 
+def test_overrides_leave_what_is_not_given_and_0_removes_the_pixel_cap():
+    """with_overrides: None means "not given" (the stored value stays); the pixel cap, whose own "none" is None,
+    is removed by 0; a negative cap is still refused."""
+    stored = RenderSettings(render_scale=0.75, max_draw_pixels=256 * 256)
+    assert stored.with_overrides(max_draw_pixels=None, render_scale=None) == stored
+    assert stored.with_overrides(max_draw_pixels=0) == RenderSettings(render_scale=0.75)
+    assert stored.with_overrides(max_draw_pixels=128 * 128).max_draw_pixels == 128 * 128
+    with pytest.raises(ValueError, match="max_draw_pixels must be a whole number >= 1 or None"):
+        stored.with_overrides(max_draw_pixels=-1)
+
+
 @pytest.mark.parametrize("make, message", [
     (lambda: OutputSettings(resolution=(0, 48)), "output resolution must be \\(width, height\\)"),
     (lambda: OutputSettings(resolution=(64,)), "output resolution must be"),

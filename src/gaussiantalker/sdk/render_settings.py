@@ -122,8 +122,12 @@ class RenderSettings:
         return cls(**data)
 
     def with_overrides(self, **overrides) -> RenderSettings:
-        """These settings with every non-None override applied."""
-        return RenderSettings(**{**self.to_dict(), **{k: v for k, v in overrides.items() if v is not None}})
+        """These settings with every non-None override applied; `max_draw_pixels=0` removes the pixel cap (None
+        there means "not given", as for every override)."""
+        given = {k: v for k, v in overrides.items() if v is not None}
+        if given.get("max_draw_pixels") == 0:
+            given["max_draw_pixels"] = None
+        return RenderSettings(**{**self.to_dict(), **given})
 
 
 # The splatters a bundle may store its own defaults for (manifest `runtime_defaults_by_renderer`): a preset's
