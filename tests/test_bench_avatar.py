@@ -27,7 +27,9 @@ def test_bench_avatar_writes_every_measure(tmp_path):
     out = tmp_path / "bench"
     result = CliRunner().invoke(app, ["avatar", str(avatar), "--demo-checkpoint", str(tmp_path / "demo.ckpt"),
                                       "--frames", "4", "--fps-seconds", "0.4", "--rounds", "1", "--presets",
-                                      ",".join(PRESET_SUBSET), "--verify-frames", "2", "--out", str(out)])
+                                      ",".join(PRESET_SUBSET), "--verify-frames", "2", "--variant",
+                                      "fast full=fast:render_scale=1,render_target=float32,alpha_min=1/255,"
+                                      "max_draw_pixels=0", "--out", str(out)])
     assert result.exit_code == 0, result.output
     report = json.loads((out / "avatar.json").read_text())
     markdown = (out / "avatar.md").read_text()
@@ -44,8 +46,12 @@ def test_bench_avatar_writes_every_measure(tmp_path):
             assert f"| {name} |" in markdown
     assert report["presets"]["quality"]["smaller_than_fp32"] == 1.0
     assert report["presets"]["compact"]["smaller_than_fp32"] > 1.0
+    variant = report["variants"]["fast full"]  # fast's bundle at full scale: its stored render settings overridden
+    assert variant["preset"] == "fast" and variant["runtime"]["render_scale"] == 1.0
+    assert variant["runtime"]["max_draw_pixels"] is None and "| fast full | fast | scale 1, float32" in markdown
+    numbers += [variant["head_psnr_median_db"], variant["head_psnr_min_db"]]
     cases = report["fps"]["cases"]
-    assert set(cases) == {f"avatar {name}" for name in PRESET_SUBSET} | {"demo speaker fp32"}
+    assert set(cases) == {f"avatar {name}" for name in PRESET_SUBSET} | {"avatar fast full", "demo speaker fp32"}
     for case in cases.values():
         numbers += [case["frame_ms"], case["fps"], *case["fps_rounds"]]
         assert len(case["frame_ms_rounds"]) == 1

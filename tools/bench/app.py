@@ -398,13 +398,17 @@ def avatar(
                                 "among them [default: all]"),
     verify_frames: int = typer.Option(25, "--verify-frames", min=0, help="frames verify_bundle compares against the "
                                       "torch speaker (its 6 novel views come on top); 0: no verify"),
+    variant: list[str] = typer.Option(None, "--variant", help="LABEL=PRESET:key=value,...: the preset's bundle "
+                                      "played with these TalkingHead settings (render_scale, render_target, "
+                                      "sort_interval, sort_key_bits, alpha_min, max_draw_pixels, threads) beside "
+                                      "the presets, in quality and FPS; repeatable"),
 ) -> None:
     """An imported LAM or GaussianAvatars avatar: import, preset export and verify times, bundle sizes, each preset's
     head PSNR against fp32, and FPS at 512x512 beside the demo speaker (alternating rounds)."""
 
     from gaussiantalker.sdk.errors import GaussianTalkerError
 
-    from .avatar import format_report, run_avatar_bench
+    from .avatar import Variant, check_variants, format_report, run_avatar_bench
 
     if avatar_path.is_dir() and flame is None:
         raise typer.BadParameter(f"{avatar_path} is a directory: a GaussianAvatars avatar, which needs its FLAME "
@@ -418,6 +422,11 @@ def avatar(
     if chosen is not None and ("quality" not in chosen or set(chosen) - set(PRESETS)):
         raise typer.BadParameter(f"{presets!r}: presets among {', '.join(PRESETS)}, quality (the reference) "
                                  "among them", param_hint="--presets")
+    try:
+        variants = [Variant.parse(text) for text in variant or []]
+        check_variants(variants, chosen or list(PRESETS))
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--variant") from None
     files = [(motion, "--motion"), (demo_checkpoint, "--demo-checkpoint"), (flame, "--flame")]
     if flame is None:
         files.insert(0, (avatar_path, "AVATAR"))  # a LAM zip; a GaussianAvatars directory was checked above
@@ -427,7 +436,7 @@ def avatar(
     command = _command()
     try:
         result = run_avatar_bench(avatar_path, motion, frames, fps_seconds, rounds, demo_checkpoint, gaussians, out,
-                                  command, note, flame, chosen, verify_frames)
+                                  command, note, flame, chosen, verify_frames, variants)
     except GaussianTalkerError as exc:  # a damaged avatar, FLAME model or motion file: its message, not a traceback
         typer.echo(f"gt-bench avatar: {exc}", err=True)
         raise typer.Exit(2) from None

@@ -19,6 +19,10 @@ avatar zip or a GaussianAvatars output directory with the user's FLAME model:
   gap once the first frames are left out: the CPU splatter's loop hands frames over in bursts) per round, medians
   over rounds.
 
+* Variants (`--variant LABEL=PRESET:key=value,...`): a preset's bundle played with other TalkingHead render
+  settings than it stores, in the quality and speed measures beside the presets: what each runtime knob trades on
+  this avatar.
+
 The motion is a table `head.driver.motion` takes for either rig: ARKit weights [T, 52] or a FLAME table [T, E + 18].
 `--presets` (a subset holding quality) and `--verify-frames` trim the costs of a large avatar on a small machine: a
 Gaussian budget (compact, fast, mobile) and verify draw with the torch reference rasterizer, whose time grows with
@@ -29,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import fractions
 import json
 import statistics
 import tempfile
@@ -59,6 +64,48 @@ HEAD_COVERAGE = 1.0 / 255.0  # the head region: fp32 coverage above this
 # Random ARKit drives (when an ARKit avatar ships no motion and none is given): a new key pose every KEY_FRAMES
 # frames, each blendshape active with probability KEY_ACTIVE at a uniform 0..1 weight, linear in between.
 RANDOM_SECONDS, KEY_FRAMES, KEY_ACTIVE = 10.0, 15, 0.2
+
+
+# What a variant may set: TalkingHead's render keywords (docs/embedding.md), each parsed as the type it takes.
+VARIANT_KEYS = {"render_scale": float, "render_target": str, "sort_interval": int, "sort_key_bits": int,
+                "alpha_min": float, "max_draw_pixels": int, "threads": int}
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """A preset's bundle played with other runtime settings than it stores (`settings`: TalkingHead keywords), so
+    that the trade each runtime knob makes on this avatar is measured beside the presets."""
+
+    label: str
+    preset: str
+    settings: dict
+
+    @classmethod
+    def parse(cls, text: str) -> Variant:
+        """LABEL=PRESET:key=value,key=value (keys: VARIANT_KEYS; max_draw_pixels=0 removes a stored cap)."""
+        label, _, rest = text.partition("=")
+        preset, _, pairs = rest.partition(":")
+        if not label.strip() or preset not in PRESETS:
+            raise ValueError(f"{text!r}: give LABEL=PRESET:key=value,... with PRESET one of {', '.join(PRESETS)}")
+        settings = {}
+        for pair in filter(None, (item.strip() for item in pairs.split(","))):
+            key, _, value = pair.partition("=")
+            if key not in VARIANT_KEYS or not value:
+                raise ValueError(f"{text!r}: {pair!r} is no key=value of {', '.join(VARIANT_KEYS)}")
+            try:  # a float may be a fraction: alpha_min=1/255 is the contract's cut
+                kind = VARIANT_KEYS[key]
+                settings[key] = float(fractions.Fraction(value)) if kind is float else kind(value)
+            except (ValueError, ZeroDivisionError):
+                raise ValueError(f"{text!r}: {key} takes a {VARIANT_KEYS[key].__name__}, got {value!r}") from None
+        return cls(label.strip(), preset, settings)
+
+
+def check_variants(variants: Sequence[Variant], presets: Sequence[str]) -> None:
+    """ValueError unless each variant's preset is among `presets` (the exported ones) and its label is its own."""
+    if any(variant.preset not in presets for variant in variants) or \
+            len({variant.label for variant in variants} | set(presets)) != len(variants) + len(presets):
+        raise ValueError(f"each variant needs its preset among the exported ones ({', '.join(presets)}) and a label "
+                         f"no preset or other variant has (variants: {', '.join(v.label for v in variants)})")
 
 
 def avatar_importer(avatar: Path, flame: Path | None) -> tuple[str, Callable[[], object]]:
@@ -149,14 +196,14 @@ def timed_costs(load: Callable[[], object], folder: Path, rounds: int, presets: 
     return speaker, exports, costs
 
 
-def render_at(bundle: Path, motion: np.ndarray, indices: np.ndarray, bar, coverage: bool = False
-              ) -> tuple[np.ndarray, np.ndarray | None, dict]:
-    """uint8 frames [S, SIZE, SIZE, 3] of `bundle` (its own runtime defaults, on the splatter a plain TalkingHead
-    picks, the one the speed rounds play on) at frames `indices` of `motion` (its `motion_drives`), the coverage
-    masks when asked, and the render settings the bundle picked with the splatter that drew."""
+def render_at(bundle: Path, motion: np.ndarray, indices: np.ndarray, bar, coverage: bool = False,
+              settings: dict | None = None) -> tuple[np.ndarray, np.ndarray | None, dict]:
+    """uint8 frames [S, SIZE, SIZE, 3] of `bundle` (its own runtime defaults, or those with `settings` applied, on
+    the splatter a plain TalkingHead picks, the one the speed rounds play on) at frames `indices` of `motion` (its
+    `motion_drives`), the coverage masks when asked, and the render settings it played with and the splatter."""
     frames, masks = [], []
     wanted = set(indices.tolist())
-    with TalkingHead(bundle, resolution=(SIZE, SIZE), composite=False) as head:
+    with TalkingHead(bundle, resolution=(SIZE, SIZE), composite=False, **(settings or {})) as head:
         for index, drive in enumerate(head.drives(motion=motion)):
             if index not in wanted:
                 continue
@@ -168,18 +215,19 @@ def render_at(bundle: Path, motion: np.ndarray, indices: np.ndarray, bar, covera
     return np.stack(frames), (np.stack(masks) if coverage else None), settings
 
 
-def preset_quality(exports: dict[str, dict], motion: np.ndarray, indices: np.ndarray) -> dict[str, dict]:
-    """Per preset: head-region 8-bit PSNR of its frames against the fp32 bundle's (per frame, median, minimum)
-    and the runtime defaults it played with."""
+def preset_quality(exports: dict[str, dict], motion: np.ndarray, indices: np.ndarray,
+                   variants: Sequence[Variant] = ()) -> dict[str, dict]:
+    """Per preset, then per variant (by label): head-region 8-bit PSNR of its frames against the fp32 bundle's
+    (per frame, median, minimum) and the runtime settings it played with."""
     results = {}
-    with progress_bar(total=len(exports) * len(indices), desc=f"quality at {SIZE}²", unit="frame") as bar:
+    cases = [(name, export["path"], None) for name, export in exports.items() if name != REFERENCE]
+    cases += [(variant.label, exports[variant.preset]["path"], variant.settings) for variant in variants]
+    with progress_bar(total=(1 + len(cases)) * len(indices), desc=f"quality at {SIZE}²", unit="frame") as bar:
         reference, heads, settings = render_at(exports[REFERENCE]["path"], motion, indices, bar, coverage=True)
         results[REFERENCE] = {"runtime": settings, "head_pixels_median": int(np.median(heads.sum(axis=(1, 2))))}
-        for name, export in exports.items():
-            if name == REFERENCE:
-                continue
+        for name, path, overrides in cases:
             bar.set_postfix_str(name)
-            frames, _, settings = render_at(export["path"], motion, indices, bar)
+            frames, _, settings = render_at(path, motion, indices, bar, settings=overrides)
             psnrs = [psnr_db(reference[i][heads[i]], frames[i][heads[i]]) for i in range(len(indices))]
             results[name] = {"runtime": settings, "head_psnr_db": psnrs,
                              "head_psnr_median_db": float(statistics.median(psnrs)), "head_psnr_min_db": min(psnrs)}
@@ -202,11 +250,13 @@ def demo_speaker(checkpoint: Path | None, gaussians: int):
 def run_avatar_bench(avatar: Path, motion: Path | None, samples: int, fps_seconds: float, rounds: int,
                      demo_checkpoint: Path | None, demo_gaussians: int, out: Path, command: str,
                      note: str | None = None, flame: Path | None = None, presets: Sequence[str] | None = None,
-                     verify_frames: int = 25) -> dict:
+                     verify_frames: int = 25, variants: Sequence[Variant] = ()) -> dict:
     """Every measure of the module docstring (`flame` given: `avatar` is a GaussianAvatars directory, else a LAM
-    zip; `presets`: a subset holding quality, None: all; `verify_frames` 0: no verify); writes `out`/avatar.md and
+    zip; `presets`: a subset holding quality, None: all; `verify_frames` 0: no verify; `variants`: presets' bundles
+    played with other runtime settings, in the quality and speed measures too); writes `out`/avatar.md and
     `out`/avatar.json and returns the JSON."""
     presets = tuple(PRESETS) if presets is None else tuple(name for name in PRESETS if name in presets)
+    check_variants(variants, presets)
     started = time.perf_counter()
     date = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     machine = machine_info()
@@ -218,23 +268,27 @@ def run_avatar_bench(avatar: Path, motion: Path | None, samples: int, fps_second
             table, motion_line = bench_motion(head, motion)
             fps, rig = head.fps, head.driver.rig
         indices = sample_indices(len(table), samples)
-        quality = preset_quality(exports, table, indices)
+        quality = preset_quality(exports, table, indices, variants)
         demo = demo_speaker(demo_checkpoint, demo_gaussians)
         demo_bundle = folder / "demo.gtb"
         export_bundle(demo, demo_bundle, progress=True)
         played = {name: exports[name]["path"] for name in FPS_PRESETS if name in exports}
-        speed = fps_rounds(played, demo_bundle, table,
-                           max(2, int(round(fps_seconds * fps))), rounds, SIZE)
+        played |= {variant.label: exports[variant.preset]["path"] for variant in variants}
+        speed = fps_rounds(played, demo_bundle, table, max(2, int(round(fps_seconds * fps))), rounds, SIZE,
+                           {variant.label: variant.settings for variant in variants})
         speed["demo_gaussians"] = demo.gaussians.count
     reference_bytes = exports[REFERENCE]["bytes"]
     presets = {name: {"export_s": e["export_s"], "export_s_rounds": e["export_s_rounds"],
                       "bundle_mb": e["bytes"] / 1e6, "smaller_than_fp32": reference_bytes / e["bytes"],
                       "gaussians": e["gaussians"], **quality[name]}
                for name, e in exports.items()}
+    played_variants = {variant.label: {"preset": variant.preset, "settings": variant.settings, **quality[variant.label]}
+                       for variant in variants}
     result = {"command": command, "date": date, "machine": machine, "note": note, "avatar": str(avatar),
               "flame": None if flame is None else str(flame), "importer": importer, "rig": rig,
               "gaussians": speaker.gaussians.count, "import_s": costs.pop("import_s"),
               "import_s_rounds": costs.pop("import_s_rounds"), "verify": costs, "presets": presets,
+              "variants": played_variants,
               "quality": {"size": SIZE, "motion": motion_line, "motion_frames": len(table),
                           "frames": [int(i) for i in indices], "head_coverage_above": HEAD_COVERAGE},
               "fps": speed, "run_s": time.perf_counter() - started}
@@ -322,6 +376,13 @@ def format_report(result: dict) -> str:
         else:
             lines.append(f"| {name} | {_runtime_line(preset['runtime'])} | {preset['head_psnr_median_db']:.1f} | "
                          f"{preset['head_psnr_min_db']:.1f} |")
+    if result.get("variants"):
+        lines += ["", "Variants: a preset's bundle played with other runtime settings (`--variant`).", "",
+                  "| variant | bundle | runtime settings | head PSNR median dB | head PSNR min dB |",
+                  "|---|---|---|---|---|"]
+        for label, variant in result["variants"].items():
+            lines.append(f"| {label} | {variant['preset']} | {_runtime_line(variant['runtime'])} | "
+                         f"{variant['head_psnr_median_db']:.1f} | {variant['head_psnr_min_db']:.1f} |")
     lines += ["", f"## Frames per second at {fps['size']}x{fps['size']}", "",
               f"{fps['rounds']} alternating rounds of {fps['frames']} frames each: the avatar's bundles through "
               f"`TalkingHead.frames(motion=...)` (the motion above from its start, "

@@ -38,13 +38,15 @@ def steady_ms(walls: list[float]) -> float:
 
 
 def fps_rounds(avatar_bundles: dict[str, Path], demo_bundle: Path, motion: np.ndarray, frames: int, rounds: int,
-               size: int) -> dict:
-    """Alternating rounds at `size`²: each avatar bundle plays `frames` frames of `motion` (a motion table its
-    `TalkingHead.frames(motion=...)` takes: ARKit weights [T, 52] or a FLAME table [T, E + 18]), the demo speaker as
-    many frames of synthetic speech; per case the per-round ms/frame and FPS and their medians, and the avatar/demo
-    FPS ratios."""
+               size: int, settings: dict[str, dict] | None = None) -> dict:
+    """Alternating rounds at `size`²: each avatar bundle (with its `settings` entry's TalkingHead keywords, if any)
+    plays `frames` frames of `motion` (a motion table its `TalkingHead.frames(motion=...)` takes: ARKit weights
+    [T, 52] or a FLAME table [T, E + 18]), the demo speaker as many frames of synthetic speech; per case the per-round
+    ms/frame and FPS and their medians, and the avatar/demo FPS ratios."""
     clip = np.resize(motion, (frames, motion.shape[1]))  # the motion's first frames, repeated if it is shorter
-    heads = {f"avatar {name}": TalkingHead(path, resolution=(size, size)) for name, path in avatar_bundles.items()}
+    settings = settings or {}
+    heads = {f"avatar {name}": TalkingHead(path, resolution=(size, size), **settings.get(name, {}))
+             for name, path in avatar_bundles.items()}
     demo = heads[DEMO_LABEL] = TalkingHead(demo_bundle, resolution=(size, size), composite=False)
     audio = synth_speech(frames / demo.fps + 1.0, seed=7)  # a second more, so the clip has `frames` frames
     runs: dict[str, list[float]] = {label: [] for label in heads}
