@@ -5,39 +5,13 @@ client that can refuse to read (a small receive window) the way an attacker's cl
 from __future__ import annotations
 
 import asyncio
-import os
-import random
-import socket
 import threading
 from pathlib import Path
 
+from tools.bench.ports import free_port
 from tools.bench.serve_attacks import RawWebSocket, http
 
 SECRET = b"0123456789abcdef0123456789abcdef-tests-only"
-
-
-# Ports handed to the tests' servers: below Linux's ephemeral range (32768-60999), so that no outgoing connection
-# (nginx to a replica, a browser, a client) takes a port between its choice and the server's bind, and never the
-# same one twice in a run (a port the kernel hands out with bind(0) can come back at the next call).
-_PORT_RANGE = (20000, 32000)
-_handed_out: set[int] = set()
-_ports = random.Random(os.getpid())
-
-
-def free_port() -> int:
-    """A loopback port nothing listens on now and no earlier call of this run returned."""
-    for _ in range(1000):
-        port = _ports.randrange(*_PORT_RANGE)
-        if port in _handed_out:
-            continue
-        with socket.socket() as sock:
-            try:
-                sock.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-        _handed_out.add(port)
-        return port
-    raise RuntimeError(f"no free loopback port in {_PORT_RANGE}")
 
 
 class ServerThread:

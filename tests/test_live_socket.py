@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
 import struct
 import sys
 import time
@@ -21,6 +20,7 @@ import pytest
 from test_live_web import _server_module
 
 from tools.bench.live_clients import serving
+from tools.bench.ports import free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,9 +32,7 @@ def _serve(bundle) -> Iterator[tuple]:
     """gt-serve --client-render on `bundle`, on a free loopback port; after the module, its log holds no traceback
     and a line for each session's start and end."""
     module = _server_module()
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port = free_port()
     # --debug: the admin routes (/health, /drives) without tokens, on loopback (tests/test_serve_security.py has
     # the tokens)
     process = serving([sys.executable, "-m", "gaussiantalker.cli.serve", str(bundle), "--port", str(port),

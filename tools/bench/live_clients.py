@@ -28,7 +28,6 @@ import json
 import math
 import multiprocessing
 import os
-import socket
 import struct
 import subprocess
 import sys
@@ -39,6 +38,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from .ports import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 SERVE_MODULE = "gaussiantalker.cli.serve"  # gt-serve
@@ -60,22 +61,6 @@ WIRE_VERSION = 1  # the frame packet and drive message this bench reads (the bas
 TRANSPORTS = ("webrtc", "ws")
 TRANSPORT_NAMES = {"ws": "One WebSocket a session (frame packets: drive + int16 audio)",
                    "webrtc": "WebRTC (drives on a data channel, voice on an Opus audio track)"}
-
-
-def _free_port() -> int:
-    return _free_ports(1)[0]
-
-
-def _free_ports(count: int) -> list[int]:
-    """`count` distinct loopback ports nothing listens on (held together while chosen, so none repeats)."""
-    sockets = [socket.socket() for _ in range(count)]
-    try:
-        for sock in sockets:
-            sock.bind(("127.0.0.1", 0))
-        return [sock.getsockname()[1] for sock in sockets]
-    finally:
-        for sock in sockets:
-            sock.close()
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -442,7 +427,7 @@ def _start_new_server(bundle: Path, settings: ServerSettings, folder: Path, max_
                        log_path=log_path), command
 
     if replicas == 1:
-        port = _free_port()
+        port = free_port()
         process, command = start(port, folder / "gt-serve.log")
         return Server("new", process, f"http://127.0.0.1:{port}", command, folder / "gt-serve.log", secret=secret)
     return _start_replicas(start, folder, replicas, secret)
@@ -456,7 +441,7 @@ def _start_replicas(start, folder: Path, replicas: int, secret: bytes) -> Server
     if nginx is None:
         raise RuntimeError("--replicas needs nginx, the load balancer in front of them (Debian: apt-get install "
                            "nginx; docs/serve.md, \"Replicas behind a load balancer\")")
-    *ports, listen, backend = _free_ports(replicas + 2)
+    *ports, listen, backend = (free_port() for _ in range(replicas + 2))
     started: list[subprocess.Popen] = []
     try:
         command = []
@@ -481,7 +466,7 @@ def _start_replicas(start, folder: Path, replicas: int, secret: bytes) -> Server
 def _start_baseline_server(baseline: Baseline, bundle: Path, settings: ServerSettings, folder: Path,
                            max_sessions: int) -> Server:
     """The baseline script on a free loopback port, on its checkout's package, once /health answers."""
-    port = _free_port()
+    port = free_port()
     url = f"http://127.0.0.1:{port}"
     command = [sys.executable, str(baseline.script), str(baseline.bundle or bundle), "--port", str(port),
                *settings.arguments(),

@@ -34,6 +34,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from .live_clients import SERVE_MODULE, SERVER_START_S, SPEECH, Baseline, serving
+from .ports import free_port
 
 NEW_LABEL = "gt-serve"
 TOKEN_TTL_S = 600.0  # longer than a server's whole run
@@ -559,12 +560,6 @@ def _write_secret(folder: Path) -> Path:
     return path
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 def _stop(process, log_path: Path) -> dict:
     """Stop a server; its log's error and traceback lines counted."""
     process.terminate()
@@ -582,7 +577,7 @@ def attack_server(bundle: Path, folder: Path, baseline: Baseline | None = None,
                   log: Callable[[str], None] = print) -> dict:
     """Start gt-serve (tokens on) or, with `baseline`, the baseline script on `bundle`, run every attack, stop it;
     its label, command, seconds, log counts and outcomes."""
-    port = _free_port()
+    port = free_port()
     arguments = [str(bundle), "--port", str(port), "--client-render", "--audio", str(SPEECH)]
     if baseline is None:
         secret_path = _write_secret(folder)
