@@ -188,11 +188,9 @@ def merged_render(preset: RenderSettings, render: RenderSettings | None, threads
             return preset.with_overrides(graph_threads=threads, **shortcuts)
         fields = {name: _one_value(name, {name: value, f"render.{name}": getattr(render, name)})
                   for name, value in shortcuts.items()}
-        if fields.get("max_draw_pixels") == 0:  # 0: no pixel cap, as in RenderSettings.with_overrides
-            fields["max_draw_pixels"] = None
         threads = _one_value("graph threads", {threads_label: threads, "render.graph_threads": render.graph_threads})
-        return dataclasses.replace(render, graph_threads=preset.graph_threads if threads is None else threads,
-                                   **fields)
+        # (a field given nowhere is None here, and render's own None is what with_overrides then keeps)
+        return render.with_overrides(graph_threads=preset.graph_threads if threads is None else threads, **fields)
     except SettingsError:
         raise
     except (TypeError, ValueError) as exc:
