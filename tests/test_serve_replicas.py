@@ -166,19 +166,27 @@ def test_nginx_config_lists_every_replica():
         nginx_config(9000, [], 9004)
 
 
-def test_the_load_bench_runs_replicas_behind_nginx(small_export):
-    """`gt-bench live-clients --replicas 2`: two gt-serve processes behind nginx take the load clients' sessions,
-    every drive arrives, and the server's CPU is all its processes'."""
+def test_the_load_bench_runs_replicas_behind_nginx(small_export, tmp_path):
+    """`gt-bench live-clients --replicas 2 --baseline-replicas 2`: two gt-serve processes behind nginx take the load
+    clients' sessions, and two of the baseline's (this checkout run as an older commit's gt-serve) behind another
+    nginx; every drive arrives at both, and each server's CPU is all its processes'."""
     _nginx()
     need_module("aiohttp", "serve")
-    from tools.bench.live_clients import run_live_clients_bench, server_name
+    from tools.bench.live_clients import Baseline, baseline_name, run_live_clients_bench, server_name
 
+    wrapper = tmp_path / "serve_main.py"
+    wrapper.write_text("from gaussiantalker.cli.serve import main\n\nmain()\n")
+    baseline = Baseline(wrapper, Path(__file__).resolve().parents[1])
     result = run_live_clients_bench(small_export.path, [4], speak_s=1.0, idle_s=0.5, log=lambda line: None,
-                                    transport="ws", replicas=2)
-    row = result["runs"][0]
-    assert result["server"]["replicas"] == 2 and row["clients"] == 4 and row["failed"] == 0, row
-    assert row["missing_frames"] == 0 and row["server_cpu_s"] > 0 and result["server_log_error_lines"] == 0, row
+                                    transport="ws", replicas=2, baseline=baseline, baseline_replicas=2)
+    for runs in (result["runs"], result["baseline"]["runs"]):
+        row = runs[0]
+        assert row["clients"] == 4 and row["failed"] == 0 and row["missing_frames"] == 0, row
+        assert row["server_cpu_s"] > 0, row
+    assert result["server"]["replicas"] == 2 and result["server_log_error_lines"] == 0
+    assert result["baseline"]["server_log_error_lines"] == 0, result["baseline"]["server_log_tail"]
     assert server_name(result) == "2 gt-serve replicas behind nginx"
+    assert baseline_name(result).endswith("(2 replicas behind nginx)")
 
 
 def test_a_replica_killed_mid_speech_hands_its_pages_to_the_other(small_export, tmp_path):

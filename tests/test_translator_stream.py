@@ -20,7 +20,7 @@ import pytest
 import torch
 from unseen_speech import unseen_speech
 
-from gaussiantalker.exporter.model.translator import conv_kernels
+from gaussiantalker.exporter.model.translator import conv_kernels, normalize_waveform
 from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream, conv_plan
 from gaussiantalker.runtime import LiveSession
 from gaussiantalker.runtime.stages import open_driver
@@ -83,6 +83,72 @@ def test_the_feature_encoder_streams_exactly(small_speaker):
             assert error < 1e-4, (sizes, error)
     finally:
         hook.remove()
+
+
+def _feed(stream: MotionTranslatorStream, audio: np.ndarray, sizes: tuple[int, ...], provisional: int = 0):
+    """Feed `audio` from the rest state in calls of `sizes` committed frames (cycled), each with `provisional`
+    zero frames after; yields (committed frames so far, the call's outputs)."""
+    state, position, k = _rest(stream), 0, 0
+    frames = audio.shape[0] // FRAME
+    while position < frames:
+        keep = min(sizes[k % len(sizes)], frames - position)
+        chunk = np.concatenate([audio[position * FRAME:(position + keep) * FRAME],
+                                np.zeros(provisional * FRAME, np.float32)]).reshape(1, -1, FRAME)
+        with torch.no_grad():
+            out = stream(torch.from_numpy(chunk), state, torch.tensor([float(keep)]))
+        state, position, k = out[2], position + keep, k + 1
+        yield position, out
+
+
+def test_a_tail_of_the_whole_window_is_the_windowed_transformers(small_speaker):
+    """The K/V-cached transformers with a tail as long as the window keep nothing and run over the whole window:
+    once no row of the window comes from the all-zero state's blanks (which the cached form masks), the rows equal
+    the uncached stream's (the same ops on the same rows), in uneven calls with provisional frames."""
+    translator = small_speaker.translator.eval()
+    uncached = MotionTranslatorStream(translator, tail_frames=None).eval()
+    whole = MotionTranslatorStream(translator, tail_frames=uncached.window_frames).eval()
+    audio = unseen_speech()[0][:60 * FRAME]
+    compared = 0
+    for (position, a), (_, b) in zip(_feed(uncached, audio, (1, 3, 2), 1), _feed(whole, audio, (1, 3, 2), 1),
+                                     strict=True):
+        if REST_FRAMES + position - 3 >= whole.seen_cap:  # the call's window is past the masked frames
+            assert torch.abs(a[0] - b[0]).max() < 1e-6 and torch.abs(a[1] - b[1]).max() < 1e-6
+            compared += 1
+    assert compared > 20
+
+
+def test_the_kept_keys_and_values_are_those_of_their_frames(small_speaker):
+    """The encoder's first layer reads only its own row (and the positional convolution's neighbours), so on audio
+    whose features stream exactly the keys and values the state keeps for the frames before the tail equal those
+    the whole clip's first layer makes for the same frames: the cache holds each frame's, in order, across uneven
+    calls and provisional frames (1e-4: the features' own tolerance)."""
+    translator = small_speaker.translator.eval()
+    stream = MotionTranslatorStream(translator).eval()
+    encoder = translator.audio_encoder
+    frames = 80
+    audio = _periodic(frames)
+    with torch.no_grad():
+        features = encoder.feature_projection(encoder.feature_norm(encoder.feature_extractor(
+            normalize_waveform(torch.from_numpy(audio[None])))))
+        layer = encoder.encoder.layers[0]
+        _, keys, values = layer.attention.project(layer.layer_norm(encoder.pos_conv_embed(features)))
+    whole = torch.stack([keys, values], dim=1)[0]  # [2, H, F, Dh]
+    rows = 2 * (stream.window_frames - stream.tail_frames)
+    offsets = {name: sum(np.prod(shape) for _, shape in stream.state_parts[:i])
+               for i, (name, _) in enumerate(stream.state_parts)}
+    shape = dict(stream.state_parts)["encoder0"]
+    for sizes, provisional in (((1,), 0), ((3, 1, 5, 2), 1)):
+        checked = 0
+        for committed, out in _feed(stream, audio, sizes, provisional):
+            cache = out[2][0, offsets["encoder0"]:offsets["encoder0"] + int(np.prod(shape))].reshape(shape)
+            first = 2 * (committed - stream.window_frames)  # the next window's first feature
+            # frames whose window held no rest-state frame and whose positional convolution reads real features
+            for row in range(rows):
+                index = first + row
+                if 2 * (stream.window_frames + max(sizes) + provisional) <= index < 2 * frames - 16:
+                    assert torch.abs(cache[:, :, row] - whole[:, :, index]).max() < 1e-4, (sizes, index)
+                    checked += 1
+        assert checked > 100
 
 
 def test_conv_plan_keeps_what_each_kernel_reads():
@@ -155,18 +221,22 @@ def test_live_sessions_stream_the_speakers_translator(small_export, batch_frames
 
 
 def test_the_bench_compares_the_stream_with_the_windowed_calls(small_speaker, monkeypatch):
-    """`gt-bench translator-stream` on one clip: both translators' rows scored against offline, the stream within
-    0.05 of the windowed calls there, and a cost row per case with the windowed graph as the reference."""
+    """`gt-bench translator-stream` on one clip: the windowed translator's and the streams' (whole-window and
+    K/V-cached transformers) rows scored against offline, each stream within 0.05 of the windowed calls there, and
+    a cost row per case with the windowed graph as the reference."""
     import tools.bench.translator_stream as bench
 
     clip = unseen_speech()[0]
     monkeypatch.setattr(bench, "unseen_clips", lambda: [("held-out", clip[:clip.shape[0] // FRAME * FRAME])])
-    quality = bench.run_quality(small_speaker.translator, [4], [1])
+    variants = bench.stream_variants([0, 4], [None, 3, 5])
+    assert variants == [(0, None), (0, 5), (4, None), (4, 5)]  # a tail of 3 is shorter than the delay
+    quality = bench.run_quality(small_speaker.translator, [(4, None), (4, 5)], [1])
     scores = quality["clips"][0]["r"]
-    assert set(scores) == {"windowed, 1 a call", "stream, refresh 4, 1 a call"}
+    assert set(scores) == {"windowed, 1 a call", "stream, refresh 4, 1 a call", "stream, refresh 4, tail 5, 1 a call"}
     assert scores["stream, refresh 4, 1 a call"] >= scores["windowed, 1 a call"] - 0.05
-    cost = bench.run_cost(small_speaker.translator, [4], [(2, 1)], rounds=1)
-    assert set(cost[0]["ms_per_session_frame"]) == {"windowed", "stream, refresh 4"}
+    assert scores["stream, refresh 4, tail 5, 1 a call"] >= scores["windowed, 1 a call"] - 0.05
+    cost = bench.run_cost(small_speaker.translator, [(4, None), (4, 5)], [(2, 1)], rounds=1)
+    assert set(cost[0]["ms_per_session_frame"]) == {"windowed", "stream, refresh 4", "stream, refresh 4, tail 5"}
     table = bench.translator_stream_table({"quality": quality, "cost": cost})
     assert "| held-out |" in table and "| 2 | 1 |" in table and "× less" in table
 

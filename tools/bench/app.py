@@ -562,6 +562,8 @@ def live_batching(
 def translator_stream(
     checkpoint: Path = typer.Argument(..., help="a speaker checkpoint with a Motion Translator (.ckpt)"),
     refresh: str = typer.Option("0,2,4", "--refresh", help="comma-separated refreshed frames to compare"),
+    tail: str = typer.Option("window,5", "--tail", help="comma-separated frames the transformers run again "
+                             "before a call's new ones (\"window\": the whole window, no K/V cache)"),
     batch_frames: str = typer.Option("1,8", "--batch-frames", help="comma-separated frames a call"),
     rounds: int = typer.Option(20, "--rounds", min=1, help="alternating timing rounds (medians)"),
     out: Path = typer.Option(None, "--out", help="folder for translator-stream.md and translator-stream.json"),
@@ -570,17 +572,24 @@ def translator_stream(
     speech, per number of refreshed frames, and what a session-frame costs each way (docs/live.md)."""
     from gaussiantalker.exporter.export.checkpoint import load_checkpoint
 
-    from .translator_stream import run_cost, run_quality, translator_stream_table
+    from .translator_stream import run_cost, run_quality, stream_variants, translator_stream_table
 
     refreshes, batches = _numbers(refresh, int, "--refresh"), _numbers(batch_frames, int, "--batch-frames")
     if not refreshes or min(refreshes) < 0 or not batches or not all(1 <= b <= 8 for b in batches):
         raise typer.BadParameter("refresh >= 0 and frames a call in 1..8", param_hint="--refresh/--batch-frames")
+    tails = [None if t.strip() == "window" else t for t in tail.split(",") if t.strip()]
+    if not all(t is None or t.strip().isdigit() for t in tails) or not tails:
+        raise typer.BadParameter(f"{tail!r}: comma-separated whole numbers or \"window\"", param_hint="--tail")
+    variants = stream_variants(refreshes, [None if t is None else int(t) for t in tails])
+    if not variants:
+        raise typer.BadParameter("no tail is long enough for these refreshes (at least refresh + 1 and the "
+                                 "delay)", param_hint="--tail")
     speaker = load_checkpoint(checkpoint)
     if getattr(speaker, "translator", None) is None:
         raise typer.BadParameter(f"{checkpoint}: the speaker has no Motion Translator", param_hint="CHECKPOINT")
     cases = [(sessions, n) for sessions in (1, 100) for n in batches]
-    result = {"quality": run_quality(speaker.translator, refreshes, batches),
-              "cost": run_cost(speaker.translator, refreshes, cases, rounds)}
+    result = {"quality": run_quality(speaker.translator, variants, batches),
+              "cost": run_cost(speaker.translator, variants, cases, rounds)}
     _stamp(result)
     table = translator_stream_table(result)
     typer.echo(table)
@@ -671,6 +680,8 @@ def live_clients(
     replicas: int = typer.Option(1, "--replicas", min=1, max=8, help="gt-serve processes behind nginx "
                                  "(deploy/nginx.conf; docs/serve.md, \"Replicas behind a load balancer\"); 1: "
                                  "one process, no nginx"),
+    baseline_replicas: int = typer.Option(1, "--baseline-replicas", min=1, max=8, help="the baseline's gt-serve "
+                                          "processes behind nginx (a baseline that runs gt-serve)"),
     out: Path = typer.Option(None, "--out", help="folder for live-clients.md and live-clients.json"),
 ) -> None:
     """Client-render live sessions (gt-serve --client-render, tokens on) under N concurrent load clients: late
@@ -700,7 +711,7 @@ def live_clients(
         result["runs"].append(run_live_clients_bench(bundle, counts, lookahead_ms, speak_s, chunk_ms=chunk,
                                                      log=typer.echo, transport=kind, batch_frames=batch,
                                                      context_ms=context_ms, baseline=baseline, rounds=rounds,
-                                                     replicas=replicas))
+                                                     replicas=replicas, baseline_replicas=baseline_replicas))
     result["load_at_end"] = os.getloadavg()
     _stamp(result)
     table = "\n\n".join(f"{TRANSPORT_NAMES[run['transport']]}, voice pushed in {run['chunk_ms']:g} ms chunks at "

@@ -433,8 +433,12 @@ def _start_new_server(bundle: Path, settings: ServerSettings, folder: Path, max_
     return _start_replicas(start, folder, replicas, secret)
 
 
-def _start_replicas(start, folder: Path, replicas: int, secret: bytes) -> Server:
-    """`replicas` gt-serve processes (`start(port, log_path)`) behind nginx on loopback."""
+def _start_replicas(start, folder: Path, replicas: int, secret: bytes | None, label: str = "new") -> Server:
+    """`replicas` gt-serve processes (`start(port, log_path)`) behind nginx on loopback (`label` "old": the
+    baseline's, logs and nginx in a folder of their own)."""
+    if label != "new":
+        folder = folder / label
+        folder.mkdir()
     from .replicas import nginx_binary, nginx_config
 
     nginx = nginx_binary()
@@ -459,22 +463,28 @@ def _start_replicas(start, folder: Path, replicas: int, secret: bytes) -> Server
             process.kill()
             process.wait()
         raise
-    return Server("new", balancer, url, command, folder / "gt-serve.log", secret=secret, replicas=started,
+    return Server(label, balancer, url, command, folder / "gt-serve.log", secret=secret, replicas=started,
                   replica_urls=[f"http://127.0.0.1:{port}" for port in ports])
 
 
 def _start_baseline_server(baseline: Baseline, bundle: Path, settings: ServerSettings, folder: Path,
-                           max_sessions: int) -> Server:
-    """The baseline script on a free loopback port, on its checkout's package, once /health answers."""
+                           max_sessions: int, replicas: int = 1) -> Server:
+    """The baseline script on a free loopback port, on its checkout's package, once /health answers; with
+    `replicas` > 1 (an older gt-serve only), that many behind nginx, as the new server's."""
+    def start(port: int, log_path: Path) -> tuple[subprocess.Popen, list[str]]:
+        command = [sys.executable, str(baseline.script), str(baseline.bundle or bundle), "--port", str(port),
+                   *settings.arguments(), *baseline.arguments(max_sessions)]
+        return serving(command, f"http://127.0.0.1:{port}/health", SERVER_START_S, name=baseline.script.name,
+                       log_path=log_path, cwd=baseline.src, env=baseline.env()), command
+
+    if replicas > 1:
+        if not baseline.is_gt_serve:
+            raise ValueError("replicas of the baseline need a baseline that runs gt-serve (its /readyz behind "
+                             "nginx), not a live_server.py sample")
+        return _start_replicas(start, folder, replicas, None, label="old")
     port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    command = [sys.executable, str(baseline.script), str(baseline.bundle or bundle), "--port", str(port),
-               *settings.arguments(),
-               *baseline.arguments(max_sessions)]
-    log_path = folder / "baseline.log"
-    process = serving(command, f"{url}/health", SERVER_START_S, name=baseline.script.name, log_path=log_path,
-                      cwd=baseline.src, env=baseline.env())
-    return Server("old", process, url, command, log_path)
+    process, command = start(port, folder / "baseline.log")
+    return Server("old", process, f"http://127.0.0.1:{port}", command, folder / "baseline.log")
 
 
 def _run_clients(url: str, tokens: list, speak_s: float, idle_s: float, chunk_ms: float, transport: str) -> list:
@@ -649,11 +659,11 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
                            speak_s: float = SPEAK_S, idle_s: float = IDLE_S, chunk_ms: float = 20.0,
                            log=print, transport: str = "webrtc", batch_frames: int = 1,
                            context_ms: float = 1000.0, baseline: Baseline | None = None, rounds: int = 1,
-                           replicas: int = 1) -> dict:
+                           replicas: int = 1, baseline_replicas: int = 1) -> dict:
     """Start gt-serve (tokens on; `replicas` > 1: that many behind nginx) and, with `baseline`, the baseline
-    script, then for each N `rounds` rounds of its load clients on `transport` ("webrtc": audio track and data
-    channel; "ws": one WebSocket) against each server in turn; returns gt-serve's figures per N (`runs`), the
-    baseline's and the ratios."""
+    script (`baseline_replicas` of it), then for each N `rounds` rounds of its load clients on `transport`
+    ("webrtc": audio track and data channel; "ws": one WebSocket) against each server in turn; returns gt-serve's
+    figures per N (`runs`), the baseline's and the ratios."""
     if transport not in TRANSPORTS:
         raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
     settings = ServerSettings(lookahead_ms, batch_frames, context_ms)
@@ -664,7 +674,8 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
         try:
             cap = max(DEFAULT_MAX_SESSIONS, max(counts))
             if baseline is not None:
-                servers.append(_start_baseline_server(baseline, bundle, settings, Path(folder), cap))
+                servers.append(_start_baseline_server(baseline, bundle, settings, Path(folder), cap,
+                                                      baseline_replicas))
             servers.append(_start_new_server(bundle, settings, Path(folder), cap, replicas))
             pooled = _alternate(servers, counts, rounds, speak_s, idle_s, chunk_ms, transport, log)
         finally:
@@ -681,6 +692,7 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
     if baseline is not None:
         old = pooled["old"]
         result["baseline"] = {**described, "command": servers[0].command, "tokens": False, "runs": old,
+                              "replicas": baseline_replicas,
                               "largest_n_within_5pct_late": _largest_sustained(old),
                               "server_log_tail": logs["old"]["log_tail"],
                               "server_log_error_lines": logs["old"]["log_error_lines"]}
@@ -732,7 +744,9 @@ def baseline_name(result: dict) -> str:
     """The baseline as a table names it: its commit's short hash, or its script."""
     baseline = result["baseline"]
     commit = baseline.get("commit")
-    return commit[:7] + commit[40:] if commit else baseline["script"]
+    name = commit[:7] + commit[40:] if commit else baseline["script"]
+    replicas = baseline.get("replicas", 1)
+    return name if replicas == 1 else f"{name} ({replicas} replicas behind nginx)"
 
 
 def _comparison_table(result: dict) -> str:

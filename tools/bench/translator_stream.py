@@ -1,6 +1,7 @@
 """`gt-bench translator-stream`: a speaker's Motion Translator streamed against its windowed live calls and its
-offline drive, on unseen speech, per number of refreshed frames; and what a frame costs each way (docs/live.md,
-"The speaker's own translator").
+offline drive, on unseen speech, per number of refreshed frames and of frames the transformers run again (the tail;
+the whole window, or a K/V cache before the tail); and what a frame costs each way (docs/live.md, "The speaker's
+own translator").
 
 Quality: each clip (the held-out espeak-ng clip and every real recording `.ci/install` fetched) goes through the
 torch modules as a live session would call them, a frame a call (or 8): the windowed translator on its window
@@ -20,6 +21,21 @@ import torch
 
 BUSIEST = 10
 FRAME = 640
+
+Variant = tuple[int, int | None]  # (refreshed frames, tail frames; None: the transformers over the whole window)
+
+
+def variant_label(variant: Variant) -> str:
+    """A stream variant's column name: "stream, refresh 4" (whole window) or "stream, refresh 4, tail 7"."""
+    refresh, tail = variant
+    return f"stream, refresh {refresh}" + ("" if tail is None else f", tail {tail}")
+
+
+def stream_variants(refresh: list[int], tails: list[int | None]) -> list[Variant]:
+    """Every (refresh, tail) pair the stream accepts (a tail shorter than the refresh and the delay is not one)."""
+    from gaussiantalker.exporter.model.translator_stream import STREAM_DELAY_FRAMES
+
+    return [(r, t) for r in refresh for t in tails if t is None or t >= max(r + 1, STREAM_DELAY_FRAMES)]
 
 
 def busiest_r(got: np.ndarray, reference: np.ndarray, channels: int = BUSIEST) -> float:
@@ -78,30 +94,31 @@ def unseen_clips() -> list[tuple[str, np.ndarray]]:
     return [(name, audio[:audio.shape[0] // FRAME * FRAME].astype(np.float32)) for name, audio in clips]
 
 
-def run_quality(translator, refresh: list[int], batches: list[int]) -> dict:
+def run_quality(translator, variants: list[Variant], batches: list[int]) -> dict:
     """Per clip and mode, the busiest channels' r against offline; the means."""
     from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream
 
     translator = translator.eval()
-    streams = {r: MotionTranslatorStream(translator, refresh_frames=r).eval() for r in refresh}
+    streams = {variant_label(v): MotionTranslatorStream(translator, refresh_frames=v[0], tail_frames=v[1]).eval()
+               for v in variants}
     first = next(iter(streams.values()))
     context, delay = first.context_frames, first.delay_frames
-    modes = [f"windowed, {b} a call" for b in batches] + [f"stream, refresh {r}, {b} a call"
-                                                           for r in refresh for b in batches]
+    modes = [f"windowed, {b} a call" for b in batches] + [f"{label}, {b} a call"
+                                                           for label in streams for b in batches]
     rows = []
     for name, audio in unseen_clips():
         offline = _offline(translator, audio)
         scores = {f"windowed, {b} a call": busiest_r(_windowed(translator, audio, b, context, delay), offline)
                   for b in batches}
-        for r, stream in streams.items():
+        for label, stream in streams.items():
             for b in batches:
-                scores[f"stream, refresh {r}, {b} a call"] = busiest_r(_streamed(stream, audio, b), offline)
+                scores[f"{label}, {b} a call"] = busiest_r(_streamed(stream, audio, b), offline)
         rows.append({"clip": name, "seconds": audio.shape[0] / 16000, "r": scores})
     means = {mode: float(np.mean([row["r"][mode] for row in rows])) for mode in modes}
     return {"modes": modes, "clips": rows, "mean_r": means, "context_frames": context, "delay_frames": delay}
 
 
-def run_cost(translator, refresh: list[int], cases: list[tuple[int, int]], rounds: int) -> list[dict]:
+def run_cost(translator, variants: list[Variant], cases: list[tuple[int, int]], rounds: int) -> list[dict]:
     """Per (sessions B, frames a call n): ms a session-frame of the windowed graph (B calls of one window) and of
     each streaming graph (one call, B stacked), onnxruntime on one thread, alternating rounds, medians."""
     import onnxruntime as ort
@@ -114,11 +131,12 @@ def run_cost(translator, refresh: list[int], cases: list[tuple[int, int]], round
     windowed = ort.InferenceSession(translator_onnx(translator).SerializeToString(), options,
                                     providers=["CPUExecutionProvider"])
     streams = {}
-    for r in refresh:
-        module = MotionTranslatorStream(translator.eval(), refresh_frames=r)
-        proto = translator_stream_onnx(translator, refresh_frames=r)
-        streams[r] = (ort.InferenceSession(proto.SerializeToString(), options, providers=["CPUExecutionProvider"]),
-                      module.state_size, module.context_frames + module.delay_frames)
+    for refresh, tail in variants:
+        module = MotionTranslatorStream(translator.eval(), refresh_frames=refresh, tail_frames=tail)
+        proto = translator_stream_onnx(translator, refresh_frames=refresh, tail_frames=tail)
+        streams[variant_label((refresh, tail))] = (
+            ort.InferenceSession(proto.SerializeToString(), options, providers=["CPUExecutionProvider"]),
+            module.state_size, module.context_frames + module.delay_frames)
     rng = np.random.default_rng(0)
     out = []
     for sessions, n in cases:
@@ -131,11 +149,11 @@ def run_cost(translator, refresh: list[int], cases: list[tuple[int, int]], round
             for _ in range(sessions):
                 windowed.run(None, {"audio": window})
             timings.setdefault("windowed", []).append(time.perf_counter() - start)
-            for r, (session, size, _) in streams.items():
+            for label, (session, size, _) in streams.items():
                 state = np.zeros((sessions, size), np.float32)
                 start = time.perf_counter()
                 session.run(None, {"audio": audio, "state": state, "keep": np.array([n], np.float32)})
-                timings.setdefault(f"stream, refresh {r}", []).append(time.perf_counter() - start)
+                timings.setdefault(label, []).append(time.perf_counter() - start)
         per_frame = {mode: 1000 * float(np.median(t)) / (sessions * n) for mode, t in timings.items()}
         out.append({"sessions": sessions, "frames_a_call": n, "ms_per_session_frame": per_frame})
     return out

@@ -8,7 +8,7 @@ import onnx
 import torch
 
 from ..model.translator import MotionTranslator, check_audio_length, count_parameters
-from ..model.translator_stream import STREAM_REFRESH_FRAMES, MotionTranslatorStream
+from ..model.translator_stream import STREAM_REFRESH_FRAMES, STREAM_TAIL_FRAMES, MotionTranslatorStream
 from . import onnx_export  # the module, not its function: tests swap `onnx_export.export_onnx` for a replay
 
 # Largest audio length the exported graph accepts, in video frames (10 minutes at 25 fps).
@@ -37,15 +37,17 @@ def export_translator_onnx(model: MotionTranslator, path: str | Path, example_fr
     onnx.save_model(proto, str(path), save_as_external_data=large, location=Path(path).name + ".data")
 
 
-def translator_stream_onnx(model: MotionTranslator, refresh_frames: int = STREAM_REFRESH_FRAMES):
+def translator_stream_onnx(model: MotionTranslator, refresh_frames: int = STREAM_REFRESH_FRAMES,
+                           tail_frames: int | None = STREAM_TAIL_FRAMES):
     """The translator's streaming form (exporter/model/translator_stream.py) as an ONNX model proto, or None when
-    its feature encoder cannot stream on the frame grid (`refresh_frames`: the export's, or another for a bench).
+    its feature encoder cannot stream on the frame grid (`refresh_frames`, `tail_frames`: the export's, or others
+    for a bench).
 
     Inputs "audio" [B, n, 640], "state" [B, S], "keep" [1] float32; outputs "expression" [B, n, n_expr], "jaw_pose"
     [B, n, 3], "state_out" [B, S], "delay_frames" [1] int64. Batch and frames are dynamic (a live server stacks its
     sessions on the batch axis)."""
     try:
-        stream = MotionTranslatorStream(model.eval(), refresh_frames=refresh_frames)
+        stream = MotionTranslatorStream(model.eval(), refresh_frames=refresh_frames, tail_frames=tail_frames)
     except ValueError:
         return None
     spf = model.samples_per_frame

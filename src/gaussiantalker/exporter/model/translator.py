@@ -149,12 +149,23 @@ class SelfAttention(nn.Module):
     def _split(self, x: torch.Tensor) -> torch.Tensor:  # [B, T, D] -> [B, H, T, Dh]
         return x.reshape(x.shape[0], -1, self.heads, self.head_dim).transpose(1, 2)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
+    def project(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Scaled queries, keys and values [B, H, T, Dh] of the rows x [B, T, D]."""
         q = self._split(self.q_proj(x) * (self.head_dim**-0.5))
-        k, v = self._split(self.k_proj(x)), self._split(self.v_proj(x))
-        attn = torch.softmax(q @ k.transpose(-1, -2), dim=-1)  # [B, H, T, T]
-        y = (attn @ v).transpose(1, 2)  # [B, T, H, Dh]
+        return q, self._split(self.k_proj(x)), self._split(self.v_proj(x))
+
+    def attend(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor,
+               key_bias: torch.Tensor | None = None) -> torch.Tensor:
+        """Queries [B, H, Tq, Dh] over keys and values [B, H, Tk, Dh] -> [B, Tq, D] (a streaming call's new rows
+        read the keys and values kept from earlier calls too; `key_bias` [B, 1, 1, Tk], added to the logits, masks
+        kept rows that hold no frame yet)."""
+        logits = q @ k.transpose(-1, -2)  # [B, H, Tq, Tk]
+        attn = torch.softmax(logits if key_bias is None else logits + key_bias, dim=-1)
+        y = (attn @ v).transpose(1, 2)  # [B, Tq, H, Dh]
         return self.out_proj(y.reshape(y.shape[0], -1, self.heads * self.head_dim))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.attend(*self.project(x))
 
 
 class FeedForward(nn.Module):

@@ -24,9 +24,14 @@ recompute the past:
   older frames keep the normalisation they were made with. That is the one approximation, measured on unseen
   speech in docs/live.md (refreshing as many frames as the delay keeps a frame's features only once the window
   reaches its lookahead, as the windowed call that makes its row sees it).
-* The window's features (context + delay frames) are kept; the transformers (positional convolution, encoder,
-  decoder) run over the window of kept and new features, as the windowed graph's do, since their attention looks at
-  every frame of the window.
+* The transformers (positional convolution, encoder, decoder) run on the tail of the window only: the call's new
+  frames and the `tail_frames` before them (at least every frame whose features the call made again, and the
+  delay's frames, whose rows it gives). Their attention still reads the whole window: the keys and values of the
+  frames before the tail are kept in the state from the call that last ran them (each layer's, a K/V cache as in a
+  decoding transformer). That is the second approximation: a frame's hidden states stop changing once it leaves
+  the tail, so they never see more than the tail's future, where the windowed graph recomputes them against every
+  frame of each window. `tail_frames=None` runs the transformers over the whole window every call instead (the
+  form this replaced; benches compare the two).
 
 `conv_plan` derives each layer's kept inputs from its kernel, stride and padding, so any translator config whose
 layers align streams. The module is exported to ONNX beside the windowed graph (exporter/export/translator_graph.py).
@@ -43,7 +48,7 @@ from torch import nn
 
 from gaussiantalker.sdk.config import AUDIO_NORM_EPS, FEATURES_PER_FRAME
 
-from .translator import MotionTranslator, aligned_padding, conv_kernels
+from .translator import MotionTranslator, TransformerLayer, aligned_padding, conv_kernels
 
 # The live session's defaults (docs/live.md): one second of context, 160 ms of lookahead, at 25 fps.
 STREAM_CONTEXT_FRAMES = 25
@@ -52,6 +57,10 @@ STREAM_DELAY_FRAMES = 4
 # so a frame's features are kept only once the window reaches its own lookahead, as the windowed call that makes
 # its row sees it (docs/live.md, "The speaker's own translator", has what fewer cost).
 STREAM_REFRESH_FRAMES = STREAM_DELAY_FRAMES
+# Frames before a call's new ones that the transformers run again (the rest of the window comes from the K/V
+# cache): the least the refresh and the delay allow; longer tails cost more and gave no better rows on unseen speech
+# (docs/live.md, "The speaker's own translator").
+STREAM_TAIL_FRAMES = 5
 
 
 @dataclass(frozen=True)
@@ -103,17 +112,35 @@ def _framed_stats(values: torch.Tensor, frames: int) -> tuple[torch.Tensor, torc
     return mean, (centred * centred).mean(dim=-1)
 
 
-def _take(buffer: torch.Tensor, start: torch.Tensor, length: int) -> torch.Tensor:
-    """buffer[..., start:start + length] with a tensor start (a Gather in the graph)."""
+def _take(buffer: torch.Tensor, start: torch.Tensor, length: int, dim: int = -1) -> torch.Tensor:
+    """buffer[..., start:start + length] along `dim` with a tensor start (a Gather in the graph)."""
     index = start + torch.arange(length, dtype=torch.int64, device=buffer.device)
-    return buffer.index_select(-1, index)
+    return buffer.index_select(dim, index)
+
+
+# Added to the attention logits of rows made before a stream had audio (its first calls from the all-zero state,
+# the rest-state call): exp of it is 0 even in float16, and no logit of layer-normed rows comes near it.
+_EMPTY_ROW_LOGIT = -1e4
+
+
+def _cached_layer(layer: TransformerLayer, x: torch.Tensor, cache: torch.Tensor,
+                  key_bias: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """One pre-LN transformer layer on the tail rows x [B, T, D], their attention also reading the kept rows'
+    keys and values (cache [B, 2, H, C, Dh]; key_bias [B, 1, 1, C + T] masks the empty ones). Returns the
+    tail's outputs and the keys and values of all C + T rows [B, 2, H, C + T, Dh]."""
+    q, k, v = layer.attention.project(layer.layer_norm(x))
+    keys, values = torch.cat([cache[:, 0], k], dim=2), torch.cat([cache[:, 1], v], dim=2)
+    x = x + layer.attention.attend(q, keys, values, key_bias)
+    x = x + layer.feed_forward(layer.final_layer_norm(x))
+    return x, torch.stack([keys, values], dim=1)
 
 
 class MotionTranslatorStream(nn.Module):
     """A MotionTranslator fed a frame at a time (module docstring); `translator`'s weights, nothing of its own."""
 
     def __init__(self, translator: MotionTranslator, context_frames: int = STREAM_CONTEXT_FRAMES,
-                 delay_frames: int = STREAM_DELAY_FRAMES, refresh_frames: int = STREAM_REFRESH_FRAMES) -> None:
+                 delay_frames: int = STREAM_DELAY_FRAMES, refresh_frames: int = STREAM_REFRESH_FRAMES,
+                 tail_frames: int | None = STREAM_TAIL_FRAMES) -> None:
         super().__init__()
         cfg = translator.cfg
         self.translator = translator
@@ -131,6 +158,17 @@ class MotionTranslatorStream(nn.Module):
         if self.window_features < 0:
             raise ValueError("the stream's window is shorter than its feature encoder's lag")
         self.channels, self.dim = cfg.conv_channels, cfg.encoder_dim
+        self.tail_frames = self._check_tail(tail_frames)
+        # features kept in the state: the window's, less those before what the tail's positional convolution reads
+        self.dropped_features = 0
+        if self.tail_frames is not None:
+            pos_left = int(translator.audio_encoder.pos_conv_embed.conv.padding[0])
+            self.dropped_features = max(0, FEATURES_PER_FRAME * (self.window_frames - self.tail_frames) - pos_left)
+        self.kept_features = self.window_features - self.dropped_features
+        # frames_seen stops counting where no row of the window is made from the all-zero state's blanks: the
+        # window's frames and a stream's first frames, whose positional convolution reads the blank features before
+        start_frames = 1 + math.ceil(int(translator.audio_encoder.pos_conv_embed.conv.padding[0]) / FEATURES_PER_FRAME)
+        self.seen_cap = self.window_frames + start_frames
         first = translator.audio_encoder.feature_extractor.conv_layers[0]
         self.conv0_rate = self.samples_per_frame // self.plans[0].stride  # first-layer outputs per frame
         if first.layer_norm is None:
@@ -141,6 +179,24 @@ class MotionTranslatorStream(nn.Module):
         self.state_parts = self._state_parts()
         self.state_size = sum(math.prod(shape) for _, shape in self.state_parts)
 
+    def _check_tail(self, tail_frames: int | None) -> int | None:
+        """`tail_frames` checked: at least the frames whose features a call makes again and the delay's frames
+        (the rows it gives), at most the window."""
+        if tail_frames is None:
+            return None
+        least = max(self.refresh_frames + math.ceil(self.feature_lag / FEATURES_PER_FRAME), self.delay_frames)
+        if not least <= int(tail_frames) <= self.window_frames:
+            raise ValueError(f"tail_frames must be in {least}..{self.window_frames} (the refreshed frames and the "
+                             f"delay's, at most the window), got {tail_frames}")
+        return int(tail_frames)
+
+    def _cached_rows(self) -> tuple[int, int]:
+        """(encoder rows, decoder rows) whose keys and values the state keeps: the window's before the tail."""
+        if self.tail_frames is None:
+            return 0, 0
+        frames = self.window_frames - self.tail_frames
+        return FEATURES_PER_FRAME * frames, frames
+
     def _state_parts(self) -> list[tuple[str, tuple[int, ...]]]:
         """The flat state's parts in order, each [*shape] per session."""
         w = self.window_frames
@@ -148,7 +204,16 @@ class MotionTranslatorStream(nn.Module):
                  ("refresh_audio", (1, self.refresh_frames * self.samples_per_frame))]
         for i, plan in enumerate(self.plans):
             parts.append((f"conv{i}", (1 if i == 0 else self.channels, plan.keep)))
-        parts.append(("features", (self.dim, self.window_features)))
+        parts.append(("features", (self.dim, self.kept_features)))
+        if self.tail_frames is not None:
+            encoder_rows, decoder_rows = self._cached_rows()
+            parts.append(("frames_seen", (1,)))  # frames committed since the all-zero state, at most enough
+            stacks = (("encoder", self.translator.audio_encoder.encoder, encoder_rows),
+                      ("decoder", self.translator.motion_decoder.decoder, decoder_rows))
+            for name, stack, rows in stacks:
+                for i, layer in enumerate(stack.layers):
+                    attention = layer.attention
+                    parts.append((f"{name}{i}", (2, attention.heads, rows, attention.head_dim)))
         return parts
 
     def _split_state(self, state: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -189,19 +254,61 @@ class MotionTranslatorStream(nn.Module):
             x = F.gelu(y)
         encoder = self.translator.audio_encoder
         features = encoder.feature_projection(encoder.feature_norm(x.transpose(1, 2)))  # [B, 2(r + n) + lag, D]
-        window = torch.cat([kept["features"], features.transpose(1, 2)], dim=-1)  # [B, D, 2 * (W + n)]
-        new_state["features"] = _take(window, keep_frames * FEATURES_PER_FRAME, self.window_features)
+        # the window's features [B, D, 2 * (W + n)], less the dropped first ones
+        window = torch.cat([kept["features"], features.transpose(1, 2)], dim=-1)
+        new_state["features"] = _take(window, keep_frames * FEATURES_PER_FRAME, self.kept_features)
         for name in ("audio_stats", "conv0_stats"):
             new_state[name] = _take(new_stats[name], keep_frames, self.window_frames)
 
-        hidden = encoder.encoder(encoder.pos_conv_embed(window.transpose(1, 2)))
-        hidden = hidden + self.translator.identity.weight[self.translator.speaker_id]
-        params = self.translator.motion_decoder(hidden)  # [B, W + n, n_expr + 3]
-        rows = params[:, self.context_frames:self.context_frames + frames]
+        if self.tail_frames is None:
+            hidden = encoder.encoder(encoder.pos_conv_embed(window.transpose(1, 2)))
+            hidden = hidden + self.translator.identity.weight[self.translator.speaker_id]
+            params = self.translator.motion_decoder(hidden)  # [B, W + n, n_expr + 3]
+            rows = params[:, self.context_frames:self.context_frames + frames]
+        else:
+            rows = self._tail_rows(window.transpose(1, 2), frames, keep_frames, kept, new_state)
         state_out = torch.cat([new_state[name].reshape(batch, -1) for name, _ in self.state_parts], dim=1)
         n_expr = self.translator.n_expr
         delay = torch.full((1,), self.delay_frames, dtype=torch.int64)
         return rows[..., :n_expr], rows[..., n_expr:], state_out, delay
+
+    def _tail_rows(self, window: torch.Tensor, frames: int, keep_frames: torch.Tensor,
+                   kept: dict[str, torch.Tensor], new_state: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The transformers on the tail of the window [B, L, D] (its last (tail + n) frames' features), reading the
+        kept keys and values before it; fills the caches the next call keeps. Returns the call's rows."""
+        encoder, decoder = self.translator.audio_encoder, self.translator.motion_decoder
+        tail = FEATURES_PER_FRAME * (self.tail_frames + frames)
+        # the positional convolution on the tail and the kept features its kernel reads before it; the same zero
+        # padding ends the window as in the windowed graph
+        hidden = encoder.pos_conv_embed(window)
+        hidden = hidden[:, hidden.shape[1] - tail:]
+        encoder_rows, decoder_rows = self._cached_rows()
+        # Attention reads no row of a frame made from the all-zero state's blanks: the frames before the stream's
+        # first and its first `start_frames` (whose convolutions and positional convolution read those blanks).
+        seen = kept["frames_seen"]  # [B, 1]
+        new_state["frames_seen"] = torch.clamp(seen + keep_frames.to(seen.dtype), max=float(self.seen_cap))
+        first_clean = self.seen_cap - seen  # the window's first frame made from audio only
+        encoder_bias = self._key_bias(first_clean * FEATURES_PER_FRAME, encoder_rows + tail)
+        decoder_bias = self._key_bias(first_clean, decoder_rows + tail // FEATURES_PER_FRAME)
+        for i, layer in enumerate(encoder.encoder.layers):
+            hidden, keys_values = _cached_layer(layer, hidden, kept[f"encoder{i}"], encoder_bias)
+            new_state[f"encoder{i}"] = _take(keys_values, keep_frames * FEATURES_PER_FRAME, encoder_rows, dim=3)
+        hidden = encoder.encoder.layer_norm(hidden) + self.translator.identity.weight[self.translator.speaker_id]
+        x = decoder.input_projection(hidden)
+        x = x.reshape(x.shape[0], -1, FEATURES_PER_FRAME, x.shape[-1]).mean(dim=2)  # 50 Hz -> 25 fps
+        for i, layer in enumerate(decoder.decoder.layers):
+            x, keys_values = _cached_layer(layer, x, kept[f"decoder{i}"], decoder_bias)
+            new_state[f"decoder{i}"] = _take(keys_values, keep_frames, decoder_rows, dim=3)
+        params = decoder.head(decoder.decoder.layer_norm(x))  # [B, tail + n, n_expr + 3]
+        first = self.tail_frames - self.delay_frames
+        return params[:, first:first + frames]
+
+    @staticmethod
+    def _key_bias(first_clean: torch.Tensor, rows: int) -> torch.Tensor:
+        """[B, 1, 1, rows] attention-logit bias over a window's rows: _EMPTY_ROW_LOGIT before row `first_clean`
+        [B, 1], 0 from it on."""
+        index = torch.arange(rows, dtype=first_clean.dtype, device=first_clean.device)
+        return ((index < first_clean).to(first_clean.dtype) * _EMPTY_ROW_LOGIT)[:, None, None, :]
 
     def _normalise_first(self, raw: torch.Tensor, frames: int, audio_scale: torch.Tensor, weights: torch.Tensor,
                          kept: dict[str, torch.Tensor], new_stats: dict[str, torch.Tensor], layer) -> torch.Tensor:
