@@ -238,7 +238,9 @@ def test_the_bench_compares_the_stream_with_the_windowed_calls(small_speaker, mo
     cost = bench.run_cost(small_speaker.translator, [(4, None), (4, 5)], [(2, 1)], rounds=1)
     assert set(cost[0]["ms_per_session_frame"]) == {"windowed", "stream, refresh 4", "stream, refresh 4, tail 5"}
     table = bench.translator_stream_table({"quality": quality, "cost": cost})
-    assert "| held-out |" in table and "| 2 | 1 |" in table and "× less" in table
+    assert "| held-out |" in table and "| 2 | 1 |" in table and "× less" in table and "BASE" not in table
+    table = bench.translator_stream_table({"quality": quality, "cost": cost, "cost_base_size": cost})
+    assert table.count("| 2 | 1 |") == 2 and "wav2vec 2.0 BASE's size" in table
 
 
 def test_the_stream_gets_its_onnxruntime_session_on_first_use(small_export):

@@ -566,6 +566,8 @@ def translator_stream(
                              "before a call's new ones (\"window\": the whole window, no K/V cache)"),
     batch_frames: str = typer.Option("1,8", "--batch-frames", help="comma-separated frames a call"),
     rounds: int = typer.Option(20, "--rounds", min=1, help="alternating timing rounds (medians)"),
+    base_size: bool = typer.Option(False, "--base-size", help="also the cost of an untrained translator of wav2vec "
+                                   "2.0 BASE's size (one session, a frame a call)"),
     out: Path = typer.Option(None, "--out", help="folder for translator-stream.md and translator-stream.json"),
 ) -> None:
     """A speaker's Motion Translator streamed against its windowed live calls and its offline drive on unseen
@@ -590,6 +592,10 @@ def translator_stream(
     cases = [(sessions, n) for sessions in (1, 100) for n in batches]
     result = {"quality": run_quality(speaker.translator, variants, batches),
               "cost": run_cost(speaker.translator, variants, cases, rounds)}
+    if base_size:
+        from .translator_stream import base_size_translator
+
+        result["cost_base_size"] = run_cost(base_size_translator(), variants, [(1, 1)], max(3, rounds // 5))
     _stamp(result)
     table = translator_stream_table(result)
     typer.echo(table)

@@ -14,6 +14,7 @@ server's pool stacks them, alternating, medians.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -159,6 +160,30 @@ def run_cost(translator, variants: list[Variant], cases: list[tuple[int, int]], 
     return out
 
 
+def base_size_translator():
+    """An untrained Motion Translator of wav2vec 2.0 BASE's size (the paper's encoder is LARGE, 24 layers of width
+    1024): what a frame costs when the transformers, not the feature encoder, are most of a call."""
+    from gaussiantalker.exporter.model.translator import MotionTranslator, paper_translator_config
+
+    cfg = replace(paper_translator_config(), encoder_dim=768, encoder_layers=12, encoder_heads=12, encoder_ffn=3072)
+    torch.manual_seed(0)
+    return MotionTranslator(cfg, n_expr=50).eval()
+
+
+def cost_table(rows: list[dict]) -> list[str]:
+    """The cost rows as a table: ms a session-frame per mode, and how many times less than the windowed graph."""
+    modes = list(rows[0]["ms_per_session_frame"])
+    lines = ["| sessions | frames a call | " + " | ".join(f"{m} (ms a session-frame)" for m in modes) + " |",
+             "|---:|---:|" + "---:|" * len(modes)]
+    for row in rows:
+        values = row["ms_per_session_frame"]
+        base = values["windowed"]
+        lines.append(f"| {row['sessions']} | {row['frames_a_call']} | " + " | ".join(
+            f"{values[m]:.3f}" + ("" if m == "windowed" else f" ({base / values[m]:.1f}× less)") for m in modes)
+            + " |")
+    return lines
+
+
 def translator_stream_table(result: dict) -> str:
     """The quality table (per clip, then the mean) and the cost table."""
     quality, modes = result["quality"], result["quality"]["modes"]
@@ -171,13 +196,8 @@ def translator_stream_table(result: dict) -> str:
     lines.append(f"The ten channels that move most offline, their mean r against the whole clip's drive; a live "
                  f"window holds {quality['context_frames']} frames of context and {quality['delay_frames']} of "
                  "lookahead.")
-    cost_modes = list(result["cost"][0]["ms_per_session_frame"])
-    lines += ["", "| sessions | frames a call | " + " | ".join(f"{m} (ms a session-frame)" for m in cost_modes)
-              + " |", "|---:|---:|" + "---:|" * len(cost_modes)]
-    for row in result["cost"]:
-        values = row["ms_per_session_frame"]
-        base = values["windowed"]
-        lines.append(f"| {row['sessions']} | {row['frames_a_call']} | " + " | ".join(
-            f"{values[m]:.3f}" + ("" if m == "windowed" else f" ({base / values[m]:.1f}× less)") for m in cost_modes)
-            + " |")
+    lines += ["", *cost_table(result["cost"])]
+    if result.get("cost_base_size"):
+        lines += ["", "An untrained translator of wav2vec 2.0 BASE's size (12 transformer layers of width 768, 512 "
+                  "convolution channels; its cost only):", "", *cost_table(result["cost_base_size"])]
     return "\n".join(lines)
