@@ -48,8 +48,8 @@ def replaying_onnx_exports(protos: Sequence) -> Iterator[list]:
 
 def _export_recording(speaker, path, **export_kwargs) -> SimpleNamespace:
     """Export `speaker` to `path` (with `export_kwargs`: a scene, a preset...), keeping the ONNX protos torch.onnx
-    made (translator, translator_stream, deform, then inpaint where the speaker has F) and the ExportResult
-    (`.result`)."""
+    made (translator, translator_stream, translator_stream_steady, deform, then inpaint where the speaker has
+    F) and the ExportResult (`.result`)."""
     import gaussiantalker.exporter.export.onnx_export as onnx_export_module
     from gaussiantalker.exporter.export.bundle_export import export_bundle
 
@@ -107,11 +107,13 @@ class RebindError(AssertionError):
 
 
 def graph_modules(speaker) -> list:
-    """The modules export_bundle turns into ONNX graphs, in export order: translator, its streaming form, deform."""
+    """The modules export_bundle turns into ONNX graphs, in export order: translator, its streaming form and that
+    form's steady one, deform."""
     from gaussiantalker.exporter.export.deform_graph import DeformationGraph
     from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream
 
-    return [speaker.translator, MotionTranslatorStream(speaker.translator), DeformationGraph(speaker)]
+    return [speaker.translator, MotionTranslatorStream(speaker.translator),
+            MotionTranslatorStream(speaker.translator, call_refresh=0), DeformationGraph(speaker)]
 
 
 def _plain(value) -> bool:
@@ -198,16 +200,17 @@ def rebinding_onnx_exports(recorded: SimpleNamespace) -> Iterator[list]:
 
 @contextlib.contextmanager
 def rebinding_the_translator(recorded: SimpleNamespace) -> Iterator[None]:
-    """Within the block, exporting a translator of the recorded speaker's kind, or its streaming form, rebinds its
+    """Within the block, exporting a translator of the recorded speaker's kind, or its streaming forms, rebinds its
     recorded graph (as `rebinding_onnx_exports` does); every other graph is exported by torch.onnx."""
     import gaussiantalker.exporter.export.onnx_export as onnx_export_module
 
     real_export_onnx = onnx_export_module.export_onnx
-    recorded_modules = graph_modules(recorded.speaker)[:2]
+    recorded_modules = graph_modules(recorded.speaker)[:3]
 
     def export(module, *args, **kwargs):
         for proto, recorded_module in zip(recorded.protos, recorded_modules, strict=False):
-            if type(module) is type(recorded_module):
+            if type(module) is type(recorded_module) and \
+                    getattr(module, "call_refresh", None) == getattr(recorded_module, "call_refresh", None):
                 return _rebind_onnx(proto, module, recorded_module)
         return real_export_onnx(module, *args, **kwargs)
 

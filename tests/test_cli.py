@@ -60,7 +60,7 @@ def _check_verified_export(out: str, work: Path, composited: bool = False) -> No
     assert report["passed"] is True
     assert len(report["frames"]) == 25 and all("psnr_db" in f for f in report["frames"])
     assert report["min_psnr_db"] >= 50.0
-    assert set(report["graphs"]) == {"translator", "translator_stream", "deform"} | (
+    assert set(report["graphs"]) == {"translator", "translator_stream", "translator_stream_steady", "deform"} | (
         {"inpaint"} if composited else set())
     assert ("composited" in report) == composited
     if composited:
@@ -107,7 +107,8 @@ def test_export_verify_play_in_process(in_process_dir):
     work = in_process_dir
     result = _invoke(app, ["speaker.ckpt", "-o", "speaker.gtb", "--verify", "--report", "report.json",
                            "--resolution", "96", "-q"])
-    assert "2000 Gaussians, tier fp32, graphs: translator, translator_stream, deform" in result.stdout
+    assert ("2000 Gaussians, tier fp32, graphs: translator, translator_stream, translator_stream_steady, deform"
+            in result.stdout)
     assert "bundle: speaker.gtb (verified)" in result.stdout
     _check_verified_export(result.stdout, work)
 

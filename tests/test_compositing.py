@@ -604,7 +604,7 @@ def test_clip_crf_bench_end_to_end(clip_export, replay_onnx_exports, tmp_path):
     and the presets table compares whole files and bare heads (ratios from the files' sizes)."""
     from tools.bench.clip_crf import run_clip_crf_bench
 
-    with_f, bare = clip_export.protos, clip_export.protos[:3]  # a bare head has no inpaint graph
+    with_f, bare = clip_export.protos, clip_export.protos[:4]  # a bare head has no inpaint graph
     replay_onnx_exports(with_f * 3 + bare + with_f + bare)  # keep, crf:33, quality (+ bare), balanced (+ bare)
     out = tmp_path / "clip-crf.md"
     text = run_clip_crf_bench(clip_export.checkpoint, (CLIP_TEST_CRF,), ("quality", "balanced"), seconds=0.2,

@@ -62,7 +62,7 @@ def test_bundle_graphs_carry_no_debug_metadata(speaker_export):
     from gaussiantalker.sdk.bundle import Bundle
 
     bundle = Bundle(speaker_export.path)
-    for name in ("translator", "translator_stream", "deform"):
+    for name in ("translator", "translator_stream", "translator_stream_steady", "deform"):
         model = onnx.ModelProto.FromString(bundle.graph_bytes(name))
         assert not any(node.metadata_props or node.doc_string for node in model.graph.node), name
         assert bundle.graph_info(name)["nbytes"] < 200_000, name

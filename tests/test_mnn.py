@@ -74,7 +74,8 @@ def test_mnn_export_stores_every_graph_offline_and_installs_nothing(mnn_export):
     bundle = Bundle(mnn_export["path"])
     section = bundle.manifest["mnn"]
     assert section["converter"].startswith("MNN ")
-    assert sorted(section["graphs"]) == bundle.graph_names() == ["deform", "translator", "translator_stream"]
+    assert sorted(section["graphs"]) == bundle.graph_names() == ["deform", "translator", "translator_stream",
+                                                                  "translator_stream_steady"]
     for name, entry in section["graphs"].items():
         assert entry["buffer"] == f"mnn/{name}"
         assert entry["inputs"] == bundle.graph_info(name)["inputs"]
@@ -122,7 +123,7 @@ def test_converter_misbehaviour_is_a_clear_export_error(tmp_path, monkeypatch, s
     an export error saying so, never a bundle."""
     _fake_converter(tmp_path, body, monkeypatch)
     with pytest.raises(BundleError, match="MNN's converter") as caught:
-        convert_to_mnn(small_export.protos[2], "deform")
+        convert_to_mnn(small_export.protos[3], "deform")
     assert words in str(caught.value)
 
 
@@ -164,7 +165,7 @@ def test_mnn_graphs_agree_with_onnxruntime(mnn_export, small_export):
     with TalkingHead(mnn_export["path"], resolution=SIZE) as ort_head, \
             TalkingHead(mnn_export["path"], resolution=SIZE, backend="mnn") as mnn_head:
         rows = verify_backend_agreement(ort_head, mnn_head, _agreement_cases(small_export.speaker, ort_head))
-    assert sorted(rows) == ["deform", "translator", "translator_stream"]
+    assert sorted(rows) == ["deform", "translator", "translator_stream", "translator_stream_steady"]
     for name, row in rows.items():
         assert row["finite"] and row["max_rel_err"] <= MNN_RTOL, (name, row)
 
@@ -279,7 +280,8 @@ def test_verify_report_covers_mnn_graphs(mnn_export, small_export):
 
     report = verify_bundle(small_export.speaker, mnn_export["path"], frames=4, resolution=SIZE, progress=False)
     mnn = report["mnn"]
-    assert report["passed"] and mnn["passed"] and sorted(mnn["graphs"]) == ["deform", "translator", "translator_stream"]
+    assert report["passed"] and mnn["passed"] and sorted(mnn["graphs"]) == ["deform", "translator", "translator_stream",
+                                                                                  "translator_stream_steady"]
     assert mnn["frames"] == 4 and mnn["min_psnr_db"] >= MIN_FRAME_PSNR_DB
     text = format_report(report)
     assert "mnn deform" in text and "mnn frames" in text

@@ -531,9 +531,9 @@ def test_export_failing_mid_write_keeps_the_good_bundle(real, tmp_path, monkeypa
 
 
 def test_export_failing_between_graphs_writes_nothing(real, tmp_path, monkeypatch, stability):
-    """The deform graph's export raises (after the translator's two): nothing at all appears under the output name
-    or beside it."""
-    protos = iter(real.protos[:2])
+    """The deform graph's export raises (after the translator's three): nothing at all appears under the output
+    name or beside it."""
+    protos = iter(real.protos[:3])
 
     def translator_then_fail(*args, **kwargs):
         for proto in protos:

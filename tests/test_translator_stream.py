@@ -24,8 +24,8 @@ from gaussiantalker.exporter.model.translator import conv_kernels, normalize_wav
 from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream, conv_plan
 from gaussiantalker.runtime import LiveSession
 from gaussiantalker.runtime.stages import open_driver
-from gaussiantalker.runtime.translate_stream import REST_FRAMES
-from gaussiantalker.sdk.bundle import STREAM_GRAPH, Bundle
+from gaussiantalker.runtime.translate_stream import LOUDNESS_WINDOW_FRAMES, REST_FRAMES, loudness_moved
+from gaussiantalker.sdk.bundle import STEADY_STREAM_GRAPH, STREAM_GRAPH, Bundle
 from tools.bench.translator_stream import busiest_r
 
 FRAME = 640
@@ -162,25 +162,62 @@ def test_conv_plan_keeps_what_each_kernel_reads():
 
 
 def test_the_bundle_graph_is_its_torch_module(small_export):
-    """The bundle's streaming graph against the torch module, batched, uneven calls, provisional frames and a
-    call that commits nothing; its weights are the translator's buffers, stored once."""
+    """The bundle's streaming graph and its steady form against the torch modules, on the state they share,
+    batched, uneven calls, provisional frames and a call that commits nothing; their weights are the translator's
+    buffers, stored once."""
     bundle = Bundle(small_export.path)
-    assert STREAM_GRAPH in bundle.graph_names()
-    stream_buffers = set(bundle.graph_info(STREAM_GRAPH)["initializers"].values())
-    assert stream_buffers and stream_buffers <= set(bundle.graph_info("translator")["initializers"].values())
+    assert STREAM_GRAPH in bundle.graph_names() and STEADY_STREAM_GRAPH in bundle.graph_names()
+    for graph in (STREAM_GRAPH, STEADY_STREAM_GRAPH):
+        stream_buffers = set(bundle.graph_info(graph)["initializers"].values())
+        assert stream_buffers and stream_buffers <= set(bundle.graph_info("translator")["initializers"].values())
     driver = open_driver(small_export.path)
-    module = MotionTranslatorStream(small_export.speaker.translator).eval()
-    assert driver.has_stream and driver.stream_spec.delay == module.delay_frames == 4
+    modules = {True: MotionTranslatorStream(small_export.speaker.translator).eval(),
+               False: MotionTranslatorStream(small_export.speaker.translator, call_refresh=0).eval()}
+    module = modules[True]
+    assert driver.has_stream and driver.stream_spec.delay == module.delay_frames == 4 and driver.stream_spec.steady
     rng = np.random.default_rng(1)
     state = np.zeros((3, module.state_size), np.float32)
-    for frames, keep in ((REST_FRAMES, REST_FRAMES), (1, 1), (5, 3), (2, 0), (8, 8)):
+    for frames, keep, refresh in ((REST_FRAMES, REST_FRAMES, True), (1, 1, False), (5, 3, True), (2, 0, False),
+                                  (8, 8, False), (1, 1, True), (3, 2, False)):
         audio = (0.1 * rng.standard_normal((3, frames, FRAME))).astype(np.float32)
-        out = driver.run_stream(audio, state, keep)
+        out = driver.run_stream(audio, state, keep, refresh)
         with torch.no_grad():
-            expected = module(torch.from_numpy(audio), torch.from_numpy(state), torch.tensor([float(keep)]))
+            expected = modules[refresh](torch.from_numpy(audio), torch.from_numpy(state),
+                                        torch.tensor([float(keep)]))
         for name, value in zip(("expression", "jaw_pose", "state_out"), expected, strict=False):
-            assert np.abs(out[name] - value.numpy()).max() < 1e-5, (frames, keep, name)
+            assert np.abs(out[name] - value.numpy()).max() < 1e-5, (frames, keep, refresh, name)
         state = out["state_out"]
+
+
+def test_the_steady_graph_runs_while_the_loudness_holds():
+    """A call refreshes where the window's loudness moved by the ratio (an utterance's start after silence, its
+    end), and not where it holds (steady speech, silence)."""
+    speech = np.full(60, 0.01)
+    assert not loudness_moved(np.zeros(40))  # silence stays silence
+    assert loudness_moved(np.concatenate([np.zeros(40), [0.01]]))  # the first loud frame after silence
+    assert not loudness_moved(speech)  # a second and more of steady speech
+    assert not loudness_moved(speech * np.linspace(0.8, 1.2, 60))  # loudness drifting, not jumping
+    # its end: the window's loudness falls gradually as silence fills it, and past the ratio at its last frames
+    assert not loudness_moved(np.concatenate([speech, np.zeros(10)]))
+    assert loudness_moved(np.concatenate([speech, np.zeros(LOUDNESS_WINDOW_FRAMES - 2)]))
+
+
+def test_a_live_session_calls_the_steady_graph_mid_utterance(small_export):
+    """A live session of a bundle with the steady graph calls it for most frames of unseen speech and the
+    refreshing graph where the loudness moves (its start after silence)."""
+    driver = open_driver(small_export.path)
+    calls = []
+    run_stream = driver.run_stream
+
+    def recording(audio, state, keep, refresh=True):
+        calls.append(refresh)
+        return run_stream(audio, state, keep, refresh)
+
+    driver.run_stream = recording
+    audio = unseen_speech()[0]
+    _live_rows(driver, np.concatenate([np.zeros(16000, np.float32), audio]), None)
+    steady = calls.count(False)
+    assert calls[0] is True and 0 < calls.count(True) < steady, (calls.count(True), steady)
 
 
 def _live_rows(driver, audio: np.ndarray, streaming: bool, **options) -> tuple[np.ndarray, LiveSession]:

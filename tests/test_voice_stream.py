@@ -100,7 +100,7 @@ def test_sessions_batched_in_one_call_get_their_own_rows():
 
     jobs = [StreamJob(Fake(s), c[0], 1) for c, s in zip(chunks, states, strict=True)]
 
-    def run(audio, state, keep):
+    def run(audio, state, keep, refresh):
         names = [o.name for o in stream.get_outputs()]
         feeds = {"audio": audio, "state": state, "keep": np.array([keep], np.float32)}
         return dict(zip(names, stream.run(names, feeds), strict=True))
@@ -211,8 +211,8 @@ def test_a_bundle_carries_the_stream_beside_its_translator_sharing_weights(lam_v
     assert STREAM_GRAPH in bundle.graph_names()
     stream_buffers = set(bundle.graph_info(STREAM_GRAPH)["initializers"].values())
     assert stream_buffers and stream_buffers <= set(bundle.graph_info("translator")["initializers"].values())
-    monkeypatch.setattr(bundle_export, "translator_stream_onnx", lambda translator: None)
-    replay_onnx_exports([small_export.protos[0], small_export.protos[2]])  # translator, deform
+    monkeypatch.setattr(bundle_export, "translator_stream_onnx", lambda translator, **options: None)
+    replay_onnx_exports([small_export.protos[0], small_export.protos[3]])  # translator, deform
     older = bundle_export.export_bundle(small_export.speaker, tmp_path / "older.gtb", progress=False).path
     driver = open_driver(older)
     assert not driver.has_stream

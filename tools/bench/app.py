@@ -566,6 +566,8 @@ def translator_stream(
                              "before a call's new ones (\"window\": the whole window, no K/V cache)"),
     batch_frames: str = typer.Option("1,8", "--batch-frames", help="comma-separated frames a call"),
     rounds: int = typer.Option(20, "--rounds", min=1, help="alternating timing rounds (medians)"),
+    gated: bool = typer.Option(True, "--gated/--no-gated", help="also each refreshing stream gated as live sessions "
+                               "call it: its steady graph while the window's loudness holds"),
     base_size: bool = typer.Option(False, "--base-size", help="also the cost of an untrained translator of wav2vec "
                                    "2.0 BASE's size (one session, a frame a call)"),
     out: Path = typer.Option(None, "--out", help="folder for translator-stream.md and translator-stream.json"),
@@ -582,7 +584,7 @@ def translator_stream(
     tails = [None if t.strip() == "window" else t for t in tail.split(",") if t.strip()]
     if not all(t is None or t.strip().isdigit() for t in tails) or not tails:
         raise typer.BadParameter(f"{tail!r}: comma-separated whole numbers or \"window\"", param_hint="--tail")
-    variants = stream_variants(refreshes, [None if t is None else int(t) for t in tails])
+    variants = stream_variants(refreshes, [None if t is None else int(t) for t in tails], gated)
     if not variants:
         raise typer.BadParameter("no tail is long enough for these refreshes (at least refresh + 1 and the "
                                  "delay)", param_hint="--tail")

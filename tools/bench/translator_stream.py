@@ -23,20 +23,26 @@ import torch
 BUSIEST = 10
 FRAME = 640
 
-Variant = tuple[int, int | None]  # (refreshed frames, tail frames; None: the transformers over the whole window)
+# (refreshed frames, tail frames (None: the transformers over the whole window)[, gated: the steady graph while the
+# window's loudness holds, as live sessions call it])
+Variant = tuple
 
 
 def variant_label(variant: Variant) -> str:
-    """A stream variant's column name: "stream, refresh 4" (whole window) or "stream, refresh 4, tail 7"."""
-    refresh, tail = variant
-    return f"stream, refresh {refresh}" + ("" if tail is None else f", tail {tail}")
+    """A stream variant's column name: "stream, refresh 4" (whole window), "stream, refresh 4, tail 7", and
+    ", gated" for the gated calls."""
+    refresh, tail, *gated = variant
+    return (f"stream, refresh {refresh}" + ("" if tail is None else f", tail {tail}")
+            + (", gated" if gated and gated[0] else ""))
 
 
-def stream_variants(refresh: list[int], tails: list[int | None]) -> list[Variant]:
-    """Every (refresh, tail) pair the stream accepts (a tail shorter than the refresh and the delay is not one)."""
+def stream_variants(refresh: list[int], tails: list[int | None], gated: bool = False) -> list[Variant]:
+    """Every (refresh, tail) pair the stream accepts (a tail shorter than the refresh and the delay is not one);
+    with `gated`, each refreshing one also gated."""
     from gaussiantalker.exporter.model.translator_stream import STREAM_DELAY_FRAMES
 
-    return [(r, t) for r in refresh for t in tails if t is None or t >= max(r + 1, STREAM_DELAY_FRAMES)]
+    pairs = [(r, t) for r in refresh for t in tails if t is None or t >= max(r + 1, STREAM_DELAY_FRAMES)]
+    return pairs + ([(r, t, True) for r, t in pairs if r > 0] if gated else [])
 
 
 def busiest_r(got: np.ndarray, reference: np.ndarray, channels: int = BUSIEST) -> float:
@@ -67,21 +73,26 @@ def _windowed(translator, audio: np.ndarray, batch: int, context: int, delay: in
     return np.concatenate(rows)[:frames]
 
 
-def _streamed(stream, audio: np.ndarray, batch: int) -> np.ndarray:
-    """Rows of the streaming module fed `batch` frames a call from its rest state (the delay's zeros after)."""
-    from gaussiantalker.runtime.translate_stream import REST_FRAMES
+def _streamed(stream, audio: np.ndarray, batch: int, steady=None) -> tuple[np.ndarray, float]:
+    """Rows of the streaming module fed `batch` frames a call from its rest state (the delay's zeros after), and
+    the share of calls that refreshed: with a `steady` module, it runs the calls whose window's loudness held, as
+    a live session's stream chooses (runtime/translate_stream.py)."""
+    from gaussiantalker.runtime.translate_stream import REST_FRAMES, frame_power, loudness_moved
 
     frames, delay = audio.shape[0] // FRAME, stream.delay_frames
     fed = np.concatenate([audio, np.zeros((delay + batch) * FRAME, np.float32)]).reshape(-1, FRAME)
-    rows = []
+    rows, powers, refreshed = [], np.zeros(0), []
     with torch.no_grad():
         state = stream(torch.zeros(1, REST_FRAMES, FRAME), torch.zeros(1, stream.state_size),
                        torch.tensor([float(REST_FRAMES)]))[2]
         for p in range(0, frames + delay, batch):
+            powers = np.concatenate([powers, frame_power(fed[p:p + batch])])
+            refreshed.append(steady is None or loudness_moved(powers))
             chunk = torch.from_numpy(fed[p:p + batch][None])
-            expression, jaw, state, _ = stream(chunk, state, torch.tensor([float(chunk.shape[1])]))
+            module = stream if refreshed[-1] else steady
+            expression, jaw, state, _ = module(chunk, state, torch.tensor([float(chunk.shape[1])]))
             rows.append(torch.cat([expression, jaw], -1)[0].numpy())
-    return np.concatenate(rows)[delay:delay + frames]
+    return np.concatenate(rows)[delay:delay + frames], float(np.mean(refreshed))
 
 
 def unseen_clips() -> list[tuple[str, np.ndarray]]:
@@ -100,9 +111,11 @@ def run_quality(translator, variants: list[Variant], batches: list[int]) -> dict
     from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream
 
     translator = translator.eval()
-    streams = {variant_label(v): MotionTranslatorStream(translator, refresh_frames=v[0], tail_frames=v[1]).eval()
+    streams = {variant_label(v): (MotionTranslatorStream(translator, refresh_frames=v[0], tail_frames=v[1]).eval(),
+                                  MotionTranslatorStream(translator, refresh_frames=v[0], tail_frames=v[1],
+                                                         call_refresh=0).eval() if v[2:] and v[2] else None)
                for v in variants}
-    first = next(iter(streams.values()))
+    first = next(iter(streams.values()))[0]
     context, delay = first.context_frames, first.delay_frames
     modes = [f"windowed, {b} a call" for b in batches] + [f"{label}, {b} a call"
                                                            for label in streams for b in batches]
@@ -111,12 +124,17 @@ def run_quality(translator, variants: list[Variant], batches: list[int]) -> dict
         offline = _offline(translator, audio)
         scores = {f"windowed, {b} a call": busiest_r(_windowed(translator, audio, b, context, delay), offline)
                   for b in batches}
-        for label, stream in streams.items():
+        shares = {}
+        for label, (stream, steady) in streams.items():
             for b in batches:
-                scores[f"{label}, {b} a call"] = busiest_r(_streamed(stream, audio, b), offline)
-        rows.append({"clip": name, "seconds": audio.shape[0] / 16000, "r": scores})
+                streamed, shares[f"{label}, {b} a call"] = _streamed(stream, audio, b, steady)
+                scores[f"{label}, {b} a call"] = busiest_r(streamed, offline)
+        rows.append({"clip": name, "seconds": audio.shape[0] / 16000, "r": scores, "refreshed": shares})
     means = {mode: float(np.mean([row["r"][mode] for row in rows])) for mode in modes}
-    return {"modes": modes, "clips": rows, "mean_r": means, "context_frames": context, "delay_frames": delay}
+    refreshed = {mode: float(np.mean([row["refreshed"][mode] for row in rows])) for mode in modes
+                 if mode in rows[0]["refreshed"]}
+    return {"modes": modes, "clips": rows, "mean_r": means, "refreshed": refreshed, "context_frames": context,
+            "delay_frames": delay}
 
 
 def run_cost(translator, variants: list[Variant], cases: list[tuple[int, int]], rounds: int) -> list[dict]:
@@ -132,10 +150,13 @@ def run_cost(translator, variants: list[Variant], cases: list[tuple[int, int]], 
     windowed = ort.InferenceSession(translator_onnx(translator).SerializeToString(), options,
                                     providers=["CPUExecutionProvider"])
     streams = {}
-    for refresh, tail in variants:
-        module = MotionTranslatorStream(translator.eval(), refresh_frames=refresh, tail_frames=tail)
-        proto = translator_stream_onnx(translator, refresh_frames=refresh, tail_frames=tail)
-        streams[variant_label((refresh, tail))] = (
+    for refresh, tail, *gated in variants:
+        call = 0 if gated and gated[0] else None  # a gated stream's steady graph: what most of its calls cost
+        module = MotionTranslatorStream(translator.eval(), refresh_frames=refresh, tail_frames=tail,
+                                        call_refresh=call)
+        proto = translator_stream_onnx(translator, refresh_frames=refresh, tail_frames=tail, call_refresh=call)
+        label = variant_label((refresh, tail, *gated)).replace(", gated", ", steady graph")
+        streams[label] = (
             ort.InferenceSession(proto.SerializeToString(), options, providers=["CPUExecutionProvider"]),
             module.state_size, module.context_frames + module.delay_frames)
     rng = np.random.default_rng(0)
@@ -192,6 +213,10 @@ def translator_stream_table(result: dict) -> str:
         lines.append(f"| {row['clip']} | {row['seconds']:.1f} | "
                      + " | ".join(f"{row['r'][m]:.3f}" for m in modes) + " |")
     lines.append("| **mean** | | " + " | ".join(f"**{quality['mean_r'][m]:.3f}**" for m in modes) + " |")
+    refreshed = quality.get("refreshed", {})
+    if any(share < 1 for share in refreshed.values()):
+        lines.append("| calls that refreshed | | " + " | ".join(
+            f"{refreshed[m]:.0%}" if m in refreshed else "" for m in modes) + " |")
     lines.append("")
     lines.append(f"The ten channels that move most offline, their mean r against the whole clip's drive; a live "
                  f"window holds {quality['context_frames']} frames of context and {quality['delay_frames']} of "

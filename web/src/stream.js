@@ -19,6 +19,9 @@ import { DriveError, checkSamples, silenceGain } from './drive.js';
 import { CONTEXT_FRAMES, REST_FRAMES, SILENCE_GATE_DBFS } from './generated.js';
 
 export const STREAM_GRAPH = 'translator_stream';
+// The stream's steady form, which the Python runtime runs while the window's loudness holds (docs/live.md, "The
+// speaker's own translator"); the page calls the refreshing graph every time, so it does not open this one.
+export const STEADY_STREAM_GRAPH = 'translator_stream_steady';
 // Frames per graph call at most, so a long push holds a bounded window of audio and rows at a time.
 const MAX_CALL_FRAMES = 50;
 

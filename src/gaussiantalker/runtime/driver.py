@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from gaussiantalker.sdk.audio import load_audio, prepare_audio
-from gaussiantalker.sdk.bundle import STREAM_GRAPH, Bundle
+from gaussiantalker.sdk.bundle import STEADY_STREAM_GRAPH, STREAM_GRAPH, Bundle
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive, HeadPose, pose_track_frame
 from gaussiantalker.sdk.errors import AudioError, BundleError, DriveError
@@ -114,12 +114,15 @@ class Driver:
         """Whether the bundle's translator also has a streaming graph (docs/live.md, "Streaming translators")."""
         return STREAM_GRAPH in self.bundle.manifest["graphs"]
 
-    def run_stream(self, audio: np.ndarray, state: np.ndarray, keep: int) -> dict:
-        """One call of the streaming graph (timed): audio [B, n, F], state [B, S], `keep` frames committed."""
+    def run_stream(self, audio: np.ndarray, state: np.ndarray, keep: int, refresh: bool = True) -> dict:
+        """One call of the streaming graph (timed): audio [B, n, F], state [B, S], `keep` frames committed;
+        `refresh` False runs its steady form where the bundle has one (no frame's features made again)."""
         start = time.perf_counter()
-        out = self.graphs.run(STREAM_GRAPH, {"audio": np.ascontiguousarray(audio, np.float32),
-                                             "state": np.ascontiguousarray(state, np.float32),
-                                             "keep": np.array([keep], np.float32)})
+        graph = STREAM_GRAPH if refresh or STEADY_STREAM_GRAPH not in self.bundle.manifest["graphs"] \
+            else STEADY_STREAM_GRAPH
+        out = self.graphs.run(graph, {"audio": np.ascontiguousarray(audio, np.float32),
+                                      "state": np.ascontiguousarray(state, np.float32),
+                                      "keep": np.array([keep], np.float32)})
         self.timings.record("translator_stream", time.perf_counter() - start)
         return out
 
@@ -131,7 +134,8 @@ class Driver:
     def stream_spec(self) -> StreamSpec:
         """The streaming graph's delay, frame size and rest state (one call of silence, made once)."""
         inputs = {value["name"]: value["shape"] for value in self.bundle.graph_info(STREAM_GRAPH)["inputs"]}
-        return read_stream_spec(self.run_stream, self.stream_rows, int(inputs["state"][1]), int(inputs["audio"][2]))
+        return read_stream_spec(self.run_stream, self.stream_rows, int(inputs["state"][1]), int(inputs["audio"][2]),
+                                steady=STEADY_STREAM_GRAPH in self.bundle.manifest["graphs"])
 
     def translate_blocks(self, audio: np.ndarray) -> Iterator[np.ndarray]:
         """Audio (speaker rate, mono float32) -> parameter blocks [n, D] in frame order, one window at a time."""

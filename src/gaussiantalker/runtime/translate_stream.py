@@ -14,6 +14,10 @@ nearest stream rows.
 
 `StreamJob` separates planning a call from running it, so a pool can run one call for every session with a frame
 due (`run_stream_jobs`: jobs of the same shape are stacked on the batch axis).
+
+A stream whose graph has a steady form (the speaker's own translator) runs it while the window's loudness holds:
+the streaming graph makes the last frames' features again with the window's newest statistics, which matters only
+where they moved, at an utterance's start or end (docs/live.md, "The speaker's own translator").
 """
 
 from __future__ import annotations
@@ -28,7 +32,14 @@ import numpy as np
 # network sees 1 s = 25 frames back), so the rest state no longer depends on where it started.
 REST_FRAMES = 32
 
-RunStream = Callable[[np.ndarray, np.ndarray, int], dict]  # (audio [B, n, F], state [B, S], keep) -> outputs
+# Frames of the translator stream's window (1 s of context and 160 ms of lookahead at 25 fps) and of its refresh,
+# over which a call compares the window's loudness now with the window's as it was before the refreshed frames;
+# the steady graph runs while neither is LOUDNESS_RATIO times the other (measured on unseen speech in docs/live.md).
+LOUDNESS_WINDOW_FRAMES = 29
+LOUDNESS_LAG_FRAMES = 4
+LOUDNESS_RATIO = 2.0
+
+RunStream = Callable[[np.ndarray, np.ndarray, int, bool], dict]  # (audio [B, n, F], state, keep, refresh) -> outputs
 RowsOf = Callable[[dict], np.ndarray]  # graph outputs -> rows [B, n, D]
 
 
@@ -40,17 +51,35 @@ class StreamSpec:
     frame_samples: int  # F: samples of one stream frame
     rest_state: np.ndarray  # [S]
     rest_row: np.ndarray  # [D]: a row of silence (what rows before a stream's start are)
+    steady: bool = False  # the graph has a steady form (calls with refresh=False)
 
 
-def read_stream_spec(run: RunStream, rows_of: RowsOf, state_size: int, frame_samples: int) -> StreamSpec:
+def read_stream_spec(run: RunStream, rows_of: RowsOf, state_size: int, frame_samples: int,
+                     steady: bool = False) -> StreamSpec:
     """Feed REST_FRAMES frames of silence from an all-zero state: the rest state, the silent row and the delay."""
     zeros = np.zeros((1, REST_FRAMES, frame_samples), np.float32)
-    out = run(zeros, np.zeros((1, state_size), np.float32), REST_FRAMES)
+    out = run(zeros, np.zeros((1, state_size), np.float32), REST_FRAMES, True)
     delay = int(np.asarray(out["delay_frames"]).reshape(-1)[0])
     if not 0 <= delay < REST_FRAMES:
         raise ValueError(f"the streaming graph says its rows lag {delay} frames; expected 0..{REST_FRAMES - 1}")
     rows = rows_of(out)
-    return StreamSpec(delay, frame_samples, out["state_out"][0].astype(np.float32), rows[0, -1].astype(np.float32))
+    return StreamSpec(delay, frame_samples, out["state_out"][0].astype(np.float32), rows[0, -1].astype(np.float32),
+                      steady)
+
+
+def frame_power(audio: np.ndarray) -> np.ndarray:
+    """Mean square of each frame of `audio` [n, F] -> [n] (float64)."""
+    return np.mean(np.square(audio, dtype=np.float64), axis=1)
+
+
+def loudness_moved(powers: np.ndarray) -> bool:
+    """Whether a call whose frames end `powers` (per-frame mean squares, the committed frames' before) needs the
+    refreshing graph: the window's mean power against the window's LOUDNESS_LAG_FRAMES frames earlier, either
+    LOUDNESS_RATIO times the other (silence before counts as zeros)."""
+    window, lag = LOUDNESS_WINDOW_FRAMES, LOUDNESS_LAG_FRAMES
+    padded = np.concatenate([np.zeros(max(0, window + lag - powers.shape[0])), powers[-(window + lag):]])
+    now, then = padded[lag:].mean(), padded[:window].mean()
+    return bool(max(now, then) > LOUDNESS_RATIO * min(now, then))
 
 
 @dataclass
@@ -61,24 +90,25 @@ class StreamJob:
     stream: TranslatorStream
     audio: np.ndarray
     keep: int
+    refresh: bool = True  # False: the graph's steady form
     rows: np.ndarray | None = None
     state: np.ndarray | None = None
 
     @property
-    def shape(self) -> tuple[int, int]:
-        return self.audio.shape[0], self.keep
+    def shape(self) -> tuple[int, int, bool]:
+        return self.audio.shape[0], self.keep, self.refresh
 
 
 def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) -> list[int]:
-    """Run every job: one graph call per distinct (frames, keep), the sessions stacked on the batch axis. Returns
-    the sessions of each call made."""
-    groups: dict[tuple[int, int], list[StreamJob]] = {}
+    """Run every job: one graph call per distinct (frames, keep, refresh), the sessions stacked on the batch axis.
+    Returns the sessions of each call made."""
+    groups: dict[tuple[int, int, bool], list[StreamJob]] = {}
     for job in jobs:
         groups.setdefault(job.shape, []).append(job)
-    for (_, keep), group in groups.items():
+    for (_, keep, refresh), group in groups.items():
         audio = np.stack([job.audio for job in group])
         state = np.stack([job.stream.state for job in group])
-        out = run(audio, state, keep)
+        out = run(audio, state, keep, refresh)
         rows = rows_of(out)
         for k, job in enumerate(group):
             job.rows, job.state = rows[k], out["state_out"][k]
@@ -111,6 +141,7 @@ class TranslatorStream:
         self.final: dict[int, np.ndarray] = {}  # stream frame -> its final row
         self.quiet = REST_FRAMES * self.spec.frame_samples  # silent samples at the end of what was committed
         self._provisional: dict[int, np.ndarray] = {}
+        self._powers = np.zeros(0)  # the committed frames' mean squares, the last window's (rest: silence)
 
     @property
     def known_end(self) -> int:
@@ -165,7 +196,9 @@ class TranslatorStream:
         audio = np.zeros(count * size, np.float32)
         have = min(self.known.shape[0], count * size)
         audio[:have] = self.known[:have]
-        return StreamJob(self, audio.reshape(count, size), keep)
+        audio = audio.reshape(count, size)
+        refresh = not self.spec.steady or loudness_moved(np.concatenate([self._powers, frame_power(audio)]))
+        return StreamJob(self, audio, keep, refresh)
 
     def _has_final(self, index: int) -> bool:
         return index < 0 or index in self.final
@@ -178,6 +211,8 @@ class TranslatorStream:
         for k, row in enumerate(job.rows):
             index = first + k
             (self.final if index < final_end else self._provisional)[index] = row
+        window = LOUDNESS_WINDOW_FRAMES + LOUDNESS_LAG_FRAMES
+        self._powers = np.concatenate([self._powers, frame_power(job.audio[:job.keep])])[-window:]
         committed = job.audio[:job.keep].reshape(-1)
         silent = _trailing_silence(committed)
         self.quiet = self.quiet + silent if silent == committed.shape[0] else silent
@@ -204,5 +239,5 @@ class TranslatorStream:
         return value
 
 
-__all__ = ["REST_FRAMES", "StreamJob", "StreamSpec", "TranslatorStream", "read_stream_spec",
-           "run_stream_jobs"]
+__all__ = ["REST_FRAMES", "StreamJob", "StreamSpec", "TranslatorStream", "frame_power", "loudness_moved",
+           "read_stream_spec", "run_stream_jobs"]

@@ -50,6 +50,10 @@ FLAME_DRIVER = "flame"
 # The graph that runs the translator a frame at a time, its state carried between calls (docs/live.md, "Streaming
 # translators"), stored beside the windowed `translator` graph where the translator has a streaming form.
 STREAM_GRAPH = "translator_stream"
+# The same stream making no frame's features again (the speaker's own translator: its state is the streaming
+# graph's), which a live session calls while the window's loudness holds (docs/live.md, "The speaker's own
+# translator"); bundles without it run STREAM_GRAPH for every call.
+STEADY_STREAM_GRAPH = "translator_stream_steady"
 # The header's fields in order (little-endian struct codes), padded with zeros to HEADER_SIZE: the one layout,
 # which web/src/generated.js carries to the browser player as HEADER_LAYOUT (docs/bundle-format.md, "Header").
 HEADER_FIELDS = (("magic", "8s"), ("major", "H"), ("minor", "H"), ("reserved", "I"), ("manifest_length", "Q"),

@@ -13,7 +13,7 @@ import torch
 from tqdm import tqdm
 
 from gaussiantalker.sdk import __version__ as sdk_version
-from gaussiantalker.sdk.bundle import FLAME_DRIVER, STREAM_GRAPH, BundleWriter
+from gaussiantalker.sdk.bundle import FLAME_DRIVER, STEADY_STREAM_GRAPH, STREAM_GRAPH, BundleWriter
 from gaussiantalker.sdk.config import POSE_DIM
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.files import StagedFile
@@ -174,6 +174,8 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
         model = convert_precision(translator_onnx(speaker.translator, example_frames), settings.translator_precision)
         result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
         _add_stream(writer, result, settings, translator_stream_onnx(speaker.translator))
+        _add_stream(writer, result, settings, translator_stream_onnx(speaker.translator, call_refresh=0),
+                    STEADY_STREAM_GRAPH)
     steps.update()
 
     steps.set_postfix_str("deformation graph")
@@ -254,11 +256,12 @@ def _add_audio_model(speaker: Speaker | ArkitSpeaker, writer: BundleWriter, resu
 
 
 def _add_stream(writer: BundleWriter, result: ExportResult, settings: ExportSettings,
-                stream: onnx.ModelProto | None) -> None:
-    """The translator's streaming graph, if it has one (live sessions run it: docs/live.md, "Streaming
-    translators"), at the translator's precision; its weights are the translator's buffers, stored once."""
+                stream: onnx.ModelProto | None, name: str = STREAM_GRAPH) -> None:
+    """The translator's streaming graph (or its steady form, `name`), if it has one (live sessions run it:
+    docs/live.md, "Streaming translators"), at the translator's precision; its weights are the translator's
+    buffers, stored once."""
     if stream is not None:
-        result.graphs[STREAM_GRAPH] = add_graph(writer, STREAM_GRAPH, convert_precision(
+        result.graphs[name] = add_graph(writer, name, convert_precision(
             stream, settings.translator_precision), settings.codec_for, share=True)
 
 

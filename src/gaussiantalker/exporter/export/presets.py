@@ -26,7 +26,8 @@ CODEC_GROUPS: dict[str, tuple[str, ...]] = {
     "blendshapes": ("deform/latent_weight", "deform/latent_basis", "deform/latent_pose.*"),  # W_pos/rot/color, MLP
     # FLAME bases, rest mesh, skinning; an ARKit speaker's morph targets
     "flame": ("deform/blend_basis", "deform/rest_points", "deform/lbs_weights", "deform/morph_basis"),
-    "translator": ("translator/*", "translator_stream/*"),  # motion translator weights (fp32 graph), its streaming form
+    # motion translator weights (fp32 graph), its streaming form and that form's steady one
+    "translator": ("translator/*", "translator_stream/*", "translator_stream_steady/*"),
     "inpaint": ("inpaint/*",),  # the inpainting generator's convolutions (docs/compositing.md)
 }
 # Buffers every frame's geometry hangs on (the rest mesh, the frame guards' reference size, where on its triangle a

@@ -38,16 +38,17 @@ def export_translator_onnx(model: MotionTranslator, path: str | Path, example_fr
 
 
 def translator_stream_onnx(model: MotionTranslator, refresh_frames: int = STREAM_REFRESH_FRAMES,
-                           tail_frames: int | None = STREAM_TAIL_FRAMES):
+                           tail_frames: int | None = STREAM_TAIL_FRAMES, call_refresh: int | None = None):
     """The translator's streaming form (exporter/model/translator_stream.py) as an ONNX model proto, or None when
     its feature encoder cannot stream on the frame grid (`refresh_frames`, `tail_frames`: the export's, or others
-    for a bench).
+    for a bench; `call_refresh` 0: the steady form, which makes no frame's features again).
 
     Inputs "audio" [B, n, 640], "state" [B, S], "keep" [1] float32; outputs "expression" [B, n, n_expr], "jaw_pose"
     [B, n, 3], "state_out" [B, S], "delay_frames" [1] int64. Batch and frames are dynamic (a live server stacks its
     sessions on the batch axis)."""
     try:
-        stream = MotionTranslatorStream(model.eval(), refresh_frames=refresh_frames, tail_frames=tail_frames)
+        stream = MotionTranslatorStream(model.eval(), refresh_frames=refresh_frames, tail_frames=tail_frames,
+                                        call_refresh=call_refresh)
     except ValueError:
         return None
     spf = model.samples_per_frame

@@ -140,7 +140,7 @@ class MotionTranslatorStream(nn.Module):
 
     def __init__(self, translator: MotionTranslator, context_frames: int = STREAM_CONTEXT_FRAMES,
                  delay_frames: int = STREAM_DELAY_FRAMES, refresh_frames: int = STREAM_REFRESH_FRAMES,
-                 tail_frames: int | None = STREAM_TAIL_FRAMES) -> None:
+                 tail_frames: int | None = STREAM_TAIL_FRAMES, call_refresh: int | None = None) -> None:
         super().__init__()
         cfg = translator.cfg
         self.translator = translator
@@ -154,8 +154,14 @@ class MotionTranslatorStream(nn.Module):
         self.feature_lag = self.plans[-1].lag_out
         self.window_frames = self.context_frames + self.delay_frames  # frames of statistics and features kept
         # features kept as made: those of the window's frames before the refreshed ones
-        self.window_features = FEATURES_PER_FRAME * (self.window_frames - self.refresh_frames) - self.feature_lag
-        if self.window_features < 0:
+        # frames a call of this module makes again (the state keeps what any of 0..refresh_frames needs, so the
+        # graphs of one stream may differ in it: docs/live.md, "The speaker's own translator")
+        self.call_refresh = self.refresh_frames if call_refresh is None else int(call_refresh)
+        if not 0 <= self.call_refresh <= self.refresh_frames:
+            raise ValueError(f"call_refresh must be in 0..{self.refresh_frames}, got {call_refresh}")
+        # features kept: the window's up to the committed end (a refreshing call makes its last ones again)
+        self.window_features = FEATURES_PER_FRAME * self.window_frames - self.feature_lag
+        if FEATURES_PER_FRAME * (self.window_frames - self.refresh_frames) < self.feature_lag:
             raise ValueError("the stream's window is shorter than its feature encoder's lag")
         self.channels, self.dim = cfg.conv_channels, cfg.encoder_dim
         self.tail_frames = self._check_tail(tail_frames)
@@ -202,8 +208,8 @@ class MotionTranslatorStream(nn.Module):
         w = self.window_frames
         parts = [("audio_stats", (2, w)), ("conv0_stats", (2, self.channels, w)),
                  ("refresh_audio", (1, self.refresh_frames * self.samples_per_frame))]
-        for i, plan in enumerate(self.plans):
-            parts.append((f"conv{i}", (1 if i == 0 else self.channels, plan.keep)))
+        for i, plan in enumerate(self.plans):  # each layer's kept inputs at the last refresh + 1 frame starts
+            parts.append((f"conv{i}", (1 if i == 0 else self.channels, self.refresh_frames + 1, plan.keep)))
         parts.append(("features", (self.dim, self.kept_features)))
         if self.tail_frames is not None:
             encoder_rows, decoder_rows = self._cached_rows()
@@ -226,10 +232,11 @@ class MotionTranslatorStream(nn.Module):
         batch, frames = audio.shape[0], audio.shape[1]
         kept = self._split_state(state)
         keep_frames = keep.reshape(1).to(torch.int64)
-        spf, refresh = self.samples_per_frame, self.refresh_frames
+        spf, refresh, most = self.samples_per_frame, self.call_refresh, self.refresh_frames
         new_samples = audio.reshape(batch, 1, frames * spf)
-        samples = torch.cat([kept["refresh_audio"], new_samples], dim=-1)  # frames [P - refresh, P + n)
-        new_state = {"refresh_audio": _take(samples, keep_frames * spf, refresh * spf)}
+        kept_audio = torch.cat([kept["refresh_audio"], new_samples], dim=-1)  # frames [P - most, P + n)
+        new_state = {"refresh_audio": _take(kept_audio, keep_frames * spf, most * spf)}
+        samples = kept_audio[..., (most - refresh) * spf:]  # frames [P - refresh, P + n)
 
         # The waveform's mean and variance over the window (kept frames + new ones).
         audio_mean, audio_var = _framed_stats(new_samples, frames)  # [B, 1, n]
@@ -244,8 +251,10 @@ class MotionTranslatorStream(nn.Module):
         x = samples
         for i, (plan, layer) in enumerate(zip(self.plans, self.translator.audio_encoder.feature_extractor.conv_layers,
                                               strict=True)):
-            buffer = torch.cat([kept[f"conv{i}"], x], dim=-1)  # inputs from frame P - refresh on
-            new_state[f"conv{i}"] = _take(buffer, keep_frames * plan.rate_in, plan.keep)
+            starts = kept[f"conv{i}"]  # [B, C, most + 1, keep]: inputs kept at frames P - most .. P
+            buffer = torch.cat([starts[:, :, most - refresh], x], dim=-1)  # inputs from frame P - refresh on
+            new_state[f"conv{i}"] = self._frame_starts(buffer, starts[:, :, :most + 1 - refresh], plan,
+                                                       refresh + frames, keep_frames, most + 1)
             if plan.right_pad:
                 buffer = F.pad(buffer, (0, plan.right_pad))
             y = F.conv1d(buffer, layer.conv.weight, None, plan.stride)
@@ -254,8 +263,10 @@ class MotionTranslatorStream(nn.Module):
             x = F.gelu(y)
         encoder = self.translator.audio_encoder
         features = encoder.feature_projection(encoder.feature_norm(x.transpose(1, 2)))  # [B, 2(r + n) + lag, D]
-        # the window's features [B, D, 2 * (W + n)], less the dropped first ones
-        window = torch.cat([kept["features"], features.transpose(1, 2)], dim=-1)
+        # the window's features [B, D, 2 * (W + n)], less the dropped first ones; the refreshed ones new
+        made = kept["features"]
+        window = torch.cat([made[..., :made.shape[-1] - FEATURES_PER_FRAME * refresh], features.transpose(1, 2)],
+                           dim=-1)
         new_state["features"] = _take(window, keep_frames * FEATURES_PER_FRAME, self.kept_features)
         for name in ("audio_stats", "conv0_stats"):
             new_state[name] = _take(new_stats[name], keep_frames, self.window_frames)
@@ -304,6 +315,17 @@ class MotionTranslatorStream(nn.Module):
         return params[:, first:first + frames]
 
     @staticmethod
+    def _frame_starts(buffer: torch.Tensor, older: torch.Tensor, plan: LayerPlan, frames: int,
+                      keep_frames: torch.Tensor, length: int) -> torch.Tensor:
+        """A layer's kept inputs at the `length` frame starts up to the committed end after the call: `older`
+        [B, C, m, keep] (those up to the call's first frame), then those at each of the `frames` starts after it,
+        read from `buffer` (the layer's inputs from the call's first frame on, its kept ones first)."""
+        starts = torch.arange(1, frames + 1, dtype=torch.int64)[:, None] * plan.rate_in
+        index = (starts + torch.arange(plan.keep, dtype=torch.int64)[None, :]).reshape(-1)
+        made = buffer.index_select(-1, index).reshape(buffer.shape[0], buffer.shape[1], frames, plan.keep)
+        return _take(torch.cat([older, made], dim=2), keep_frames, length, dim=2)
+
+    @staticmethod
     def _key_bias(first_clean: torch.Tensor, rows: int) -> torch.Tensor:
         """[B, 1, 1, rows] attention-logit bias over a window's rows: _EMPTY_ROW_LOGIT before row `first_clean`
         [B, 1], 0 from it on."""
@@ -316,7 +338,8 @@ class MotionTranslatorStream(nn.Module):
         waveform normalised as x' = (x - m) * a, conv(x') = a * (conv(x) - m * sum(w)), so GroupNorm(conv(x'))
         = a * (conv(x) - mean) / sqrt(a^2 * var + eps) with conv(x)'s own per-channel mean and variance."""
         # the new frames' outputs (the refreshed frames' statistics are kept); the last output read padding
-        exact = raw[..., self.refresh_frames * self.conv0_rate:(self.refresh_frames + frames) * self.conv0_rate]
+        refresh = self.call_refresh
+        exact = raw[..., refresh * self.conv0_rate:(refresh + frames) * self.conv0_rate]
         conv_mean, conv_var = _framed_stats(exact, frames)  # [B, C, n]
         means = torch.cat([kept["conv0_stats"][:, 0], conv_mean], dim=-1)
         variances = torch.cat([kept["conv0_stats"][:, 1], conv_var], dim=-1)

@@ -38,7 +38,7 @@ import torch
 
 from gaussiantalker.runtime.composite import crop_box
 from gaussiantalker.runtime.head import TalkingHead
-from gaussiantalker.sdk.bundle import STREAM_GRAPH
+from gaussiantalker.sdk.bundle import STEADY_STREAM_GRAPH, STREAM_GRAPH
 from gaussiantalker.sdk.drive import track_row
 from gaussiantalker.sdk.image import max_abs_error, psnr_db, to_uint8
 from gaussiantalker.sdk.progress import progress_bar
@@ -150,13 +150,17 @@ def verify_translator(speaker: Speaker, head: TalkingHead, frame_counts=(25, 33)
 
 
 def verify_translator_stream(speaker: Speaker, head: TalkingHead, frames: int = 40, seed: int = 2,
-                             tolerance: float | None = GRAPH_RTOL) -> dict | None:
+                             tolerance: float | None = GRAPH_RTOL, steady: bool = False) -> dict | None:
     """The streaming translator graph vs its torch module (None where the bundle has none or the speaker has no
     torch translator: the built-in voice's stream is built from its windowed graph, tests/test_voice_stream.py),
-    fed a speech-like clip in uneven calls, some with a provisional frame after them."""
-    if STREAM_GRAPH not in head.bundle.manifest["graphs"] or not plays_audio(speaker):
+    fed a speech-like clip in uneven calls, some with a provisional frame after them. `steady`: its steady form
+    instead (None where the bundle has none), every other call, on the state the two graphs share."""
+    graph = STEADY_STREAM_GRAPH if steady else STREAM_GRAPH
+    if graph not in head.bundle.manifest["graphs"] or not plays_audio(speaker):
         return None
-    module = MotionTranslatorStream(speaker.translator).eval()
+    modules = {True: MotionTranslatorStream(speaker.translator).eval(),
+               False: MotionTranslatorStream(speaker.translator, call_refresh=0).eval()}
+    module = modules[True]
     spf = speaker.config.samples_per_frame
     audio = speech_clip(speaker, frames, seed).reshape(frames, spf)
     state = np.zeros((1, module.state_size), np.float32)
@@ -164,9 +168,11 @@ def verify_translator_stream(speaker: Speaker, head: TalkingHead, frames: int = 
     while position < frames:
         keep = min(sizes[len(stats) % len(sizes)], frames - position)
         chunk = np.concatenate([audio[position:position + keep], np.zeros((len(stats) % 2, spf), np.float32)])
-        out = head.driver.run_stream(chunk[None], state, keep)
+        refresh = not steady or len(stats) % 2 == 1
+        out = head.driver.run_stream(chunk[None], state, keep, refresh)
         with torch.no_grad():
-            expected = module(torch.from_numpy(chunk[None]), torch.from_numpy(state), torch.tensor([float(keep)]))
+            expected = modules[refresh](torch.from_numpy(chunk[None]), torch.from_numpy(state),
+                                        torch.tensor([float(keep)]))
         stats += [_compare(value.numpy(), out[name]) for name, value in
                   zip(("expression", "jaw_pose", "state_out"), expected[:3], strict=True)]
         state, position = out["state_out"], position + keep
@@ -367,7 +373,9 @@ def _agreement_cases(speaker: Speaker, head: TalkingHead, seed: int = 0) -> list
             spf = speaker.config.samples_per_frame
             for frames, keep in ((3, 2), (1, 1)):
                 audio = speech_clip(speaker, 2 * frames, seed + frames).reshape(2, frames, spf)
-                cases.append((STREAM_GRAPH, {"audio": audio, "state": rest, "keep": np.array([keep], np.float32)}))
+                for graph in (STREAM_GRAPH, STEADY_STREAM_GRAPH):
+                    if graph in head.bundle.manifest["graphs"]:
+                        cases.append((graph, {"audio": audio, "state": rest, "keep": np.array([keep], np.float32)}))
     center = head.camera.center.astype(np.float32)[None]
     for drive in _random_drives(speaker, 4, seed):
         cases.append(("deform", {**drive.graph_inputs(), "camera_center": center}))
@@ -421,9 +429,10 @@ def verify_bundle(speaker: Speaker, bundle_path, *, frames: int = 25, resolution
         head.bundle.verify_all()
         graphs = {"translator": verify_translator(speaker, head, tolerance=tolerances.graph_rtol),
                   "deform": verify_deformation(speaker, head, tolerance=tolerances.graph_rtol)}
-        stream = verify_translator_stream(speaker, head, tolerance=tolerances.graph_rtol)
-        if stream is not None:
-            graphs[STREAM_GRAPH] = stream
+        for graph, steady in ((STREAM_GRAPH, False), (STEADY_STREAM_GRAPH, True)):
+            stream = verify_translator_stream(speaker, head, tolerance=tolerances.graph_rtol, steady=steady)
+            if stream is not None:
+                graphs[graph] = stream
         frame_report = verify_frames(speaker, head, frames, tolerances=tolerances, progress=progress)
         views = verify_views(speaker, head, views=min(frames, len(VIEW_ORBITS)), tolerances=tolerances)
         composited = None
