@@ -243,11 +243,12 @@ def test_a_clip_in_groups_of_pictures_with_h264_masks_plays_composited(player_re
 
 def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> np.ndarray:
     """What the page's AudioStream (web/src/stream.js) makes of `audio` pushed `chunk` samples at a time, in numpy
-    on onnxruntime: the same graph calls (every whole frame committed at once, at most 50 a call; at the end the
-    partial frame and the delay zero-padded), each stream row gated over its live window, rig frames at their
-    centres."""
+    on onnxruntime: the same graph calls (every whole frame committed at once, at most 50 a call, the steady graph
+    where the bundle has one and the loudness held; at the end the partial frame and the delay zero-padded), each
+    stream row gated over its live window, rig frames at their centres."""
     from gaussiantalker.runtime.stages import open_driver
     from gaussiantalker.runtime.translate import CONTEXT_FRAMES, silence_gain
+    from gaussiantalker.runtime.translate_stream import frame_power, loudness_moved
 
     driver = open_driver(bundle)
     spec = driver.stream_spec
@@ -260,7 +261,8 @@ def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> np.ndarray
         while pending.shape[0] >= size:
             count = min(pending.shape[0] // size, 50)
             block = pending[:count * size]
-            out = driver.run_stream(block.reshape(1, count, size), state, count)
+            refresh = not spec.steady or loudness_moved(frame_power(np.concatenate([past, block]).reshape(-1, size)))
+            out = driver.run_stream(block.reshape(1, count, size), state, count, refresh)
             state, past = out["state_out"], np.concatenate([past, block])
             for k, row in enumerate(driver.stream_rows(out)[0]):
                 j = committed - delay + k

@@ -204,3 +204,48 @@ def test_window_plan_gate_crossfades_camera_checks_and_draw_sizes_match_python(t
                      if python != page]
     assert not disagreements, f"{len(disagreements)} camera verdicts differ, first: {disagreements[0]}"
     assert expected.count("loaded") >= len(cameras) // 6 and expected.count("refused") >= len(cameras) // 3
+
+
+LOUDNESS_SCRIPT = """
+import fs from 'node:fs';
+import { framePowers, loudnessMoved } from %(stream_js)s;
+const cases = JSON.parse(fs.readFileSync(%(cases)s, 'utf8'));
+const verdicts = cases.map((c) => {
+  const audio = new Float32Array(new Uint8Array(Buffer.from(c.audio, 'base64')).buffer);
+  const powers = framePowers(audio, c.frame);
+  return Array.from({ length: powers.length }, (_, n) => loudnessMoved(powers.subarray(0, n + 1)));
+});
+console.log(JSON.stringify(verdicts));
+"""
+
+
+def test_the_loudness_gate_matches_python(tmp_path):
+    """web/src/stream.js `framePowers` + `loudnessMoved` against runtime/translate_stream.py `frame_power` +
+    `loudness_moved` (which graph a stream's call runs): the same verdict after every frame of seeded audio in
+    pieces of speech-like, quiet and silent levels."""
+    from gaussiantalker.runtime.translate_stream import frame_power, loudness_moved
+
+    node = shutil.which("node")
+    need(None if node else "node is missing (Debian's npm brings it)", BROWSER_INSTALL)
+    rng = np.random.default_rng(7)
+    cases = []
+    for _ in range(40):
+        frame = int(rng.choice([640, 320]))
+        levels = rng.choice([0.0, 1e-4, 0.01, 0.1, 0.3], size=int(rng.integers(1, 6)))
+        pieces = [level * rng.standard_normal(frame * int(rng.integers(1, 40))) for level in levels]
+        cases.append({"frame": frame, "audio": np.concatenate(pieces).astype(np.float32)})
+    listing = tmp_path / "loudness.json"
+    listing.write_text(json.dumps([{"frame": c["frame"], "audio": base64.b64encode(c["audio"].tobytes()).decode()}
+                                   for c in cases]))
+    script = tmp_path / "loudness.mjs"
+    script.write_text(LOUDNESS_SCRIPT % {"stream_js": json.dumps((ROOT / "web" / "src" / "stream.js").as_uri()),
+                                         "cases": json.dumps(str(listing))})
+    done = subprocess.run([node, str(script)], capture_output=True, text=True, timeout=NODE_TIMEOUT_S)
+    assert done.returncode == 0, done.stderr[-2000:]
+    moved = 0
+    for case, page in zip(cases, json.loads(done.stdout), strict=True):
+        powers = frame_power(case["audio"].reshape(-1, case["frame"]))
+        python = [loudness_moved(powers[:n + 1]) for n in range(powers.shape[0])]
+        assert page == python, case["frame"]
+        moved += sum(python)
+    assert 0 < moved < sum(len(p) for p in json.loads(done.stdout))  # both verdicts occur

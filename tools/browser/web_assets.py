@@ -61,6 +61,8 @@ def constants() -> dict[str, object]:
         "MAX_NPZ_BYTES": zip_reader.MAX_NPZ_BYTES, "MAX_NDIM": codecs.MAX_NDIM,
         "FLAME_MOTION_KEYS": [list(pair) for pair in MOTION_KEYS], "TABLE_POSE_COLUMNS": TABLE_POSE_COLUMNS,
         "REST_FRAMES": translate_stream.REST_FRAMES, "FEATURES_PER_FRAME": config.FEATURES_PER_FRAME,
+        "LOUDNESS_WINDOW_FRAMES": translate_stream.LOUDNESS_WINDOW_FRAMES,
+        "LOUDNESS_LAG_FRAMES": translate_stream.LOUDNESS_LAG_FRAMES, "LOUDNESS_RATIO": translate_stream.LOUDNESS_RATIO,
         "CROP_MARGIN_PX": reference_clip.CROP_MARGIN_PX, "CROP_MULTIPLE": reference_clip.CROP_MULTIPLE,
         # The bundle's header and bounds (sdk/bundle.py), and its buffer codecs' tables (sdk/codecs.py).
         "MAGIC": bundle.MAGIC.decode("ascii"), "FORMAT_MAJOR": bundle.FORMAT_MAJOR, "HEADER_SIZE": bundle.HEADER_SIZE,

@@ -24,7 +24,7 @@ import { GraphBackendError, GraphSessions } from './graphs.js';
 import { compositeFrame } from './composite.js';
 import { ReferenceClip } from './reference.js';
 import { RenderError, WebGLSplatter } from './splat.js';
-import { AudioStream, STEADY_STREAM_GRAPH } from './stream.js';
+import { AudioStream } from './stream.js';
 
 export { AudioError, BundleError, Camera, DriveError, GraphBackendError, RenderError };
 
@@ -170,8 +170,7 @@ export class Player {
     timings.read = (performance.now() - start) / 1000;
     const rig = rigOf(bundle);
     start = performance.now();
-    const names = options.names ?? bundle.graphNames().filter((graph) => graph !== STEADY_STREAM_GRAPH);
-    const graphs = await GraphSessions.open(bundle, { ...options, names });
+    const graphs = await GraphSessions.open(bundle, options);
     timings.graphs = (performance.now() - start) / 1000;
     if (!graphs.has('deform')) throw new BundleError(`${bundle.name}: bundle lacks the 'deform' graph`);
     const track = (bufferName) => {

@@ -10,18 +10,54 @@
 //   stream.rows, stream.width, stream.frames   // the rig's rows so far, [frames * width], frame order
 //   stream.drive()                // their drive (a stream opened by Player.openAudioStream)
 //
+// A bundle whose stream has a steady form (the speaker's own translator) runs it for every call whose window's
+// loudness held, the refreshing graph where it moved, as the Python runtime chooses (`loudnessMoved`, the twin of
+// runtime/translate_stream.py `loudness_moved`; docs/live.md, "The speaker's own translator").
+//
 // Each stream row is gated like a live session's (docs/embedding.md, "Silence gate"): scaled by the gain of the
 // audio window a windowed call would see for it (CONTEXT_FRAMES before, the frame, `delay` after; zeros before the
 // stream's start). A rig whose frames are not the stream's (a 30 fps avatar on a 25 fps voice) takes each frame at
 // its centre, interpolated between the two nearest rows (rows before the first are the rest row).
 
 import { DriveError, checkSamples, silenceGain } from './drive.js';
-import { CONTEXT_FRAMES, REST_FRAMES, SILENCE_GATE_DBFS } from './generated.js';
+import {
+  CONTEXT_FRAMES, LOUDNESS_LAG_FRAMES, LOUDNESS_RATIO, LOUDNESS_WINDOW_FRAMES, REST_FRAMES, SILENCE_GATE_DBFS,
+} from './generated.js';
 
 export const STREAM_GRAPH = 'translator_stream';
-// The stream's steady form, which the Python runtime runs while the window's loudness holds (docs/live.md, "The
-// speaker's own translator"); the page calls the refreshing graph every time, so it does not open this one.
+// The stream's steady form, run while the window's loudness holds (docs/live.md, "The speaker's own translator").
 export const STEADY_STREAM_GRAPH = 'translator_stream_steady';
+
+/** Each frame's mean square (float64) of `audio` [frames * frameSamples]. */
+export function framePowers(audio, frameSamples) {
+  const powers = new Float64Array(Math.floor(audio.length / frameSamples));
+  for (let f = 0; f < powers.length; f++) {
+    let sum = 0;
+    for (let i = f * frameSamples; i < (f + 1) * frameSamples; i++) sum += audio[i] * audio[i];
+    powers[f] = sum / frameSamples;
+  }
+  return powers;
+}
+
+/**
+ * Whether a call whose frames end `powers` (per-frame mean squares, the committed frames' before) needs the
+ * refreshing graph: the window's mean power against the window's LOUDNESS_LAG_FRAMES frames earlier, either
+ * LOUDNESS_RATIO times the other (silence before counts as zeros).
+ */
+export function loudnessMoved(powers) {
+  const window = LOUDNESS_WINDOW_FRAMES;
+  const lag = LOUDNESS_LAG_FRAMES;
+  const padded = new Float64Array(window + lag);
+  const tail = powers.subarray(Math.max(0, powers.length - window - lag));
+  padded.set(tail, padded.length - tail.length);
+  let now = 0;
+  let then = 0;
+  for (let i = lag; i < padded.length; i++) now += padded[i];
+  for (let i = 0; i < window; i++) then += padded[i];
+  now /= window;
+  then /= window;
+  return Math.max(now, then) > LOUDNESS_RATIO * Math.min(now, then);
+}
 // Frames per graph call at most, so a long push holds a bounded window of audio and rows at a time.
 const MAX_CALL_FRAMES = 50;
 
@@ -49,9 +85,11 @@ export class AudioStream {
     if (!(Number.isInteger(stateSize) && stateSize > 0 && Number.isInteger(frameSamples) && frameSamples > 0)) {
       throw new DriveError(`${bundle.name}: the streaming graph's inputs do not say their state and frame sizes`);
     }
-    const run = (audio, frames, state, keep) => graphs.run(STREAM_GRAPH, {
-      audio: { data: audio, dims: [1, frames, frameSamples] }, state: { data: state, dims: [1, stateSize] },
-      keep: { data: Float32Array.of(keep), dims: [1] } });
+    const steady = graphs.has(STEADY_STREAM_GRAPH);
+    const run = (audio, frames, state, keep, refresh = true) => graphs.run(
+      refresh || !steady ? STREAM_GRAPH : STEADY_STREAM_GRAPH, {
+        audio: { data: audio, dims: [1, frames, frameSamples] }, state: { data: state, dims: [1, stateSize] },
+        keep: { data: Float32Array.of(keep), dims: [1] } });
     const rest = await run(new Float32Array(REST_FRAMES * frameSamples), REST_FRAMES, new Float32Array(stateSize),
       REST_FRAMES);
     const delay = Number(rest.delay_frames.data[0]);
@@ -59,7 +97,8 @@ export class AudioStream {
       throw new DriveError(`${bundle.name}: the streaming graph says its rows lag ${delay} frames; expected 0..${REST_FRAMES - 1}`);
     }
     const { rows, width } = rowsOf(rest);
-    return new AudioStream({ run, rowsOf, makeDrive, delay, frameSamples, width, gateDbfs, contextFrames,
+    return new AudioStream({ run, steady, powers: new Float64Array(0), rowsOf, makeDrive, delay, frameSamples,
+      width, gateDbfs, contextFrames,
       rigSamplesPerFrame, aligned: Math.abs(rigSamplesPerFrame - frameSamples) < 1e-9,
       restRow: rows.slice((REST_FRAMES - 1) * width, REST_FRAMES * width), state: rest.state_out.data.slice(),
       pending: new Float32Array(0), received: 0, committed: 0, history: new Float32Array(0), historyStart: 0,
@@ -99,7 +138,12 @@ export class AudioStream {
     while (this.pending.length >= size) {
       const count = Math.min(Math.floor(this.pending.length / size), MAX_CALL_FRAMES);
       const audio = this.pending.slice(0, count * size);
-      const out = await this.run(audio, count, this.state, count);
+      const powers = new Float64Array(this.powers.length + count);
+      powers.set(this.powers);
+      powers.set(framePowers(audio, size), this.powers.length);
+      const refresh = !this.steady || loudnessMoved(powers);
+      const out = await this.run(audio, count, this.state, count, refresh);
+      this.powers = powers.slice(Math.max(0, powers.length - LOUDNESS_WINDOW_FRAMES - LOUDNESS_LAG_FRAMES));
       this.state = out.state_out.data.slice();
       this._remember(audio);
       const { rows } = this.rowsOf(out);

@@ -1,6 +1,6 @@
 """The Motion Translator's streaming form (docs/live.md, "The speaker's own translator"): state in, state out, the
-convolutional feature encoder run on each call's new frames and a few refreshed ones, the transformers over a fixed
-window.
+convolutional feature encoder run on each call's new frames and a few refreshed ones, the transformers on the
+window's tail with their keys and values kept.
 
     audio [B, n, 640] (the next n frames of the session's timeline), state [B, S], keep [1] (float32, a whole
     number: how many of the n frames are committed; the rest is provisional, e.g. zeros for lookahead not yet in)
@@ -14,7 +14,9 @@ delay frames of lookahead: one window of context + delay + n frames), except whe
 recompute the past:
 
 * The feature encoder (7 strided convolutions, ~75% of a live window's cost) runs on the call's new frames and
-  the last `refresh_frames` before them. Each layer keeps the last few inputs its kernel still needs (`conv_plan`);
+  the last `call_refresh` before them (`refresh_frames`, or 0 in the steady form, exported as a second graph on the
+  same state: the state keeps what a call of either needs). Each layer keeps the last few inputs its kernel still
+  needs (`conv_plan`), at each of the last `refresh_frames` + 1 frame starts;
   a layer that reads past its input's end (the first layer's kernel reads 2 samples into the next feature) makes
   its last outputs from zero padding, as the windowed graph does at a window's end, and recomputes them from real
   inputs in the next call.
