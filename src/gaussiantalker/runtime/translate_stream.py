@@ -91,6 +91,7 @@ class StreamJob:
     audio: np.ndarray
     keep: int
     refresh: bool = True  # False: the graph's steady form
+    powers: np.ndarray | None = None  # each frame's mean square (a stream with a steady form: its gate reads them)
     rows: np.ndarray | None = None
     state: np.ndarray | None = None
 
@@ -197,8 +198,10 @@ class TranslatorStream:
         have = min(self.known.shape[0], count * size)
         audio[:have] = self.known[:have]
         audio = audio.reshape(count, size)
-        refresh = not self.spec.steady or loudness_moved(np.concatenate([self._powers, frame_power(audio)]))
-        return StreamJob(self, audio, keep, refresh)
+        if not self.spec.steady:  # one graph: no gate, nothing to measure
+            return StreamJob(self, audio, keep)
+        powers = frame_power(audio)
+        return StreamJob(self, audio, keep, loudness_moved(np.concatenate([self._powers, powers])), powers)
 
     def _has_final(self, index: int) -> bool:
         return index < 0 or index in self.final
@@ -211,8 +214,9 @@ class TranslatorStream:
         for k, row in enumerate(job.rows):
             index = first + k
             (self.final if index < final_end else self._provisional)[index] = row
-        window = LOUDNESS_WINDOW_FRAMES + LOUDNESS_LAG_FRAMES
-        self._powers = np.concatenate([self._powers, frame_power(job.audio[:job.keep])])[-window:]
+        if job.powers is not None:  # the gate's history: the committed frames' mean squares, the last window's
+            window = LOUDNESS_WINDOW_FRAMES + LOUDNESS_LAG_FRAMES
+            self._powers = np.concatenate([self._powers, job.powers[:job.keep]])[-window:]
         committed = job.audio[:job.keep].reshape(-1)
         silent = _trailing_silence(committed)
         self.quiet = self.quiet + silent if silent == committed.shape[0] else silent

@@ -167,15 +167,15 @@ class MotionTranslatorStream(nn.Module):
             raise ValueError("the stream's window is shorter than its feature encoder's lag")
         self.channels, self.dim = cfg.conv_channels, cfg.encoder_dim
         self.tail_frames = self._check_tail(tail_frames)
+        pos_left = int(translator.audio_encoder.pos_conv_embed.conv.padding[0])  # features its kernel reads before
         # features kept in the state: the window's, less those before what the tail's positional convolution reads
         self.dropped_features = 0
         if self.tail_frames is not None:
-            pos_left = int(translator.audio_encoder.pos_conv_embed.conv.padding[0])
             self.dropped_features = max(0, FEATURES_PER_FRAME * (self.window_frames - self.tail_frames) - pos_left)
         self.kept_features = self.window_features - self.dropped_features
         # frames_seen stops counting where no row of the window is made from the all-zero state's blanks: the
         # window's frames and a stream's first frames, whose positional convolution reads the blank features before
-        start_frames = 1 + math.ceil(int(translator.audio_encoder.pos_conv_embed.conv.padding[0]) / FEATURES_PER_FRAME)
+        start_frames = 1 + math.ceil(pos_left / FEATURES_PER_FRAME)
         self.seen_cap = self.window_frames + start_frames
         first = translator.audio_encoder.feature_extractor.conv_layers[0]
         self.conv0_rate = self.samples_per_frame // self.plans[0].stride  # first-layer outputs per frame
