@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -313,11 +314,23 @@ def test_an_interruption_or_cancel_ends_the_wait_for_room(small_export, monkeypa
     assert not [t for t in threading.enumerate() if t.name == RENDER_THREAD]
 
 
-def test_a_chunk_longer_than_the_session_takes_is_one_error_a_reply_and_passes_on(small_export, monkeypatch):
+@pytest.mark.parametrize("render_s", [0.0, 0.025], ids=["render-as-is", "render-slow"])
+def test_a_chunk_longer_than_the_session_takes_is_one_error_a_reply_and_passes_on(small_export, monkeypatch,
+                                                                                   render_s):
     """Chunks longer alone than the session's max_queued_s, twice in one reply and once in the next: one ErrorFrame
     a reply, logged once each, the processor still usable; those chunks pass on unchanged, in place (the face's
-    queue drained first), and the reply's other chunks are shown by the face, whole and in order."""
+    queue drained first), and the reply's other chunks are shown by the face, whole and in order. A slow render
+    (25 ms of the 40 ms a frame) widens the time between a frame taking the last queued audio and its going out,
+    which a chunk passed on must not overtake."""
     _small_sessions(monkeypatch)
+    if render_s:
+        original_render = TalkingHead.render
+
+        def slow_render(self, *args, **kwargs):
+            time.sleep(render_s)
+            return original_render(self, *args, **kwargs)
+
+        monkeypatch.setattr(TalkingHead, "render", slow_render)
     _, pcm = _tts_frames(0.8)
     step = TTS_RATE // 50
 

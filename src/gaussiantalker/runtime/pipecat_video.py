@@ -76,6 +76,7 @@ class TalkingHeadVideo(FrameProcessor):
         self._thread: threading.Thread | None = None
         self._queue: asyncio.Queue | None = None
         self._sender: asyncio.Task | None = None
+        self._sent = 0  # frames of the session pushed downstream (the next frame's index)
 
     # -- the pipeline's side -------------------------------------------------------------------------------------
     async def setup(self, setup: FrameProcessorSetup) -> None:
@@ -100,7 +101,7 @@ class TalkingHeadVideo(FrameProcessor):
                     if live.error is None:  # refused while the session runs: too long alone
                         await self._report_refused(error)
                         live.flush()  # the audio before this chunk is shown in full before it goes on, in order
-                        await self._wait_for_room(live, math.inf, held=0.0)
+                        await self._wait_until_sent(live)
                     # Else the session has just failed and its error is on its way upstream. Either way the voice
                     # goes on without a face.
         elif isinstance(frame, TTSStoppedFrame) and live is not None:
@@ -159,6 +160,17 @@ class TalkingHeadVideo(FrameProcessor):
                 return
             await self._room.wait()
 
+    async def _wait_until_sent(self, live: LiveSession) -> None:
+        """Return once every frame showing audio queued so far has gone downstream (or the session stopped), so a
+        chunk passed on without the face follows the audio before it. The queue empties when its last frame is
+        planned, while that frame may still be rendering or on its way here: it is the frame numbered
+        `stats.frames` at most, so wait for that one to be sent (an idle frame, if it was already out)."""
+        await self._wait_for_room(live, math.inf, held=0.0)
+        last = live.stats.frames
+        while self._live is live and live.error is None and self._sent <= last:
+            self._room.clear()
+            await self._room.wait()
+
     async def _report_refused(self, error: LiveError) -> None:
         """The running session refused a chunk (longer alone than its max_queued_s): tell the pipeline once a reply
         (an ErrorFrame upstream that leaves the processor usable); the chunk passes on without the face."""
@@ -181,10 +193,11 @@ class TalkingHeadVideo(FrameProcessor):
         """Push the session's frames downstream in order: the audio they show, then the picture, queued with it."""
         while True:
             frame: LiveFrame | BaseException | None = await self._queue.get()
-            self._room.set()  # a frame was made, so the session's queue shrank; or it failed or ended
             if frame is None:
+                self._room.set()  # the session ended: nothing waits on it any more
                 return
             if isinstance(frame, BaseException):
+                self._room.set()
                 await self._report(frame, "its live session ended: rendering a frame raised")
                 continue
             pcm = to_pcm16(frame.audio).tobytes()  # int16 exact
@@ -194,6 +207,8 @@ class TalkingHeadVideo(FrameProcessor):
             image.sync_with_audio = True
             image.pts = round(frame.pts * 1e9)  # Pipecat's presentation times are nanoseconds
             await self.push_frame(image)
+            self._sent = frame.index + 1
+            self._room.set()  # a frame went out, so the session's queue shrank
 
     # -- the render thread ---------------------------------------------------------------------------------------
     def _render(self, loop: asyncio.AbstractEventLoop, audio_rate: int) -> None:
