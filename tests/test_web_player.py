@@ -28,7 +28,7 @@ import pytest
 from ci_tools import BROWSER_INSTALL, need, need_chromium
 from typer.testing import CliRunner
 
-from gaussiantalker.sdk.bundle import Bundle, BundleWriter
+from gaussiantalker.sdk.bundle import STEADY_STREAM_GRAPH, STREAM_GRAPH, Bundle, BundleWriter
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.image import psnr_db
 from tools.browser import web_assets
@@ -241,11 +241,12 @@ def test_a_clip_in_groups_of_pictures_with_h264_masks_plays_composited(player_re
         assert psnr_db(frames[index], frame) >= MIN_PSNR_DB, (index, psnr_db(frames[index], frame))
 
 
-def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> np.ndarray:
+def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> tuple[np.ndarray, dict[str, int]]:
     """What the page's AudioStream (web/src/stream.js) makes of `audio` pushed `chunk` samples at a time, in numpy
     on onnxruntime: the same graph calls (every whole frame committed at once, at most 50 a call, the steady graph
     where the bundle has one and the loudness held; at the end the partial frame and the delay zero-padded), each
-    stream row gated over its live window, rig frames at their centres."""
+    stream row gated over its live window, rig frames at their centres; and how many calls each graph had (the
+    rest state's call of silence included)."""
     from gaussiantalker.runtime.stages import open_driver
     from gaussiantalker.runtime.translate import CONTEXT_FRAMES, silence_gain
     from gaussiantalker.runtime.translate_stream import frame_power, loudness_moved
@@ -255,6 +256,7 @@ def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> np.ndarray
     size, delay = spec.frame_samples, spec.delay
     state, pending, committed, rows = spec.rest_state[None], np.zeros(0, np.float32), 0, []
     past = np.zeros(0, np.float32)  # every committed sample
+    calls = {STREAM_GRAPH: 1}  # the rest state's call
 
     def commit(pending, state, committed):
         nonlocal past
@@ -263,6 +265,8 @@ def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> np.ndarray
             block = pending[:count * size]
             refresh = not spec.steady or loudness_moved(frame_power(np.concatenate([past, block]).reshape(-1, size)))
             out = driver.run_stream(block.reshape(1, count, size), state, count, refresh)
+            graph = STREAM_GRAPH if refresh else STEADY_STREAM_GRAPH
+            calls[graph] = calls.get(graph, 0) + 1
             state, past = out["state_out"], np.concatenate([past, block])
             for k, row in enumerate(driver.stream_rows(out)[0]):
                 j = committed - delay + k
@@ -282,7 +286,7 @@ def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> np.ndarray
     rig_spf = driver.samples_per_frame
     frames = int(np.ceil(audio.shape[0] / rig_spf - 1e-9))
     if abs(rig_spf - size) < 1e-9:
-        return np.stack(rows[:frames])
+        return np.stack(rows[:frames]), calls
     table = np.stack([spec.rest_row, *rows])  # row -1 is the rest row
     out = []
     for f in range(frames):
@@ -291,7 +295,7 @@ def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> np.ndarray
         w = np.float32(centre - i)
         left, right = table[i + 1], table[min(i + 2, len(table) - 1)]
         out.append(left * (np.float32(1) - w) + right * w)
-    return np.stack(out)
+    return np.stack(out), calls
 
 
 @pytest.mark.parametrize("rig", ["flame", "arkit"])
@@ -313,7 +317,11 @@ def test_audio_pushed_as_it_arrives_plays_through_the_streaming_translator(playe
     assert info["rig"] == rig
     result = page.stream_drive(path, chunk=320)
     rows = page.drive_rows()
-    expected = _stream_reference(bundle, audio, 320)
+    expected, calls = _stream_reference(bundle, audio, 320)
+    # The page ran the same graphs as often: the steady form where the bundle has it (the small speaker's own
+    # translator, for most calls), the refreshing form at loudness changes; the voice has no steady form.
+    assert result["calls"] == calls, (result["calls"], calls)
+    assert (calls.get(STEADY_STREAM_GRAPH, 0) > calls[STREAM_GRAPH]) == (rig == "flame"), calls
     assert result["frames"] == rows.shape[0] == expected.shape[0] == int(np.ceil(4 * info["fps"] - 1e-9))
     assert result["ready"][-1] < result["frames"]  # the last frames wait for end(): their lookahead
     assert result["ready"][-1] >= result["frames"] - (result["delay"] + 2) * info["fps"] / 25

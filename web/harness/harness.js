@@ -60,12 +60,16 @@ window.gtWeb = {
    * time, then ended; the drive is the stream's. */
   async streamDrive({ audio, chunk }) {
     const samples = await decodeAudio(await fetchBytes(audio), player.sampleRate);
+    const before = { ...player.graphs.calls };
     const stream = await player.openAudioStream();
     const ready = [];
     for (let i = 0; i < samples.length; i += chunk) ready.push(await stream.push(samples.subarray(i, i + chunk)));
     await stream.end();
     drive = stream.drive();
-    return { frames: drive.frames, ready, delay: stream.delay };
+    // The stream's calls of each graph (its first, of silence, included): which form of the translator ran.
+    const calls = Object.fromEntries(Object.entries(player.graphs.calls)
+      .map(([name, count]) => [name, count - (before[name] ?? 0)]).filter(([, count]) => count > 0));
+    return { frames: drive.frames, ready, delay: stream.delay, calls };
   },
 
   /** The drive's rows (FLAME: expression then jaw; ARKit: weights) as float32 base64, [frames, width]. */

@@ -67,6 +67,7 @@ export class GraphSessions {
     this.ort = ort;
     this.sessions = sessions;
     this.backend = backend; // {name, executionProviders, adapter}
+    this.calls = {}; // graph name -> calls run so far: which graphs a player really used
   }
 
   /**
@@ -117,6 +118,7 @@ export class GraphSessions {
       tensors[input] = new this.ort.Tensor(ORT_TYPES[declared[input]] ?? 'float32', data, dims);
     }
     const results = await session.run(tensors);
+    this.calls[name] = (this.calls[name] ?? 0) + 1;
     const out = {};
     for (const [output, tensor] of Object.entries(results)) {
       out[output] = { data: tensor.data, dims: tensor.dims };
