@@ -84,9 +84,13 @@ def test_the_stream_gives_the_windowed_graphs_rows(path):
             assert np.abs(got - expected[k][0]).max() < EXACT, name
 
 
-def test_sessions_batched_in_one_call_get_their_own_rows():
+@pytest.mark.parametrize("per_call", [None, 2], ids=["one-call", "split"])
+def test_sessions_batched_in_one_call_get_their_own_rows(monkeypatch, per_call):
     """Three streams at different places in different clips, stacked on the batch axis in one call (what the live
-    server's pool does), each get the rows and state they get alone."""
+    server's pool does), each get the rows and state they get alone; so do they where the states' bytes split them
+    into calls of two (MAX_CALL_STATE_BYTES)."""
+    import gaussiantalker.runtime.translate_stream as translate_stream
+
     _, stream = _sessions(ARKIT_MODEL)
     clips = unseen_speech()[:1] * 3
     states = [_rest(stream) for _ in clips]
@@ -105,7 +109,9 @@ def test_sessions_batched_in_one_call_get_their_own_rows():
         feeds = {"audio": audio, "state": state, "keep": np.array([keep], np.float32)}
         return dict(zip(names, stream.run(names, feeds), strict=True))
 
-    assert run_stream_jobs(jobs, run, lambda out: out["blendshapes"]) == [3]
+    if per_call is not None:
+        monkeypatch.setattr(translate_stream, "MAX_CALL_STATE_BYTES", 4 * per_call * jobs[0].stream.state.shape[0])
+    assert run_stream_jobs(jobs, run, lambda out: out["blendshapes"]) == ([3] if per_call is None else [2, 1])
     for job, single in zip(jobs, alone, strict=True):
         assert np.abs(job.rows - single[0][0]).max() < EXACT and np.abs(job.state - single[1][0]).max() < EXACT
 

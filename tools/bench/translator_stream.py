@@ -139,11 +139,13 @@ def run_quality(translator, variants: list[Variant], batches: list[int]) -> dict
 
 def run_cost(translator, variants: list[Variant], cases: list[tuple[int, int]], rounds: int) -> list[dict]:
     """Per (sessions B, frames a call n): ms a session-frame of the windowed graph (B calls of one window) and of
-    each streaming graph (one call, B stacked), onnxruntime on one thread, alternating rounds, medians."""
+    each streaming graph (one call, B stacked; and, where B is more than `sessions_per_call`, the live pool's calls
+    of that many), onnxruntime on one thread, alternating rounds, medians."""
     import onnxruntime as ort
 
     from gaussiantalker.exporter.export.translator_graph import translator_onnx, translator_stream_onnx
     from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream
+    from gaussiantalker.runtime.translate_stream import sessions_per_call
 
     options = ort.SessionOptions()
     options.intra_op_num_threads = 1
@@ -173,9 +175,17 @@ def run_cost(translator, variants: list[Variant], cases: list[tuple[int, int]], 
             timings.setdefault("windowed", []).append(time.perf_counter() - start)
             for label, (session, size, _) in streams.items():
                 state = np.zeros((sessions, size), np.float32)
+                keep = np.array([n], np.float32)
                 start = time.perf_counter()
-                session.run(None, {"audio": audio, "state": state, "keep": np.array([n], np.float32)})
+                session.run(None, {"audio": audio, "state": state, "keep": keep})
                 timings.setdefault(label, []).append(time.perf_counter() - start)
+                step = sessions_per_call(size)
+                if step < sessions:  # the live pool's split of a group too big for the caches (run_stream_jobs)
+                    start = time.perf_counter()
+                    for first in range(0, sessions, step):
+                        session.run(None, {"audio": audio[first:first + step], "state": state[first:first + step],
+                                           "keep": keep})
+                    timings.setdefault(f"{label}, calls of {step}", []).append(time.perf_counter() - start)
         per_frame = {mode: 1000 * float(np.median(t)) / (sessions * n) for mode, t in timings.items()}
         out.append({"sessions": sessions, "frames_a_call": n, "ms_per_session_frame": per_frame})
     return out
@@ -191,17 +201,23 @@ def base_size_translator():
     return MotionTranslator(cfg, n_expr=50).eval()
 
 
+def _cost_cell(values: dict[str, float], mode: str) -> str:
+    """One cost cell: ms a session-frame and, for a stream, how many times less than the windowed graph."""
+    if mode not in values:
+        return "–"
+    less = "" if mode == "windowed" else f" ({values['windowed'] / values[mode]:.1f}× less)"
+    return f"{values[mode]:.3f}{less}"
+
+
 def cost_table(rows: list[dict]) -> list[str]:
-    """The cost rows as a table: ms a session-frame per mode, and how many times less than the windowed graph."""
-    modes = list(rows[0]["ms_per_session_frame"])
+    """The cost rows as a table: ms a session-frame per mode, and how many times less than the windowed graph ("–"
+    where a row has no such mode: the split calls exist only past `sessions_per_call`)."""
+    modes = list(dict.fromkeys(mode for row in rows for mode in row["ms_per_session_frame"]))
     lines = ["| sessions | frames a call | " + " | ".join(f"{m} (ms a session-frame)" for m in modes) + " |",
              "|---:|---:|" + "---:|" * len(modes)]
     for row in rows:
-        values = row["ms_per_session_frame"]
-        base = values["windowed"]
-        lines.append(f"| {row['sessions']} | {row['frames_a_call']} | " + " | ".join(
-            f"{values[m]:.3f}" + ("" if m == "windowed" else f" ({base / values[m]:.1f}× less)") for m in modes)
-            + " |")
+        lines.append(f"| {row['sessions']} | {row['frames_a_call']} | "
+                     + " | ".join(_cost_cell(row["ms_per_session_frame"], m) for m in modes) + " |")
     return lines
 
 

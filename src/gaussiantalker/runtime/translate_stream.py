@@ -39,6 +39,12 @@ LOUDNESS_WINDOW_FRAMES = 29
 LOUDNESS_LAG_FRAMES = 4
 LOUDNESS_RATIO = 2.0
 
+# A call's stacked states at most this many bytes: past it a call costs more a session, not less (the states and
+# each layer's activations leave the CPU's caches): the demo speaker's 116 kB states measured 0.31 ms a
+# session-frame at 20 sessions a call against 0.37 at 100, while the voice's 16 kB states keep getting cheaper up to
+# 100 (docs/live.md, "Sessions batched together"). A pool splits a bigger group into calls of this size.
+MAX_CALL_STATE_BYTES = 2 << 20
+
 RunStream = Callable[[np.ndarray, np.ndarray, int, bool], dict]  # (audio [B, n, F], state, keep, refresh) -> outputs
 RowsOf = Callable[[dict], np.ndarray]  # graph outputs -> rows [B, n, D]
 
@@ -100,20 +106,30 @@ class StreamJob:
         return self.audio.shape[0], self.keep, self.refresh
 
 
+def sessions_per_call(state_size: int) -> int:
+    """The most sessions one call stacks, for a stream whose state holds `state_size` floats."""
+    return max(1, MAX_CALL_STATE_BYTES // (4 * max(1, int(state_size))))
+
+
 def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) -> list[int]:
-    """Run every job: one graph call per distinct (frames, keep, refresh), the sessions stacked on the batch axis.
-    Returns the sessions of each call made."""
+    """Run every job: one graph call per distinct (frames, keep, refresh), the sessions stacked on the batch axis
+    (at most `sessions_per_call` of them a call). Returns the sessions of each call made."""
     groups: dict[tuple[int, int, bool], list[StreamJob]] = {}
     for job in jobs:
         groups.setdefault(job.shape, []).append(job)
+    calls = []
     for (_, keep, refresh), group in groups.items():
-        audio = np.stack([job.audio for job in group])
-        state = np.stack([job.stream.state for job in group])
-        out = run(audio, state, keep, refresh)
-        rows = rows_of(out)
-        for k, job in enumerate(group):
-            job.rows, job.state = rows[k], out["state_out"][k]
-    return [len(group) for group in groups.values()]
+        step = sessions_per_call(group[0].stream.state.shape[0])
+        for first in range(0, len(group), step):
+            part = group[first:first + step]
+            audio = np.stack([job.audio for job in part])
+            state = np.stack([job.stream.state for job in part])
+            out = run(audio, state, keep, refresh)
+            rows = rows_of(out)
+            for k, job in enumerate(part):
+                job.rows, job.state = rows[k], out["state_out"][k]
+            calls.append(len(part))
+    return calls
 
 
 def _trailing_silence(samples: np.ndarray) -> int:
@@ -243,5 +259,5 @@ class TranslatorStream:
         return value
 
 
-__all__ = ["REST_FRAMES", "StreamJob", "StreamSpec", "TranslatorStream", "frame_power", "loudness_moved",
-           "read_stream_spec", "run_stream_jobs"]
+__all__ = ["MAX_CALL_STATE_BYTES", "REST_FRAMES", "StreamJob", "StreamSpec", "TranslatorStream", "frame_power",
+           "loudness_moved", "read_stream_spec", "run_stream_jobs", "sessions_per_call"]
