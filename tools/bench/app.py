@@ -33,6 +33,8 @@
                            kernel at full occupancy (bench/blend_limit.py)
     gt-bench framing       imported avatars' head box in the frame, source camera against portrait framing
                            (bench/framing.py)
+    gt-bench codings       what each coding of a speaker's per-Gaussian buffers would cost in bytes and head
+                           PSNR, before the bundle format has it (bench/codings.py)
     gt-bench translator-stream  a speaker's Motion Translator streamed against its windowed live calls and offline
                            drive on unseen speech, and a session-frame's cost each way (bench/translator_stream.py)
 
@@ -603,6 +605,38 @@ def translator_stream(
     typer.echo(table)
     _write_report(out, "translator-stream", "The Motion Translator streamed: quality and cost", result, table,
                   f"; torch modules for quality, onnxruntime on one thread for cost ({rounds} alternating rounds).")
+
+
+@app.command("codings")
+def codings(
+    speaker: Path = typer.Argument(..., help="a LAM avatar zip (imported without its voice) or a speaker checkpoint "
+                                   "(.ckpt)"),
+    budgets: str = typer.Option("", "--budgets", help="comma-separated Gaussian budgets in percent to export compact "
+                                "at as well (e.g. 55,75)"),
+    out: Path = typer.Option(None, "--out", help="folder for codings.md and codings.json"),
+) -> None:
+    """What each coding of a speaker's per-Gaussian buffers (and morph basis) would cost in bytes and head PSNR
+    against `quality`, before the bundle format has it (docs/precision.md)."""
+    from .codings import codings_table, run_codings
+
+    percents = _numbers(budgets, float, "--budgets")
+    if not all(0 < p <= 100 for p in percents):
+        raise typer.BadParameter("budgets are percentages in (0, 100]", param_hint="--budgets")
+    if not speaker.is_file():
+        raise typer.BadParameter(f"{speaker}: no such file", param_hint="SPEAKER")
+    if speaker.suffix == ".ckpt":
+        from gaussiantalker.exporter.export.checkpoint import load_checkpoint
+
+        loaded = load_checkpoint(speaker)
+    else:
+        from gaussiantalker.exporter.imports.sources.lam import import_lam
+
+        loaded = import_lam(speaker, progress=False)
+    result = _stamp(run_codings(loaded, [p / 100 for p in percents]))
+    table = codings_table(result)
+    typer.echo(table)
+    _write_report(out, "codings", "Codings of the per-Gaussian buffers: bytes against head PSNR", result, table,
+                  "; one buffer of `compact` coded at a time, its frames against `quality`'s (tools/bench/codings.py).")
 
 
 @app.command("framing")

@@ -1,0 +1,280 @@
+"""`gt-bench codings`: what each coding of a speaker's per-Gaussian buffers would cost, in bytes and in head PSNR,
+measured before the bundle format has the coding (docs/precision.md, "Codings a smaller bundle could use"):
+
+    gt-bench codings p2-1.zip --budgets 55,75 --out docs/bench/codings-p2-1
+
+The speaker (a LAM avatar zip, imported without its voice, or a checkpoint) is exported twice: the fp32 `quality`
+bundle, the reference, and `compact` (its Gaussian budget, SH degree, midpoints and codecs). Each probe writes a
+copy of the compact bundle, every buffer stored raw, whose probed buffer holds what a coding would decode it to,
+renders it, and counts the bytes the coding would store:
+
+* `qN` (chunked min/max, sdk/codecs.py) in the Gaussians' order, and `qN, spatial order` with the Gaussians first
+  put in the Morton order of their rest points (neighbours in space share a chunk, the order compressed splat
+  formats quantise in; the order itself costs nothing where the graph may renumber its Gaussians);
+* `vqK`: a codebook of K vectors (k-means over the buffer's per-Gaussian vectors: k-means++ seeded from 0, then
+  KMEANS_ITERATIONS Lloyd steps) stored as float16, each Gaussian's index in ceil(log2 K) bits;
+* the compact bundle's own coding of the buffer: the row the others are read against.
+
+Frames: FRAMES frames spread over random ARKit drives (an ARKit speaker, as `gt-bench avatar` draws them) or the
+sample speech (a speaker with a translator) at SIZE², each bundle on the renderer a plain TalkingHead picks; 8-bit
+PSNR over the head region (the reference's coverage above 1/255), minimum and median. `--budgets` adds compact
+exported at other Gaussian budgets: the whole file's bytes and PSNR, the trade a cheaper coding buys back.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gaussiantalker.sdk.bundle import Bundle, BundleWriter
+from gaussiantalker.sdk.codecs import decode_buffer, encode_buffer
+from gaussiantalker.sdk.image import psnr_db
+from gaussiantalker.sdk.progress import progress_bar
+
+SIZE = 512
+FRAMES = 30
+KMEANS_ITERATIONS = 20
+CODEBOOK_SIZES = (256, 1024, 4096)
+MORPH_BASIS = "deform/morph_basis"
+# Manifest keys BundleWriter writes itself; a rewritten bundle keeps every other one.
+_WRITER_KEYS = ("format", "version", "graphs", "buffers", "payload_size")
+
+
+@dataclass(frozen=True)
+class Probe:
+    """One coding of one buffer: `make()` gives what it decodes the buffer to and the bytes it would store (made
+    when the probe runs, under the progress bar: a large codebook takes seconds)."""
+
+    buffer: str
+    coding: str
+    make: Callable[[], tuple[np.ndarray, int]]
+
+
+def morton_order(points: np.ndarray, bits: int = 10) -> np.ndarray:
+    """The permutation sorting points [3, N] by the Morton (Z-order) code of their position on a 2^bits grid over
+    their bounding box."""
+    low, high = points.min(axis=1, keepdims=True), points.max(axis=1, keepdims=True)
+    cells = ((points - low) / np.maximum(high - low, 1e-12) * (2**bits - 1)).round().astype(np.uint64)
+    code = np.zeros(points.shape[1], np.uint64)
+    for bit in range(bits):
+        for axis in range(3):
+            code |= ((cells[axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
+
+
+def kmeans(vectors: np.ndarray, k: int, iterations: int = KMEANS_ITERATIONS, seed: int = 0,
+           block: int = 2048) -> tuple[np.ndarray, np.ndarray]:
+    """(codebook [k, D], each vector's index [N]) of vectors [N, D]: k-means++ seeding from `seed`, then
+    `iterations` Lloyd steps (an empty cluster keeps its centre); distances in blocks of `block` vectors, so the
+    memory is block x k. Hand-written: a few lines of numpy, and no dependency of the package has k-means (scipy,
+    which does, is not one)."""
+    x = np.asarray(vectors, np.float64)
+    rng = np.random.default_rng(seed)
+    centres = np.empty((k, x.shape[1]))
+    centres[0] = x[rng.integers(len(x))]
+    nearest = ((x - centres[0]) ** 2).sum(1)
+    for i in range(1, k):
+        total = nearest.sum()
+        pick = rng.choice(len(x), p=nearest / total) if total > 0 else rng.integers(len(x))
+        centres[i] = x[pick]
+        nearest = np.minimum(nearest, ((x - centres[i]) ** 2).sum(1))
+    for step in range(iterations + 1):
+        index = np.concatenate([_closest(x[start:start + block], centres) for start in range(0, len(x), block)])
+        if step == iterations:
+            break
+        counts = np.bincount(index, minlength=k)
+        sums = np.zeros_like(centres)
+        np.add.at(sums, index, x)
+        filled = counts > 0
+        centres[filled] = sums[filled] / counts[filled, None]
+    return centres, index
+
+
+def _closest(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Index of each row's nearest centre (squared distance, ||c||^2 - 2 x.c; ties to the lower index)."""
+    return np.argmin((centres**2).sum(1)[None, :] - 2.0 * x @ centres.T, axis=1)
+
+
+def quantised(values: np.ndarray, codec: str, chunk: int | None, order: np.ndarray | None,
+              sparse: bool = False) -> tuple[np.ndarray, int]:
+    """`values` through chunked codec `codec` (in `order` along the last axis where given): (decoded, bytes)."""
+    array = np.ascontiguousarray(values if order is None else values[..., order], np.float32)
+    payload, params = encode_buffer(array, codec, chunk, sparse)
+    decoded = decode_buffer(payload, codec, "float32", array.shape, params)
+    if order is not None:
+        decoded = decoded[..., np.argsort(order)]
+    return decoded, len(payload)
+
+
+def codebook(values: np.ndarray, k: int) -> tuple[np.ndarray, int]:
+    """`values` [..., N] (per-Gaussian vectors along the leading axes) through a K-vector codebook: (decoded,
+    bytes: the codebook in float16 and ceil(log2 K) bits an index)."""
+    vectors = values.reshape(-1, values.shape[-1]).T
+    centres, index = kmeans(vectors, k)
+    decoded = centres.astype(np.float16).astype(np.float32)[index].T.reshape(values.shape)
+    return decoded, k * vectors.shape[1] * 2 + math.ceil(vectors.shape[0] * max(1, math.ceil(math.log2(k))) / 8)
+
+
+def gaussian_buffers(bundle: Bundle) -> list[str]:
+    """The float buffers holding one value (or vector) per Gaussian along their last axis."""
+    count = int(bundle.manifest["gaussians"])
+    return [name for name, entry in bundle.manifest["buffers"].items()
+            if entry["dtype"] == "float32" and entry["shape"] and entry["shape"][-1] == count
+            and name.startswith("deform/")]
+
+
+def stored_bytes(bundle: Bundle, name: str) -> int:
+    return int(bundle.manifest["buffers"][name]["nbytes"])
+
+
+def probes(compact: Bundle, order_points: str | None) -> list[Probe]:
+    """Every probe of the compact bundle's per-Gaussian buffers (and its morph basis); `order_points`: the buffer
+    whose [3, N] points give the spatial order (None: no spatially ordered probes)."""
+    order = morton_order(compact.buffer(order_points)) if order_points else None
+    out = []
+    for name in gaussian_buffers(compact):
+        values = compact.buffer(name)
+        out.append(Probe(name, "as compact stores it", lambda v=values, n=name: (v, stored_bytes(compact, n))))
+        codec = compact.manifest["buffers"][name]["codec"]["name"]
+        own_bits = int(codec[1:]) if codec.startswith("q") else 32
+        for bits in (16, 8, 4):
+            if bits < own_bits:
+                out.append(Probe(name, f"q{bits}", lambda v=values, b=bits: quantised(v, f"q{b}", None, None)))
+        for bits in (16, 8, 4) if order is not None else ():
+            if bits <= own_bits:
+                out.append(Probe(name, f"q{bits}, spatial order",
+                                 lambda v=values, b=bits: quantised(v, f"q{b}", None, order)))
+        for k in CODEBOOK_SIZES:
+            if k <= values.shape[-1] // 2:
+                out.append(Probe(name, f"vq{k}", lambda v=values, k=k: codebook(v, k)))
+    if compact.has_buffer(MORPH_BASIS):
+        values = compact.buffer(MORPH_BASIS)
+        out.append(Probe(MORPH_BASIS, "as compact stores it", lambda: (values, stored_bytes(compact, MORPH_BASIS))))
+        for chunk in (256, 64):
+            out.append(Probe(MORPH_BASIS, f"q4/{chunk}, sparse",
+                             lambda c=chunk: quantised(values, "q4", c, None, sparse=True)))
+    return out
+
+
+def rewrite(source: Bundle, destination: Path, arrays: dict[str, np.ndarray]) -> Path:
+    """A copy of `source` with every buffer stored raw, `arrays` in place of the buffers they name."""
+    writer = BundleWriter(metadata={k: v for k, v in source.manifest.items() if k not in _WRITER_KEYS})
+    for name in source.manifest["buffers"]:
+        writer.add_buffer(name, arrays[name] if name in arrays else source.buffer(name))
+    for name in source.graph_names():
+        info = source.graph_info(name)
+        writer.add_graph(name, source.graph_bytes(name), info["inputs"], info["outputs"], info.get("initializers"))
+    writer.write(destination)
+    return destination
+
+
+def frames_of(path: Path, drives: Callable, coverage: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """uint8 frames [FRAMES, SIZE, SIZE, 3] of `path` (and its head masks) at the drives `drives(head)` gives."""
+    from gaussiantalker.runtime import TalkingHead
+
+    images, masks = [], []
+    with TalkingHead(path, resolution=(SIZE, SIZE), composite=False) as head:
+        for drive in drives(head):
+            images.append(head.render(drive))
+            if coverage:
+                masks.append(head.render(drive, output="rgba_float")[..., 3] > 1.0 / 255.0)
+    return np.stack(images), (np.stack(masks) if coverage else None)
+
+
+def sampled_drives(head, frames: int | None = None) -> list:
+    """`frames` (FRAMES) drives spread over random ARKit drives (ARKit speaker) or the sample speech (a translator)."""
+    from .avatar import random_motion, sample_indices
+    from .live_sessions import sample_speech
+
+    if head.driver.has_translator:
+        drives = list(head.drives(sample_speech(head.driver.sample_rate), head.driver.sample_rate))
+    else:
+        drives = list(head.drives(motion=random_motion(150)))
+    return [drives[i] for i in sample_indices(len(drives), FRAMES if frames is None else frames)]
+
+
+def head_psnr(reference: np.ndarray, heads: np.ndarray, frames: np.ndarray) -> tuple[float, float]:
+    """(minimum, median) 8-bit PSNR over each frame's head region."""
+    values = [psnr_db(reference[i][heads[i]], frames[i][heads[i]]) for i in range(len(frames))]
+    return min(values), statistics.median(values)
+
+
+def run_codings(speaker, budgets: list[float], progress: bool = True) -> dict:
+    """Export `speaker` as quality and compact, run every probe and budget; the rows of the report."""
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.export.presets import get_preset, settings_with
+
+    with tempfile.TemporaryDirectory(prefix="gt-bench-codings-") as folder:
+        folder = Path(folder)
+        export_bundle(speaker, folder / "quality.gtb", preset="quality", progress=False)
+        export_bundle(speaker, folder / "compact.gtb", preset="compact", progress=False)
+        quality, compact = Bundle(folder / "quality.gtb"), Bundle(folder / "compact.gtb")
+        drive_head = sampled_drives  # the same frames of every bundle: the drives depend on the speaker only
+        reference, heads = frames_of(folder / "quality.gtb", drive_head, coverage=True)
+        points = "deform/rest_points" if compact.has_buffer("deform/rest_points") else None
+        probe_list = probes(compact, points if points and compact.buffer(points).ndim == 2 else None)
+        rows = []
+        with progress_bar(total=len(probe_list) + len(budgets), desc="codings", unit="probe",
+                          disable=not progress) as bar:
+            for probe in probe_list:
+                bar.set_postfix_str(f"{probe.buffer} {probe.coding}")
+                values, nbytes = probe.make()
+                path = rewrite(compact, folder / "probe.gtb", {probe.buffer: values})
+                low, middle = head_psnr(reference, heads, frames_of(path, drive_head)[0])
+                rows.append({"buffer": probe.buffer, "coding": probe.coding, "bytes": nbytes,
+                             "head_psnr_min_db": low, "head_psnr_median_db": middle})
+                bar.update()
+            budget_rows = []
+            base = get_preset("compact").export
+            for budget in budgets:
+                bar.set_postfix_str(f"budget {budget:g}")
+                path = folder / f"budget-{budget:g}.gtb"
+                result = export_bundle(speaker, path, settings=settings_with(base, gaussian_budget=budget),
+                                       progress=False)
+                low, middle = head_psnr(reference, heads, frames_of(path, drive_head)[0])
+                budget_rows.append({"budget": budget, "gaussians": result.gaussians, "bytes": path.stat().st_size,
+                                    "head_psnr_min_db": low, "head_psnr_median_db": middle})
+                bar.update()
+        return {"quality_bytes": (folder / "quality.gtb").stat().st_size,
+                "compact_bytes": (folder / "compact.gtb").stat().st_size,
+                "compact_budget": get_preset("compact").export.gaussian_budget,
+                "compact_gaussians": int(compact.manifest["gaussians"]),
+                "compact_head_psnr": head_psnr(reference, heads, frames_of(folder / "compact.gtb", drive_head)[0]),
+                "quality_manifest_gaussians": int(quality.manifest["gaussians"]),
+                "frames": len(reference), "size": SIZE, "probes": rows, "budgets": budget_rows}
+
+
+def codings_table(result: dict) -> str:
+    """The report's body: what compact is, the probes per buffer, then the budgets."""
+    quality, compact = result["quality_bytes"], result["compact_bytes"]
+    low, middle = result["compact_head_psnr"]
+    lines = [f"`quality` {quality / 1e6:.3f} MB; `compact` {compact / 1e6:.3f} MB ({quality / compact:.1f}x smaller, "
+             f"{result['compact_gaussians']:,} Gaussians), head PSNR against `quality` {low:.2f} dB min, "
+             f"{middle:.2f} median ({result['frames']} frames at {result['size']}²). 14x smaller would be "
+             f"{quality / 14 / 1e6:.3f} MB. Each row changes one buffer of `compact`; \"saves\" is against compact's "
+             "own coding of it.", "",
+             "| buffer | coding | bytes | saves | head PSNR min | median |", "|---|---|---:|---:|---:|---:|"]
+    own = {row["buffer"]: row["bytes"] for row in result["probes"] if row["coding"] == "as compact stores it"}
+    for row in result["probes"]:
+        saves = own[row["buffer"]] - row["bytes"]
+        lines.append(f"| `{row['buffer']}` | {row['coding']} | {row['bytes']:,} | {saves:,} | "
+                     f"{row['head_psnr_min_db']:.2f} | {row['head_psnr_median_db']:.2f} |")
+    if result["budgets"]:
+        lines += ["", "Compact at other Gaussian budgets (its own codecs), the whole file:", "",
+                  "| budget | Gaussians | bytes | x smaller than quality | head PSNR min | median |",
+                  "|---:|---:|---:|---:|---:|---:|"]
+        for row in result["budgets"]:
+            lines.append(f"| {row['budget']:.0%} | {row['gaussians']:,} | {row['bytes']:,} | "
+                         f"{quality / row['bytes']:.1f} | {row['head_psnr_min_db']:.2f} | "
+                         f"{row['head_psnr_median_db']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+__all__ = ["Probe", "codebook", "codings_table", "kmeans", "morton_order", "probes", "quantised", "rewrite",
+           "run_codings"]
