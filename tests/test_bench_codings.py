@@ -30,9 +30,9 @@ def test_kmeans_finds_separated_clusters_the_same_way_each_time():
 
 def test_codebook_counts_float16_centres_and_packed_indices():
     values = np.random.default_rng(2).standard_normal((3, 1000)).astype(np.float32)
-    decoded, nbytes = codings.codebook(values, 16)
+    decoded, nbytes, payload = codings.codebook(values, 16)
     assert decoded.shape == values.shape and len(np.unique(decoded, axis=1).T) <= 16
-    assert nbytes == 16 * 3 * 2 + math.ceil(1000 * 4 / 8)
+    assert nbytes == len(payload) == 16 * 3 * 2 + math.ceil(1000 * 4 / 8)
 
 
 def test_morton_order_walks_a_cube_in_z_order():
@@ -48,10 +48,10 @@ def test_a_spatial_order_is_undone_after_quantising():
     rng = np.random.default_rng(4)
     values = rng.standard_normal((3, 2000)).astype(np.float32)
     order = rng.permutation(2000)
-    decoded, nbytes = codings.quantised(values, "q8", None, order)
+    decoded, nbytes, _ = codings.quantised(values, "q8", None, order)
     assert np.abs(decoded - values).max() <= (values.max() - values.min()) / 255 / 2 + 1e-6
-    same, _ = codings.quantised(values, "q8", None, np.arange(2000))
-    plain, plain_bytes = codings.quantised(values, "q8", None, None)
+    same, _, _ = codings.quantised(values, "q8", None, np.arange(2000))
+    plain, plain_bytes, _ = codings.quantised(values, "q8", None, None)
     assert np.array_equal(same, plain) and nbytes == plain_bytes
 
 
@@ -67,7 +67,8 @@ def test_codings_end_to_end(avatar, tmp_path, monkeypatch):
     monkeypatch.setattr(codings, "FRAMES", 3)
     monkeypatch.setattr(codings, "CODEBOOK_SIZES", (8,))
     out = tmp_path / "bench"
-    result = CliRunner().invoke(app, ["codings", str(avatar), "--budgets", "50", "--out", str(out)])
+    result = CliRunner().invoke(app, ["codings", str(avatar), "--budgets", "50", "--combined-loss-db", "3",
+                                      "--out", str(out)])
     assert result.exit_code == 0, result.output
     report = json.loads((out / "codings.json").read_text())
     rows = report["probes"]
@@ -82,8 +83,15 @@ def test_codings_end_to_end(avatar, tmp_path, monkeypatch):
     own = [row for row in rows if row["coding"] == "as compact stores it"]
     assert all(row["head_psnr_min_db"] == report["compact_head_psnr"][0] for row in own)
     for row in rows:
-        assert row["bytes"] > 0 and not math.isnan(row["head_psnr_min_db"])
+        assert min(row["bytes"], row["zlib_bytes"], row["lzma_bytes"]) > 0 and not math.isnan(row["head_psnr_min_db"])
         assert row["head_psnr_min_db"] <= row["head_psnr_median_db"]
+    combined = report["combined"]  # each buffer's smallest coding within the loss, all at once
+    for buffer, coding in combined["codings"].items():
+        (alone,) = [row for row in rows if (row["buffer"], row["coding"]) == (buffer, coding)]
+        assert alone["head_psnr_min_db"] >= report["compact_head_psnr"][0] - 3
+    saved = sum(next(r["bytes"] for r in own if r["buffer"] == b) - next(
+        r["bytes"] for r in rows if (r["buffer"], r["coding"]) == (b, c)) for b, c in combined["codings"].items())
+    assert combined["bytes"] == report["compact_bytes"] - saved and not math.isnan(combined["head_psnr_min_db"])
     (budget,) = report["budgets"]
     assert budget["budget"] == 0.5 and 0 < budget["bytes"] < report["compact_bytes"]
     assert "| budget |" in (out / "codings.md").read_text()

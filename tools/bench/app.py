@@ -613,11 +613,14 @@ def codings(
                                    "(.ckpt)"),
     budgets: str = typer.Option("", "--budgets", help="comma-separated Gaussian budgets in percent to export compact "
                                 "at as well (e.g. 55,75)"),
+    combined_loss: float = typer.Option(None, "--combined-loss-db", min=0.0, help="the combined row takes each "
+                                        "buffer's smallest coding that lost at most this much head PSNR alone "
+                                        "[default: 1.5]"),
     out: Path = typer.Option(None, "--out", help="folder for codings.md and codings.json"),
 ) -> None:
     """What each coding of a speaker's per-Gaussian buffers (and morph basis) would cost in bytes and head PSNR
     against `quality`, before the bundle format has it (docs/precision.md)."""
-    from .codings import codings_table, run_codings
+    from .codings import COMBINED_LOSS_DB, codings_table, run_codings
 
     percents = _numbers(budgets, float, "--budgets")
     if not all(0 < p <= 100 for p in percents):
@@ -632,7 +635,8 @@ def codings(
         from gaussiantalker.exporter.imports.sources.lam import import_lam
 
         loaded = import_lam(speaker, progress=False)
-    result = _stamp(run_codings(loaded, [p / 100 for p in percents]))
+    result = _stamp(run_codings(loaded, [p / 100 for p in percents],
+                                COMBINED_LOSS_DB if combined_loss is None else combined_loss))
     table = codings_table(result)
     typer.echo(table)
     _write_report(out, "codings", "Codings of the per-Gaussian buffers: bytes against head PSNR", result, table,

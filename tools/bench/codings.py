@@ -15,6 +15,11 @@ renders it, and counts the bytes the coding would store:
   KMEANS_ITERATIONS Lloyd steps) stored as float16, each Gaussian's index in ceil(log2 K) bits;
 * the compact bundle's own coding of the buffer: the row the others are read against.
 
+Each row also says what zlib (RFC 1950, level 9: what the format already inflates, and browsers too) and lzma (at
+its strongest preset) make of the coding's payload: what a general-purpose entropy stage on top would save, without
+a model of the values. A last row applies, all at once, each buffer's smallest coding whose own row lost at most
+COMBINED_LOSS_DB of head PSNR against compact's: whether the losses add, and the bundle those codings would make.
+
 Frames: FRAMES frames spread over random ARKit drives (an ARKit speaker, as `gt-bench avatar` draws them) or the
 sample speech (a speaker with a translator) at SIZE², each bundle on the renderer a plain TalkingHead picks; 8-bit
 PSNR over the head region (the reference's coverage above 1/255), minimum and median. `--budgets` adds compact
@@ -23,9 +28,11 @@ exported at other Gaussian budgets: the whole file's bytes and PSNR, the trade a
 
 from __future__ import annotations
 
+import lzma
 import math
 import statistics
 import tempfile
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +48,7 @@ SIZE = 512
 FRAMES = 30
 KMEANS_ITERATIONS = 20
 CODEBOOK_SIZES = (256, 1024, 4096)
+COMBINED_LOSS_DB = 1.5  # the most head PSNR (minimum over the frames) a coding in the combined row lost alone
 MORPH_BASIS = "deform/morph_basis"
 # Manifest keys BundleWriter writes itself; a rewritten bundle keeps every other one.
 _WRITER_KEYS = ("format", "version", "graphs", "buffers", "payload_size")
@@ -48,12 +56,12 @@ _WRITER_KEYS = ("format", "version", "graphs", "buffers", "payload_size")
 
 @dataclass(frozen=True)
 class Probe:
-    """One coding of one buffer: `make()` gives what it decodes the buffer to and the bytes it would store (made
-    when the probe runs, under the progress bar: a large codebook takes seconds)."""
+    """One coding of one buffer: `make()` gives what it decodes the buffer to, the bytes it would store and its
+    payload (made when the probe runs, under the progress bar: a large codebook takes seconds)."""
 
     buffer: str
     coding: str
-    make: Callable[[], tuple[np.ndarray, int]]
+    make: Callable[[], tuple[np.ndarray, int, bytes]]
 
 
 def morton_order(points: np.ndarray, bits: int = 10) -> np.ndarray:
@@ -102,23 +110,28 @@ def _closest(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
 
 
 def quantised(values: np.ndarray, codec: str, chunk: int | None, order: np.ndarray | None,
-              sparse: bool = False) -> tuple[np.ndarray, int]:
-    """`values` through chunked codec `codec` (in `order` along the last axis where given): (decoded, bytes)."""
+              sparse: bool = False) -> tuple[np.ndarray, int, bytes]:
+    """`values` through chunked codec `codec` (in `order` along the last axis where given): (decoded, bytes,
+    payload)."""
     array = np.ascontiguousarray(values if order is None else values[..., order], np.float32)
     payload, params = encode_buffer(array, codec, chunk, sparse)
     decoded = decode_buffer(payload, codec, "float32", array.shape, params)
     if order is not None:
         decoded = decoded[..., np.argsort(order)]
-    return decoded, len(payload)
+    return decoded, len(payload), payload
 
 
-def codebook(values: np.ndarray, k: int) -> tuple[np.ndarray, int]:
+def codebook(values: np.ndarray, k: int) -> tuple[np.ndarray, int, bytes]:
     """`values` [..., N] (per-Gaussian vectors along the leading axes) through a K-vector codebook: (decoded,
-    bytes: the codebook in float16 and ceil(log2 K) bits an index)."""
+    bytes, payload: the codebook in float16, then each index in ceil(log2 K) bits, lowest bit first)."""
     vectors = values.reshape(-1, values.shape[-1]).T
     centres, index = kmeans(vectors, k)
-    decoded = centres.astype(np.float16).astype(np.float32)[index].T.reshape(values.shape)
-    return decoded, k * vectors.shape[1] * 2 + math.ceil(vectors.shape[0] * max(1, math.ceil(math.log2(k))) / 8)
+    table = centres.astype(np.float16)
+    decoded = table.astype(np.float32)[index].T.reshape(values.shape)
+    bits = max(1, math.ceil(math.log2(k)))
+    packed = np.packbits(((index[:, None] >> np.arange(bits)) & 1).astype(np.uint8).reshape(-1), bitorder="little")
+    payload = table.tobytes() + packed.tobytes()
+    return decoded, len(payload), payload
 
 
 def gaussian_buffers(bundle: Bundle) -> list[str]:
@@ -129,8 +142,12 @@ def gaussian_buffers(bundle: Bundle) -> list[str]:
             and name.startswith("deform/")]
 
 
-def stored_bytes(bundle: Bundle, name: str) -> int:
-    return int(bundle.manifest["buffers"][name]["nbytes"])
+def as_stored(bundle: Bundle, name: str, values: np.ndarray, codec: str, chunk: int | None = None,
+              sparse: bool = False) -> tuple[np.ndarray, int, bytes]:
+    """A buffer as the bundle stores it: its values, its stored bytes, and its payload made again with its codec
+    (what `lzma` reads; the same codes, so the same size)."""
+    payload, _ = encode_buffer(np.ascontiguousarray(values, np.float32), codec, chunk, sparse)
+    return values, int(bundle.manifest["buffers"][name]["nbytes"]), payload
 
 
 def probes(compact: Bundle, order_points: str | None) -> list[Probe]:
@@ -140,8 +157,8 @@ def probes(compact: Bundle, order_points: str | None) -> list[Probe]:
     out = []
     for name in gaussian_buffers(compact):
         values = compact.buffer(name)
-        out.append(Probe(name, "as compact stores it", lambda v=values, n=name: (v, stored_bytes(compact, n))))
         codec = compact.manifest["buffers"][name]["codec"]["name"]
+        out.append(Probe(name, "as compact stores it", lambda v=values, n=name, c=codec: as_stored(compact, n, v, c)))
         own_bits = int(codec[1:]) if codec.startswith("q") else 32
         for bits in (16, 8, 4):
             if bits < own_bits:
@@ -155,7 +172,10 @@ def probes(compact: Bundle, order_points: str | None) -> list[Probe]:
                 out.append(Probe(name, f"vq{k}", lambda v=values, k=k: codebook(v, k)))
     if compact.has_buffer(MORPH_BASIS):
         values = compact.buffer(MORPH_BASIS)
-        out.append(Probe(MORPH_BASIS, "as compact stores it", lambda: (values, stored_bytes(compact, MORPH_BASIS))))
+        codec = compact.manifest["buffers"][MORPH_BASIS]["codec"]
+        out.append(Probe(MORPH_BASIS, "as compact stores it",
+                         lambda: as_stored(compact, MORPH_BASIS, values, codec["name"], codec.get("chunk"),
+                                           "sparse" in codec)))
         for chunk in (256, 64):
             out.append(Probe(MORPH_BASIS, f"q4/{chunk}, sparse",
                              lambda c=chunk: quantised(values, "q4", c, None, sparse=True)))
@@ -205,8 +225,10 @@ def head_psnr(reference: np.ndarray, heads: np.ndarray, frames: np.ndarray) -> t
     return min(values), statistics.median(values)
 
 
-def run_codings(speaker, budgets: list[float], progress: bool = True) -> dict:
-    """Export `speaker` as quality and compact, run every probe and budget; the rows of the report."""
+def run_codings(speaker, budgets: list[float], combined_loss_db: float = COMBINED_LOSS_DB,
+                progress: bool = True) -> dict:
+    """Export `speaker` as quality and compact, run every probe, the combined row (codings that lost at most
+    `combined_loss_db` alone) and every budget; the rows of the report."""
     from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.exporter.export.presets import get_preset, settings_with
 
@@ -219,17 +241,32 @@ def run_codings(speaker, budgets: list[float], progress: bool = True) -> dict:
         reference, heads = frames_of(folder / "quality.gtb", drive_head, coverage=True)
         points = "deform/rest_points" if compact.has_buffer("deform/rest_points") else None
         probe_list = probes(compact, points if points and compact.buffer(points).ndim == 2 else None)
-        rows = []
-        with progress_bar(total=len(probe_list) + len(budgets), desc="codings", unit="probe",
+        rows, decoded = [], {}
+        compact_psnr = head_psnr(reference, heads, frames_of(folder / "compact.gtb", drive_head)[0])
+        with progress_bar(total=len(probe_list) + len(budgets) + 1, desc="codings", unit="probe",
                           disable=not progress) as bar:
             for probe in probe_list:
                 bar.set_postfix_str(f"{probe.buffer} {probe.coding}")
-                values, nbytes = probe.make()
+                values, nbytes, payload = probe.make()
+                decoded[probe.buffer, probe.coding] = values
                 path = rewrite(compact, folder / "probe.gtb", {probe.buffer: values})
                 low, middle = head_psnr(reference, heads, frames_of(path, drive_head)[0])
                 rows.append({"buffer": probe.buffer, "coding": probe.coding, "bytes": nbytes,
+                             "zlib_bytes": len(zlib.compress(payload, 9)),
+                             "lzma_bytes": len(lzma.compress(payload, preset=9 | lzma.PRESET_EXTREME)),
                              "head_psnr_min_db": low, "head_psnr_median_db": middle})
                 bar.update()
+            bar.set_postfix_str("combined")
+            chosen = combined_choice(rows, compact_psnr[0], combined_loss_db)
+            path = rewrite(compact, folder / "probe.gtb", {row["buffer"]: decoded[row["buffer"], row["coding"]]
+                                                             for row in chosen})
+            low, middle = head_psnr(reference, heads, frames_of(path, drive_head)[0])
+            stored = {name: int(entry["nbytes"]) for name, entry in compact.manifest["buffers"].items()}
+            combined = {"codings": {row["buffer"]: row["coding"] for row in chosen},
+                        "bytes": (folder / "compact.gtb").stat().st_size
+                        - sum(stored[row["buffer"]] - row["bytes"] for row in chosen),
+                        "head_psnr_min_db": low, "head_psnr_median_db": middle}
+            bar.update()
             budget_rows = []
             base = get_preset("compact").export
             for budget in budgets:
@@ -245,9 +282,19 @@ def run_codings(speaker, budgets: list[float], progress: bool = True) -> dict:
                 "compact_bytes": (folder / "compact.gtb").stat().st_size,
                 "compact_budget": get_preset("compact").export.gaussian_budget,
                 "compact_gaussians": int(compact.manifest["gaussians"]),
-                "compact_head_psnr": head_psnr(reference, heads, frames_of(folder / "compact.gtb", drive_head)[0]),
+                "compact_head_psnr": compact_psnr, "combined": combined, "combined_loss_db": combined_loss_db,
                 "quality_manifest_gaussians": int(quality.manifest["gaussians"]),
                 "frames": len(reference), "size": SIZE, "probes": rows, "budgets": budget_rows}
+
+
+def combined_choice(rows: list[dict], compact_min_db: float, loss_db: float = COMBINED_LOSS_DB) -> list[dict]:
+    """Per buffer, the row of its smallest coding that lost at most `loss_db` (minimum PSNR) alone."""
+    best: dict[str, dict] = {}
+    for row in rows:
+        if row["head_psnr_min_db"] >= compact_min_db - loss_db and \
+                (row["buffer"] not in best or row["bytes"] < best[row["buffer"]]["bytes"]):
+            best[row["buffer"]] = row
+    return [row for row in best.values() if row["coding"] != "as compact stores it"]
 
 
 def codings_table(result: dict) -> str:
@@ -258,13 +305,21 @@ def codings_table(result: dict) -> str:
              f"{result['compact_gaussians']:,} Gaussians), head PSNR against `quality` {low:.2f} dB min, "
              f"{middle:.2f} median ({result['frames']} frames at {result['size']}²). 14x smaller would be "
              f"{quality / 14 / 1e6:.3f} MB. Each row changes one buffer of `compact`; \"saves\" is against compact's "
-             "own coding of it.", "",
-             "| buffer | coding | bytes | saves | head PSNR min | median |", "|---|---|---:|---:|---:|---:|"]
+             "own coding of it; the last two byte columns are its payload through zlib (level 9) and lzma (preset 9, "
+             "extreme).", "",
+             "| buffer | coding | bytes | saves | after zlib | after lzma | head PSNR min | median |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
     own = {row["buffer"]: row["bytes"] for row in result["probes"] if row["coding"] == "as compact stores it"}
     for row in result["probes"]:
         saves = own[row["buffer"]] - row["bytes"]
         lines.append(f"| `{row['buffer']}` | {row['coding']} | {row['bytes']:,} | {saves:,} | "
-                     f"{row['head_psnr_min_db']:.2f} | {row['head_psnr_median_db']:.2f} |")
+                     f"{row['zlib_bytes']:,} | {row['lzma_bytes']:,} | {row['head_psnr_min_db']:.2f} | "
+                     f"{row['head_psnr_median_db']:.2f} |")
+    combined = result["combined"]
+    names = ", ".join(f"`{name}` {coding}" for name, coding in combined["codings"].items()) or "none"
+    lines += ["", f"Combined (each buffer's smallest coding that lost at most {result['combined_loss_db']:g} dB alone: "
+              f"{names}): {combined['bytes']:,} bytes, {quality / combined['bytes']:.1f}x smaller than `quality`, head "
+              f"PSNR {combined['head_psnr_min_db']:.2f} dB min, {combined['head_psnr_median_db']:.2f} median."]
     if result["budgets"]:
         lines += ["", "Compact at other Gaussian budgets (its own codecs), the whole file:", "",
                   "| budget | Gaussians | bytes | x smaller than quality | head PSNR min | median |",
