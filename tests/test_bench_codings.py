@@ -95,3 +95,23 @@ def test_codings_end_to_end(avatar, tmp_path, monkeypatch):
     (budget,) = report["budgets"]
     assert budget["budget"] == 0.5 and 0 < budget["bytes"] < report["compact_bytes"]
     assert "| budget |" in (out / "codings.md").read_text()
+
+
+@pytest.mark.slow  # two torch.onnx exports of a speaker with a translator: ~30 s
+def test_codings_of_a_speaker_checkpoint(tmp_path, monkeypatch):
+    """A FLAME speaker with a translator (a tiny demo speaker's checkpoint): driven by the sample speech, its
+    per-Gaussian buffers probed (no spatial order: its rest points are a mesh's, not the Gaussians')."""
+    from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
+    from gaussiantalker.exporter.export.checkpoint import save_checkpoint
+
+    speaker, _ = make_demo_speaker(n_gaussians=300, seed=3, train_seconds=0, progress=False)
+    save_checkpoint(speaker, tmp_path / "demo.ckpt")
+    monkeypatch.setattr(codings, "SIZE", 64)
+    monkeypatch.setattr(codings, "FRAMES", 2)
+    monkeypatch.setattr(codings, "CODEBOOK_SIZES", (8,))
+    out = tmp_path / "bench"
+    result = CliRunner().invoke(app, ["codings", str(tmp_path / "demo.ckpt"), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    rows = json.loads((out / "codings.json").read_text())["probes"]
+    assert {"deform/log_scale", "deform/barycentric"} <= {row["buffer"] for row in rows}
+    assert not any("spatial order" in row["coding"] for row in rows)
