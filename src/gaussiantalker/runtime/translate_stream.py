@@ -40,9 +40,9 @@ LOUDNESS_LAG_FRAMES = 4
 LOUDNESS_RATIO = 2.0
 
 # A call's stacked states at most this many bytes: past it a call costs more a session, not less (the states and
-# each layer's activations leave the CPU's caches): the demo speaker's 116 kB states measured 0.31 ms a
-# session-frame at 20 sessions a call against 0.37 at 100, while the voice's 16 kB states keep getting cheaper up to
-# 100 (docs/live.md, "Sessions batched together"). A pool splits a bigger group into calls of this size.
+# each layer's activations leave the CPU's caches): 100 of the demo speaker's 116 kB states measured 0.327 ms a
+# session-frame (steady graph) in calls of 18 against 0.366 in one call (docs/live.md, "Sessions batched together").
+# A pool splits a bigger group into calls of this size; the voice's 16 kB states are split only past 129.
 MAX_CALL_STATE_BYTES = 2 << 20
 
 RunStream = Callable[[np.ndarray, np.ndarray, int, bool], dict]  # (audio [B, n, F], state, keep, refresh) -> outputs
