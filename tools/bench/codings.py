@@ -1,5 +1,5 @@
 """`gt-bench codings`: what each coding of a speaker's per-Gaussian buffers would cost, in bytes and in head PSNR,
-measured before the bundle format has the coding (docs/precision.md, "Codings a smaller bundle could use"):
+measured before the bundle format has the coding (docs/precision.md, "Speakers differ"):
 
     gt-bench codings p2-1.zip --budgets 55,75 --out docs/bench/codings-p2-1
 
@@ -20,10 +20,11 @@ its strongest preset) make of the coding's payload: what a general-purpose entro
 a model of the values. A last row applies, all at once, each buffer's smallest coding whose own row lost at most
 COMBINED_LOSS_DB of head PSNR against compact's: whether the losses add, and the bundle those codings would make.
 
-Frames: FRAMES frames spread over random ARKit drives (an ARKit speaker, as `gt-bench avatar` draws them) or the
-sample speech (a speaker with a translator) at SIZE², each bundle on the renderer a plain TalkingHead picks; 8-bit
-PSNR over the head region (the reference's coverage above 1/255), minimum and median. `--budgets` adds compact
-exported at other Gaussian budgets: the whole file's bytes and PSNR, the trade a cheaper coding buys back.
+Frames: FRAMES frames spread over the sample speech (a speaker with a translator), random ARKit drives (an ARKit
+speaker, as `gt-bench avatar` draws them) or a FLAME avatar's own motion, at SIZE², each bundle on the renderer a
+plain TalkingHead picks; 8-bit PSNR over the head region (the reference's coverage above 1/255), minimum and median.
+`--budgets` adds compact exported at other Gaussian budgets: the whole file's bytes and PSNR, the trade a cheaper
+coding buys back.
 """
 
 from __future__ import annotations
@@ -208,14 +209,19 @@ def frames_of(path: Path, drives: Callable, coverage: bool = False) -> tuple[np.
 
 
 def sampled_drives(head, frames: int | None = None) -> list:
-    """`frames` (FRAMES) drives spread over random ARKit drives (ARKit speaker) or the sample speech (a translator)."""
-    from .avatar import random_motion, sample_indices
+    """`frames` (FRAMES) drives spread over the sample speech (a speaker with a translator), else random ARKit drives
+    (an ARKit speaker), else the speaker's own motion (a FLAME avatar; `gt-bench avatar`'s DriveError without one)."""
+    from gaussiantalker.sdk.rig import ARKIT_RIG
+
+    from .avatar import bench_motion, random_motion, sample_indices
     from .live_sessions import sample_speech
 
     if head.driver.has_translator:
         drives = list(head.drives(sample_speech(head.driver.sample_rate), head.driver.sample_rate))
-    else:
+    elif head.driver.rig == ARKIT_RIG:
         drives = list(head.drives(motion=random_motion(150)))
+    else:
+        drives = list(head.drives(motion=bench_motion(head, None)[0]))
     return [drives[i] for i in sample_indices(len(drives), FRAMES if frames is None else frames)]
 
 
