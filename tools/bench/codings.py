@@ -242,13 +242,13 @@ def run_codings(speaker, budgets: list[float], combined_loss_db: float = COMBINE
         folder = Path(folder)
         export_bundle(speaker, folder / "quality.gtb", preset="quality", progress=False)
         export_bundle(speaker, folder / "compact.gtb", preset="compact", progress=False)
-        quality, compact = Bundle(folder / "quality.gtb"), Bundle(folder / "compact.gtb")
-        drive_head = sampled_drives  # the same frames of every bundle: the drives depend on the speaker only
-        reference, heads = frames_of(folder / "quality.gtb", drive_head, coverage=True)
+        compact = Bundle(folder / "compact.gtb")
+        # Every bundle is drawn at the same drives: sampled_drives depends on the speaker only.
+        reference, heads = frames_of(folder / "quality.gtb", sampled_drives, coverage=True)
         points = "deform/rest_points" if compact.has_buffer("deform/rest_points") else None
         probe_list = probes(compact, points if points and compact.buffer(points).ndim == 2 else None)
         rows, decoded = [], {}
-        compact_psnr = head_psnr(reference, heads, frames_of(folder / "compact.gtb", drive_head)[0])
+        compact_psnr = head_psnr(reference, heads, frames_of(folder / "compact.gtb", sampled_drives)[0])
         with progress_bar(total=len(probe_list) + len(budgets) + 1, desc="codings", unit="probe",
                           disable=not progress) as bar:
             for probe in probe_list:
@@ -256,7 +256,7 @@ def run_codings(speaker, budgets: list[float], combined_loss_db: float = COMBINE
                 values, nbytes, payload = probe.make()
                 decoded[probe.buffer, probe.coding] = values
                 path = rewrite(compact, folder / "probe.gtb", {probe.buffer: values})
-                low, middle = head_psnr(reference, heads, frames_of(path, drive_head)[0])
+                low, middle = head_psnr(reference, heads, frames_of(path, sampled_drives)[0])
                 rows.append({"buffer": probe.buffer, "coding": probe.coding, "bytes": nbytes,
                              "zlib_bytes": len(zlib.compress(payload, 9)),
                              "lzma_bytes": len(lzma.compress(payload, preset=9 | lzma.PRESET_EXTREME)),
@@ -266,7 +266,7 @@ def run_codings(speaker, budgets: list[float], combined_loss_db: float = COMBINE
             chosen = combined_choice(rows, compact_psnr[0], combined_loss_db)
             path = rewrite(compact, folder / "probe.gtb", {row["buffer"]: decoded[row["buffer"], row["coding"]]
                                                              for row in chosen})
-            low, middle = head_psnr(reference, heads, frames_of(path, drive_head)[0])
+            low, middle = head_psnr(reference, heads, frames_of(path, sampled_drives)[0])
             stored = {name: int(entry["nbytes"]) for name, entry in compact.manifest["buffers"].items()}
             combined = {"codings": {row["buffer"]: row["coding"] for row in chosen},
                         "bytes": (folder / "compact.gtb").stat().st_size
@@ -280,7 +280,7 @@ def run_codings(speaker, budgets: list[float], combined_loss_db: float = COMBINE
                 path = folder / f"budget-{budget:g}.gtb"
                 result = export_bundle(speaker, path, settings=settings_with(base, gaussian_budget=budget),
                                        progress=False)
-                low, middle = head_psnr(reference, heads, frames_of(path, drive_head)[0])
+                low, middle = head_psnr(reference, heads, frames_of(path, sampled_drives)[0])
                 budget_rows.append({"budget": budget, "gaussians": result.gaussians, "bytes": path.stat().st_size,
                                     "head_psnr_min_db": low, "head_psnr_median_db": middle})
                 bar.update()
@@ -289,7 +289,6 @@ def run_codings(speaker, budgets: list[float], combined_loss_db: float = COMBINE
                 "compact_budget": get_preset("compact").export.gaussian_budget,
                 "compact_gaussians": int(compact.manifest["gaussians"]),
                 "compact_head_psnr": compact_psnr, "combined": combined, "combined_loss_db": combined_loss_db,
-                "quality_manifest_gaussians": int(quality.manifest["gaussians"]),
                 "frames": len(reference), "size": SIZE, "probes": rows, "budgets": budget_rows}
 
 
