@@ -138,12 +138,16 @@ export class AudioStream {
     while (this.pending.length >= size) {
       const count = Math.min(Math.floor(this.pending.length / size), MAX_CALL_FRAMES);
       const audio = this.pending.slice(0, count * size);
-      const powers = new Float64Array(this.powers.length + count);
-      powers.set(this.powers);
-      powers.set(framePowers(audio, size), this.powers.length);
-      const refresh = !this.steady || loudnessMoved(powers);
-      const out = await this.run(audio, count, this.state, count, refresh);
-      this.powers = powers.slice(Math.max(0, powers.length - LOUDNESS_WINDOW_FRAMES - LOUDNESS_LAG_FRAMES));
+      let powers = null; // one graph without a steady form: no gate, nothing to measure (as Python's plan())
+      if (this.steady) {
+        powers = new Float64Array(this.powers.length + count);
+        powers.set(this.powers);
+        powers.set(framePowers(audio, size), this.powers.length);
+      }
+      const out = await this.run(audio, count, this.state, count, powers === null || loudnessMoved(powers));
+      if (powers !== null) {
+        this.powers = powers.slice(Math.max(0, powers.length - LOUDNESS_WINDOW_FRAMES - LOUDNESS_LAG_FRAMES));
+      }
       this.state = out.state_out.data.slice();
       this._remember(audio);
       const { rows } = this.rowsOf(out);
