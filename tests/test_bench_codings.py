@@ -1,5 +1,5 @@
-"""`gt-bench codings` (tools/bench/codings.py): its codebook, spatial order and rewritten bundles, then the command
-end to end on a tiny synthetic LAM avatar (tests/lam_avatars.py) at a small size."""
+"""`gt-bench codings` (tools/bench/codings.py): its codebook and spatial-order probes and rewritten bundles, then the
+command end to end on a tiny synthetic LAM avatar (tests/lam_avatars.py) at a small size."""
 
 from __future__ import annotations
 
@@ -15,32 +15,11 @@ import tools.bench.codings as codings
 from tools.bench.app import app
 
 
-def test_kmeans_finds_separated_clusters_the_same_way_each_time():
-    """Four tight clusters far apart: four centres on them, every point indexed to its own; the same seed gives
-    the same codebook."""
-    rng = np.random.default_rng(1)
-    centres = np.array([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
-    labels = rng.integers(4, size=400)
-    points = centres[labels] + 0.01 * rng.standard_normal((400, 2))
-    found, index = codings.kmeans(points, 4)
-    assert np.abs(found[index] - centres[labels]).max() < 0.05
-    again, index_again = codings.kmeans(points, 4)
-    assert np.array_equal(found, again) and np.array_equal(index, index_again)
-
-
 def test_codebook_counts_float16_centres_and_packed_indices():
     values = np.random.default_rng(2).standard_normal((3, 1000)).astype(np.float32)
     decoded, nbytes, payload = codings.codebook(values, 16)
     assert decoded.shape == values.shape and len(np.unique(decoded, axis=1).T) <= 16
     assert nbytes == len(payload) == 16 * 3 * 2 + math.ceil(1000 * 4 / 8)
-
-
-def test_morton_order_walks_a_cube_in_z_order():
-    """The eight corners of a cube, shuffled: x is the lowest bit, then y, then z."""
-    corners = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], np.float64).T
-    shuffle = np.random.default_rng(3).permutation(8)
-    order = codings.morton_order(corners[:, shuffle])
-    assert np.array_equal(corners[:, shuffle][:, order], corners)
 
 
 def test_a_spatial_order_is_undone_after_quantising():

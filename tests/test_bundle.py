@@ -8,7 +8,7 @@ import struct
 import numpy as np
 import pytest
 
-from gaussiantalker.sdk.bundle import HEADER_SIZE, MAGIC, Bundle, BundleWriter
+from gaussiantalker.sdk.bundle import FORMAT_MINOR, HEADER_SIZE, MAGIC, Bundle, BundleWriter
 from gaussiantalker.sdk.errors import BundleError
 
 
@@ -28,7 +28,7 @@ def test_round_trip(tmp_path):
     np.testing.assert_array_equal(bundle.buffer("ids"), np.arange(5))
     assert bundle.graph_bytes("g") == b"\x08\x01graph-bytes"
     assert bundle.graph_info("g")["initializers"] == {"w": "weights"}
-    assert bundle.version == (1, 2)
+    assert bundle.version == (1, FORMAT_MINOR)
     bundle.verify_all()
 
 
@@ -77,7 +77,7 @@ def test_unknown_major_version_is_refused(tmp_path):
     data = bytearray(path.read_bytes())
     data[8:10] = struct.pack("<H", 2)
     path.write_bytes(bytes(data))
-    with pytest.raises(BundleError, match="version 2.2 is not supported"):
+    with pytest.raises(BundleError, match=f"version 2.{FORMAT_MINOR} is not supported"):
         Bundle(path)
 
 

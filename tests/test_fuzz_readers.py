@@ -560,8 +560,8 @@ def test_fuzz_flame_motion_npz(ga_avatar, tmp_path, heavy, seed):
 
 @pytest.fixture(scope="module")
 def small_bundle(tmp_path_factory) -> bytes:
-    """A bundle with a buffer in every codec, three sparse ones (one with its mask deflated), and a compressed and a
-    stored graph."""
+    """A bundle with a buffer in every codec, four sparse ones (one with its mask deflated, one a codebook), buffers
+    stored deflated (a codebook's, a quantised one's), and a compressed and a stored graph."""
     from gaussiantalker.sdk.bundle import BundleWriter
 
     rng = np.random.default_rng(3)
@@ -578,6 +578,10 @@ def small_bundle(tmp_path_factory) -> bytes:
         runs[row, start: start + 100] = values[row, :50].repeat(2)
     writer.add_buffer("w/sparse_runs", runs, codec="q8", chunk=16, sparse=True)
     writer.add_buffer("raw_ids", np.arange(7, dtype=np.int32))
+    writer.add_buffer("w/vq", values, codec="vq", chunk=12)  # 4-bit indices, 2 of them a byte
+    writer.add_buffer("w/vq_sparse", mostly_zero, codec="vq", chunk=5, sparse=True)
+    writer.add_buffer("w/vq_zlib", np.tile(values[:, :10], 40), codec="vq", chunk=3, compress=True)
+    writer.add_buffer("w/q8_zlib", runs, codec="q8", chunk=16, compress=True)
     io_spec = [{"name": "x", "dtype": "float32", "shape": [1, "n"]}]
     writer.add_graph("g", b"\x08\x07" + bytes(200), io_spec, io_spec, {"w": "w/q8"})
     writer.add_graph("h", b"\x08\x07graph", io_spec, [], {"i": "ids"}, compress=False)

@@ -329,6 +329,236 @@ console.log(JSON.stringify(cases.map(({{ payload, params }}) => {{
     assert cases[0]["want"] is not None and sum(case["want"] is None for case in cases) > 50
 
 
+def _vq_payload(halves: np.ndarray, index: np.ndarray, bits: int) -> bytes:
+    """A `vq` payload made by hand (docs/bundle-format.md, "vq"): the codebook's half bits, then each index's `bits`
+    bits, the lowest first, in one stream."""
+    stream = ((np.asarray(index, np.int64)[:, None] >> np.arange(bits)) & 1).astype(np.uint8).reshape(-1)
+    return np.asarray(halves, "<u2").tobytes() + np.packbits(stream, bitorder="little").tobytes()
+
+
+def _with_byte(payload: bytes, at: int, value: int) -> bytes:
+    return payload[:at] + bytes([value]) + payload[at + 1:]
+
+
+def _vq_cases() -> list[dict]:
+    """Decode cases: (payload, dtype, shape, params) of vq buffers encoded by sdk/codecs.py or made by hand, intact
+    and damaged (a codebook value not finite, an index past K, a bit past the last index, a bad `entries`)."""
+    from gaussiantalker.sdk.codecs import encode_buffer
+
+    rng = np.random.default_rng(4)
+    mostly_zero = rng.standard_normal((4, 50)).astype(np.float32)
+    mostly_zero[rng.random((4, 50)) < 0.8] = 0
+    arrays = [(rng.standard_normal((3, 20)), 1, False), (rng.standard_normal((2, 33)), 2, False),
+              (rng.standard_normal((2, 50)), 3, False), (rng.standard_normal((4, 30)), 12, False),
+              (rng.standard_normal((3, 400)), 300, False), (rng.standard_normal(37), 5, False),
+              (rng.standard_normal((2, 3, 25)), 7, False), (np.float32(1.5), None, False),
+              (np.zeros((3, 0)), 5, False), (np.zeros((0, 4)), 5, False),
+              (rng.standard_normal((2, 40)).astype(np.float16), 12, False), (mostly_zero, 5, True),
+              (mostly_zero.astype(np.float16), 3, True)]
+    cases = []
+    for array, entries, sparse in arrays:
+        array = np.asarray(array, array.dtype if array.dtype == np.float16 else np.float32)
+        payload, params = encode_buffer(array, "vq", entries, sparse)
+        cases.append((payload, str(array.dtype), array.shape, params))
+    special = np.array([0x8000, 0x0001, 0x7BFF, 0xFBFF, 0x3555, 0x03FF], np.uint16)  # -0, subnormals, +-65504
+    index = rng.integers(0, 6, 29)
+    cases.append((_vq_payload(special, index, 3), "float32", (29,), {"entries": 6}))
+    cases.append((_vq_payload(special, index, 3), "float16", (29,), {"entries": 6}))
+    wide = rng.integers(0, 0x7C00, 65536).astype(np.uint16)  # K = 65536: 16-bit indices
+    cases.append((_vq_payload(wide, rng.integers(0, 65536, 11), 16), "float32", (11,), {"entries": 65536}))
+    for entries, bits in ((257, 9), (1000, 10), (20000, 15)):  # indices over three bytes of the stream
+        cases.append((_vq_payload(np.resize(special, entries), rng.integers(0, entries, 23), bits), "float32", (23,),
+                      {"entries": entries}))
+    damaged = []
+    for payload, dtype, shape, params in cases[:13]:
+        if "sparse" in params:
+            continue
+        entries, width = params["entries"], int(np.prod(shape[:-1], dtype=np.int64)) if shape else 1
+        table = 2 * entries * width
+        if table:  # an infinity, a NaN
+            damaged.append((payload[:table - 2] + b"\x00\x7c" + payload[table:], dtype, shape, params))
+            damaged.append((b"\x01\xfe" + payload[2:], dtype, shape, params))
+        used = (shape[-1] if shape else 1) * max(1, (entries - 1).bit_length())
+        if used % 8:  # a stray bit past the last index
+            damaged.append((_with_byte(payload, len(payload) - 1, payload[-1] | 0x80), dtype, shape, params))
+        for bad in (0, 65537, "3", 2.5, True, None):
+            damaged.append((payload, dtype, shape, {**params, "entries": bad}))
+    for entries, vectors in ((3, 50), (12, 30), (300, 400), (5, 37)):  # an index at or past K (b-bit stream)
+        bits = max(1, (entries - 1).bit_length())
+        for past in (entries, 2 ** bits - 1):
+            if past < 2 ** bits:
+                index = np.arange(vectors) % entries
+                index[vectors // 2] = past
+                damaged.append((_vq_payload(np.full(entries, 0x3C00), index, bits), "float32", (vectors,),
+                                {"entries": entries}))
+    return [{"payload": payload, "dtype": dtype, "shape": list(shape), "params": params}
+            for payload, dtype, shape, params in cases + damaged]
+
+
+def _vq_sizes() -> list[dict]:
+    """expectedNbytes cases: vq's size on every kind of shape, huge ones included, and what it refuses."""
+    shapes = [[4, 13012], [], [0], [5, 0], [0, 5], [7], [2, 3, 25], [2 ** 20, 2 ** 20], [3, 2 ** 40]]
+    cases = [("float32", shape, {"entries": entries}) for shape in shapes for entries in (1, 2, 3, 256, 257, 65536)]
+    cases += [("float16", [2, 40], {"entries": 12}), ("int32", [2, 40], {"entries": 12}),
+              ("int64", [5], {"entries": 2}), ("float32", [3, 10], {"entries": 5, "sparse": {"nnz": 7}}),
+              ("float32", [3, 10], {"entries": 5, "sparse": {"nnz": 7, "mask_zlib": 12}})]
+    cases += [("float32", [4, 30], {"entries": bad}) for bad in (0, -1, 65537, 2 ** 40, "12", 2.5, True, None)]
+    cases.append(("float32", [4, 30], {}))
+    return [{"dtype": dtype, "shape": shape, "params": params} for dtype, shape, params in cases]
+
+
+def _zlib_bundles(folder: Path) -> list[Path]:
+    """Bundles whose buffers are stored zlib-compressed (vq, q8, raw, index, sparse, a large raw one), intact, then
+    with one buffer's entry or stream damaged (checksums and offsets made to match, so only the damage remains)."""
+    import zlib
+
+    from test_fuzz_readers import _relayout
+
+    from gaussiantalker.sdk.bundle import Bundle, BundleWriter
+    from gaussiantalker.sdk.codecs import zlib_bound
+
+    rng = np.random.default_rng(6)
+    values = np.tile(rng.standard_normal((3, 8)).astype(np.float32), 30)
+    big = rng.standard_normal(20000).astype(np.float32)
+    sparse = values.copy()
+    sparse[:, rng.random(240) < 0.7] = 0
+    writer = BundleWriter()
+    for name, array, codec, chunk, is_sparse in (("vq", values, "vq", 12, False), ("q8", values, "q8", 16, False),
+                                                 ("raw", values, "raw", None, False),
+                                                 ("ids", np.arange(300) % 7, "index", None, False),
+                                                 ("sparse", sparse, "q8", 16, True),
+                                                 ("big", big, "raw", None, False)):
+        writer.add_buffer(name, array, codec, chunk, is_sparse, compress=True)
+    writer.add_buffer("plain", values[:, :8], "vq", 3)
+    writer.write(folder / "zlib.gtb")
+    bundle = Bundle(folder / "zlib.gtb")
+    manifest = json.loads(json.dumps(bundle.manifest))
+    assert all(manifest["buffers"][name].get("compression") == "zlib" for name in ("vq", "q8", "raw", "ids", "sparse"))
+    assert manifest["buffers"]["big"]["nbytes"] > 3 * 16384  # a stream fflate is given in several pushes
+    blobs = {("buffers", name): bundle._read_entry(name, entry) for name, entry in manifest["buffers"].items()}
+    paths = [folder / "zlib.gtb"]
+
+    def variant(name: str, stream: bytes | None = None, **entry) -> None:
+        changed = json.loads(json.dumps(manifest))
+        changed["buffers"][name].update(entry)
+        path = folder / f"zlib{len(paths):03d}.gtb"
+        path.write_bytes(_relayout(changed, {**blobs, ("buffers", name): blobs["buffers", name] if stream is None
+                                             else stream}))
+        paths.append(path)
+
+    for name in ("vq", "q8", "sparse", "big"):
+        raw = manifest["buffers"][name]["raw_nbytes"]
+        payload = zlib.decompress(blobs["buffers", name])
+        stream = blobs["buffers", name]
+        for wrong in (raw - 1, raw + 1, -1, 2 ** 31, "12", None):
+            variant(name, raw_nbytes=wrong)
+        for unknown in ("gzip", "", 7, None):
+            variant(name, compression=unknown)
+        variant(name, zlib.compress(payload, 0))  # stored blocks: loads
+        variant(name, zlib.compress(payload[:-1]))  # one byte short, or one too many
+        variant(name, zlib.compress(payload + b"\0"))
+        variant(name, zlib.compress(payload + b"\0"), raw_nbytes=raw + 1)  # a raw_nbytes the codec does not imply
+        variant(name, zlib.compress(payload[:-1]), raw_nbytes=raw - 1)
+        variant(name, zlib.compress(bytes(100 * raw)))  # far more, in few bytes
+        compressor = zlib.compressobj(9)
+        head = compressor.compress(payload) + compressor.flush(zlib.Z_SYNC_FLUSH)  # byte-aligned here
+        tail = compressor.flush()
+        for blocks in (2, (zlib_bound(raw) - len(head + tail)) // 5 + 1):  # empty stored blocks: a valid stream,
+            variant(name, head + b"\0\0\0\xff\xff" * blocks + tail)  # then one longer than zlib's bound
+        variant(name, payload)  # not a zlib stream
+        variant(name, stream[:-1])  # cut short, or cut in its DEFLATE data
+        variant(name, stream[:len(stream) // 2] + stream[-4:])
+        variant(name, stream[:-4] + bytes(4))  # a wrong checksum, bytes after it
+        variant(name, stream + bytes(2))
+        for _ in range(8):
+            damaged = bytearray(stream)
+            damaged[rng.integers(len(damaged))] ^= 1 << int(rng.integers(8))
+            variant(name, bytes(damaged))
+    vq = zlib.decompress(blobs["buffers", "vq"])
+    variant("vq", zlib.compress(_with_byte(vq, 2 * 12 * 3, 0xFF)))  # inflates, then an index is past K
+    return paths
+
+
+def test_the_web_reader_decodes_and_refuses_vq_and_deflated_buffers_as_python_does(tmp_path):
+    """`decodeBuffer` and `expectedNbytes` (web/src/codecs.js) against sdk/codecs.py on `vq` buffers (K = 1, 2, 3,
+    12, 257, 300, 65536; 0-d, 1-D, 3-D and empty shapes; float32 and float16; sparse; a codebook with -0, subnormals
+    and +-65504), intact and damaged; and `readBundle` + `buffer` (web/src/bundle.js) against sdk/bundle.py on
+    buffers stored zlib-compressed, intact and with their raw_nbytes, compression or stream damaged: the same bytes
+    where Python decodes, refused where Python refuses."""
+    import base64
+
+    from gaussiantalker.sdk.bundle import Bundle
+    from gaussiantalker.sdk.codecs import decode_buffer, expected_nbytes
+
+    node = shutil.which("node")
+    need(None if node else "node is missing (Debian's npm brings it)", BROWSER_INSTALL)
+    decodes, sizes, bundles = _vq_cases(), _vq_sizes(), _zlib_bundles(tmp_path)
+
+    def python(read):
+        try:
+            return read()
+        except BundleError:
+            return None
+
+    for case in decodes:
+        case["want"] = python(lambda c=case: base64.b64encode(decode_buffer(
+            c["payload"], "vq", c["dtype"], tuple(c["shape"]), c["params"]).tobytes()).decode())
+        case["payload"] = base64.b64encode(case["payload"]).decode()
+    for case in sizes:
+        case["want"] = python(lambda c=case: str(expected_nbytes("vq", c["dtype"], tuple(c["shape"]), c["params"])))
+
+    def read_bundle(path: Path) -> list[str]:
+        bundle = Bundle(path)
+        bundle.verify_all()
+        return [base64.b64encode(bundle.buffer(name).tobytes()).decode() for name in sorted(bundle.manifest["buffers"])]
+
+    want_bundles = [python(lambda p=path: read_bundle(p)) for path in bundles]
+    (tmp_path / "cases.json").write_text(json.dumps({"decodes": decodes, "sizes": sizes,
+                                                     "bundles": [str(path) for path in bundles]}))
+    script = tmp_path / "vq.mjs"
+    script.write_text(f"""
+import fs from 'node:fs';
+import {{ readBundle }} from {json.dumps((ROOT / "web" / "src" / "bundle.js").as_uri())};
+import {{ BundleError, decodeBuffer, expectedNbytes }} from {json.dumps((ROOT / "web" / "src" / "codecs.js").as_uri())};
+const {{ decodes, sizes, bundles }} = JSON.parse(fs.readFileSync({json.dumps(str(tmp_path / "cases.json"))}, 'utf8'));
+const base64 = (values) => Buffer.from(values.buffer, values.byteOffset, values.byteLength).toString('base64');
+async function verdict(read) {{
+  try {{
+    return await read();
+  }} catch (error) {{
+    if (error instanceof BundleError && !error.message.includes('\\n')) return null;
+    return `crashed: ${{error}}`;
+  }}
+}}
+const results = {{ decodes: [], sizes: [], bundles: [] }};
+for (const {{ payload, dtype, shape, params }} of decodes) {{
+  results.decodes.push(await verdict(() => base64(decodeBuffer(new Uint8Array(Buffer.from(payload, 'base64')), 'vq',
+    dtype, shape, params))));
+}}
+for (const {{ dtype, shape, params }} of sizes) {{
+  results.sizes.push(await verdict(() => String(expectedNbytes('vq', dtype, shape, params))));
+}}
+for (const path of bundles) {{
+  results.bundles.push(await verdict(async () => {{
+    const bundle = await readBundle(fs.readFileSync(path), {{ name: path }});
+    return Object.keys(bundle.manifest.buffers).sort().map((name) => base64(bundle.buffer(name).data));
+  }}));
+}}
+console.log(JSON.stringify(results));
+""")
+    done = subprocess.run([node, str(script)], capture_output=True, text=True, timeout=NODE_TIMEOUT_S)
+    assert done.returncode == 0, done.stderr[-2000:]
+    web = json.loads(done.stdout)
+    wrong = [f"{kind} {index}: Python {str(want)[:60]}, web {str(got)[:60]}"
+             for kind, wants in (("decode", [c["want"] for c in decodes]), ("size", [c["want"] for c in sizes]),
+                                 ("bundle", want_bundles))
+             for index, (want, got) in enumerate(zip(wants, web[kind + "s"], strict=True)) if want != got]
+    assert not wrong, "\n".join(wrong[:20]) + f"\n({len(wrong)} in all)"
+    for wants in ([c["want"] for c in decodes], [c["want"] for c in sizes], want_bundles):  # both ends reached
+        assert sum(want is None for want in wants) > 5 and sum(want is not None for want in wants) >= 4
+    assert want_bundles[0] is not None  # the intact bundle
+
+
 def test_the_web_npy_reader_reads_dtypes_as_numpy_does(tmp_path):
     """`parseDescr` (web/src/npy_header.js) against numpy on every one-character type code and every kind letter
     with sizes 0-20, 32, 64, 99, each with each byte-order mark: the same numbers dtype (kind, size, byte order), a

@@ -11,8 +11,8 @@ renders it, and counts the bytes the coding would store:
 * `qN` (chunked min/max, sdk/codecs.py) in the Gaussians' order, and `qN, spatial order` with the Gaussians first
   put in the Morton order of their rest points (neighbours in space share a chunk, the order compressed splat
   formats quantise in; the order itself costs nothing where the graph may renumber its Gaussians);
-* `vqK`: a codebook of K vectors (k-means over the buffer's per-Gaussian vectors: k-means++ seeded from 0, then
-  KMEANS_ITERATIONS Lloyd steps) stored as float16, each Gaussian's index in ceil(log2 K) bits;
+* `vqK`: the bundle format's codebook codec `vq` with K entries (sdk/codecs.py: k-means over the buffer's
+  per-Gaussian vectors, float16 entries, each Gaussian's index in ceil(log2 K) bits);
 * the compact bundle's own coding of the buffer: the row the others are read against.
 
 Each row also says what zlib (RFC 1950, level 9: what the format already inflates, and browsers too) and lzma (at
@@ -30,7 +30,6 @@ coding buys back.
 from __future__ import annotations
 
 import lzma
-import math
 import statistics
 import tempfile
 import zlib
@@ -40,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gaussiantalker.exporter.export.spatial_order import morton_order
 from gaussiantalker.sdk.bundle import Bundle, BundleWriter
 from gaussiantalker.sdk.codecs import decode_buffer, encode_buffer
 from gaussiantalker.sdk.image import psnr_db
@@ -47,7 +47,6 @@ from gaussiantalker.sdk.progress import progress_bar
 
 SIZE = 512
 FRAMES = 30
-KMEANS_ITERATIONS = 20
 CODEBOOK_SIZES = (256, 1024, 4096)
 COMBINED_LOSS_DB = 1.5  # the most head PSNR (minimum over the frames) a coding in the combined row lost alone
 MORPH_BASIS = "deform/morph_basis"
@@ -65,51 +64,6 @@ class Probe:
     make: Callable[[], tuple[np.ndarray, int, bytes]]
 
 
-def morton_order(points: np.ndarray, bits: int = 10) -> np.ndarray:
-    """The permutation sorting points [3, N] by the Morton (Z-order) code of their position on a 2^bits grid over
-    their bounding box."""
-    low, high = points.min(axis=1, keepdims=True), points.max(axis=1, keepdims=True)
-    cells = ((points - low) / np.maximum(high - low, 1e-12) * (2**bits - 1)).round().astype(np.uint64)
-    code = np.zeros(points.shape[1], np.uint64)
-    for bit in range(bits):
-        for axis in range(3):
-            code |= ((cells[axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
-    return np.argsort(code, kind="stable")
-
-
-def kmeans(vectors: np.ndarray, k: int, iterations: int = KMEANS_ITERATIONS, seed: int = 0,
-           block: int = 2048) -> tuple[np.ndarray, np.ndarray]:
-    """(codebook [k, D], each vector's index [N]) of vectors [N, D]: k-means++ seeding from `seed`, then
-    `iterations` Lloyd steps (an empty cluster keeps its centre); distances in blocks of `block` vectors, so the
-    memory is block x k. Hand-written: a few lines of numpy, and no dependency of the package has k-means (scipy,
-    which does, is not one)."""
-    x = np.asarray(vectors, np.float64)
-    rng = np.random.default_rng(seed)
-    centres = np.empty((k, x.shape[1]))
-    centres[0] = x[rng.integers(len(x))]
-    nearest = ((x - centres[0]) ** 2).sum(1)
-    for i in range(1, k):
-        total = nearest.sum()
-        pick = rng.choice(len(x), p=nearest / total) if total > 0 else rng.integers(len(x))
-        centres[i] = x[pick]
-        nearest = np.minimum(nearest, ((x - centres[i]) ** 2).sum(1))
-    for step in range(iterations + 1):
-        index = np.concatenate([_closest(x[start:start + block], centres) for start in range(0, len(x), block)])
-        if step == iterations:
-            break
-        counts = np.bincount(index, minlength=k)
-        sums = np.zeros_like(centres)
-        np.add.at(sums, index, x)
-        filled = counts > 0
-        centres[filled] = sums[filled] / counts[filled, None]
-    return centres, index
-
-
-def _closest(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """Index of each row's nearest centre (squared distance, ||c||^2 - 2 x.c; ties to the lower index)."""
-    return np.argmin((centres**2).sum(1)[None, :] - 2.0 * x @ centres.T, axis=1)
-
-
 def quantised(values: np.ndarray, codec: str, chunk: int | None, order: np.ndarray | None,
               sparse: bool = False) -> tuple[np.ndarray, int, bytes]:
     """`values` through chunked codec `codec` (in `order` along the last axis where given): (decoded, bytes,
@@ -123,16 +77,11 @@ def quantised(values: np.ndarray, codec: str, chunk: int | None, order: np.ndarr
 
 
 def codebook(values: np.ndarray, k: int) -> tuple[np.ndarray, int, bytes]:
-    """`values` [..., N] (per-Gaussian vectors along the leading axes) through a K-vector codebook: (decoded,
-    bytes, payload: the codebook in float16, then each index in ceil(log2 K) bits, lowest bit first)."""
-    vectors = values.reshape(-1, values.shape[-1]).T
-    centres, index = kmeans(vectors, k)
-    table = centres.astype(np.float16)
-    decoded = table.astype(np.float32)[index].T.reshape(values.shape)
-    bits = max(1, math.ceil(math.log2(k)))
-    packed = np.packbits(((index[:, None] >> np.arange(bits)) & 1).astype(np.uint8).reshape(-1), bitorder="little")
-    payload = table.tobytes() + packed.tobytes()
-    return decoded, len(payload), payload
+    """`values` [..., N] (per-Gaussian vectors along the leading axes) through the `vq` codec with a K-vector
+    codebook (sdk/codecs.py): (decoded, bytes, payload)."""
+    array = np.ascontiguousarray(values, np.float32)
+    payload, params = encode_buffer(array, "vq", k)
+    return decode_buffer(payload, "vq", "float32", array.shape, params), len(payload), payload
 
 
 def gaussian_buffers(bundle: Bundle) -> list[str]:
@@ -154,7 +103,7 @@ def as_stored(bundle: Bundle, name: str, values: np.ndarray, codec: str, chunk: 
 def probes(compact: Bundle, order_points: str | None) -> list[Probe]:
     """Every probe of the compact bundle's per-Gaussian buffers (and its morph basis); `order_points`: the buffer
     whose [3, N] points give the spatial order (None: no spatially ordered probes)."""
-    order = morton_order(compact.buffer(order_points)) if order_points else None
+    order = morton_order(compact.buffer(order_points).T) if order_points else None
     out = []
     for name in gaussian_buffers(compact):
         values = compact.buffer(name)
@@ -235,7 +184,7 @@ def run_codings(speaker, budgets: list[float], combined_loss_db: float = COMBINE
                 progress: bool = True) -> dict:
     """Export `speaker` as quality and compact, run every probe, the combined row (codings that lost at most
     `combined_loss_db` alone) and every budget; the rows of the report."""
-    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.export.bundle_export import export_bundle, rig_of
     from gaussiantalker.exporter.export.presets import get_preset, settings_with
 
     with tempfile.TemporaryDirectory(prefix="gt-bench-codings-") as folder:
@@ -274,7 +223,7 @@ def run_codings(speaker, budgets: list[float], combined_loss_db: float = COMBINE
                         "head_psnr_min_db": low, "head_psnr_median_db": middle}
             bar.update()
             budget_rows = []
-            base = get_preset("compact").export
+            base = get_preset("compact").export_for(rig_of(speaker))
             for budget in budgets:
                 bar.set_postfix_str(f"budget {budget:g}")
                 path = folder / f"budget-{budget:g}.gtb"
@@ -286,7 +235,7 @@ def run_codings(speaker, budgets: list[float], combined_loss_db: float = COMBINE
                 bar.update()
         return {"quality_bytes": (folder / "quality.gtb").stat().st_size,
                 "compact_bytes": (folder / "compact.gtb").stat().st_size,
-                "compact_budget": get_preset("compact").export.gaussian_budget,
+                "compact_budget": get_preset("compact").export_for(rig_of(speaker)).gaussian_budget,
                 "compact_gaussians": int(compact.manifest["gaussians"]),
                 "compact_head_psnr": compact_psnr, "combined": combined, "combined_loss_db": combined_loss_db,
                 "frames": len(reference), "size": SIZE, "probes": rows, "budgets": budget_rows}
@@ -336,5 +285,4 @@ def codings_table(result: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["Probe", "codebook", "codings_table", "kmeans", "morton_order", "probes", "quantised", "rewrite",
-           "run_codings"]
+__all__ = ["Probe", "codebook", "codings_table", "probes", "quantised", "rewrite", "run_codings"]

@@ -70,8 +70,8 @@ def constants() -> dict[str, object]:
         "ALIGN": bundle.ALIGN, "MAX_MANIFEST_BYTES": bundle.MAX_MANIFEST_BYTES, "MAX_JSON_DEPTH": MAX_JSON_DEPTH,
         "MAX_GRAPH_BYTES": bundle.MAX_GRAPH_BYTES, "GRAPH_COMPRESSIONS": list(bundle.GRAPH_COMPRESSIONS),
         "DTYPE_TABLE": {name: list(entry) for name, entry in codecs.dtype_table().items()},
-        "MAX_CHUNK": codecs.MAX_CHUNK, "MAX_ELEMENTS": codecs.MAX_ELEMENTS, "INDEX_TYPES": list(codecs.INDEX_TYPES),
-        "QUANT_BITS": list(codecs.QUANT_BITS),
+        "MAX_CHUNK": codecs.MAX_CHUNK, "MAX_CODEBOOK": codecs.MAX_CODEBOOK, "MAX_ELEMENTS": codecs.MAX_ELEMENTS,
+        "INDEX_TYPES": list(codecs.INDEX_TYPES), "QUANT_BITS": list(codecs.QUANT_BITS),
         **wire.js_constants(),
     }
 

@@ -3,7 +3,7 @@
 // (crypto.subtle). The checks and messages are those of sdk/bundle.py (docs/bundle-format.md, "What the reader
 // checks, and refuses"); every size is bounded by the bytes present, no count in the file is trusted.
 
-import { BundleError, decodeBuffer, expectedNbytes } from './codecs.js';
+import { BundleError, decodeBuffer, expectedNbytes, inflateExactly, zlibBound } from './codecs.js';
 import {
   ALIGN, FORMAT_MAJOR, GRAPH_COMPRESSIONS, HEADER_LAYOUT, HEADER_SIZE, MAGIC, MAX_GRAPH_BYTES, MAX_JSON_DEPTH,
   MAX_MANIFEST_BYTES,
@@ -99,6 +99,20 @@ export function duplicateKey(text) {
   return null;
 }
 
+/** A compressed entry (`compression` not absent or null) names a known compression and an inflated size no larger
+ * than a graph may be (sdk/bundle.py `_check_compression`); `fail(why)` makes the error. */
+function checkCompression(fail, what, compression, raw) {
+  if (!GRAPH_COMPRESSIONS.includes(compression)) {
+    throw fail(`${what} has unknown compression '${String(compression).slice(0, 40)}' (this runtime reads: `
+      + `${GRAPH_COMPRESSIONS.join(', ')})`);
+  }
+  if (!(isInt(raw) && raw >= 0 && raw <= MAX_GRAPH_BYTES)) {
+    throw fail(`${what} has an invalid raw_nbytes ${JSON.stringify(raw)?.slice(0, 40)}`);
+  }
+}
+
+const isCompressed = (entry) => entry.compression !== undefined && entry.compression !== null;
+
 function checkTensorList(where, values) {
   const ok = Array.isArray(values) && values.every((v) => isObject(v) && typeof v.name === 'string'
     && typeof v.dtype === 'string' && Array.isArray(v.shape)
@@ -133,14 +147,21 @@ export class Bundle {
     return this.bytes.subarray(start, start + entry.nbytes);
   }
 
-  /** Buffer `name` decoded: {dtype, shape, data} with data a typed array of the dtype (int64: BigInt64Array). */
+  /** Buffer `name` decoded: {dtype, shape, data} with data a typed array of the dtype (int64: BigInt64Array). A
+   * buffer stored compressed is inflated first (fflate, synchronous: exactly its raw_nbytes, never more). */
   buffer(name) {
     if (!this.hasBuffer(name)) throw new BundleError(`${this.name}: bundle has no ${label('buffer', name)}`);
     const entry = this.manifest.buffers[name];
     const { name: codec, ...params } = entry.codec;
+    let data = this.entryBytes(entry);
+    if (isCompressed(entry)) {
+      const raw = entry.raw_nbytes;
+      data = inflateExactly(data, raw, (detail) => new BundleError(`${this.name}: ${label('buffer', name)} `
+        + (detail === null ? `does not inflate to its declared ${raw} bytes` : `does not inflate (${detail})`)));
+    }
     try {
       return { dtype: entry.dtype, shape: entry.shape,
-        data: decodeBuffer(this.entryBytes(entry), codec, entry.dtype, entry.shape, params) };
+        data: decodeBuffer(data, codec, entry.dtype, entry.shape, params) };
     } catch (error) {
       if (error instanceof BundleError) throw new BundleError(`${this.name}: ${label('buffer', name)}: ${error.message}`);
       throw error;
@@ -159,7 +180,7 @@ export class Bundle {
   async graphBytes(name) {
     const entry = this.graphInfo(name);
     const data = this.entryBytes(entry);
-    if (entry.compression === undefined || entry.compression === null) return data.slice();
+    if (!isCompressed(entry)) return data.slice();
     const raw = entry.raw_nbytes;
     const out = new Uint8Array(raw);
     let filled = 0;
@@ -300,9 +321,19 @@ function checkEntries(name, manifest, payloadStart, size) {
       if (error instanceof BundleError) throw fail(`${what}: ${error.message}`);
       throw error;
     }
-    if (wanted !== BigInt(entry.nbytes)) {
-      throw fail(`${what} declares dtype ${dtype} shape [${shape.join(', ')}] (${wanted} bytes) but stores `
-        + `${entry.nbytes} bytes`);
+    if (!isCompressed(entry)) {
+      if (wanted !== BigInt(entry.nbytes)) {
+        throw fail(`${what} declares dtype ${dtype} shape [${shape.join(', ')}] (${wanted} bytes) but stores `
+          + `${entry.nbytes} bytes`);
+      }
+      continue;
+    }
+    // Stored as a zlib stream (format 1.3): it inflates to the codec's size, and is no larger than zlib makes it.
+    checkCompression(fail, what, entry.compression, entry.raw_nbytes);
+    if (BigInt(entry.raw_nbytes) !== wanted || BigInt(entry.nbytes) > zlibBound(wanted)) {
+      throw fail(`${what} declares dtype ${dtype} shape [${shape.join(', ')}] (${wanted} bytes) but its stream's `
+        + `raw_nbytes is ${entry.raw_nbytes} and it stores ${entry.nbytes} bytes (at most ${zlibBound(wanted)} `
+        + 'for that)');
     }
   }
   for (const [graphName, entry] of Object.entries(manifest.graphs)) {
@@ -315,17 +346,7 @@ function checkEntries(name, manifest, payloadStart, size) {
       if (!Object.hasOwn(manifest.buffers, bufferName)) throw fail(`${what} needs unknown ${label('buffer', bufferName)}`);
     }
     for (const kind of ['inputs', 'outputs']) checkTensorList(`${name}: ${what} ${kind}`, entry[kind]);
-    const compression = entry.compression;
-    if (compression !== undefined && compression !== null) {
-      if (!GRAPH_COMPRESSIONS.includes(compression)) {
-        throw fail(`${what} has unknown compression '${String(compression).slice(0, 40)}' (this runtime reads: `
-          + `${GRAPH_COMPRESSIONS.join(', ')})`);
-      }
-      const raw = entry.raw_nbytes;
-      if (!(isInt(raw) && raw >= 0 && raw <= MAX_GRAPH_BYTES)) {
-        throw fail(`${what} has an invalid raw_nbytes ${JSON.stringify(raw)?.slice(0, 40)}`);
-      }
-    }
+    if (isCompressed(entry)) checkCompression(fail, what, entry.compression, entry.raw_nbytes);
   }
 }
 

@@ -6,7 +6,8 @@
 import { Unzlib } from 'fflate';
 
 import {
-  DTYPE_TABLE, FLOAT32_MAX, INDEX_TYPES, MAX_CHUNK, MAX_ELEMENTS as MAX_ELEMENTS_NUMBER, MAX_NDIM, QUANT_BITS,
+  DTYPE_TABLE, FLOAT32_MAX, INDEX_TYPES, MAX_CHUNK, MAX_CODEBOOK, MAX_ELEMENTS as MAX_ELEMENTS_NUMBER, MAX_NDIM,
+  QUANT_BITS,
 } from './generated.js';
 
 export class BundleError extends Error {
@@ -28,7 +29,7 @@ export const DTYPES = Object.fromEntries(Object.entries(DTYPE_TABLE).map(([name,
   return [name, [code, size, array]];
 }));
 export const ONNX_DTYPES = Object.fromEntries(Object.entries(DTYPES).map(([name, [code]]) => [code, name]));
-export { MAX_CHUNK, MAX_NDIM };
+export { MAX_CHUNK, MAX_CODEBOOK, MAX_NDIM };
 export const MAX_ELEMENTS = BigInt(MAX_ELEMENTS_NUMBER);
 const INDEX_ARRAYS = Object.fromEntries(INDEX_TYPES.map((name) => [name, [DTYPES[name][1], DTYPES[name][2]]]));
 const INTEGER_MAX = { int32: 2 ** 31 - 1, int64: Number.MAX_SAFE_INTEGER, int8: 127, uint8: 255, uint16: 65535,
@@ -53,8 +54,26 @@ function indexType(params) {
   return params.stored;
 }
 
-/** The most bytes zlib's stream of `nbytes` bytes takes (sdk/codecs.py `_zlib_bound`), a BigInt. */
-function zlibBound(nbytes) {
+/** A `vq` entry's codebook size (sdk/codecs.py `_entries_param`), or BundleError. */
+function entriesParam(params) {
+  const entries = params.entries;
+  if (!Number.isInteger(entries) || entries < 1 || entries > MAX_CODEBOOK) {
+    throw new BundleError(`codec 'vq' needs an integer entries in 1..${MAX_CODEBOOK}, got ${JSON.stringify(entries)}`);
+  }
+  return entries;
+}
+
+/** Bits a `vq` index takes: ceil(log2 entries), at least 1 (sdk/codecs.py `index_bits`). */
+const indexBits = (entries) => Math.max(1, 32 - Math.clz32(entries - 1));
+
+/** [vectors N, values per vector D] of a `vq` shape, BigInts: N along the last axis (1 for a 0-d shape), D the
+ * product of the other dimensions. */
+function vqLayout(shape) {
+  return [shape.length ? BigInt(shape[shape.length - 1]) : 1n, count(shape.slice(0, -1))];
+}
+
+/** The most bytes zlib's stream of `nbytes` bytes takes (sdk/codecs.py `zlib_bound`), a BigInt. */
+export function zlibBound(nbytes) {
   return nbytes + 5n * (nbytes / 65535n + 1n) + 6n;
 }
 
@@ -92,30 +111,47 @@ function adler32(bytes) {
   return ((b << 16) | a) >>> 0;
 }
 
-/** The bitmask a zlib-stored mask holds (sdk/codecs.py `_inflated_mask`): exactly `nbytes` bytes, the stream
- * complete and its checksum (the last four bytes) right; BundleError otherwise. Output past the mask is never kept.
- * fflate does not say where the DEFLATE data ended, so bytes between its end and the checksum, which Python
- * refuses, are not looked at; the mask is still exactly the checksummed one. */
-function inflatedMask(stored, nbytes) {
-  const mask = new Uint8Array(nbytes);
+// Stored bytes handed to fflate a push at a time: it inflates each push whole, so a stream that inflates past the
+// bytes wanted is stopped within one push's output (DEFLATE expands at most 1032:1), never inflated to its end.
+const INFLATE_STEP = 16384;
+
+/** The exactly `nbytes` bytes a zlib stream (RFC 1950) inflates to: the stream complete and its checksum (the last
+ * four bytes) right, as sdk/bundle.py `_inflate` and sdk/codecs.py `_inflated_mask` want. Otherwise throws
+ * `refuse(detail)`: detail the inflater's message where the stream is damaged, null where it inflates to other than
+ * `nbytes` bytes. Output past `nbytes` is never kept. fflate does not say where the DEFLATE data ended, so bytes
+ * between its end and the checksum, which Python refuses, are not looked at; the bytes returned are still exactly
+ * the checksummed ones. */
+export function inflateExactly(stored, nbytes, refuse) {
+  const out = new Uint8Array(nbytes);
   let produced = 0;
   let overflow = false;
   const inflater = new Unzlib((chunk) => {
-    const kept = chunk.subarray(0, Math.max(nbytes - produced, 0)); // never past the mask
+    const kept = chunk.subarray(0, Math.max(nbytes - produced, 0)); // never past the bytes wanted
     overflow ||= kept.length < chunk.length;
-    mask.set(kept, produced);
+    out.set(kept, produced);
     produced += kept.length;
   });
   try {
-    inflater.push(stored, true);
+    for (let at = 0; at < stored.length && !overflow; at += INFLATE_STEP) {
+      inflater.push(stored.subarray(at, at + INFLATE_STEP), false);
+    }
+    if (!overflow) inflater.push(new Uint8Array(0), true);
   } catch (error) {
-    throw new BundleError(`sparse buffer's zlib mask is damaged (${error.message})`);
+    throw refuse(error.message);
   }
   const view = new DataView(stored.buffer, stored.byteOffset, stored.byteLength);
-  if (overflow || produced !== nbytes || stored.length < 6 || view.getUint32(stored.length - 4) !== adler32(mask)) {
-    throw new BundleError(`sparse buffer's zlib mask does not inflate to exactly its ${nbytes} bytes`);
+  if (overflow || produced !== nbytes || stored.length < 6 || view.getUint32(stored.length - 4) !== adler32(out)) {
+    throw refuse(null);
   }
-  return mask;
+  return out;
+}
+
+/** The bitmask a zlib-stored mask holds (sdk/codecs.py `_inflated_mask`): exactly `nbytes` bytes; BundleError
+ * otherwise. */
+function inflatedMask(stored, nbytes) {
+  return inflateExactly(stored, nbytes, (detail) => new BundleError(detail === null
+    ? `sparse buffer's zlib mask does not inflate to exactly its ${nbytes} bytes`
+    : `sparse buffer's zlib mask is damaged (${detail})`));
 }
 
 /** A sparse buffer: the bitmask of its nonzero elements (C order, lowest bit first; stored as it is or as a zlib
@@ -154,10 +190,10 @@ export function expectedNbytes(codec, dtype, shape, params) {
   if (!Object.hasOwn(DTYPES, dtype)) {
     throw new BundleError(`unsupported buffer dtype '${dtype}' (supported: ${Object.keys(DTYPES).join(', ')})`);
   }
-  if (!['raw', 'fp16', 'q16', 'q8', 'q4', 'index'].includes(codec)) {
-    throw new BundleError(`unknown buffer codec '${codec}' (known: raw, fp16, q16, q8, q4, index)`);
+  if (!['raw', 'fp16', 'q16', 'q8', 'q4', 'index', 'vq'].includes(codec)) {
+    throw new BundleError(`unknown buffer codec '${codec}' (known: raw, fp16, q16, q8, q4, index, vq)`);
   }
-  const floatOnly = codec === 'fp16' || Object.hasOwn(QUANT_CODECS, codec);
+  const floatOnly = codec === 'fp16' || codec === 'vq' || Object.hasOwn(QUANT_CODECS, codec);
   if (floatOnly && !isFloat(dtype)) {
     throw new BundleError(`codec '${codec}' cannot decode to dtype '${dtype}' (floating-point only)`);
   }
@@ -177,6 +213,11 @@ export function expectedNbytes(codec, dtype, shape, params) {
   if (codec === 'raw') return n * BigInt(DTYPES[dtype][1]);
   if (codec === 'fp16') return 2n * n;
   if (codec === 'index') return n * BigInt(INDEX_ARRAYS[indexType(params)][0]);
+  if (codec === 'vq') {
+    const entries = entriesParam(params);
+    const [vectors, width] = vqLayout(shape);
+    return 2n * BigInt(entries) * width + (vectors * BigInt(indexBits(entries)) + 7n) / 8n;
+  }
   const bits = BigInt(QUANT_CODECS[codec]);
   const chunk = BigInt(chunkParam(params, codec));
   return 8n * ((n + chunk - 1n) / chunk) + (n * bits + 7n) / 8n;
@@ -259,6 +300,42 @@ function decodeQuantised(bytes, dtype, n, params, codec) {
   return fromNumbers(values, dtype);
 }
 
+/** A codebook (docs/bundle-format.md, "vq"): K x D binary16 values, then N indices of b bits each in one bit stream
+ * (index n's bit j is stream bit n * b + j, the lowest bit of each byte first); value (d, n) = codebook[index n][d],
+ * the half converted exactly (float16: its bits). The codebook must be finite, every index below K and the bits
+ * past the last index clear. */
+function decodeVq(bytes, dtype, shape, params) {
+  const entries = entriesParam(params);
+  const [vectors, width] = vqLayout(shape).map(Number);
+  const table = view(bytes.subarray(0, 2 * entries * width), Uint16Array); // little-endian halves, read as fp16's
+  if (table.some((h) => (h & 0x7c00) === 0x7c00)) {
+    throw new BundleError('codec vq: the codebook holds a value that is not finite');
+  }
+  const bits = indexBits(entries);
+  const codes = bytes.subarray(2 * entries * width);
+  const used = vectors * bits;
+  const last = Math.floor(used / 8);
+  if ((used % 8 && codes[last] >> (used % 8)) || codes.subarray(Math.ceil(used / 8)).some((b) => b !== 0)) {
+    throw new BundleError('codec vq: bits are set past the last index');
+  }
+  const index = new Uint16Array(vectors); // b <= 16
+  let largest = 0;
+  for (let n = 0, at = 0; n < vectors; n++, at += bits) {
+    const i = Math.floor(at / 8); // b + 7 <= 23 bits lie in bytes i..i+2 (past the end reads as 0)
+    index[n] = ((codes[i] | (codes[i + 1] << 8) | (codes[i + 2] << 16)) >>> (at % 8)) & (2 ** bits - 1);
+    largest = Math.max(largest, index[n]);
+  }
+  if (vectors && largest >= entries) {
+    throw new BundleError(`codec vq: index ${largest} past the codebook's ${entries} entries`);
+  }
+  const values = dtype === 'float16' ? table : Float32Array.from(table, halfToFloat);
+  const out = new values.constructor(vectors * width);
+  for (let d = 0; d < width; d++) {
+    for (let n = 0; n < vectors; n++) out[d * vectors + n] = values[index[n] * width + d];
+  }
+  return out;
+}
+
 /** Decode one buffer's stored bytes (length already checked) -> typed array of its dtype (int64: BigInt64Array,
  * float16: Uint16Array of half bits). */
 export function decodeBuffer(bytes, codec, dtype, shape, params) {
@@ -270,6 +347,7 @@ export function decodeBuffer(bytes, codec, dtype, shape, params) {
     return dtype === 'float16' ? halves : Float32Array.from(halves, halfToFloat);
   }
   if (Object.hasOwn(QUANT_CODECS, codec)) return decodeQuantised(bytes, dtype, n, params, codec);
+  if (codec === 'vq') return decodeVq(bytes, dtype, shape, params);
   const stored = view(bytes, INDEX_ARRAYS[indexType(params)][1]);
   let largest = 0;
   for (const v of stored) largest = v > largest ? v : largest;

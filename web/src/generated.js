@@ -71,6 +71,7 @@ export const MAX_GRAPH_BYTES = 2147483647;
 export const GRAPH_COMPRESSIONS = ["zlib"];
 export const DTYPE_TABLE = {"float32": [1, 4], "float16": [10, 2], "int32": [6, 4], "int64": [7, 8], "int8": [3, 1], "uint8": [2, 1], "uint16": [4, 2], "uint32": [12, 4]};
 export const MAX_CHUNK = 1048576;
+export const MAX_CODEBOOK = 65536;
 export const MAX_ELEMENTS = 72057594037927936;
 export const INDEX_TYPES = ["uint8", "uint16", "uint32"];
 export const QUANT_BITS = [16, 8, 4];

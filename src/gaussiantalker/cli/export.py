@@ -78,6 +78,13 @@ def export(
     midpoints: bool = typer.Option(None, "--midpoints/--no-midpoints", help="an imported avatar's subdivided mesh: "
                                    "derive its edge vertices' morph targets from their ends instead of storing them "
                                    "(within 10 µm; the reduced presets do)"),
+    spatial_order: bool = typer.Option(None, "--spatial-order/--no-spatial-order", help="the Gaussians in the "
+                                       "Morton order of their positions: neighbours share quantisation chunks, the "
+                                       "same frames (compact does for ARKit avatars)"),
+    deflate: bool = typer.Option(None, "--deflate/--no-deflate", help="store every buffer zlib-compressed where that "
+                                 "is smaller (lossless; compact does for ARKit avatars)"),
+    buffer_codec: list[str] = typer.Option(None, "--buffer-codec", help="one buffer's codec, NAME=CODEC (repeat "
+                                           "for more), over its group's, e.g. deform/rotation=vq/256"),
     scene: Path = typer.Option(None, "--scene", help="compile the bundle for a scene (TOML/JSON, docs/scene.md): "
                                "leave out what it never uses, record it in the bundle"),
     mnn: bool = typer.Option(False, "--mnn", help="also store every graph as an MNN model, for "
@@ -86,8 +93,9 @@ def export(
 ) -> None:
     """Export a speaker checkpoint to a bundle; with --verify, place it only if it reproduces the torch frames.
 
-    Codec values: raw, fp16, q16, q8, q4; a quantised codec may name its chunk size (q4/64)."""
-    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    Codec values: raw, fp16, q16, q8, q4, vq; a quantised codec may name its chunk size (q4/64), the codebook vq
+    its entries (vq/1024)."""
+    from gaussiantalker.exporter.export.bundle_export import export_bundle, rig_of
     from gaussiantalker.exporter.export.checkpoint import load_checkpoint
 
     output = output or checkpoint.with_suffix(".gtb")
@@ -100,9 +108,11 @@ def export(
         knobs = {"gaussians": gaussians, "sh": sh, "blendshapes": blendshapes, "flame": flame,
                  "translator": translator, "inpaint": inpaint, "translator_precision": translator_precision,
                  "sh_degree": sh_degree, "blendshape_rank": blendshape_rank,
-                 "gaussian_budget": _budget(gaussian_budget), "reference": reference, "midpoints": midpoints}
-        settings, chosen = _settings(preset, codec, knobs)
+                 "gaussian_budget": _budget(gaussian_budget), "reference": reference, "midpoints": midpoints,
+                 "spatial_order": spatial_order, "deflate": deflate, "buffer_codecs": _buffer_codecs(buffer_codec)}
+        _settings(preset, codec, knobs, "flame")  # a bad knob fails before the checkpoint loads
         speaker = load_checkpoint(checkpoint)
+        settings, chosen = _settings(preset, codec, knobs, rig_of(speaker))
         # The bundle is staged beside the output and placed there only once it is complete (and, with --verify,
         # has passed), so a failed or interrupted run never replaces a good bundle.
         with atomic_path(output) as staged:
@@ -141,14 +151,28 @@ def _budget(text: str | None) -> float | None:
         raise typer.BadParameter(f"--gaussian-budget must be a whole number or a percentage, got {text!r}") from None
 
 
-def _settings(preset: str | None, codec: str | None, knobs: dict):
-    """The export settings: a preset's (or every buffer with --codec, or fp32) with the given knobs replacing
-    its values (the bundle then records the preset's runtime defaults and "NAME+custom" as its label)."""
+def _buffer_codecs(pairs: list[str] | None) -> tuple[tuple[str, str], ...] | None:
+    """--buffer-codec NAME=CODEC values as (name, codec) pairs (None: none given)."""
+    if not pairs:
+        return None
+    parsed = []
+    for pair in pairs:
+        name, equals, codec = pair.partition("=")
+        if not (name and equals and codec):
+            raise typer.BadParameter(f"--buffer-codec takes NAME=CODEC (e.g. deform/rotation=vq/256), got {pair!r}")
+        parsed.append((name, codec))
+    return tuple(parsed)
+
+
+def _settings(preset: str | None, codec: str | None, knobs: dict, rig: str):
+    """The export settings for a speaker of `rig`: a preset's (or every buffer with --codec, or fp32) with the given
+    knobs replacing its values (the bundle then records the preset's runtime defaults and "NAME+custom" as its
+    label)."""
     from gaussiantalker.exporter.export.bundle_export import resolve_settings
 
     if preset is not None and codec is not None:
         raise typer.BadParameter("give --preset or --codec, not both (--codec sets every buffer's codec)")
-    base, chosen, _ = resolve_settings(codec=codec, preset=preset)
+    base, chosen, _ = resolve_settings(codec=codec, preset=preset, rig=rig)
     return settings_with(base, **knobs), chosen
 
 

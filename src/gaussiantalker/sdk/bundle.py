@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .binary_layout import field_layout, fields_struct
-from .codecs import decode_buffer, encode_buffer, expected_nbytes
+from .codecs import decode_buffer, encode_buffer, expected_nbytes, zlib_bound
 from .errors import BundleError
 from .files import StagedFile, atomic_write
 from .json_bounds import MAX_JSON_DEPTH, MAX_JSON_INT, nests_deeper_than, no_constant
@@ -35,14 +35,16 @@ from .json_bounds import MAX_JSON_DEPTH, MAX_JSON_INT, nests_deeper_than, no_con
 MAGIC = b"GTBUNDLE"
 FORMAT_MAJOR = 1
 # 1.1: graphs may be stored zlib-compressed ("compression": "zlib", "raw_nbytes"); 1.2: so may sparse buffers'
-# masks ("sparse": {"nnz": K, "mask_zlib": M})
-FORMAT_MINOR = 2
+# masks ("sparse": {"nnz": K, "mask_zlib": M}); 1.3: buffers may be stored zlib-compressed as graphs are, and the `vq`
+# (codebook) codec
+FORMAT_MINOR = 3
 HEADER_SIZE = 64
 ALIGN = 64
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024
 MAX_MANIFEST_DEPTH = MAX_JSON_DEPTH  # objects and arrays nested deeper are refused (sdk/json_bounds.py)
 # Largest graph a compressed entry may inflate to (protobuf's own 2 GiB limit): checked before inflating.
 MAX_GRAPH_BYTES = 2**31 - 1
+# How a graph or buffer entry may be stored compressed (its "compression" field).
 GRAPH_COMPRESSIONS = ("zlib",)
 # The manifest's "driver" of a FLAME speaker that only FLAME parameters drive (no translator graph: an imported
 # avatar without an audio model, or a scene specialised for FLAME drives; docs/bundle-format.md).
@@ -85,6 +87,7 @@ class BundleWriter:
     """Collects graphs and buffers, then writes the bundle atomically (temp file + rename)."""
 
     metadata: dict = field(default_factory=dict)
+    deflate: bool = False  # every buffer's payload stored as a zlib stream where that is smaller (`add_buffer`)
     _payload: list[bytes] = field(default_factory=list)
     _size: int = 0
     _buffers: dict = field(default_factory=dict)
@@ -102,9 +105,11 @@ class BundleWriter:
         return {"offset": offset, "nbytes": len(data), "sha256": _sha256(data)}
 
     def add_buffer(self, name: str, array: np.ndarray, codec: str = "raw", chunk: int | None = None,
-                   sparse: bool = False) -> None:
-        """Store `array` under `name`, encoded with `codec` (decoded back to the array's dtype; quantised codecs
-        use `chunk` values per chunk; `sparse`: its nonzero elements only, after a bitmask; sdk/codecs.py)."""
+                   sparse: bool = False, compress: bool | None = None) -> None:
+        """Store `array` under `name`, encoded with `codec` (decoded back to the array's dtype; `chunk`: a quantised
+        codec's values per chunk, `vq`'s entries; `sparse`: its nonzero elements only, after a bitmask;
+        sdk/codecs.py). `compress`: the codec's payload stored as a zlib stream where that is smaller (default:
+        the writer's `deflate`)."""
         if name in self._buffers:
             raise BundleError(f"buffer {name!r} added twice")
         array = np.asarray(array)
@@ -112,10 +117,13 @@ class BundleWriter:
             payload, params = encode_buffer(array, codec, chunk, sparse)
         except BundleError as exc:
             raise BundleError(f"buffer {name!r}: {exc}") from None
-        entry = self._append(payload)
-        entry.update(dtype=str(array.dtype), shape=list(array.shape), codec={"name": codec, **params})
-        if expected_nbytes(codec, entry["dtype"], tuple(array.shape), params) != len(payload):
+        if expected_nbytes(codec, str(array.dtype), tuple(array.shape), params) != len(payload):
             raise BundleError(f"codec {codec!r} produced {len(payload)} bytes for buffer {name!r}")
+        zipped = zlib.compress(payload, 9) if (self.deflate if compress is None else compress) else payload
+        entry = self._append(zipped if len(zipped) < len(payload) else payload)
+        if len(zipped) < len(payload):
+            entry.update(compression="zlib", raw_nbytes=len(payload))
+        entry.update(dtype=str(array.dtype), shape=list(array.shape), codec={"name": codec, **params})
         self._buffers[name] = entry
         self._stored[name] = payload
         self._by_content.setdefault(_content_key(array, codec, chunk, sparse), name)
@@ -356,9 +364,25 @@ class Bundle:
             wanted = expected_nbytes(codec["name"], dtype, tuple(shape), _codec_params(codec))
         except BundleError as exc:
             raise BundleError(f"{self.path}: {_label('buffer', name)}: {exc}") from None
-        if wanted != entry["nbytes"]:
+        compression = entry.get("compression")
+        if compression is None:
+            if wanted != entry["nbytes"]:
+                raise BundleError(f"{self.path}: {_label('buffer', name)} declares dtype {dtype} shape {shape} "
+                                  f"({wanted} bytes) but stores {entry['nbytes']} bytes")
+            return
+        self._check_compression(_label("buffer", name), compression, entry.get("raw_nbytes"))
+        if entry["raw_nbytes"] != wanted or entry["nbytes"] > zlib_bound(wanted):
             raise BundleError(f"{self.path}: {_label('buffer', name)} declares dtype {dtype} shape {shape} ({wanted} "
-                              f"bytes) but stores {entry['nbytes']} bytes")
+                              f"bytes) but its stream's raw_nbytes is {entry['raw_nbytes']} and it stores "
+                              f"{entry['nbytes']} bytes (at most {zlib_bound(wanted)} for that)")
+
+    def _check_compression(self, label: str, compression: object, raw: object) -> None:
+        """A compressed entry names a known compression and an inflated size no larger than a graph may be."""
+        if compression not in GRAPH_COMPRESSIONS:
+            raise BundleError(f"{self.path}: {label} has unknown compression {str(compression)[:40]!r} (this "
+                              f"runtime reads: {', '.join(GRAPH_COMPRESSIONS)})")
+        if not (_is_int(raw) and 0 <= raw <= MAX_GRAPH_BYTES):
+            raise BundleError(f"{self.path}: {label} has an invalid raw_nbytes {repr(raw)[:40]}")
 
     def _check_graph(self, name: str, entry: dict) -> None:
         """Declared inputs/outputs are well-formed; every initializer maps to a buffer the bundle holds."""
@@ -370,14 +394,8 @@ class Bundle:
                 raise BundleError(f"{self.path}: {_label('graph', name)} needs unknown {_label('buffer', buffer_name)}")
         for kind in ("inputs", "outputs"):
             _check_tensor_list(f"{self.path}: {_label('graph', name)} {kind}", entry.get(kind))
-        compression = entry.get("compression")
-        if compression is not None:
-            raw = entry.get("raw_nbytes")
-            if compression not in GRAPH_COMPRESSIONS:
-                raise BundleError(f"{self.path}: {_label('graph', name)} has unknown compression "
-                                  f"{str(compression)[:40]!r} (this runtime reads: {', '.join(GRAPH_COMPRESSIONS)})")
-            if not (_is_int(raw) and 0 <= raw <= MAX_GRAPH_BYTES):
-                raise BundleError(f"{self.path}: {_label('graph', name)} has an invalid raw_nbytes {repr(raw)[:40]}")
+        if entry.get("compression") is not None:
+            self._check_compression(_label("graph", name), entry["compression"], entry.get("raw_nbytes"))
 
     @property
     def version(self) -> tuple[int, int]:
@@ -406,6 +424,8 @@ class Bundle:
         if entry is None:
             raise BundleError(f"{self.path}: bundle has no {_label('buffer', name)}")
         data = self._read_entry(_label("buffer", name), entry)
+        if entry.get("compression") is not None:
+            data = self._inflate(_label("buffer", name), data, entry["raw_nbytes"])
         codec = entry["codec"]
         try:
             return decode_buffer(data, codec["name"], entry["dtype"], tuple(entry["shape"]), _codec_params(codec))
@@ -425,15 +445,18 @@ class Bundle:
         data = self._read_entry(_label("graph", name), entry)
         if entry.get("compression") is None:
             return data
-        raw = entry["raw_nbytes"]
+        return self._inflate(_label("graph", name), data, entry["raw_nbytes"])
+
+    def _inflate(self, label: str, data: bytes, raw: int) -> bytes:
+        """A zlib-stored entry's bytes: exactly `raw` of them (never more are inflated), the stream complete."""
         inflater = zlib.decompressobj()
         try:
-            onnx_bytes = inflater.decompress(data, raw)  # never more than the declared size
+            inflated = inflater.decompress(data, raw)  # never more than the declared size
         except zlib.error as exc:
-            raise BundleError(f"{self.path}: {_label('graph', name)} does not inflate ({exc})") from None
-        if len(onnx_bytes) != raw or not inflater.eof or inflater.unconsumed_tail:
-            raise BundleError(f"{self.path}: {_label('graph', name)} does not inflate to its declared {raw} bytes")
-        return onnx_bytes
+            raise BundleError(f"{self.path}: {label} does not inflate ({exc})") from None
+        if len(inflated) != raw or not inflater.eof or inflater.unconsumed_tail or inflater.unused_data:
+            raise BundleError(f"{self.path}: {label} does not inflate to its declared {raw} bytes")
+        return inflated
 
     def verify_all(self) -> None:
         """Read every entry and check its checksum (what `gt-export --verify` and loaders call)."""

@@ -12,6 +12,9 @@ happens once, when a bundle is loaded (graph weights become float32 initializers
   (2^(bits+1) - 2)). The exporter lays per-Gaussian buffers out component-major ([3, N], ...), so a chunk holds one
   quantity of neighbouring Gaussians.
 * `index`: non-negative integers in the smallest unsigned type that holds the largest (uint8/16/32). Lossless.
+* `vq`: a codebook. The array's last axis indexes vectors (a per-Gaussian buffer [D, N]: Gaussian n's D values); a
+  table of `entries` vectors in float16 is stored, then each vector's index into it in ceil(log2 entries) bits.
+  A 256-entry table of a Gaussian's colour is 1 byte a Gaussian against 3 at q8 (sdk/kmeans.py makes the table).
 
 Any codec may be made sparse (params `"sparse": {"nnz": K}`): the payload is then a bitmask of the array's
 nonzero elements (one bit per element in C order, the first in the lowest bit of byte 0, `ceil(count / 8)` bytes,
@@ -62,6 +65,9 @@ MAX_ELEMENTS = 1 << 56
 INDEX_TYPES = ("uint8", "uint16", "uint32")
 # Bits per value of the quantising codecs (`q16`, `q8`, `q4`).
 QUANT_BITS = (16, 8, 4)
+# The most vectors a `vq` codebook may hold (16-bit indices), and its size when the encoder is not told.
+MAX_CODEBOOK = 1 << 16
+DEFAULT_CODEBOOK = 256
 
 
 def dtype_table() -> dict[str, tuple[int, int]]:
@@ -231,6 +237,73 @@ def _decode_index(payload: bytes, dtype: str, shape: tuple[int, ...], params: di
     return values.astype(dtype).reshape(shape)
 
 
+# -- codebooks ----------------------------------------------------------------------------------------------------
+
+
+def _entries_param(params: dict) -> int:
+    entries = params.get("entries")
+    if not isinstance(entries, int) or isinstance(entries, bool) or not 1 <= entries <= MAX_CODEBOOK:
+        raise BundleError(f"codec 'vq' needs an integer entries in 1..{MAX_CODEBOOK}, got {entries!r}")
+    return entries
+
+
+def index_bits(entries: int) -> int:
+    """Bits a `vq` index takes: ceil(log2 entries), at least 1."""
+    return max(1, (int(entries) - 1).bit_length())
+
+
+def _vq_layout(shape: tuple[int, ...]) -> tuple[int, int]:
+    """(vectors N, values per vector D) of a `vq` array: N along the last axis, D the product of the others."""
+    vectors = int(shape[-1]) if shape else 1
+    return vectors, _count(tuple(shape[:-1]))
+
+
+def _vq_nbytes(dtype: str, shape: tuple[int, ...], params: dict) -> int:
+    entries = _entries_param(params)
+    vectors, width = _vq_layout(shape)
+    return 2 * entries * width + _code_nbytes(vectors, index_bits(entries))
+
+
+def _vq_encoder(entries: int = DEFAULT_CODEBOOK) -> Callable[[np.ndarray], tuple[bytes, dict]]:
+    def encode(array: np.ndarray) -> tuple[bytes, dict]:
+        from .kmeans import closest, kmeans  # the encoder's alone: a reader never runs k-means
+
+        if array.dtype.kind != "f":
+            raise BundleError(f"codec vq stores floating-point arrays only, got {array.dtype}")
+        if not np.all(np.isfinite(array)) or (array.size and np.abs(array).max() > FP16_MAX):
+            raise BundleError(f"codec vq stores finite arrays within float16's range (max {FP16_MAX}) only")
+        _entries_param({"entries": entries})
+        vectors, width = _vq_layout(tuple(array.shape))
+        if array.size == 0:
+            return b"\0" * _vq_nbytes("", tuple(array.shape), {"entries": 1}), {"entries": 1}
+        x = np.asarray(array, np.float64).reshape(width, vectors).T  # [N, D]
+        k = min(entries, vectors)
+        centres, _ = kmeans(x, k)
+        table = centres.astype("<f2")
+        index = closest(x, table.astype(np.float64))  # each vector to its nearest centre as the reader sees it
+        bits = index_bits(k)
+        packed = np.packbits(((index[:, None] >> np.arange(bits)) & 1).astype(np.uint8).reshape(-1),
+                             bitorder="little")
+        return table.tobytes() + packed.tobytes(), {"entries": k}
+    return encode
+
+
+def _decode_vq(payload: bytes, dtype: str, shape: tuple[int, ...], params: dict) -> np.ndarray:
+    entries = _entries_param(params)
+    vectors, width = _vq_layout(shape)
+    table = np.frombuffer(payload, "<f2", entries * width, 0).reshape(entries, width)
+    if not np.all(np.isfinite(table)):
+        raise BundleError("codec vq: the codebook holds a value that is not finite")
+    bits = index_bits(entries)
+    stream = np.unpackbits(np.frombuffer(payload, np.uint8, offset=2 * entries * width), bitorder="little")
+    if stream[vectors * bits:].any():
+        raise BundleError("codec vq: bits are set past the last index")
+    index = (stream[:vectors * bits].reshape(vectors, bits).astype(np.int64) << np.arange(bits)).sum(1)
+    if vectors and int(index.max()) >= entries:
+        raise BundleError(f"codec vq: index {int(index.max())} past the codebook's {entries} entries")
+    return np.ascontiguousarray(table.astype(dtype)[index].T).reshape(shape)
+
+
 CODECS: dict[str, Codec] = {
     "raw": Codec(_encode_raw, _decode_raw, lambda dtype, shape, params: _count(shape) * np.dtype(dtype).itemsize),
     "fp16": Codec(_encode_fp16, _decode_fp16, lambda dtype, shape, params: 2 * _count(shape), float_only=True,
@@ -240,6 +313,7 @@ CODECS: dict[str, Codec] = {
     "index": Codec(_encode_index, _decode_index,
                    lambda dtype, shape, params: _count(shape) * np.dtype(_index_type(params)).itemsize,
                    int_only=True),
+    "vq": Codec(_vq_encoder(), _decode_vq, _vq_nbytes, float_only=True, lossless=False),
 }
 
 
@@ -256,7 +330,7 @@ def _sparse_param(params: dict, count: int) -> tuple[int, int | None, dict]:
     sparse = params.get("sparse")
     nnz = sparse.get("nnz") if isinstance(sparse, dict) else None
     zipped = sparse.get("mask_zlib") if isinstance(sparse, dict) else None
-    bound = _zlib_bound(_mask_nbytes(count))
+    bound = zlib_bound(_mask_nbytes(count))
     if (not _is_count(nnz) or nnz > count or set(sparse) - {"nnz", "mask_zlib"}
             or ("mask_zlib" in sparse and not (_is_count(zipped) and zipped <= bound))):
         raise BundleError(f"sparse buffer needs {{\"nnz\": K}} with 0 <= K <= {count} (its element count), and "
@@ -269,7 +343,7 @@ def _mask_nbytes(count: int) -> int:
     return -(-count // 8)
 
 
-def _zlib_bound(nbytes: int) -> int:
+def zlib_bound(nbytes: int) -> int:
     """The most bytes zlib's stream of `nbytes` bytes takes (stored blocks: 5 bytes per 65,535, plus the 2-byte
     header and 4-byte checksum), so a mask's claimed size is bounded by the mask it stands for."""
     return nbytes + 5 * (nbytes // 65535 + 1) + 6
@@ -348,9 +422,9 @@ def expected_nbytes(codec_name: str, dtype: str, shape: tuple[int, ...], params:
 
 def encode_buffer(array: np.ndarray, codec_name: str, chunk: int | None = None,
                   sparse: bool = False) -> tuple[bytes, dict]:
-    """Encode `array` with codec `codec_name` (quantised codecs: `chunk` values per chunk, default 256); `sparse`:
-    only its nonzero elements, after a bitmask of where they are (a -0.0 is stored as a zero), zlib-compressed
-    where that is smaller."""
+    """Encode `array` with codec `codec_name`; `chunk` is the codec's size: a quantised codec's values per chunk,
+    `vq`'s codebook entries (default 256 for both). `sparse`: only its nonzero elements, after a bitmask of where
+    they are (a -0.0 is stored as a zero), zlib-compressed where that is smaller."""
     if sparse:
         flat = np.ascontiguousarray(array).reshape(-1)
         mask = flat != 0
@@ -365,4 +439,6 @@ def encode_buffer(array: np.ndarray, codec_name: str, chunk: int | None = None,
     if chunk is not None and codec_name.startswith("q"):
         _chunk_param({"chunk": chunk}, codec_name)
         return _quant_encoder(int(codec_name[1:]), chunk)(array)
+    if chunk is not None and codec_name == "vq":
+        return _vq_encoder(_entries_param({"entries": chunk}))(array)
     return codec.encode(array)

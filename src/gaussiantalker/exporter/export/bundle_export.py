@@ -32,6 +32,7 @@ from .mnn_export import add_mnn_graphs, mnn_version
 from .onnx_export import add_graph
 from .presets import ExportSettings, Preset, get_preset, group_of, parse_reference
 from .prune import apply_budget
+from .spatial_order import in_spatial_order
 from .specialise import Specialisation, specialise
 from .translator_graph import translator_onnx, translator_stream_onnx
 from .voice_stream import stream_model_of
@@ -82,18 +83,25 @@ def _deform_example(speaker: Speaker) -> tuple[tuple, dict]:
 
 
 def resolve_settings(codec: str | None = None, settings: ExportSettings | None = None,
-                     preset: str | Preset | None = None) -> tuple[ExportSettings, Preset | None, str]:
+                     preset: str | Preset | None = None, rig: str = "flame"
+                     ) -> tuple[ExportSettings, Preset | None, str]:
     """(settings, preset, label) of an export: explicit `settings` (over a preset's, whose name and runtime
-    defaults are kept), a preset's own, every buffer with one `codec`, or fp32."""
+    defaults are kept), a preset's own for a speaker of `rig` ("flame" or "arkit"), every buffer with one `codec`,
+    or fp32."""
     if codec is not None and (settings is not None or preset is not None):
         raise BundleError("give codec (every buffer's codec) or settings/preset, not both")
     chosen = get_preset(preset) if isinstance(preset, str) else preset
     if codec is not None:
         settings = ExportSettings.all_buffers(codec)  # an unknown codec fails here, before any graph export
-    settings = settings or (chosen.export if chosen is not None else ExportSettings())
+    settings = settings or (chosen.export_for(rig) if chosen is not None else ExportSettings())
     if chosen is None:
         return settings, None, settings.label()
-    return settings, chosen, chosen.name if settings == chosen.export else f"{chosen.name}+custom"
+    return settings, chosen, chosen.name if settings == chosen.export_for(rig) else f"{chosen.name}+custom"
+
+
+def rig_of(speaker: Speaker | ArkitSpeaker) -> str:
+    """The kind of rig a speaker has, as presets name it: "arkit" or "flame"."""
+    return "arkit" if isinstance(speaker, ArkitSpeaker) else "flame"
 
 
 def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, codec: str | None = None,
@@ -107,7 +115,7 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     (docs/scene.md) compiles the bundle for one scene, leaving out what it never uses (or an already measured
     `specialise` result for it); the bundle records the scene and its camera. `mnn` also stores every graph as
     an MNN model (docs/mnn.md; needs the `mnn` extra)."""
-    settings, chosen, label = resolve_settings(codec, settings, preset)
+    settings, chosen, label = resolve_settings(codec, settings, preset, rig_of(speaker))
     if isinstance(speaker, ArkitSpeaker) and scene is not None:
         raise BundleError("scene specialisation (--scene) is for FLAME speakers; an ARKit speaker's bundle is "
                           "exported without one (docs/import.md)")
@@ -125,6 +133,8 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         background = list(spec.scene.background_color or background)
     if settings.gaussian_budget is not None:
         speaker = apply_budget(speaker, settings.gaussian_budget, progress=progress)
+    if settings.spatial_order:
+        speaker = in_spatial_order(speaker, midpoints=settings.midpoints)
     writer = BundleWriter(metadata={
         **({"rig": speaker.config.to_dict()} if isinstance(speaker, ArkitSpeaker)
            else {"speaker": speaker.config.to_dict()}),
@@ -142,6 +152,7 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         **({} if spec is None else {"scene": spec.scene.to_dict(),
                                     "specialisation": [asdict(r) for r in spec.removals]}),
     })
+    writer.deflate = settings.deflate
     # A scene fixes its own camera and background: the reference clip (seen through another camera) is left out;
     # the manifest's `reference` layout is written with the clip's entries (`_add_reference`).
     if spec is None and getattr(speaker, "reference", None) is not None:

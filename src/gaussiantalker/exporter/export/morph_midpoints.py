@@ -110,15 +110,17 @@ class MorphRows:
 def morph_rows(vertex: np.ndarray, midpoints: np.ndarray) -> MorphRows:
     """The rows of Gaussians bound to vertices `vertex` [N], given the rig's `find_midpoints` rows."""
     vertex = np.asarray(vertex, np.int64)
-    needed = np.unique(vertex)
     derived_of = dict(zip(midpoints[:, 0].tolist(), midpoints[:, 1:].tolist(), strict=True))
-    derived = np.array([v for v in needed.tolist() if v in derived_of], np.int64)
-    direct = [v for v in dict.fromkeys(vertex.tolist()) if v not in derived_of]  # in the Gaussians' order
+    in_order = list(dict.fromkeys(vertex.tolist()))  # each vertex once, in the Gaussians' order
+    derived = np.array([v for v in in_order if v in derived_of], np.int64)
+    direct = [v for v in in_order if v not in derived_of]
     ends = sorted({end for v in derived.tolist() for end in derived_of[v]} - set(direct))
     sources = np.array(direct + ends, np.int64)
     row_of = {v: k for k, v in enumerate(sources.tolist())}
     row_of.update({v: len(sources) + k for k, v in enumerate(derived.tolist())})
-    end_rows = np.array([[row_of[end] for end in derived_of[v]] for v in derived.tolist()], np.int64).reshape(-1, 2)
+    # each pair nearest row first (a midpoint is symmetric in its ends; sorted pairs deflate better)
+    end_rows = np.sort(np.array([[row_of[end] for end in derived_of[v]] for v in derived.tolist()],
+                                np.int64).reshape(-1, 2), axis=1)
     gaussian_rows = np.array([row_of[v] for v in vertex.tolist()], np.int64)
     sliced = np.concatenate([np.arange(len(direct)), len(sources) + np.arange(len(derived))])
     kept_prefix = len(direct) if np.array_equal(gaussian_rows, sliced) else None

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from gaussiantalker.sdk.codecs import CODECS, MAX_CHUNK
+from gaussiantalker.sdk.codecs import CODECS, MAX_CHUNK, MAX_CODEBOOK
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.reference_clip import MAX_CLIP_FRAMES, MAX_H264_CRF, ClipCoding, ReferenceClipError
 from gaussiantalker.sdk.render_settings import RenderSettings
@@ -50,17 +50,20 @@ TRANSLATOR_PRECISIONS = ("fp32", "fp16", "int8")
 
 
 def parse_codec(spec: str) -> tuple[str, int | None]:
-    """A codec knob's value: a codec name, for quantised codecs optionally with its chunk size ("q4/64")."""
-    name, _, chunk_text = str(spec).partition("/")
+    """A codec knob's value: a codec name, for quantised codecs optionally with its chunk size ("q4/64"), for the
+    codebook `vq` with its entries ("vq/1024")."""
+    name, _, size_text = str(spec).partition("/")
     allowed = [c for c in CODECS if not CODECS[c].int_only]
     if name not in allowed:
         raise BundleError(f"unknown codec {spec!r} (allowed: {', '.join(allowed)}; quantised ones may name a chunk "
-                          f"size, e.g. q4/64)")
-    if not chunk_text:
+                          f"size, e.g. q4/64, and vq its entries, e.g. vq/1024)")
+    if not size_text:
         return name, None
-    if not name.startswith("q") or not chunk_text.isdigit() or not 1 <= int(chunk_text) <= MAX_CHUNK:
-        raise BundleError(f"codec {spec!r}: only q16/q8/q4 take a chunk size, an integer 1..{MAX_CHUNK}")
-    return name, int(chunk_text)
+    limit = MAX_CODEBOOK if name == "vq" else MAX_CHUNK
+    if not (name.startswith("q") or name == "vq") or not size_text.isdigit() or not 1 <= int(size_text) <= limit:
+        raise BundleError(f"codec {spec!r}: only q16/q8/q4 take a chunk size (an integer 1..{MAX_CHUNK}) and vq a "
+                          f"number of entries (1..{MAX_CODEBOOK})")
+    return name, int(size_text)
 
 
 def parse_reference(spec: str) -> ClipCoding | None:
@@ -112,6 +115,14 @@ class ExportSettings:
     # An ARKit rig's edge vertices (a subdivided mesh's) derived from their ends instead of stored, within 10 µm
     # (exporter/export/morph_midpoints.py; a rig whose checkpoint holds its triangles: LAM imports)
     midpoints: bool = False
+    # The Gaussians in the Morton order of their positions, so that neighbours share quantisation chunks and runs
+    # deflate (exporter/export/spatial_order.py); frames are the same
+    spatial_order: bool = False
+    # Every buffer stored as a zlib stream where that is smaller (lossless; docs/bundle-format.md, "Buffers")
+    deflate: bool = False
+    # Codecs of single buffers, (buffer name, codec) pairs: over their group's codec and the 16- and 8-bit floors
+    # below (an avatar's own trade: docs/precision.md, "Speakers differ")
+    buffer_codecs: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
         for group in CODEC_GROUPS:
@@ -131,6 +142,13 @@ class ExportSettings:
             raise BundleError(f"gaussian_budget must be a fraction in (0, 1] or a whole number of Gaussians, "
                               f"got {budget}")
         parse_reference(self.reference)
+        for pair in self.buffer_codecs:
+            if not (isinstance(pair, tuple | list) and len(pair) == 2 and isinstance(pair[0], str)):
+                raise BundleError(f"buffer_codecs holds (buffer name, codec) pairs, got {pair!r}")
+            try:
+                parse_codec(pair[1])
+            except BundleError as exc:
+                raise BundleError(f"buffer {pair[0]}: {exc}") from None
 
     @classmethod
     def all_buffers(cls, codec: str) -> ExportSettings:
@@ -140,6 +158,7 @@ class ExportSettings:
     @property
     def lossless(self) -> bool:
         codecs_lossless = all(CODECS[parse_codec(getattr(self, g))[0]].lossless for g in CODEC_GROUPS)
+        codecs_lossless = codecs_lossless and all(CODECS[parse_codec(c)[0]].lossless for _, c in self.buffer_codecs)
         return (codecs_lossless and self.translator_precision == "fp32" and self.sh_degree is None
                 and self.blendshape_rank is None and self.gaussian_budget is None and self.reference == "keep"
                 and not self.midpoints)
@@ -159,15 +178,21 @@ class ExportSettings:
         return "custom"
 
     def codec_for(self, buffer: str, array: np.ndarray) -> tuple[str, int | None]:
-        """(codec, chunk) buffer `buffer` is stored with: integer indices `index` (lossless), floats their group's
-        codec, but at least 16 bits for `KEEP_16_BITS`, 8 for `KEEP_8_BITS`, and fp16 for buffers too small to
-        quantise."""
+        """(codec, chunk or entries) buffer `buffer` is stored with: integer indices `index` (lossless), floats the
+        codec `buffer_codecs` names for them, else their group's, but at least 16 bits for `KEEP_16_BITS`, 8 for
+        `KEEP_8_BITS` (a codebook there becomes q16 / q8), and fp16 for buffers too small to quantise."""
         if array.dtype in (np.int32, np.int64):  # vertex and triangle indices
             return ("index" if array.size and array.min() >= 0 else "raw"), None
         if array.dtype != np.float32:
             return "raw", None  # graph weights already reduced (fp16 / int8 graphs) are stored as they are
+        own = dict(self.buffer_codecs).get(buffer)
+        if own is not None:
+            codec, chunk = parse_codec(own)
+            return ("fp16", None) if codec != "raw" and array.size < QUANT_MIN_VALUES else (codec, chunk)
         group = group_of(buffer)
         codec, chunk = parse_codec(getattr(self, group)) if group in CODEC_GROUPS else ("raw", None)
+        if codec == "vq" and (buffer in KEEP_16_BITS or buffer in KEEP_8_BITS):
+            codec, chunk = ("q16" if buffer in KEEP_16_BITS else "q8"), None
         if codec.startswith("q"):
             if array.size < QUANT_MIN_VALUES:
                 return "fp16", None
@@ -196,10 +221,21 @@ class Preset:
     # A splatter's own runtime defaults where they differ from `runtime` ("cpu": the CPU splatter's), stored in the
     # bundle's `runtime_defaults_by_renderer` so that the runtime picks them for the splatter it draws with.
     runtime_by_renderer: dict[str, RenderSettings] = field(default_factory=dict)
+    # A kind of speaker's own export settings where they differ from `export` ("arkit": an ARKit rig's, such as a
+    # LAM import), picked by the rig of the speaker exported.
+    export_by_rig: dict[str, ExportSettings] = field(default_factory=dict)
 
     def runtime_for(self, splatter: str) -> RenderSettings:
         """The runtime defaults of this preset on `splatter` ("gl" or "cpu")."""
         return self.runtime_by_renderer.get(splatter, self.runtime)
+
+    def export_for(self, rig: str) -> ExportSettings:
+        """The export settings of this preset for a speaker whose rig is `rig` ("flame" or "arkit")."""
+        return self.export_by_rig.get(rig, self.export)
+
+    def exports(self) -> list[ExportSettings]:
+        """Every rig's export settings of this preset, `export` first."""
+        return [self.export, *self.export_by_rig.values()]
 
 
 # Buffer codecs of the reduced presets: per-Gaussian values 8-bit (barycentrics, rest sizes 16-bit), SH bands 4-bit,
@@ -226,6 +262,18 @@ _CLIP_CRF = {"balanced": "crf:16,gop:25,mask-crf:6", "compact": "crf:33,gop:25,m
 # (16-bit ones are slower there). Chosen over the same demo clip at 512x512, alternating with `quality`: caps of
 # 288², 272² and 256² with alpha 0.03 measured 2.01x / 39.1 dB, 2.07x / 38.2 dB and 2.16x / 37.2 dB; alpha 0.04
 # added 0.03x and cost no head PSNR at 288² (the alpha cut alone: docs/precision.md, "Alpha cut-off").
+# `compact` for an ARKit avatar (LAM's p2-1; docs/precision.md, "Speakers differ"): what costs there is each kept
+# Gaussian and the morph basis, not a translator or a clip, so its buffers take codings of their own, chosen with
+# `gt-bench codings` and then together on the avatar bench's frames: codebooks of 1,024 log-scales and 256
+# rotations and colours, rest points at 8 bits in chunks of 64 (in spatial order, which the small chunks need), the
+# morph basis in 4-bit chunks of 128, every buffer deflated, and 70% of the Gaussians rather than 65% (what the
+# codebooks save buys them back). Measured against `quality` at 512²: 14.3x smaller at 36.2 dB min (the same codings
+# at 65% and chunks of 256: 16.4x at 34.5 dB).
+_COMPACT_ARKIT_CODECS = (("deform/log_scale", "vq/1024"), ("deform/rotation", "vq/256"), ("deform/sh_dc", "vq/256"),
+                         ("deform/rest_points", "q8/64"), ("deform/morph_basis", "q4/128"))
+_COMPACT = ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "blendshapes": "q4", "flame": "q4",
+                             "inpaint": "q4"}, sh_degree=0, blendshape_rank=2, gaussian_budget=0.65, midpoints=True,
+                          reference=_CLIP_CRF["compact"])
 # The presets, chosen from measurements on the demo speaker (docs/precision.md has the table and the command).
 # `min_head_psnr_db` is what `gt-export --verify` holds a preset to; each sits below what the preset measured, by the
 # spread seen between clips and resolutions (`fast` draws at 3/4 size, which costs more at small sizes such as
@@ -238,11 +286,11 @@ PRESETS: dict[str, Preset] = {
                        min_head_psnr_db=47.0),
     "compact": Preset("compact", "smallest bundle: 65% of the Gaussians, SH degree 0, rank-2 blendshapes, 4-bit "
                       "translator and inpainting generator, FLAME bases in chunks of 256, the clip in groups of "
-                      "pictures: ~14x smaller with the demo clip at ~36 dB on the demo speaker",
-                      ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "blendshapes": "q4", "flame": "q4",
-                                        "inpaint": "q4"},
-                                     sh_degree=0, blendshape_rank=2, gaussian_budget=0.65, midpoints=True,
-                                     reference=_CLIP_CRF["compact"]), min_head_psnr_db=35.0),
+                      "pictures: ~14x smaller with the demo clip at ~36 dB on the demo speaker (an ARKit avatar: "
+                      "codebooks, spatial order and deflated buffers)",
+                      _COMPACT, min_head_psnr_db=35.0,
+                      export_by_rig={"arkit": replace(_COMPACT, gaussian_budget=0.7, spatial_order=True, deflate=True,
+                                                      buffer_codecs=_COMPACT_ARKIT_CODECS)}),
     "fast": Preset("fast", "fastest frames: 60% of the Gaussians, drawn at 3/4 size into an 8-bit framebuffer, "
                    "16-bit depth-sort keys (on the CPU splatter: at most 256x256 pixels drawn, alpha under 0.03 "
                    "skipped): ~2.4x the frame rate at ~41 dB on GL, ~2.1x at ~37 dB on the CPU splatter",

@@ -73,7 +73,11 @@ def budget_count(budget: float, count: int) -> int:
 def prune_speaker(speaker: Speaker | ArkitSpeaker, keep: int, contributions: torch.Tensor) -> Speaker:
     """A copy of `speaker` with only its `keep` largest contributors (in their original order)."""
     order = torch.argsort(contributions, descending=True, stable=True)[:keep]
-    index = torch.sort(order).values
+    return gaussian_subset(speaker, torch.sort(order).values)
+
+
+def gaussian_subset(speaker: Speaker | ArkitSpeaker, index: torch.Tensor) -> Speaker | ArkitSpeaker:
+    """A copy of `speaker` holding its Gaussians `index` in that order (a subset, or a permutation of them all)."""
     if isinstance(speaker, ArkitSpeaker):
         return speaker.subset(index)
     pruned = copy.deepcopy(speaker)
@@ -97,4 +101,5 @@ def apply_budget(speaker: Speaker | ArkitSpeaker, budget: float, progress: bool 
     return prune_speaker(speaker, keep, contributions)
 
 
-__all__ = ["apply_budget", "budget_count", "gaussian_contributions", "measurement_drives", "prune_speaker"]
+__all__ = ["apply_budget", "budget_count", "gaussian_contributions", "gaussian_subset", "measurement_drives",
+           "prune_speaker"]

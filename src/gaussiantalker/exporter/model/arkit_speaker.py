@@ -69,7 +69,7 @@ class ArkitSpeaker(ReferenceRendering, nn.Module):
         return BlendshapeDrive.make(weights, pose, self.config.blendshapes)
 
     def subset(self, index: torch.Tensor) -> ArkitSpeaker:
-        """A copy holding only the Gaussians `index` (sorted), e.g. a Gaussian budget's survivors."""
+        """A copy holding the Gaussians `index` in that order: a Gaussian budget's survivors, or a new order."""
         kept = copy.deepcopy(self)
         old = self.gaussians
         new = VertexBoundGaussians(old.vertex[index], old.sh_degree, old.covariance)

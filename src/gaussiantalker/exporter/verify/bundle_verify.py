@@ -86,7 +86,7 @@ class Tolerances:
         label = settings.label()
         if label in ("fp32", "fp16"):
             return cls.for_codec("raw" if label == "fp32" else "fp16")
-        same = preset is not None and settings == preset.export.head_settings()
+        same = preset is not None and any(settings == export.head_settings() for export in preset.exports())
         bound = preset.min_head_psnr_db if same else None
         bound = HEAD_PSNR_FLOOR_DB if bound is None else bound
         return cls(graph_rtol=None, min_psnr_float_db=bound, min_psnr_uint8_db=bound, min_head_psnr_db=bound)
