@@ -112,7 +112,8 @@ def lam_bundle(tmp_path_factory) -> tuple[Path, Path]:
     """A small synthetic LAM avatar (tests/lam_avatars.py) imported with the built-in voice as `gt-import lam` does
     (so the page also opens its translator and streaming translator graphs) and exported, and a motion file for it.
     Its mesh is subdivided like LAM's and exported with its edge vertices derived in the graph (`midpoints`, what the
-    reduced presets do), so the page runs that graph too."""
+    reduced presets do), so the page runs that graph too, its Gaussians in spatial order and its buffers deflated
+    (what `compact` does for an ARKit avatar), so the page inflates them."""
     from lam_avatars import AvatarSpec, motion_json, write_avatar_zip
 
     from gaussiantalker.exporter.export.bundle_export import export_bundle
@@ -124,8 +125,10 @@ def lam_bundle(tmp_path_factory) -> tuple[Path, Path]:
     path = folder / "avatar.gtb"
     speaker = import_lam(write_avatar_zip(folder / "avatar.zip", AvatarSpec(subdivided=True)), progress=False)
     speaker.audio_model = builtin_audio_model(speaker)
-    export_bundle(speaker, path, settings=ExportSettings(midpoints=True), progress=False)
-    assert Bundle(path).has_buffer("deform/midpoint_ends")
+    export_bundle(speaker, path, settings=ExportSettings(midpoints=True, spatial_order=True, deflate=True),
+                  progress=False)
+    entries = Bundle(path).manifest["buffers"]
+    assert "deform/midpoint_ends" in entries and any(e.get("compression") == "zlib" for e in entries.values())
     motion = folder / "bsData.json"
     motion.write_text(json.dumps(motion_json()))
     return path, motion
@@ -447,8 +450,8 @@ def test_graphs_run_on_webgpu_where_asked(player_ready, webgpu_page, page, small
 
 @pytest.fixture(scope="module")
 def tiny_bundle(tmp_path_factory) -> Path:
-    """A bundle of one buffer per codec, four sparse ones, one with its mask deflated (and a stand-in graph): what
-    the reader checks needs no real graphs."""
+    """A bundle of one buffer per codec, four sparse ones, one with its mask deflated, codebooks (one sparse, one
+    deflated) and a deflated buffer (and a stand-in graph): what the reader checks needs no real graphs."""
     rng = np.random.default_rng(0)
     writer = BundleWriter({"note": "codecs"})
     values = rng.normal(size=(7, 37)).astype(np.float32)
@@ -463,6 +466,11 @@ def tiny_bundle(tmp_path_factory) -> Path:
         start = int(rng.integers(0, 1700))
         runs[row, start: start + 300] = rng.normal(size=300)
     writer.add_buffer("sparse/runs", runs, "q8", chunk=16, sparse=True)
+    writer.add_buffer("values/vq", values, "vq", chunk=12)
+    writer.add_buffer("values/vq_half", values.astype(np.float16), "vq", chunk=300)  # 9-bit indices
+    writer.add_buffer("sparse/vq", mostly_zero, "vq", chunk=5, sparse=True)
+    writer.add_buffer("deflated/vq", np.tile(values[:, :4], 200), "vq", chunk=4, compress=True)
+    writer.add_buffer("deflated/q8", runs, "q8", chunk=16, compress=True)
     writer.add_buffer("faces", rng.integers(0, 3000, size=(50, 3)).astype(np.int64), "index")
     writer.add_buffer("pose_track", rng.normal(size=(5, 6)).astype(np.float32))
     writer.add_graph("stand_in", b"not an onnx model, never run" * 40, inputs=[], outputs=[])
@@ -473,6 +481,8 @@ def tiny_bundle(tmp_path_factory) -> Path:
 
 def test_buffers_decode_bit_for_bit_as_in_python(page, tiny_bundle):
     bundle = Bundle(tiny_bundle)
+    assert {"deflated/vq", "deflated/q8"} <= {name for name, entry in bundle.manifest["buffers"].items()
+                                             if entry.get("compression") == "zlib"}
     for name in bundle.manifest["buffers"]:
         decoded = page.decode(tiny_bundle, name)
         expected = bundle.buffer(name)
