@@ -198,3 +198,31 @@ def test_a_damaged_compressed_buffer_is_refused_on_read(tmp_path, edit, message)
     bundle = Bundle(_compressed_bundle(tmp_path, edit))
     with pytest.raises(BundleError, match=f"buffer 'w' {message}"):
         bundle.buffer("w")
+
+
+@pytest.mark.parametrize("raw", [0, 5])
+def test_inflating_stops_one_byte_past_the_declared_size(monkeypatch, raw):
+    """A stream that inflates past raw_nbytes is refused after at most one byte more, also when raw_nbytes is 0
+    (zlib's own max_length of 0 would mean no bound at all). The inflater's output is recorded as it is made."""
+    import gaussiantalker.sdk.bundle as bundle_module
+
+    produced, original = [], zlib.decompressobj
+
+    class Recording:
+        def __init__(self):
+            self.inner = original()
+
+        def decompress(self, data, max_length=0):
+            out = self.inner.decompress(data, max_length)
+            produced.append(len(out))
+            return out
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+    monkeypatch.setattr(bundle_module.zlib, "decompressobj", Recording)
+    reader = Bundle.__new__(Bundle)
+    reader.path = "bomb.gtb"
+    with pytest.raises(BundleError, match=f"does not inflate to its declared {raw} bytes"):
+        reader._inflate("graph 'g'", zlib.compress(bytes(10**7), 9), raw)
+    assert sum(produced) <= raw + 1

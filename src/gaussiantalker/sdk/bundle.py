@@ -451,7 +451,7 @@ class Bundle:
         """A zlib-stored entry's bytes: exactly `raw` of them (never more are inflated), the stream complete."""
         inflater = zlib.decompressobj()
         try:
-            inflated = inflater.decompress(data, raw)  # never more than the declared size
+            inflated = inflater.decompress(data, raw + 1)  # at most one byte past the declared size (0: no limit)
         except zlib.error as exc:
             raise BundleError(f"{self.path}: {label} does not inflate ({exc})") from None
         if len(inflated) != raw or not inflater.eof or inflater.unconsumed_tail or inflater.unused_data:
