@@ -91,6 +91,20 @@ def test_a_bundle_in_spatial_order_draws_the_same_frames(avatar, tmp_path):
     assert not np.array_equal(*opacity) and np.array_equal(np.sort(opacity[0]), np.sort(opacity[1]))
 
 
+def test_verify_compares_a_spatially_ordered_graph_gaussian_by_gaussian(avatar, tmp_path):
+    """`gt-export --verify` puts the torch speaker's Gaussians in the bundle's order before comparing the graphs, so
+    an fp32 bundle in spatial order is held to fp32 parity (graphs within 1e-4, frames >= 50 dB)."""
+    from gaussiantalker.exporter.verify.bundle_verify import verify_bundle
+
+    result = export_bundle(avatar, tmp_path / "ordered.gtb", settings=ExportSettings(spatial_order=True),
+                           progress=False)
+    assert result.label == "fp32"
+    outcome = verify_bundle(avatar, result.path, frames=4, resolution=(96, 96), progress=False)
+    deform = outcome["graphs"]["deform"]
+    assert "note" not in deform and deform["cases"] > 0 and deform["tolerance_rel"] is not None
+    assert deform["passed"] and outcome["passed"]
+
+
 def test_compact_has_its_own_settings_for_an_arkit_avatar(larger_avatar, tmp_path):
     """`compact` for an ARKit rig: codebooks, 8-bit rest points, spatial order, deflated buffers; the bundle says
     `compact`, its codebooks hold at most the asked entries, and it plays."""

@@ -44,6 +44,7 @@ from gaussiantalker.sdk.image import max_abs_error, psnr_db, to_uint8
 from gaussiantalker.sdk.progress import progress_bar
 
 from ..export.probes import driven_clip, motion_clip, plays_audio, speech_clip
+from ..export.spatial_order import spatial_order
 from ..export.speech import synth_speech
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.speaker import Speaker
@@ -212,14 +213,26 @@ def verify_deformation(speaker: Speaker, head: TalkingHead, count: int = 6, seed
                 f"{speaker.gaussians.count} Gaussians (a Gaussian budget): judged by its frames"}
     stats = []
     center = head.camera.center.astype(np.float32)[None]
+    order = _bundle_order(speaker, head.bundle.manifest.get("export_settings") or {})
     for drive in _random_drives(speaker, count, seed):
         inputs = {**drive.graph_inputs(), "camera_center": center}
         with torch.no_grad():
             reference = speaker.deform_drive(drive, torch.from_numpy(center))
         out = head.frame_renderer.graphs.run("deform", inputs)
         for ref, name in zip(reference, ("means", "cov3d", "rgb", "opacity"), strict=True):
-            stats.append(_compare(ref.numpy(), out[name]))
+            ref = ref.numpy()
+            if order is not None:  # per-Gaussian rows: [B, N, C], or [N] for the opacity
+                ref = ref[order] if ref.ndim == 1 else ref[..., order, :]
+            stats.append(_compare(ref, out[name]))
     return _merge(stats, tolerance)
+
+
+def _bundle_order(speaker: Speaker | ArkitSpeaker, settings: dict) -> np.ndarray | None:
+    """The speaker's Gaussians in the bundle's order: its spatial order where the export took one (the same
+    deterministic walk; exporter/export/spatial_order.py), else None (the speaker's own)."""
+    if not settings.get("spatial_order"):
+        return None
+    return spatial_order(speaker, midpoints=bool(settings.get("midpoints")))
 
 
 def _random_drives(speaker: Speaker | ArkitSpeaker, count: int, seed: int) -> list:
