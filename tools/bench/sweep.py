@@ -67,14 +67,18 @@ def sweep_cases() -> list[SweepCase]:
 
     cases = [SweepCase(REFERENCE, "preset", PRESETS[REFERENCE].export, preset=REFERENCE)]
     for group in ("gaussians", "sh", "blendshapes", "flame", "translator"):
-        codecs = {"gaussians": ("fp16", "q16", "q8"), "sh": ("fp16", "q8", "q4"), "blendshapes": ("fp16", "q8", "q4"),
-                  "flame": ("fp16", "q8", "q4/128"), "translator": ("fp16", "q8", "q4")}[group]
+        codecs = {"gaussians": ("fp16", "q16", "q8", "vq/256"), "sh": ("fp16", "q8", "q4"),
+                  "blendshapes": ("fp16", "q8", "q4"), "flame": ("fp16", "q8", "q4/128"),
+                  "translator": ("fp16", "q8", "q4")}[group]
         cases += [knob(f"{group} {codec}", f"{group} codec", **{group: codec}) for codec in codecs]
     cases += [knob(f"translator graph {p}", "translator precision", translator_precision=p) for p in ("fp16", "int8")]
     cases += [knob(f"SH degree {d}", "SH degree", sh_degree=d) for d in (2, 1, 0)]
     cases += [knob(f"blendshape rank {r}", "blendshape rank", blendshape_rank=r) for r in (6, 4, 2)]
     cases += [knob(f"budget {round(100 * b)}%", "Gaussian budget", gaussian_budget=b) for b in (0.7, 0.5)]
     cases += [knob("midpoints derived", "midpoints", midpoints=True)]  # an ARKit rig's only: FLAME speakers as stored
+    cases += [knob("rotation vq/256", "one buffer's codec", buffer_codecs=(("deform/rotation", "vq/256"),))]
+    cases += [knob("spatial order", "spatial order", spatial_order=True)]
+    cases += [knob("deflated buffers", "deflate", deflate=True)]
     cases += [runtime(f"framebuffer {t}", "framebuffer", render_target=t) for t in ("float16", "uint8")]
     cases += [runtime(f"render scale {s}", "render scale", render_scale=s) for s in (0.75, 0.5)]
     cases += [runtime(f"sort every {k} frames", "sort interval", sort_interval=k) for k in (2, 4)]
