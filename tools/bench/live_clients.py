@@ -32,6 +32,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import urllib.request
 from dataclasses import dataclass, field
@@ -55,6 +56,9 @@ STAGGER_S = 0.05  # between two clients' offers: a ramp, not a stampede of DTLS 
 LATE_TOLERANCE_S = 0.1
 CLOCK_WINDOW_S = 2.0  # the page's clock follows the smallest arrival - pts over this window (LiveClock)
 CLIENTS_PER_PROCESS = 40
+# The server's CPU is read this often during a round, so its cost can be split between speaking and idle sessions
+# (`cpu_split`): the round's total includes the ramp of offers and the idle tail.
+CPU_SAMPLE_S = 0.25
 HEADER = struct.Struct("<4sBBBBIIdHH")  # a drive message's header
 PACKET_DRIVE_BYTES = struct.Struct("<I")  # a frame packet's drive length, at offset 8
 WIRE_VERSION = 1  # the frame packet and drive message this bench reads (the baseline's answer names none)
@@ -507,18 +511,73 @@ def _run_clients(url: str, tokens: list, speak_s: float, idle_s: float, chunk_ms
     return clients
 
 
+class _CpuSampler(threading.Thread):
+    """The server's CPU seconds read every CPU_SAMPLE_S while a round runs: `samples`, (time.monotonic(), CPU s)
+    pairs, the clients' clock (CLOCK_MONOTONIC is the machine's, shared by its processes)."""
+
+    def __init__(self, server: Server) -> None:
+        super().__init__(name="gt-bench-cpu", daemon=True)
+        self.server, self.samples, self._done = server, [], threading.Event()
+
+    def run(self) -> None:
+        while not self._done.is_set():
+            self.samples.append((time.monotonic(), self.server.cpu_seconds()))
+            self._done.wait(CPU_SAMPLE_S)
+
+    def stop(self) -> list[tuple[float, float]]:
+        self._done.set()
+        self.join()
+        self.samples.append((time.monotonic(), self.server.cpu_seconds()))
+        return self.samples
+
+
+def cpu_terms(clients: list[dict], samples: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """Per interval between two CPU samples: (the server's CPU rate in cores, [1, sessions speaking, sessions idle]
+    averaged over the interval). A client speaks from its answer to its barge-in and idles until it leaves."""
+    times = np.array([t for t, _ in samples])
+    cpu = np.array([c for _, c in samples])
+    lo, hi = times[:-1], times[1:]
+    width = np.maximum(hi - lo, 1e-9)
+    speaking, idle = np.zeros(len(lo)), np.zeros(len(lo))
+    for client in clients:
+        if client["error"] or "closed" not in client:
+            continue
+        start, barge, end = client["answered"], client["interrupt_sent"], client["closed"]
+        speaking += np.clip(np.minimum(hi, barge) - np.maximum(lo, start), 0, None)
+        idle += np.clip(np.minimum(hi, end) - np.maximum(lo, barge), 0, None)
+    return np.diff(cpu) / width, np.stack([np.ones(len(lo)), speaking / width, idle / width], 1)
+
+
+def cpu_split(parts: list[tuple[np.ndarray, np.ndarray]]) -> dict | None:
+    """Least squares over every interval of `parts` (`cpu_terms` of one or more rounds): server CPU = base +
+    speaking x (CPU s per speaking session-second) + idle x (per idle session-second); None with fewer than 8
+    intervals or no session in them."""
+    rates = np.concatenate([rate for rate, _ in parts]) if parts else np.zeros(0)
+    design = np.concatenate([terms for _, terms in parts]) if parts else np.zeros((0, 3))
+    if len(rates) < 8 or not design[:, 1:].any():
+        return None
+    (base, speaking, idle), *_ = np.linalg.lstsq(design, rates, rcond=None)
+    return {"base_cores": float(base), "speaking_s_per_session_s": float(speaking),
+            "idle_s_per_session_s": float(idle), "intervals": int(len(rates))}
+
+
 def _run_round(server: Server, n: int, index: int, speak_s: float, idle_s: float, chunk_ms: float,
-               transport: str) -> tuple[dict, list]:
-    """N load clients against `server` once: the round's row and its clients' records."""
+               transport: str) -> tuple[dict, list, tuple[np.ndarray, np.ndarray]]:
+    """N load clients against `server` once: the round's row, its clients' records and its `cpu_terms`."""
     tokens = server.client_tokens(n, f"n{n}-r{index}")
     load_before = os.getloadavg()
-    cpu_before, started = server.cpu_seconds(), time.monotonic()
+    sampler = _CpuSampler(server)
+    sampler.start()
+    started = time.monotonic()
     clients = _run_clients(server.url, tokens, speak_s, idle_s, chunk_ms, transport)
-    cpu_s, wall_s = server.cpu_seconds() - cpu_before, time.monotonic() - started
-    row = {"server": server.label, "n": n, "round": index, **_analyse(clients, cpu_s, wall_s),
+    wall_s = time.monotonic() - started
+    samples = sampler.stop()
+    terms = cpu_terms(clients, samples)
+    row = {"server": server.label, "n": n, "round": index,
+           **_analyse(clients, samples[-1][1] - samples[0][1], wall_s), "cpu_split": cpu_split([terms]),
            "load_before": load_before, "load_after": os.getloadavg()}
     row["drained"] = server.wait_idle()  # every session closed before the next round
-    return row, clients
+    return row, clients, terms
 
 
 def _round_line(row: dict) -> str:
@@ -530,11 +589,12 @@ def _round_line(row: dict) -> str:
             f"{row['load_after'][0]:.2f}" + ("" if row["drained"] else ", sessions still open after 30 s"))
 
 
-def _pooled(rows: list[dict], clients: list) -> dict:
-    """One server's figures for one N over all its rounds: every client's record together, CPU summed."""
+def _pooled(rows: list[dict], clients: list, terms: list[tuple[np.ndarray, np.ndarray]]) -> dict:
+    """One server's figures for one N over all its rounds: every client's record together, CPU summed, its split
+    fitted over every round's intervals."""
     return {"n": rows[0]["n"], "rounds": len(rows),
             **_analyse(clients, sum(r["server_cpu_s"] for r in rows), sum(r["wall_s"] for r in rows)),
-            "load_before": rows[0]["load_before"], "load_after": rows[-1]["load_after"]}
+            "cpu_split": cpu_split(terms), "load_before": rows[0]["load_before"], "load_after": rows[-1]["load_after"]}
 
 
 def _alternate(servers: list[Server], counts: list[int], rounds: int, speak_s: float, idle_s: float,
@@ -543,16 +603,17 @@ def _alternate(servers: list[Server], counts: list[int], rounds: int, speak_s: f
     per N, by label (every round's row goes to the server's `runs`)."""
     pooled: dict[str, list[dict]] = {server.label: [] for server in servers}
     for n in counts:
-        records: dict[str, tuple[list, list]] = {server.label: ([], []) for server in servers}
+        records: dict[str, tuple[list, list, list]] = {server.label: ([], [], []) for server in servers}
         for index in range(rounds):
             for server in servers:
-                row, clients = _run_round(server, n, index, speak_s, idle_s, chunk_ms, transport)
+                row, clients, terms = _run_round(server, n, index, speak_s, idle_s, chunk_ms, transport)
                 log(_round_line(row))
                 server.runs.append(row)
                 records[server.label][0].append(row)
                 records[server.label][1].extend(clients)
-        for label, (rows, clients) in records.items():
-            pooled[label].append(_pooled(rows, clients))
+                records[server.label][2].append(terms)
+        for label, (rows, clients, terms) in records.items():
+            pooled[label].append(_pooled(rows, clients, terms))
     return pooled
 
 
@@ -708,6 +769,13 @@ def _cpu(value) -> str:
     return "–" if value is None else f"{value:.3f}"
 
 
+def _split(split: dict | None) -> str:
+    """A row's speaking / idle CPU per session-second (`cpu_split`), or – without one (older runs)."""
+    if not split:
+        return "–"
+    return f"{split['speaking_s_per_session_s']:.3f} / {split['idle_s_per_session_s']:.3f}"
+
+
 def _times(value) -> str:
     return "–" if value is None else f"{value:.2f}×"
 
@@ -715,17 +783,21 @@ def _times(value) -> str:
 def _detail_table(runs: list[dict], largest: int, tolerance_ms: float) -> str:
     """One server's figures per N, every column."""
     lines = ["| N | late frames | lost | jitter p50 / p99 | behind schedule | delay p50 / p99 | server CPU s per "
-             "session-s | first frame p50 / p95 | barge-in p50 / p95 | audio packets | failed | load avg (1 min) "
-             "before → after |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "session-s | speaking / idle | first frame p50 / p95 | barge-in p50 / p95 | audio packets | failed | "
+             "load avg (1 min) before → after |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in runs:
         lines.append(f"| {row['n']} | {100 * row['late_share']:.1f}% ({row['late_frames']}/{row['frames_due']}) | "
                      f"{row['missing_frames']} | {_ms(row['jitter_p50_ms'])} / {_ms(row['jitter_p99_ms'])} ms | "
                      f"{100 * row['behind_share']:.1f}% | {_ms(row['delay_p50_ms'])} / {_ms(row['delay_p99_ms'])} "
-                     f"ms | {_cpu(row['cpu_s_per_session_s'])} | {_ms(row['first_frame']['p50_ms'])} / "
+                     f"ms | {_cpu(row['cpu_s_per_session_s'])} | {_split(row.get('cpu_split'))} | "
+                     f"{_ms(row['first_frame']['p50_ms'])} / "
                      f"{_ms(row['first_frame']['p95_ms'])} ms | {_ms(row['barge_in']['p50_ms'])} / "
                      f"{_ms(row['barge_in']['p95_ms'])} ms | {100 * row['audio_packets_per_expected']:.0f}% | "
                      f"{row['failed']} | {row['load_before'][0]:.2f} → {row['load_after'][0]:.2f} |")
     lines.append("")
+    lines.append("Server CPU per session-second: the round's CPU over its sessions' seconds (offers' ramp and idle "
+                 "tail included); speaking / idle: a least-squares split of the CPU read every "
+                 f"{CPU_SAMPLE_S:g} s into a base and a cost per speaking and per idle session-second (`cpu_split`).")
     lines.append(f"Largest N with at most 5% late frames: **{largest}**. Late: a drive arriving more than "
                  f"{tolerance_ms:.0f} ms after the page's clock (the smallest arrival − pts of the last 2 s, which "
                  "follows the voice) would show it, or lost. Behind schedule: more than "
