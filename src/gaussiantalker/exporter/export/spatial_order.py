@@ -5,8 +5,8 @@ Order changes no frame (the splatters sort by depth every frame), but it changes
 quantisation chunk of 256 neighbours spans a small range of positions, and runs of similar values deflate. The
 order is a Morton curve over the Gaussians' positions at the neutral drive, quantised to a 2^MORTON_BITS grid over
 their bounding box. An ARKit rig whose midpoint vertices are derived (`midpoints`) keeps its Gaussians in two groups,
-those on stored vertices first, so the graph still slices rather than gathers (exporter/export/arkit_graph.py);
-each group is put in Morton order on its own.
+those on stored vertices first (in Morton order), so the graph still slices rather than gathers
+(exporter/export/arkit_graph.py); those on derived vertices follow their ends' places (`spatial_order`).
 """
 
 from __future__ import annotations
