@@ -10,6 +10,7 @@ each window on its own, is off by up to ~0.3 from it; the test reports it).
 
 from __future__ import annotations
 
+import types
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ from gaussiantalker.exporter.export.voice_stream import is_voice_graph, stream_m
 from gaussiantalker.exporter.voice.paths import ARKIT_MODEL, FLAME_MODEL
 from gaussiantalker.runtime import LiveSession
 from gaussiantalker.runtime.stages import open_driver
-from gaussiantalker.runtime.translate_stream import REST_FRAMES, StreamJob, run_stream_jobs
+from gaussiantalker.runtime.translate_stream import REST_FRAMES, StreamJob, pads_exactly, run_stream_jobs
 from gaussiantalker.sdk.bundle import STREAM_GRAPH, Bundle
 from gaussiantalker.sdk.errors import LiveError
 
@@ -84,23 +85,27 @@ def test_the_stream_gives_the_windowed_graphs_rows(path):
             assert np.abs(got - expected[k][0]).max() < EXACT, name
 
 
-@pytest.mark.parametrize("per_call", [None, 2], ids=["one-call", "split"])
+@pytest.mark.parametrize("per_call", [None, 2, "padded"], ids=["one-call", "split", "padded"])
 def test_sessions_batched_in_one_call_get_their_own_rows(monkeypatch, per_call):
     """Three streams at different places in different clips, stacked on the batch axis in one call (what the live
     server's pool does), each get the rows and state they get alone; so do they where the states' bytes split them
-    into calls of two (MAX_CALL_STATE_BYTES)."""
+    into calls of two (MAX_CALL_STATE_BYTES); and, for a graph that pads exactly, calls of 1, 2 and 3 frames (one
+    committed) stacked into one, zero-padded to 3."""
     import gaussiantalker.runtime.translate_stream as translate_stream
 
     _, stream = _sessions(ARKIT_MODEL)
     clips = unseen_speech()[:1] * 3
     states = [_rest(stream) for _ in clips]
-    chunks = [clip[(7 + 5 * k) * FRAME:(8 + 5 * k) * FRAME].reshape(1, 1, FRAME) for k, clip in enumerate(clips)]
+    lengths = [1 + k if per_call == "padded" else 1 for k in range(len(clips))]
+    chunks = [clip[(7 + 5 * k) * FRAME:(7 + 5 * k + n) * FRAME].reshape(1, n, FRAME)
+              for k, (clip, n) in enumerate(zip(clips, lengths, strict=True))]
     alone = [stream.run(None, {"audio": c, "state": s, "keep": np.array([1], np.float32)})
              for c, s in zip(chunks, states, strict=True)]
 
     class Fake:
         def __init__(self, state):
             self.state = state[0]
+            self.spec = types.SimpleNamespace(pads_exactly=per_call == "padded")
 
     jobs = [StreamJob(Fake(s), c[0], 1) for c, s in zip(chunks, states, strict=True)]
 
@@ -109,11 +114,35 @@ def test_sessions_batched_in_one_call_get_their_own_rows(monkeypatch, per_call):
         feeds = {"audio": audio, "state": state, "keep": np.array([keep], np.float32)}
         return dict(zip(names, stream.run(names, feeds), strict=True))
 
-    if per_call is not None:
+    if per_call == 2:
         monkeypatch.setattr(translate_stream, "MAX_CALL_STATE_BYTES", 4 * per_call * jobs[0].stream.state.shape[0])
-    assert run_stream_jobs(jobs, run, lambda out: out["blendshapes"]) == ([3] if per_call is None else [2, 1])
-    for job, single in zip(jobs, alone, strict=True):
+    assert run_stream_jobs(jobs, run, lambda out: out["blendshapes"]) == ([2, 1] if per_call == 2 else [3])
+    for job, single, n in zip(jobs, alone, lengths, strict=True):
+        assert job.rows.shape[0] == n
         assert np.abs(job.rows - single[0][0]).max() < EXACT and np.abs(job.state - single[1][0]).max() < EXACT
+
+
+def test_the_voice_graph_pads_exactly():
+    """The built-in voice's stream reads no frame past its delay, so its spec says it pads exactly (its calls of
+    different lengths may share one call); a graph whose rows read the call's later frames is told apart."""
+    _, stream = _sessions(ARKIT_MODEL)
+    names = [o.name for o in stream.get_outputs()]
+
+    def run(audio, state, keep, refresh):
+        feeds = {"audio": audio, "state": state, "keep": np.array([keep], np.float32)}
+        return dict(zip(names, stream.run(names, feeds), strict=True))
+
+    def rows_of(out):
+        return out["blendshapes"]
+
+    rest = _rest(stream)[0]
+    assert pads_exactly(run, rows_of, rest, FRAME)
+
+    def reads_ahead(audio, state, keep, refresh):  # every row scaled by the call's last frame's level
+        out = run(audio, state, keep, refresh)
+        return {**out, "blendshapes": out["blendshapes"] * (1 + np.abs(audio[:, -1:, :1]))}
+
+    assert not pads_exactly(reads_ahead, rows_of, rest, FRAME)
 
 
 def test_stream_layout_follows_the_network():

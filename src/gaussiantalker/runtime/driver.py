@@ -18,7 +18,15 @@ import numpy as np
 from gaussiantalker.sdk.audio import load_audio, prepare_audio
 from gaussiantalker.sdk.bundle import STEADY_STREAM_GRAPH, STREAM_GRAPH, Bundle
 from gaussiantalker.sdk.config import SpeakerConfig
-from gaussiantalker.sdk.drive import BlendshapeDrive, FrameDrive, HeadPose, pose_track_frame
+from gaussiantalker.sdk.drive import (
+    BlendshapeDrive,
+    FrameDrive,
+    HeadPose,
+    PoseTrack,
+    blendshape_drive_of,
+    frame_drive_of,
+    pose_track_frame,
+)
 from gaussiantalker.sdk.errors import AudioError, BundleError, DriveError
 from gaussiantalker.sdk.flame_motion import FlameMotion
 from gaussiantalker.sdk.motion import MotionTrack
@@ -48,6 +56,7 @@ class Driver:
         self.timings = timings if timings is not None else Timings()
         self.silence_gate_dbfs = silence_gate_dbfs
         self.pose_track = bundle.buffer("pose_track") if bundle.has_buffer("pose_track") else None
+        self._checked_track: tuple[object, PoseTrack] | None = None  # (pose_track, it checked once)
 
     # -- what each rig says --------------------------------------------------------------------------------------
     fps: int
@@ -137,6 +146,16 @@ class Driver:
         return read_stream_spec(self.run_stream, self.stream_rows, int(inputs["state"][1]), int(inputs["audio"][2]),
                                 steady=STEADY_STREAM_GRAPH in self.bundle.manifest["graphs"])
 
+    def open_stream(self) -> None:
+        """Open the streaming graphs and read the stream's spec now (they open on first use otherwise): a live
+        server calls this at start, so that the first utterance does not stall every session on its pool thread
+        for the graphs' opening (a stall re-anchors their clocks later: docs/live.md, "Load")."""
+        if not self.has_stream:
+            return
+        spec = self.stream_spec
+        if spec.steady:
+            self.run_stream(np.zeros((1, 1, spec.frame_samples), np.float32), spec.rest_state[None], 1, False)
+
     def translate_blocks(self, audio: np.ndarray) -> Iterator[np.ndarray]:
         """Audio (speaker rate, mono float32) -> parameter blocks [n, D] in frame order, one window at a time."""
         if not self.has_translator:
@@ -154,6 +173,10 @@ class Driver:
         track = source if source is not None else self.pose_track
         if track is None:
             return HeadPose.make()
+        if track is self.pose_track:  # the bundle's track, checked once (a live session's pose every frame)
+            if self._checked_track is None or self._checked_track[0] is not track:
+                self._checked_track = (track, PoseTrack(np.asarray(track, dtype=np.float32).reshape(-1, 6)))
+            return self._checked_track[1].frame(index)
         return pose_track_frame(np.asarray(track, dtype=np.float32).reshape(-1, 6), index)
 
     def drives(self, audio: AudioSource, sample_rate: int | None = None,
@@ -194,8 +217,7 @@ class FlameDriver(Driver):
         return np.concatenate([out["expression"], out["jaw_pose"]], axis=-1)
 
     def drive_from_params(self, params: np.ndarray, head_pose: HeadPose) -> FrameDrive:
-        n_expr = self.config.n_expr
-        return FrameDrive.make(n_expr, params[:n_expr], params[n_expr:], head_pose=head_pose)
+        return frame_drive_of(self.config.n_expr, params, head_pose)
 
     def drive(self, expression=None, jaw_pose=None, neck_pose=None, eye_pose=None, head_rotation=None,
               head_translation=None) -> FrameDrive:
@@ -260,11 +282,13 @@ class ArkitDriver(Driver):
         return np.asarray(out["blendshapes"], np.float32)
 
     def drive_from_params(self, params: np.ndarray, head_pose: HeadPose) -> BlendshapeDrive:
+        if self.arkit.blendshapes == ARKIT_BLENDSHAPES:
+            return blendshape_drive_of(params, head_pose)
         return self.drive(params, head_pose)
 
     def clamp_params(self, params: np.ndarray) -> np.ndarray:
-        """ARKit weights are in [0, 1]."""
-        return np.clip(params, 0.0, 1.0)
+        """ARKit weights are in [0, 1] (NaN stays NaN, for the drive's check to name)."""
+        return np.minimum(np.maximum(params, np.float32(0.0)), np.float32(1.0))
 
     def drive(self, weights=None, head_pose: HeadPose | np.ndarray | None = None) -> BlendshapeDrive:
         """The validated drive of ARKit weights ({name: weight}, names left out 0, or [52] in ARKIT_BLENDSHAPES

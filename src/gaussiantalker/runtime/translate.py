@@ -24,6 +24,7 @@ the clip's duration beyond the decoded audio itself.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -82,8 +83,8 @@ def silence_gain_of_sums(total: float, total_squares: float, count: int, gate_db
 
 def _gain_of_power(power: float, gate_dbfs: float, ramp_db: float) -> float:
     """The gate's gain for a window whose centred mean power is `power`: linear in dB over the ramp."""
-    level_db = 10.0 * np.log10(power + 1e-30)
-    return float(np.clip((level_db - gate_dbfs) / ramp_db + 1.0, 0.0, 1.0))
+    level_db = 10.0 * math.log10(power + 1e-30)  # scalars: math, not numpy (a live session's gate every frame)
+    return min(1.0, max(0.0, (level_db - gate_dbfs) / ramp_db + 1.0))
 
 
 def _check_settings(window_frames: int, context_frames: int, crossfade_frames: int) -> None:

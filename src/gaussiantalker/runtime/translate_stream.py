@@ -58,6 +58,7 @@ class StreamSpec:
     rest_state: np.ndarray  # [S]
     rest_row: np.ndarray  # [D]: a row of silence (what rows before a stream's start are)
     steady: bool = False  # the graph has a steady form (calls with refresh=False)
+    pads_exactly: bool = False  # frames appended to a call change none of its rows nor its state (`pads_exactly`)
 
 
 def read_stream_spec(run: RunStream, rows_of: RowsOf, state_size: int, frame_samples: int,
@@ -69,8 +70,28 @@ def read_stream_spec(run: RunStream, rows_of: RowsOf, state_size: int, frame_sam
     if not 0 <= delay < REST_FRAMES:
         raise ValueError(f"the streaming graph says its rows lag {delay} frames; expected 0..{REST_FRAMES - 1}")
     rows = rows_of(out)
-    return StreamSpec(delay, frame_samples, out["state_out"][0].astype(np.float32), rows[0, -1].astype(np.float32),
-                      steady)
+    rest_state = out["state_out"][0].astype(np.float32)
+    return StreamSpec(delay, frame_samples, rest_state, rows[0, -1].astype(np.float32), steady,
+                      pads_exactly(run, rows_of, rest_state, frame_samples))
+
+
+# How far a padded call's rows and state may lie from the unpadded call's for `pads_exactly` (float32 rounding of
+# kernels run on another shape: the voice graph measured 3e-8; a graph that reads the call's later frames, such as
+# the speaker's own translator normalising over the call, moved them by 0.06-0.4).
+PAD_TOLERANCE = 1e-5
+
+
+def pads_exactly(run: RunStream, rows_of: RowsOf, rest_state: np.ndarray, frame_samples: int) -> bool:
+    """Whether zero frames appended to a call change none of its rows nor its state (every row reads only the
+    frames up to its own plus the delay), measured on a probe of noise: such a graph's calls of different lengths
+    can be stacked into one, the shorter ones padded with zeros (`run_stream_jobs`)."""
+    probe = (np.random.default_rng(0).standard_normal((1, 3, frame_samples)) * 0.1).astype(np.float32)
+    state = rest_state[None]
+    short = run(probe, state, 2, True)
+    padded = run(np.concatenate([probe, np.zeros_like(probe)], axis=1), state, 2, True)
+    rows_short, rows_padded = rows_of(short), rows_of(padded)[:, :probe.shape[1]]
+    return bool(np.allclose(rows_short, rows_padded, rtol=PAD_TOLERANCE, atol=PAD_TOLERANCE)
+                and np.allclose(short["state_out"], padded["state_out"], rtol=PAD_TOLERANCE, atol=PAD_TOLERANCE))
 
 
 def frame_power(audio: np.ndarray) -> np.ndarray:
@@ -113,21 +134,26 @@ def sessions_per_call(state_size: int) -> int:
 
 def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) -> list[int]:
     """Run every job: one graph call per distinct (frames, keep, refresh), the sessions stacked on the batch axis
-    (at most `sessions_per_call` of them a call). Returns the sessions of each call made."""
+    (at most `sessions_per_call` of them a call); a graph that pads exactly stacks jobs of different lengths into
+    one call per (keep, refresh), the shorter ones zero-padded at the end. Returns the sessions of each call."""
     groups: dict[tuple[int, int, bool], list[StreamJob]] = {}
     for job in jobs:
-        groups.setdefault(job.shape, []).append(job)
+        frames, keep, refresh = job.shape
+        groups.setdefault((-1 if job.stream.spec.pads_exactly else frames, keep, refresh), []).append(job)
     calls = []
     for (_, keep, refresh), group in groups.items():
         step = sessions_per_call(group[0].stream.state.shape[0])
         for first in range(0, len(group), step):
             part = group[first:first + step]
-            audio = np.stack([job.audio for job in part])
+            frames = max(job.audio.shape[0] for job in part)
+            audio = np.zeros((len(part), frames, part[0].audio.shape[1]), np.float32)
+            for k, job in enumerate(part):
+                audio[k, :job.audio.shape[0]] = job.audio
             state = np.stack([job.stream.state for job in part])
             out = run(audio, state, keep, refresh)
             rows = rows_of(out)
             for k, job in enumerate(part):
-                job.rows, job.state = rows[k], out["state_out"][k]
+                job.rows, job.state = rows[k, :job.audio.shape[0]], out["state_out"][k]
             calls.append(len(part))
     return calls
 

@@ -51,6 +51,22 @@ def _vector(name: str, value, size: int | None) -> np.ndarray:
     return array.astype(np.float32)
 
 
+def _is_checked_row(values, size: int) -> bool:
+    """Whether `values` is a float32 [size] array of finite values within MAX_DRIVE_MAGNITUDE: one reduction (NaN
+    propagates through the maximum and compares False), the whole check of a driver's own row."""
+    return isinstance(values, np.ndarray) and values.dtype == np.float32 and values.shape == (size,) and \
+        bool(np.maximum.reduce(np.abs(values), initial=0.0) <= MAX_DRIVE_MAGNITUDE)
+
+
+def _unchecked(cls, **fields):
+    """A frozen drive dataclass from fields the caller has checked as a whole (a row, a track) instead of one
+    check per field: a live server makes a drive per session and frame, and those checks were most of its cost."""
+    made = object.__new__(cls)
+    for name, value in fields.items():
+        object.__setattr__(made, name, value)
+    return made
+
+
 @dataclass(frozen=True)
 class HeadPose:
     """Rigid head pose: FLAME global rotation (axis-angle, radians) and translation (metres)."""
@@ -146,6 +162,27 @@ class BlendshapeDrive:
                 "head_translation": self.head_translation[None]}
 
 
+def blendshape_drive_of(weights: np.ndarray, head_pose: HeadPose) -> BlendshapeDrive:
+    """The drive of a driver's own row (float32 [52] in ARKIT_BLENDSHAPES order) and a HeadPose: the row checked
+    in one pass; anything else goes through BlendshapeDrive.make and its errors."""
+    if _is_checked_row(weights, len(ARKIT_BLENDSHAPES)):
+        return _unchecked(BlendshapeDrive, blendshapes=weights.copy(), head_rotation=head_pose.rotation,
+                          head_translation=head_pose.translation)
+    return BlendshapeDrive.make(weights, head_pose)
+
+
+def frame_drive_of(n_expr: int, params: np.ndarray, head_pose: HeadPose) -> FrameDrive:
+    """The drive of a FLAME translator's row (float32 [n_expr + 3]: expression, then jaw pose) and a HeadPose:
+    the row checked in one pass; anything else goes through FrameDrive.make and its errors."""
+    if _is_checked_row(params, n_expr + 3):
+        flame_pose = np.zeros(POSE_DIM, np.float32)  # global, neck, jaw, eyes (FrameDrive.make's order)
+        flame_pose[:3] = head_pose.rotation
+        flame_pose[6:9] = params[n_expr:]
+        return _unchecked(FrameDrive, expression=params[:n_expr].copy(), flame_pose=flame_pose,
+                          head_translation=head_pose.translation)
+    return FrameDrive.make(n_expr, params[:n_expr], params[n_expr:], head_pose=head_pose)
+
+
 def track_row(count: int, index: int) -> int:
     """Row shown at video frame `index` of a track (or reference clip) of `count` rows, played forth and back
     (0, 1, ..., count - 1, count - 2, ..., 1, 0, ...: no jump)."""
@@ -160,3 +197,18 @@ def pose_track_frame(track: np.ndarray, index: int) -> HeadPose:
     """Head pose of frame `index` from a [T, 6] track (rotation, translation), played forth and back (no jump)."""
     row = track[track_row(track.shape[0], index)]
     return HeadPose.make(row[:3], row[3:])
+
+
+class PoseTrack:
+    """A [T, 6] head-pose track (rotation, translation) checked once; `frame(index)` as pose_track_frame gives it,
+    without a check a frame."""
+
+    def __init__(self, track) -> None:
+        rows = np.asarray(track)
+        if rows.ndim != 2 or rows.shape[1] != 6 or rows.shape[0] == 0:
+            raise DriveError(f"a pose track must have shape [T, 6] with T >= 1, got {tuple(rows.shape)}")
+        self.rows = _vector("pose track", rows.reshape(-1), None).reshape(-1, 6)
+
+    def frame(self, index: int) -> HeadPose:
+        row = self.rows[track_row(self.rows.shape[0], index)]
+        return _unchecked(HeadPose, rotation=row[:3].copy(), translation=row[3:].copy())

@@ -46,6 +46,7 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
     """The page and the web player's modules, the bundle, /live, /offer, /interrupt and /drives."""
     # One intra-op thread: the sessions' pool threads are the parallelism.
     driver = open_driver(bundle, threads=1)
+    driver.open_stream()
     web_root = (web_root or default_web_root()).resolve()
     # WebSocket sessions share a thread per core; WebRTC sessions keep a thread each (aiortc's work on the event
     # loop is their bottleneck: docs/live.md, "Load"), bounded by the session cap.
