@@ -5,6 +5,7 @@ queue whose bound closes a page that does not read (docs/serve.md, docs/live.md 
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 import threading
 import time
@@ -127,13 +128,13 @@ class DriveSession:
             self._failed(exc)
             return None
 
-    def advance(self) -> bool:
-        """On its pool thread: make and send every frame due now. False once the session has ended (closed, or
-        failed: on_error then hears why on the event loop)."""
+    def advance(self, most: int | None = None) -> bool:
+        """On its pool thread: make and send the frames due now (at most `most`). False once the session has ended
+        (closed, or failed: on_error then hears why on the event loop)."""
         if self.error is not None:
             return False
         try:
-            while True:
+            for _ in itertools.repeat(None) if most is None else range(most):
                 # The epoch is read before the frame is made: a frame planned after an interrupt() has its epoch,
                 # one planned before keeps the older one (interrupt() counts itself once it has cleared the queues).
                 epoch = self.live.stats.interrupts
@@ -146,6 +147,7 @@ class DriveSession:
         except Exception as exc:
             self._failed(exc)
             return False
+        return True
 
     def _failed(self, exc: BaseException) -> None:
         self.error = exc
@@ -286,7 +288,9 @@ class _DriveWorker(threading.Thread):
             _tick.deliveries, ended = [], []
             try:
                 for session in sessions:
-                    if not session.advance():
+                    # One frame a session a pass: a session behind makes its next frame in the next pass, its
+                    # translator call stacked with the others' (made alone in step() before, one call each).
+                    if not session.advance(1):
                         with self._pool_lock:
                             self.sessions.remove(session)
                         ended.append(session)
