@@ -60,7 +60,7 @@ def _is_checked_row(values, size: int) -> bool:
 
 def _unchecked(cls, **fields):
     """A frozen drive dataclass from fields the caller has checked as a whole (a row, a track) instead of one
-    check per field: a live server makes a drive per session and frame, and those checks were most of its cost."""
+    check per field: a live server makes a drive per session and frame (docs/live.md, "Load on replicas")."""
     made = object.__new__(cls)
     for name, value in fields.items():
         object.__setattr__(made, name, value)
