@@ -20,6 +20,12 @@ from .rig import ARKIT_BLENDSHAPES, ARKIT_RIG, FLAME_RIG
 MAX_DRIVE_MAGNITUDE = 1e4
 
 
+def _within_magnitude(values: np.ndarray) -> bool:
+    """Whether every value is finite and within MAX_DRIVE_MAGNITUDE, in one reduction (NaN propagates through the
+    maximum and compares False; an empty array passes)."""
+    return bool(np.maximum.reduce(np.abs(values), initial=0.0) <= MAX_DRIVE_MAGNITUDE)
+
+
 def _vector(name: str, value, size: int | None) -> np.ndarray:
     """Validated float32 copy of one drive field (`size` None: any length); DriveError naming field and limit."""
     if value is None:
@@ -27,8 +33,8 @@ def _vector(name: str, value, size: int | None) -> np.ndarray:
             raise DriveError(f"{name} is missing")
         return np.zeros(size, np.float32)
     if isinstance(value, np.ndarray) and value.dtype == np.float32 and value.ndim == 1 and \
-            (size is None or value.shape[0] == size) and (not value.size or np.abs(value).max() <= MAX_DRIVE_MAGNITUDE):
-        return value.copy()  # the usual case (a driver's own rows), in one pass: NaN compares False
+            (size is None or value.shape[0] == size) and _within_magnitude(value):
+        return value.copy()  # the usual case (a driver's own rows), in one pass
     try:  # float64 first: a finite value too large for float32 must read as "too large", not as "inf"
         array = np.asarray(value)
         if np.iscomplexobj(array):
@@ -52,10 +58,10 @@ def _vector(name: str, value, size: int | None) -> np.ndarray:
 
 
 def _is_checked_row(values, size: int) -> bool:
-    """Whether `values` is a float32 [size] array of finite values within MAX_DRIVE_MAGNITUDE: one reduction (NaN
-    propagates through the maximum and compares False), the whole check of a driver's own row."""
+    """Whether `values` is a float32 [size] array of finite values within MAX_DRIVE_MAGNITUDE: the whole check of
+    a driver's own row."""
     return isinstance(values, np.ndarray) and values.dtype == np.float32 and values.shape == (size,) and \
-        bool(np.maximum.reduce(np.abs(values), initial=0.0) <= MAX_DRIVE_MAGNITUDE)
+        _within_magnitude(values)
 
 
 def _unchecked(cls, **fields):
