@@ -122,6 +122,9 @@ def play(
                                       "65536 levels, faster [default: the bundle's preset, else 32]"),
     alpha_min: float = typer.Option(None, "--alpha-min", help="CPU splatter: skip contributions with a smaller "
                                     "alpha (1/255-0.1) [default: the bundle's preset, else 1/255]"),
+    transmittance_min: float = typer.Option(None, "--transmittance-min", help="CPU splatter: also stop a pixel once "
+                                            "its transmittance falls below this (1e-4-0.1) [default: the bundle's "
+                                            "preset, else 1e-4]"),
     max_draw_pixels: int = typer.Option(None, "--max-draw-pixels", min=0, help="draw at most about this many "
                                         "pixels, then upscale; 0: no cap [default: the bundle's preset, else no "
                                         "cap]"),
@@ -149,7 +152,8 @@ def play(
                            backend_settings=BackendSettings(backend, threads=threads, renderer=renderer,
                                                             pipeline=not no_pipeline),
                            render_scale=render_scale, render_target=render_target, sort_interval=sort_interval,
-                           sort_key_bits=sort_key_bits, alpha_min=alpha_min, max_draw_pixels=max_draw_pixels)
+                           sort_key_bits=sort_key_bits, alpha_min=alpha_min, max_draw_pixels=max_draw_pixels,
+                           transmittance_min=transmittance_min)
         window = None
         if show:
             headless = not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))

@@ -298,6 +298,83 @@ def test_alpha_min_at_its_largest_on_saturating_stacks_stays_finite(cpu):
             assert (cut[..., 3] <= contract[..., 3] + 1e-6).all()
 
 
+def _dense_scene(seed: int):
+    """Many overlapping, mostly opaque Gaussians: most pixels pass T = 1/255 long before the contract stops them."""
+    return _numpy(random_scene(seed, n=400, camera=off_centre_camera(48, 36), px_sigma=(2.0, 8.0)))
+
+
+@pytest.mark.parametrize("stop", [1 / 255, 4 / 255, 0.1])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_transmittance_stop_is_within_its_bound_of_the_contract(seed, stop):
+    """`RenderSettings(transmittance_min=t)`: a pixel whose T stays >= t is the contract's bit for bit; one that
+    falls below t stops there, with T in [the contract's T, t), and each channel of C + T background within T times
+    the largest |colour - background| of the contract's (the later contributions it skips carry at most T of the
+    light; docs/numerics.md, "Transmittance stop"). The counting blend blends fewer fragments."""
+    arrays, camera = _dense_scene(seed)
+    contract = CPUSplatter().render(*arrays, camera, BACKGROUND, output="rgba_float")
+    stopped = CPUSplatter(settings=RenderSettings(transmittance_min=stop)).render(*arrays, camera, BACKGROUND,
+                                                                                 output="rgba_float")
+    assert np.isfinite(stopped).all()
+    t_contract, t_stopped = 1.0 - contract[..., 3], 1.0 - stopped[..., 3]
+    clear = t_contract >= stop
+    np.testing.assert_array_equal(stopped[clear], contract[clear])
+    assert (~clear).sum() > 100  # the scene saturates: the bound below has teeth
+    assert (t_stopped[~clear] >= t_contract[~clear] - 1e-7).all() and (t_stopped[~clear] < stop + 1e-7).all()
+    spread = float(np.abs(arrays[2] - np.asarray(BACKGROUND, np.float32)).max())
+    background = np.asarray(BACKGROUND, np.float32)
+    error = np.abs((stopped[..., :3] - contract[..., :3]) - (stopped[..., 3:] - contract[..., 3:]) * background)
+    error = error.max(axis=-1)  # C + T background, per channel: (1 - T) is the alpha plane of rgba_float
+    assert (error <= t_stopped * spread + 1e-5).all()
+    assert error.max() > 0.0
+    prepared = CPUSplatter().prepare(*arrays, camera)
+    fragments = {}
+    for t_stop in (numerics.TRANSMITTANCE_MIN, stop):
+        totals = np.zeros(len(cs.BLEND_COUNTS), dtype=np.int64)
+        cs.splat_frame(prepared.rows, prepared.camera, totals, t_stop=t_stop)
+        fragments[t_stop] = totals[cs.BLEND_COUNTS.index("fragments")]
+    assert fragments[stop] < fragments[numerics.TRANSMITTANCE_MIN]
+
+
+def test_transmittance_stop_keeps_every_output_and_saturating_stack_finite(cpu):
+    """The largest stop on the stacked scene (the contract's own stop, depth ties, late faint Gaussians) in every
+    output mode: finite, and the 8-bit frame the blend writes is the float frame converted."""
+    arrays, camera = _numpy(stacked_scene())
+    splatter = CPUSplatter(settings=RenderSettings(transmittance_min=0.1))
+    for output in FRAME_OUTPUTS:
+        assert np.isfinite(splatter.render(*arrays, camera, BACKGROUND, output=output)).all()
+    floats = splatter.render(*arrays, camera, BACKGROUND, output="float")
+    np.testing.assert_array_equal(splatter.render(*arrays, camera, BACKGROUND, output="uint8"), to_uint8(floats))
+
+
+@pytest.mark.parametrize("value", [1e-5, 0.2, True, "0.01", float("nan")])
+def test_bad_transmittance_stop_is_named(value):
+    with pytest.raises(ValueError, match="transmittance_min must be a number in 0.0001 \\(the contract's\\) .. 0.1"):
+        RenderSettings(transmittance_min=value)
+
+
+def test_transmittance_stop_is_stored_only_when_set():
+    """Manifest tables stay readable by runtimes before the knob: the contract's value is not written."""
+    assert "transmittance_min" not in RenderSettings().to_dict()
+    stored = RenderSettings(transmittance_min=0.02).to_dict()
+    assert stored["transmittance_min"] == 0.02
+    assert RenderSettings.from_dict(stored) == RenderSettings(transmittance_min=0.02)
+
+
+def test_the_gl_splatter_says_it_keeps_the_contracts_transmittance_stop(gl, caplog):
+    """A transmittance stop asked of the OpenGL splatter is named in a warning, and its frames are the plain ones."""
+    import logging
+
+    arrays, camera = _dense_scene(0)
+    with caplog.at_level(logging.WARNING, logger="gaussiantalker.runtime"):
+        stopped = GLSplatter(settings=RenderSettings(transmittance_min=0.05))
+    try:
+        assert "transmittance_min=0.05 applies on the CPU splatter only" in caplog.text
+        frame = stopped.render(*arrays, camera, BACKGROUND, output="float")
+        np.testing.assert_array_equal(frame, gl.render(*arrays, camera, BACKGROUND, output="float"))
+    finally:
+        stopped.release()
+
+
 def test_the_gl_splatter_says_it_keeps_the_contracts_alpha_cut(gl, caplog):
     """An alpha cut asked of the OpenGL splatter is named in a warning, and its frames are the plain ones: its
     shaders test alpha against the contract's 1/255."""

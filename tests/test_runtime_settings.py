@@ -64,6 +64,20 @@ def test_groups_give_the_shortcuts_frames_bit_for_bit(bundle):
             np.testing.assert_array_equal(frame, reference)
 
 
+def test_the_cpu_splatters_knobs_reach_it_as_shortcuts_and_in_the_group(bundle):
+    """alpha_min and transmittance_min, as keywords and in render_settings: the same settings on the CPU splatter
+    and the same pixels."""
+    knobs = dict(alpha_min=0.02, transmittance_min=4 / 255)
+    results = []
+    for kwargs in (knobs, {"render_settings": RenderSettings(**knobs)}):
+        with TalkingHead(bundle, renderer="cpu", resolution=(64, 48), **kwargs) as head:
+            assert head.frame_renderer.splatter.settings == head.render_settings
+            results.append((head.render_settings, _frames(head)))
+    assert results[0][0] == RenderSettings(**knobs)
+    for frame, reference in zip(results[1][1], results[0][1], strict=True):
+        np.testing.assert_array_equal(frame, reference)
+
+
 def test_a_group_left_out_keeps_the_bundle_defaults(bundle):
     """No group and no shortcut: the bundle's camera, background and preset; a partial group sets only its own."""
     with TalkingHead(bundle, output_settings=OutputSettings(resolution=(40, 30))) as head:
@@ -92,6 +106,8 @@ def test_a_group_left_out_keeps_the_bundle_defaults(bundle):
     ({"render_scale": 0.5, "render_settings": RenderSettings(render_scale=0.75)},
      ("render_scale=0.5", "render.render_scale=0.75")),
     ({"sort_key_bits": 16, "render_settings": RenderSettings()}, ("sort_key_bits=16", "render.sort_key_bits=32")),
+    ({"transmittance_min": 0.01, "render_settings": RenderSettings()},
+     ("transmittance_min=0.01", "render.transmittance_min=0.0001")),
     ({"threads": 2, "render_settings": RenderSettings(graph_threads=3)}, ("threads=2", "render.graph_threads=3")),
     ({"backend_settings": BackendSettings(threads=2), "render_settings": RenderSettings(graph_threads=3)},
      ("backend.threads=2", "render.graph_threads=3")),

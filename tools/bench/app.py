@@ -402,8 +402,8 @@ def avatar(
                                       "torch speaker (its 6 novel views come on top); 0: no verify"),
     variant: list[str] = typer.Option(None, "--variant", help="LABEL=PRESET:key=value,...: the preset's bundle "
                                       "played with these TalkingHead settings (render_scale, render_target, "
-                                      "sort_interval, sort_key_bits, alpha_min, max_draw_pixels, threads) beside "
-                                      "the presets, in quality and FPS; repeatable"),
+                                      "sort_interval, sort_key_bits, alpha_min, transmittance_min, max_draw_pixels, "
+                                      "threads) beside the presets, in quality and FPS; repeatable"),
 ) -> None:
     """An imported LAM or GaussianAvatars avatar: import, preset export and verify times, bundle sizes, each preset's
     head PSNR against fp32, and FPS at 512x512 beside the demo speaker (alternating rounds)."""

@@ -50,7 +50,7 @@ from gaussiantalker.runtime.head import TalkingHead
 from gaussiantalker.sdk.files import atomic_write
 from gaussiantalker.sdk.flame_motion import FlameMotion
 from gaussiantalker.sdk.image import psnr_db
-from gaussiantalker.sdk.numerics import ALPHA_MIN
+from gaussiantalker.sdk.numerics import ALPHA_MIN, TRANSMITTANCE_MIN
 from gaussiantalker.sdk.progress import progress_bar
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_RIG
 
@@ -68,7 +68,7 @@ RANDOM_SECONDS, KEY_FRAMES, KEY_ACTIVE = 10.0, 15, 0.2
 
 # What a variant may set: TalkingHead's render keywords (docs/embedding.md), each parsed as the type it takes.
 VARIANT_KEYS = {"render_scale": float, "render_target": str, "sort_interval": int, "sort_key_bits": int,
-                "alpha_min": float, "max_draw_pixels": int, "threads": int}
+                "alpha_min": float, "max_draw_pixels": int, "threads": int, "transmittance_min": float}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,6 +304,8 @@ def _runtime_line(settings: dict) -> str:
     """The render settings a bundle played with, briefly."""
     extras = [f"{settings['graph_threads']} graph thread(s)" if settings.get("graph_threads") else "",
               f"alpha cut {settings['alpha_min']:.3g}" if settings.get("alpha_min", ALPHA_MIN) != ALPHA_MIN else "",
+              f"T stop {settings['transmittance_min']:.3g}"
+              if settings.get("transmittance_min", TRANSMITTANCE_MIN) != TRANSMITTANCE_MIN else "",
               f"at most {settings['max_draw_pixels']:,} px" if settings.get("max_draw_pixels") else "",
               f"{settings['renderer']} splatter" if settings.get("renderer") else ""]
     return (f"scale {settings['render_scale']:g}, {settings['render_target']}, sort keys "

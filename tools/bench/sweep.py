@@ -84,6 +84,7 @@ def sweep_cases() -> list[SweepCase]:
     cases += [runtime(f"sort every {k} frames", "sort interval", sort_interval=k) for k in (2, 4)]
     cases += [runtime("sort keys 16-bit", "sort key bits", sort_key_bits=16)]
     cases += [runtime(f"alpha cut {a}", "alpha cut", alpha_min=a) for a in (0.02, 0.05)]
+    cases += [runtime(f"T stop {n}/255", "transmittance stop", transmittance_min=n / 255) for n in (1, 4)]
     cases += [runtime("draw at most 256²", "pixel cap", max_draw_pixels=256 * 256)]
     cases += [runtime("graph threads 1", "graph threads", threads=1)]
     cases += [SweepCase(name, "preset", preset.export, preset=name) for name, preset in PRESETS.items()

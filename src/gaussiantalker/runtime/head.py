@@ -61,10 +61,11 @@ class TalkingHead:
                  render_target: str | None = None, sort_interval: int | None = None, sort_key_bits: int | None = None,
                  alpha_min: float | None = None, max_draw_pixels: int | None = None, pipeline: bool | None = None,
                  gl_context=None, silence_gate_dbfs: float | None = SILENCE_GATE_DBFS,
-                 render: RenderSettings | None = None, output: OutputSettings | None = None) -> None:
+                 render: RenderSettings | None = None, output: OutputSettings | None = None,
+                 transmittance_min: float | None = None) -> None:
         """Three settings groups, each None for the bundle's defaults (docs/embedding.md): `render_settings`
         (render scale, framebuffer precision, sort interval and key bits, graph threads, the CPU splatter's alpha
-        cut, a cap on drawn pixels; docs/precision.md),
+        cut and transmittance stop, a cap on drawn pixels; docs/precision.md),
         `output_settings` (resolution, camera, background, composite: compositing defaults to whether the bundle has
         a reference clip, docs/compositing.md) and `backend_settings` (graph backend name, threads, shader_target,
         renderer "gl" | "cpu" | "auto", pipeline). `backend` names the graph backend ("onnxruntime" or "mnn").
@@ -84,7 +85,8 @@ class TalkingHead:
         by_splatter = render_settings_by_splatter(self.bundle, render_settings, merged.threads, label,
                                                   render_scale=render_scale, render_target=render_target,
                                                   sort_interval=sort_interval, sort_key_bits=sort_key_bits,
-                                                  alpha_min=alpha_min, max_draw_pixels=max_draw_pixels)
+                                                  alpha_min=alpha_min, max_draw_pixels=max_draw_pixels,
+                                                  transmittance_min=transmittance_min)
         stages = build_stages(self.bundle, by_splatter, self.output_settings, merged, gl_context=gl_context,
                               silence_gate_dbfs=silence_gate_dbfs)
         self.render_settings, self.backend_settings = stages.render, stages.backend

@@ -180,7 +180,8 @@ def merged_backend(backend: str | BackendSettings, threads: int | None = None,
 def merged_render(preset: RenderSettings, render: RenderSettings | None, threads: int | None,
                   threads_label: str = "threads", **shortcuts: Any) -> RenderSettings:
     """The render settings a head runs with: `render` (None: the bundle's `preset`) with the shortcut keywords
-    render_scale, render_target, sort_interval, sort_key_bits, alpha_min, max_draw_pixels, and the graph `threads`
+    render_scale, render_target, sort_interval, sort_key_bits, alpha_min, max_draw_pixels, transmittance_min, and the
+    graph `threads`
     (given as `threads_label`; None: the render group's graph_threads, else the preset's)."""
     _check_group(render, RenderSettings, "render_settings")
     try:

@@ -16,6 +16,9 @@ SORT_KEY_BITS = (32, 16)
 MAX_EARLY_STOPS = 8  # segment boundaries; each costs a full-screen pass and a GL flush
 # The largest alpha cut-off: a tenth of the way to full opacity; past it a Gaussian's soft edge is cut to its core.
 MAX_ALPHA_MIN = 0.1
+# The largest transmittance stop: a pixel then stops once 90% of its light is accounted for, within 0.1 of the
+# contract's colour (the bound is the stop itself, docs/numerics.md, "Transmittance stop").
+MAX_TRANSMITTANCE_MIN = 0.1
 # Fields that are experiments, off by default and not in the presets or the knob sweep (docs/precision.md).
 EXPERIMENTAL_FIELDS = frozenset({"early_stop"})
 
@@ -50,6 +53,11 @@ class RenderSettings:
     `alpha_min`: the CPU splatter skips each contribution whose alpha is below this, the contract's ALPHA_MIN (1/255)
     by default, up to MAX_ALPHA_MIN: fewer fragments, at the cost of each Gaussian's faintest rim (docs/precision.md,
     "Alpha cut-off"); the GL splatter's shaders keep the contract's;
+    `transmittance_min`: the CPU splatter also stops a pixel once a contribution leaves its transmittance T below
+    this (the contract's TRANSMITTANCE_MIN, 1e-4, by default, where only the contract's stop applies), up to
+    MAX_TRANSMITTANCE_MIN: fewer fragments behind the surface, each channel within this value times the largest
+    |colour - background| of the contract's (docs/numerics.md, "Transmittance stop"); the GL splatter keeps the
+    contract's;
     `max_draw_pixels`: draw at most about this many pixels (None: no cap): a larger frame is drawn at the scale that
     fits, the smaller of it and `render_scale`, then upscaled, so a frame's draw costs at most so much at any output
     size while small frames keep their detail."""
@@ -62,6 +70,7 @@ class RenderSettings:
     early_stop: tuple[float, ...] = ()
     alpha_min: float = numerics.ALPHA_MIN
     max_draw_pixels: int | None = None
+    transmittance_min: float = numerics.TRANSMITTANCE_MIN
 
     def __post_init__(self) -> None:
         scale = self.render_scale
@@ -84,6 +93,12 @@ class RenderSettings:
             raise ValueError(f"alpha_min must be a number in {numerics.ALPHA_MIN:.6g} (1/255, the contract's) .. "
                              f"{MAX_ALPHA_MIN}, got {cut!r}")
         object.__setattr__(self, "alpha_min", float(cut))
+        stop = self.transmittance_min
+        if (isinstance(stop, bool) or not isinstance(stop, int | float)
+                or not numerics.TRANSMITTANCE_MIN <= stop <= MAX_TRANSMITTANCE_MIN):
+            raise ValueError(f"transmittance_min must be a number in {numerics.TRANSMITTANCE_MIN:g} (the contract's) "
+                             f".. {MAX_TRANSMITTANCE_MIN}, got {stop!r}")
+        object.__setattr__(self, "transmittance_min", float(stop))
         cap = self.max_draw_pixels
         if cap is not None and (isinstance(cap, bool) or not isinstance(cap, int) or cap < 1):
             raise ValueError(f"max_draw_pixels must be a whole number >= 1 or None, got {cap!r}")
@@ -97,11 +112,13 @@ class RenderSettings:
         return max(1, round(width * scale)), max(1, round(height * scale))
 
     def to_dict(self) -> dict:
-        """The settings as a manifest table; `early_stop`, `alpha_min` and `max_draw_pixels` only when set, so
-        bundles without them stay readable by runtimes that predate them."""
+        """The settings as a manifest table; `early_stop`, `alpha_min`, `max_draw_pixels` and `transmittance_min`
+        only when set, so bundles without them stay readable by runtimes that predate them."""
         data = asdict(self)
         if data["alpha_min"] == numerics.ALPHA_MIN:
             del data["alpha_min"]
+        if data["transmittance_min"] == numerics.TRANSMITTANCE_MIN:
+            del data["transmittance_min"]
         if data["max_draw_pixels"] is None:
             del data["max_draw_pixels"]
         if not data["early_stop"]:
@@ -149,6 +166,6 @@ def stored_defaults(manifest: dict, splatter: str) -> RenderSettings:
 
 
 __all__ = [
-    "EXPERIMENTAL_FIELDS", "MAX_ALPHA_MIN", "MAX_EARLY_STOPS", "MAX_SORT_INTERVAL", "MIN_RENDER_SCALE",
-    "RENDER_TARGETS", "SORT_KEY_BITS", "SPLATTERS", "RenderSettings", "stored_defaults",
+    "EXPERIMENTAL_FIELDS", "MAX_ALPHA_MIN", "MAX_EARLY_STOPS", "MAX_SORT_INTERVAL", "MAX_TRANSMITTANCE_MIN",
+    "MIN_RENDER_SCALE", "RENDER_TARGETS", "SORT_KEY_BITS", "SPLATTERS", "RenderSettings", "stored_defaults",
 ]

@@ -368,9 +368,10 @@ def _blend_source(counting: bool):
     it from 8-wide vectors)."""
 
     def blend_tiles(params, start, lists, tiles_x, width, height, out, counts, order, workers, background, bytes_out,
-                    alpha_min):
+                    alpha_min, t_stop):
         """Composite each tile front to back into out [H, W, 4] = (C, T): per pixel the extent test, alpha (0.99
-        clamp, skipped below `alpha_min` or for a positive power) and the stop before T would fall below T_MIN. With
+        clamp, skipped below `alpha_min` or for a positive power), the stop before T would fall below T_MIN and the
+        one after a contribution leaves T below `t_stop` (RenderSettings.transmittance_min; T_MIN: never). With
         a non-empty bytes_out [H, W, 3] (uint8), that receives C + T background in 8 bits instead (`_over_pixel`), and
         `out` is not written."""
         n_tiles = start.shape[0] - 1
@@ -507,7 +508,10 @@ def _blend_source(counting: bool):
                                 acc[i] += red * w
                                 acc[_G + i] += green * w
                                 acc[_B + i] += blue * w
-                                acc[_T + i] = -t_old if stop_probe < _T_MIN else t_old * (_ONE - added)
+                                t_after = t_old * (_ONE - added)
+                                after_probe = t_after if used else _ONE  # a live pixel's T is >= t_stop already
+                                t_keep = -t_after if after_probe < t_stop else t_after
+                                acc[_T + i] = -t_old if stop_probe < _T_MIN else t_keep
                                 if counting:
                                     fragments += 1 if added > _ZERO else 0
                 if counting:
@@ -565,14 +569,16 @@ def _aligned_rows(n: int) -> np.ndarray:
 
 
 def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = None, *,
-                background: np.ndarray | None = None, alpha_min: float = numerics.ALPHA_MIN
-                ) -> tuple[np.ndarray, float, float]:
+                background: np.ndarray | None = None, alpha_min: float = numerics.ALPHA_MIN,
+                t_stop: float = numerics.TRANSMITTANCE_MIN) -> tuple[np.ndarray, float, float]:
     """(C, T) [H, W, 4] float32 of depth-sorted, culled rows [n, 13]; also the set-up and blend seconds. `counts`
     (int64 [len(BLEND_COUNTS)]), when given, receives the blend's work totals from the counting twin of the blend
     (the same pixels; compiled on first use, about 20 s). With `background` (float32 [3]) the frame is the 8-bit
     [H, W, 3] over that background instead, written by the blend as each tile ends: `_convert(..., "uint8")`'s
     bytes without the float frame between. `alpha_min` replaces the contract's ALPHA_MIN in the alpha test and in
-    the boxes (`RenderSettings.alpha_min`; the reliability fade keeps the contract's)."""
+    the boxes (`RenderSettings.alpha_min`; the reliability fade keeps the contract's); a pixel also stops once a
+    contribution leaves its T below `t_stop` (`RenderSettings.transmittance_min`, docs/numerics.md, "Transmittance
+    stop")."""
     start = time.perf_counter()
     width, height = int(camera.width), int(camera.height)
     n = len(rows)
@@ -596,7 +602,7 @@ def splat_frame(rows: np.ndarray, camera: Camera, counts: np.ndarray | None = No
     kernel = _blend_tiles if counts is None else _counting_kernel()
     order = np.argsort(tile_start[:-1] - tile_start[1:], kind="stable")  # the longest lists first
     kernel(params, tile_start, lists, tiles_x, width, height, out, per_tile, order, workers, background, bytes_out,
-           _F(alpha_min))
+           _F(alpha_min), _F(t_stop))
     seconds = time.perf_counter() - start
     if counts is not None:
         counts[:] = per_tile.sum(axis=0)
@@ -692,8 +698,8 @@ class CPUSplatter:
     `settings`: the render settings; render_scale, max_draw_pixels and the sort knobs work as on GL. The CPU always
     blends in float32, the contract's precision; with render_target "uint8" a frame drawn at a render scale is kept
     in 8 bits before its upscale, as GL's 8-bit framebuffer is (an 8-bit frame then skips the float frame's upscale
-    and conversion). alpha_min applies on this splatter only. `threads`: numba threads for the kernels (None:
-    numba's default, every core). Construction compiles (first run) or loads (cached) the kernels."""
+    and conversion). alpha_min and transmittance_min apply on this splatter only. `threads`: numba threads for the
+    kernels (None: numba's default, every core). Construction compiles (first run) or loads (cached) the kernels."""
 
     def __init__(self, *, settings: RenderSettings | None = None, threads: int | None = None) -> None:
         if settings is not None and not isinstance(settings, RenderSettings):
@@ -746,7 +752,8 @@ class CPUSplatter:
         try:
             frame, timings["upload"], timings["draw"] = splat_frame(prepared.rows, prepared.camera,
                                                                     background=background if fused else None,
-                                                                    alpha_min=self.settings.alpha_min)
+                                                                    alpha_min=self.settings.alpha_min,
+                                                                    t_stop=self.settings.transmittance_min)
         finally:
             numba.set_num_threads(previous)
         if fused:

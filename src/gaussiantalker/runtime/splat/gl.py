@@ -203,6 +203,10 @@ class GLSplatter:
             logger.warning("alpha_min=%g applies on the CPU splatter only: the OpenGL splatter's shaders skip "
                            "contributions below the contract's 1/255 (docs/precision.md, \"Alpha cut-off\")",
                            self.settings.alpha_min)
+        if self.settings.transmittance_min != numerics.TRANSMITTANCE_MIN:
+            logger.warning("transmittance_min=%g applies on the CPU splatter only: the OpenGL splatter draws every "
+                           "contribution as before (docs/numerics.md, \"Transmittance stop\")",
+                           self.settings.transmittance_min)
         self.shader_target = shader_target
         self._sorter = DepthSorter(self.settings.sort_interval, self.settings.sort_key_bits)
         self._owns_ctx = ctx is None
