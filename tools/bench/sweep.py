@@ -18,7 +18,7 @@ import json
 import statistics
 import tempfile
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -192,7 +192,10 @@ def sweep_speaker_renderers(name: str, speaker, cases: list[SweepCase], *, sizes
         samples = synth_speech(seconds, seed=7)
         write_wav(audio, samples)
         bundles = _export_bundles(speaker, cases, tmp, bar, whole_files)
-        workers = {run: Version.make(f"case{i}", this_version_root(), tmp) for i, run in enumerate(runs_of)}
+        # One package path for every worker: numba keys its kernel cache by the source file's path, so the first
+        # worker on the CPU splatter compiles its kernels and the others load them (one shim each compiled each).
+        shared = Version.make("this", this_version_root(), tmp)
+        workers = {run: replace(shared, label=f"case{i}") for i, run in enumerate(runs_of)}
         for renderer, result in results.items():
             for label in labels:
                 bundle = bundles[by_name[label].bundle_key]

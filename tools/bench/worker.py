@@ -112,7 +112,9 @@ class Worker:
         """The translator's expression and jaw pose for the clip, written to `save` (.npz)."""
         from gaussiantalker.runtime.head import TalkingHead
 
-        with TalkingHead(bundle) as head:
+        # Drawn with nothing: pinned to the OpenGL splatter, whose set-up is a context, not the CPU splatter's
+        # kernels (compiled again in a process whose package path numba's cache has not seen).
+        with TalkingHead(bundle, **gl_pinned(TalkingHead, {})) as head:
             # This file runs in every version a comparison loads: the head's own names work in all of them (the
             # stages' names in new ones; docs/embedding.md "Renamed names").
             driver = getattr(head, "driver", head)
