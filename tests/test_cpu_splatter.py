@@ -360,39 +360,26 @@ def test_transmittance_stop_is_stored_only_when_set():
     assert RenderSettings.from_dict(stored) == RenderSettings(transmittance_min=0.02)
 
 
-def test_the_gl_splatter_says_it_keeps_the_contracts_transmittance_stop(gl, caplog):
-    """A transmittance stop asked of the OpenGL splatter is named in a warning, and its frames are the plain ones."""
+@pytest.mark.parametrize("knob, value", [("alpha_min", 0.05), ("transmittance_min", 0.05)])
+def test_the_gl_splatter_says_it_keeps_the_contracts_rule(gl, caplog, knob, value):
+    """A CPU splatter's knob (the alpha cut, the transmittance stop) asked of the OpenGL splatter is named in a
+    warning, and its frames are the plain ones: its shaders test alpha against the contract's 1/255 and its
+    blending never stops a pixel."""
     import logging
 
     arrays, camera = _dense_scene(0)
     with caplog.at_level(logging.WARNING, logger="gaussiantalker.runtime"):
-        stopped = GLSplatter(settings=RenderSettings(transmittance_min=0.05))
+        asked = GLSplatter(settings=RenderSettings(**{knob: value}))
     try:
-        assert "transmittance_min=0.05 applies on the CPU splatter only" in caplog.text
-        frame = stopped.render(*arrays, camera, BACKGROUND, output="float")
+        assert f"{knob}={value} applies on the CPU splatter only" in caplog.text
+        frame = asked.render(*arrays, camera, BACKGROUND, output="float")
         np.testing.assert_array_equal(frame, gl.render(*arrays, camera, BACKGROUND, output="float"))
     finally:
-        stopped.release()
-
-
-def test_the_gl_splatter_says_it_keeps_the_contracts_alpha_cut(gl, caplog):
-    """An alpha cut asked of the OpenGL splatter is named in a warning, and its frames are the plain ones: its
-    shaders test alpha against the contract's 1/255."""
-    import logging
-
-    arrays, camera = _numpy(random_scene(9, n=120, camera=off_centre_camera(48, 36), px_sigma=(1.0, 6.0)))
-    with caplog.at_level(logging.WARNING, logger="gaussiantalker.runtime"):
-        cut = GLSplatter(settings=RenderSettings(alpha_min=0.05))
-    try:
-        assert "alpha_min=0.05 applies on the CPU splatter only" in caplog.text
-        frame = cut.render(*arrays, camera, BACKGROUND, output="float")
-        np.testing.assert_array_equal(frame, gl.render(*arrays, camera, BACKGROUND, output="float"))
-    finally:
-        cut.release()
+        asked.release()
     caplog.clear()
     with caplog.at_level(logging.WARNING, logger="gaussiantalker.runtime"):
         GLSplatter().release()
-    assert "alpha_min" not in caplog.text
+    assert knob not in caplog.text
 
 
 def test_an_8bit_render_target_upscales_the_bytes_within_a_level():
