@@ -10,22 +10,20 @@ import pytest
 from lam_avatars import write_avatar_zip
 from typer.testing import CliRunner
 
-from gaussiantalker.exporter.demo.demo_speaker import make_demo_speaker
-from gaussiantalker.exporter.export.checkpoint import save_checkpoint
 from tools.bench.app import app
 
-pytestmark = pytest.mark.slow  # four torch.onnx exports (three presets, the demo speaker) and a verify: over 20 s
+pytestmark = pytest.mark.slow  # three torch.onnx exports (three presets) and a verify: over 20 s
 # quality (the reference), compact (a size ratio above 1) and fast (played in the FPS rounds); `--presets` picks
 # them, as it does for users; the other presets take the same code path.
 PRESET_SUBSET = ("quality", "compact", "fast")
 
 
-def test_bench_avatar_writes_every_measure(tmp_path):
+def test_bench_avatar_writes_every_measure(tmp_path, small_export):
+    """Beside an exported speaker (`--demo-bundle`; the GaussianAvatars bench's test exports one from
+    `--demo-checkpoint`)."""
     avatar = write_avatar_zip(tmp_path / "avatar.zip")
-    demo, _ = make_demo_speaker(n_gaussians=300, seed=3, train_seconds=0, progress=False)
-    save_checkpoint(demo, tmp_path / "demo.ckpt")
     out = tmp_path / "bench"
-    result = CliRunner().invoke(app, ["avatar", str(avatar), "--demo-checkpoint", str(tmp_path / "demo.ckpt"),
+    result = CliRunner().invoke(app, ["avatar", str(avatar), "--demo-bundle", str(small_export.path),
                                       "--frames", "4", "--fps-seconds", "0.4", "--rounds", "1", "--presets",
                                       ",".join(PRESET_SUBSET), "--verify-frames", "2", "--variant",
                                       "fast full=fast:render_scale=1,render_target=float32,alpha_min=1/255,"
@@ -56,5 +54,14 @@ def test_bench_avatar_writes_every_measure(tmp_path):
         numbers += [case["frame_ms"], case["fps"], *case["fps_rounds"]]
         assert len(case["frame_ms_rounds"]) == 1
     numbers += list(report["fps"]["fps_vs_demo"].values())
+    assert report["fps"]["demo_gaussians"] == small_export.speaker.gaussians.count
     assert all(math.isfinite(n) and n > 0 for n in numbers), numbers
     assert report["command"].startswith("gt-bench") and "## Frames per second" in markdown
+
+
+def test_the_demo_speaker_is_given_once(tmp_path, small_export):
+    demo = tmp_path / "demo.ckpt"
+    demo.write_bytes(b"")
+    result = CliRunner().invoke(app, ["avatar", str(write_avatar_zip(tmp_path / "avatar.zip")), "--demo-checkpoint",
+                                      str(demo), "--demo-bundle", str(small_export.path)])
+    assert result.exit_code == 2 and "give the demo speaker once" in result.output

@@ -393,6 +393,8 @@ def avatar(
     rounds: int = typer.Option(3, "--rounds", min=1, help="alternating FPS rounds"),
     demo_checkpoint: Path = typer.Option(None, "--demo-checkpoint", help="the demo speaker played beside the avatar "
                                          "(samples/make_demo_speaker.py) [default: an untrained one built here]"),
+    demo_bundle: Path = typer.Option(None, "--demo-bundle", help="the demo speaker's exported fp32 bundle played "
+                                     "beside the avatar instead of one exported here (gt-export out/speaker.ckpt)"),
     gaussians: int = typer.Option(20_000, "--gaussians", min=1, help="demo speaker size when no checkpoint is given"),
     note: str = typer.Option(None, "--note", help="a line about the machine or the run, written into avatar.md"),
     out: Path = typer.Option(Path("bench-avatar"), "--out", help="folder for avatar.md and avatar.json"),
@@ -429,7 +431,11 @@ def avatar(
         check_variants(variants, chosen or list(PRESETS))
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="--variant") from None
-    files = [(motion, "--motion"), (demo_checkpoint, "--demo-checkpoint"), (flame, "--flame")]
+    if demo_checkpoint is not None and demo_bundle is not None:
+        raise typer.BadParameter("give the demo speaker once: --demo-checkpoint (exported here) or --demo-bundle",
+                                 param_hint="--demo-bundle")
+    files = [(motion, "--motion"), (demo_checkpoint, "--demo-checkpoint"), (demo_bundle, "--demo-bundle"),
+             (flame, "--flame")]
     if flame is None:
         files.insert(0, (avatar_path, "AVATAR"))  # a LAM zip; a GaussianAvatars directory was checked above
     for path, hint in files:
@@ -438,7 +444,7 @@ def avatar(
     command = _command()
     try:
         result = run_avatar_bench(avatar_path, motion, frames, fps_seconds, rounds, demo_checkpoint, gaussians, out,
-                                  command, note, flame, chosen, verify_frames, variants)
+                                  command, note, flame, chosen, verify_frames, variants, demo_bundle)
     except GaussianTalkerError as exc:  # a damaged avatar, FLAME model or motion file: its message, not a traceback
         typer.echo(f"gt-bench avatar: {exc}", err=True)
         raise typer.Exit(2) from None

@@ -4,6 +4,8 @@ avatar zip or a GaussianAvatars output directory with the user's FLAME model:
     gt-bench avatar avatar.zip --motion motion.json --demo-checkpoint demo.ckpt --out docs/bench/lam
     gt-bench avatar avatar_dir --flame flame2023.pkl --demo-checkpoint demo.ckpt --out docs/bench/gaussian-avatars
 
+(`--demo-bundle demo.gtb` plays a demo speaker exported before, instead of exporting the checkpoint each run.)
+
 * Costs, in alternating rounds (medians): the import's time (`import_lam`, or `import_gaussian_avatars` with its
   FLAME model's loading), each preset's export time and bundle size (quality is the fp32 bundle), and
   `verify_bundle`'s time on the fp32 bundle at its defaults (25 frames at 256x256) with its minimum 8-bit PSNR and
@@ -47,6 +49,7 @@ from gaussiantalker.exporter.export.bundle_export import export_bundle
 from gaussiantalker.exporter.export.presets import PRESETS
 from gaussiantalker.exporter.verify.bundle_verify import verify_bundle
 from gaussiantalker.runtime.head import TalkingHead
+from gaussiantalker.sdk.bundle import Bundle
 from gaussiantalker.sdk.files import atomic_write
 from gaussiantalker.sdk.flame_motion import FlameMotion
 from gaussiantalker.sdk.image import psnr_db
@@ -250,10 +253,12 @@ def demo_speaker(checkpoint: Path | None, gaussians: int):
 def run_avatar_bench(avatar: Path, motion: Path | None, samples: int, fps_seconds: float, rounds: int,
                      demo_checkpoint: Path | None, demo_gaussians: int, out: Path, command: str,
                      note: str | None = None, flame: Path | None = None, presets: Sequence[str] | None = None,
-                     verify_frames: int = 25, variants: Sequence[Variant] = ()) -> dict:
+                     verify_frames: int = 25, variants: Sequence[Variant] = (), demo_bundle: Path | None = None
+                     ) -> dict:
     """Every measure of the module docstring (`flame` given: `avatar` is a GaussianAvatars directory, else a LAM
     zip; `presets`: a subset holding quality, None: all; `verify_frames` 0: no verify; `variants`: presets' bundles
-    played with other runtime settings, in the quality and speed measures too); writes `out`/avatar.md and
+    played with other runtime settings, in the quality and speed measures too; `demo_bundle`: the demo speaker's
+    bundle as exported, instead of exporting `demo_checkpoint` or an untrained one); writes `out`/avatar.md and
     `out`/avatar.json and returns the JSON."""
     presets = tuple(PRESETS) if presets is None else tuple(name for name in PRESETS if name in presets)
     check_variants(variants, presets)
@@ -269,14 +274,15 @@ def run_avatar_bench(avatar: Path, motion: Path | None, samples: int, fps_second
             fps, rig = head.fps, head.driver.rig
         indices = sample_indices(len(table), samples)
         quality = preset_quality(exports, table, indices, variants)
-        demo = demo_speaker(demo_checkpoint, demo_gaussians)
-        demo_bundle = folder / "demo.gtb"
-        export_bundle(demo, demo_bundle, progress=True)
+        if demo_bundle is None:
+            demo = demo_speaker(demo_checkpoint, demo_gaussians)
+            demo_bundle = folder / "demo.gtb"
+            export_bundle(demo, demo_bundle, progress=True)
         played = {name: exports[name]["path"] for name in FPS_PRESETS if name in exports}
         played |= {variant.label: exports[variant.preset]["path"] for variant in variants}
         speed = fps_rounds(played, demo_bundle, table, max(2, int(round(fps_seconds * fps))), rounds, SIZE,
                            {variant.label: variant.settings for variant in variants})
-        speed["demo_gaussians"] = demo.gaussians.count
+        speed["demo_gaussians"] = Bundle(demo_bundle).manifest["gaussians"]
     reference_bytes = exports[REFERENCE]["bytes"]
     presets = {name: {"export_s": e["export_s"], "export_s_rounds": e["export_s_rounds"],
                       "bundle_mb": e["bytes"] / 1e6, "smaller_than_fp32": reference_bytes / e["bytes"],
