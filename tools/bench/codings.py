@@ -183,11 +183,13 @@ def head_psnr(reference: np.ndarray, heads: np.ndarray, frames: np.ndarray) -> t
 def run_codings(speaker, budgets: list[float], combined_loss_db: float = COMBINED_LOSS_DB,
                 progress: bool = True) -> dict:
     """Export `speaker` as quality and compact, run every probe, the combined row (codings that lost at most
-    `combined_loss_db` alone) and every budget; the rows of the report."""
+    `combined_loss_db` alone) and every budget; the rows of the report. Graphs the same in several of its exports
+    (a translator's) are traced once (`reused_exports`)."""
     from gaussiantalker.exporter.export.bundle_export import export_bundle, rig_of
+    from gaussiantalker.exporter.export.onnx_export import reused_exports
     from gaussiantalker.exporter.export.presets import get_preset, settings_with
 
-    with tempfile.TemporaryDirectory(prefix="gt-bench-codings-") as folder:
+    with tempfile.TemporaryDirectory(prefix="gt-bench-codings-") as folder, reused_exports():
         folder = Path(folder)
         export_bundle(speaker, folder / "quality.gtb", preset="quality", progress=False)
         export_bundle(speaker, folder / "compact.gtb", preset="compact", progress=False)

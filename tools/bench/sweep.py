@@ -126,33 +126,41 @@ class SpeakerSweep:
 def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar, whole_files: bool = False) -> dict[str, dict]:
     """Export each distinct bundle of the bare head once: key -> {path, bytes, gaussians, export_s}; with
     `whole_files` (a speaker with its reference clip and inpainter) each preset's whole file too, weighed and
-    deleted ("whole_bytes")."""
+    deleted ("whole_bytes"). Graphs the same in several bundles are traced once (`reused_exports`), so export_s
+    is a bundle's own export only for the first to need each graph."""
     from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.exporter.export.onnx_export import reused_exports
     from gaussiantalker.sdk.scene import load_scene
 
     bundles: dict[str, dict] = {}
-    for case in cases:
-        if case.bundle_key in bundles:
-            continue
-        bar.set_postfix_str(f"export {case.name}")
-        path = tmp / f"bundle-{len(bundles)}.gtb"
-        start = time.perf_counter()
-        scene = None if case.scene is None else load_scene(case.scene)
-        with without_clip(speaker) as bare:
-            if case.preset:
-                result = export_bundle(bare, path, preset=case.preset, progress=False, scene=scene)
-            else:
-                result = export_bundle(bare, path, settings=case.export, progress=False, scene=scene)
-        bundles[case.bundle_key] = {"path": str(path), "bytes": path.stat().st_size, "gaussians": result.gaussians,
-                                    "export_s": time.perf_counter() - start}
-        if whole_files and case.preset and case.scene is None:
-            bar.set_postfix_str(f"export {case.name}, whole file")
-            whole = tmp / "whole.gtb"
-            export_bundle(speaker, whole, preset=case.preset, progress=False)
-            bundles[case.bundle_key]["whole_bytes"] = whole.stat().st_size
-            whole.unlink()
-        bar.update()
+    with reused_exports():
+        for case in cases:
+            if case.bundle_key not in bundles:
+                bundles[case.bundle_key] = _export_case(speaker, case, tmp / f"bundle-{len(bundles)}.gtb", bar,
+                                                        whole_files, export_bundle, load_scene)
     return bundles
+
+
+def _export_case(speaker, case: SweepCase, path: Path, bar, whole_files: bool, export_bundle, load_scene) -> dict:
+    """One case's bare-head bundle at `path`, and its whole file's size where asked (`_export_bundles`)."""
+    bar.set_postfix_str(f"export {case.name}")
+    start = time.perf_counter()
+    scene = None if case.scene is None else load_scene(case.scene)
+    with without_clip(speaker) as bare:
+        if case.preset:
+            result = export_bundle(bare, path, preset=case.preset, progress=False, scene=scene)
+        else:
+            result = export_bundle(bare, path, settings=case.export, progress=False, scene=scene)
+    exported = {"path": str(path), "bytes": path.stat().st_size, "gaussians": result.gaussians,
+                "export_s": time.perf_counter() - start}
+    if whole_files and case.preset and case.scene is None:
+        bar.set_postfix_str(f"export {case.name}, whole file")
+        whole = path.with_name("whole.gtb")
+        export_bundle(speaker, whole, preset=case.preset, progress=False)
+        exported["whole_bytes"] = whole.stat().st_size
+        whole.unlink()
+    bar.update()
+    return exported
 
 
 def sweep_speaker(name: str, speaker, cases: list[SweepCase], *, sizes: list[int], seconds: float, rounds: int,

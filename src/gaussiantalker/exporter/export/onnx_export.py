@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import io
 import logging
 import re
 import warnings
 from collections.abc import Callable, Iterator
+from itertools import chain
 
 import numpy as np
 import onnx
@@ -36,15 +38,86 @@ def quiet_logger(name: str) -> Iterator[None]:
         logger.setLevel(previous)
 
 
+# Graphs exported inside a `reused_exports()` block, by everything that determines them (`_export_key`): serialised
+# protos, at most this many bytes in all. A bench that exports one speaker under many settings (gt-bench sweep,
+# codings) traces the same translator graphs again and again, each a torch.onnx export of seconds to minutes.
+# Outside such a block nothing is kept and every export traces afresh.
+_reused: dict[str, bytes] | None = None
+REUSED_EXPORTS_MAX_BYTES = 1 << 30
+
+
+@contextlib.contextmanager
+def reused_exports() -> Iterator[None]:
+    """Within the block, an export whose module, inputs and names equal an earlier one's in the block gets a copy
+    of that graph instead of a new trace (the same proto: torch.onnx traces the same module to the same graph)."""
+    global _reused
+    outer = _reused
+    _reused = {} if outer is None else outer
+    try:
+        yield
+    finally:
+        _reused = outer
+
+
+def _export_key(module: torch.nn.Module, args: tuple, *names) -> str:
+    """A digest of what an export depends on: every submodule's class and plain attributes (an object without a
+    value repr shows its address, so it never matches another), every parameter's and buffer's values, the
+    example inputs, the names and the dynamic shapes."""
+    digest = hashlib.sha256()
+
+    def tensor(value: torch.Tensor) -> None:
+        value = value.detach().cpu().contiguous()
+        digest.update(repr((value.dtype, tuple(value.shape))).encode())
+        digest.update(value.view(torch.uint8).numpy().tobytes() if value.numel() else b"")
+
+    for prefix, sub in module.named_modules():
+        digest.update(repr((prefix, type(sub).__module__, type(sub).__qualname__)).encode())
+        for key, value in sorted(vars(sub).items()):
+            if key in ("_parameters", "_buffers", "_modules"):
+                continue
+            digest.update(key.encode())
+            if isinstance(value, torch.Tensor):
+                tensor(value)
+            elif isinstance(value, np.ndarray):
+                tensor(torch.from_numpy(np.ascontiguousarray(value)))
+            else:
+                digest.update(repr(value).encode())
+    for name, value in chain(module.named_parameters(), module.named_buffers()):
+        digest.update(name.encode())
+        tensor(value)
+    for value in args:
+        if isinstance(value, torch.Tensor):
+            tensor(value)
+        else:
+            digest.update(repr(value).encode())
+    digest.update(repr(names).encode())
+    return digest.hexdigest()
+
+
 def export_onnx(module: torch.nn.Module, args: tuple, input_names: list[str], output_names: list[str],
                 dynamic_shapes: dict | None = None) -> onnx.ModelProto:
-    """Export with torch.onnx's dynamo exporter, quietly, and return the model proto.
+    """Export with torch.onnx's dynamo exporter, quietly, and return the model proto (in a `reused_exports()`
+    block, a copy of the same export's earlier proto).
 
     optimize=False on purpose: the exporter's graph optimizer rewrites `x + eps` to `x` for tiny eps (1e-16,
     1e-12, even 1e-8 were dropped in torch 2.13), which silently strips the contract's epsilon guards and turns a
     zero rotation into NaN. onnxruntime constant-folds and fuses the graph itself when it loads it.
     """
     module.eval()
+    key = None if _reused is None else _export_key(module, args, input_names, output_names, dynamic_shapes)
+    if key is not None and key in _reused:
+        return onnx.ModelProto.FromString(_reused[key])
+    model = _traced(module, args, input_names, output_names, dynamic_shapes)
+    if key is not None and _reused is not None:
+        serialised = model.SerializeToString()
+        if sum(map(len, _reused.values())) + len(serialised) <= REUSED_EXPORTS_MAX_BYTES:
+            _reused[key] = serialised
+    return model
+
+
+def _traced(module: torch.nn.Module, args: tuple, input_names: list[str], output_names: list[str],
+            dynamic_shapes: dict | None) -> onnx.ModelProto:
+    """One torch.onnx export (`export_onnx`), checked."""
     with quiet_logger("torch.onnx"), warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()), \
             torch.no_grad():
         warnings.simplefilter("ignore")
