@@ -56,8 +56,8 @@ class RenderSettings:
     `transmittance_min`: the CPU splatter also stops a pixel once a contribution leaves its transmittance T below
     this (the contract's TRANSMITTANCE_MIN, 1e-4, by default, where only the contract's stop applies), up to
     MAX_TRANSMITTANCE_MIN: fewer fragments behind the surface, each channel within this value times the largest
-    |colour - background| of the contract's (docs/numerics.md, "Transmittance stop"); the GL splatter keeps the
-    contract's;
+    |colour - background| of the contract's (docs/numerics.md, "Transmittance stop"); the GL splatter draws as
+    without it;
     `max_draw_pixels`: draw at most about this many pixels (None: no cap): a larger frame is drawn at the scale that
     fits, the smaller of it and `render_scale`, then upscaled, so a frame's draw costs at most so much at any output
     size while small frames keep their detail."""
