@@ -128,21 +128,22 @@ def _export_bundles(speaker, cases: list[SweepCase], tmp: Path, bar, whole_files
     `whole_files` (a speaker with its reference clip and inpainter) each preset's whole file too, weighed and
     deleted ("whole_bytes"). Graphs the same in several bundles are traced once (`reused_exports`), so export_s
     is a bundle's own export only for the first to need each graph."""
-    from gaussiantalker.exporter.export.bundle_export import export_bundle
     from gaussiantalker.exporter.export.onnx_export import reused_exports
-    from gaussiantalker.sdk.scene import load_scene
 
     bundles: dict[str, dict] = {}
     with reused_exports():
         for case in cases:
             if case.bundle_key not in bundles:
                 bundles[case.bundle_key] = _export_case(speaker, case, tmp / f"bundle-{len(bundles)}.gtb", bar,
-                                                        whole_files, export_bundle, load_scene)
+                                                        whole_files)
     return bundles
 
 
-def _export_case(speaker, case: SweepCase, path: Path, bar, whole_files: bool, export_bundle, load_scene) -> dict:
+def _export_case(speaker, case: SweepCase, path: Path, bar, whole_files: bool) -> dict:
     """One case's bare-head bundle at `path`, and its whole file's size where asked (`_export_bundles`)."""
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+    from gaussiantalker.sdk.scene import load_scene
+
     bar.set_postfix_str(f"export {case.name}")
     start = time.perf_counter()
     scene = None if case.scene is None else load_scene(case.scene)
