@@ -274,6 +274,51 @@ def test_an_idle_streaming_session_holds_and_computes_nothing(ga_voice_bundle):
     live.close()
 
 
+def test_idle_frames_at_rest_take_the_short_path_to_the_same_drives(ga_voice_bundle, monkeypatch):
+    """Speech, a long idle gap, speech again, a long gap: the drives, the silence gate's sums and the stream (its
+    origin, state and what it knows) are those of the full idle step (every idle frame offered to the stream,
+    which resets itself, and zeros pushed through the gate's sums), bit for bit; the short path only moves a stream
+    at rest to the gap's end and counts the zeros."""
+    import itertools
+
+    from gaussiantalker.runtime import live as live_module
+    from gaussiantalker.runtime.translate_stream import TranslatorStream
+
+    speech = unseen_speech()[0]
+
+    def played() -> tuple[list[np.ndarray], tuple, tuple]:
+        live = LiveSession(open_driver(ga_voice_bundle), output=None, paced=False, streaming=True)
+        frames = live.frames()
+        drives = []
+        for chunk in (speech[:8000], speech[8000:20000]):
+            live.push(chunk, 16000)
+            live.flush()
+            drives += [np.concatenate([np.ravel(v) for v in f.drive.graph_inputs().values()])
+                       for f in itertools.islice(frames, 90)]  # the chunk, then over a second of idle frames
+        gate, stream = live._gate, live._stream
+        sums = (gate.count, gate.total, gate.squares, list(gate.frames))
+        kept = (stream.origin, stream.committed, stream.known.tobytes(), stream.state.tobytes(), stream.quiet)
+        live.close()
+        return drives, sums, kept
+
+    short = played()
+    full_idle = TranslatorStream.idle
+
+    def idle_in_full(self, start, stop):
+        self._at_rest = False
+        full_idle(self, start, stop)
+
+    monkeypatch.setattr(TranslatorStream, "idle", idle_in_full)
+    monkeypatch.setattr(live_module._GateHistory, "push_silence",
+                        lambda self, count: self.push(np.zeros(count, np.float32)))
+    full = played()
+    assert len(short[0]) == len(full[0]) == 180
+    for a, b in zip(short[0], full[0], strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert short[1:] == full[1:]
+    assert short[2][1] == 0 and short[2][2] == b""  # the session ended at rest: the short path was taken
+
+
 def test_paced_sessions_share_one_translator_call_per_tick(ga_voice_bundle):
     """Four paced sessions on one clock grid, stepped as the live server's pool does (every session's planned
     call gathered, run as one, then each steps): one call per tick for all of them, and each session's drives are

@@ -114,7 +114,13 @@ class _GateHistory:
 
     def push(self, samples: np.ndarray) -> None:
         values = samples.astype(np.float64)
-        entry = (values.shape[0], float(values.sum()), float(values @ values))
+        self._append((values.shape[0], float(values.sum()), float(values @ values)))
+
+    def push_silence(self, count: int) -> None:
+        """`push` of `count` zeros (an idle frame), without making them."""
+        self._append((count, 0.0, 0.0))
+
+    def _append(self, entry: tuple[int, float, float]) -> None:
         self.frames.append(entry)
         self.count, self.total, self.squares = self.count + entry[0], self.total + entry[1], self.squares + entry[2]
         while len(self.frames) > 1 and self.count - self.frames[0][0] >= self.limit:
@@ -515,7 +521,7 @@ class LiveSession:
 
     def _place(self, speech: np.ndarray, first: int, count: int = 1, idle: bool = False) -> None:
         """Frames [first, first + count)'s shown speech-rate samples join the translator's past context (a sliding
-        window; streaming: the gate's history, and an idle gap's silence the stream)."""
+        window; streaming: the gate's history, and an idle gap's silence the stream; `idle`: `speech` is zeros)."""
         if self._stream is None:
             if self._history.shape[0]:
                 self._history = np.concatenate([self._history, speech])[-self._history.shape[0]:]
@@ -523,7 +529,10 @@ class LiveSession:
         start = frame_start(first, self._speech.per_frame)
         for index in range(first, first + count):
             lo, hi = frame_start(index, self._speech.per_frame) - start, frame_start(index + 1, self._speech.per_frame)
-            self._gate.push(speech[lo:hi - start])
+            if idle:  # an idle gap's speech is zeros
+                self._gate.push_silence(hi - start - lo)
+            else:
+                self._gate.push(speech[lo:hi - start])
         if idle:
             self._synced_stream(first).idle(start, start + speech.shape[0])
 

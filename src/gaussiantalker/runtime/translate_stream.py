@@ -185,6 +185,7 @@ class TranslatorStream:
         self.quiet = REST_FRAMES * self.spec.frame_samples  # silent samples at the end of what was committed
         self._provisional: dict[int, np.ndarray] = {}
         self._powers = np.zeros(0)  # the committed frames' mean squares, the last window's (rest: silence)
+        self._at_rest = True  # nothing offered nor run since this reset: all of the above is as it set it
 
     @property
     def known_end(self) -> int:
@@ -201,11 +202,15 @@ class TranslatorStream:
         new = samples[end - start:]
         if new.shape[0]:
             self.known = np.concatenate([self.known, new.astype(np.float32, copy=False)])
+            self._at_rest = False
 
     def idle(self, start: int, stop: int) -> None:
         """Timeline samples [start, stop) are an idle gap (silence), every frame before it made. Once a second of
         silence ends what the stream knows, it restarts at rest at `stop` instead (the state after that much
         silence is the rest state), so an idle session holds and computes nothing."""
+        if self._at_rest and start >= self.origin:  # still at rest: the reset below would change the origin only
+            self.origin = int(stop)
+            return
         self.offer(start, np.zeros(0, np.float32))
         silent = _trailing_silence(self.known)
         if silent == self.known.shape[0]:  # nothing spoken since the committed audio's own silent end
@@ -264,6 +269,7 @@ class TranslatorStream:
         self.quiet = self.quiet + silent if silent == committed.shape[0] else silent
         self.state = np.asarray(job.state, np.float32)
         self.committed += job.keep
+        self._at_rest = False
         self.known = self.known[job.keep * size:]
 
     def _row(self, index: int) -> np.ndarray:
