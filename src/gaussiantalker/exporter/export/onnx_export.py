@@ -104,14 +104,16 @@ def export_onnx(module: torch.nn.Module, args: tuple, input_names: list[str], ou
     zero rotation into NaN. onnxruntime constant-folds and fuses the graph itself when it loads it.
     """
     module.eval()
-    key = None if _reused is None else _export_key(module, args, input_names, output_names, dynamic_shapes)
-    if key is not None and key in _reused:
-        return onnx.ModelProto.FromString(_reused[key])
+    reused = _reused
+    if reused is None:
+        return _traced(module, args, input_names, output_names, dynamic_shapes)
+    key = _export_key(module, args, input_names, output_names, dynamic_shapes)
+    if key in reused:
+        return onnx.ModelProto.FromString(reused[key])
     model = _traced(module, args, input_names, output_names, dynamic_shapes)
-    if key is not None and _reused is not None:
-        serialised = model.SerializeToString()
-        if sum(map(len, _reused.values())) + len(serialised) <= REUSED_EXPORTS_MAX_BYTES:
-            _reused[key] = serialised
+    serialised = model.SerializeToString()
+    if sum(map(len, reused.values())) + len(serialised) <= REUSED_EXPORTS_MAX_BYTES:
+        reused[key] = serialised
     return model
 
 
