@@ -28,15 +28,15 @@ ROOT = Path(__file__).resolve().parents[1]
 # -- a server on loopback --------------------------------------------------------------------------------------
 
 
-def _serve(bundle) -> Iterator[tuple]:
-    """gt-serve --client-render on `bundle`, on a free loopback port; after the module, its log holds no traceback
-    and a line for each session's start and end."""
+def _serve(bundle, *options: str) -> Iterator[tuple]:
+    """gt-serve --client-render on `bundle` (and `options`), on a free loopback port; after the module, its log
+    holds no traceback and a line for each session's start and end."""
     module = _server_module()
     port = free_port()
     # --debug: the admin routes (/health, /drives) without tokens, on loopback (tests/test_serve_security.py has
     # the tokens)
     process = serving([sys.executable, "-m", "gaussiantalker.cli.serve", str(bundle), "--port", str(port),
-                       "--client-render", "--debug", "--drain-s", "1"],
+                       "--client-render", "--debug", "--drain-s", "1", *options],
                       f"http://127.0.0.1:{port}/readyz", 120, name="gt-serve")
     yield module, port
     process.terminate()
@@ -192,23 +192,27 @@ def test_a_bad_page_is_told_why_and_its_session_ends(server, start, raw, message
 @pytest.fixture(scope="module")
 def stream_server(ga_voice_bundle):
     """gt-serve --client-render on a bundle whose translator streams (the built-in FLAME voice)."""
-    yield from _serve(ga_voice_bundle)
+    yield from _serve(ga_voice_bundle, "--max-sessions-per-client", "8")  # every test session is one client
 
 
 def test_streaming_sessions_share_translator_calls(stream_server):
-    """Four sessions at once on a streaming bundle: each gets every frame in order with the voice's samples and a
-    face that speaks, and /metrics shows translator calls that served more than one session (the pool's batch)."""
+    """Eight sessions at once on a streaming bundle: each gets every frame in order with the voice's samples and a
+    face that speaks, and /metrics shows translator calls that served more than one session (the pool's batch; with
+    a pool thread per core and two clock phases a frame, eight sessions put at least two on one thread's phase) and
+    the rows those calls made."""
     module, port = stream_server
 
     async def together():
         return await asyncio.gather(*[_session(port, {"source": "file", "chunk_ms": 20}, frames=60)
-                                      for _ in range(4)])
+                                      for _ in range(8)])
 
+    spoken = 0
     for out in asyncio.run(together()):
         decoded = [module.decode_frame_packet(p) for p in out["packets"]]
         assert [d["drive"]["index"] for d in decoded] == list(range(60))
         speaking = [d for d in decoded if d["drive"]["speaking"]]
         assert len(speaking) >= 30 and all(d["audio"].shape == (640,) for d in decoded)
+        spoken += len(speaking)
         values = np.stack([d["drive"]["values"] for d in speaking])
         assert np.all(np.isfinite(values)) and np.ptp(values, axis=0).max() > 0.05  # the face moves
     metrics = _get(port, "/metrics").decode()
@@ -217,6 +221,11 @@ def test_streaming_sessions_share_translator_calls(stream_server):
     single = float(next(line.split()[-1] for line in metrics.splitlines()
                         if line.startswith('gt_serve_translator_batch_sessions_bucket{le="1.0"}')))
     assert count > 0 and single < count, (single, count)
+    rows = {kind: float(next(line.split()[-1] for line in metrics.splitlines()
+                             if line.startswith(f'gt_serve_translator_rows_total{{kind="{kind}"}}')))
+            for kind in ("committed", "provisional")}
+    # a speaking frame's row is final once the frames up to it and its lookahead (the delay, 4 frames) are committed
+    assert rows["committed"] >= spoken - 8 * 5 and rows["provisional"] >= 0, (rows, spoken)
 
 
 def test_the_load_bench_runs_an_older_gt_serve_as_its_baseline(tmp_path):

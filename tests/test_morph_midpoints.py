@@ -67,6 +67,28 @@ def test_a_vertex_off_its_midpoint_stays_stored(avatar):
     assert victim in find_midpoints(rest, moved, faces)[:, 0]
 
 
+def test_the_same_rig_asked_again_is_not_searched_again(avatar, monkeypatch):
+    """An export that derives midpoints and orders its Gaussians spatially asks for the same rig's table twice: the
+    second answer is the first one's copy (a caller that changes it changes nothing kept), and a changed rig, or
+    another tolerance, is searched again."""
+    import gaussiantalker.exporter.export.morph_midpoints as module
+
+    rest, morphs, faces = _rig_arrays(avatar)
+    searched = []
+    found_by_search = module._found
+    monkeypatch.setattr(module, "_found", lambda *args: searched.append(1) or found_by_search(*args))
+    monkeypatch.setattr(module, "_FOUND", {})
+    first = find_midpoints(rest, morphs, faces)
+    first[:] = -1
+    again = find_midpoints(rest, morphs, faces)
+    assert len(searched) == 1 and np.array_equal(again[:, 0], np.arange(COARSE, rest.shape[0]))
+    moved = morphs.copy()
+    moved[0, COARSE, 0] += 1.0
+    assert COARSE not in find_midpoints(rest, moved, faces)[:, 0] and len(searched) == 2
+    find_midpoints(rest, morphs, faces, tolerance=MIDPOINT_TOLERANCE_M / 2)
+    assert len(searched) == 3 and len(module._FOUND) == 3
+
+
 def test_no_derived_vertex_is_another_ones_end():
     """0-1-2 on a line with 1 their midpoint, and 3 the midpoint of 0 and 1: only one of 1 and 3 can be derived
     (1, whose ends are stored vertices), so nothing waits on a derived vertex."""

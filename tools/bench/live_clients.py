@@ -375,16 +375,34 @@ class Server:
 
         return [mint_token(self.secret, TOKEN_TTL_S, subject=f"gt-bench-{tag}-{k}") for k in range(count)]
 
+    def _admin_headers(self) -> dict[str, str]:
+        """An admin token's header where it checks tokens."""
+        if self.secret is None:
+            return {}
+        from gaussiantalker.serve import mint_token
+
+        return _auth(mint_token(self.secret, 60.0, subject="gt-bench-admin", admin=True))
+
     def open_sessions(self) -> int:
         """The sessions it holds now (/health, with an admin token where it checks tokens)."""
-        headers = {}
-        if self.secret is not None:
-            from gaussiantalker.serve import mint_token
-
-            headers = _auth(mint_token(self.secret, 60.0, subject="gt-bench-admin", admin=True))
+        headers = self._admin_headers()
         return sum(json.loads(urllib.request.urlopen(urllib.request.Request(f"{url}/health", headers=headers),
                                                      timeout=10).read())["sessions"]
                    for url in self.replica_urls or [self.url])
+
+    def translator_rows(self) -> dict[str, float] | None:
+        """The rows its pools' streaming translator calls made so far, by kind, over every process (/metrics);
+        None where it does not count them (an older commit's server, or /metrics not answering)."""
+        headers, totals = self._admin_headers(), {}
+        for url in self.replica_urls or [self.url]:
+            try:
+                text = urllib.request.urlopen(urllib.request.Request(f"{url}/metrics", headers=headers),
+                                              timeout=10).read().decode("utf-8")
+            except (OSError, ValueError):
+                return None
+            for kind, rows in translator_rows_of(text).items():
+                totals[kind] = totals.get(kind, 0.0) + rows
+        return totals or None
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Wait until every session has closed (before the next round); False if some are open at `timeout`."""
@@ -548,6 +566,44 @@ def cpu_terms(clients: list[dict], samples: list[tuple[float, float]]) -> tuple[
     return np.diff(cpu) / width, np.stack([np.ones(len(lo)), speaking / width, idle / width], 1)
 
 
+def translator_rows_of(exposition: str) -> dict[str, float]:
+    """gt_serve_translator_rows_total by kind (committed, provisional) from a /metrics body; {} where it has none."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    rows: dict[str, float] = {}
+    for family in text_string_to_metric_families(exposition):
+        for sample in family.samples:
+            if sample.name == "gt_serve_translator_rows_total":
+                kind = sample.labels.get("kind", "")
+                rows[kind] = rows.get(kind, 0.0) + sample.value
+    return rows
+
+
+def speaking_seconds(clients: list[dict]) -> float:
+    """Session-seconds the clients' voices spoke: from each answer to its barge-in."""
+    return sum(max(0.0, client["interrupt_sent"] - client["answered"]) for client in clients
+               if not client["error"] and "interrupt_sent" in client)
+
+
+def round_rows(before: dict | None, after: dict | None, clients: list[dict]) -> dict | None:
+    """A round's translator rows (`Server.translator_rows` before and after it) and its speaking session-seconds;
+    None where the server does not count rows."""
+    if after is None:
+        return None
+    before = before or {}
+    return {"committed": after.get("committed", 0.0) - before.get("committed", 0.0),
+            "provisional": after.get("provisional", 0.0) - before.get("provisional", 0.0),
+            "speaking_s": speaking_seconds(clients)}
+
+
+def _pooled_rows(rows: list[dict]) -> dict | None:
+    """Every round's translator rows summed (None unless each round has them)."""
+    counted = [row.get("translator_rows") for row in rows]
+    if not counted or any(count is None for count in counted):
+        return None
+    return {key: sum(count[key] for count in counted) for key in ("committed", "provisional", "speaking_s")}
+
+
 def cpu_split(parts: list[tuple[np.ndarray, np.ndarray]]) -> dict | None:
     """Least squares over every interval of `parts` (`cpu_terms` of one or more rounds): server CPU = base +
     speaking x (CPU s per speaking session-second) + idle x (per idle session-second); None with fewer than 8
@@ -566,6 +622,7 @@ def _run_round(server: Server, n: int, index: int, speak_s: float, idle_s: float
     """N load clients against `server` once: the round's row, its clients' records and its `cpu_terms`."""
     tokens = server.client_tokens(n, f"n{n}-r{index}")
     load_before = os.getloadavg()
+    rows_before = server.translator_rows()
     sampler = _CpuSampler(server)
     sampler.start()
     started = time.monotonic()
@@ -575,6 +632,7 @@ def _run_round(server: Server, n: int, index: int, speak_s: float, idle_s: float
     terms = cpu_terms(clients, samples)
     row = {"server": server.label, "n": n, "round": index,
            **_analyse(clients, samples[-1][1] - samples[0][1], wall_s), "cpu_split": cpu_split([terms]),
+           "translator_rows": round_rows(rows_before, server.translator_rows(), clients),
            "load_before": load_before, "load_after": os.getloadavg()}
     row["drained"] = server.wait_idle()  # every session closed before the next round
     return row, clients, terms
@@ -594,7 +652,8 @@ def _pooled(rows: list[dict], clients: list, terms: list[tuple[np.ndarray, np.nd
     fitted over every round's intervals."""
     return {"n": rows[0]["n"], "rounds": len(rows),
             **_analyse(clients, sum(r["server_cpu_s"] for r in rows), sum(r["wall_s"] for r in rows)),
-            "cpu_split": cpu_split(terms), "load_before": rows[0]["load_before"], "load_after": rows[-1]["load_after"]}
+            "cpu_split": cpu_split(terms), "translator_rows": _pooled_rows(rows), "load_before": rows[0]["load_before"],
+            "load_after": rows[-1]["load_after"]}
 
 
 def _alternate(servers: list[Server], counts: list[int], rounds: int, speak_s: float, idle_s: float,
@@ -776,6 +835,14 @@ def _split(split: dict | None) -> str:
     return f"{split['speaking_s_per_session_s']:.3f} / {split['idle_s_per_session_s']:.3f}"
 
 
+def _rows(rows: dict | None) -> str:
+    """Translator rows per speaking session-second, and how many of them provisional, or – (not counted)."""
+    if not rows or rows["speaking_s"] <= 0:
+        return "–"
+    return (f"{(rows['committed'] + rows['provisional']) / rows['speaking_s']:.1f} "
+            f"({rows['provisional'] / rows['speaking_s']:.1f})")
+
+
 def _times(value) -> str:
     return "–" if value is None else f"{value:.2f}×"
 
@@ -783,13 +850,15 @@ def _times(value) -> str:
 def _detail_table(runs: list[dict], largest: int, tolerance_ms: float) -> str:
     """One server's figures per N, every column."""
     lines = ["| N | late frames | lost | jitter p50 / p99 | behind schedule | delay p50 / p99 | server CPU s per "
-             "session-s | speaking / idle | first frame p50 / p95 | barge-in p50 / p95 | audio packets | failed | "
-             "load avg (1 min) before → after |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "session-s | speaking / idle | translator rows per speaking session-s (provisional) | first frame p50 / "
+             "p95 | barge-in p50 / p95 | audio packets | failed | load avg (1 min) before → after |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in runs:
         lines.append(f"| {row['n']} | {100 * row['late_share']:.1f}% ({row['late_frames']}/{row['frames_due']}) | "
                      f"{row['missing_frames']} | {_ms(row['jitter_p50_ms'])} / {_ms(row['jitter_p99_ms'])} ms | "
                      f"{100 * row['behind_share']:.1f}% | {_ms(row['delay_p50_ms'])} / {_ms(row['delay_p99_ms'])} "
                      f"ms | {_cpu(row['cpu_s_per_session_s'])} | {_split(row.get('cpu_split'))} | "
+                     f"{_rows(row.get('translator_rows'))} | "
                      f"{_ms(row['first_frame']['p50_ms'])} / "
                      f"{_ms(row['first_frame']['p95_ms'])} ms | {_ms(row['barge_in']['p50_ms'])} / "
                      f"{_ms(row['barge_in']['p95_ms'])} ms | {100 * row['audio_packets_per_expected']:.0f}% | "
@@ -797,7 +866,10 @@ def _detail_table(runs: list[dict], largest: int, tolerance_ms: float) -> str:
     lines.append("")
     lines.append("Server CPU per session-second: the round's CPU over its sessions' seconds (offers' ramp and idle "
                  "tail included); speaking / idle: a least-squares split of the CPU read every "
-                 f"{CPU_SAMPLE_S:g} s into a base and a cost per speaking and per idle session-second (`cpu_split`).")
+                 f"{CPU_SAMPLE_S:g} s into a base and a cost per speaking and per idle session-second (`cpu_split`). "
+                 "Translator rows: the voice frames the server's streaming translator calls made "
+                 "(`gt_serve_translator_rows_total`) over the seconds the clients' voices spoke; provisional ones are "
+                 "made again once their lookahead is in.")
     lines.append(f"Largest N with at most 5% late frames: **{largest}**. Late: a drive arriving more than "
                  f"{tolerance_ms:.0f} ms after the page's clock (the smallest arrival − pts of the last 2 s, which "
                  "follows the voice) would show it, or lost. Behind schedule: more than "

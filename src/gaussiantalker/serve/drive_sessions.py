@@ -324,8 +324,12 @@ def _translate_together(sessions: list[DriveSession]) -> None:
             for job in jobs:
                 job.rows = job.state = None
         else:
+            metrics = sessions[0]._metrics
             for count in calls:
-                sessions[0]._metrics.translator_batch.observe(count)
+                metrics.translator_batch.observe(count)
+            committed = sum(job.keep for job in jobs)
+            metrics.translator_rows.labels(kind="committed").inc(committed)
+            metrics.translator_rows.labels(kind="provisional").inc(sum(job.audio.shape[0] for job in jobs) - committed)
 
 
 __all__ = ["DrivePool", "DriveSession", "WEBRTC_AUDIO_RATE", "clock_grid_s"]

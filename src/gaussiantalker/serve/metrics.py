@@ -28,6 +28,9 @@ class ServeMetrics:
             "gt_serve_translator_batch_sessions", "Sessions whose frames one streaming translator call made (the "
             "pool runs every due session's call as one)", buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256),
             registry=registry)
+        self.translator_rows = Counter(
+            "gt_serve_translator_rows", "Rows (voice frames) the pool's streaming translator calls made: committed "
+            "(final) or provisional (lookahead not yet in: made again once it is)", ["kind"], registry=registry)
         self.refusals = Counter("gt_serve_refusals", "Requests or sessions refused, by reason", ["reason"],
                                 registry=registry)
         self.connections = Gauge("gt_serve_connections", "TCP connections open now", registry=registry)

@@ -1,0 +1,39 @@
+"""`gt-bench live-clients`' translator rows per speaking session-second (tools/bench/live_clients.py
+`translator_rows_of`, `round_rows`): read from the /metrics body gt-serve writes (serve/metrics.py), so the bench and
+the server agree on the counter's name and labels."""
+
+from __future__ import annotations
+
+import pytest
+
+from gaussiantalker.serve.metrics import ServeMetrics
+from tools.bench.live_clients import _pooled_rows, _rows, round_rows, translator_rows_of
+
+
+def _exposition(committed: int, provisional: int) -> str:
+    metrics = ServeMetrics()
+    metrics.translator_rows.labels(kind="committed").inc(committed)
+    metrics.translator_rows.labels(kind="provisional").inc(provisional)
+    metrics.frames.labels(mode="client-render").inc(7)  # another counter: not read as rows
+    return metrics.exposition().decode()
+
+
+def test_rows_are_read_from_the_servers_own_metrics():
+    assert translator_rows_of(_exposition(250, 300)) == {"committed": 250.0, "provisional": 300.0}
+    assert translator_rows_of(ServeMetrics().exposition().decode()) == {}  # nothing made yet: no sample
+
+
+def test_a_round_counts_its_rows_over_the_seconds_its_voices_spoke():
+    clients = [{"error": None, "answered": 10.0, "interrupt_sent": 14.0},
+               {"error": None, "answered": 11.0, "interrupt_sent": 15.5},
+               {"error": "refused", "answered": 11.0, "interrupt_sent": 13.0},  # a failed client spoke nothing
+               {"error": None, "answered": 12.0}]  # never barged in (closed first): not counted
+    before = translator_rows_of(_exposition(100, 20))
+    after = translator_rows_of(_exposition(300, 230))
+    rows = round_rows(before, after, clients)
+    assert rows == {"committed": 200.0, "provisional": 210.0, "speaking_s": pytest.approx(8.5)}
+    assert round_rows(None, after, clients)["committed"] == 300.0  # the first round: nothing counted before it
+    assert round_rows(None, None, clients) is None  # a server that does not count rows (an older commit)
+    assert _rows(rows) == "48.2 (24.7)" and _rows(None) == "–"
+    assert _pooled_rows([{"translator_rows": rows}, {"translator_rows": rows}])["speaking_s"] == pytest.approx(17.0)
+    assert _pooled_rows([{"translator_rows": rows}, {"translator_rows": None}]) is None
