@@ -559,6 +559,95 @@ console.log(JSON.stringify(results));
     assert want_bundles[0] is not None  # the intact bundle
 
 
+def _graph_bundles(folder: Path) -> list[Path]:
+    """Bundles holding one zlib-stored graph: intact, then its stream or entry damaged (checksums and offsets made to
+    match): bytes after the stream (also a copy of its checksum after them), cut short, a wrong checksum, another
+    raw_nbytes, not zlib, a flipped bit."""
+    import zlib
+
+    from test_fuzz_readers import _relayout
+
+    from gaussiantalker.sdk.bundle import Bundle, BundleWriter
+
+    rng = np.random.default_rng(11)
+    graph = bytes(rng.integers(0, 8, 6000, dtype=np.uint8))  # compressible, as a protobuf is
+    writer = BundleWriter({"speaker": {"n_expr": 3}})
+    writer.add_buffer("weights", np.zeros(3, np.float32))
+    writer.add_graph("g", graph, [], [], {"w": "weights"})
+    writer.write(folder / "graph.gtb")
+    bundle = Bundle(folder / "graph.gtb")
+    manifest = json.loads(json.dumps(bundle.manifest))
+    assert manifest["graphs"]["g"].get("compression") == "zlib"
+    blobs = {("buffers", "weights"): bundle._read_entry("weights", manifest["buffers"]["weights"]),
+             ("graphs", "g"): bundle._read_entry("g", manifest["graphs"]["g"])}
+    stream, raw = blobs["graphs", "g"], len(graph)
+    paths = [folder / "graph.gtb"]
+
+    def variant(data: bytes, **entry) -> None:
+        changed = json.loads(json.dumps(manifest))
+        changed["graphs"]["g"].update(entry)
+        path = folder / f"graph{len(paths):03d}.gtb"
+        path.write_bytes(_relayout(changed, {**blobs, ("graphs", "g"): data}))
+        paths.append(path)
+
+    for extra in (b"\0", bytes(7), b"\x01\x02\x03" + stream[-4:], stream):  # after the stream, however it ends
+        variant(stream + extra)
+    variant(stream[:-1])
+    variant(stream[:-4] + bytes(4))
+    variant(stream, raw_nbytes=raw - 1)
+    variant(stream, raw_nbytes=raw + 1)
+    variant(graph, raw_nbytes=raw)  # not a zlib stream
+    variant(zlib.compress(graph, 0))  # stored blocks: loads
+    for _ in range(4):
+        damaged = bytearray(stream)
+        damaged[rng.integers(len(damaged))] ^= 1 << int(rng.integers(8))
+        variant(bytes(damaged))
+    return paths
+
+
+def test_the_web_reader_inflates_and_refuses_graphs_as_python_does(tmp_path):
+    """`graphBytes` (web/src/bundle.js) against sdk/bundle.py `graph_bytes` on a zlib-stored graph, intact and
+    damaged: the same bytes where Python inflates them, refused where Python refuses (bytes after the stream's
+    checksum too, which the platform's inflater alone lets through)."""
+    import base64
+
+    from gaussiantalker.sdk.bundle import Bundle
+
+    node = shutil.which("node")
+    need(None if node else "node is missing (Debian's npm brings it)", BROWSER_INSTALL)
+    paths = _graph_bundles(tmp_path)
+
+    def python(path: Path) -> str | None:
+        try:
+            return base64.b64encode(Bundle(path).graph_bytes("g")).decode()
+        except BundleError:
+            return None
+
+    want = [python(path) for path in paths]
+    script = tmp_path / "graphs.mjs"
+    script.write_text(f"""
+import fs from 'node:fs';
+import {{ readBundle, BundleError }} from {json.dumps((ROOT / "web" / "src" / "bundle.js").as_uri())};
+const results = [];
+for (const path of {json.dumps([str(path) for path in paths])}) {{
+  try {{
+    const bundle = await readBundle(fs.readFileSync(path), {{ name: path }});
+    results.push(Buffer.from(await bundle.graphBytes('g')).toString('base64'));
+  }} catch (error) {{
+    results.push(error instanceof BundleError && !error.message.includes('\\n') ? null : `crashed: ${{error}}`);
+  }}
+}}
+console.log(JSON.stringify(results));
+""")
+    done = subprocess.run([node, str(script)], capture_output=True, text=True, timeout=NODE_TIMEOUT_S)
+    assert done.returncode == 0, done.stderr[-2000:]
+    web = json.loads(done.stdout)
+    wrong = [f"{path.name}: Python {str(a)[:40]}, web {str(b)[:40]}"
+             for path, a, b in zip(paths, want, web, strict=True) if a != b]
+    assert not wrong, "\n".join(wrong)
+    assert want[0] is not None and want[-5] is not None and sum(w is None for w in want) >= 10
+
+
 def test_the_web_npy_reader_reads_dtypes_as_numpy_does(tmp_path):
     """`parseDescr` (web/src/npy_header.js) against numpy on every one-character type code and every kind letter
     with sizes 0-20, 32, 64, 99, each with each byte-order mark: the same numbers dtype (kind, size, byte order), a

@@ -182,29 +182,40 @@ export class Bundle {
     const data = this.entryBytes(entry);
     if (!isCompressed(entry)) return data.slice();
     const raw = entry.raw_nbytes;
-    const out = new Uint8Array(raw);
-    let filled = 0;
     const fail = (why) => new BundleError(`${this.name}: ${label('graph', name)} ${why}`);
-    // DecompressionStream('deflate') is the zlib format (RFC 1950) the writer uses; the platform's inflater.
-    const reader = new Blob([data]).stream().pipeThrough(new DecompressionStream('deflate')).getReader();
-    try {
-      for (;;) {
-        const { value, done } = await reader.read();
-        if (done) break;
-        if (filled + value.length > raw) {
-          await reader.cancel();
-          throw fail(`does not inflate to its declared ${raw} bytes`);
-        }
-        out.set(value, filled);
-        filled += value.length;
-      }
-    } catch (error) {
-      if (error instanceof BundleError) throw error;
-      throw fail(`does not inflate (${error.message})`);
-    }
-    if (filled !== raw) throw fail(`does not inflate to its declared ${raw} bytes`);
+    const out = await inflateGraph(data, raw, fail);
+    if (out === null) throw fail(`does not inflate to its declared ${raw} bytes`);
+    // The stream must end with the entry, as Python's reader demands: the platform's inflater checks the Adler-32
+    // but may ignore bytes after it, so the entry less its last byte must not inflate (it would, were a byte after
+    // the checksum). Graphs are small protobufs (their weights are buffers), so the second pass costs little.
+    const shorter = await inflateGraph(data.subarray(0, data.length - 1), raw, fail).catch(() => null);
+    if (shorter !== null) throw fail(`does not inflate to its declared ${raw} bytes`);
     return out;
   }
+}
+
+/** A zlib stream's bytes if it inflates to exactly `raw` of them (never more are kept), null if to another number;
+ * throws `fail(...)` where the stream is damaged. DecompressionStream('deflate') is the zlib format (RFC 1950) the
+ * writer uses: the platform's inflater, which checks the stream's Adler-32. */
+async function inflateGraph(data, raw, fail) {
+  const out = new Uint8Array(raw);
+  let filled = 0;
+  const reader = new Blob([data]).stream().pipeThrough(new DecompressionStream('deflate')).getReader();
+  try {
+    for (;;) {
+      const { value, done } = await reader.read();
+      if (done) break;
+      if (filled + value.length > raw) {
+        await reader.cancel();
+        return null;
+      }
+      out.set(value, filled);
+      filled += value.length;
+    }
+  } catch (error) {
+    throw fail(`does not inflate (${error.message})`);
+  }
+  return filled === raw ? out : null;
 }
 
 /** Read and check a bundle held in `buffer` (ArrayBuffer or Uint8Array); `name` labels every error. Every entry's
