@@ -48,6 +48,10 @@ def main(
     batch_size: int = typer.Option(TrainSettings.batch_size, "--batch-size", min=1),
     closure_weight: float = typer.Option(TrainSettings.closure_weight, "--closure-weight", min=0.0,
                                          help="weight of lips left open at /p b m/ in the loss"),
+    band_masks: float = typer.Option(TrainSettings.band_masks, "--band-masks", min=0.0, max=1.0,
+                                     help="share of training crops whose log-mel bands are masked"),
+    band_colour: float = typer.Option(TrainSettings.band_colour, "--band-colour", min=0.0, max=1.0,
+                                      help="share of training crops whose log-mel bands are coloured"),
     heldout: int = typer.Option(60, "--heldout", min=1, help="held-out clips (training languages)"),
     unseen: int = typer.Option(16, "--unseen", min=0, help="held-out clips in a language never trained on"),
     seed: int = typer.Option(0, "--seed", help="seed of everything random"),
@@ -69,7 +73,7 @@ def main(
                    "festvox-us-slt-hts flite; or --natural 0)", err=True)
         raise typer.Exit(2)
     settings = TrainSettings(steps=steps, utterances=utterances, natural_utterances=natural, batch_size=batch_size,
-                             closure_weight=closure_weight)
+                             closure_weight=closure_weight, band_masks=band_masks, band_colour=band_colour)
     times: dict[str, float] = {}
     start = time.perf_counter()
     if weights is None:
@@ -105,7 +109,9 @@ def main(
     chosen = {"--steps": (steps, TrainSettings.steps), "--utterances": (utterances, TrainSettings.utterances),
               "--natural": (natural, TrainSettings.natural_utterances),
               "--batch-size": (batch_size, TrainSettings.batch_size),
-              "--closure-weight": (closure_weight, TrainSettings.closure_weight), "--heldout": (heldout, 60),
+              "--closure-weight": (closure_weight, TrainSettings.closure_weight),
+              "--band-masks": (band_masks, TrainSettings.band_masks),
+              "--band-colour": (band_colour, TrainSettings.band_colour), "--heldout": (heldout, 60),
               "--unseen": (unseen, 16), "--seed": (seed, 0)}
     command = shlex.join(["python", "samples/train_voice.py"] + [
         part for flag, (value, default) in chosen.items() if value != default for part in (flag, str(value))])

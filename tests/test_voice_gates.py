@@ -184,6 +184,34 @@ def test_vocal_tract_warp_moves_a_tone_up_the_bands():
     assert any(changed) and not all(changed)  # WARP_P of the crops
 
 
+def test_band_masks_and_colour_change_only_what_they_say():
+    """mask_bands sets at most MASKS spans of at most MASK_WIDTH bands to the crop's mean level, in its share of the
+    crops; colour_bands adds one smooth curve a crop (the same at every step) whose largest gain is COLOUR_GAIN; a
+    share of 0 returns the features as they are and draws nothing, so a run without them is the run before them."""
+    import torch
+
+    from gaussiantalker.exporter.voice.train import COLOUR_GAIN, MASK_WIDTH, MASKS, colour_bands, mask_bands
+
+    rng = np.random.default_rng(1)
+    features = torch.from_numpy(rng.normal(size=(8, 64, 30)).astype(np.float32))
+    before = rng.bit_generator.state
+    assert mask_bands(features, rng, 0.0) is features and colour_bands(features, rng, 0.0) is features
+    assert rng.bit_generator.state == before
+    masked = mask_bands(features, rng, 1.0)
+    for k in range(8):
+        changed = np.flatnonzero((masked[k] != features[k]).any(1).numpy())
+        assert 1 <= len(changed) <= MASKS * MASK_WIDTH
+        assert torch.all(masked[k, changed] == features[k].mean())
+    coloured = colour_bands(features, rng, 1.0)
+    for k in range(8):
+        curve = (coloured[k] - features[k]).numpy()
+        assert np.allclose(curve, curve[:, :1], atol=1e-5)  # one gain a band, at every step
+        assert abs(np.abs(curve).max() - COLOUR_GAIN) < 1e-5
+        assert np.abs(np.diff(curve[:, 0])).max() < 0.2  # smooth over the bands
+    half = mask_bands(features, rng, 0.5)
+    assert 0 < sum(not torch.equal(half[k], features[k]) for k in range(8)) < 8
+
+
 def test_closure_term_counts_lips_left_open():
     """The loss grows when the lips stay open on frames the targets close for a /p b m/ (pressed), not when they
     close more, and not on a pause's closed rest."""

@@ -43,6 +43,14 @@ JAW, CLOSE = ARKIT_BLENDSHAPES.index("jawOpen"), ARKIT_BLENDSHAPES.index("mouthC
 PRESS = ARKIT_BLENDSHAPES.index("mouthPressLeft")
 # Vocal tract length perturbation of a crop's log-mel bands (model.mel_warp): share of crops, factor range.
 WARP_P, WARP_FACTOR = 0.6, (0.86, 1.16)
+# Frequency masks on a crop's log-mel bands (SpecAugment's): masks per masked crop and the widest, in bands; each
+# masked span takes the crop's mean level, so no band can be relied on alone (TrainSettings.band_masks: the share
+# of crops masked).
+MASKS, MASK_WIDTH = 2, 8
+# A smooth random colour over the log-mel bands, a voice's and a microphone's (TrainSettings.band_colour: the share
+# of crops coloured): a sum of COLOUR_TERMS cosines over the bands whose largest gain is COLOUR_GAIN (log-mel units:
+# ln(power) x LOG_SCALE, so 0.35 is 6 dB).
+COLOUR_TERMS, COLOUR_GAIN = 3, 0.35
 # Loss weight per ARKit channel (others 1; channels the targets never move 0.2, so they learn to stay at 0).
 CHANNEL_WEIGHTS = {"jawOpen": 4.0, "mouthClose": 4.0, "mouthPressLeft": 2.0, "mouthPressRight": 2.0,
                    "mouthPucker": 2.0, "mouthFunnel": 2.0, "mouthRollLower": 2.0, "mouthRollUpper": 2.0,
@@ -66,6 +74,8 @@ class TrainSettings:
     weight_decay: float = 1e-4
     channels: int = 128
     closure_weight: float = 3.0  # of the closure term (voice_loss)
+    band_masks: float = 0.0  # share of crops whose log-mel bands are masked (mask_bands)
+    band_colour: float = 0.0  # share of crops whose log-mel bands are coloured (colour_bands)
 
 
 def channel_weights() -> torch.Tensor:
@@ -96,6 +106,41 @@ def warp_voices(features: torch.Tensor, rng: np.random.Generator) -> torch.Tenso
         if rng.random() < WARP_P:
             factor = float(np.exp(rng.uniform(*np.log(WARP_FACTOR))))
             out[k] = torch.from_numpy(mel_warp(factor)) @ features[k]
+    return out
+
+
+def mask_bands(features: torch.Tensor, rng: np.random.Generator, share: float) -> torch.Tensor:
+    """Each crop's log-mel bands [B, N_MELS, S] with MASKS spans of up to MASK_WIDTH bands set to the crop's mean
+    level, in `share` of the crops (no draw at all for share 0: a run without masks is the run before them)."""
+    if share <= 0:
+        return features
+    out = features.clone()
+    bands = features.shape[1]
+    for k in range(features.shape[0]):
+        if rng.random() < share:
+            level = features[k].mean()
+            for _ in range(MASKS):
+                width = int(rng.integers(1, MASK_WIDTH + 1))
+                first = int(rng.integers(0, bands - width + 1))
+                out[k, first:first + width] = level
+    return out
+
+
+def colour_bands(features: torch.Tensor, rng: np.random.Generator, share: float) -> torch.Tensor:
+    """Each crop's log-mel bands [B, N_MELS, S] plus a smooth random curve over the bands (COLOUR_TERMS cosines,
+    at most COLOUR_GAIN), in `share` of the crops (no draw for share 0)."""
+    if share <= 0:
+        return features
+    out = features.clone()
+    position = np.linspace(0.0, np.pi, features.shape[1])
+    for k in range(features.shape[0]):
+        if rng.random() < share:
+            cycles = rng.uniform(0.5, 3.0, COLOUR_TERMS)
+            phases = rng.uniform(0.0, 2 * np.pi, COLOUR_TERMS)
+            amplitudes = rng.uniform(-1.0, 1.0, COLOUR_TERMS)
+            curve = (amplitudes[:, None] * np.cos(cycles[:, None] * position[None] + phases[:, None])).sum(0)
+            curve *= COLOUR_GAIN / max(float(np.abs(curve).max()), 1e-6)
+            out[k] += torch.from_numpy(curve.astype(np.float32))[:, None]
     return out
 
 
@@ -175,6 +220,7 @@ def _train(streams: list[Stream], settings: TrainSettings, seed: int, progress: 
         audio, target = batch(streams, settings.batch_size, settings.crop_frames, rng)
         with torch.no_grad():
             features = warp_voices(model.features(torch.from_numpy(audio)), rng)
+            features = colour_bands(mask_bands(features, rng, settings.band_masks), rng, settings.band_colour)
         loss = voice_loss(model.forward_features(features), torch.from_numpy(target), weights,
                           settings.closure_weight)
         optimizer.zero_grad(set_to_none=True)
@@ -198,5 +244,5 @@ def _train(streams: list[Stream], settings: TrainSettings, seed: int, progress: 
     return model, record
 
 
-__all__ = ["CHANNEL_WEIGHTS", "TrainSettings", "channel_weights", "train", "training_streams", "voice_loss",
-           "warp_voices"]
+__all__ = ["CHANNEL_WEIGHTS", "TrainSettings", "channel_weights", "colour_bands", "mask_bands", "train",
+           "training_streams", "voice_loss", "warp_voices"]
