@@ -457,8 +457,7 @@ class LiveSession:
                     continue
                 else:
                     underrun = mid_utterance and bool(len(self._heard.samples))
-                    self._place(np.zeros(self._speech.span(self._next_index, self._next_index + 1), np.float32),
-                                self._next_index, idle=True)
+                    self._place_idle(self._next_index)
                     return _Plan(None, np.zeros(self._out.span(self._next_index, self._next_index + 1), np.float32),
                                  underrun=underrun)
             self._translate(job)
@@ -519,9 +518,9 @@ class LiveSession:
             self._stream_epoch = self._epoch
         return self._stream
 
-    def _place(self, speech: np.ndarray, first: int, count: int = 1, idle: bool = False) -> None:
+    def _place(self, speech: np.ndarray, first: int, count: int = 1) -> None:
         """Frames [first, first + count)'s shown speech-rate samples join the translator's past context (a sliding
-        window; streaming: the gate's history, and an idle gap's silence the stream; `idle`: `speech` is zeros)."""
+        window; streaming: the gate's history)."""
         if self._stream is None:
             if self._history.shape[0]:
                 self._history = np.concatenate([self._history, speech])[-self._history.shape[0]:]
@@ -529,12 +528,18 @@ class LiveSession:
         start = frame_start(first, self._speech.per_frame)
         for index in range(first, first + count):
             lo, hi = frame_start(index, self._speech.per_frame) - start, frame_start(index + 1, self._speech.per_frame)
-            if idle:  # an idle gap's speech is zeros
-                self._gate.push_silence(hi - start - lo)
-            else:
-                self._gate.push(speech[lo:hi - start])
-        if idle:
-            self._synced_stream(first).idle(start, start + speech.shape[0])
+            self._gate.push(speech[lo:hi - start])
+
+    def _place_idle(self, index: int) -> None:
+        """Idle frame `index`'s silence joins the translator's past context: zeros in the sliding window; streaming,
+        the gate counts them without making them and the stream idles over the gap."""
+        span = self._speech.span(index, index + 1)
+        if self._stream is None:
+            self._place(np.zeros(span, np.float32), index)
+            return
+        self._gate.push_silence(span)
+        start = frame_start(index, self._speech.per_frame)
+        self._synced_stream(index).idle(start, start + span)
 
     def _translate(self, batch: _Batch) -> None:
         """Run the translator outside the lock (windowed: on the batch's window; streaming: the stream's call,
