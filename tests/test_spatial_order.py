@@ -154,3 +154,27 @@ def test_gt_export_takes_the_knobs(larger_avatar, tmp_path):
     assert bundle.manifest["export_settings"]["deflate"] is True
     bad = CliRunner().invoke(app, [str(checkpoint), "-o", str(out), "--buffer-codec", "deform/sh_dc"])
     assert bad.exit_code != 0 and "NAME=CODEC" in bad.output
+
+
+def test_a_buffer_codec_for_a_buffer_the_bundle_lacks_is_refused(larger_avatar, tmp_path):
+    """A misspelt name, or one of another rig's buffers, would change nothing: the export says so and writes
+    nothing, naming the close match."""
+    out = tmp_path / "misspelt.gtb"
+    settings = ExportSettings(buffer_codecs=(("deform/rotations", "vq/256"),))
+    with pytest.raises(BundleError, match=r"'deform/rotations' \(did you mean 'deform/rotation'"):
+        export_bundle(larger_avatar, out, settings=settings, progress=False)
+    assert not out.exists()
+    settings = ExportSettings(buffer_codecs=(("deform/rotation", "vq/256"), ("flame/shapedirs", "q8")))
+    with pytest.raises(BundleError, match=r"does not store: 'flame/shapedirs'\. Its buffers under 'flame/': none"):
+        export_bundle(larger_avatar, out, settings=settings, progress=False)
+    assert not out.exists()
+
+
+def test_a_presets_own_buffer_codecs_are_not_asked_for(tmp_path):
+    """compact's ARKit codecs name buffers a small avatar keeps inside its graph (arrays under 1 kB): the preset's
+    own names are not checked, a caller's are."""
+    tiny = import_lam(write_avatar_zip(tmp_path / "tiny.zip", AvatarSpec(rings=4, segments=6)), progress=False)
+    result = export_bundle(tiny, tmp_path / "compact.gtb", preset="compact", progress=False)
+    assert result.label == "compact"
+    own = dict(get_preset("compact").export_for("arkit").buffer_codecs)
+    assert any(name not in Bundle(result.path).manifest["buffers"] for name in own)  # the case this guards

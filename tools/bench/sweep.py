@@ -76,7 +76,8 @@ def sweep_cases() -> list[SweepCase]:
     cases += [knob(f"blendshape rank {r}", "blendshape rank", blendshape_rank=r) for r in (6, 4, 2)]
     cases += [knob(f"budget {round(100 * b)}%", "Gaussian budget", gaussian_budget=b) for b in (0.7, 0.5)]
     cases += [knob("midpoints derived", "midpoints", midpoints=True)]  # an ARKit rig's only: FLAME speakers as stored
-    cases += [knob("rotation vq/256", "one buffer's codec", buffer_codecs=(("deform/rotation", "vq/256"),))]
+    # a buffer every rig stores (an unknown name is an export error: bundle_export.check_buffer_codecs)
+    cases += [knob("log-scales vq/1024", "one buffer's codec", buffer_codecs=(("deform/log_scale", "vq/1024"),))]
     cases += [knob("spatial order", "spatial order", spatial_order=True)]
     cases += [knob("deflated buffers", "deflate", deflate=True)]
     cases += [runtime(f"framebuffer {t}", "framebuffer", render_target=t) for t in ("float16", "uint8")]

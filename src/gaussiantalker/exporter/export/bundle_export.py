@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import difflib
 import os
 import platform
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -116,6 +118,9 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     `specialise` result for it); the bundle records the scene and its camera. `mnn` also stores every graph as
     an MNN model (docs/mnn.md; needs the `mnn` extra)."""
     settings, chosen, label = resolve_settings(codec, settings, preset, rig_of(speaker))
+    # the buffer codecs the caller asked for: a preset's own name buffers that a small avatar may keep in its graph
+    own = dict(chosen.export_for(rig_of(speaker)).buffer_codecs) if chosen is not None else {}
+    asked = tuple(name for name, codec in settings.buffer_codecs if own.get(name) != codec)
     if isinstance(speaker, ArkitSpeaker) and scene is not None:
         raise BundleError("scene specialisation (--scene) is for FLAME speakers; an ARKit speaker's bundle is "
                           "exported without one (docs/import.md)")
@@ -162,7 +167,7 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings, label=label,
                           gaussians=speaker.gaussians.count, specialisation=spec)
     try:
-        _export_steps(speaker, writer, path, result, settings, example_frames, steps, spec, mnn)
+        _export_steps(speaker, writer, path, result, settings, example_frames, steps, spec, mnn, asked)
     finally:
         steps.close()
     return result
@@ -170,11 +175,11 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
 
 def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLike | StagedFile, result: ExportResult,
                   settings: ExportSettings, example_frames: int, steps: tqdm, spec: Specialisation | None,
-                  mnn: bool) -> None:
+                  mnn: bool, asked: tuple[str, ...] = ()) -> None:
     """Both graphs into `writer` (and their MNN models), then one atomic write: nothing reaches `result.path`
     until every step worked. A flame-driven scene has no translator graph."""
     if isinstance(speaker, ArkitSpeaker):
-        _export_arkit_steps(speaker, writer, path, result, settings, steps, mnn)
+        _export_arkit_steps(speaker, writer, path, result, settings, steps, mnn, asked)
         return
     steps.set_postfix_str("translator graph")
     if speaker.translator is None:  # an imported avatar: its attached audio-to-FLAME model, if any
@@ -217,13 +222,13 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
         writer.metadata["regions"] = names + [f"region_{i}" for i in range(len(names), int(regions.max()) + 1)]
         buffers["gaussian_regions"] = ids.astype(np.uint8 if regions.max() < 256 else np.uint16)
     _write_bundle(writer, path, result, steps, mnn,
-                  {**buffers, "pose_track": speaker.pose_track, "motion_track": speaker.motion_track})
+                  {**buffers, "pose_track": speaker.pose_track, "motion_track": speaker.motion_track}, asked)
 
 
 def _write_bundle(writer: BundleWriter, path: str | os.PathLike | StagedFile, result: ExportResult, steps: tqdm,
-                  mnn: bool, buffers: dict) -> None:
+                  mnn: bool, buffers: dict, asked: tuple[str, ...] = ()) -> None:
     """The last steps of every export: the MNN models (if asked), the speaker's own buffers (None: absent; tensors
-    stored as float32), then one atomic write."""
+    stored as float32), the check that every buffer `asked` a codec of is stored, then one atomic write."""
     if mnn:
         steps.set_postfix_str("MNN graphs")
         result.mnn = add_mnn_graphs(writer)
@@ -232,13 +237,34 @@ def _write_bundle(writer: BundleWriter, path: str | os.PathLike | StagedFile, re
     for name, value in buffers.items():
         if value is not None:
             writer.add_buffer(name, value.numpy().astype(np.float32) if isinstance(value, torch.Tensor) else value)
+    check_buffer_codecs(asked, writer.manifest()["buffers"])
     result.bytes_written = writer.write(path)
     result.buffer_bytes = {name: entry["nbytes"] for name, entry in writer.manifest()["buffers"].items()}
     steps.update()
 
 
+def check_buffer_codecs(asked: Sequence[str], stored: dict) -> None:
+    """BundleError naming each buffer in `asked` (given a codec by `ExportSettings.buffer_codecs`) that the bundle
+    does not store (a misspelt or another rig's name would otherwise change nothing, silently), with the names it
+    does store."""
+    missing = [name for name in asked if name not in stored]
+    if not missing:
+        return
+    hints = []
+    for name in missing:
+        close = difflib.get_close_matches(name, list(stored), n=3, cutoff=0.6)
+        hints.append(f"{name!r}" + (f" (did you mean {', '.join(map(repr, close))}?)" if close else ""))
+    prefix = missing[0].split("/")[0] + "/"
+    alike = sorted(name for name in stored if name.startswith(prefix))
+    listed = ", ".join(alike[:24]) + (f", ... ({len(alike) - 24} more)" if len(alike) > 24 else "")
+    raise BundleError(f"--buffer-codec names {'a buffer' if len(missing) == 1 else 'buffers'} this bundle does not "
+                      f"store: {'; '.join(hints)}. Its buffers under {prefix!r}: {listed or 'none'} "
+                      "(docs/precision.md, \"Knobs\")")
+
+
 def _export_arkit_steps(speaker: ArkitSpeaker, writer: BundleWriter, path: str | os.PathLike | StagedFile,
-                        result: ExportResult, settings: ExportSettings, steps: tqdm, mnn: bool) -> None:
+                        result: ExportResult, settings: ExportSettings, steps: tqdm, mnn: bool,
+                        asked: tuple[str, ...] = ()) -> None:
     """An ARKit speaker's deformation graph, its shipped motion and pose tracks, then one atomic write (its bundle
     has no translator graph and no reference clip; docs/import.md)."""
     steps.set_postfix_str("audio model")
@@ -252,7 +278,7 @@ def _export_arkit_steps(speaker: ArkitSpeaker, writer: BundleWriter, path: str |
     steps.update()
     steps.update()  # no reference clip
     _write_bundle(writer, path, result, steps, mnn,
-                  {"pose_track": speaker.pose_track, "motion_track": speaker.motion_track})
+                  {"pose_track": speaker.pose_track, "motion_track": speaker.motion_track}, asked)
 
 
 def _add_audio_model(speaker: Speaker | ArkitSpeaker, writer: BundleWriter, result: ExportResult,
