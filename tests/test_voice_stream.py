@@ -378,3 +378,64 @@ def test_the_mnn_backend_runs_the_stream(tmp_path):
     audio = unseen_speech()[0][:24000]
     rows = [_live(open_driver(path, backend=backend), [audio], True)[0] for backend in ("onnxruntime", "mnn")]
     assert rows[0].shape == rows[1].shape and np.abs(rows[0] - rows[1]).max() < 1e-4
+
+
+def _paced_on_a_clock(driver, utterances: list[np.ndarray], monkeypatch, *, slower_from_s: float,
+                      slower_by_s: float, gap_s: float = 0.3, grid_s: float = 0.02) -> tuple[np.ndarray, LiveSession]:
+    """A paced session on a clock grid, stepped as the live server's pool steps it, on a simulated clock (1 ms
+    ticks): each utterance pushed in 20 ms chunks at real time and flushed, `gap_s` of nothing between them (idle
+    frames), the chunks from `slower_from_s` to the end of that utterance `slower_by_s` later (a voice whose chunks
+    start landing later mid-utterance); then end(). The spoken frames' drives, and the session."""
+    from gaussiantalker.runtime import live as live_module
+
+    clock = [0.0]
+    monkeypatch.setattr(live_module, "time", types.SimpleNamespace(monotonic=lambda: clock[0]))
+    live = LiveSession(driver, output=None, paced=True, streaming=True, clock_grid_s=grid_s)
+    chunks, start = [], 0.0
+    for speech in utterances:
+        end = start + speech.shape[0] / 16000
+        for k in range(0, speech.shape[0], 320):
+            at = start + k / 16000
+            chunks.append((at + (slower_by_s if slower_from_s <= at < end else 0.0), speech[k:k + 320]))
+        chunks.append((chunks[-1][0], "flush"))  # a complete utterance: its last frames need no lookahead
+        start = end + gap_s
+    frames, pushed = [], 0
+    for tick in range(100_000):
+        clock[0] = tick / 1000.0
+        while pushed < len(chunks) and chunks[pushed][0] <= clock[0]:
+            if isinstance(chunks[pushed][1], str):
+                live.flush()
+            else:
+                live.push(chunks[pushed][1], 16000)
+            pushed += 1
+            if pushed == len(chunks):
+                live.end()
+        job = live.stream_job()
+        if job is not None:
+            run_stream_jobs([job], driver.run_stream, driver.stream_rows)
+        if (frame := live.step()) is not None:
+            frames.append(frame)
+        if live.finished:
+            break
+    return _drive_rows([frame for frame in frames if frame.speaking]), live
+
+
+def test_a_voice_landing_later_moves_the_clock_instead_of_making_late_frames(ga_voice_bundle, monkeypatch):
+    """Mid-utterance the chunks start arriving 45 ms later, just after the session's ticks: a session on a clock
+    grid moves its clock a grid step later (MAX_DEFERRALS at most) and makes no late frame, the utterance's drives
+    those of the voice that kept time; the idle frames before the next utterance take the steps back, so a long
+    session does not drift. Without the deferrals (MAX_DEFERRALS 0) every frame after the change is late."""
+    from gaussiantalker.runtime import live as live_module
+
+    driver = open_driver(ga_voice_bundle)
+    speech = unseen_speech()[0]
+    utterances = [speech[:32000], speech[32000:48000]]
+    spoken = 32000 // 640  # the first utterance's frames
+    on_time, _ = _paced_on_a_clock(driver, utterances, monkeypatch, slower_from_s=1.0, slower_by_s=0.0)
+    later, live = _paced_on_a_clock(driver, utterances, monkeypatch, slower_from_s=1.0, slower_by_s=0.045)
+    assert live.stats.late_frames == 0 and 1 <= live.stats.deferrals <= live_module.MAX_DEFERRALS
+    assert live._deferrals == 0  # taken back while idle
+    assert np.abs(later[:spoken] - on_time[:spoken]).max() < EXACT * 4
+    monkeypatch.setattr(live_module, "MAX_DEFERRALS", 0)
+    _, late = _paced_on_a_clock(driver, utterances, monkeypatch, slower_from_s=1.0, slower_by_s=0.045)
+    assert late.stats.deferrals == 0 and late.stats.late_frames >= 10

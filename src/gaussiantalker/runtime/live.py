@@ -44,6 +44,13 @@ MAX_QUEUED_S = 120.0
 # Paced mode re-anchors its clock when it falls behind by more than this many frames (a renderer slower than real
 # time): frames then come as fast as they are made instead of in a burst that tries to catch up.
 MAX_LAG_FRAMES = 2
+# Mid-utterance, a frame due before all of its lookahead has arrived is made with what is in (a late frame; a
+# streaming translator makes its rows again once the audio is in). A session on a clock grid (a server's) first
+# moves its clock one grid step later, to at most this many steps later than its phase: a voice whose chunks land
+# just after the session's ticks then gets that slack once, instead of a late frame and a second translator call
+# every tick. Idle frames take the steps back, one a frame, so a long session does not drift (docs/live.md,
+# "A voice that lands late").
+MAX_DEFERRALS = 2
 
 
 @dataclass(frozen=True)
@@ -70,6 +77,7 @@ class LiveStats:
     idle_frames: int = 0
     late_frames: int = 0  # paced: shown with less lookahead than asked (the producer fell behind)
     underruns: int = 0  # paced: idle frames put in while part of a frame's audio was queued
+    deferrals: int = 0  # paced on a clock grid: grid steps the clock moved later for a lookahead still arriving
     translator_calls: int = 0
     dropped_s: float = 0.0  # audio dropped by interrupt()
     interrupts: int = 0
@@ -229,6 +237,7 @@ class LiveSession:
         # together, so a pool runs their translator calls as one (docs/live.md, "Streaming translators").
         self._clock_grid = float(clock_grid_s)
         self._finished = False
+        self._deferrals = 0  # grid steps the clock now runs later than its phase (MAX_DEFERRALS)
         self._last_spoken: np.ndarray | None = None
         self._frames_since_speech = 0
         self.stats = LiveStats()
@@ -360,6 +369,8 @@ class LiveSession:
                 raise LiveError("step() gives frames at their due time: open the session with paced=True")
             if self._anchor is None:
                 self._anchor = (self._on_grid(time.monotonic()), self._next_index)
+            if self.due <= time.monotonic() and self._defer():
+                return None
         due = self.due
         if due > time.monotonic():
             return None
@@ -370,6 +381,7 @@ class LiveSession:
         frame = self._make(plan)
         if time.monotonic() - due > MAX_LAG_FRAMES / self.fps:  # behind: re-anchor, as frames() does
             self._anchor = (self._on_grid(time.monotonic()), self._next_index)
+            self._deferrals = 0
         return frame
 
     def _on_grid(self, moment: float) -> float:
@@ -462,6 +474,23 @@ class LiveSession:
                                  underrun=underrun)
             self._translate(job)
 
+    def _defer(self) -> bool:
+        """Under the lock, the next frame due: whether its clock moved one grid step later instead of making it late
+        (MAX_DEFERRALS): mid-utterance, its own audio in and its lookahead not, on a clock grid, not yet the most
+        steps later."""
+        if self._clock_grid <= 0 or self._anchor is None or self._deferrals >= MAX_DEFERRALS or self._flushed \
+                or self._translated or self._inflight is not None:
+            return False
+        mid_utterance = self._last_spoken is not None and self._frames_since_speech == 0
+        own = self._speech.span(self._next_index, self._next_index + 1)
+        if not mid_utterance or len(self._heard.samples) < own or self._ready_batch():
+            return False
+        anchor_time, anchor_index = self._anchor
+        self._anchor = (anchor_time + self._clock_grid, anchor_index)
+        self._deferrals += 1
+        self.stats.deferrals += 1
+        return True
+
     def _batch_size(self, due: float | None) -> tuple[int, bool, bool]:
         """Under the lock: (frames to translate now, whether late, whether mid-utterance)."""
         count = self._ready_batch()
@@ -484,6 +513,8 @@ class LiveSession:
         with self._cond:
             if self._stream is None or self._inflight is not None or self._translated or self._closed \
                     or not self.paced or (self._anchor is not None and self.due > time.monotonic()):
+                return None
+            if self._defer():
                 return None
             count, late, _ = self._batch_size(self.due)
             if not count:
@@ -575,6 +606,9 @@ class LiveSession:
             params, self._last_spoken, self._frames_since_speech = plan.params, plan.params, 0
         else:
             self._frames_since_speech += 1
+            if self._deferrals and self._anchor is not None:  # idle: the clock takes back a step it deferred
+                self._anchor = (self._anchor[0] - self._clock_grid, self._anchor[1])
+                self._deferrals -= 1
             ease = 0.0 if self._last_spoken is None else self._idle.ease_weight(self._frames_since_speech)
             params = self._last_spoken * np.float32(ease) if ease > 0 else np.zeros(self._size, np.float32)
         blink = self._idle.blink_weight(index, idle=not speaking)

@@ -213,7 +213,8 @@ class DriveSession:
 
     def summary(self) -> dict:
         return {"mode": "client-render", "transport": self.transport, **self.stats, "fps": self.driver.fps,
-                "late_frames": self.live.stats.late_frames, "interrupts": self.live.stats.interrupts}
+                "late_frames": self.live.stats.late_frames, "deferrals": self.live.stats.deferrals,
+                "interrupts": self.live.stats.interrupts}
 
 
 # A pool thread's frames of one tick, delivered to the event loop in one call: a wake-up of the loop per frame (a
