@@ -362,6 +362,34 @@ def _slot(py, px):
     return (py >> 1) * (2 * TILE) + (px >> 2) * _BLOCK + (py & 1) * 4 + (px & 3)
 
 
+@njit(inline="always", cache=True)
+def _row_slot(row):
+    """`_slot(row, 0)` for an unsigned row: a row's column c lies at it + (c >> 2) * _BLOCK + (c & 3)."""
+    return (row >> np.uint64(1)) * np.uint64(2 * TILE) + (row & np.uint64(1)) * np.uint64(4)
+
+
+# A function of its own, like `_over_pixel`: compiled without the blend's fastmath flags, so each value is
+# `_over_background`'s byte. Converting the tile's planes in one pass, then scattering the bytes, measured 2.3x
+# faster than a call per pixel and channel in the blend (an empty 512x512 frame: 0.81 -> 0.35 ms on 2 cores).
+@njit(cache=True, error_model="numpy")
+def _tile_bytes(acc, bytes_out, y0, x0, rows, columns, background):
+    """A tile's accumulator (C, T planes) over `background` into bytes_out [y0 : y0 + rows, x0 : x0 + columns]."""
+    levels = np.empty(3 * _TILE_PIXELS, dtype=np.uint8)
+    for i in range(np.uint64(_TILE_PIXELS)):
+        transmittance = abs(acc[_T + i])
+        levels[i] = _over_pixel(acc[i], transmittance, background[0])
+        levels[_G + i] = _over_pixel(acc[_G + i], transmittance, background[1])
+        levels[_B + i] = _over_pixel(acc[_B + i], transmittance, background[2])
+    for row in range(np.uint64(rows)):
+        py, first = np.uint64(y0) + row, _row_slot(row)
+        for column in range(np.uint64(columns)):
+            px = np.uint64(x0) + column
+            k = first + (column >> np.uint64(2)) * np.uint64(_BLOCK) + (column & np.uint64(3))
+            bytes_out[py, px, 0] = levels[k]
+            bytes_out[py, px, 1] = levels[_G + k]
+            bytes_out[py, px, 2] = levels[_B + k]
+
+
 def _blend_source(counting: bool):
     """The tile blend, with the work counts of BLEND_COUNTS when `counting` (a compile-time constant: the kernel
     that draws frames has no counting code; the counts would need integer sums inside the block loop, which keep
@@ -388,11 +416,18 @@ def _blend_source(counting: bool):
                 # One array holds the tile's red, green, blue and T planes at constant offsets, so the compiler sees
                 # that the planes do not overlap and vectorises. A pixel that has stopped keeps -T (and one outside
                 # the image -1): T > 0 is "still blending".
-                acc = np.zeros(4 * _TILE_PIXELS, dtype=np.float32)
-                acc[_T: _T + _TILE_PIXELS] = -_ONE
-                for py in range(y1 - y0):
-                    for px in range(x1 - x0):
-                        acc[_T + _slot(py, px)] = _ONE
+                # A whole tile (most of them) sets its planes in one pass; an edge tile marks its pixels in the image.
+                acc = np.empty(4 * _TILE_PIXELS, dtype=np.float32)
+                whole = y1 - y0 == TILE and x1 - x0 == TILE
+                for i in range(np.uint64(_TILE_PIXELS)):
+                    acc[i] = _ZERO
+                    acc[_G + i] = _ZERO
+                    acc[_B + i] = _ZERO
+                    acc[_T + i] = _ONE if whole else -_ONE
+                if not whole:
+                    for py in range(y1 - y0):
+                        for px in range(x1 - x0):
+                            acc[_T + _slot(py, px)] = _ONE
                 # Which blocks of 4 x 2 pixels, and which pixel-row pairs, still hold a pixel that blends: set again
                 # every _LIVE_EVERY Gaussians (a per-pixel count would need integer sums in the block loop), so a block
                 # that has just stopped may still be computed a few times, changing nothing.
@@ -519,17 +554,13 @@ def _blend_source(counting: bool):
                     counts[tile, 2] = row_pairs
                     counts[tile, 3], counts[tile, 4], counts[tile, 5] = blocks_tried, blocks_blended, fragments
                 if bytes_out.shape[0]:
-                    for py in range(y0, y1):
-                        for px in range(x0, x1):
-                            k = _slot(py - y0, px - x0)
-                            transmittance = abs(acc[_T + k])
-                            bytes_out[py, px, 0] = _over_pixel(acc[k], transmittance, background[0])
-                            bytes_out[py, px, 1] = _over_pixel(acc[_G + k], transmittance, background[1])
-                            bytes_out[py, px, 2] = _over_pixel(acc[_B + k], transmittance, background[2])
+                    _tile_bytes(acc, bytes_out, y0, x0, y1 - y0, x1 - x0, background)
                 else:
-                    for py in range(y0, y1):
-                        for px in range(x0, x1):
-                            k = _slot(py - y0, px - x0)
+                    for row in range(np.uint64(y1 - y0)):  # unsigned: no wraparound checks
+                        py, first = np.uint64(y0) + row, _row_slot(row)
+                        for column in range(np.uint64(x1 - x0)):
+                            px = np.uint64(x0) + column
+                            k = first + (column >> np.uint64(2)) * np.uint64(_BLOCK) + (column & np.uint64(3))
                             out[py, px, 0] = acc[k]
                             out[py, px, 1] = acc[_G + k]
                             out[py, px, 2] = acc[_B + k]
