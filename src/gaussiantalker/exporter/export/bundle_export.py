@@ -118,7 +118,7 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     `specialise` result for it); the bundle records the scene and its camera. `mnn` also stores every graph as
     an MNN model (docs/mnn.md; needs the `mnn` extra)."""
     settings, chosen, label = resolve_settings(codec, settings, preset, rig_of(speaker))
-    # the buffer codecs the caller asked for: a preset's own name buffers that a small avatar may keep in its graph
+    # the buffer codecs the caller asked for (a preset's own may name arrays a small avatar keeps inside its graph)
     own = dict(chosen.export_for(rig_of(speaker)).buffer_codecs) if chosen is not None else {}
     asked = tuple(name for name, codec in settings.buffer_codecs if own.get(name) != codec)
     if isinstance(speaker, ArkitSpeaker) and scene is not None:
