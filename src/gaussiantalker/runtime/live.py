@@ -398,6 +398,11 @@ class LiveSession:
         return anchor_time + (self._next_index - anchor_index) / self.fps
 
     @property
+    def _mid_utterance(self) -> bool:
+        """The last frame spoke: an utterance is under way (its frames keep their cadence)."""
+        return self._last_spoken is not None and self._frames_since_speech == 0
+
+    @property
     def finished(self) -> bool:
         """step() gives no more frames: the session was closed, or ended and every frame went out."""
         return self._finished
@@ -481,9 +486,8 @@ class LiveSession:
         if self._clock_grid <= 0 or self._anchor is None or self._deferrals >= MAX_DEFERRALS or self._flushed \
                 or self._translated or self._inflight is not None:
             return False
-        mid_utterance = self._last_spoken is not None and self._frames_since_speech == 0
         own = self._speech.span(self._next_index, self._next_index + 1)
-        if not mid_utterance or len(self._heard.samples) < own or self._ready_batch():
+        if not self._mid_utterance or len(self._heard.samples) < own or self._ready_batch():
             return False
         anchor_time, anchor_index = self._anchor
         self._anchor = (anchor_time + self._clock_grid, anchor_index)
@@ -495,7 +499,7 @@ class LiveSession:
         """Under the lock: (frames to translate now, whether late, whether mid-utterance)."""
         count = self._ready_batch()
         late = False
-        mid_utterance = self._last_spoken is not None and self._frames_since_speech == 0
+        mid_utterance = self._mid_utterance
         if count < self.min_batch_frames and not self._flushed and not (mid_utterance and self.paced
                                                                          and due is not None):
             count = 0  # a batch fills before an utterance starts; mid-utterance, what is ready goes now
