@@ -48,6 +48,8 @@ def test_every_knob_and_preset_is_swept():
         if not case.preset:
             changed = [f.name for f in fields(ExportSettings)
                        if getattr(case.export, f.name) != getattr(ExportSettings(), f.name)]
+            if "refit_steps" in changed:  # a refit fits what a budget keeps, so its case has one
+                changed.remove("gaussian_budget")
             assert len(changed) + len(case.runtime) == 1, case
 
 

@@ -75,6 +75,7 @@ def sweep_cases() -> list[SweepCase]:
     cases += [knob(f"SH degree {d}", "SH degree", sh_degree=d) for d in (2, 1, 0)]
     cases += [knob(f"blendshape rank {r}", "blendshape rank", blendshape_rank=r) for r in (6, 4, 2)]
     cases += [knob(f"budget {round(100 * b)}%", "Gaussian budget", gaussian_budget=b) for b in (0.7, 0.5)]
+    cases += [knob("budget 50% refit", "refit", gaussian_budget=0.5, refit_steps=400)]  # beside the budget alone
     cases += [knob("midpoints derived", "midpoints", midpoints=True)]  # an ARKit rig's only: FLAME speakers as stored
     # a buffer every rig stores (an unknown name is an export error: bundle_export.check_buffer_codecs)
     cases += [knob("log-scales vq/1024", "one buffer's codec", buffer_codecs=(("deform/log_scale", "vq/1024"),))]

@@ -19,6 +19,7 @@ from gaussiantalker.sdk.bundle import FLAME_DRIVER, STEADY_STREAM_GRAPH, STREAM_
 from gaussiantalker.sdk.config import POSE_DIM
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.files import StagedFile
+from gaussiantalker.sdk.numerics import ALPHA_MIN
 from gaussiantalker.sdk.progress import progress_bar
 from gaussiantalker.sdk.reference_clip import CROP_MARGIN_PX, CROP_MULTIPLE, ReferenceClipError, frame_entry, mask_entry
 from gaussiantalker.sdk.scene import Scene
@@ -34,6 +35,7 @@ from .mnn_export import add_mnn_graphs, mnn_version
 from .onnx_export import add_graph
 from .presets import ExportSettings, Preset, get_preset, group_of, parse_reference
 from .prune import apply_budget
+from .refit import refit_kept
 from .spatial_order import in_spatial_order
 from .specialise import Specialisation, specialise
 from .translator_graph import translator_onnx, translator_stream_onnx
@@ -117,9 +119,11 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     (docs/scene.md) compiles the bundle for one scene, leaving out what it never uses (or an already measured
     `specialise` result for it); the bundle records the scene and its camera. `mnn` also stores every graph as
     an MNN model (docs/mnn.md; needs the `mnn` extra)."""
-    settings, chosen, label = resolve_settings(codec, settings, preset, rig_of(speaker))
+    rig = rig_of(speaker)
+    settings, chosen, label = resolve_settings(codec, settings, preset, rig)
+    runtime, runtime_by_renderer = chosen.stored_runtime(rig) if chosen is not None else (None, {})
     # the buffer codecs the caller asked for (a preset's own may name arrays a small avatar keeps inside its graph)
-    own = dict(chosen.export_for(rig_of(speaker)).buffer_codecs) if chosen is not None else {}
+    own = dict(chosen.export_for(rig).buffer_codecs) if chosen is not None else {}
     asked = tuple(name for name, codec in settings.buffer_codecs if own.get(name) != codec)
     if isinstance(speaker, ArkitSpeaker) and scene is not None:
         raise BundleError("scene specialisation (--scene) is for FLAME speakers; an ARKit speaker's bundle is "
@@ -137,7 +141,11 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         speaker, camera = spec.speaker, spec.camera
         background = list(spec.scene.background_color or background)
     if settings.gaussian_budget is not None:
+        full = speaker
         speaker = apply_budget(speaker, settings.gaussian_budget, progress=progress)
+        if settings.refit_steps and speaker is not full:  # fitted as the CPU splatter will draw the bundle
+            alpha_min = chosen.runtime_for("cpu", rig).alpha_min if chosen is not None else ALPHA_MIN
+            speaker = refit_kept(full, speaker, settings.refit_steps, alpha_min=alpha_min, progress=progress)
     if settings.spatial_order:
         speaker = in_spatial_order(speaker, midpoints=settings.midpoints)
     writer = BundleWriter(metadata={
@@ -148,10 +156,9 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
         "background": background,
         "precision": label,
         "export_settings": asdict(settings),
-        "runtime_defaults": chosen.runtime.to_dict() if chosen is not None else {},
+        "runtime_defaults": runtime.to_dict() if chosen is not None else {},
         **({"runtime_defaults_by_renderer": {name: settings.to_dict() for name, settings in
-                                             chosen.runtime_by_renderer.items()}}
-           if chosen is not None and chosen.runtime_by_renderer else {}),
+                                             runtime_by_renderer.items()}} if runtime_by_renderer else {}),
         "gaussians": speaker.gaussians.count,
         "exporter": {"sdk": sdk_version, "torch": torch.__version__, "python": platform.python_version()},
         **({} if spec is None else {"scene": spec.scene.to_dict(),

@@ -18,6 +18,16 @@ from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.reference_clip import MAX_CLIP_FRAMES, MAX_H264_CRF, ClipCoding, ReferenceClipError
 from gaussiantalker.sdk.render_settings import RenderSettings
 
+# The refit's bound, here so that settings are checked without importing torch (exporter/export/refit.py).
+MAX_REFIT_STEPS = 100_000
+
+
+def check_refit_steps(steps: object) -> int:
+    """A refit's step count (`ExportSettings.refit_steps`): a whole number in 0..MAX_REFIT_STEPS, else BundleError."""
+    if isinstance(steps, bool) or not isinstance(steps, int) or not 0 <= steps <= MAX_REFIT_STEPS:
+        raise BundleError(f"refit_steps must be a whole number in 0..{MAX_REFIT_STEPS}, got {steps!r}")
+    return steps
+
 # Buffer groups a codec is chosen for, and which bundle buffers (by glob on the buffer name) belong to each.
 CODEC_GROUPS: dict[str, tuple[str, ...]] = {
     "gaussians": ("deform/latent_bias", "deform/log_scale", "deform/opacity", "deform/barycentric",
@@ -111,6 +121,9 @@ class ExportSettings:
     sh_degree: int | None = None  # keep SH bands up to this degree (None: all)
     blendshape_rank: int | None = None  # rank of the speaker blendshape matrix (None: full)
     gaussian_budget: float | None = None  # keep this fraction (<= 1) or number (> 1) of Gaussians (None: all)
+    # Steps of fitting the budget's kept Gaussians (colours, opacities, scales) to the full speaker's frames, drawn
+    # with the alpha cut the bundle's CPU splatter uses (exporter/export/refit.py; 0: kept as they were)
+    refit_steps: int = 0
     reference: str = "keep"  # the reference clip: as stored, or re-encoded ("crf:28,gop:25,mask-crf:24")
     # An ARKit rig's edge vertices (a subdivided mesh's) derived from their ends instead of stored, within 10 µm
     # (exporter/export/morph_midpoints.py; a rig whose checkpoint holds its triangles: LAM imports)
@@ -141,6 +154,10 @@ class ExportSettings:
         if budget is not None and not (budget > 0 and (budget <= 1 or float(budget).is_integer())):
             raise BundleError(f"gaussian_budget must be a fraction in (0, 1] or a whole number of Gaussians, "
                               f"got {budget}")
+        check_refit_steps(self.refit_steps)
+        if self.refit_steps and budget is None:
+            raise BundleError("refit_steps (--refit-steps) fits the Gaussians a budget keeps: give a gaussian_budget "
+                              "(--gaussian-budget) too")
         parse_reference(self.reference)
         for pair in self.buffer_codecs:
             if not (isinstance(pair, tuple | list) and len(pair) == 2 and isinstance(pair[0], str)):
@@ -224,10 +241,23 @@ class Preset:
     # A kind of speaker's own export settings where they differ from `export` ("arkit": an ARKit rig's, such as a
     # LAM import), picked by the rig of the speaker exported.
     export_by_rig: dict[str, ExportSettings] = field(default_factory=dict)
+    # A kind of speaker's own runtime defaults where they differ, per splatter ("arkit": {"cpu": ...}), over
+    # `runtime` ("gl") and `runtime_by_renderer` for that rig's bundles.
+    runtime_by_rig: dict[str, dict[str, RenderSettings]] = field(default_factory=dict)
 
-    def runtime_for(self, splatter: str) -> RenderSettings:
-        """The runtime defaults of this preset on `splatter` ("gl" or "cpu")."""
-        return self.runtime_by_renderer.get(splatter, self.runtime)
+    def runtime_for(self, splatter: str, rig: str = "flame") -> RenderSettings:
+        """The runtime defaults of this preset on `splatter` ("gl" or "cpu") for a speaker whose rig is `rig`."""
+        own = self.runtime_by_rig.get(rig, {})
+        if splatter in own:
+            return own[splatter]
+        return self.runtime_by_renderer.get(splatter, own.get("gl", self.runtime))
+
+    def stored_runtime(self, rig: str) -> tuple[RenderSettings, dict[str, RenderSettings]]:
+        """What a bundle of a `rig` speaker stores: its runtime defaults and each splatter's own where they differ
+        (the manifest's `runtime_defaults` and `runtime_defaults_by_renderer`)."""
+        base = self.runtime_for("gl", rig)
+        by_renderer = {**self.runtime_by_renderer, **self.runtime_by_rig.get(rig, {})}
+        return base, {name: settings for name, settings in by_renderer.items() if name != "gl"}
 
     def export_for(self, rig: str) -> ExportSettings:
         """The export settings of this preset for a speaker whose rig is `rig` ("flame" or "arkit")."""
@@ -271,9 +301,22 @@ _CLIP_CRF = {"balanced": "crf:16,gop:25,mask-crf:6", "compact": "crf:33,gop:25,m
 # at 65% and chunks of 256: 16.4x at 34.5 dB).
 _COMPACT_ARKIT_CODECS = (("deform/log_scale", "vq/1024"), ("deform/rotation", "vq/256"), ("deform/sh_dc", "vq/256"),
                          ("deform/rest_points", "q8/64"), ("deform/morph_basis", "q4/128"))
+# `fast` and `mobile` for an ARKit avatar (LAM's p2-1, docs/precision.md "Refit"): its Gaussians are translucent
+# layers, so a budget alone drops visible ones (60%: 38.5 dB min at 512²) and a smaller draw costs 9 dB more. Their
+# budgets' survivors are refit to the full avatar's frames for 400 steps (about 100 s for p2-1 on 2 cores), and
+# `fast` draws at full size on the CPU splatter. Chosen on the avatar bench's frames, alternating with `quality`:
+# 40% with the alpha cut at 0.03 (fitted with it) 2.19x at 36.0 dB min, at 0.02 1.96x at 36.8, 35% at 0.03 2.30x at
+# 34.8 dB; `mobile` at 50% (200 steps) 1.46x at 42.6 dB, where 60% alone measured 1.28x at 38.2.
+# On GL (llvmpipe, whose shaders keep the contract's cut) `fast` draws at full size too: 2.19x at 34.0 dB min against
+# 2.39x at 31.3 dB at 3/4 size.
+_REFIT_STEPS = 400
+_ARKIT_FAST_RUNTIME = {"gl": RenderSettings(render_target="uint8", sort_key_bits=16),
+                       "cpu": RenderSettings(render_target="uint8", alpha_min=0.03)}
 _COMPACT = ExportSettings(**{**_REDUCED_CODECS, "translator": "q4", "blendshapes": "q4", "flame": "q4",
                              "inpaint": "q4"}, sh_degree=0, blendshape_rank=2, gaussian_budget=0.65, midpoints=True,
                           reference=_CLIP_CRF["compact"])
+_MOBILE = ExportSettings(**dict.fromkeys(CODEC_GROUPS, "fp16"), gaussian_budget=0.6, midpoints=True,
+                         reference=_CLIP_CRF["mobile"])
 # The presets, chosen from measurements on the demo speaker (docs/precision.md has the table and the command).
 # `min_head_psnr_db` is what `gt-export --verify` holds a preset to; each sits below what the preset measured, by the
 # spread seen between clips and resolutions (`fast` draws at 3/4 size, which costs more at small sizes such as
@@ -293,17 +336,21 @@ PRESETS: dict[str, Preset] = {
                                                       buffer_codecs=_COMPACT_ARKIT_CODECS)}),
     "fast": Preset("fast", "fastest frames: 60% of the Gaussians, drawn at 3/4 size into an 8-bit framebuffer, "
                    "16-bit depth-sort keys (on the CPU splatter: at most 256x256 pixels drawn, alpha under 0.03 "
-                   "skipped): ~2.4x the frame rate at ~41 dB on GL, ~2.1x at ~37 dB on the CPU splatter",
+                   "skipped): ~2.4x the frame rate at ~41 dB on GL, ~2.1x at ~37 dB on the CPU splatter (an ARKit "
+                   "avatar: 40% of the Gaussians refit to the full avatar's frames, drawn at full size)",
                    ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.6, midpoints=True, reference=_CLIP_CRF["fast"]),
                    RenderSettings(render_scale=0.75, render_target="uint8", sort_key_bits=16), min_head_psnr_db=29.0,
                    runtime_by_renderer={"cpu": RenderSettings(render_scale=0.75, render_target="uint8",
-                                                              alpha_min=0.03, max_draw_pixels=256 * 256)}),
+                                                              alpha_min=0.03, max_draw_pixels=256 * 256)},
+                   export_by_rig={"arkit": ExportSettings(**_REDUCED_CODECS, gaussian_budget=0.4, midpoints=True,
+                                                          refit_steps=_REFIT_STEPS, reference=_CLIP_CRF["fast"])},
+                   runtime_by_rig={"arkit": _ARKIT_FAST_RUNTIME}),
     "mobile": Preset("mobile", "for phones and WebGL 2 (docs/porting.md): fp16 buffers, 60% of the Gaussians, an "
                      "RGBA16F framebuffer (GLES 3.0's renderable float, docs/shaders.md), 16-bit depth-sort keys, one "
                      "graph thread: ~1.4x the frame rate at ~48 dB",
-                     ExportSettings(**dict.fromkeys(CODEC_GROUPS, "fp16"), gaussian_budget=0.6, midpoints=True,
-                                    reference=_CLIP_CRF["mobile"]),
-                     RenderSettings(render_target="float16", sort_key_bits=16, graph_threads=1), min_head_psnr_db=39.0),
+                     _MOBILE, RenderSettings(render_target="float16", sort_key_bits=16, graph_threads=1),
+                     min_head_psnr_db=39.0,
+                     export_by_rig={"arkit": replace(_MOBILE, gaussian_budget=0.5, refit_steps=_REFIT_STEPS)}),
 }
 
 

@@ -23,7 +23,7 @@ from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
 from gaussiantalker.sdk.camera import Camera
-from gaussiantalker.sdk.numerics import PIXEL_CENTER_OFFSET, TRANSMITTANCE_MIN
+from gaussiantalker.sdk.numerics import ALPHA_MIN, PIXEL_CENTER_OFFSET, TRANSMITTANCE_MIN
 
 from .splat_math import (
     alpha_from_components,
@@ -129,6 +129,7 @@ def render_reference(
     memory_budget_bytes: int = DEFAULT_MEMORY_BUDGET_BYTES,
     max_weight: Tensor | None = None,
     blend_count: Tensor | None = None,
+    alpha_min: float = ALPHA_MIN,
 ) -> tuple[Tensor, Tensor]:
     """Render one frame by the numerics contract: (image C + T * background [H, W, 3], transmittance T [H, W]).
 
@@ -136,8 +137,12 @@ def render_reference(
     over this frame's pixels (what scene pruning measures, docs/scene.md). `blend_count` [2, H, W], if given, is set
     in place to the number of Gaussians blended into each pixel [0] before the contract stopped it and [1] while its
     T was still >= 1/255, before it was visibly saturated (how deep a surface is: without gradients only;
-    docs/demo-speaker.md)."""
+    docs/demo-speaker.md). `alpha_min` replaces the contract's ALPHA_MIN in the per-pixel alpha test as the CPU
+    splatter's `RenderSettings.alpha_min` does (the reliability fade keeps the contract's): frames as that splatter
+    draws them with an alpha cut, which a Gaussian budget's refit fits through (docs/precision.md, "Refit")."""
     _check_inputs(means, cov3d, rgb, opacity, tile_size, memory_budget_bytes)
+    if not ALPHA_MIN <= alpha_min < 1.0:
+        raise ValueError(f"render_reference: alpha_min must be in [{ALPHA_MIN:.6g}, 1), got {alpha_min!r}")
     bg = torch.as_tensor(background, dtype=torch.float32, device=means.device).reshape(3)
     splats = _prepare_splats(means, cov3d, rgb, opacity, camera)
     grid = _Grid(camera.width, camera.height, tile_size)
@@ -145,7 +150,8 @@ def render_reference(
     counts: list[tuple[Tensor, Tensor]] | None = None if blend_count is None else []
     if counts is not None and torch.is_grad_enabled() and (means.requires_grad or rgb.requires_grad):
         raise ValueError("render_reference: blend_count is measured without gradients (use torch.no_grad())")
-    color, trans = _render_tiles(splats, _tile_rects(splats, grid), grid, memory_budget_bytes, weights, counts)
+    color, trans = _render_tiles(splats, _tile_rects(splats, grid), grid, memory_budget_bytes, weights, counts,
+                                 alpha_min)
     if blend_count is not None:
         per_tile = torch.zeros(grid.tiles, grid.pixels, 2, dtype=torch.int64)
         for tile_ids, count in counts:
@@ -262,7 +268,7 @@ def _bin_band(rects: _Rects, y0: int, y1: int, grid: _Grid) -> _Bins:
 
 
 def _render_tiles(splats: _Splats, rects: _Rects, grid: _Grid, budget: int, max_weight: Tensor | None = None,
-                  counts: list | None = None) -> tuple[Tensor, Tensor]:
+                  counts: list | None = None, alpha_min: float = ALPHA_MIN) -> tuple[Tensor, Tensor]:
     """Composite every non-empty tile, band by band, in padded batches; empty tiles stay colour 0, T 1.
     `max_weight` [M + 1] (the pad last), if given, is raised to each splat's largest blend weight; `counts`, if
     given, gets (tile ids, blended Gaussians per pixel) per batch."""
@@ -273,7 +279,7 @@ def _render_tiles(splats: _Splats, rects: _Rects, grid: _Grid, budget: int, max_
     pairs = int(torch.where(rects.ok, (rects.tx1 - rects.tx0 + 1) * (rects.ty1 - rects.ty0 + 1), 0).sum())
     use_checkpoint = needs_grad and pairs * grid.pixels * _LIVE_BYTES_PER_ELEMENT > budget
     kwargs = {"params": params, "rgb": rgb, "grid": grid, "chunk_elements": chunk_elements, "max_weight": max_weight,
-              "counts": counts}
+              "counts": counts, "alpha_min": alpha_min}
     colors, transmittances, done_tiles = [], [], []
     for y0, y1 in _row_bands(rects, grid, max(1, budget // (4 * _PAIR_BYTES))):
         batches = _batch_lists(_bin_band(rects, y0, y1, grid), grid.pixels, chunk_elements, len(splats.radius))
@@ -325,11 +331,11 @@ def _group_batches(
 
 def _composite_group(
     group: list[tuple[Tensor, Tensor]], *, params: Tensor, rgb: Tensor, grid: _Grid, chunk_elements: int,
-    max_weight: Tensor | None = None, counts: list | None = None,
+    max_weight: Tensor | None = None, counts: list | None = None, alpha_min: float = ALPHA_MIN,
 ) -> tuple[Tensor, Tensor]:
     """Composite each batch of a group; colours [sum B, P, 3] and transmittances [sum B, P] in group order."""
     results = [_composite_batch(t, s, params, rgb, grid=grid, chunk_elements=chunk_elements, max_weight=max_weight,
-                                counts=counts) for t, s in group]
+                                counts=counts, alpha_min=alpha_min) for t, s in group]
     return torch.cat([color for color, _ in results]), torch.cat([trans for _, trans in results])
 
 
@@ -362,7 +368,7 @@ def _plan_batches(count: Tensor, pixels: int, chunk_elements: int) -> list[tuple
 
 def _composite_batch(
     tile_ids: Tensor, splat_ids: Tensor, params: Tensor, rgb: Tensor, *, grid: _Grid, chunk_elements: int,
-    max_weight: Tensor | None = None, counts: list | None = None,
+    max_weight: Tensor | None = None, counts: list | None = None, alpha_min: float = ALPHA_MIN,
 ) -> tuple[Tensor, Tensor]:
     """Front-to-back compositing of B tiles' padded lists [B, K], walked in K chunks that carry T and `done`."""
     ts = grid.tile_size
@@ -385,7 +391,7 @@ def _composite_batch(
         inside = torch.maximum(dx.abs(), dy.abs()) <= r  # [B, P, k] the contract's exact per-pixel extent
         # Offsets clamped to the extent: unchanged inside, and keep_mask's bound keeps the power finite outside.
         dx, dy = torch.clamp(dx, -r, r), torch.clamp(dy, -r, r)
-        alpha = alpha_from_components(dx, dy, a, slope, q, opacity, inside)  # [B, P, k], 0 = skipped
+        alpha = alpha_from_components(dx, dy, a, slope, q, opacity, inside, alpha_min)  # [B, P, k], 0 = skipped
         color, trans, done, weight = _blend_chunk(alpha, rgb[ids], color, trans, done)
         if max_weight is not None:
             with torch.no_grad():

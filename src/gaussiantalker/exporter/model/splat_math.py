@@ -482,12 +482,14 @@ def splat_alpha(d: Tensor, shape: Tensor, opacity: Tensor) -> Tensor:
 
 
 def alpha_from_components(
-    dx: Tensor, dy: Tensor, a: Tensor, k: Tensor, q: Tensor, opacity: Tensor, inside: Tensor | None = None
+    dx: Tensor, dy: Tensor, a: Tensor, k: Tensor, q: Tensor, opacity: Tensor, inside: Tensor | None = None,
+    alpha_min: float = ALPHA_MIN,
 ) -> Tensor:
     """`splat_alpha` on split, broadcastable components: d = (dx, dy), `alpha_shape` = (a, k, q). # [...]
 
     No GLSL twin: the reference rasterizer's vectorised form of `splat_alpha` (its [tiles, pixels, splats] tensors
-    come split). `inside` (bool), when given, also zeroes pixels outside the extent.
+    come split). `inside` (bool), when given, also zeroes pixels outside the extent. `alpha_min` replaces the
+    contract's cut as the CPU splatter's `RenderSettings.alpha_min` does (docs/precision.md, "Alpha cut-off").
     """
     t = dx - k * dy
     power = -0.5 * (a * t * t + q * dy * dy)
@@ -495,7 +497,7 @@ def alpha_from_components(
     alpha = torch.clamp_max(opacity * torch.exp(torch.clamp_max(power, 0.0)), ALPHA_MAX)
     # 3DGS skips power > 0 (a non-positive-definite conic) and alpha < ALPHA_MIN; both contribute nothing.
     # Multiplying by the mask is exact and much cheaper than torch.where; alpha is finite here (keep_mask).
-    keep = (power <= 0) & (alpha >= ALPHA_MIN)
+    keep = (power <= 0) & (alpha >= alpha_min)
     return alpha * (keep if inside is None else keep & inside)
 
 
