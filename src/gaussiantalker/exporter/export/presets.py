@@ -306,7 +306,8 @@ _COMPACT_ARKIT_CODECS = (("deform/log_scale", "vq/1024"), ("deform/rotation", "v
 # budgets' survivors are refit to the full avatar's frames for 400 steps (about 100 s for p2-1 on 2 cores), and
 # `fast` draws at full size on the CPU splatter. Chosen on the avatar bench's frames, alternating with `quality`:
 # 40% with the alpha cut at 0.03 (fitted with it) 2.19x at 36.0 dB min, at 0.02 1.96x at 36.8, 35% at 0.03 2.30x at
-# 34.8 dB; `mobile` at 50% (200 steps) 1.46x at 42.6 dB, where 60% alone measured 1.28x at 38.2.
+# 34.8 dB; `mobile` at 50% (200 steps) 1.46x at 42.6 dB, where 60% alone measured 1.28x at 38.2. As exported, on the
+# avatar bench: `fast` 2.22x at 35.8 dB min, `mobile` 1.52x at 43.8 dB (docs/bench/lam-presets).
 # On GL (llvmpipe, whose shaders keep the contract's cut) `fast` draws at full size too: 2.19x at 34.0 dB min against
 # 2.39x at 31.3 dB at 3/4 size.
 _REFIT_STEPS = 400
