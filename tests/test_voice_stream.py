@@ -157,9 +157,12 @@ def test_stream_layout_follows_the_network():
     assert layout.blocks == config.blocks and layout.channels == config.channels
     assert layout.frame_samples == SAMPLES_PER_FRAME and layout.delay_frames == 4
     stream = stream_model_of(model)
-    # docs/voice.md lists these: long-standing standard ops, at the windowed graph's opset
-    assert {n.op_type for n in stream.graph.node} <= {n.op_type for n in model.graph.node} | {
-        "Concat", "Reshape", "Flatten", "Cast", "Constant"}
+    # docs/voice.md lists these: long-standing standard ops, at the windowed graph's opset; every convolution is a
+    # MatMul over its taps
+    ops = {n.op_type for n in stream.graph.node}
+    assert ops <= {n.op_type for n in model.graph.node} | {"Concat", "Reshape", "Flatten", "Cast", "Constant",
+                                                           "MatMul"}
+    assert "Conv" not in ops
     assert [o.version for o in stream.opset_import] == [o.version for o in model.opset_import] == [17]
     size = [d.dim_value for d in stream.graph.input[1].type.tensor_type.shape.dim][1]
     assert size == sum(part.size for part in layout.state_parts()) == 4056

@@ -37,6 +37,8 @@
                            PSNR, before the bundle format has it (bench/codings.py)
     gt-bench translator-stream  a speaker's Motion Translator streamed against its windowed live calls and offline
                            drive on unseen speech, and a session-frame's cost each way (bench/translator_stream.py)
+    gt-bench stream-calls  a streaming translator call's cost per sessions and frames a call, bundles side by side
+                           (bench/stream_calls.py)
 
 The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
 still work: `gaussiantalker.cli.bench` rewrites them to their subcommand.
@@ -611,6 +613,37 @@ def translator_stream(
     typer.echo(table)
     _write_report(out, "translator-stream", "The Motion Translator streamed: quality and cost", result, table,
                   f"; torch modules for quality, onnxruntime on one thread for cost ({rounds} alternating rounds).")
+
+
+@app.command("stream-calls")
+def stream_calls(
+    bundles: list[Path] = typer.Argument(..., help="bundles with a streaming translator (.gtb); the first is the "
+                                         "reference of the ratios"),
+    sessions: str = typer.Option("1,4,12,50", "--sessions", help="comma-separated sessions stacked a call"),
+    frames: str = typer.Option("1,2", "--frames", help="comma-separated frames a call (one committed, the rest "
+                               "provisional)"),
+    rounds: int = typer.Option(15, "--rounds", min=1, help="alternating timing rounds (medians)"),
+    out: Path = typer.Option(None, "--out", help="folder for stream-calls.md and stream-calls.json"),
+) -> None:
+    """What one call of each bundle's streaming translator graph costs, per sessions a call and frames a call, side
+    by side in alternating rounds (docs/live.md, "Sessions batched together")."""
+    from .stream_calls import run_stream_calls, stream_calls_table
+
+    counts, lengths = _numbers(sessions, int, "--sessions"), _numbers(frames, int, "--frames")
+    if not counts or min(counts) < 1 or max(counts) > 256 or not lengths or not all(1 <= n <= 8 for n in lengths):
+        raise typer.BadParameter("sessions a call in 1..256 and frames a call in 1..8", param_hint="--sessions")
+    for path in bundles:
+        if not path.is_file():
+            raise typer.BadParameter(f"{path}: no such bundle", param_hint="BUNDLES")
+    try:
+        result = run_stream_calls(bundles, [(s, n) for s in counts for n in lengths], rounds)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="BUNDLES") from None
+    _stamp(result)
+    table = stream_calls_table(result)
+    typer.echo(table)
+    _write_report(out, "stream-calls", "A streaming translator call's cost", result, table,
+                  f"; onnxruntime on one thread, {rounds} alternating rounds of 20 calls, medians.")
 
 
 @app.command("codings")

@@ -50,15 +50,21 @@ def silu(g: Graph, x: str) -> str:
     return g.op("Mul", [x, g.op("Sigmoid", [x])], "silu")
 
 
-def channel_norm(g: Graph, x: str, weights: dict, prefix: str, eps: float) -> str:
-    """Normalisation over channels (axis 1) at each step, then `prefix`'s per-channel scale and shift."""
-    mean = g.op("ReduceMean", [x], "mean", axes=[1], keepdims=1)
+def channel_norm(g: Graph, x: str, weights: dict, prefix: str, eps: float, axis: int = 1) -> str:
+    """Normalisation over channels (`axis`: 1 for [B, C, T], -1 for channels last) at each step, then `prefix`'s
+    per-channel scale and shift."""
+    mean = g.op("ReduceMean", [x], "mean", axes=[axis], keepdims=1)
     centred = g.op("Sub", [x, mean], "centred")
-    var = g.op("ReduceMean", [g.op("Mul", [centred, centred])], "var", axes=[1], keepdims=1)
+    var = g.op("ReduceMean", [g.op("Mul", [centred, centred])], "var", axes=[axis], keepdims=1)
     std = g.op("Sqrt", [g.op("Add", [var, g.const("eps", np.float32(eps))])], "std")
     scaled = g.op("Div", [centred, std], "scaled")
-    gamma = g.const(f"{prefix}.weight", np.asarray(weights[f"{prefix}.weight"]).reshape(1, -1, 1))
-    beta = g.const(f"{prefix}.bias", np.asarray(weights[f"{prefix}.bias"]).reshape(1, -1, 1))
+    # The scale and shift are stored [1, C, 1] either way (a bundle stores a stream's copy once, by content) and
+    # laid along the last axis by a node onnxruntime folds when it loads the graph.
+    gamma, beta = (g.const(f"{prefix}.{name}", np.asarray(weights[f"{prefix}.{name}"]).reshape(1, -1, 1))
+                   for name in ("weight", "bias"))
+    if axis != 1:
+        last = g.const("shape", np.array([1, 1, -1], np.int64))
+        gamma, beta = (g.op("Reshape", [value, last], f"{prefix}.channels_last") for value in (gamma, beta))
     return g.op("Add", [g.op("Mul", [scaled, gamma]), beta], prefix)
 
 

@@ -37,7 +37,7 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-from .onnx_build import OPSET, VOICE_PRODUCER, Graph, channel_norm, conv, silu
+from .onnx_build import OPSET, VOICE_PRODUCER, Graph, channel_norm, silu
 
 STREAM_PRODUCER = VOICE_PRODUCER + " stream"
 
@@ -132,8 +132,8 @@ def voice_layout(model: onnx.ModelProto) -> VoiceLayout:
 
 
 class _Stream:
-    """Builds the streaming nodes: each layer's kept inputs are cut from `state`, joined before the new steps,
-    and the kept inputs after the committed frames go to the outputs."""
+    """Builds the streaming nodes, channels last ([B, steps, C]): each layer's kept inputs are cut from `state`,
+    joined before the new steps, and the kept inputs after the committed frames go to the outputs."""
 
     def __init__(self, g: Graph, layout: VoiceLayout) -> None:
         self.g, self.parts = g, {p.name: p for p in layout.state_parts()}
@@ -145,48 +145,103 @@ class _Stream:
         self.kept: list[str] = []
         i64 = np.int64
         self.one_axis = g.const("axis1", np.array([1], i64))
-        self.time_axis = g.const("axis2", np.array([2], i64))
         self.keep = g.op("Cast", ["keep"], "keep_frames", to=TensorProto.INT64)
 
     def join(self, name: str, x: str) -> str:
-        """State part `name` [B, C, L] joined before `x` [B, C, m]: [B, C, L + m]; records the part's new value."""
+        """State part `name` [B, L, C] joined before `x` [B, m, C] (or [B, L] before [B, m] for the samples):
+        [B, L + m, C]; records the part's new value."""
         g, part, i64 = self.g, self.parts[name], np.int64
         start = self.offsets[name]
         flat = g.op("Slice", ["state", g.const("start", np.array([start], i64)),
                               g.const("stop", np.array([start + part.size], i64)), self.one_axis], f"{name}.flat")
-        kept = g.op("Reshape", [flat, g.const("shape", np.array([-1, part.channels, part.length], i64))],
-                    f"{name}.kept")
-        joined = g.op("Concat", [kept, x], f"{name}.joined", axis=2)
+        shape = [-1, part.length] if part.channels == 1 else [-1, part.length, part.channels]
+        kept = g.op("Reshape", [flat, g.const("shape", np.array(shape, i64))], f"{name}.kept")
+        joined = g.op("Concat", [kept, x], f"{name}.joined", axis=1)
         first = g.op("Mul", [self.keep, g.const("per_frame", np.array([part.per_frame], i64))], f"{name}.first")
         new = g.op("Slice", [joined, first, g.op("Add", [first, g.const("length", np.array([part.length], i64))]),
-                             self.time_axis], f"{name}.new")
+                             self.one_axis], f"{name}.new")
         self.kept.append(g.op("Flatten", [new], f"{name}.out", axis=1))
         return joined
+
+    def steps(self, x: str, first: int, last: int) -> str:
+        """x[:, first:len - last] on the steps axis (a convolution tap's view of its joined input)."""
+        g, i64 = self.g, np.int64
+        stop = -last if last else np.iinfo(i64).max
+        return g.op("Slice", [x, g.const("start", np.array([first], i64)), g.const("stop", np.array([stop], i64)),
+                              self.one_axis], "tap")
+
+
+def _taps_matmul(g: Graph, columns: str, weight: np.ndarray, bias: np.ndarray | None, prefix: str,
+                 width: int | None = None) -> str:
+    """A convolution as one matrix product over every session's steps: `columns` [B, m, k C] (the k taps' inputs
+    side by side) times the kernel laid out [k C, C_out]. onnxruntime's Conv runs a small GEMM per batch item, which
+    reads the whole kernel again for each session of a call; one MatMul reads it once (docs/live.md, "Streaming
+    translators"). The kernel is the windowed graph's weight [C_out, C, k] (zero-padded to `width` taps), laid out
+    by nodes on that initializer, which onnxruntime folds once when it loads the graph: the bundle stores it once."""
+    kernel = g.const(f"{prefix}.weight", weight)
+    if width is not None and width > weight.shape[2]:
+        pads = np.array([0, 0, 0, 0, 0, width - weight.shape[2]], np.int64)
+        kernel = g.op("Pad", [kernel, g.const("pads", pads)], f"{prefix}.padded")
+    laid = g.op("Reshape", [g.op("Transpose", [kernel], f"{prefix}.taps_first", perm=[2, 1, 0]),
+                            g.const("shape", np.array([-1, weight.shape[0]], np.int64))], f"{prefix}.kernel")
+    out = g.op("MatMul", [columns, laid], f"{prefix}.product")
+    return out if bias is None else g.op("Add", [out, g.const(f"{prefix}.bias", bias)], prefix)
+
+
+def _dilated(g: Graph, s: _Stream, joined: str, w: dict, prefix: str, dilation: int) -> str:
+    """A 3-tap convolution of `dilation` over `joined` [B, 2 dilation + m, C] -> [B, m, C_out]."""
+    taps = [s.steps(joined, t * dilation, (2 - t) * dilation) for t in range(3)]
+    return _taps_matmul(g, g.op("Concat", taps, "columns", axis=2), w[f"{prefix}.weight"], w[f"{prefix}.bias"],
+                        prefix)
+
+
+def _pointwise(g: Graph, x: str, w: dict, prefix: str) -> str:
+    """A 1-tap convolution over `x` [B, m, C]."""
+    return _taps_matmul(g, x, w[f"{prefix}.weight"], w[f"{prefix}.bias"], prefix)
+
+
+def _norm(g: Graph, x: str, w: dict, prefix: str, eps: float) -> str:
+    """The per-step channel norm on channels-last steps."""
+    return channel_norm(g, x, w, prefix, eps, axis=-1)
 
 
 def _stream_network(g: Graph, layout: VoiceLayout) -> tuple[str, int]:
     """Nodes from `audio` [B, n, F], `state`, `keep` to the clipped ARKit weights [B, n, 52]; returns that value's
-    name and the flat state's size."""
-    w, s = layout.weights, _Stream(g, layout)
-    flat = g.op("Reshape", ["audio", g.const("shape", np.array([0, 1, -1], np.int64))], "signal")  # [B, 1, n F]
-    signal = s.join("front", flat)
-    spectrum = g.op("Conv", [signal, g.const("front.dft", w["front.dft"])], "spectrum", strides=[layout.hop])
-    power = g.op("Conv", [g.op("Mul", [spectrum, spectrum]), g.const("front.mel", w["front.mel"])], "mel_power")
-    logmel = g.op("Mul", [g.op("Log", [g.op("Add", [power, g.const("floor", np.float32(layout.log_floor))])]),
-                          g.const("log_scale", np.float32(layout.log_scale))], "logmel")
-    x = silu(g, conv(g, s.join("input", logmel), w, "input", stride=layout.steps_per_frame))
+    name and the flat state's size. Every convolution is a matrix product over its taps (`_taps_matmul`)."""
+    w, s, i64 = layout.weights, _Stream(g, layout), np.int64
+    hop, window, step = layout.hop, layout.window, layout.steps_per_frame
+    samples = g.op("Reshape", ["audio", g.const("shape", np.array([0, -1], i64))], "samples")  # [B, n F]
+    signal = s.join("front", samples)  # [B, L + n F]: window w reads [w hop, w hop + window)
+    # Cut into hops, padded with zeros to whole hops past the last window: window w is hops w .. w + span - 1.
+    span = -(-window // hop)
+    pad = (span - 1) * hop - s.parts["front"].length
+    if pad < 0 or layout.frame_samples != step * hop or int(w["input.weight"].shape[2]) != 2 * step:
+        raise ValueError("the voice graph's front end or input convolution is not the shape its stream is built for")
+    hops = g.op("Reshape", [g.op("Pad", [signal, g.const("pads", np.array([0, 0, 0, pad], i64))], "padded"),
+                            g.const("shape", np.array([0, -1, hop], i64))], "hops")
+    taps = [s.steps(hops, t, span - 1 - t) for t in range(span)]
+    spectrum = _taps_matmul(g, g.op("Concat", taps, "frames", axis=2), w["front.dft"], None, "front.dft",
+                            width=span * hop)
+    mel = _taps_matmul(g, g.op("Mul", [spectrum, spectrum]), w["front.mel"], None, "front.mel")
+    logmel = g.op("Mul", [g.op("Log", [g.op("Add", [mel, g.const("floor", np.float32(layout.log_floor))])]),
+                          g.const("log_scale", np.float32(layout.log_scale))], "logmel")  # [B, step n, mels]
+    # The strided input convolution: 2 step-long taps of whole frames' steps, the joined input's last step unread.
+    joined = s.steps(s.join("input", logmel), 0, 1)  # [B, step (n + 1), mels]
+    chunks = g.op("Reshape", [joined, g.const("shape", np.array([0, -1, step * layout.mels], i64))], "chunks")
+    columns = g.op("Concat", [s.steps(chunks, 0, 1), s.steps(chunks, 1, 0)], "columns", axis=2)
+    x = silu(g, _taps_matmul(g, columns, w["input.weight"], w["input.bias"], "input"))
     for k, (dilation, future) in enumerate(layout.blocks):
         p = f"blocks.{k}"
-        h = silu(g, channel_norm(g, x, w, f"{p}.norm", layout.norm_eps))
-        h = silu(g, conv(g, s.join(f"{p}.dilated", h), w, f"{p}.dilated.conv", dilation=dilation))
+        h = silu(g, _norm(g, x, w, f"{p}.norm", layout.norm_eps))
+        h = silu(g, _dilated(g, s, s.join(f"{p}.dilated", h), w, f"{p}.dilated.conv", dilation))
         if future:  # a block that looks ahead: its residual path waits as long
             joined = s.join(f"{p}.residual", x)
-            x = g.op("Slice", [joined, g.const("zero", np.array([0], np.int64)),
-                               g.op("Shape", [h], start=2, end=3), s.time_axis], f"{p}.delayed")
-        x = g.op("Add", [x, conv(g, h, w, f"{p}.mix")], f"{p}.out")
-    h = silu(g, channel_norm(g, x, w, "head_norm", layout.norm_eps))
-    h = silu(g, conv(g, s.join("head_conv", h), w, "head_conv.conv"))
-    out = g.op("Transpose", [conv(g, h, w, "head")], "per_frame", perm=[0, 2, 1])
+            x = g.op("Slice", [joined, g.const("zero", np.array([0], i64)), g.op("Shape", [h], start=1, end=2),
+                               s.one_axis], f"{p}.delayed")
+        x = g.op("Add", [x, _pointwise(g, h, w, f"{p}.mix")], f"{p}.out")
+    h = silu(g, _norm(g, x, w, "head_norm", layout.norm_eps))
+    h = silu(g, _dilated(g, s, s.join("head_conv", h), w, "head_conv.conv", 1))
+    out = _pointwise(g, h, w, "head")
     g.op("Concat", s.kept, output="state_out", axis=1)
     return g.op("Clip", [out, g.const("lo", np.float32(0.0)), g.const("hi", np.float32(1.0))], "weights"), s.size
 
