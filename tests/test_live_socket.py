@@ -191,15 +191,17 @@ def test_a_bad_page_is_told_why_and_its_session_ends(server, start, raw, message
 
 @pytest.fixture(scope="module")
 def stream_server(ga_voice_bundle):
-    """gt-serve --client-render on a bundle whose translator streams (the built-in FLAME voice)."""
-    yield from _serve(ga_voice_bundle, "--max-sessions-per-client", "8")  # every test session is one client
+    """gt-serve --client-render on a bundle whose translator streams (the built-in FLAME voice), its sessions' frames
+    made by two pool threads (one by default: the `server` fixture's)."""
+    yield from _serve(ga_voice_bundle, "--max-sessions-per-client", "8",  # every test session is one client
+                      "--drive-threads", "2")
 
 
 def test_streaming_sessions_share_translator_calls(stream_server):
     """Eight sessions at once on a streaming bundle: each gets every frame in order with the voice's samples and a
     face that speaks, and /metrics shows translator calls that served more than one session (the pool's batch; with
-    a pool thread per core and two clock phases a frame, eight sessions put at least two on one thread's phase) and
-    the rows those calls made."""
+    two pool threads and two clock phases a frame, eight sessions put at least two on one thread's phase) and the
+    rows those calls made."""
     module, port = stream_server
 
     async def together():

@@ -68,6 +68,9 @@ def serve(
                                 "\"Streaming translators\"); --no-stream: the windowed translator"),
     web_root: Path = typer.Option(None, "--web-root", help="client-render: the web player's folder (web/ with "
                                   "its npm install) [default: the checkout's]"),
+    drive_threads: int = typer.Option(1, "--drive-threads", min=1, max=64, help="client-render: threads that make "
+                                      "the WebSocket sessions' frames (Python under one interpreter lock: for more "
+                                      "cores run a replica per core, docs/serve.md)"),
 ) -> None:
     """Serve live talking-head sessions: pixels over WebRTC, or drives for pages that render (--client-render).
     Also `gt-serve secret -o FILE` (a new secret) and `gt-serve token --secret-file FILE` (a token; docs/serve.md)."""
@@ -103,7 +106,8 @@ def serve(
     options = ServeOptions(client_render=client_render, secret=secret, allow_origins=tuple(allow_origin),
                            allow_hosts=listen_hosts(host, allow_host), debug=debug, limits=limits, size=size,
                            lookahead_ms=lookahead_ms, renderer=renderer, audio=audio, batch_frames=batch_frames,
-                           context_ms=context_ms, web_root=web_root, streaming=stream)
+                           context_ms=context_ms, web_root=web_root, streaming=stream,
+                           drive_threads=drive_threads)
     try:
         app = make_app(bundle, options)
     except (ValueError, GaussianTalkerError) as error:

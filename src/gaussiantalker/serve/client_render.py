@@ -9,7 +9,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
-import os
 import socket as socket_module
 import struct
 from pathlib import Path
@@ -42,15 +41,18 @@ def default_web_root() -> Path:
 
 def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessions, limits: ServeLimits,
                              metrics: ServeMetrics, files: VoiceFiles, *, lookahead_ms: float, batch_frames: int,
-                             context_ms: float, web_root: Path | None = None, streaming: bool = True) -> None:
+                             context_ms: float, web_root: Path | None = None, streaming: bool = True,
+                             drive_threads: int = 1) -> None:
     """The page and the web player's modules, the bundle, /live, /offer, /interrupt and /drives."""
     # One intra-op thread: the sessions' pool threads are the parallelism.
     driver = open_driver(bundle, threads=1)
     driver.open_stream()
     web_root = (web_root or default_web_root()).resolve()
-    # WebSocket sessions share a thread per core; WebRTC sessions keep a thread each (aiortc's work on the event
-    # loop is their bottleneck: docs/live.md, "Load"), bounded by the session cap.
-    pool, webrtc_pool = DrivePool(os.cpu_count() or 2), DrivePool(limits.session_cap(pixel=False))
+    # WebSocket sessions share `drive_threads` threads (one by default: a frame's work is Python under the
+    # interpreter lock, and a second thread measured more CPU a session and more late frames, as the two contend for
+    # it and split the sessions' translator calls in two: docs/live.md, "Load"); WebRTC sessions keep a thread each
+    # (aiortc's work on the event loop is their bottleneck), bounded by the session cap.
+    pool, webrtc_pool = DrivePool(drive_threads), DrivePool(limits.session_cap(pixel=False))
     speech_gate = asyncio.Semaphore(limits.speech_processes)
     app[DRIVER] = driver
 
