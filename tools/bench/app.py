@@ -39,6 +39,8 @@
                            drive on unseen speech, and a session-frame's cost each way (bench/translator_stream.py)
     gt-bench stream-calls  a streaming translator call's cost per sessions and frames a call, bundles side by side
                            (bench/stream_calls.py)
+    gt-bench live-pool     the CPU a live server's pool spends a session-second, on a fake clock without sockets,
+                           beside an older checkout (bench/live_pool.py)
 
 The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
 still work: `gaussiantalker.cli.bench` rewrites them to their subcommand.
@@ -644,6 +646,45 @@ def stream_calls(
     typer.echo(table)
     _write_report(out, "stream-calls", "A streaming translator call's cost", result, table,
                   f"; onnxruntime on one thread, {rounds} alternating rounds of 20 calls, medians.")
+
+
+@app.command("live-pool")
+def live_pool(
+    bundle: Path = typer.Argument(..., help="a bundle with a streaming translator (.gtb)"),
+    sessions: str = typer.Option("50", "--sessions", help="comma-separated numbers of sessions"),
+    seconds: float = typer.Option(6.0, "--seconds", min=1.0, max=120.0, help="seconds of the fake clock a run"),
+    rounds: int = typer.Option(5, "--rounds", min=1, help="alternating rounds (medians)"),
+    lookahead_ms: float = typer.Option(160.0, "--lookahead-ms", min=0.0, help="the sessions' lookahead"),
+    baseline_checkout: Path = typer.Option(None, "--baseline-checkout", help="a checkout of an older commit "
+                                           "(`git worktree add DIR COMMIT`) whose pool code runs beside this one"),
+    baseline_bundle: Path = typer.Option(None, "--baseline-bundle", help="the bundle the baseline runs (e.g. the "
+                                         "same speaker as its commit exports it) [default: BUNDLE]"),
+    out: Path = typer.Option(None, "--out", help="folder for live-pool.md and live-pool.json"),
+) -> None:
+    """The CPU a live server's pool spends a session-second (the translator calls, each frame, its packet), on a
+    fake clock without sockets: versions side by side within a few percent (bench/live_pool.py)."""
+    from .live_pool import live_pool_table, run_live_pool
+
+    counts = _numbers(sessions, int, "--sessions")
+    if not counts or min(counts) < 1 or max(counts) > 500:
+        raise typer.BadParameter("sessions in 1..500", param_hint="--sessions")
+    for path, hint in ((bundle, "BUNDLE"), (baseline_bundle, "--baseline-bundle")):
+        if path is not None and not path.is_file():
+            raise typer.BadParameter(f"{path}: no such bundle", param_hint=hint)
+    if baseline_checkout is not None and not (baseline_checkout / "src" / "gaussiantalker").is_dir():
+        raise typer.BadParameter(f"{baseline_checkout}: not a checkout of this project (no src/gaussiantalker)",
+                                 param_hint="--baseline-checkout")
+    try:
+        result = run_live_pool(bundle.resolve(), counts, seconds, rounds, lookahead_ms,
+                               None if baseline_checkout is None else baseline_checkout.resolve(),
+                               None if baseline_bundle is None else baseline_bundle.resolve())
+    except RuntimeError as exc:
+        raise typer.BadParameter(str(exc), param_hint="BUNDLE") from None
+    _stamp(result)
+    table = live_pool_table(result)
+    typer.echo(table)
+    _write_report(out, "live-pool", "A live server's pool work, without sockets", result, table,
+                  f"; {seconds:g} s of fake clock a run, {rounds} alternating rounds, each a fresh process, medians.")
 
 
 @app.command("codings")

@@ -160,8 +160,9 @@ def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) 
 
 def _trailing_silence(samples: np.ndarray) -> int:
     """How many zeros end `samples` (all of them when nothing is spoken)."""
-    spoken = np.flatnonzero(samples)
-    return samples.shape[0] - 1 - int(spoken[-1]) if spoken.shape[0] else samples.shape[0]
+    spoken = samples[::-1] != 0  # from the end: the first nonzero's offset is the silence (argmax: no index array)
+    last = int(spoken.argmax()) if spoken.shape[0] else 0
+    return last if spoken.shape[0] and spoken[last] else samples.shape[0]
 
 
 class TranslatorStream:

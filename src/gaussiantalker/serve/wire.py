@@ -112,7 +112,7 @@ def encode_frame_packet(drive_message: bytes, audio: np.ndarray) -> bytes:
     if audio.dtype != np.int16:
         audio = to_pcm16(audio)
     return PACKET_HEADER.pack(PACKET_MAGIC, PACKET_VERSION, 0, 0, len(drive_message)) + drive_message \
-        + audio.astype("<i2").tobytes()
+        + audio.astype("<i2", copy=False).tobytes()
 
 
 def decode_frame_packet(message: bytes) -> dict:

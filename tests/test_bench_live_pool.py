@@ -1,0 +1,42 @@
+"""`gt-bench live-pool` (tools/bench/live_pool.py): the pool's work on a fake clock makes every session's frames
+(speech and idle), runs stacked translator calls, and compares two checkouts in fresh processes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from tools.bench.app import app
+from tools.bench.live_pool import live_pool_table, pool_run, run_live_pool
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_a_pool_run_makes_every_sessions_frames(lam_voice_bundle, monkeypatch):
+    import gaussiantalker.runtime.live as live_module
+
+    monkeypatch.setattr(live_module, "time", live_module.time)  # pool_run swaps in its fake clock: put it back
+    got = pool_run(str(lam_voice_bundle), sessions=3, seconds=2.0)
+    assert got["frames"] == 3 * 60  # 30 fps, every frame made on time on the fake clock
+    assert 0 < got["calls"] < got["frames"] and got["rows"] >= got["calls"]  # sessions stacked in calls
+    assert got["cpu_s"] > 0 and got["cpu_s_per_session_s"] == pytest.approx(got["cpu_s"] / 6.0)
+
+
+def test_two_checkouts_alternate_in_fresh_processes(lam_voice_bundle):
+    result = run_live_pool(lam_voice_bundle, [2], seconds=1.0, rounds=1, baseline=ROOT, progress=False)
+    row = result["rows"][0]
+    assert len(row["old"]["rounds"]) == len(row["new"]["rounds"]) == 1
+    assert row["old"]["frames"] == row["new"]["frames"] == 2 * 30  # the same code: the same frames
+    assert row["ratio"] == pytest.approx(row["new"]["cpu_s_per_session_s"] / row["old"]["cpu_s_per_session_s"])
+    table = live_pool_table(result)
+    assert "| 2 |" in table and "×" in table and table.splitlines()[1].count("|") == table.splitlines()[0].count("|")
+
+
+def test_bad_options_are_refused(lam_voice_bundle, tmp_path):
+    runner = CliRunner(env={"COLUMNS": "300"})
+    result = runner.invoke(app, ["live-pool", str(lam_voice_bundle), "--baseline-checkout", str(tmp_path)])
+    assert result.exit_code != 0 and "not a checkout of this project" in result.output
+    result = runner.invoke(app, ["live-pool", str(tmp_path / "none.gtb")])
+    assert result.exit_code != 0 and "no such bundle" in result.output

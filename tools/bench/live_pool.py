@@ -1,0 +1,139 @@
+"""`gt-bench live-pool`: the CPU a live server's pool spends a session-second, measured without sockets, an event loop
+or a wall clock, so that versions of the per-frame code compare within a few percent (docs/live.md, "One pool
+thread and the voice's MatMul graph"). `gt-bench live-clients` measures the whole server under load, but its runs
+vary by 15% and more at the knee.
+
+N paced streaming sessions (`LiveSession(output=None, clock_grid_s=...)`, as the server makes them) run on a fake
+clock: each is pushed the sample speech in 20 ms chunks at its own start (staggered by 13 ms), then idles; at every
+tick of the server's clock grid the pool's work is done as `serve/drive_sessions.py` does it: every session's planned
+stream call stacked into one (`run_stream_jobs`), then each session's due frame made and encoded as a frame packet.
+The process's CPU over that loop, over the sessions' seconds, is the result; each round runs in a fresh process, the
+new checkout's and a baseline checkout's (its `src/` first on PYTHONPATH) alternating.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+import types
+from pathlib import Path
+
+CHUNK_S = 0.02
+STAGGER_S = 0.013
+SPEECH_S = 4.0
+
+
+def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 160.0) -> dict:
+    """One run in this process: CPU seconds of the pool's work for `sessions` sessions over `seconds` of fake
+    clock, with the frames made and the translator calls run."""
+    import numpy as np
+
+    import gaussiantalker.runtime.live as live_module
+    from gaussiantalker.runtime import LiveSession
+    from gaussiantalker.runtime.stages import open_driver
+    from gaussiantalker.runtime.translate_stream import run_stream_jobs
+    from gaussiantalker.sdk.audio import load_audio
+    from gaussiantalker.serve.drive_sessions import clock_grid_s
+    from gaussiantalker.serve.wire import encode_drive, encode_frame_packet
+
+    clock = [1000.0]
+    live_module.time = types.SimpleNamespace(monotonic=lambda: clock[0], perf_counter=time.perf_counter,
+                                             time=time.time)
+    driver = open_driver(bundle, threads=1)
+    driver.open_stream()
+    speech = load_audio(Path(__file__).resolve().parents[2] / "samples" / "demo_speech.wav", driver.sample_rate)
+    speech = np.asarray(speech[: int(SPEECH_S * driver.sample_rate)], np.float32)
+    tick = clock_grid_s(driver.fps)
+    lives = [LiveSession(driver, lookahead_ms=lookahead_ms, audio_rate=driver.sample_rate, output=None,
+                         clock_grid_s=tick, streaming=True) for _ in range(sessions)]
+    chunk = int(driver.sample_rate * CHUNK_S)
+    starts = [clock[0] + STAGGER_S * k for k in range(sessions)]
+    pushed = [0] * sessions
+    end = clock[0] + seconds
+    frames = calls = rows = 0
+    began = time.process_time()
+    while clock[0] < end:
+        for k, live in enumerate(lives):
+            while starts[k] + pushed[k] * CHUNK_S <= clock[0] and pushed[k] * chunk < speech.shape[0]:
+                live.push(speech[pushed[k] * chunk:(pushed[k] + 1) * chunk], driver.sample_rate)
+                pushed[k] += 1
+        jobs = [job for job in (live.stream_job() for live in lives) if job is not None]
+        if jobs:
+            calls += len(run_stream_jobs(jobs, driver.run_stream, driver.stream_rows))
+            rows += sum(job.audio.shape[0] for job in jobs)
+        for live in lives:
+            frame = live.step()
+            if frame is not None:
+                frames += 1
+                encode_frame_packet(encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, 0), frame.audio)
+        clock[0] += tick
+    cpu = time.process_time() - began
+    return {"cpu_s": cpu, "frames": frames, "calls": calls, "rows": rows,
+            "cpu_s_per_session_s": cpu / (sessions * seconds), "us_per_frame": 1e6 * cpu / max(frames, 1)}
+
+
+def _run_in(src: Path | None, bundle: Path, sessions: int, seconds: float, lookahead_ms: float) -> dict:
+    """pool_run in a fresh process importing `src`'s gaussiantalker (None: this checkout's)."""
+    root = Path(__file__).resolve().parents[2]
+    paths = [str(src if src is not None else root / "src"), str(root),
+             *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
+    code = ("import json, sys; from tools.bench.live_pool import pool_run; "
+            f"print(json.dumps(pool_run({str(bundle)!r}, {sessions}, {seconds}, {lookahead_ms})))")
+    done = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": os.pathsep.join(paths)},
+                          cwd=src or root, capture_output=True, text=True, timeout=900)
+    if done.returncode != 0:
+        raise RuntimeError(f"the pool run failed ({'baseline' if src else 'new'}): {done.stderr.strip()[-800:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def run_live_pool(bundle: Path, sessions: list[int], seconds: float, rounds: int, lookahead_ms: float = 160.0,
+                  baseline: Path | None = None, baseline_bundle: Path | None = None, progress: bool = True) -> dict:
+    """Every (sessions, server) in alternating rounds (old, new, old, new ...), each a fresh process."""
+    from tqdm import tqdm
+
+    servers = [("old", baseline / "src", baseline_bundle or bundle)] if baseline is not None else []
+    servers.append(("new", None, bundle))
+    runs = {(label, n): [] for label, _, _ in servers for n in sessions}
+    total = rounds * len(sessions) * len(servers)
+    with tqdm(total=total, desc="pool runs", disable=not progress) as bar:
+        for _ in range(rounds):
+            for n in sessions:
+                for label, src, served in servers:
+                    runs[(label, n)].append(_run_in(src, served, n, seconds, lookahead_ms))
+                    bar.update()
+    rows = []
+    for n in sessions:
+        row = {"sessions": n}
+        for label, _, _ in servers:
+            got = runs[(label, n)]
+            row[label] = {"rounds": got, "cpu_s_per_session_s": statistics.median(r["cpu_s_per_session_s"]
+                                                                                   for r in got),
+                          "us_per_frame": statistics.median(r["us_per_frame"] for r in got),
+                          "calls": got[0]["calls"], "rows": got[0]["rows"], "frames": got[0]["frames"]}
+        if "old" in row:
+            row["ratio"] = row["new"]["cpu_s_per_session_s"] / row["old"]["cpu_s_per_session_s"]
+        rows.append(row)
+    return {"bundle": str(bundle), "baseline": None if baseline is None else str(baseline), "seconds": seconds,
+            "lookahead_ms": lookahead_ms, "rounds": rounds, "rows": rows}
+
+
+def live_pool_table(result: dict) -> str:
+    """One row a number of sessions: each server's median CPU a session-second and a frame, its calls and rows."""
+    old = result["baseline"] is not None
+    head = "| sessions | " + ("old: CPU s per session-s (µs a frame) | " if old else "") + \
+        "new: CPU s per session-s (µs a frame) | " + ("new / old | " if old else "") + \
+        "frames | translator calls | rows |"
+    lines = [head, "|" + "---:|" * (head.count("|") - 1)]
+    for row in result["rows"]:
+        cells = [str(row["sessions"])]
+        for label in (["old"] if old else []) + ["new"]:
+            cells.append(f"{row[label]['cpu_s_per_session_s']:.4f} ({row[label]['us_per_frame']:.0f})")
+        if old:
+            cells.append(f"{row['ratio']:.2f}×")
+        cells += [str(row["new"]["frames"]), str(row["new"]["calls"]), str(row["new"]["rows"])]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
