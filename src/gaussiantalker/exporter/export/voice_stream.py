@@ -44,7 +44,8 @@ STREAM_PRODUCER = VOICE_PRODUCER + " stream"
 
 @dataclass(frozen=True)
 class StatePart:
-    """One layer's kept inputs in the flat state: `channels` x `length`, `per_frame` of them per video frame."""
+    """One layer's kept inputs in the flat state: `length` steps of `channels` (stored steps first, channels last,
+    as the graph lays them), `per_frame` of them per video frame."""
 
     name: str
     channels: int
