@@ -535,6 +535,15 @@ def _write_report(out: Path | None, name: str, title: str, result: dict, table: 
     typer.echo(f"wrote {out / f'{name}.md'}, {out / f'{name}.json'}")
 
 
+def _publish(result: dict, table_of: Callable[[dict], str], out: Path | None, name: str, title: str,
+             details: str) -> None:
+    """Stamp `result` with its machine and command, print its table and write the report (`_write_report`)."""
+    _stamp(result)
+    table = table_of(result)
+    typer.echo(table)
+    _write_report(out, name, title, result, table, details)
+
+
 @app.command("live-batching")
 def live_batching(
     bundle: Path = typer.Argument(..., help="a speaker bundle with a translator (.gtb)"),
@@ -641,11 +650,8 @@ def stream_calls(
         result = run_stream_calls(bundles, [(s, n) for s in counts for n in lengths], rounds)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="BUNDLES") from None
-    _stamp(result)
-    table = stream_calls_table(result)
-    typer.echo(table)
-    _write_report(out, "stream-calls", "A streaming translator call's cost", result, table,
-                  f"; onnxruntime on one thread, {rounds} alternating rounds of 20 calls, medians.")
+    _publish(result, stream_calls_table, out, "stream-calls", "A streaming translator call's cost",
+             f"; onnxruntime on one thread, {rounds} alternating rounds of 20 calls, medians.")
 
 
 @app.command("live-pool")
@@ -680,11 +686,8 @@ def live_pool(
                                None if baseline_bundle is None else baseline_bundle.resolve())
     except RuntimeError as exc:
         raise typer.BadParameter(str(exc), param_hint="BUNDLE") from None
-    _stamp(result)
-    table = live_pool_table(result)
-    typer.echo(table)
-    _write_report(out, "live-pool", "A live server's pool work, without sockets", result, table,
-                  f"; {seconds:g} s of fake clock a run, {rounds} alternating rounds, each a fresh process, medians.")
+    _publish(result, live_pool_table, out, "live-pool", "A live server's pool work, without sockets",
+             f"; {seconds:g} s of fake clock a run, {rounds} alternating rounds, each a fresh process, medians.")
 
 
 @app.command("codings")
