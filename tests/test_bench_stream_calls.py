@@ -39,3 +39,12 @@ def test_bad_cases_are_refused(lam_voice_bundle, tmp_path):
     assert result.exit_code != 0 and "frames a call" in result.output
     result = runner.invoke(app, ["stream-calls", str(tmp_path / "missing.gtb")])
     assert result.exit_code != 0 and "no such bundle" in result.output
+
+
+def test_the_steady_graph_is_timed_where_the_bundle_has_one(small_export, lam_voice_bundle):
+    result = run_stream_calls([small_export.path], [(2, 1)], rounds=1, calls=1, progress=False, graph="steady")
+    assert result["graph"] == "steady" and result["cases"][0]["ms_per_call"][0] > 0
+    with pytest.raises(ValueError, match="has no steady graph"):
+        run_stream_calls([lam_voice_bundle], [(1, 1)], rounds=1, calls=1, progress=False, graph="steady")
+    with pytest.raises(ValueError, match="'refreshing' or 'steady'"):
+        run_stream_calls([lam_voice_bundle], [(1, 1)], rounds=1, calls=1, progress=False, graph="both")

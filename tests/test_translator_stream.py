@@ -20,6 +20,8 @@ import pytest
 import torch
 from unseen_speech import unseen_speech
 
+from gaussiantalker.exporter.export import translator_graph
+from gaussiantalker.exporter.export.window_slices import window_gathers_to_slices
 from gaussiantalker.exporter.model.translator import conv_kernels, normalize_waveform
 from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream, conv_plan
 from gaussiantalker.runtime import LiveSession
@@ -187,6 +189,21 @@ def test_the_bundle_graph_is_its_torch_module(small_export):
         for name, value in zip(("expression", "jaw_pose", "state_out"), expected, strict=False):
             assert np.abs(out[name] - value.numpy()).max() < 1e-5, (frames, keep, refresh, name)
         state = out["state_out"]
+
+
+def test_every_window_of_the_state_is_read_by_a_slice(small_speaker, monkeypatch):
+    """The stream's windows of its state (each kept part after a call: the statistics, the refreshed audio, the
+    features, each convolution's inputs, each transformer layer's keys and values) export as Gathers, which
+    window_slices.py makes Slices: every one of them, and none is left in the bundle's graph."""
+    stream = MotionTranslatorStream(small_speaker.translator)
+    layers = len(small_speaker.translator.audio_encoder.encoder.layers) + len(
+        small_speaker.translator.motion_decoder.decoder.layers)
+    windows = 4 + len(stream.plans) + layers
+    monkeypatch.setattr(translator_graph, "window_gathers_to_slices", lambda model: 0)
+    traced = translator_graph.translator_stream_onnx(small_speaker.translator)
+    assert window_gathers_to_slices(traced) == windows
+    monkeypatch.undo()
+    assert window_gathers_to_slices(translator_graph.translator_stream_onnx(small_speaker.translator)) == 0
 
 
 def test_the_steady_graph_runs_while_the_loudness_holds():

@@ -634,6 +634,8 @@ def stream_calls(
     frames: str = typer.Option("1,2", "--frames", help="comma-separated frames a call (one committed, the rest "
                                "provisional)"),
     rounds: int = typer.Option(15, "--rounds", min=1, help="alternating timing rounds (medians)"),
+    graph: str = typer.Option("refreshing", "--graph", help="refreshing (translator_stream) or steady (its steady "
+                              "form, the speaker's own translator's calls while the loudness holds)"),
     out: Path = typer.Option(None, "--out", help="folder for stream-calls.md and stream-calls.json"),
 ) -> None:
     """What one call of each bundle's streaming translator graph costs, per sessions a call and frames a call, side
@@ -647,11 +649,11 @@ def stream_calls(
         if not path.is_file():
             raise typer.BadParameter(f"{path}: no such bundle", param_hint="BUNDLES")
     try:
-        result = run_stream_calls(bundles, [(s, n) for s in counts for n in lengths], rounds)
+        result = run_stream_calls(bundles, [(s, n) for s in counts for n in lengths], rounds, graph=graph)
     except ValueError as exc:
         raise typer.BadParameter(str(exc), param_hint="BUNDLES") from None
     _publish(result, stream_calls_table, out, "stream-calls", "A streaming translator call's cost",
-             f"; onnxruntime on one thread, {rounds} alternating rounds of 20 calls, medians.")
+             f"; the {graph} graph, onnxruntime on one thread, {rounds} alternating rounds of 20 calls, medians.")
 
 
 @app.command("live-pool")

@@ -24,9 +24,13 @@ def _feeds(spec, sessions: int, frames: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def run_stream_calls(bundles: list[Path], cases: list[tuple[int, int]], rounds: int, calls: int = 20,
-                     progress: bool = True) -> dict:
-    """Median ms a call of each bundle's `translator_stream` for each (sessions, frames) case, alternating bundles
-    within every round."""
+                     progress: bool = True, graph: str = "refreshing") -> dict:
+    """Median ms a call of each bundle's streaming graph for each (sessions, frames) case, alternating bundles
+    within every round. `graph` "refreshing": `translator_stream`; "steady": its steady form (the calls a live
+    session makes while the loudness holds), which every bundle must have."""
+    if graph not in ("refreshing", "steady"):
+        raise ValueError(f"graph must be 'refreshing' or 'steady', got {graph!r}")
+    refresh = graph == "refreshing"
     from tqdm import tqdm
 
     from gaussiantalker.runtime.stages import open_driver
@@ -36,16 +40,19 @@ def run_stream_calls(bundles: list[Path], cases: list[tuple[int, int]], rounds: 
         driver = open_driver(path, threads=1)
         if not driver.has_stream:
             raise ValueError(f"{path}: the bundle has no streaming translator graph (re-export it)")
+        if not refresh and not driver.stream_spec.steady:
+            raise ValueError(f"{path}: the bundle's stream has no steady graph (only the speaker's own translator "
+                             "has one)")
         drivers.append(driver)
     times = {(b, case): [] for b in range(len(bundles)) for case in cases}
     for _ in tqdm(range(rounds), desc="rounds", disable=not progress):
         for case in cases:
             for b, driver in enumerate(drivers):
                 audio, state = _feeds(driver.stream_spec, *case)
-                driver.run_stream(audio, state, 1)  # warm: the shapes' first call allocates
+                driver.run_stream(audio, state, 1, refresh)  # warm: the shapes' first call allocates
                 began = time.perf_counter()
                 for _ in range(calls):
-                    driver.run_stream(audio, state, 1)
+                    driver.run_stream(audio, state, 1, refresh)
                 times[(b, case)].append((time.perf_counter() - began) / calls)
     rows = []
     for sessions, frames in cases:
@@ -53,7 +60,8 @@ def run_stream_calls(bundles: list[Path], cases: list[tuple[int, int]], rounds: 
         rows.append({"sessions": sessions, "frames": frames, "ms_per_call": medians,
                      "ms_per_session_frame": [m / (sessions * frames) for m in medians],
                      "ratio_to_first": [m / medians[0] for m in medians]})
-    return {"bundles": [str(p) for p in bundles], "rounds": rounds, "calls_per_round": calls, "cases": rows}
+    return {"bundles": [str(p) for p in bundles], "graph": graph, "rounds": rounds, "calls_per_round": calls,
+            "cases": rows}
 
 
 def stream_calls_table(result: dict) -> str:

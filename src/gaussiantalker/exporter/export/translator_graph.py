@@ -10,6 +10,7 @@ import torch
 from ..model.translator import MotionTranslator, check_audio_length, count_parameters
 from ..model.translator_stream import STREAM_REFRESH_FRAMES, STREAM_TAIL_FRAMES, MotionTranslatorStream
 from . import onnx_export  # the module, not its function: tests swap `onnx_export.export_onnx` for a replay
+from .window_slices import window_gathers_to_slices
 
 # Largest audio length the exported graph accepts, in video frames (10 minutes at 25 fps).
 MAX_EXPORT_FRAMES = 15000
@@ -56,7 +57,9 @@ def translator_stream_onnx(model: MotionTranslator, refresh_frames: int = STREAM
                torch.zeros(2, stream.state_size), torch.tensor([2.0]))
     batch = torch.export.Dim("batch", min=1, max=4096)
     frames = torch.export.Dim("frames", min=1, max=MAX_EXPORT_FRAMES)
-    return onnx_export.export_onnx(stream.eval(), example, ["audio", "state", "keep"],
-                                   ["expression", "jaw_pose", "state_out", "delay_frames"],
-                                   dynamic_shapes={"audio": {0: batch, 1: frames}, "state": {0: batch},
-                                                   "keep": None})
+    model = onnx_export.export_onnx(stream.eval(), example, ["audio", "state", "keep"],
+                                    ["expression", "jaw_pose", "state_out", "delay_frames"],
+                                    dynamic_shapes={"audio": {0: batch, 1: frames}, "state": {0: batch},
+                                                    "keep": None})
+    window_gathers_to_slices(model)  # the state's windows read as Slices, not Gathers (window_slices.py)
+    return model
