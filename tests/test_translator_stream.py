@@ -22,8 +22,8 @@ from unseen_speech import unseen_speech
 
 from gaussiantalker.exporter.export import translator_graph
 from gaussiantalker.exporter.export.window_slices import window_gathers_to_slices
-from gaussiantalker.exporter.model.translator import conv_kernels, normalize_waveform
-from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream, conv_plan
+from gaussiantalker.exporter.model.translator import PositionalConvEmbedding, conv_kernels, normalize_waveform
+from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream, _positional_tail, conv_plan
 from gaussiantalker.runtime import LiveSession
 from gaussiantalker.runtime.stages import open_driver
 from gaussiantalker.runtime.translate_stream import LOUDNESS_WINDOW_FRAMES, REST_FRAMES, loudness_moved
@@ -198,12 +198,25 @@ def test_every_window_of_the_state_is_read_by_a_slice(small_speaker, monkeypatch
     stream = MotionTranslatorStream(small_speaker.translator)
     layers = len(small_speaker.translator.audio_encoder.encoder.layers) + len(
         small_speaker.translator.motion_decoder.decoder.layers)
-    windows = 4 + len(stream.plans) + layers
+    windows = 4 + len(stream.plans) + 2 * layers  # a layer's keys and values: two windows
     monkeypatch.setattr(translator_graph, "window_gathers_to_slices", lambda model: 0)
     traced = translator_graph.translator_stream_onnx(small_speaker.translator)
     assert window_gathers_to_slices(traced) == windows
     monkeypatch.undo()
     assert window_gathers_to_slices(translator_graph.translator_stream_onnx(small_speaker.translator)) == 0
+
+
+@pytest.mark.parametrize("kernel", [3, 4, 15, 16])
+def test_the_positional_tail_is_the_embeddings_last_rows(kernel):
+    """The stream computes only the tail's rows of the positional convolution: they equal the whole window's last
+    rows (float32 rounding of a convolution over another length, ~6e-7 measured), the window longer than the
+    rows it reads or not."""
+    embedding = PositionalConvEmbedding(32, kernel, 4).eval()
+    for length, tail in ((21, 12), (12, 12), (40, 3), (7, 7)):
+        x = torch.randn(2, length, 32, generator=torch.Generator().manual_seed(length))
+        with torch.no_grad():
+            expected, rows = embedding(x)[:, length - tail:], _positional_tail(embedding, x, tail)
+        assert rows.shape == expected.shape and torch.abs(rows - expected).max() < 1e-5, (length, tail)
 
 
 def test_the_steady_graph_runs_while_the_loudness_holds():

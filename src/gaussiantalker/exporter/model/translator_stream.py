@@ -129,12 +129,26 @@ def _cached_layer(layer: TransformerLayer, x: torch.Tensor, cache: torch.Tensor,
                   key_bias: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """One pre-LN transformer layer on the tail rows x [B, T, D], their attention also reading the kept rows'
     keys and values (cache [B, 2, H, C, Dh]; key_bias [B, 1, 1, C + T] masks the empty ones). Returns the
-    tail's outputs and the keys and values of all C + T rows [B, 2, H, C + T, Dh]."""
+    tail's outputs and the keys and values of all C + T rows, each [B, H, C + T, Dh] (not stacked: the state keeps
+    a window of each, laid out keys then values)."""
     q, k, v = layer.attention.project(layer.layer_norm(x))
     keys, values = torch.cat([cache[:, 0], k], dim=2), torch.cat([cache[:, 1], v], dim=2)
     x = x + layer.attention.attend(q, keys, values, key_bias)
     x = x + layer.feed_forward(layer.final_layer_norm(x))
-    return x, torch.stack([keys, values], dim=1)
+    return x, (keys, values)
+
+
+def _positional_tail(embedding, x: torch.Tensor, tail: int) -> torch.Tensor:
+    """The positional convolution embedding's last `tail` rows of x [B, L, D]: what embedding(x)[:, L - tail:] is,
+    with only those outputs computed. Output t of its 'same' convolution (padding p) reads inputs [t - p, t - p + k),
+    zeros past either end, so these read the inputs from L - tail - p on and k - p - 1 zeros after the last."""
+    conv = embedding.conv
+    kernel, pad = int(conv.kernel_size[0]), int(conv.padding[0])
+    first = x.shape[1] - tail - pad  # the first input read; before the window's start, the padding's zeros
+    inputs = x[:, max(first, 0):].transpose(1, 2)
+    inputs = F.pad(inputs, (max(-first, 0), kernel - pad - 1))
+    rows = F.conv1d(inputs, conv.weight, conv.bias, groups=conv.groups)  # [B, D, tail]
+    return x[:, x.shape[1] - tail:] + F.gelu(rows).transpose(1, 2)
 
 
 class MotionTranslatorStream(nn.Module):
@@ -225,10 +239,14 @@ class MotionTranslatorStream(nn.Module):
         return parts
 
     def _split_state(self, state: torch.Tensor) -> dict[str, torch.Tensor]:
-        sizes = [math.prod(shape) for _, shape in self.state_parts]
-        pieces = torch.split(state, sizes, dim=1)
-        return {name: piece.reshape(state.shape[0], *shape)
-                for (name, shape), piece in zip(self.state_parts, pieces, strict=True)}
+        # Each part as a slice at its offset (a Slice in the graph; torch.split exports as SplitToSequence and one
+        # SequenceAt a part, which copy every part whatever reads it)
+        parts, offset = {}, 0
+        for name, shape in self.state_parts:
+            size = math.prod(shape)
+            parts[name] = state[:, offset:offset + size].reshape(state.shape[0], *shape)
+            offset += size
+        return parts
 
     def forward(self, audio: torch.Tensor, state: torch.Tensor, keep: torch.Tensor):
         batch, frames = audio.shape[0], audio.shape[1]
@@ -280,7 +298,10 @@ class MotionTranslatorStream(nn.Module):
             rows = params[:, self.context_frames:self.context_frames + frames]
         else:
             rows = self._tail_rows(window.transpose(1, 2), frames, keep_frames, kept, new_state)
-        state_out = torch.cat([new_state[name].reshape(batch, -1) for name, _ in self.state_parts], dim=1)
+        # a part may be given as pieces (a layer's keys, then its values), flattened in order
+        state_out = torch.cat([piece.reshape(batch, -1) for name, _ in self.state_parts
+                               for piece in (new_state[name] if isinstance(new_state[name], tuple)
+                                             else (new_state[name],))], dim=1)
         n_expr = self.translator.n_expr
         delay = torch.full((1,), self.delay_frames, dtype=torch.int64)
         return rows[..., :n_expr], rows[..., n_expr:], state_out, delay
@@ -293,8 +314,7 @@ class MotionTranslatorStream(nn.Module):
         tail = FEATURES_PER_FRAME * (self.tail_frames + frames)
         # the positional convolution on the tail and the kept features its kernel reads before it; the same zero
         # padding ends the window as in the windowed graph
-        hidden = encoder.pos_conv_embed(window)
-        hidden = hidden[:, hidden.shape[1] - tail:]
+        hidden = _positional_tail(encoder.pos_conv_embed, window, tail)
         encoder_rows, decoder_rows = self._cached_rows()
         # Attention reads no row of a frame made from the all-zero state's blanks: the frames before the stream's
         # first and its first `start_frames` (whose convolutions and positional convolution read those blanks).
@@ -305,13 +325,14 @@ class MotionTranslatorStream(nn.Module):
         decoder_bias = self._key_bias(first_clean, decoder_rows + tail // FEATURES_PER_FRAME)
         for i, layer in enumerate(encoder.encoder.layers):
             hidden, keys_values = _cached_layer(layer, hidden, kept[f"encoder{i}"], encoder_bias)
-            new_state[f"encoder{i}"] = _take(keys_values, keep_frames * FEATURES_PER_FRAME, encoder_rows, dim=3)
+            new_state[f"encoder{i}"] = tuple(_take(part, keep_frames * FEATURES_PER_FRAME, encoder_rows, dim=2)
+                                             for part in keys_values)
         hidden = encoder.encoder.layer_norm(hidden) + self.translator.identity.weight[self.translator.speaker_id]
         x = decoder.input_projection(hidden)
         x = x.reshape(x.shape[0], -1, FEATURES_PER_FRAME, x.shape[-1]).mean(dim=2)  # 50 Hz -> 25 fps
         for i, layer in enumerate(decoder.decoder.layers):
             x, keys_values = _cached_layer(layer, x, kept[f"decoder{i}"], decoder_bias)
-            new_state[f"decoder{i}"] = _take(keys_values, keep_frames, decoder_rows, dim=3)
+            new_state[f"decoder{i}"] = tuple(_take(part, keep_frames, decoder_rows, dim=2) for part in keys_values)
         params = decoder.head(decoder.decoder.layer_norm(x))  # [B, tail + n, n_expr + 3]
         first = self.tail_frames - self.delay_frames
         return params[:, first:first + frames]
