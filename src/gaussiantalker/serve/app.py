@@ -38,7 +38,8 @@ class ServeOptions:
     context_ms: float = 1000.0  # client-render: past audio the translator sees
     web_root: Path | None = None  # client-render: the web player's folder (default: the checkout's web/)
     streaming: bool = True  # client-render: the bundle's streaming translator where it has one
-    drive_threads: int = 1  # client-render: threads that make the WebSocket sessions' frames (docs/live.md, "Load")
+    drive_threads: int = 1  # client-render: threads that make the WebSocket sessions' frames (docs/live.md, "One pool
+    # thread and the voice's MatMul graph")
 
 
 def make_app(bundle: Path, options: ServeOptions | None = None) -> web.Application:

@@ -201,11 +201,6 @@ def _pointwise(g: Graph, x: str, w: dict, prefix: str) -> str:
     return _taps_matmul(g, x, w[f"{prefix}.weight"], w[f"{prefix}.bias"], prefix)
 
 
-def _norm(g: Graph, x: str, w: dict, prefix: str, eps: float) -> str:
-    """The per-step channel norm on channels-last steps."""
-    return channel_norm(g, x, w, prefix, eps, axis=-1)
-
-
 def _stream_network(g: Graph, layout: VoiceLayout) -> tuple[str, int]:
     """Nodes from `audio` [B, n, F], `state`, `keep` to the clipped ARKit weights [B, n, 52]; returns that value's
     name and the flat state's size. Every convolution is a matrix product over its taps (`_taps_matmul`)."""
@@ -233,14 +228,14 @@ def _stream_network(g: Graph, layout: VoiceLayout) -> tuple[str, int]:
     x = silu(g, _taps_matmul(g, columns, w["input.weight"], w["input.bias"], "input"))
     for k, (dilation, future) in enumerate(layout.blocks):
         p = f"blocks.{k}"
-        h = silu(g, _norm(g, x, w, f"{p}.norm", layout.norm_eps))
+        h = silu(g, channel_norm(g, x, w, f"{p}.norm", layout.norm_eps, axis=-1))
         h = silu(g, _dilated(g, s, s.join(f"{p}.dilated", h), w, f"{p}.dilated.conv", dilation))
         if future:  # a block that looks ahead: its residual path waits as long
             joined = s.join(f"{p}.residual", x)
             x = g.op("Slice", [joined, g.const("zero", np.array([0], i64)), g.op("Shape", [h], start=1, end=2),
                                s.one_axis], f"{p}.delayed")
         x = g.op("Add", [x, _pointwise(g, h, w, f"{p}.mix")], f"{p}.out")
-    h = silu(g, _norm(g, x, w, "head_norm", layout.norm_eps))
+    h = silu(g, channel_norm(g, x, w, "head_norm", layout.norm_eps, axis=-1))
     h = silu(g, _dilated(g, s, s.join("head_conv", h), w, "head_conv.conv", 1))
     out = _pointwise(g, h, w, "head")
     g.op("Concat", s.kept, output="state_out", axis=1)
