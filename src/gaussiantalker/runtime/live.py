@@ -437,11 +437,13 @@ class LiveSession:
         first = self._next_index + len(self._translated)
         if queued == 0:
             return 0
+        # frame k is ready when the queue reaches its lookahead's end (or, flushed, its own start): the span of
+        # frames [first, e) is start(e) - start(first), one frame_start a bound rather than two spans' four
+        per_frame, start = self._speech.per_frame, frame_start(first, self._speech.per_frame)
         count = 0
         while count < MAX_BATCH_FRAMES:
-            own = self._speech.span(first, first + count + 1)
-            ahead = self._speech.span(first + count + 1, first + count + 1 + self.lookahead_frames)
-            if queued >= own + ahead or (self._flushed and queued > self._speech.span(first, first + count)):
+            if queued >= frame_start(first + count + 1 + self.lookahead_frames, per_frame) - start or (
+                    self._flushed and queued > frame_start(first + count, per_frame) - start):
                 count += 1
             else:
                 break
