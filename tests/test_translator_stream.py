@@ -194,7 +194,7 @@ def test_the_bundle_graph_is_its_torch_module(small_export):
 def test_every_window_of_the_state_is_read_by_a_slice(small_speaker, monkeypatch):
     """The stream's windows of its state (each kept part after a call: the statistics, the refreshed audio, the
     features, each convolution's inputs, each transformer layer's keys and values) export as Gathers, which
-    window_slices.py makes Slices: every one of them, and none is left in the bundle's graph."""
+    window_slices.py makes Slices: every one of them, and none is left in the exported graph."""
     stream = MotionTranslatorStream(small_speaker.translator)
     layers = len(small_speaker.translator.audio_encoder.encoder.layers) + len(
         small_speaker.translator.motion_decoder.decoder.layers)

@@ -50,7 +50,7 @@ from torch import nn
 
 from gaussiantalker.sdk.config import AUDIO_NORM_EPS, FEATURES_PER_FRAME
 
-from .translator import MotionTranslator, TransformerLayer, aligned_padding, conv_kernels
+from .translator import MotionTranslator, PositionalConvEmbedding, TransformerLayer, aligned_padding, conv_kernels
 
 # The live session's defaults (docs/live.md): one second of context, 160 ms of lookahead, at 25 fps.
 STREAM_CONTEXT_FRAMES = 25
@@ -126,7 +126,7 @@ _EMPTY_ROW_LOGIT = -1e4
 
 
 def _cached_layer(layer: TransformerLayer, x: torch.Tensor, cache: torch.Tensor,
-                  key_bias: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                  key_bias: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
     """One pre-LN transformer layer on the tail rows x [B, T, D], their attention also reading the kept rows'
     keys and values (cache [B, 2, H, C, Dh]; key_bias [B, 1, 1, C + T] masks the empty ones). Returns the
     tail's outputs and the keys and values of all C + T rows, each [B, H, C + T, Dh] (not stacked: the state keeps
@@ -138,7 +138,7 @@ def _cached_layer(layer: TransformerLayer, x: torch.Tensor, cache: torch.Tensor,
     return x, (keys, values)
 
 
-def _positional_tail(embedding, x: torch.Tensor, tail: int) -> torch.Tensor:
+def _positional_tail(embedding: PositionalConvEmbedding, x: torch.Tensor, tail: int) -> torch.Tensor:
     """The positional convolution embedding's last `tail` rows of x [B, L, D]: what embedding(x)[:, L - tail:] is,
     with only those outputs computed. Output t of its 'same' convolution (padding p) reads inputs [t - p, t - p + k),
     zeros past either end, so these read the inputs from L - tail - p on and k - p - 1 zeros after the last."""
