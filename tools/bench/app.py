@@ -571,12 +571,9 @@ def live_batching(
         result = run_live_batching(bundle, audio, batches, seconds, rounds, context_ms, stream, tuple(lookaheads))
     except ValueError as error:
         raise typer.BadParameter(str(error), param_hint="BUNDLE") from None
-    _stamp(result)
-    table = live_batching_table(result)
-    typer.echo(table)
-    _write_report(out, "live-batching", "Live sessions: the translator's calls, CPU and accuracy", result, table,
-                  f"; {result['speech_s']:g} s of speech in 20 ms chunks, free-running, one thread; {rounds} "
-                  "alternating rounds.")
+    _publish(result, live_batching_table, out, "live-batching", "Live sessions: the translator's calls, CPU and "
+             "accuracy", f"; {result['speech_s']:g} s of speech in 20 ms chunks, free-running, one thread; {rounds} "
+             "alternating rounds.")
 
 
 @app.command("translator-stream")
@@ -619,11 +616,8 @@ def translator_stream(
         from .translator_stream import base_size_translator
 
         result["cost_base_size"] = run_cost(base_size_translator(), variants, [(1, 1)], max(3, rounds // 5))
-    _stamp(result)
-    table = translator_stream_table(result)
-    typer.echo(table)
-    _write_report(out, "translator-stream", "The Motion Translator streamed: quality and cost", result, table,
-                  f"; torch modules for quality, onnxruntime on one thread for cost ({rounds} alternating rounds).")
+    _publish(result, translator_stream_table, out, "translator-stream", "The Motion Translator streamed: quality and "
+             "cost", f"; torch modules for quality, onnxruntime on one thread for cost ({rounds} alternating rounds).")
 
 
 @app.command("stream-calls")
@@ -720,12 +714,10 @@ def codings(
         from gaussiantalker.exporter.imports.sources.lam import import_lam
 
         loaded = import_lam(speaker, progress=False)
-    result = _stamp(run_codings(loaded, [p / 100 for p in percents],
-                                COMBINED_LOSS_DB if combined_loss is None else combined_loss))
-    table = codings_table(result)
-    typer.echo(table)
-    _write_report(out, "codings", "Codings of the per-Gaussian buffers: bytes against head PSNR", result, table,
-                  "; one buffer of `compact` coded at a time, its frames against `quality`'s (tools/bench/codings.py).")
+    result = run_codings(loaded, [p / 100 for p in percents],
+                         COMBINED_LOSS_DB if combined_loss is None else combined_loss)
+    _publish(result, codings_table, out, "codings", "Codings of the per-Gaussian buffers: bytes against head PSNR",
+             "; one buffer of `compact` coded at a time, its frames against `quality`'s (tools/bench/codings.py).")
 
 
 @app.command("framing")
@@ -743,12 +735,10 @@ def framing(
         if not path.exists() or (path.is_dir() and flame is None):
             raise typer.BadParameter(f"{path}: no such avatar, or a GaussianAvatars folder without --flame",
                                      param_hint="AVATARS")
-    result = _stamp(run_framing(avatars, flame, out, rounds))
-    table = framing_table(result)
-    typer.echo(table)
-    _write_report(out, "framing", "Imported avatars' framing: source camera and portrait", result, table,
-                  "; rest pose, 512x512, the runtime's frames (PNGs: source left, portrait right); times: the "
-                  f"default renderer, {rounds} alternating rounds, median ms a frame.")
+    result = run_framing(avatars, flame, out, rounds)
+    _publish(result, framing_table, out, "framing", "Imported avatars' framing: source camera and portrait",
+             "; rest pose, 512x512, the runtime's frames (PNGs: source left, portrait right); times: the "
+             f"default renderer, {rounds} alternating rounds, median ms a frame.")
 
 
 @app.command("web-presets")
@@ -774,12 +764,9 @@ def web_presets(
         parsed.append((label, Path(checkpoint), Path(given["audio"]) if "audio" in given else None,
                        Path(given["motion"]) if "motion" in given else None))
     result = run_web_presets(parsed, [p.strip() for p in presets.split(",") if p.strip()], rounds, log=typer.echo)
-    _stamp(result)
-    table = web_presets_table(result)
-    typer.echo(table)
-    _write_report(out, "web-presets", "Bundles for the web: download size and time to the first frame", result,
-                  table, f" (headless Chromium, SwiftShader; {result['size'][0]}x{result['size'][1]}; medians of "
-                  f"{rounds} fresh pages).")
+    _publish(result, web_presets_table, out, "web-presets", "Bundles for the web: download size and time to the "
+             "first frame", f" (headless Chromium, SwiftShader; {result['size'][0]}x{result['size'][1]}; medians of "
+             f"{rounds} fresh pages).")
 
 
 @app.command("live-clients")
@@ -873,11 +860,9 @@ def serve_attacks(
     if not bundle.is_file():
         raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
     baseline = _live_baseline(baseline_server, baseline_checkout)
-    result = _stamp(run_serve_attacks(bundle, baseline, log=typer.echo))
-    table = serve_attacks_table(result)
-    typer.echo(table)
-    _write_report(out, "serve-attacks", "Attacks on the live server", result, table,
-                  "; each server alone on loopback, `--client-render`, gt-serve with `--secret-file`.")
+    result = run_serve_attacks(bundle, baseline, log=typer.echo)
+    _publish(result, serve_attacks_table, out, "serve-attacks", "Attacks on the live server",
+             "; each server alone on loopback, `--client-render`, gt-serve with `--secret-file`.")
 
 
 @app.command("batch")
@@ -899,13 +884,10 @@ def batch(
 
     if not bundle.is_file():
         raise typer.BadParameter(f"{bundle}: no such file", param_hint="BUNDLE")
-    result = _stamp(run_batch_bench(bundle, resolution=resolution, jobs=jobs, job_s=job_s, long_s=long_s,
-                                    segment_s=segment_s, rounds=rounds, long_rounds=long_rounds, ray=ray,
-                                    log=typer.echo))
-    table = batch_table(result)
-    typer.echo(table)
-    _write_report(out, "batch", "gt-render: seconds of video per second", result, table,
-                  f"; {jobs} jobs of {job_s:g} s at {resolution}x{resolution}, rounds alternating the engines.")
+    result = run_batch_bench(bundle, resolution=resolution, jobs=jobs, job_s=job_s, long_s=long_s,
+                             segment_s=segment_s, rounds=rounds, long_rounds=long_rounds, ray=ray, log=typer.echo)
+    _publish(result, batch_table, out, "batch", "gt-render: seconds of video per second",
+             f"; {jobs} jobs of {job_s:g} s at {resolution}x{resolution}, rounds alternating the engines.")
 
 
 @app.command()
@@ -930,15 +912,13 @@ def voice(
         if path is not None and not path.is_file():
             raise typer.BadParameter(f"{path}: no such file", param_hint=hint)
     try:
-        result = _stamp(run_voice_bench(arkit_model or ARKIT_MODEL, flame_model or FLAME_MODEL, bundle, clips, seed,
-                                        log=typer.echo))
+        result = run_voice_bench(arkit_model or ARKIT_MODEL, flame_model or FLAME_MODEL, bundle, clips, seed,
+                                 log=typer.echo)
     except RealSpeechMissing as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(2) from None
-    table = voice_table(result)
-    typer.echo(table)
-    _write_report(out, "gates", "Voice drivers on every family of voice and on real speech", result, table,
-                  f"; {clips} clips per synthetic family; ✓/✗: the goals (docs/voice.md, \"Measurements\").")
+    _publish(result, voice_table, out, "gates", "Voice drivers on every family of voice and on real speech",
+             f"; {clips} clips per synthetic family; ✓/✗: the goals (docs/voice.md, \"Measurements\").")
 
 
 def _live_baseline(script: Path | None, checkout: Path | None, bundle: Path | None = None):
@@ -1081,8 +1061,5 @@ def blend_limit(
     if not counts or not thread_counts or min(counts + thread_counts) < 1:
         raise typer.BadParameter("--gaussians and --threads need whole numbers >= 1")
     result = run_blend_limit(counts, size, layers, thread_counts, frames, rounds)
-    _stamp(result)
-    table = blend_limit_table(result)
-    typer.echo(table)
-    _write_report(out, "blend-limit", "CPU splatter: the blend's work and time per fragment", result, table,
-                  f"; {size}x{size}, medians of {rounds} alternating rounds x {frames} blends.")
+    _publish(result, blend_limit_table, out, "blend-limit", "CPU splatter: the blend's work and time per fragment",
+             f"; {size}x{size}, medians of {rounds} alternating rounds x {frames} blends.")
