@@ -28,12 +28,13 @@ def run_stream_calls(bundles: list[Path], cases: list[tuple[int, int]], rounds: 
     """Median ms a call of each bundle's streaming graph for each (sessions, frames) case, alternating bundles
     within every round. `graph` "refreshing": `translator_stream`; "steady": its steady form (the calls a live
     session makes while the loudness holds), which every bundle must have."""
-    if graph not in ("refreshing", "steady"):
-        raise ValueError(f"graph must be 'refreshing' or 'steady', got {graph!r}")
-    refresh = graph == "refreshing"
     from tqdm import tqdm
 
     from gaussiantalker.runtime.stages import open_driver
+
+    if graph not in ("refreshing", "steady"):
+        raise ValueError(f"graph must be 'refreshing' or 'steady', got {graph!r}")
+    refresh = graph == "refreshing"
 
     drivers = []
     for path in bundles:

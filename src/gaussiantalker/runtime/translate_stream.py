@@ -160,9 +160,11 @@ def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) 
 
 def _trailing_silence(samples: np.ndarray) -> int:
     """How many zeros end `samples` (all of them when nothing is spoken)."""
+    if samples.shape[0] == 0:
+        return 0
     spoken = samples[::-1] != 0  # from the end: the first nonzero's offset is the silence (argmax: no index array)
-    last = int(spoken.argmax()) if spoken.shape[0] else 0
-    return last if spoken.shape[0] and spoken[last] else samples.shape[0]
+    last = int(spoken.argmax())
+    return last if spoken[last] else samples.shape[0]
 
 
 class TranslatorStream:
