@@ -244,3 +244,23 @@ def test_the_load_bench_runs_an_older_gt_serve_as_its_baseline(tmp_path):
                                                           "--max-sessions-per-client", "100"]
     assert Baseline(sample, tmp_path).arguments(100) == []
     assert Baseline(wrapper, tmp_path).is_gt_serve and not Baseline(sample, tmp_path).is_gt_serve
+
+
+def test_a_client_asking_for_deflate_gets_plain_frames(server):
+    """A browser's handshake asks for permessage-deflate; the server declines it (docs/serve.md, "Limits"): the
+    answer names no extension, and the frame packets come as they are made."""
+    import aiohttp
+
+    _, port = server
+
+    async def run() -> tuple[int, str | None, bytes]:
+        async with aiohttp.ClientSession() as http, http.ws_connect(f"ws://127.0.0.1:{port}/live",
+                                                                    compress=15) as ws:
+            await ws.send_str(json.dumps({"source": "none"}))
+            await ws.receive(timeout=60)  # the answer
+            packet = await ws.receive(timeout=30)
+            return ws.compress, ws._response.headers.get("Sec-WebSocket-Extensions"), packet.data
+
+    compress, extensions, packet = asyncio.run(run())
+    assert compress == 0 and extensions is None
+    assert packet[:4] == b"GTLF"  # a frame packet, as sent

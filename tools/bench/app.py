@@ -41,6 +41,8 @@
                            (bench/stream_calls.py)
     gt-bench live-pool     the CPU a live server's pool spends a session-second, on a fake clock without sockets,
                            beside an older checkout (bench/live_pool.py)
+    gt-bench voice-pushes  the CPU a live server's event loop spends pushing its own voices at real time, beside an
+                           older checkout (bench/voice_pushes.py)
 
 The flags of the single command before these subcommands (`--sweep`, `--baseline`, `--composite`, `--backends`)
 still work: `gaussiantalker.cli.bench` rewrites them to their subcommand.
@@ -686,6 +688,39 @@ def live_pool(
              f"; {seconds:g} s of fake clock a run, {rounds} alternating rounds, each a fresh process, medians.")
 
 
+@app.command("voice-pushes")
+def voice_pushes(
+    bundle: Path = typer.Argument(..., help="a bundle whose driver the sessions use (.gtb)"),
+    sessions: str = typer.Option("100", "--sessions", help="comma-separated numbers of sessions"),
+    seconds: float = typer.Option(5.0, "--seconds", min=1.0, max=120.0, help="seconds each voice speaks"),
+    rounds: int = typer.Option(5, "--rounds", min=1, help="alternating rounds (medians)"),
+    chunk_ms: float = typer.Option(20.0, "--chunk-ms", min=5.0, max=1000.0, help="the voices' chunk size"),
+    baseline_checkout: Path = typer.Option(None, "--baseline-checkout", help="a checkout of an older commit "
+                                           "(`git worktree add DIR COMMIT`) whose pusher runs beside this one"),
+    out: Path = typer.Option(None, "--out", help="folder for voice-pushes.md and voice-pushes.json"),
+) -> None:
+    """The CPU a live server's event loop spends pushing its own voices at real time, versions side by side
+    (bench/voice_pushes.py)."""
+    from .voice_pushes import run_voice_pushes, voice_pushes_table
+
+    counts = _numbers(sessions, int, "--sessions")
+    if not counts or min(counts) < 1 or max(counts) > 500:
+        raise typer.BadParameter("sessions in 1..500", param_hint="--sessions")
+    if not bundle.is_file():
+        raise typer.BadParameter(f"{bundle}: no such bundle", param_hint="BUNDLE")
+    if baseline_checkout is not None and not (baseline_checkout / "src" / "gaussiantalker").is_dir():
+        raise typer.BadParameter(f"{baseline_checkout}: not a checkout of this project (no src/gaussiantalker)",
+                                 param_hint="--baseline-checkout")
+    try:
+        result = run_voice_pushes(bundle.resolve(), counts, seconds, rounds, chunk_ms,
+                                  None if baseline_checkout is None else baseline_checkout.resolve())
+    except RuntimeError as exc:
+        raise typer.BadParameter(str(exc), param_hint="BUNDLE") from None
+    _publish(result, voice_pushes_table, out, "voice-pushes", "A live server's own voices pushed at real time",
+             f"; {seconds:g} s voices in {chunk_ms:g} ms chunks, {rounds} alternating rounds, each a fresh process, "
+             "medians.")
+
+
 @app.command("codings")
 def codings(
     speaker: Path = typer.Argument(..., help="a LAM avatar zip (imported without its voice) or a speaker checkpoint "
@@ -779,8 +814,9 @@ def live_clients(
     chunk_ms: str = typer.Option("20", "--chunk-ms", help="the voice's chunk sizes (ms, pushed at real time; "
                                  "comma-separated: one run each): 20 is a voice made as it is spoken"),
     transport: str = typer.Option("ws", "--transport", help="how drives and voice reach the clients "
-                                  "(comma-separated: one run each): ws, one WebSocket a session; webrtc, an audio "
-                                  "track and a data channel"),
+                                  "(comma-separated: one run each): ws, one WebSocket a session; ws-deflate, one "
+                                  "whose handshake asks for permessage-deflate as a browser's does; webrtc, an "
+                                  "audio track and a data channel"),
     batch_frames: str = typer.Option("1", "--batch-frames", help="the server's frames per translator call at least "
                                      "(comma-separated: one run each; gt-serve --batch-frames)"),
     context_ms: float = typer.Option(1000.0, "--context-ms", min=0.0, help="the translator's past context "
@@ -816,8 +852,8 @@ def live_clients(
     if not counts or min(counts) < 1 or not chunks or not all(10 <= c <= 10000 for c in chunks):
         raise typer.BadParameter("counts >= 1 and chunks of 10..10000 ms", param_hint="--clients/--chunk-ms")
     transports = [v.strip() for v in transport.split(",") if v.strip()]
-    if not transports or not set(transports) <= {"ws", "webrtc"}:
-        raise typer.BadParameter("ws, webrtc or both", param_hint="--transport")
+    if not transports or not set(transports) <= {"ws", "ws-deflate", "webrtc"}:
+        raise typer.BadParameter("ws, ws-deflate, webrtc or a list of them", param_hint="--transport")
     if not batches or not all(1 <= b <= 8 for b in batches):
         raise typer.BadParameter("whole numbers in 1..8", param_hint="--batch-frames")
     baseline = _live_baseline(baseline_server, baseline_checkout, baseline_bundle)

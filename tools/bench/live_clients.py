@@ -62,8 +62,9 @@ CPU_SAMPLE_S = 0.25
 HEADER = struct.Struct("<4sBBBBIIdHH")  # a drive message's header
 PACKET_DRIVE_BYTES = struct.Struct("<I")  # a frame packet's drive length, at offset 8
 WIRE_VERSION = 1  # the frame packet and drive message this bench reads (the baseline's answer names none)
-TRANSPORTS = ("webrtc", "ws")
+TRANSPORTS = ("webrtc", "ws", "ws-deflate")
 TRANSPORT_NAMES = {"ws": "One WebSocket a session (frame packets: drive + int16 audio)",
+                   "ws-deflate": "One WebSocket a session, each client asking for permessage-deflate as a browser does",
                    "webrtc": "WebRTC (drives on a data channel, voice on an Opus audio track)"}
 
 
@@ -145,11 +146,12 @@ async def _client(url: str, delay: float, speak_s: float, idle_s: float, chunk_m
 
 
 async def _ws_client(url: str, delay: float, speak_s: float, idle_s: float, chunk_ms: float,
-                     token: str | None = None) -> dict:
+                     token: str | None = None, deflate: bool = False) -> dict:
     """One load client on the WebSocket transport: reads every frame packet (its drive header and its audio's
     length; the audio is not played: that is the page's cost), barges in after `speak_s` and leaves `idle_s`
     later. `token` (None: no tokens) goes with the socket's request; a close by the server before the client
-    leaves is recorded (`server_closed`: its close code)."""
+    leaves is recorded (`server_closed`: its close code). `deflate`: the handshake asks for permessage-deflate, as
+    a browser's does (`compressed`: whether the server took it)."""
     import aiohttp
 
     await asyncio.sleep(delay)
@@ -158,7 +160,9 @@ async def _ws_client(url: str, delay: float, speak_s: float, idle_s: float, chun
     try:
         async with aiohttp.ClientSession(headers=_auth(token)) as http:
             sent = time.monotonic()
-            async with http.ws_connect(url.replace("http://", "ws://") + "/live", max_msg_size=1 << 20) as socket:
+            async with http.ws_connect(url.replace("http://", "ws://") + "/live", max_msg_size=1 << 20,
+                                       compress=15 if deflate else 0) as socket:
+                result["compressed"] = bool(socket.compress)
                 await socket.send_json({"source": "file", "chunk_ms": chunk_ms})
                 answer = await socket.receive_json(timeout=120)
                 if "error" in answer:
@@ -215,9 +219,9 @@ def _client_process(url: str, count: int, first: int, speak_s: float, idle_s: fl
     tokens = tokens or [None] * count
 
     async def main() -> list:
-        if transport == "ws":
+        if transport in ("ws", "ws-deflate"):
             return await asyncio.gather(*(_ws_client(url, (first + k) * STAGGER_S, speak_s, idle_s, chunk_ms,
-                                                     tokens[k]) for k in range(count)))
+                                                     tokens[k], transport == "ws-deflate") for k in range(count)))
         return await asyncio.gather(*(_client(url, (first + k) * STAGGER_S, speak_s, idle_s, chunk_ms,
                                               packets, tokens[k]) for k in range(count)))
 
@@ -772,7 +776,8 @@ def _analyse(clients: list[dict], cpu_s: float, wall_s: float) -> dict:
             "cpu_s_per_session_s": cpu_s / session_s if session_s else None,
             "first_frame": _percentiles(first_frame), "barge_in": _percentiles(barge_in),
             "audio_packets_per_expected": packets / expected_packets if expected_packets else 0.0,
-            "audio_packets_lost": lost, "server_closed": sum(bool(c.get("server_closed")) for c in clients)}
+            "audio_packets_lost": lost, "server_closed": sum(bool(c.get("server_closed")) for c in clients),
+            "compressed": sum(bool(c.get("compressed")) for c in clients)}
 
 
 def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float = 160.0,
@@ -782,7 +787,8 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
                            replicas: int = 1, baseline_replicas: int = 1) -> dict:
     """Start gt-serve (tokens on; `replicas` > 1: that many behind nginx) and, with `baseline`, the baseline
     script (`baseline_replicas` of it), then for each N `rounds` rounds of its load clients on `transport`
-    ("webrtc": audio track and data channel; "ws": one WebSocket) against each server in turn; returns gt-serve's
+    ("webrtc": audio track and data channel; "ws": one WebSocket; "ws-deflate": one asking for permessage-deflate)
+    against each server in turn; returns gt-serve's
     figures per N (`runs`), the baseline's and the ratios."""
     if transport not in TRANSPORTS:
         raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")

@@ -61,11 +61,12 @@ def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 1
             while starts[k] + pushed[k] * CHUNK_S <= clock[0] and pushed[k] * chunk < speech.shape[0]:
                 live.push(speech[pushed[k] * chunk:(pushed[k] + 1) * chunk], driver.sample_rate)
                 pushed[k] += 1
-        jobs = [job for job in (live.stream_job() for live in lives) if job is not None]
+        due = [live for live in lives if live.due <= clock[0]]  # as the server's pool picks them
+        jobs = [job for job in (live.stream_job() for live in due) if job is not None]
         if jobs:
             calls += len(run_stream_jobs(jobs, driver.run_stream, driver.stream_rows))
             rows += sum(job.audio.shape[0] for job in jobs)
-        for live in lives:
+        for live in due:
             frame = live.step()
             if frame is not None:
                 frames += 1
@@ -78,15 +79,23 @@ def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 1
 
 def _run_in(src: Path | None, bundle: Path, sessions: int, seconds: float, lookahead_ms: float) -> dict:
     """pool_run in a fresh process importing `src`'s gaussiantalker (None: this checkout's)."""
+    return run_in_checkout(src, f"tools.bench.live_pool:pool_run({str(bundle)!r}, {sessions}, {seconds}, "
+                                f"{lookahead_ms})")
+
+
+def run_in_checkout(src: Path | None, call: str) -> dict:
+    """`call` ("module:function(args)", a function of tools/bench that returns a JSON-able dict) in a fresh process
+    whose gaussiantalker is `src`'s (an older checkout's src/, first on PYTHONPATH and the working folder; None:
+    this checkout's); its dict."""
     root = Path(__file__).resolve().parents[2]
     paths = [str(src if src is not None else root / "src"), str(root),
              *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
-    code = ("import json, sys; from tools.bench.live_pool import pool_run; "
-            f"print(json.dumps(pool_run({str(bundle)!r}, {sessions}, {seconds}, {lookahead_ms})))")
+    module, function = call.split(":", 1)
+    code = f"import json; from {module} import {function.split('(')[0]}; print(json.dumps({function}))"
     done = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": os.pathsep.join(paths)},
                           cwd=src or root, capture_output=True, text=True, timeout=900)
     if done.returncode != 0:
-        raise RuntimeError(f"the pool run failed ({'baseline' if src else 'new'}): {done.stderr.strip()[-800:]}")
+        raise RuntimeError(f"the run failed ({'baseline' if src else 'new'}): {done.stderr.strip()[-800:]}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 

@@ -13,7 +13,7 @@ from .extras import require_export_extra
 BENCH_COMMANDS = ("frames", "sweep", "compare", "composite", "backends", "video", "clip-codecs", "clip-crf", "lam-web",
                   "avatar", "surface", "early-stop", "live", "live-clients", "renderers", "pipeline", "web-presets",
                   "live-batching", "blend-limit", "serve-attacks", "batch", "voice", "translator-stream",
-                  "framing", "codings", "stream-calls", "live-pool")
+                  "framing", "codings", "stream-calls", "live-pool", "voice-pushes")
 LEGACY_BENCH_MODES = (
     ("--backends", "backends", ("--checkpoint", "--sizes", "--seconds", "--rounds", "--out")),
     ("--composite", "composite", ("--checkpoint", "--seconds", "--rounds", "--out")),

@@ -96,7 +96,8 @@ def pads_exactly(run: RunStream, rows_of: RowsOf, rest_state: np.ndarray, frame_
 
 def frame_power(audio: np.ndarray) -> np.ndarray:
     """Mean square of each frame of `audio` [n, F] -> [n] (float64)."""
-    return np.mean(np.square(audio, dtype=np.float64), axis=1)
+    # the sum over the count is what np.mean computes, bit for bit, without its per-call bookkeeping (a call a frame)
+    return np.add.reduce(np.square(audio, dtype=np.float64), axis=1) / audio.shape[1]
 
 
 def loudness_moved(powers: np.ndarray) -> bool:
@@ -105,7 +106,7 @@ def loudness_moved(powers: np.ndarray) -> bool:
     LOUDNESS_RATIO times the other (silence before counts as zeros)."""
     window, lag = LOUDNESS_WINDOW_FRAMES, LOUDNESS_LAG_FRAMES
     padded = np.concatenate([np.zeros(max(0, window + lag - powers.shape[0])), powers[-(window + lag):]])
-    now, then = padded[lag:].mean(), padded[:window].mean()
+    now, then = padded[lag:].sum() / window, padded[:window].sum() / window  # np.mean's own sums, bit for bit
     return bool(max(now, then) > LOUDNESS_RATIO * min(now, then))
 
 
@@ -121,6 +122,7 @@ class StreamJob:
     powers: np.ndarray | None = None  # each frame's mean square (a stream with a steady form: its gate reads them)
     rows: np.ndarray | None = None
     state: np.ndarray | None = None
+    state_row: tuple[np.ndarray, int] | None = None  # (the call's state_out, this job's row of it)
 
     @property
     def shape(self) -> tuple[int, int, bool]:
@@ -149,13 +151,23 @@ def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) 
             audio = np.zeros((len(part), frames, part[0].audio.shape[1]), np.float32)
             for k, job in enumerate(part):
                 audio[k, :job.audio.shape[0]] = job.audio
-            state = np.stack([job.stream.state for job in part])
-            out = run(audio, state, keep, refresh)
-            rows = rows_of(out)
+            out = run(audio, _stacked_states(part), keep, refresh)
+            rows, states = rows_of(out), out["state_out"]
             for k, job in enumerate(part):
-                job.rows, job.state = rows[k, :job.audio.shape[0]], out["state_out"][k]
+                job.rows, job.state, job.state_row = rows[k, :job.audio.shape[0]], states[k], (states, k)
             calls.append(len(part))
     return calls
+
+
+def _stacked_states(jobs: Sequence[StreamJob]) -> np.ndarray:
+    """The jobs' states as one [B, S] array: the last call's state_out itself when the jobs are that call's sessions
+    in its order (each state still its row there: a pool's sessions due together tick after tick), else a copy."""
+    last = jobs[0].stream.state_row
+    if last is not None and last[0].shape[0] == len(jobs) and all(
+            job.stream.state_row is not None and job.stream.state_row[0] is last[0] and job.stream.state_row[1] == k
+            for k, job in enumerate(jobs)):
+        return last[0]
+    return np.stack([job.stream.state for job in jobs])
 
 
 def _trailing_silence(samples: np.ndarray) -> int:
@@ -182,6 +194,7 @@ class TranslatorStream:
         barge-in: what the windowed path's cleared context is)."""
         self.origin = int(position)
         self.state = self.spec.rest_state.copy()
+        self.state_row: tuple[np.ndarray, int] | None = None  # (a call's state_out, the row `state` is), as finished
         self.committed = 0  # stream frames in the state
         self.known = np.zeros(0, np.float32)  # timeline samples from the committed position on, as far as known
         self.final: dict[int, np.ndarray] = {}  # stream frame -> its final row
@@ -271,6 +284,7 @@ class TranslatorStream:
         silent = _trailing_silence(committed)
         self.quiet = self.quiet + silent if silent == committed.shape[0] else silent
         self.state = np.asarray(job.state, np.float32)
+        self.state_row = job.state_row
         self.committed += job.keep
         self._at_rest = False
         self.known = self.known[job.keep * size:]

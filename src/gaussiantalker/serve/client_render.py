@@ -112,7 +112,10 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
     async def live_socket(request: web.Request) -> web.WebSocketResponse:
         """One session on one WebSocket: the page's start message, the answer, then a frame packet per frame;
         the page's barge-ins (text) and microphone (binary), each within its rate."""
-        socket = web.WebSocketResponse(max_msg_size=MAX_MIC_MESSAGE_BYTES, heartbeat=HEARTBEAT_S)
+        # No permessage-deflate, which browsers ask for: a frame packet (int16 audio and float32 drives) compresses
+        # poorly for a zlib pass a frame, each socket would hold a compressor's and a decompressor's state, and a
+        # page's compressed messages would be inflated by the server (docs/serve.md, "Limits").
+        socket = web.WebSocketResponse(max_msg_size=MAX_MIC_MESSAGE_BYTES, heartbeat=HEARTBEAT_S, compress=False)
         await socket.prepare(request)
         _bound_send_buffer(request)
         client = request[CLIENT].key

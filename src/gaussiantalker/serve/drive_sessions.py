@@ -284,7 +284,10 @@ class _DriveWorker(threading.Thread):
     def run(self) -> None:
         while True:
             with self._pool_lock:
-                sessions = list(self.sessions)
+                # the sessions with a frame due now (the others' calls would return at once, at a lock and a clock
+                # read each: half the sessions a pass on the half-frame grid); a failed one, to be let go of
+                sessions = [session for session in self.sessions
+                            if session.error is not None or session.live.due <= time.monotonic()]
             _translate_together(sessions)
             _tick.deliveries, ended = [], []
             try:
@@ -323,7 +326,7 @@ def _translate_together(sessions: list[DriveSession]) -> None:
             calls = run_stream_jobs(jobs, driver.run_stream, driver.stream_rows)
         except Exception:  # each session runs its own call again and fails on its own
             for job in jobs:
-                job.rows = job.state = None
+                job.rows = job.state = job.state_row = None
         else:
             metrics = sessions[0]._metrics
             for count in calls:

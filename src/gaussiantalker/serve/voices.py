@@ -4,7 +4,6 @@ microphone, or nothing; and the pusher that feeds the server's own voice at real
 from __future__ import annotations
 
 import asyncio
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -102,16 +101,49 @@ def _shown(value: object) -> str:
 
 async def push_real_time(live, audio: np.ndarray, rate: int, chunk_s: float) -> None:
     """Push `audio` in `chunk_s` chunks at real time, as a voice that speaks as it is made, then flush. Stops
-    quietly when the session closes (the page left)."""
-    step = max(1, int(rate * chunk_s))
-    start = time.monotonic()
+    quietly when the session closes (the page left); cancelling the task stops the voice (a barge-in)."""
+    loop = asyncio.get_running_loop()
+    pusher = _Pusher(live, audio, rate, chunk_s, loop)
     try:
-        for k, first in enumerate(range(0, audio.shape[0], step)):
-            await asyncio.sleep(max(0.0, start + k * chunk_s - time.monotonic()))
-            live.push(audio[first:first + step], rate)
-        live.flush()
-    except LiveError:
-        return
+        await pusher.done
+    finally:
+        pusher.stop()
+
+
+class _Pusher:
+    """Each chunk pushed by a timer callback at its time on the loop's clock: a hundred voices in 20 ms chunks are
+    5,000 pushes a second, and a coroutine's sleep adds a future and a task's wake-up to each (docs/live.md,
+    "Load")."""
+
+    def __init__(self, live, audio: np.ndarray, rate: int, chunk_s: float, loop: asyncio.AbstractEventLoop) -> None:
+        self.live, self.audio, self.rate, self.chunk_s, self.loop = live, audio, rate, chunk_s, loop
+        self.step = max(1, int(rate * chunk_s))
+        self.count = -(-audio.shape[0] // self.step)  # chunks
+        self.start, self.next = loop.time(), 0
+        self.done: asyncio.Future = loop.create_future()
+        self.timer: asyncio.TimerHandle | asyncio.Handle = loop.call_soon(self._push)
+
+    def _push(self) -> None:
+        try:
+            if self.next < self.count:
+                first = self.next * self.step
+                self.live.push(self.audio[first:first + self.step], self.rate)
+                self.next += 1
+            if self.next < self.count:
+                self.timer = self.loop.call_at(self.start + self.next * self.chunk_s, self._push)
+                return
+            self.live.flush()
+        except LiveError:
+            pass
+        except Exception as error:  # anything else is the task's to raise, as the coroutine's own push raised it
+            if not self.done.done():
+                self.done.set_exception(error)
+            return
+        if not self.done.done():
+            self.done.set_result(None)
+
+    def stop(self) -> None:
+        self.timer.cancel()
 
 
 __all__ = ["DEFAULT_CHUNK_MS", "Voice", "VoiceFiles", "push_real_time", "voice_of"]
