@@ -652,6 +652,21 @@ def stream_calls(
              f"; the {graph} graph, onnxruntime on one thread, {rounds} alternating rounds of 20 calls, medians.")
 
 
+def _sessions_beside_checkout(sessions: str, baseline_checkout: Path | None, bundle: Path,
+                              baseline_bundle: Path | None = None) -> list[int]:
+    """--sessions (1..500 each) of a bench run beside an older checkout, its bundles and the checkout checked."""
+    counts = _numbers(sessions, int, "--sessions")
+    if not counts or min(counts) < 1 or max(counts) > 500:
+        raise typer.BadParameter("sessions in 1..500", param_hint="--sessions")
+    for path, hint in ((bundle, "BUNDLE"), (baseline_bundle, "--baseline-bundle")):
+        if path is not None and not path.is_file():
+            raise typer.BadParameter(f"{path}: no such bundle", param_hint=hint)
+    if baseline_checkout is not None and not (baseline_checkout / "src" / "gaussiantalker").is_dir():
+        raise typer.BadParameter(f"{baseline_checkout}: not a checkout of this project (no src/gaussiantalker)",
+                                 param_hint="--baseline-checkout")
+    return counts
+
+
 @app.command("live-pool")
 def live_pool(
     bundle: Path = typer.Argument(..., help="a bundle with a streaming translator (.gtb)"),
@@ -669,15 +684,7 @@ def live_pool(
     fake clock without sockets: versions side by side within a few percent (bench/live_pool.py)."""
     from .live_pool import live_pool_table, run_live_pool
 
-    counts = _numbers(sessions, int, "--sessions")
-    if not counts or min(counts) < 1 or max(counts) > 500:
-        raise typer.BadParameter("sessions in 1..500", param_hint="--sessions")
-    for path, hint in ((bundle, "BUNDLE"), (baseline_bundle, "--baseline-bundle")):
-        if path is not None and not path.is_file():
-            raise typer.BadParameter(f"{path}: no such bundle", param_hint=hint)
-    if baseline_checkout is not None and not (baseline_checkout / "src" / "gaussiantalker").is_dir():
-        raise typer.BadParameter(f"{baseline_checkout}: not a checkout of this project (no src/gaussiantalker)",
-                                 param_hint="--baseline-checkout")
+    counts = _sessions_beside_checkout(sessions, baseline_checkout, bundle, baseline_bundle)
     try:
         result = run_live_pool(bundle.resolve(), counts, seconds, rounds, lookahead_ms,
                                None if baseline_checkout is None else baseline_checkout.resolve(),
@@ -703,14 +710,7 @@ def voice_pushes(
     (bench/voice_pushes.py)."""
     from .voice_pushes import run_voice_pushes, voice_pushes_table
 
-    counts = _numbers(sessions, int, "--sessions")
-    if not counts or min(counts) < 1 or max(counts) > 500:
-        raise typer.BadParameter("sessions in 1..500", param_hint="--sessions")
-    if not bundle.is_file():
-        raise typer.BadParameter(f"{bundle}: no such bundle", param_hint="BUNDLE")
-    if baseline_checkout is not None and not (baseline_checkout / "src" / "gaussiantalker").is_dir():
-        raise typer.BadParameter(f"{baseline_checkout}: not a checkout of this project (no src/gaussiantalker)",
-                                 param_hint="--baseline-checkout")
+    counts = _sessions_beside_checkout(sessions, baseline_checkout, bundle)
     try:
         result = run_voice_pushes(bundle.resolve(), counts, seconds, rounds, chunk_ms,
                                   None if baseline_checkout is None else baseline_checkout.resolve())

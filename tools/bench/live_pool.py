@@ -20,6 +20,7 @@ import subprocess
 import sys
 import time
 import types
+from collections.abc import Callable
 from pathlib import Path
 
 CHUNK_S = 0.02
@@ -99,25 +100,34 @@ def run_in_checkout(src: Path | None, call: str) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def alternate_rounds(baseline: Path | None, sessions: list[int], rounds: int, desc: str, progress: bool,
+                     run: Callable[[str, Path | None, int], dict]) -> dict[tuple[str, int], list[dict]]:
+    """`run(label, src, n)` for every number of sessions and version ("old": the `baseline` checkout's src/, if
+    any, then "new": this one's, src None), in alternating rounds (old, new, old, new ...); each version's results
+    by (label, n)."""
+    from tqdm import tqdm
+
+    versions = ([("old", baseline / "src")] if baseline is not None else []) + [("new", None)]
+    runs: dict[tuple[str, int], list[dict]] = {(label, n): [] for label, _ in versions for n in sessions}
+    with tqdm(total=rounds * len(sessions) * len(versions), desc=desc, disable=not progress) as bar:
+        for _ in range(rounds):
+            for n in sessions:
+                for label, src in versions:
+                    runs[(label, n)].append(run(label, src, n))
+                    bar.update()
+    return runs
+
+
 def run_live_pool(bundle: Path, sessions: list[int], seconds: float, rounds: int, lookahead_ms: float = 160.0,
                   baseline: Path | None = None, baseline_bundle: Path | None = None, progress: bool = True) -> dict:
     """Every (sessions, server) in alternating rounds (old, new, old, new ...), each a fresh process."""
-    from tqdm import tqdm
-
-    servers = [("old", baseline / "src", baseline_bundle or bundle)] if baseline is not None else []
-    servers.append(("new", None, bundle))
-    runs = {(label, n): [] for label, _, _ in servers for n in sessions}
-    total = rounds * len(sessions) * len(servers)
-    with tqdm(total=total, desc="pool runs", disable=not progress) as bar:
-        for _ in range(rounds):
-            for n in sessions:
-                for label, src, served in servers:
-                    runs[(label, n)].append(_run_in(src, served, n, seconds, lookahead_ms))
-                    bar.update()
+    served = {"old": baseline_bundle or bundle, "new": bundle}
+    runs = alternate_rounds(baseline, sessions, rounds, "pool runs", progress,
+                            lambda label, src, n: _run_in(src, served[label], n, seconds, lookahead_ms))
     rows = []
     for n in sessions:
         row = {"sessions": n}
-        for label, _, _ in servers:
+        for label in ("old", "new") if baseline is not None else ("new",):
             got = runs[(label, n)]
             row[label] = {"rounds": got, "cpu_s_per_session_s": statistics.median(r["cpu_s_per_session_s"]
                                                                                    for r in got),

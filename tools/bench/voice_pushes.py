@@ -12,7 +12,7 @@ import statistics
 import time
 from pathlib import Path
 
-from .live_pool import run_in_checkout
+from .live_pool import alternate_rounds, run_in_checkout
 
 
 def pushes_run(bundle: str, sessions: int, seconds: float, chunk_ms: float = 20.0) -> dict:
@@ -55,21 +55,15 @@ def pushes_run(bundle: str, sessions: int, seconds: float, chunk_ms: float = 20.
 def run_voice_pushes(bundle: Path, sessions: list[int], seconds: float, rounds: int, chunk_ms: float = 20.0,
                      baseline: Path | None = None, progress: bool = True) -> dict:
     """Every (sessions, version) in alternating rounds (old, new, old, new ...), each a fresh process."""
-    from tqdm import tqdm
 
-    versions = ([("old", baseline / "src")] if baseline is not None else []) + [("new", None)]
-    runs = {(label, n): [] for label, _ in versions for n in sessions}
-    with tqdm(total=rounds * len(sessions) * len(versions), desc="voice runs", disable=not progress) as bar:
-        for _ in range(rounds):
-            for n in sessions:
-                for label, src in versions:
-                    call = f"tools.bench.voice_pushes:pushes_run({str(bundle)!r}, {n}, {seconds}, {chunk_ms})"
-                    runs[(label, n)].append(run_in_checkout(src, call))
-                    bar.update()
+    def run(label: str, src: Path | None, n: int) -> dict:
+        return run_in_checkout(src, f"tools.bench.voice_pushes:pushes_run({str(bundle)!r}, {n}, {seconds}, {chunk_ms})")
+
+    runs = alternate_rounds(baseline, sessions, rounds, "voice runs", progress, run)
     rows = []
     for n in sessions:
         row = {"sessions": n}
-        for label, _ in versions:
+        for label in ("old", "new") if baseline is not None else ("new",):
             got = runs[(label, n)]
             row[label] = {"rounds": got, "us_per_chunk": statistics.median(r["us_per_chunk"] for r in got),
                           "cpu_s_per_session_s": statistics.median(r["cpu_s_per_session_s"] for r in got),
