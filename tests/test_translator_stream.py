@@ -23,10 +23,21 @@ from unseen_speech import unseen_speech
 from gaussiantalker.exporter.export import translator_graph
 from gaussiantalker.exporter.export.window_slices import window_gathers_to_slices
 from gaussiantalker.exporter.model.translator import PositionalConvEmbedding, conv_kernels, normalize_waveform
-from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream, _positional_tail, conv_plan
+from gaussiantalker.exporter.model.translator_stream import (
+    MotionTranslatorStream,
+    _conv_time_major,
+    _positional_tail,
+    conv_plan,
+)
 from gaussiantalker.runtime import LiveSession
 from gaussiantalker.runtime.stages import open_driver
-from gaussiantalker.runtime.translate_stream import LOUDNESS_WINDOW_FRAMES, REST_FRAMES, loudness_moved
+from gaussiantalker.runtime.translate_stream import (
+    LOUDNESS_WINDOW_FRAMES,
+    REST_FRAMES,
+    StreamJob,
+    _stacked_states,
+    loudness_moved,
+)
 from gaussiantalker.sdk.bundle import STEADY_STREAM_GRAPH, STREAM_GRAPH, Bundle
 from tools.bench.translator_stream import busiest_r
 
@@ -204,6 +215,42 @@ def test_every_window_of_the_state_is_read_by_a_slice(small_speaker, monkeypatch
     assert window_gathers_to_slices(traced) == windows
     monkeypatch.undo()
     assert window_gathers_to_slices(translator_graph.translator_stream_onnx(small_speaker.translator)) == 0
+
+
+def test_a_call_takes_the_last_calls_states_whole_only_when_its_sessions_are_that_calls_in_order():
+    """run_stream_jobs passes the last call's state_out itself when a call's sessions are that call's, in its order
+    (each stream's state still its row there); any other set or order is stacked from the states, which are the
+    same values either way."""
+    import types
+
+    last = np.arange(12, dtype=np.float32).reshape(3, 4)
+
+    def jobs_of(rows):
+        streams = [types.SimpleNamespace(state=last[k], state_row=(last, k)) for k in rows]
+        return [StreamJob(stream, np.zeros((1, 2), np.float32), 1) for stream in streams]
+
+    assert _stacked_states(jobs_of([0, 1, 2])) is last  # that call's sessions in its order: no copy
+    for rows in ([0, 2, 1], [0, 1], [1, 2]):  # another order, fewer sessions: stacked
+        got = _stacked_states(jobs_of(rows))
+        assert got is not last and np.array_equal(got, last[rows])
+    fresh = [types.SimpleNamespace(state=last[k].copy(), state_row=None) for k in range(3)]  # never pooled
+    got = _stacked_states([StreamJob(stream, np.zeros((1, 2), np.float32), 1) for stream in fresh])
+    assert got is not last and np.array_equal(got, last)
+
+
+@pytest.mark.parametrize(("kernel", "stride"), [(10, 5), (3, 2), (2, 2), (4, 2), (5, 2), (1, 2), (7, 3)])
+def test_the_time_major_convolution_is_conv1d(kernel, stride):
+    """The stream's feature encoder runs its convolutions time-major, taps side by side into one MatMul: the same
+    outputs as F.conv1d for kernels shorter than, equal to, between and at twice the stride, at every input length
+    of a few strides (float rounding: 1e-5)."""
+    generator = torch.Generator().manual_seed(kernel * 10 + stride)
+    weight = torch.randn(6, 4, kernel, generator=generator)
+    for length in range(kernel, kernel + 3 * stride):
+        x = torch.randn(2, 4, length, generator=generator)
+        expected = torch.nn.functional.conv1d(x, weight, None, stride).transpose(1, 2)
+        got = _conv_time_major(x.transpose(1, 2).contiguous(), weight, stride)
+        assert got.shape == expected.shape
+        torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
 
 
 @pytest.mark.parametrize("kernel", [3, 4, 15, 16])

@@ -97,13 +97,15 @@ def conv_plan(kernels: tuple[int, ...], strides: tuple[int, ...], samples_per_fr
     return tuple(plans)
 
 
-def _pooled(means: torch.Tensor, variances: torch.Tensor, weights: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Mean and variance over the last axis's equal-sized groups, each weighted 1 (counted) or 0 (not), from each
-    group's own mean and variance (Chan's pooled form: no cancellation)."""
+def _pooled(means: torch.Tensor, variances: torch.Tensor, weights: torch.Tensor,
+            dim: int = -1) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and variance over axis `dim`'s equal-sized groups, each weighted 1 (counted) or 0 (not: `weights`, one a
+    group, shaped to broadcast along `dim`), from each group's own mean and variance (Chan's pooled form: no
+    cancellation)."""
     count = weights.sum()
-    mean = (means * weights).sum(dim=-1, keepdim=True) / count
+    mean = (means * weights).sum(dim=dim, keepdim=True) / count
     spread = means - mean
-    return mean, ((variances + spread * spread) * weights).sum(dim=-1, keepdim=True) / count
+    return mean, ((variances + spread * spread) * weights).sum(dim=dim, keepdim=True) / count
 
 
 def _framed_stats(values: torch.Tensor, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -112,6 +114,37 @@ def _framed_stats(values: torch.Tensor, frames: int) -> tuple[torch.Tensor, torc
     mean = framed.mean(dim=-1)
     centred = framed - mean.unsqueeze(-1)
     return mean, (centred * centred).mean(dim=-1)
+
+
+def _framed_stats_time_major(values: torch.Tensor, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """values [B, frames * r, C] -> per-frame mean and variance [B, frames, C]."""
+    framed = values.reshape(values.shape[0], frames, -1, values.shape[2])
+    mean = framed.mean(dim=2)
+    centred = framed - mean.unsqueeze(2)
+    return mean, (centred * centred).mean(dim=2)
+
+
+def _conv_time_major(x: torch.Tensor, weight: torch.Tensor, stride: int) -> torch.Tensor:
+    """F.conv1d(x, weight, stride=stride) (no padding, no bias) on time-major x [B, L, C_in] -> [B, m, C_out]: each
+    output's taps laid side by side, then one MatMul over every output of the batch, where onnxruntime's Conv makes
+    an im2col and a small matrix product per batch item (docs/live.md, "The stream's convolutions time-major")."""
+    c_out, c_in, kernel = weight.shape
+    steps = (x.shape[1] - kernel) // stride + 1
+    batch = x.shape[0]
+
+    def tap(j: int) -> torch.Tensor:  # input j of every output: [B, m, C_in]
+        return x[:, j:j + stride * (steps - 1) + 1:stride]
+
+    if kernel < stride:
+        taps = [tap(j) for j in range(kernel)]
+    else:
+        taps = [x[:, :stride * steps].reshape(batch, steps, stride * c_in)]  # taps 0..stride-1, as they lie
+        if kernel == 2 * stride:  # taps stride..2 stride-1: the next output's first ones (L >= stride (m + 1))
+            taps.append(x[:, stride:stride * (steps + 1)].reshape(batch, steps, stride * c_in))
+        else:
+            taps += [tap(j) for j in range(stride, kernel)]
+    unfolded = torch.cat(taps, dim=-1) if len(taps) > 1 else taps[0]  # [B, m, k * C_in], tap by tap
+    return unfolded @ weight.permute(2, 1, 0).reshape(kernel * c_in, c_out)
 
 
 def _take(buffer: torch.Tensor, start: torch.Tensor, length: int, dim: int = -1) -> torch.Tensor:
@@ -141,7 +174,9 @@ def _cached_layer(layer: TransformerLayer, x: torch.Tensor, cache: torch.Tensor,
 def _positional_tail(embedding: PositionalConvEmbedding, x: torch.Tensor, tail: int) -> torch.Tensor:
     """The positional convolution embedding's last `tail` rows of x [B, L, D]: what embedding(x)[:, L - tail:] is,
     with only those outputs computed. Output t of its 'same' convolution (padding p) reads inputs [t - p, t - p + k),
-    zeros past either end, so these read the inputs from L - tail - p on and k - p - 1 zeros after the last."""
+    zeros past either end, so these read the inputs from L - tail - p on and k - p - 1 zeros after the last. (Its
+    grouped convolution as a MatMul a group, taps side by side, took 1.1x the Conv's time in a whole call: more
+    nodes and transposes than the Conv saves.)"""
     conv = embedding.conv
     kernel, pad = int(conv.kernel_size[0]), int(conv.padding[0])
     first = x.shape[1] - tail - pad  # the first input read; before the window's start, the padding's zeros
@@ -222,11 +257,12 @@ class MotionTranslatorStream(nn.Module):
     def _state_parts(self) -> list[tuple[str, tuple[int, ...]]]:
         """The flat state's parts in order, each [*shape] per session."""
         w = self.window_frames
-        parts = [("audio_stats", (2, w)), ("conv0_stats", (2, self.channels, w)),
+        # the feature encoder's parts time-major, as it runs (_conv_time_major)
+        parts = [("audio_stats", (2, w)), ("conv0_stats", (2, w, self.channels)),
                  ("refresh_audio", (1, self.refresh_frames * self.samples_per_frame))]
         for i, plan in enumerate(self.plans):  # each layer's kept inputs at the last refresh + 1 frame starts
-            parts.append((f"conv{i}", (1 if i == 0 else self.channels, self.refresh_frames + 1, plan.keep)))
-        parts.append(("features", (self.dim, self.kept_features)))
+            parts.append((f"conv{i}", (self.refresh_frames + 1, plan.keep, 1 if i == 0 else self.channels)))
+        parts.append(("features", (self.kept_features, self.dim)))
         if self.tail_frames is not None:
             encoder_rows, decoder_rows = self._cached_rows()
             parts.append(("frames_seen", (1,)))  # frames committed since the all-zero state, at most enough
@@ -268,36 +304,35 @@ class MotionTranslatorStream(nn.Module):
         audio_scale = torch.rsqrt(window_var + AUDIO_NORM_EPS)  # [B, 1, 1]
         new_stats = {"audio_stats": torch.cat([means, variances], dim=1)}
 
-        x = samples
+        x = samples.reshape(batch, -1, 1)  # time-major from here to the features: [B, L, C]
         for i, (plan, layer) in enumerate(zip(self.plans, self.translator.audio_encoder.feature_extractor.conv_layers,
                                               strict=True)):
-            starts = kept[f"conv{i}"]  # [B, C, most + 1, keep]: inputs kept at frames P - most .. P
-            buffer = torch.cat([starts[:, :, most - refresh], x], dim=-1)  # inputs from frame P - refresh on
-            new_state[f"conv{i}"] = self._frame_starts(buffer, starts[:, :, :most + 1 - refresh], plan,
+            starts = kept[f"conv{i}"]  # [B, most + 1, keep, C]: inputs kept at frames P - most .. P
+            buffer = torch.cat([starts[:, most - refresh], x], dim=1)  # inputs from frame P - refresh on
+            new_state[f"conv{i}"] = self._frame_starts(buffer, starts[:, :most + 1 - refresh], plan,
                                                        refresh + frames, keep_frames, most + 1)
             if plan.right_pad:
-                buffer = F.pad(buffer, (0, plan.right_pad))
-            y = F.conv1d(buffer, layer.conv.weight, None, plan.stride)
+                buffer = F.pad(buffer, (0, 0, 0, plan.right_pad))
+            y = _conv_time_major(buffer, layer.conv.weight, plan.stride)
             if i == 0:
                 y = self._normalise_first(y, frames, audio_scale, weights, kept, new_stats, layer)
             x = F.gelu(y)
         encoder = self.translator.audio_encoder
-        features = encoder.feature_projection(encoder.feature_norm(x.transpose(1, 2)))  # [B, 2(r + n) + lag, D]
-        # the window's features [B, D, 2 * (W + n)], less the dropped first ones; the refreshed ones new
+        features = encoder.feature_projection(encoder.feature_norm(x))  # [B, 2(r + n) + lag, D]
+        # the window's features [B, 2 * (W + n), D], less the dropped first ones; the refreshed ones new
         made = kept["features"]
-        window = torch.cat([made[..., :made.shape[-1] - FEATURES_PER_FRAME * refresh], features.transpose(1, 2)],
-                           dim=-1)
-        new_state["features"] = _take(window, keep_frames * FEATURES_PER_FRAME, self.kept_features)
-        for name in ("audio_stats", "conv0_stats"):
-            new_state[name] = _take(new_stats[name], keep_frames, self.window_frames)
+        window = torch.cat([made[:, :made.shape[1] - FEATURES_PER_FRAME * refresh], features], dim=1)
+        new_state["features"] = _take(window, keep_frames * FEATURES_PER_FRAME, self.kept_features, dim=1)
+        new_state["audio_stats"] = _take(new_stats["audio_stats"], keep_frames, self.window_frames)
+        new_state["conv0_stats"] = _take(new_stats["conv0_stats"], keep_frames, self.window_frames, dim=2)
 
         if self.tail_frames is None:
-            hidden = encoder.encoder(encoder.pos_conv_embed(window.transpose(1, 2)))
+            hidden = encoder.encoder(encoder.pos_conv_embed(window))
             hidden = hidden + self.translator.identity.weight[self.translator.speaker_id]
             params = self.translator.motion_decoder(hidden)  # [B, W + n, n_expr + 3]
             rows = params[:, self.context_frames:self.context_frames + frames]
         else:
-            rows = self._tail_rows(window.transpose(1, 2), frames, keep_frames, kept, new_state)
+            rows = self._tail_rows(window, frames, keep_frames, kept, new_state)
         # a part may be given as pieces (a layer's keys, then its values), flattened in order
         state_out = torch.cat([piece.reshape(batch, -1) for name, _ in self.state_parts
                                for piece in (new_state[name] if isinstance(new_state[name], tuple)
@@ -341,12 +376,12 @@ class MotionTranslatorStream(nn.Module):
     def _frame_starts(buffer: torch.Tensor, older: torch.Tensor, plan: LayerPlan, frames: int,
                       keep_frames: torch.Tensor, length: int) -> torch.Tensor:
         """A layer's kept inputs at the `length` frame starts up to the committed end after the call: `older`
-        [B, C, m, keep] (those up to the call's first frame), then those at each of the `frames` starts after it,
-        read from `buffer` (the layer's inputs from the call's first frame on, its kept ones first)."""
+        [B, m, keep, C] (those up to the call's first frame), then those at each of the `frames` starts after it,
+        read from `buffer` [B, L, C] (the layer's inputs from the call's first frame on, its kept ones first)."""
         starts = torch.arange(1, frames + 1, dtype=torch.int64)[:, None] * plan.rate_in
         index = (starts + torch.arange(plan.keep, dtype=torch.int64)[None, :]).reshape(-1)
-        made = buffer.index_select(-1, index).reshape(buffer.shape[0], buffer.shape[1], frames, plan.keep)
-        return _take(torch.cat([older, made], dim=2), keep_frames, length, dim=2)
+        made = buffer.index_select(1, index).reshape(buffer.shape[0], frames, plan.keep, buffer.shape[2])
+        return _take(torch.cat([older, made], dim=1), keep_frames, length, dim=1)
 
     @staticmethod
     def _key_bias(first_clean: torch.Tensor, rows: int) -> torch.Tensor:
@@ -360,14 +395,17 @@ class MotionTranslatorStream(nn.Module):
         """The first convolution's GroupNorm over the window, on the raw waveform's convolution: with the
         waveform normalised as x' = (x - m) * a, conv(x') = a * (conv(x) - m * sum(w)), so GroupNorm(conv(x'))
         = a * (conv(x) - mean) / sqrt(a^2 * var + eps) with conv(x)'s own per-channel mean and variance."""
-        # the new frames' outputs (the refreshed frames' statistics are kept); the last output read padding
+        # the new frames' outputs (the refreshed frames' statistics are kept); the last output read padding. Time-
+        # major: raw [B, T, C], the statistics [B, frames, C]
         refresh = self.call_refresh
-        exact = raw[..., refresh * self.conv0_rate:(refresh + frames) * self.conv0_rate]
-        conv_mean, conv_var = _framed_stats(exact, frames)  # [B, C, n]
-        means = torch.cat([kept["conv0_stats"][:, 0], conv_mean], dim=-1)
-        variances = torch.cat([kept["conv0_stats"][:, 1], conv_var], dim=-1)
+        exact = raw[:, refresh * self.conv0_rate:(refresh + frames) * self.conv0_rate]
+        conv_mean, conv_var = _framed_stats_time_major(exact, frames)  # [B, n, C]
+        means = torch.cat([kept["conv0_stats"][:, 0], conv_mean], dim=1)
+        variances = torch.cat([kept["conv0_stats"][:, 1], conv_var], dim=1)
         new_stats["conv0_stats"] = torch.stack([means, variances], dim=1)
-        mean, var = _pooled(means, variances, weights)
-        normalised = audio_scale * (raw - mean) * torch.rsqrt(audio_scale * audio_scale * var + self.group_norm_eps)
+        mean, var = _pooled(means, variances, weights[:, None], dim=1)  # [B, 1, C]
+        # a * (conv(x) - mean) / sqrt(a^2 var + eps) * weight + bias as one scale and one shift a channel: two passes
+        # over the layer's outputs instead of five
         norm = layer.layer_norm
-        return normalised * norm.weight[:, None] + norm.bias[:, None]
+        scale = audio_scale * torch.rsqrt(audio_scale * audio_scale * var + self.group_norm_eps) * norm.weight
+        return raw * scale + (norm.bias - mean * scale)
