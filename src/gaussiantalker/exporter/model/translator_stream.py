@@ -19,7 +19,8 @@ recompute the past:
   needs (`conv_plan`), at each of the last `refresh_frames` + 1 frame starts;
   a layer that reads past its input's end (the first layer's kernel reads 2 samples into the next feature) makes
   its last outputs from zero padding, as the windowed graph does at a window's end, and recomputes them from real
-  inputs in the next call.
+  inputs in the next call. The layers run time-major ([B, steps, C]), each a MatMul of its taps side by side over
+  the whole call (`_conv_time_major`), and the state keeps their parts so.
 * The normalisations the windowed graph takes over its whole window (the waveform's mean and variance, then the
   first convolution's per-channel GroupNorm) come from per-frame statistics of the same window kept in the state,
   combined exactly (Chan's pooled variance). They normalise the new and refreshed frames; the kept features of
