@@ -124,20 +124,28 @@ def run_live_pool(bundle: Path, sessions: list[int], seconds: float, rounds: int
     served = {"old": baseline_bundle or bundle, "new": bundle}
     runs = alternate_rounds(baseline, sessions, rounds, "pool runs", progress,
                             lambda label, src, n: _run_in(src, served[label], n, seconds, lookahead_ms))
-    rows = []
-    for n in sessions:
-        row = {"sessions": n}
-        for label in ("old", "new") if baseline is not None else ("new",):
-            got = runs[(label, n)]
-            row[label] = {"rounds": got, "cpu_s_per_session_s": statistics.median(r["cpu_s_per_session_s"]
-                                                                                   for r in got),
-                          "us_per_frame": statistics.median(r["us_per_frame"] for r in got),
-                          "calls": got[0]["calls"], "rows": got[0]["rows"], "frames": got[0]["frames"]}
-        if "old" in row:
-            row["ratio"] = row["new"]["cpu_s_per_session_s"] / row["old"]["cpu_s_per_session_s"]
-        rows.append(row)
+    rows = median_rows(runs, sessions, ("cpu_s_per_session_s", "us_per_frame"), ("calls", "rows", "frames"))
     return {"bundle": str(bundle), "baseline": None if baseline is None else str(baseline), "seconds": seconds,
             "lookahead_ms": lookahead_ms, "rounds": rounds, "rows": rows}
+
+
+def median_rows(runs: dict[tuple[str, int], list[dict]], sessions: list[int], medians: tuple[str, ...],
+                firsts: tuple[str, ...]) -> list[dict]:
+    """One row a number of sessions from `alternate_rounds`' results: each version's rounds, the median of each
+    of `medians` (the first is the one compared: "ratio", new over old, where there is an old) and `firsts` as the
+    first round has them (counts every round shares)."""
+    rows = []
+    for n in sessions:
+        row: dict = {"sessions": n}
+        for label in ("old", "new"):
+            got = runs.get((label, n))
+            if got:
+                row[label] = {"rounds": got, **{key: statistics.median(r[key] for r in got) for key in medians},
+                              **{key: got[0][key] for key in firsts}}
+        if "old" in row:
+            row["ratio"] = row["new"][medians[0]] / row["old"][medians[0]]
+        rows.append(row)
+    return rows
 
 
 def live_pool_table(result: dict) -> str:

@@ -8,11 +8,10 @@ alternating; the result is the process's CPU over the run, a chunk and a session
 
 from __future__ import annotations
 
-import statistics
 import time
 from pathlib import Path
 
-from .live_pool import alternate_rounds, run_in_checkout
+from .live_pool import alternate_rounds, median_rows, run_in_checkout
 
 
 def pushes_run(bundle: str, sessions: int, seconds: float, chunk_ms: float = 20.0) -> dict:
@@ -60,17 +59,7 @@ def run_voice_pushes(bundle: Path, sessions: list[int], seconds: float, rounds: 
         return run_in_checkout(src, f"tools.bench.voice_pushes:pushes_run({str(bundle)!r}, {n}, {seconds}, {chunk_ms})")
 
     runs = alternate_rounds(baseline, sessions, rounds, "voice runs", progress, run)
-    rows = []
-    for n in sessions:
-        row = {"sessions": n}
-        for label in ("old", "new") if baseline is not None else ("new",):
-            got = runs[(label, n)]
-            row[label] = {"rounds": got, "us_per_chunk": statistics.median(r["us_per_chunk"] for r in got),
-                          "cpu_s_per_session_s": statistics.median(r["cpu_s_per_session_s"] for r in got),
-                          "chunks": got[0]["chunks"]}
-        if "old" in row:
-            row["ratio"] = row["new"]["us_per_chunk"] / row["old"]["us_per_chunk"]
-        rows.append(row)
+    rows = median_rows(runs, sessions, ("us_per_chunk", "cpu_s_per_session_s"), ("chunks",))
     return {"bundle": str(bundle), "baseline": None if baseline is None else str(baseline), "seconds": seconds,
             "chunk_ms": chunk_ms, "rounds": rounds, "rows": rows}
 
