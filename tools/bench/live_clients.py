@@ -788,8 +788,7 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
     """Start gt-serve (tokens on; `replicas` > 1: that many behind nginx) and, with `baseline`, the baseline
     script (`baseline_replicas` of it), then for each N `rounds` rounds of its load clients on `transport`
     ("webrtc": audio track and data channel; "ws": one WebSocket; "ws-deflate": one asking for permessage-deflate)
-    against each server in turn; returns gt-serve's
-    figures per N (`runs`), the baseline's and the ratios."""
+    against each server in turn; returns gt-serve's figures per N (`runs`), the baseline's and the ratios."""
     if transport not in TRANSPORTS:
         raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
     settings = ServerSettings(lookahead_ms, batch_frames, context_ms)

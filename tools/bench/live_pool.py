@@ -78,21 +78,14 @@ def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 1
             "cpu_s_per_session_s": cpu / (sessions * seconds), "us_per_frame": 1e6 * cpu / max(frames, 1)}
 
 
-def _run_in(src: Path | None, bundle: Path, sessions: int, seconds: float, lookahead_ms: float) -> dict:
-    """pool_run in a fresh process importing `src`'s gaussiantalker (None: this checkout's)."""
-    return run_in_checkout(src, f"tools.bench.live_pool:pool_run({str(bundle)!r}, {sessions}, {seconds}, "
-                                f"{lookahead_ms})")
-
-
-def run_in_checkout(src: Path | None, call: str) -> dict:
-    """`call` ("module:function(args)", a function of tools/bench that returns a JSON-able dict) in a fresh process
-    whose gaussiantalker is `src`'s (an older checkout's src/, first on PYTHONPATH and the working folder; None:
-    this checkout's); its dict."""
+def run_in_checkout(src: Path | None, module: str, function: str, *args: str | int | float) -> dict:
+    """`module`'s `function(*args)` (a function of tools/bench that returns a JSON-able dict; plain arguments, passed
+    by their repr) in a fresh process whose gaussiantalker is `src`'s (an older checkout's src/, first on
+    PYTHONPATH and the working folder; None: this checkout's); its dict."""
     root = Path(__file__).resolve().parents[2]
     paths = [str(src if src is not None else root / "src"), str(root),
              *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
-    module, function = call.split(":", 1)
-    code = f"import json; from {module} import {function.split('(')[0]}; print(json.dumps({function}))"
+    code = f"import json; from {module} import {function}; print(json.dumps({function}(*{args!r})))"
     done = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": os.pathsep.join(paths)},
                           cwd=src or root, capture_output=True, text=True, timeout=900)
     if done.returncode != 0:
@@ -123,7 +116,8 @@ def run_live_pool(bundle: Path, sessions: list[int], seconds: float, rounds: int
     """Every (sessions, server) in alternating rounds (old, new, old, new ...), each a fresh process."""
     served = {"old": baseline_bundle or bundle, "new": bundle}
     runs = alternate_rounds(baseline, sessions, rounds, "pool runs", progress,
-                            lambda label, src, n: _run_in(src, served[label], n, seconds, lookahead_ms))
+                            lambda label, src, n: run_in_checkout(src, "tools.bench.live_pool", "pool_run",
+                                                                  str(served[label]), n, seconds, lookahead_ms))
     rows = median_rows(runs, sessions, ("cpu_s_per_session_s", "us_per_frame"), ("calls", "rows", "frames"))
     return {"bundle": str(bundle), "baseline": None if baseline is None else str(baseline), "seconds": seconds,
             "lookahead_ms": lookahead_ms, "rounds": rounds, "rows": rows}

@@ -56,7 +56,7 @@ def run_voice_pushes(bundle: Path, sessions: list[int], seconds: float, rounds: 
     """Every (sessions, version) in alternating rounds (old, new, old, new ...), each a fresh process."""
 
     def run(label: str, src: Path | None, n: int) -> dict:
-        return run_in_checkout(src, f"tools.bench.voice_pushes:pushes_run({str(bundle)!r}, {n}, {seconds}, {chunk_ms})")
+        return run_in_checkout(src, "tools.bench.voice_pushes", "pushes_run", str(bundle), n, seconds, chunk_ms)
 
     runs = alternate_rounds(baseline, sessions, rounds, "voice runs", progress, run)
     rows = median_rows(runs, sessions, ("us_per_chunk", "cpu_s_per_session_s"), ("chunks",))
