@@ -9,7 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 from tools.bench.app import app
-from tools.bench.live_pool import live_pool_table, pool_run, run_live_pool
+from tools.bench.live_pool import PHASES, live_pool_table, pool_run, run_live_pool
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -22,6 +22,10 @@ def test_a_pool_run_makes_every_sessions_frames(lam_voice_bundle, monkeypatch):
     assert got["frames"] == 3 * 60  # 30 fps, every frame made on time on the fake clock
     assert 0 < got["calls"] < got["frames"] and got["rows"] >= got["calls"]  # sessions stacked in calls
     assert got["cpu_s"] > 0 and got["cpu_s_per_session_s"] == pytest.approx(got["cpu_s"] / 6.0)
+    # the loop's parts, timed apart, are the whole loop (the clock reads between them aside: under 5%)
+    parts = [got[f"{phase}_us_per_frame"] for phase in PHASES]
+    assert all(part >= 0 for part in parts) and got["translate_us_per_frame"] > 0 and got["frames_us_per_frame"] > 0
+    assert sum(parts) == pytest.approx(got["us_per_frame"], rel=0.05)
 
 
 def test_two_checkouts_alternate_in_fresh_processes(lam_voice_bundle):
@@ -32,6 +36,9 @@ def test_two_checkouts_alternate_in_fresh_processes(lam_voice_bundle):
     assert row["ratio"] == pytest.approx(row["new"]["cpu_s_per_session_s"] / row["old"]["cpu_s_per_session_s"])
     table = live_pool_table(result)
     assert "| 2 |" in table and "×" in table and table.splitlines()[1].count("|") == table.splitlines()[0].count("|")
+    phases = table.split("\n\n")[1].splitlines()  # where a frame's CPU goes: a row a version
+    assert phases[0].count("|") == phases[1].count("|") == len(PHASES) + 3
+    assert [line.split("|")[2].strip() for line in phases[2:]] == ["old", "new"]
 
 
 def test_bad_options_are_refused(lam_voice_bundle, tmp_path):

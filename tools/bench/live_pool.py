@@ -26,6 +26,9 @@ from pathlib import Path
 CHUNK_S = 0.02
 STAGGER_S = 0.013
 SPEECH_S = 4.0
+# The loop's parts, timed apart: the voices' pushes, planning the due sessions' translator calls (`stream_job`),
+# running them (`run_stream_jobs`, onnxruntime and the stacking), making the frames (`step`), encoding the packets.
+PHASES = ("push", "plan", "translate", "frames", "encode")
 
 
 def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 160.0) -> dict:
@@ -56,26 +59,35 @@ def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 1
     pushed = [0] * sessions
     end = clock[0] + seconds
     frames = calls = rows = 0
-    began = time.process_time()
+    phases = dict.fromkeys(PHASES, 0.0)  # CPU seconds of each part of the loop
+    clock_of = time.process_time
+    began = clock_of()
     while clock[0] < end:
+        t0 = clock_of()
         for k, live in enumerate(lives):
             while starts[k] + pushed[k] * CHUNK_S <= clock[0] and pushed[k] * chunk < speech.shape[0]:
                 live.push(speech[pushed[k] * chunk:(pushed[k] + 1) * chunk], driver.sample_rate)
                 pushed[k] += 1
+        t1 = clock_of()
         due = [live for live in lives if live.due <= clock[0]]  # as the server's pool picks them
         jobs = [job for job in (live.stream_job() for live in due) if job is not None]
+        t2 = clock_of()
         if jobs:
             calls += len(run_stream_jobs(jobs, driver.run_stream, driver.stream_rows))
             rows += sum(job.audio.shape[0] for job in jobs)
-        for live in due:
-            frame = live.step()
-            if frame is not None:
-                frames += 1
-                encode_frame_packet(encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, 0), frame.audio)
+        t3 = clock_of()
+        made = [frame for frame in (live.step() for live in due) if frame is not None]
+        t4 = clock_of()
+        for frame in made:
+            encode_frame_packet(encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, 0), frame.audio)
+        frames += len(made)
+        for phase, spent in zip(PHASES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, clock_of() - t4), strict=True):
+            phases[phase] += spent
         clock[0] += tick
-    cpu = time.process_time() - began
+    cpu = clock_of() - began
     return {"cpu_s": cpu, "frames": frames, "calls": calls, "rows": rows,
-            "cpu_s_per_session_s": cpu / (sessions * seconds), "us_per_frame": 1e6 * cpu / max(frames, 1)}
+            "cpu_s_per_session_s": cpu / (sessions * seconds), "us_per_frame": 1e6 * cpu / max(frames, 1),
+            **{f"{phase}_us_per_frame": 1e6 * spent / max(frames, 1) for phase, spent in phases.items()}}
 
 
 def run_in_checkout(src: Path | None, module: str, function: str, *args: str | int | float) -> dict:
@@ -118,7 +130,8 @@ def run_live_pool(bundle: Path, sessions: list[int], seconds: float, rounds: int
     runs = alternate_rounds(baseline, sessions, rounds, "pool runs", progress,
                             lambda label, src, n: run_in_checkout(src, "tools.bench.live_pool", "pool_run",
                                                                   str(served[label]), n, seconds, lookahead_ms))
-    rows = median_rows(runs, sessions, ("cpu_s_per_session_s", "us_per_frame"), ("calls", "rows", "frames"))
+    rows = median_rows(runs, sessions, ("cpu_s_per_session_s", "us_per_frame",
+                                        *(f"{phase}_us_per_frame" for phase in PHASES)), ("calls", "rows", "frames"))
     return {"bundle": str(bundle), "baseline": None if baseline is None else str(baseline), "seconds": seconds,
             "lookahead_ms": lookahead_ms, "rounds": rounds, "rows": rows}
 
@@ -157,4 +170,19 @@ def live_pool_table(result: dict) -> str:
             cells.append(f"{row['ratio']:.2f}×")
         cells += [str(row["new"]["frames"]), str(row["new"]["calls"]), str(row["new"]["rows"])]
         lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n\n" + phases_table(result)
+
+
+def phases_table(result: dict) -> str:
+    """Where a frame's CPU goes: each version's median µs a frame in each part of the loop (`PHASES`); rounds that
+    predate the split (results saved before it) have none."""
+    labels = [label for label in ("old", "new") if result["rows"] and label in result["rows"][0]]
+    head = "| sessions | version | " + " | ".join(f"{phase} µs a frame" for phase in PHASES) + " |"
+    lines = [head, "|" + "---:|" * 2 + "---:|" * len(PHASES)]
+    for row in result["rows"]:
+        for label in labels:
+            if f"{PHASES[0]}_us_per_frame" not in row[label]:
+                continue
+            cells = [str(row["sessions"]), label] + [f"{row[label][f'{phase}_us_per_frame']:.1f}" for phase in PHASES]
+            lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)

@@ -122,7 +122,8 @@ class _GateHistory:
 
     def push(self, samples: np.ndarray) -> None:
         values = samples.astype(np.float64)
-        self._append((values.shape[0], float(values.sum()), float(values @ values)))
+        # np.add.reduce is what .sum() runs, bit for bit, without its Python wrapper (a call a frame)
+        self._append((values.shape[0], float(np.add.reduce(values)), float(values @ values)))
 
     def push_silence(self, count: int) -> None:
         """`push` of `count` zeros (an idle frame), without making them."""
@@ -142,7 +143,7 @@ class _GateHistory:
     def gain(self, ahead: np.ndarray, gate_dbfs: float | None) -> float:
         """The gate's gain over the past frames and `ahead` (the batch's audio and its lookahead)."""
         values = ahead.astype(np.float64)
-        return silence_gain_of_sums(self.total + float(values.sum()), self.squares + float(values @ values),
+        return silence_gain_of_sums(self.total + float(np.add.reduce(values)), self.squares + float(values @ values),
                                     self.count + values.shape[0], gate_dbfs)
 
 
@@ -481,15 +482,16 @@ class LiveSession:
                                  underrun=underrun)
             self._translate(job)
 
-    def _defer(self) -> bool:
+    def _defer(self, ready: int | None = None) -> bool:
         """Under the lock, the next frame due: whether its clock moved one grid step later instead of making it late
         (MAX_DEFERRALS): mid-utterance, its own audio in and its lookahead not, on a clock grid, not yet the most
-        steps later."""
+        steps later. `ready`: `_ready_batch()` if the caller has it."""
         if self._clock_grid <= 0 or self._anchor is None or self._deferrals >= MAX_DEFERRALS or self._flushed \
                 or self._translated or self._inflight is not None:
             return False
         own = self._speech.span(self._next_index, self._next_index + 1)
-        if not self._mid_utterance or len(self._heard.samples) < own or self._ready_batch():
+        if not self._mid_utterance or len(self._heard.samples) < own or (
+                self._ready_batch() if ready is None else ready):
             return False
         anchor_time, anchor_index = self._anchor
         self._anchor = (anchor_time + self._clock_grid, anchor_index)
@@ -497,9 +499,9 @@ class LiveSession:
         self.stats.deferrals += 1
         return True
 
-    def _batch_size(self, due: float | None) -> tuple[int, bool, bool]:
-        """Under the lock: (frames to translate now, whether late, whether mid-utterance)."""
-        count = self._ready_batch()
+    def _batch_size(self, due: float | None, ready: int | None = None) -> tuple[int, bool, bool]:
+        """Under the lock: (frames to translate now, whether late, whether mid-utterance); `ready` as `_defer`'s."""
+        count = self._ready_batch() if ready is None else ready
         late = False
         mid_utterance = self._mid_utterance
         if count < self.min_batch_frames and not self._flushed and not (mid_utterance and self.paced
@@ -520,9 +522,10 @@ class LiveSession:
             if self._stream is None or self._inflight is not None or self._translated or self._closed \
                     or not self.paced or (self._anchor is not None and self.due > time.monotonic()):
                 return None
-            if self._defer():
+            ready = self._ready_batch()  # the queue does not change under the lock: counted once for both
+            if self._defer(ready):
                 return None
-            count, late, _ = self._batch_size(self.due)
+            count, late, _ = self._batch_size(self.due, ready)
             if not count:
                 return None
             self._inflight = self._take_batch(count, late)

@@ -96,8 +96,11 @@ def pads_exactly(run: RunStream, rows_of: RowsOf, rest_state: np.ndarray, frame_
 
 def frame_power(audio: np.ndarray) -> np.ndarray:
     """Mean square of each frame of `audio` [n, F] -> [n] (float64)."""
-    # the sum over the count is what np.mean computes, bit for bit, without its per-call bookkeeping (a call a frame)
-    return np.add.reduce(np.square(audio, dtype=np.float64), axis=1) / audio.shape[1]
+    # the sum over the count is what np.mean computes, bit for bit, without its per-call bookkeeping (a call a frame);
+    # the float64 copy squared in place costs a third less than np.square's casting loop, with the same products
+    values = audio.astype(np.float64)
+    np.multiply(values, values, out=values)
+    return np.add.reduce(values, axis=1) / audio.shape[1]
 
 
 def loudness_moved(powers: np.ndarray) -> bool:
@@ -105,8 +108,11 @@ def loudness_moved(powers: np.ndarray) -> bool:
     refreshing graph: the window's mean power against the window's LOUDNESS_LAG_FRAMES frames earlier, either
     LOUDNESS_RATIO times the other (silence before counts as zeros)."""
     window, lag = LOUDNESS_WINDOW_FRAMES, LOUDNESS_LAG_FRAMES
-    padded = np.concatenate([np.zeros(max(0, window + lag - powers.shape[0])), powers[-(window + lag):]])
-    now, then = padded[lag:].sum() / window, padded[:window].sum() / window  # np.mean's own sums, bit for bit
+    padded = powers[-(window + lag):]
+    if padded.shape[0] < window + lag:
+        padded = np.concatenate([np.zeros(window + lag - padded.shape[0]), padded])
+    # np.mean's own sums, bit for bit, on the same contiguous values
+    now, then = np.add.reduce(padded[lag:]) / window, np.add.reduce(padded[:window]) / window
     return bool(max(now, then) > LOUDNESS_RATIO * min(now, then))
 
 
@@ -251,16 +257,19 @@ class TranslatorStream:
     def plan(self, frames: range) -> StreamJob | None:
         """The call rig frames `frames` still need (None: their rows are final already): every known whole frame
         committed, the frames after them provisional (the known samples, then zeros)."""
-        if all(self._has_final(j) for f in frames for j in self._span(f)):
-            return None
+        last = self._span(frames[-1])[1]  # the last stream frame whose row the frames read
+        if last < 0 or last in self.final:  # rows become final in order: the rest are final too, or every row is
+            if all(self._has_final(j) for f in frames for j in self._span(f)):
+                return None
         size = self.spec.frame_samples
-        needed = self._span(frames[-1])[1] + self.spec.delay + 1  # stream frames the last row reads
-        count = max(needed - self.committed, 1)
-        keep = min(self.known.shape[0] // size, count)
-        audio = np.zeros(count * size, np.float32)
-        have = min(self.known.shape[0], count * size)
-        audio[:have] = self.known[:have]
-        audio = audio.reshape(count, size)
+        count = max(last + self.spec.delay + 1 - self.committed, 1)  # stream frames to the last row's reach
+        known = self.known.shape[0]
+        keep = min(known // size, count)
+        if known >= count * size:  # the usual case: every frame is known (`known` is never written in place)
+            audio = self.known[:count * size].reshape(count, size)
+        else:
+            audio = np.zeros((count, size), np.float32)
+            audio.reshape(-1)[:known] = self.known
         if not self.spec.steady:  # one graph: no gate, nothing to measure
             return StreamJob(self, audio, keep)
         powers = frame_power(audio)

@@ -24,7 +24,7 @@ from .limits import ServeLimits, TokenBucket
 from .logs import log
 from .metrics import ServeMetrics
 from .sessions import Sessions, read_text
-from .voices import VoiceFiles, push_real_time, read_offer, voice_of
+from .voices import VoiceFiles, read_offer, voice_of
 from .wire import CLOSE_POLICY, CLOSE_TRY_AGAIN, INTERRUPT_MESSAGE, START_SOURCES, WIRE_VERSION
 
 PAGE = Path(__file__).with_name("pages") / "client.html"
@@ -102,8 +102,7 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
         await answer_offer(pc, sdp, [session.audio], lambda: sessions.close(pc))
         session.start()
         if voice.samples is not None:
-            session.voice = sessions.background(push_real_time(session.live, voice.samples, voice.rate,
-                                                               voice.chunk_s))
+            session.speak(voice.samples, voice.rate, voice.chunk_s)
         # start_time: time.monotonic() when frame 0 was due (a load client on this machine compares arrivals).
         return web.json_response({"sdp": pc.localDescription.sdp, "type": pc.localDescription.type,
                                   "session": session_id, "fps": driver.fps, "start_time": session.start_time,
@@ -161,8 +160,7 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
                                     "start_time": session.start_time, "rig": driver.rig, "wire": WIRE_VERSION})
             writer = sessions.background(session.write_to(socket))
             if voice.samples is not None:
-                session.voice = sessions.background(push_real_time(session.live, voice.samples, voice.rate,
-                                                                   voice.chunk_s))
+                session.speak(voice.samples, voice.rate, voice.chunk_s)
             async for message in socket:
                 if message.type == web.WSMsgType.BINARY and mic_rate is not None:
                     if len(message.data) % 2:

@@ -17,6 +17,7 @@ from gaussiantalker.runtime.translate_stream import StreamJob, run_stream_jobs
 
 from .limits import ServeLimits, TokenBucket
 from .metrics import ServeMetrics
+from .voices import PacedVoice
 from .wire import encode_drive, encode_frame_packet
 
 WEBRTC_AUDIO_RATE = 48000  # WebRTC's Opus clock
@@ -59,7 +60,7 @@ class DriveSession:
         self.outbox: asyncio.Queue = asyncio.Queue()  # ws: frame packets (bytes) and JSON (str); None ends write_to
         self.closed = asyncio.Event()
         self.error: BaseException | None = None
-        self.voice: asyncio.Task | None = None  # what the server speaks, cancelled by a barge-in
+        self.voice: PacedVoice | None = None  # what the server speaks (`speak`), cancelled by a barge-in
         self.stats: dict = {"frames": 0, "speaking_frames": 0, "sent": 0, "unsent": 0}
         self.recorded: deque[bytes] = deque(maxlen=self.RECORDED)
         self.start_time = 0.0  # time.monotonic() of frame 0's due time: the session's pts 0 on the wall clock
@@ -74,6 +75,13 @@ class DriveSession:
         """Hand the session to its pool: frame 0 is due now."""
         self.start_time = time.monotonic()
         self._pool.add(self)
+
+    def speak(self, audio, rate: int, chunk_s: float) -> None:
+        """Speak `audio` (mono float, at `rate`) as a voice made as it is spoken, from now on in `chunk_s` chunks,
+        each fed to the session by its pool thread once its time has come (`PacedVoice`)."""
+        if self.voice is not None:
+            self.voice.cancel()
+        self.voice = PacedVoice(self.live, audio, rate, chunk_s, time.monotonic())
 
     def attach(self, channel) -> None:
         """webrtc: the page's "drives" or "control" data channel."""
@@ -123,6 +131,7 @@ class DriveSession:
         if self.error is not None:
             return None
         try:
+            self._feed_voice()
             return self.live.stream_job()
         except Exception as exc:
             self._failed(exc)
@@ -134,6 +143,7 @@ class DriveSession:
         if self.error is not None:
             return False
         try:
+            self._feed_voice()  # what came while the pool ran the translator calls (a timer would have pushed it)
             for _ in itertools.repeat(None) if most is None else range(most):
                 # The epoch is read before the frame is made: a frame planned after an interrupt() has its epoch,
                 # one planned before keeps the older one (interrupt() counts itself once it has cleared the queues).
@@ -148,6 +158,12 @@ class DriveSession:
             self._failed(exc)
             return False
         return True
+
+    def _feed_voice(self) -> None:
+        """On its pool thread: the server's voice's chunks whose time has come, pushed (`PacedVoice`)."""
+        voice = self.voice
+        if voice is not None and not voice.ended:
+            voice.feed(time.monotonic())
 
     def _failed(self, exc: BaseException) -> None:
         self.error = exc

@@ -4,6 +4,8 @@ microphone, or nothing; and the pusher that feeds the server's own voice at real
 from __future__ import annotations
 
 import asyncio
+import math
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -146,4 +148,44 @@ class _Pusher:
         self.timer.cancel()
 
 
-__all__ = ["DEFAULT_CHUNK_MS", "Voice", "VoiceFiles", "push_real_time", "voice_of"]
+class PacedVoice:
+    """The server's own voice for a session whose frames a pool thread makes: chunk k of `chunk_s` becomes the
+    session's at `start + k * chunk_s` (time.monotonic()), pushed by `feed` when the pool takes up the session (at
+    each frame it makes, before planning it), then a flush; what a frame sees is what `push_real_time`'s timers
+    would have pushed by then. A hundred voices in 20 ms chunks cost the event loop 5,000 timer callbacks and
+    pushes a second; fed so, they cost one push a frame on the pool thread (docs/live.md, "Load").
+    `cancel` (a barge-in, the session's end) stops it between two feeds: no chunk of it is pushed after."""
+
+    def __init__(self, live, audio: np.ndarray, rate: int, chunk_s: float, start: float) -> None:
+        self.live, self.audio, self.rate, self.chunk_s, self.start = live, audio, rate, chunk_s, start
+        self.step = max(1, int(rate * chunk_s))
+        self.count = -(-audio.shape[0] // self.step)  # chunks
+        self.next = 0  # chunks pushed
+        self.ended = False  # flushed, cancelled, or its session closed
+        self._lock = threading.Lock()  # feed (the pool thread) against cancel (the event loop)
+
+    def feed(self, now: float) -> None:
+        """Push every chunk whose time has come by `now` and is not pushed yet, in one push; flush after the last.
+        A closed session (LiveError) ends the voice quietly; other errors are the session's (its pool reports)."""
+        with self._lock:
+            if self.ended:
+                return
+            # chunk k has come once start + k * chunk_s <= now (a nanosecond's slack for the float product)
+            due = min(self.count, math.floor((now - self.start) / self.chunk_s + 1e-9) + 1)
+            try:
+                if due > self.next:
+                    self.live.push(self.audio[self.next * self.step:due * self.step], self.rate)
+                    self.next = due
+                if self.next >= self.count:
+                    self.live.flush()
+                    self.ended = True
+            except LiveError:
+                self.ended = True
+
+    def cancel(self) -> None:
+        """Stop: nothing more is pushed, no flush (waits for a feed under way to end)."""
+        with self._lock:
+            self.ended = True
+
+
+__all__ = ["DEFAULT_CHUNK_MS", "PacedVoice", "Voice", "VoiceFiles", "push_real_time", "voice_of"]
