@@ -868,7 +868,7 @@ def live_clients(
                                                      replicas=replicas, baseline_replicas=baseline_replicas))
     result["load_at_end"] = os.getloadavg()
     _stamp(result)
-    table = "\n\n".join(f"{TRANSPORT_NAMES[run['transport']]}, voice pushed in {run['chunk_ms']:g} ms chunks at "
+    table = "\n\n".join(f"{TRANSPORT_NAMES[run['transport']]}, voice in {run['chunk_ms']:g} ms chunks at "
                          f"real time, `--batch-frames {run['batch_frames']}`, `--context-ms {run['context_ms']:g}`:"
                          f"\n\n{live_clients_table(run)}"
                          for run in result["runs"])

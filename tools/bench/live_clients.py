@@ -9,10 +9,10 @@ each load client mints its own token with a subject of its own (sessions are cap
 reads /health with an admin token. The baseline has no tokens.
 
 N load clients (aiortc peers, in client processes of their own) each open a session with the sample speech as the
-voice (pushed by the server at real time in 20 ms chunks: the producer that costs the translator most, one call
-per frame), read every drive on the unordered "drives" data channel and every RTP packet of the audio track
-(counted, sequence numbers checked, not decoded: decoding is the page's cost, not the server's), interrupt after
-SPEAK_S and leave IDLE_S later.
+voice (given to the session by the server at real time in 20 ms chunks: the producer that costs the translator
+most, one call per frame), read every drive on the unordered "drives" data channel and every RTP packet of the
+audio track (counted, sequence numbers checked, not decoded: decoding is the page's cost, not the server's),
+interrupt after SPEAK_S and leave IDLE_S later.
 
 Per server and N: late frames (a drive arriving more than LATE_TOLERANCE_S after its due time, start + pts on the
 wall clock, or never arriving), the server's CPU seconds per session-second, first-frame latency (the answer to
