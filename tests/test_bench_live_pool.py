@@ -47,3 +47,38 @@ def test_bad_options_are_refused(lam_voice_bundle, tmp_path):
     assert result.exit_code != 0 and "not a checkout of this project" in result.output
     result = runner.invoke(app, ["live-pool", str(tmp_path / "none.gtb")])
     assert result.exit_code != 0 and "no such bundle" in result.output
+
+
+class _Recording:
+    def __init__(self) -> None:
+        self.pushes: list[int] = []
+        self.flushed = False
+
+    def push(self, samples, rate: int) -> None:
+        self.pushes.append(samples.shape[0])
+
+    def flush(self) -> None:
+        self.flushed = True
+
+
+def test_the_bench_gives_each_checkouts_voice_as_its_server_does(monkeypatch):
+    """This checkout's server feeds a voice at each pool visit (one push of the chunks come); an older one's voice
+    came chunk by chunk at each chunk's time: the bench does what the checkout it runs does, a flush after the last."""
+    import numpy as np
+
+    import gaussiantalker.serve.voices as voices_module
+    from tools.bench.live_pool import _Voices
+
+    speech = np.zeros(1000, np.float32)  # 320-sample chunks at 16 kHz: three whole and one of 40
+    fed = _Voices([_Recording()], speech, 16000, [0.0])
+    assert not fed.every_tick
+    fed.feed(0, 0.05)  # chunks 0..2 have come
+    fed.feed(0, 1.0)
+    assert fed.lives[0].pushes == [960, 40] and fed.lives[0].flushed
+    monkeypatch.delattr(voices_module, "PacedVoice")  # a checkout from before it
+    pushed = _Voices([_Recording()], speech, 16000, [0.0])
+    assert pushed.every_tick
+    pushed.feed(0, 0.05)
+    assert pushed.lives[0].pushes == [320, 320, 320] and not pushed.lives[0].flushed
+    pushed.feed(0, 1.0)
+    assert pushed.lives[0].pushes == [320, 320, 320, 40] and pushed.lives[0].flushed

@@ -4,8 +4,10 @@ thread and the voice's MatMul graph"). `gt-bench live-clients` measures the whol
 vary by 15% and more at the knee.
 
 N paced streaming sessions (`LiveSession(output=None, clock_grid_s=...)`, as the server makes them) run on a fake
-clock: each is pushed the sample speech in 20 ms chunks at its own start (staggered by 13 ms), then idles; at every
-tick of the server's clock grid the pool's work is done as `serve/drive_sessions.py` does it: every session's planned
+clock: each speaks the sample speech in 20 ms chunks from its own start (staggered by 13 ms), then idles, its voice
+given as the checkout's server gives it (fed by the pool thread to the sessions it takes up, or, before that,
+pushed at each chunk's time); at every tick of the server's clock grid the pool's work is done as
+`serve/drive_sessions.py` does it: every session's planned
 stream call stacked into one (`run_stream_jobs`), then each session's due frame made and encoded as a frame packet.
 The process's CPU over that loop, over the sessions' seconds, is the result; each round runs in a fresh process, the
 new checkout's and a baseline checkout's (its `src/` first on PYTHONPATH) alternating.
@@ -26,8 +28,9 @@ from pathlib import Path
 CHUNK_S = 0.02
 STAGGER_S = 0.013
 SPEECH_S = 4.0
-# The loop's parts, timed apart: the voices' pushes, planning the due sessions' translator calls (`stream_job`),
-# running them (`run_stream_jobs`, onnxruntime and the stacking), making the frames (`step`), encoding the packets.
+# The loop's parts, timed apart: the voices' pushes (or feeds), planning the due sessions' translator calls
+# (`stream_job`), running them (`run_stream_jobs`, onnxruntime and the stacking), making the frames (`step`),
+# encoding the packets.
 PHASES = ("push", "plan", "translate", "frames", "encode")
 
 
@@ -54,9 +57,8 @@ def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 1
     tick = clock_grid_s(driver.fps)
     lives = [LiveSession(driver, lookahead_ms=lookahead_ms, audio_rate=driver.sample_rate, output=None,
                          clock_grid_s=tick, streaming=True) for _ in range(sessions)]
-    chunk = int(driver.sample_rate * CHUNK_S)
     starts = [clock[0] + STAGGER_S * k for k in range(sessions)]
-    pushed = [0] * sessions
+    voices = _Voices(lives, speech, driver.sample_rate, starts)
     end = clock[0] + seconds
     frames = calls = rows = 0
     phases = dict.fromkeys(PHASES, 0.0)  # CPU seconds of each part of the loop
@@ -64,12 +66,11 @@ def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 1
     began = clock_of()
     while clock[0] < end:
         t0 = clock_of()
-        for k, live in enumerate(lives):
-            while starts[k] + pushed[k] * CHUNK_S <= clock[0] and pushed[k] * chunk < speech.shape[0]:
-                live.push(speech[pushed[k] * chunk:(pushed[k] + 1) * chunk], driver.sample_rate)
-                pushed[k] += 1
+        due = [k for k, live in enumerate(lives) if live.due <= clock[0]]  # as the server's pool picks them
+        for k in range(sessions) if voices.every_tick else due:
+            voices.feed(k, clock[0])
+        due = [lives[k] for k in due]
         t1 = clock_of()
-        due = [live for live in lives if live.due <= clock[0]]  # as the server's pool picks them
         jobs = [job for job in (live.stream_job() for live in due) if job is not None]
         t2 = clock_of()
         if jobs:
@@ -88,6 +89,36 @@ def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 1
     return {"cpu_s": cpu, "frames": frames, "calls": calls, "rows": rows,
             "cpu_s_per_session_s": cpu / (sessions * seconds), "us_per_frame": 1e6 * cpu / max(frames, 1),
             **{f"{phase}_us_per_frame": 1e6 * spent / max(frames, 1) for phase, spent in phases.items()}}
+
+
+class _Voices:
+    """The sessions' voices as the checkout's server gives them: fed by the pool thread to the sessions it takes up
+    (`PacedVoice`), or, in a checkout from before it, pushed chunk by chunk at each chunk's time (the event loop's
+    timers, counted here all the same); a flush after the last chunk either way."""
+
+    def __init__(self, lives: list, speech, rate: int, starts: list[float]) -> None:
+        try:
+            from gaussiantalker.serve.voices import PacedVoice
+        except ImportError:  # an older checkout
+            PacedVoice = None
+        self.every_tick = PacedVoice is None
+        self.lives, self.speech, self.rate, self.starts = lives, speech, rate, starts
+        self.paced = None if PacedVoice is None else [PacedVoice(live, speech, rate, CHUNK_S, start)
+                                                      for live, start in zip(lives, starts, strict=True)]
+        self.chunk = int(rate * CHUNK_S)
+        self.pushed = [0] * len(lives)
+
+    def feed(self, k: int, now: float) -> None:
+        if self.paced is not None:
+            self.paced[k].feed(now)
+            return
+        count = -(-self.speech.shape[0] // self.chunk)
+        while self.pushed[k] < count and self.starts[k] + self.pushed[k] * CHUNK_S <= now:
+            first = self.pushed[k] * self.chunk
+            self.lives[k].push(self.speech[first:first + self.chunk], self.rate)
+            self.pushed[k] += 1
+            if self.pushed[k] == count:
+                self.lives[k].flush()
 
 
 def run_in_checkout(src: Path | None, module: str, function: str, *args: str | int | float) -> dict:
