@@ -153,7 +153,8 @@ class PacedVoice:
     session's at `start + k * chunk_s` (time.monotonic()), pushed by `feed` when the pool takes up the session (at
     each frame it makes, before planning it), then a flush; what a frame sees is what `push_real_time`'s timers
     would have pushed by then. A hundred voices in 20 ms chunks cost the event loop 5,000 timer callbacks and
-    pushes a second; fed so, they cost one push a frame on the pool thread (docs/live.md, "Load").
+    pushes a second; fed so, they cost one push a frame on the pool thread (docs/live.md, "The server's own voice
+    fed by the pool thread").
     `cancel` (a barge-in, the session's end) stops it between two feeds: no chunk of it is pushed after."""
 
     def __init__(self, live, audio: np.ndarray, rate: int, chunk_s: float, start: float) -> None:
@@ -170,7 +171,7 @@ class PacedVoice:
         with self._lock:
             if self.ended:
                 return
-            # chunk k has come once start + k * chunk_s <= now (a nanosecond's slack for the float product)
+            # chunk k has come once start + k * chunk_s <= now (1e-9 of a chunk's slack: the division's rounding)
             due = min(self.count, math.floor((now - self.start) / self.chunk_s + 1e-9) + 1)
             try:
                 if due > self.next:
