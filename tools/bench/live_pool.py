@@ -205,15 +205,13 @@ def live_pool_table(result: dict) -> str:
 
 
 def phases_table(result: dict) -> str:
-    """Where a frame's CPU goes: each version's median µs a frame in each part of the loop (`PHASES`); rounds that
-    predate the split (results saved before it) have none."""
+    """Where a frame's CPU goes: each version's median µs a frame in each part of the loop (`PHASES`; both versions
+    run this checkout's `pool_run`, which times them)."""
     labels = [label for label in ("old", "new") if result["rows"] and label in result["rows"][0]]
     head = "| sessions | version | " + " | ".join(f"{phase} µs a frame" for phase in PHASES) + " |"
     lines = [head, "|" + "---:|" * 2 + "---:|" * len(PHASES)]
     for row in result["rows"]:
         for label in labels:
-            if f"{PHASES[0]}_us_per_frame" not in row[label]:
-                continue
             cells = [str(row["sessions"]), label] + [f"{row[label][f'{phase}_us_per_frame']:.1f}" for phase in PHASES]
             lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
