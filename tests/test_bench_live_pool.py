@@ -9,7 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 from tools.bench.app import app
-from tools.bench.live_pool import PHASES, live_pool_table, pool_run, run_live_pool
+from tools.bench.live_pool import PHASES, alternate_rounds, live_pool_table, median_rows, pool_run, run_live_pool
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -82,3 +82,24 @@ def test_the_bench_gives_each_checkouts_voice_as_its_server_does(monkeypatch):
     assert pushed.lives[0].pushes == [320, 320, 320] and not pushed.lives[0].flushed
     pushed.feed(0, 1.0)
     assert pushed.lives[0].pushes == [320, 320, 320, 40] and pushed.lives[0].flushed
+
+
+def test_versions_take_turns_first_and_the_ratio_is_the_median_of_the_rounds_own(tmp_path):
+    """Rounds alternate which version runs first, and new / old is the median of each round's own ratio (the two
+    run back to back there): here the machine is twice as slow until it speeds up in round 2 between old's turn
+    and new's, so old's median is a slow round's and new's a fast one's (their ratio 0.45), while every round's own
+    ratio but that one's reads 0.9."""
+    order = []
+
+    def run(label, src, n):
+        order.append(label)
+        return {"cost": None}
+
+    runs = alternate_rounds(tmp_path, [3], 4, "rounds", False, run)
+    assert order == ["old", "new", "new", "old", "old", "new", "new", "old"]
+    assert len(runs[("old", 3)]) == len(runs[("new", 3)]) == 4
+    old = [{"cost": c} for c in (2.0, 2.0, 2.0, 1.0, 1.0)]
+    new = [{"cost": c} for c in (1.8, 1.8, 0.9, 0.9, 0.9)]
+    row = median_rows({("old", 3): old, ("new", 3): new}, [3], ("cost",), ())[0]
+    assert row["old"]["cost"] == 2.0 and row["new"]["cost"] == 0.9
+    assert row["ratio"] == pytest.approx(0.9)

@@ -48,3 +48,37 @@ def test_the_steady_graph_is_timed_where_the_bundle_has_one(small_export, lam_vo
         run_stream_calls([lam_voice_bundle], [(1, 1)], rounds=1, calls=1, progress=False, graph="steady")
     with pytest.raises(ValueError, match="'refreshing' or 'steady'"):
         run_stream_calls([lam_voice_bundle], [(1, 1)], rounds=1, calls=1, progress=False, graph="both")
+
+
+def test_the_ratio_is_the_median_of_each_rounds_own(monkeypatch):
+    """The machine's speed drifts: a bundle's ratio to the first is the median of the rounds' own ratios (the two
+    bundles timed back to back in a round, in turn first), so a slowdown that each bundle's median takes from other
+    rounds cancels. Here bundle B costs 0.9 of A; the machine is twice as slow until it speeds up in round 2,
+    between A's turn and B's: A's median is a slow round's, B's a fast one's (0.45 A), each round's own ratio 0.9
+    but that round's 0.45."""
+    import types
+
+    import numpy as np
+
+    import gaussiantalker.runtime.stages as stages
+    import tools.bench.stream_calls as stream_calls
+
+    calls, clock, made = 2, [0.0], [0]
+    slow = [2, 2, 2, 2, 2, 1, 1, 1, 1, 1]  # each turn's speed, in the order the turns run (a warm call and `calls`)
+
+    def driver(cost: float):
+        spec = types.SimpleNamespace(frame_samples=4, rest_state=np.zeros(2, np.float32), steady=False)
+
+        def run_stream(audio, state, keep, refresh):
+            clock[0] += cost * slow[made[0] // (calls + 1)]
+            made[0] += 1
+
+        return types.SimpleNamespace(has_stream=True, stream_spec=spec, run_stream=run_stream)
+
+    drivers = {"a.gtb": driver(1.0), "b.gtb": driver(0.9)}
+    monkeypatch.setattr(stages, "open_driver", lambda path, threads=None: drivers[str(path)])
+    monkeypatch.setattr(stream_calls.time, "perf_counter", lambda: clock[0])
+    result = run_stream_calls(["a.gtb", "b.gtb"], [(1, 1)], rounds=5, calls=calls, progress=False)
+    row = result["cases"][0]
+    assert row["ms_per_call"] == pytest.approx([2e3, 0.9e3])  # A's median slow, B's fast
+    assert row["ratio_to_first"] == pytest.approx([1.0, 0.9])

@@ -26,6 +26,7 @@ from gaussiantalker.exporter.model.translator import PositionalConvEmbedding, co
 from gaussiantalker.exporter.model.translator_stream import (
     MotionTranslatorStream,
     _conv_time_major,
+    _pooled,
     _positional_tail,
     conv_plan,
 )
@@ -149,11 +150,15 @@ def test_the_kept_keys_and_values_are_those_of_their_frames(small_speaker):
     rows = 2 * (stream.window_frames - stream.tail_frames)
     offsets = {name: sum(np.prod(shape) for _, shape in stream.state_parts[:i])
                for i, (name, _) in enumerate(stream.state_parts)}
-    shape = dict(stream.state_parts)["encoder0"]
+    shape = dict(stream.state_parts)["encoder0_keys"]
+    assert dict(stream.state_parts)["encoder0_values"] == shape
     for sizes, provisional in (((1,), 0), ((3, 1, 5, 2), 1)):
         checked = 0
         for committed, out in _feed(stream, audio, sizes, provisional):
-            cache = out[2][0, offsets["encoder0"]:offsets["encoder0"] + int(np.prod(shape))].reshape(shape)
+            # the layer's keys, then its values: one [2, H, rows, Dh] block
+            start = offsets["encoder0_keys"]
+            assert offsets["encoder0_values"] == start + int(np.prod(shape))
+            cache = out[2][0, start:start + 2 * int(np.prod(shape))].reshape(2, *shape)
             first = 2 * (committed - stream.window_frames)  # the next window's first feature
             # frames whose window held no rest-state frame and whose positional convolution reads real features
             for row in range(rows):
@@ -205,11 +210,12 @@ def test_the_bundle_graph_is_its_torch_module(small_export):
 def test_every_window_of_the_state_is_read_by_a_slice(small_speaker, monkeypatch):
     """The stream's windows of its state (each kept part after a call: the statistics, the refreshed audio, the
     features, each convolution's inputs, each transformer layer's keys and values) export as Gathers, which
-    window_slices.py makes Slices: every one of them, and none is left in the exported graph."""
+    window_slices.py makes Slices: every one of them, and none is left in the exported graph. (The statistics: the
+    waveform's, and the first convolution's means and variances apart.)"""
     stream = MotionTranslatorStream(small_speaker.translator)
     layers = len(small_speaker.translator.audio_encoder.encoder.layers) + len(
         small_speaker.translator.motion_decoder.decoder.layers)
-    windows = 4 + len(stream.plans) + 2 * layers  # a layer's keys and values: two windows
+    windows = 5 + len(stream.plans) + 2 * layers  # a layer's keys and values: two windows
     monkeypatch.setattr(translator_graph, "window_gathers_to_slices", lambda model: 0)
     traced = translator_graph.translator_stream_onnx(small_speaker.translator)
     assert window_gathers_to_slices(traced) == windows
@@ -251,6 +257,78 @@ def test_the_time_major_convolution_is_conv1d(kernel, stride):
         got = _conv_time_major(x.transpose(1, 2).contiguous(), weight, stride)
         assert got.shape == expected.shape
         torch.testing.assert_close(got, expected, atol=1e-5, rtol=1e-5)
+
+
+def _first_layer_reference(stream, inputs, frames, waveform, weights, own_means, variances):
+    """The first convolution and its GroupNorm as the windowed graph takes them, in float64: c = conv(x - m), each
+    frame's mean of c (a kept frame's from its mean relative to its own waveform mean, `own_means`) and variance
+    pooled over the window, one scale and shift a channel. Returns the outputs and the new frames' means (relative
+    to their own waveform means, as kept) and variances."""
+    frame_means, window_mean, audio_scale = waveform
+    layer, plan = stream.translator.audio_encoder.feature_extractor.conv_layers[0], stream.plans[0]
+    weight = layer.conv.weight.double()
+    c = torch.nn.functional.conv1d((inputs - window_mean).transpose(1, 2), weight, stride=plan.stride)
+    c = c.transpose(1, 2)  # [B, m, C]
+    exact = c[:, :frames * stream.conv0_rate].reshape(c.shape[0], frames, stream.conv0_rate, c.shape[2])
+    offsets = (frame_means - window_mean[:, 0]).unsqueeze(-1)  # [B, W + n, 1]
+    sums = weight.sum(dim=(1, 2))  # [C]: the weight's sum a channel
+    new_means, new_vars = exact.mean(2), exact.var(2, unbiased=False)
+    means = torch.cat([own_means + offsets[:, :-frames] * sums, new_means], 1)
+    mean, var = _pooled(means, torch.cat([variances, new_vars], 1), weights[:, None], dim=1)
+    norm = layer.layer_norm
+    scale = audio_scale * torch.rsqrt(audio_scale ** 2 * var + stream.group_norm_eps) * norm.weight.double()
+    return c * scale + (norm.bias.double() - mean * scale), new_means - offsets[:, -frames:] * sums, new_vars
+
+
+@pytest.mark.parametrize("signal", ["speech-like noise", "silence", "dc with a whisper", "low sine", "clipped square",
+                                    "near silence"])
+def test_the_first_layers_statistics_from_its_taps_are_the_convolutions(small_speaker, signal):
+    """The stream takes the first convolution's per-frame mean and variance from its taps' mean and covariance and
+    folds the GroupNorm into the weight: its outputs equal the convolution of the waveform less the window's mean,
+    normalised by its own outputs' statistics (float64 here), finite, for quiet and loud audio, a DC offset with a
+    whisper on it, tiny and huge waveform scales, and a window whose kept frames are like the new ones (the pooled
+    variance then the new frames' own: near zero for silence). Within 2e-5 (float32 rounding: 6e-6 measured at
+    worst, on a low sine whose taps barely differ; 4e-7 for the DC offset at scale 3000, where statistics of the
+    raw convolution lost 0.2); the last output, which reads the call's padding (zeros of x, not of x - m, as the
+    stream's padding always was: provisional, made again next call), within 1e-4 of its own size (2e-7 measured).
+    It keeps the new frames' statistics as the reference has them."""
+    stream = MotionTranslatorStream(small_speaker.translator, call_refresh=0).eval()
+    layer, plan = stream.translator.audio_encoder.feature_extractor.conv_layers[0], stream.plans[0]
+    frames, window, channels = 2, stream.window_frames, stream.channels
+    length = plan.keep + frames * FRAME + plan.right_pad
+    t = torch.arange(length, dtype=torch.float64) / 16000
+    noise = torch.randn(length, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    sig = {"speech-like noise": 0.1 * noise, "silence": torch.zeros(length, dtype=torch.float64),
+           "dc with a whisper": 0.5 + 1e-6 * noise, "low sine": 0.9 * torch.sin(2 * np.pi * 20 * t),
+           "clipped square": torch.sign(torch.sin(2 * np.pi * 200 * t)), "near silence": 1e-7 * noise}[signal]
+    sig[length - plan.right_pad:] = 0.0  # the padding after the call's last sample
+    inputs = sig.float().double().reshape(1, length, 1)  # the samples float32 holds (a whisper on 0.5 keeps 4 bits)
+    own = sig[plan.keep:plan.keep + frames * FRAME].reshape(frames, FRAME).mean(1)  # the new frames' means
+    # the kept frames' like the first new one; float32 values, as the state keeps them (a kept frame's mean of c is
+    # kept relative to its waveform mean as the state holds it, and read back so)
+    frame_means = torch.cat([own[:1].expand(window), own])[None].float().double()
+    window_mean = frame_means.mean(1).reshape(1, 1, 1).float().double()
+    weights = torch.ones(window + frames, dtype=torch.float64)
+    for audio_scale in (1.0, 3000.0):
+        waveform = (frame_means, window_mean, torch.full((1, 1, 1), audio_scale, dtype=torch.float64))
+        kept_stats = [(0.01 * torch.rand(1, window, channels, dtype=torch.float64),
+                       1e-3 * torch.rand(1, window, channels, dtype=torch.float64))]
+        _, new_means, new_vars = _first_layer_reference(stream, inputs, frames, waveform, weights, *kept_stats[0])
+        kept_stats.append((new_means[:, :1].expand(1, window, channels),
+                           new_vars[:, :1].expand(1, window, channels)))  # the window like its new frames
+        for means, variances in kept_stats:
+            expected, new_means, new_vars = _first_layer_reference(stream, inputs, frames, waveform, weights, means,
+                                                                   variances)
+            kept, made = {"conv0_means": means.float(), "conv0_variances": variances.float()}, {}
+            with torch.no_grad():
+                got = stream._normalised_first(inputs.float(), frames, tuple(part.float() for part in waveform),
+                                               weights.float(), kept, made, layer, plan)
+            assert torch.isfinite(got).all()
+            error, exact = torch.abs(got.double() - expected), frames * stream.conv0_rate
+            assert error[:, :exact].max() < 2e-5, (signal, audio_scale)
+            assert error[:, exact:].max() < 1e-4 * max(1.0, float(expected[:, exact:].abs().max())), signal
+            assert torch.abs(made["conv0_means"][:, window:].double() - new_means).max() < 1e-5
+            assert torch.abs(made["conv0_variances"][:, window:].double() - new_vars).max() < 1e-5
 
 
 @pytest.mark.parametrize("kernel", [3, 4, 15, 16])

@@ -139,16 +139,16 @@ def run_in_checkout(src: Path | None, module: str, function: str, *args: str | i
 def alternate_rounds(baseline: Path | None, sessions: list[int], rounds: int, desc: str, progress: bool,
                      run: Callable[[str, Path | None, int], dict]) -> dict[tuple[str, int], list[dict]]:
     """`run(label, src, n)` for every number of sessions and version ("old": the `baseline` checkout's src/, if
-    any, then "new": this one's, src None), in alternating rounds (old, new, old, new ...); each version's results
-    by (label, n)."""
+    any, then "new": this one's, src None), in alternating rounds (old then new, then new then old, ...); each
+    version's results by (label, n), in round order."""
     from tqdm import tqdm
 
     versions = ([("old", baseline / "src")] if baseline is not None else []) + [("new", None)]
     runs: dict[tuple[str, int], list[dict]] = {(label, n): [] for label, _ in versions for n in sessions}
     with tqdm(total=rounds * len(sessions) * len(versions), desc=desc, disable=not progress) as bar:
-        for _ in range(rounds):
+        for round_index in range(rounds):
             for n in sessions:
-                for label, src in versions:
+                for label, src in versions if round_index % 2 == 0 else versions[::-1]:
                     runs[(label, n)].append(run(label, src, n))
                     bar.update()
     return runs
@@ -170,8 +170,9 @@ def run_live_pool(bundle: Path, sessions: list[int], seconds: float, rounds: int
 def median_rows(runs: dict[tuple[str, int], list[dict]], sessions: list[int], medians: tuple[str, ...],
                 firsts: tuple[str, ...]) -> list[dict]:
     """One row a number of sessions from `alternate_rounds`' results: each version's rounds, the median of each
-    of `medians` (the first is the one compared: "ratio", new over old, where there is an old) and `firsts` as the
-    first round has them (counts every round shares)."""
+    of `medians` (the first is the one compared: "ratio", new over old where there is an old, the median of each
+    round's own ratio, the two versions run back to back there, so the machine's drift between rounds cancels) and
+    `firsts` as the first round has them (counts every round shares)."""
     rows = []
     for n in sessions:
         row: dict = {"sessions": n}
@@ -181,7 +182,8 @@ def median_rows(runs: dict[tuple[str, int], list[dict]], sessions: list[int], me
                 row[label] = {"rounds": got, **{key: statistics.median(r[key] for r in got) for key in medians},
                               **{key: got[0][key] for key in firsts}}
         if "old" in row:
-            row["ratio"] = row["new"][medians[0]] / row["old"][medians[0]]
+            row["ratio"] = statistics.median(new[medians[0]] / old[medians[0]] for old, new in
+                                             zip(row["old"]["rounds"], row["new"]["rounds"], strict=True))
         rows.append(row)
     return rows
 

@@ -4,8 +4,8 @@ bundles (the same speaker exported by two commits) side by side in alternating r
 
 Each case feeds noise at speech level from each bundle's rest state, committing one frame (the rest, if any, are
 provisional: what a 30 fps avatar's calls on the 25 fps voice look like). A round times `calls` calls of every bundle
-in turn; the report gives each bundle's median over rounds, ms a call and a session-frame, and the ratios to the
-first bundle.
+in turn (the other order every other round); the report gives each bundle's median over rounds, ms a call and a
+session-frame, and its ratio to the first bundle: the median of the rounds' own ratios.
 """
 
 from __future__ import annotations
@@ -46,9 +46,10 @@ def run_stream_calls(bundles: list[Path], cases: list[tuple[int, int]], rounds: 
                              "has one)")
         drivers.append(driver)
     times = {(b, case): [] for b in range(len(bundles)) for case in cases}
-    for _ in tqdm(range(rounds), desc="rounds", disable=not progress):
+    for round_index in tqdm(range(rounds), desc="rounds", disable=not progress):
         for case in cases:
-            for b, driver in enumerate(drivers):
+            order = list(enumerate(drivers))  # every other round the other way round: no bundle always goes first
+            for b, driver in order if round_index % 2 == 0 else order[::-1]:
                 audio, state = _feeds(driver.stream_spec, *case)
                 driver.run_stream(audio, state, 1, refresh)  # warm: the shapes' first call allocates
                 began = time.perf_counter()
@@ -58,9 +59,14 @@ def run_stream_calls(bundles: list[Path], cases: list[tuple[int, int]], rounds: 
     rows = []
     for sessions, frames in cases:
         medians = [statistics.median(times[(b, (sessions, frames))]) * 1e3 for b in range(len(bundles))]
+        # each round's ratio to the first bundle's time in that round, the median of them: the machine's speed
+        # drifts between rounds more than the bundles differ, and a round times them back to back
+        first = times[(0, (sessions, frames))]
+        ratios = [statistics.median(t / f for t, f in zip(times[(b, (sessions, frames))], first, strict=True))
+                  for b in range(len(bundles))]
         rows.append({"sessions": sessions, "frames": frames, "ms_per_call": medians,
                      "ms_per_session_frame": [m / (sessions * frames) for m in medians],
-                     "ratio_to_first": [m / medians[0] for m in medians]})
+                     "ratio_to_first": ratios})
     return {"bundles": [str(p) for p in bundles], "graph": graph, "rounds": rounds, "calls_per_round": calls,
             "cases": rows}
 

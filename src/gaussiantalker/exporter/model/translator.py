@@ -149,9 +149,11 @@ class SelfAttention(nn.Module):
     def _split(self, x: torch.Tensor) -> torch.Tensor:  # [B, T, D] -> [B, H, T, Dh]
         return x.reshape(x.shape[0], -1, self.heads, self.head_dim).transpose(1, 2)
 
-    def project(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Scaled queries, keys and values [B, H, T, Dh] of the rows x [B, T, D]."""
-        q = self._split(self.q_proj(x) * (self.head_dim**-0.5))
+    def project(self, x: torch.Tensor, query_rows: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Scaled queries, keys and values [B, H, T, Dh] of the rows x [B, T, D]; the queries of `query_rows` [B, Tq,
+        D] instead where given (rows of x whose outputs alone are read)."""
+        q = self._split(self.q_proj(x if query_rows is None else query_rows) * (self.head_dim**-0.5))
         return q, self._split(self.k_proj(x)), self._split(self.v_proj(x))
 
     def attend(self, q: torch.Tensor, k: torch.Tensor, v: torch.Tensor,

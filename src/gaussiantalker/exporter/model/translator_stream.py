@@ -23,7 +23,8 @@ recompute the past:
   the whole call (`_conv_time_major`), and the state keeps their parts so.
 * The normalisations the windowed graph takes over its whole window (the waveform's mean and variance, then the
   first convolution's per-channel GroupNorm) come from per-frame statistics of the same window kept in the state,
-  combined exactly (Chan's pooled variance). They normalise the new and refreshed frames; the kept features of
+  combined exactly (Chan's pooled variance; the first convolution's from its taps' moments, each frame's mean
+  relative to its own waveform mean). They normalise the new and refreshed frames; the kept features of
   older frames keep the normalisation they were made with. That is the one approximation, measured on unseen
   speech in docs/live.md (refreshing as many frames as the delay keeps a frame's features only once the window
   reaches its lookahead, as the windowed call that makes its row sees it).
@@ -31,10 +32,10 @@ recompute the past:
   frames and the `tail_frames` before them (at least every frame whose features the call made again, and the
   delay's frames, whose rows it gives). Their attention still reads the whole window: the keys and values of the
   frames before the tail are kept in the state from the call that last ran them (each layer's, a K/V cache as in a
-  decoding transformer). That is the second approximation: a frame's hidden states stop changing once it leaves
-  the tail, so they never see more than the tail's future, where the windowed graph recomputes them against every
-  frame of each window. `tail_frames=None` runs the transformers over the whole window every call instead (the
-  form this replaced; benches compare the two).
+  decoding transformer; the last decoder layer makes only the rows the call gives). That is the second
+  approximation: a frame's hidden states stop changing once it leaves the tail, so they never see more than the
+  tail's future, where the windowed graph recomputes them against every frame of each window. `tail_frames=None`
+  runs the transformers over the whole window every call instead (the form this replaced; benches compare the two).
 
 `conv_plan` derives each layer's kept inputs from its kernel, stride and padding, so any translator config whose
 layers align streams. The module is exported to ONNX beside the windowed graph (exporter/export/translator_graph.py).
@@ -117,21 +118,11 @@ def _framed_stats(values: torch.Tensor, frames: int) -> tuple[torch.Tensor, torc
     return mean, (centred * centred).mean(dim=-1)
 
 
-def _framed_stats_time_major(values: torch.Tensor, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """values [B, frames * r, C] -> per-frame mean and variance [B, frames, C]."""
-    framed = values.reshape(values.shape[0], frames, -1, values.shape[2])
-    mean = framed.mean(dim=2)
-    centred = framed - mean.unsqueeze(2)
-    return mean, (centred * centred).mean(dim=2)
-
-
-def _conv_time_major(x: torch.Tensor, weight: torch.Tensor, stride: int) -> torch.Tensor:
-    """F.conv1d(x, weight, stride=stride) (no padding, no bias) on time-major x [B, L, C_in] -> [B, m, C_out]: each
-    output's taps laid side by side, then one MatMul over every output of the batch, where onnxruntime's Conv makes
-    an im2col and a small matrix product per batch item (docs/live.md, "The stream's convolutions time-major")."""
-    c_out, c_in, kernel = weight.shape
+def _unfold_time_major(x: torch.Tensor, kernel: int, stride: int) -> torch.Tensor:
+    """Time-major x [B, L, C_in] -> each output's taps side by side [B, m, kernel * C_in] (tap by tap), the input
+    F.conv1d(x, weight, stride=stride) (no padding) reads for each of its m outputs."""
     steps = (x.shape[1] - kernel) // stride + 1
-    batch = x.shape[0]
+    batch, c_in = x.shape[0], x.shape[2]
 
     def tap(j: int) -> torch.Tensor:  # input j of every output: [B, m, C_in]
         return x[:, j:j + stride * (steps - 1) + 1:stride]
@@ -144,8 +135,21 @@ def _conv_time_major(x: torch.Tensor, weight: torch.Tensor, stride: int) -> torc
             taps.append(x[:, stride:stride * (steps + 1)].reshape(batch, steps, stride * c_in))
         else:
             taps += [tap(j) for j in range(stride, kernel)]
-    unfolded = torch.cat(taps, dim=-1) if len(taps) > 1 else taps[0]  # [B, m, k * C_in], tap by tap
-    return unfolded @ weight.permute(2, 1, 0).reshape(kernel * c_in, c_out)
+    return torch.cat(taps, dim=-1) if len(taps) > 1 else taps[0]
+
+
+def _weight_matrix(weight: torch.Tensor) -> torch.Tensor:
+    """A Conv1d weight [C_out, C_in, k] as the matrix [k * C_in, C_out] that multiplies `_unfold_time_major`'s
+    taps."""
+    c_out, c_in, kernel = weight.shape
+    return weight.permute(2, 1, 0).reshape(kernel * c_in, c_out)
+
+
+def _conv_time_major(x: torch.Tensor, weight: torch.Tensor, stride: int) -> torch.Tensor:
+    """F.conv1d(x, weight, stride=stride) (no padding, no bias) on time-major x [B, L, C_in] -> [B, m, C_out]: each
+    output's taps laid side by side, then one MatMul over every output of the batch, where onnxruntime's Conv makes
+    an im2col and a small matrix product per batch item (docs/live.md, "The stream's convolutions time-major")."""
+    return _unfold_time_major(x, int(weight.shape[2]), stride) @ _weight_matrix(weight)
 
 
 def _take(buffer: torch.Tensor, start: torch.Tensor, length: int, dim: int = -1) -> torch.Tensor:
@@ -159,14 +163,19 @@ def _take(buffer: torch.Tensor, start: torch.Tensor, length: int, dim: int = -1)
 _EMPTY_ROW_LOGIT = -1e4
 
 
-def _cached_layer(layer: TransformerLayer, x: torch.Tensor, cache: torch.Tensor,
-                  key_bias: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+def _cached_layer(layer: TransformerLayer, x: torch.Tensor, cached_keys: torch.Tensor, cached_values: torch.Tensor,
+                  key_bias: torch.Tensor, out_rows: tuple[int, int] | None = None
+                  ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
     """One pre-LN transformer layer on the tail rows x [B, T, D], their attention also reading the kept rows'
-    keys and values (cache [B, 2, H, C, Dh]; key_bias [B, 1, 1, C + T] masks the empty ones). Returns the
-    tail's outputs and the keys and values of all C + T rows, each [B, H, C + T, Dh] (not stacked: the state keeps
-    a window of each, laid out keys then values)."""
-    q, k, v = layer.attention.project(layer.layer_norm(x))
-    keys, values = torch.cat([cache[:, 0], k], dim=2), torch.cat([cache[:, 1], v], dim=2)
+    keys and values (each [B, H, C, Dh]; key_bias [B, 1, 1, C + T] masks the empty ones). Returns the tail's
+    outputs (only rows [first, first + count) of `out_rows`, where the call reads no other: the others' queries,
+    attention and feed-forward are not made) and the keys and values of all C + T rows, each [B, H, C + T, Dh]."""
+    normed = layer.layer_norm(x)
+    if out_rows is not None:
+        first, count = out_rows
+        x = x[:, first:first + count]
+    q, k, v = layer.attention.project(normed, None if out_rows is None else normed[:, first:first + count])
+    keys, values = torch.cat([cached_keys, k], dim=2), torch.cat([cached_values, v], dim=2)
     x = x + layer.attention.attend(q, keys, values, key_bias)
     x = x + layer.feed_forward(layer.final_layer_norm(x))
     return x, (keys, values)
@@ -259,7 +268,7 @@ class MotionTranslatorStream(nn.Module):
         """The flat state's parts in order, each [*shape] per session."""
         w = self.window_frames
         # the feature encoder's parts time-major, as it runs (_conv_time_major)
-        parts = [("audio_stats", (2, w)), ("conv0_stats", (2, w, self.channels)),
+        parts = [("audio_stats", (2, w)), ("conv0_means", (w, self.channels)), ("conv0_variances", (w, self.channels)),
                  ("refresh_audio", (1, self.refresh_frames * self.samples_per_frame))]
         for i, plan in enumerate(self.plans):  # each layer's kept inputs at the last refresh + 1 frame starts
             parts.append((f"conv{i}", (self.refresh_frames + 1, plan.keep, 1 if i == 0 else self.channels)))
@@ -270,9 +279,10 @@ class MotionTranslatorStream(nn.Module):
             stacks = (("encoder", self.translator.audio_encoder.encoder, encoder_rows),
                       ("decoder", self.translator.motion_decoder.decoder, decoder_rows))
             for name, stack, rows in stacks:
-                for i, layer in enumerate(stack.layers):
+                for i, layer in enumerate(stack.layers):  # a layer's keys, then its values
                     attention = layer.attention
-                    parts.append((f"{name}{i}", (2, attention.heads, rows, attention.head_dim)))
+                    for kind in ("keys", "values"):
+                        parts.append((f"{name}{i}_{kind}", (attention.heads, rows, attention.head_dim)))
         return parts
 
     def _split_state(self, state: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -301,7 +311,7 @@ class MotionTranslatorStream(nn.Module):
         variances = torch.cat([kept["audio_stats"][:, 1:2], audio_var], dim=-1)
         # Statistics count the kept frames and the committed new ones: provisional zeros would skew them.
         weights = torch.cat([torch.ones(self.window_frames), (torch.arange(frames) < keep_frames).to(audio.dtype)])
-        _, window_var = _pooled(means, variances, weights)
+        window_mean, window_var = _pooled(means, variances, weights)
         audio_scale = torch.rsqrt(window_var + AUDIO_NORM_EPS)  # [B, 1, 1]
         new_stats = {"audio_stats": torch.cat([means, variances], dim=1)}
 
@@ -314,9 +324,11 @@ class MotionTranslatorStream(nn.Module):
                                                        refresh + frames, keep_frames, most + 1)
             if plan.right_pad:
                 buffer = F.pad(buffer, (0, 0, 0, plan.right_pad))
-            y = _conv_time_major(buffer, layer.conv.weight, plan.stride)
             if i == 0:
-                y = self._normalise_first(y, frames, audio_scale, weights, kept, new_stats, layer)
+                y = self._normalised_first(buffer, frames, (means[:, 0], window_mean, audio_scale), weights, kept,
+                                           new_stats, layer, plan)
+            else:
+                y = _conv_time_major(buffer, layer.conv.weight, plan.stride)
             x = F.gelu(y)
         encoder = self.translator.audio_encoder
         features = encoder.feature_projection(encoder.feature_norm(x))  # [B, 2(r + n) + lag, D]
@@ -325,7 +337,8 @@ class MotionTranslatorStream(nn.Module):
         window = torch.cat([made[:, :made.shape[1] - FEATURES_PER_FRAME * refresh], features], dim=1)
         new_state["features"] = _take(window, keep_frames * FEATURES_PER_FRAME, self.kept_features, dim=1)
         new_state["audio_stats"] = _take(new_stats["audio_stats"], keep_frames, self.window_frames)
-        new_state["conv0_stats"] = _take(new_stats["conv0_stats"], keep_frames, self.window_frames, dim=2)
+        for name in ("conv0_means", "conv0_variances"):
+            new_state[name] = _take(new_stats[name], keep_frames, self.window_frames, dim=1)
 
         if self.tail_frames is None:
             hidden = encoder.encoder(encoder.pos_conv_embed(window))
@@ -334,10 +347,7 @@ class MotionTranslatorStream(nn.Module):
             rows = params[:, self.context_frames:self.context_frames + frames]
         else:
             rows = self._tail_rows(window, frames, keep_frames, kept, new_state)
-        # a part may be given as pieces (a layer's keys, then its values), flattened in order
-        state_out = torch.cat([piece.reshape(batch, -1) for name, _ in self.state_parts
-                               for piece in (new_state[name] if isinstance(new_state[name], tuple)
-                                             else (new_state[name],))], dim=1)
+        state_out = torch.cat([new_state[name].reshape(batch, -1) for name, _ in self.state_parts], dim=1)
         n_expr = self.translator.n_expr
         delay = torch.full((1,), self.delay_frames, dtype=torch.int64)
         return rows[..., :n_expr], rows[..., n_expr:], state_out, delay
@@ -360,18 +370,21 @@ class MotionTranslatorStream(nn.Module):
         encoder_bias = self._key_bias(first_clean * FEATURES_PER_FRAME, encoder_rows + tail)
         decoder_bias = self._key_bias(first_clean, decoder_rows + tail // FEATURES_PER_FRAME)
         for i, layer in enumerate(encoder.encoder.layers):
-            hidden, keys_values = _cached_layer(layer, hidden, kept[f"encoder{i}"], encoder_bias)
-            new_state[f"encoder{i}"] = tuple(_take(part, keep_frames * FEATURES_PER_FRAME, encoder_rows, dim=2)
-                                             for part in keys_values)
+            hidden, keys_values = _cached_layer(layer, hidden, kept[f"encoder{i}_keys"], kept[f"encoder{i}_values"],
+                                                encoder_bias)
+            for kind, part in zip(("keys", "values"), keys_values, strict=True):
+                new_state[f"encoder{i}_{kind}"] = _take(part, keep_frames * FEATURES_PER_FRAME, encoder_rows, dim=2)
         hidden = encoder.encoder.layer_norm(hidden) + self.translator.identity.weight[self.translator.speaker_id]
         x = decoder.input_projection(hidden)
         x = x.reshape(x.shape[0], -1, FEATURES_PER_FRAME, x.shape[-1]).mean(dim=2)  # 50 Hz -> 25 fps
+        last = len(decoder.decoder.layers) - 1
+        out_rows = (self.tail_frames - self.delay_frames, frames)  # the call's rows: the last layer makes only them
         for i, layer in enumerate(decoder.decoder.layers):
-            x, keys_values = _cached_layer(layer, x, kept[f"decoder{i}"], decoder_bias)
-            new_state[f"decoder{i}"] = tuple(_take(part, keep_frames, decoder_rows, dim=2) for part in keys_values)
-        params = decoder.head(decoder.decoder.layer_norm(x))  # [B, tail + n, n_expr + 3]
-        first = self.tail_frames - self.delay_frames
-        return params[:, first:first + frames]
+            x, keys_values = _cached_layer(layer, x, kept[f"decoder{i}_keys"], kept[f"decoder{i}_values"], decoder_bias,
+                                           out_rows if i == last else None)
+            for kind, part in zip(("keys", "values"), keys_values, strict=True):
+                new_state[f"decoder{i}_{kind}"] = _take(part, keep_frames, decoder_rows, dim=2)
+        return decoder.head(decoder.decoder.layer_norm(x))  # [B, n, n_expr + 3]
 
     @staticmethod
     def _frame_starts(buffer: torch.Tensor, older: torch.Tensor, plan: LayerPlan, frames: int,
@@ -391,22 +404,41 @@ class MotionTranslatorStream(nn.Module):
         index = torch.arange(rows, dtype=first_clean.dtype, device=first_clean.device)
         return ((index < first_clean).to(first_clean.dtype) * _EMPTY_ROW_LOGIT)[:, None, None, :]
 
-    def _normalise_first(self, raw: torch.Tensor, frames: int, audio_scale: torch.Tensor, weights: torch.Tensor,
-                         kept: dict[str, torch.Tensor], new_stats: dict[str, torch.Tensor], layer) -> torch.Tensor:
-        """The first convolution's GroupNorm over the window, on the raw waveform's convolution: with the
-        waveform normalised as x' = (x - m) * a, conv(x') = a * (conv(x) - m * sum(w)), so GroupNorm(conv(x'))
-        = a * (conv(x) - mean) / sqrt(a^2 * var + eps) with conv(x)'s own per-channel mean and variance."""
-        # the new frames' outputs (the refreshed frames' statistics are kept); the last output read padding. Time-
-        # major: raw [B, T, C], the statistics [B, frames, C]
+    def _normalised_first(self, inputs: torch.Tensor, frames: int,
+                          waveform: tuple[torch.Tensor, torch.Tensor, torch.Tensor], weights: torch.Tensor,
+                          kept: dict[str, torch.Tensor], new_stats: dict[str, torch.Tensor], layer,
+                          plan: LayerPlan) -> torch.Tensor:
+        """The first convolution with its GroupNorm over the window, on the raw waveform (inputs [B, L, 1];
+        `waveform`: each window frame's mean [B, W + n], the window's mean m [B, 1, 1] and scale a [B, 1, 1]): with
+        the waveform normalised as x' = (x - m) * a, GroupNorm(conv(x')) = a * (c - mean) / sqrt(a^2 * var + eps)
+        with c = conv(x - m) and c's own per-channel mean and variance over the window. Those come from the taps'
+        per-frame mean and covariance (k values an output, not C_out: c's mean is the taps' mean times the weight,
+        its variance w^T cov w), and the scale and shift fold into the weight, so no pass over the layer's outputs
+        is made for either. Each frame's mean is kept relative to its own waveform mean, so a DC offset cancels
+        before any scale (docs/live.md, "The first convolution's statistics from its taps")."""
+        frame_means, window_mean, audio_scale = waveform
         refresh = self.call_refresh
-        exact = raw[:, refresh * self.conv0_rate:(refresh + frames) * self.conv0_rate]
-        conv_mean, conv_var = _framed_stats_time_major(exact, frames)  # [B, n, C]
-        means = torch.cat([kept["conv0_stats"][:, 0], conv_mean], dim=1)
-        variances = torch.cat([kept["conv0_stats"][:, 1], conv_var], dim=1)
-        new_stats["conv0_stats"] = torch.stack([means, variances], dim=1)
-        mean, var = _pooled(means, variances, weights[:, None], dim=1)  # [B, 1, C]
-        # a * (conv(x) - mean) / sqrt(a^2 var + eps) * weight + bias as one scale and one shift a channel: two passes
-        # over the layer's outputs instead of five
+        taps = _unfold_time_major(inputs, plan.kernel, plan.stride) - window_mean  # [B, m, k], of x - m
+        weight = _weight_matrix(layer.conv.weight)  # [k, C]
+        # the new frames' outputs (the refreshed frames' statistics are kept); the last output read padding
+        exact = taps[:, refresh * self.conv0_rate:(refresh + frames) * self.conv0_rate]
+        framed = exact.reshape(exact.shape[0], frames, self.conv0_rate, exact.shape[2])  # [B, n, r, k]
+        tap_mean = framed.mean(dim=2)  # [B, n, k]
+        centred = framed - tap_mean.unsqueeze(2)
+        tap_cov = centred.transpose(2, 3) @ centred / self.conv0_rate  # [B, n, k, k]
+        offsets = (frame_means - window_mean[:, 0]).unsqueeze(-1)  # [B, W + n, 1]: each frame's mean less m
+        own_means = (tap_mean - offsets[:, -frames:]) @ weight  # [B, n, C]: conv of the frame's x less its own mean
+        # w^T cov w >= 0 exactly; rounding may not keep it so for a channel the taps barely move
+        conv_var = torch.clamp(((tap_cov @ weight) * weight).sum(dim=2), min=0.0)
+        means = torch.cat([kept["conv0_means"], own_means], dim=1)
+        variances = torch.cat([kept["conv0_variances"], conv_var], dim=1)
+        new_stats["conv0_means"], new_stats["conv0_variances"] = means, variances
+        # each frame's mean of c = conv(x - m): its own, plus its waveform's offset from m times the weight's sums
+        mean, var = _pooled(means + offsets * weight.sum(dim=0), variances, weights[:, None], dim=1)  # [B, 1, C]
+        # a * (c - mean) / sqrt(a^2 var + eps) * weight + bias: the scale multiplies the weight's columns, the shift
+        # rides on a tap of ones
         norm = layer.layer_norm
         scale = audio_scale * torch.rsqrt(audio_scale * audio_scale * var + self.group_norm_eps) * norm.weight
-        return raw * scale + (norm.bias - mean * scale)
+        shift = norm.bias - mean * scale  # [B, 1, C]
+        ones = torch.ones_like(taps[..., :1])
+        return torch.cat([taps, ones], dim=-1) @ torch.cat([weight * scale, shift], dim=1)
