@@ -170,11 +170,11 @@ def _cached_layer(layer: TransformerLayer, x: torch.Tensor, cached_keys: torch.T
     keys and values (each [B, H, C, Dh]; key_bias [B, 1, 1, C + T] masks the empty ones). Returns the tail's
     outputs (only rows [first, first + count) of `out_rows`, where the call reads no other: the others' queries,
     attention and feed-forward are not made) and the keys and values of all C + T rows, each [B, H, C + T, Dh]."""
-    normed = layer.layer_norm(x)
+    normed, queries = layer.layer_norm(x), None
     if out_rows is not None:
         first, count = out_rows
-        x = x[:, first:first + count]
-    q, k, v = layer.attention.project(normed, None if out_rows is None else normed[:, first:first + count])
+        x, queries = x[:, first:first + count], normed[:, first:first + count]
+    q, k, v = layer.attention.project(normed, queries)
     keys, values = torch.cat([cached_keys, k], dim=2), torch.cat([cached_values, v], dim=2)
     x = x + layer.attention.attend(q, keys, values, key_bias)
     x = x + layer.feed_forward(layer.final_layer_norm(x))
