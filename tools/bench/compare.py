@@ -135,11 +135,23 @@ class Comparison:
         return out
 
 
+def in_turn(items: list, round_index: int) -> list:
+    """`items` in round `round_index`'s order: as given in even rounds, reversed in odd ones, so none always goes
+    first."""
+    return items if round_index % 2 == 0 else items[::-1]
+
+
 def alternating(labels: list[str], rounds: int):
     """(round, label) pairs with the order reversed every other round: A B, B A, A B, ..."""
     for r in range(rounds):
-        for label in (labels if r % 2 == 0 else labels[::-1]):
+        for label in in_turn(labels, r):
             yield r, label
+
+
+def median_ratio(values, baselines) -> float:
+    """The median of the rounds' own ratios value / baseline (the two timed back to back in each round): the
+    machine's drift between rounds, which each version's own median takes in, cancels."""
+    return statistics.median(value / baseline for value, baseline in zip(values, baselines, strict=True))
 
 
 def compare(baseline: Path, *, gaussians: list[int], sizes: list[int], seconds: float, rounds: int,

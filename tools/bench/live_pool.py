@@ -143,12 +143,14 @@ def alternate_rounds(baseline: Path | None, sessions: list[int], rounds: int, de
     version's results by (label, n), in round order."""
     from tqdm import tqdm
 
+    from .compare import in_turn
+
     versions = ([("old", baseline / "src")] if baseline is not None else []) + [("new", None)]
     runs: dict[tuple[str, int], list[dict]] = {(label, n): [] for label, _ in versions for n in sessions}
     with tqdm(total=rounds * len(sessions) * len(versions), desc=desc, disable=not progress) as bar:
         for round_index in range(rounds):
             for n in sessions:
-                for label, src in versions if round_index % 2 == 0 else versions[::-1]:
+                for label, src in in_turn(versions, round_index):
                     runs[(label, n)].append(run(label, src, n))
                     bar.update()
     return runs
@@ -173,6 +175,8 @@ def median_rows(runs: dict[tuple[str, int], list[dict]], sessions: list[int], me
     of `medians` (the first is the one compared: "ratio", new over old where there is an old, the median of each
     round's own ratio, the two versions run back to back there, so the machine's drift between rounds cancels) and
     `firsts` as the first round has them (counts every round shares)."""
+    from .compare import median_ratio
+
     rows = []
     for n in sessions:
         row: dict = {"sessions": n}
@@ -182,8 +186,8 @@ def median_rows(runs: dict[tuple[str, int], list[dict]], sessions: list[int], me
                 row[label] = {"rounds": got, **{key: statistics.median(r[key] for r in got) for key in medians},
                               **{key: got[0][key] for key in firsts}}
         if "old" in row:
-            row["ratio"] = statistics.median(new[medians[0]] / old[medians[0]] for old, new in
-                                             zip(row["old"]["rounds"], row["new"]["rounds"], strict=True))
+            row["ratio"] = median_ratio([r[medians[0]] for r in row["new"]["rounds"]],
+                                        [r[medians[0]] for r in row["old"]["rounds"]])
         rows.append(row)
     return rows
 

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .compare import in_turn, median_ratio
+
 
 def _feeds(spec, sessions: int, frames: int) -> tuple[np.ndarray, np.ndarray]:
     audio = (np.random.default_rng(sessions * 100 + frames).standard_normal((sessions, frames, spec.frame_samples))
@@ -48,8 +50,7 @@ def run_stream_calls(bundles: list[Path], cases: list[tuple[int, int]], rounds: 
     times = {(b, case): [] for b in range(len(bundles)) for case in cases}
     for round_index in tqdm(range(rounds), desc="rounds", disable=not progress):
         for case in cases:
-            order = list(enumerate(drivers))  # every other round the other way round: no bundle always goes first
-            for b, driver in order if round_index % 2 == 0 else order[::-1]:
+            for b, driver in in_turn(list(enumerate(drivers)), round_index):
                 audio, state = _feeds(driver.stream_spec, *case)
                 driver.run_stream(audio, state, 1, refresh)  # warm: the shapes' first call allocates
                 began = time.perf_counter()
@@ -59,10 +60,7 @@ def run_stream_calls(bundles: list[Path], cases: list[tuple[int, int]], rounds: 
     rows = []
     for sessions, frames in cases:
         medians = [statistics.median(times[(b, (sessions, frames))]) * 1e3 for b in range(len(bundles))]
-        # each round's ratio to the first bundle's time in that round, the median of them: the machine's speed
-        # drifts between rounds more than the bundles differ, and a round times them back to back
-        first = times[(0, (sessions, frames))]
-        ratios = [statistics.median(t / f for t, f in zip(times[(b, (sessions, frames))], first, strict=True))
+        ratios = [median_ratio(times[(b, (sessions, frames))], times[(0, (sessions, frames))])
                   for b in range(len(bundles))]
         rows.append({"sessions": sessions, "frames": frames, "ms_per_call": medians,
                      "ms_per_session_frame": [m / (sessions * frames) for m in medians],
