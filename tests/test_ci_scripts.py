@@ -30,8 +30,10 @@ REAL_TOOLS = ("bash", "env", "grep", "dirname", "cat", "mktemp", "rm", "wc", "te
 DEBIAN_PACKAGES = {"libegl1", "libgl1-mesa-dri", "glslang-tools", "shellcheck", "espeak-ng", "nginx", "festival",
                    "festvox-us-slt-hts", "festvox-kallpc16k", "festvox-kdlpc16k", "flite"}
 
-# Each stub appends one line to $STUB_LOG: its name, then its arguments separated by tabs.
-RECORD = 'printf "%s" "$(basename "$0")" >>"$STUB_LOG"; printf "\\t%s" "$@" >>"$STUB_LOG"; echo >>"$STUB_LOG"\n'
+# Each stub appends one line to $STUB_LOG: its name, then its arguments separated by tabs. The line goes out in one
+# write (an O_APPEND write is atomic), because .ci/run runs .ci/browser beside .ci/runtime-only and their stubs'
+# lines would otherwise interleave.
+RECORD = 'printf -v stub_args "\\t%s" "$@"; printf "%s%s\\n" "$(basename "$0")" "$stub_args" >>"$STUB_LOG"\n'
 STUBS = {
     # apt-get also records whether it would ask questions (DEBIAN_FRONTEND must reach it as noninteractive).
     "apt-get": RECORD + 'echo "apt-get-frontend\t${DEBIAN_FRONTEND:-unset}" >>"$STUB_LOG"\n',
@@ -163,7 +165,7 @@ def test_browser_installs_chromium_and_the_npm_renderer(tmp_path, uid):
     calls = _calls(log)
     apt = [call for call in calls if call[0] == "apt-get"]
     assert [call[1] for call in apt] == ["update", "install"] and {"chromium", "npm"} <= set(apt[1]), calls
-    assert ["gt-bench", "lam-web", "--install"] in calls
+    assert ["gt-bench", "lam-web", "--install"] in calls, calls
     assert ["python", "-m", "tools.browser.web_cli", "install"] in calls  # from the checkout's root
     assert len([call for call in calls if call[0] == "sudo"]) == (0 if uid == 0 else 2), calls
     env["STUB_NPM_RC"] = "1"  # the npm renderer cannot be installed (no registry, a broken package)
@@ -181,7 +183,7 @@ def test_run_sets_ci_for_the_suite_and_fails_where_the_browser_tools_did(tmp_pat
                             executable=shutil.which("bash"))
     calls = _calls(log)
     assert ["python", "-m", "pytest", "-q"] in calls and ["pytest-ci", "true"] in calls, calls
-    assert ["gt-bench", "lam-web", "--install"] in calls
+    assert ["gt-bench", "lam-web", "--install"] in calls, calls
     if npm_rc == 0:
         assert result.returncode == 0, result.stdout + result.stderr
         assert "could not be installed" not in result.stderr
