@@ -45,6 +45,8 @@ def main(
                                    help="espeak-ng training utterances"),
     natural: int = typer.Option(TrainSettings.natural_utterances, "--natural", min=0,
                                 help="festival and flite training utterances (English)"),
+    world: int = typer.Option(TrainSettings.world_utterances, "--world", min=0,
+                              help="festival's Italian, Czech, Finnish and Catalan training utterances"),
     batch_size: int = typer.Option(TrainSettings.batch_size, "--batch-size", min=1),
     closure_weight: float = typer.Option(TrainSettings.closure_weight, "--closure-weight", min=0.0,
                                          help="weight of lips left open at /p b m/ in the loss"),
@@ -72,7 +74,14 @@ def main(
         typer.echo(f"error: training voices missing: {', '.join(missing)} (apt-get install festival "
                    "festvox-us-slt-hts flite; or --natural 0)", err=True)
         raise typer.Exit(2)
-    settings = TrainSettings(steps=steps, utterances=utterances, natural_utterances=natural, batch_size=batch_size,
+    missing = [voice for voice in corpus.WORLD_FAMILY[2] if world and not festival.available(voice)]
+    if missing:
+        packages = " ".join(sorted({festival.VOICE_TABLE[voice].package for voice in missing}))
+        typer.echo(f"error: festival's voices {', '.join(missing)} are missing (apt-get install {packages}; "
+                   "or --world 0)", err=True)
+        raise typer.Exit(2)
+    settings = TrainSettings(steps=steps, utterances=utterances, natural_utterances=natural,
+                             world_utterances=world, batch_size=batch_size,
                              closure_weight=closure_weight, band_masks=band_masks, band_colour=band_colour)
     times: dict[str, float] = {}
     start = time.perf_counter()
@@ -108,6 +117,7 @@ def main(
     times["evaluate_seconds"] = round(time.perf_counter() - start, 1)
     chosen = {"--steps": (steps, TrainSettings.steps), "--utterances": (utterances, TrainSettings.utterances),
               "--natural": (natural, TrainSettings.natural_utterances),
+              "--world": (world, TrainSettings.world_utterances),
               "--batch-size": (batch_size, TrainSettings.batch_size),
               "--closure-weight": (closure_weight, TrainSettings.closure_weight),
               "--band-masks": (band_masks, TrainSettings.band_masks),

@@ -28,7 +28,9 @@ CI_DIR = ROOT / ".ci"
 # Real tools the scripts use besides the stubbed ones (bash builtins need none).
 REAL_TOOLS = ("bash", "env", "grep", "dirname", "cat", "mktemp", "rm", "wc", "test", "mkdir", "touch", "true")
 DEBIAN_PACKAGES = {"libegl1", "libgl1-mesa-dri", "glslang-tools", "shellcheck", "espeak-ng", "nginx", "festival",
-                   "festvox-us-slt-hts", "festvox-kallpc16k", "festvox-kdlpc16k", "flite"}
+                   "festvox-us-slt-hts", "festvox-kallpc16k", "festvox-kdlpc16k", "flite", "festvox-italp16k",
+                   "festvox-itapc16k", "festvox-czech-dita", "festvox-czech-krb", "festvox-czech-machac",
+                   "festvox-czech-ph", "festvox-suopuhe-lj", "festvox-suopuhe-mv", "festvox-ca-ona-hts"}
 
 # Each stub appends one line to $STUB_LOG: its name, then its arguments separated by tabs. The line goes out in one
 # write (an O_APPEND write is atomic), because .ci/run runs .ci/browser beside .ci/runtime-only and their stubs'

@@ -358,6 +358,31 @@ def test_corpus_keeps_heldout_apart():
     assert clip.text not in {s.text for s in corpus.training_specs(1400, 0)}
 
 
+def test_other_languages_voices_speak_their_own_sentences_and_leave_english_draws_alone():
+    """corpus.WORLD_FAMILY: festival's Italian, Czech, Finnish and Catalan voices, each saying sentences of its own
+    language (spellable in the charset its voice reads), drawn from their own seed stream: adding them changes none
+    of the English families' training sentences, and none of them is a held-out voice."""
+    from gaussiantalker.exporter.voice import festival
+
+    world = corpus.world_specs(90, 0)
+    assert world == corpus.world_specs(90, 0)
+    voices = corpus.WORLD_FAMILY[2]
+    assert set(voices) == set(festival.WORLD_VOICES) == set(corpus.VOICE_LANGUAGES)
+    assert not set(voices) & (set(corpus.HELDOUT_FAMILY[2]) | {v for _, vs in corpus.TRAIN_FAMILIES.values()
+                                                               for v in vs})
+    assert {s.voice for s in world} == set(voices) and all(s.engine == "festival" for s in world)
+    for spec in world:
+        voice = festival.WORLD_VOICES[spec.voice]
+        assert spec.language == voice.language == corpus.VOICE_LANGUAGES[spec.voice]
+        spec.text.encode(voice.charset)  # every letter reaches festival as itself
+        own = {w.lower() for w in corpus.WORDS[spec.language]}
+        words = {w.strip(",.?!").lower() for w in spec.text.split()}
+        assert all(w in own or w.isascii() for w in words), spec.text  # its language's words or pseudo-words
+    english = corpus.family_specs(300, 0)
+    assert all(s.language == "en" for s in english)
+    assert not {s.text for s in world} & {s.text for s in english}
+
+
 # ------------------------------------------------------------------------------------ quality, live, espeak
 
 

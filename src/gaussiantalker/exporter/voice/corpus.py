@@ -1,6 +1,7 @@
 """What the voice drivers train and are measured on: random sentences in several languages, spoken by espeak-ng
-voices, and English ones spoken by festival's and flite's more natural voices, at random rates and pitches
-(docs/voice.md, "Training data" and "Voices").
+voices, English ones spoken by festival's and flite's more natural voices, and Italian, Czech, Finnish and Catalan
+ones by festival's voices of those languages, at random rates and pitches (docs/voice.md, "Training data" and
+"Voices").
 
 Sentences are drawn from small word lists (common words rich in the phonemes lips show, written here so nothing is
 downloaded) mixed with pseudo-words (the language's spelling of random syllables, for phoneme combinations the
@@ -54,6 +55,22 @@ WORDS = {
            "ptak", "babcia", "dziadek", "mleko", "woda", "chleb", "książka", "szkoła", "przyjaciel", "pies",
            "kot", "dom", "okno", "drzwi", "może", "zawsze", "nigdy", "jutro", "dzisiaj", "mówić", "pić", "jeść",
            "być", "mieć", "czas", "miłość", "słońce", "księżyc", "góra", "rzeka"),
+    # festival's other languages (WORLD_FAMILY): spelt in what their voices read (Latin-1, Czech in Latin-2)
+    "cs": ("dobrý", "den", "prosím", "děkuji", "maminka", "tatínek", "babička", "pivo", "ryba", "mléko", "voda",
+           "chleba", "kniha", "škola", "přítel", "pes", "kočka", "dům", "okno", "možná", "vždycky", "nikdy",
+           "zítra", "dnes", "mluvit", "pít", "jíst", "být", "mít", "čas", "láska", "slunce", "měsíc", "hora",
+           "řeka", "most", "jablko", "modrý", "bílý", "malý", "velký", "pomalu", "bratr", "večer", "ráno", "mapa",
+           "poprvé", "obchod", "hudba", "vlak"),
+    "fi": ("hyvää", "päivää", "kiitos", "äiti", "isä", "mummo", "pappa", "poika", "tyttö", "vesi", "maito",
+           "leipä", "kirja", "koulu", "ystävä", "koira", "kissa", "talo", "ikkuna", "ehkä", "aina", "huomenna",
+           "tänään", "puhua", "juoda", "syödä", "olla", "aika", "rakkaus", "aurinko", "kuu", "vuori", "joki",
+           "meri", "metsä", "pieni", "iso", "punainen", "musta", "valkoinen", "moi", "mitä", "missä", "miksi",
+           "paljon", "pöytä", "mökki", "sauna", "olut", "puu"),
+    "ca": ("bon", "dia", "gràcies", "si", "us", "plau", "mare", "pare", "molt", "poc", "bonic", "platja",
+           "poble", "món", "sempre", "mai", "demà", "avui", "pluja", "sol", "mar", "casa", "ciutat", "porta",
+           "finestra", "parlar", "menjar", "beure", "viure", "amic", "amor", "temps", "cor", "paraula", "nen",
+           "nena", "bé", "mal", "qui", "on", "per", "què", "pa", "peix", "vaca", "xocolata", "cotxe", "llibre",
+           "fill", "mirall"),
 }
 # Latin-letter syllables every language here spells: each language says them its own way.
 ONSETS = ("p", "b", "m", "f", "v", "t", "d", "n", "s", "z", "k", "g", "l", "r", "h", "w", "j", "ch", "sh", "pr",
@@ -77,6 +94,7 @@ WORD_GAP = (0, 3)
 
 TRAIN_STREAM, HELDOUT_STREAM = 1, 2  # seed streams: a seed of one stream never draws a sentence of the other
 NATURAL_STREAM = 3  # the festival and flite training sentences' stream
+WORLD_STREAM = 4  # the stream of WORLD_FAMILY's training sentences
 
 # English voices of other engines (festival.py, flite.py), by family: each voice's own mean pitch (Hz) centres the
 # pitch drawn for it. flite's kal and kal16 are the CMU Kal diphones festival's kal is made of, so they are in no
@@ -87,6 +105,14 @@ TRAIN_FAMILIES: dict[str, tuple[str, dict[str, float]]] = {
     "flite": ("flite", {"slt": 170.0, "awb": 110.0, "rms": 110.0}),  # statistical (clustergen) voices
 }
 HELDOUT_FAMILY = ("festival-diphone", "festival", {"kal": 105.0, "ked": 105.0})  # LPC diphone voices, never trained
+# festival's voices of other languages (festival.WORLD_VOICES: diphone, HTS and Czech unit voices of nine people,
+# a boy among them), each saying sentences of its own language: more speakers than English has with phone timings.
+# Their pitch cannot be set (the own pitch here is only measured).
+WORLD_FAMILY = ("festival-world", "festival", {"lp": 209.0, "pc": 120.0, "dita": 219.0, "krb": 254.0,
+                                               "machac": 110.0, "ph": 110.0, "lj": 172.0, "mv": 110.0,
+                                               "ona": 172.0})
+VOICE_LANGUAGES = {"lp": "it", "pc": "it", "dita": "cs", "krb": "cs", "machac": "cs", "ph": "cs", "lj": "fi",
+                   "mv": "fi", "ona": "ca"}  # the other engines' voices that speak no English
 PITCH_OCTAVES = 0.25  # a voice's pitch drawn within +-this of its own mean
 
 
@@ -140,18 +166,24 @@ def _spec(language: str, variants: tuple[str, ...], rng: np.random.Generator) ->
 
 def _family_spec(engine: str, voices: dict[str, float], rng: np.random.Generator) -> Spec:
     voice = str(rng.choice(sorted(voices)))
-    return Spec(sentence("en", rng), "en", voice, int(rng.integers(*RATE_WPM)), int(rng.integers(*PITCH)), 0, 0,
-                engine)
+    language = VOICE_LANGUAGES.get(voice, "en")
+    return Spec(sentence(language, rng), language, voice, int(rng.integers(*RATE_WPM)), int(rng.integers(*PITCH)),
+                0, 0, engine)
 
 
 def family_specs(count: int, seed: int, families: dict[str, tuple[str, dict[str, float]]] | None = None,
                  stream: int = NATURAL_STREAM) -> list[Spec]:
-    """`count` English utterances of other engines' voices (TRAIN_FAMILIES by default), the families in turn,
-    sentences of `stream`."""
+    """`count` utterances of other engines' voices (TRAIN_FAMILIES by default), the families in turn, sentences
+    of `stream` in each voice's language (English but for VOICE_LANGUAGES)."""
     families = TRAIN_FAMILIES if families is None else families
     rng = np.random.default_rng([stream, seed])
     order = sorted(families)
     return [_family_spec(*families[order[i % len(order)]], rng) for i in range(count)]
+
+
+def world_specs(count: int, seed: int) -> list[Spec]:
+    """`count` training utterances of WORLD_FAMILY's voices, sentences of WORLD_STREAM."""
+    return family_specs(count, seed, {WORLD_FAMILY[0]: WORLD_FAMILY[1:]}, stream=WORLD_STREAM)
 
 
 def training_specs(count: int, seed: int) -> list[Spec]:
@@ -174,5 +206,5 @@ def heldout_specs(count: int, seed: int, languages: tuple[str, ...] = TRAIN_LANG
 
 
 __all__ = ["ENGINES", "HELDOUT_FAMILY", "HELDOUT_VARIANTS", "LANGUAGES", "Spec", "TRAIN_FAMILIES", "TRAIN_LANGUAGES",
-           "TRAIN_VARIANTS", "UNSEEN_LANGUAGES", "WORDS", "family_specs", "heldout_specs", "pseudo_word", "sentence",
-           "training_specs"]
+           "TRAIN_VARIANTS", "UNSEEN_LANGUAGES", "VOICE_LANGUAGES", "WORDS", "WORLD_FAMILY", "family_specs",
+           "heldout_specs", "pseudo_word", "sentence", "training_specs", "world_specs"]

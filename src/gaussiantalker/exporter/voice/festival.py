@@ -1,4 +1,5 @@
-"""English speech with its phone timings from festival (docs/voice.md, "Voices"), run as a subprocess.
+"""Speech with its phone timings from festival (docs/voice.md, "Voices"), run as a subprocess: English voices, and
+Italian, Czech, Finnish and Catalan ones (their phone sets in phonesets.py).
 
 One `festival -b script.scm` process speaks a whole batch (start-up costs ~0.2 s): the script selects each
 request's voice afresh (so one request's settings never reach the next), speaks its text, and writes the wave and a
@@ -9,7 +10,13 @@ backslashes and double quotes escaped and control characters made spaces; never 
 Voices (Debian packages): `slt_hts` (festvox-us-slt-hts, an HMM voice: 32 kHz; its tempo is the HTS engine's
 speed "-r", which also times the segments; festival 2.5's HTS module reads only "-m" and "-r" of its parameters,
 so its pitch cannot be set and `pitch` is ignored), `kal` and `ked` (festvox-kallpc16k, festvox-kdlpc16k: LPC
-diphone voices at 16 kHz; tempo is `Duration_Stretch`, pitch the target mean F0 of `int_lr_params`).
+diphone voices at 16 kHz; tempo is `Duration_Stretch`, pitch the target mean F0 of `int_lr_params`). The other
+languages' voices (WORLD_VOICES) take their tempo the same way (`ona`, an HTS voice, through "-r") and keep their
+own pitch: their intonation modules read no target F0 (measured: the same F0 at 90 and 200 Hz asked).
+
+festival reads its script as bytes, and each language's voices read text in their own charset (Czech in
+ISO-8859-2, the others in Latin-1): a request's lines are written in its voice's charset and its listing read back
+in it. English voices keep UTF-8, as before these voices came.
 
 Deterministic (tests/test_voice_synths.py): the same request gives the same samples in any batch, after any other
 request, in any process. Timing, measured on a few sentences: segments are ARPAbet phones, so a voiceless stop's
@@ -29,6 +36,7 @@ import threading
 import wave
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -37,15 +45,53 @@ from gaussiantalker.sdk.audio import resample
 
 from .arpabet import is_silence
 from .espeak import SAMPLE_RATE, Utterance
+from .phonesets import CATALAN, CZECH, FINNISH, ITALIAN, PhoneSet
 from .segments import Request, Row, clean_text, phonemes_of, request_problem
 
-VOICES: dict[str, str] = {
-    "slt_hts": "voice_cmu_us_slt_arctic_hts",
-    "kal": "voice_kal_diphone",
-    "ked": "voice_ked_diphone",
+
+@dataclass(frozen=True)
+class Voice:
+    """A festival voice: its function, Debian package, the language of its text, the charset it reads that text in
+    and its phone set (None: ARPAbet); an HTS voice takes its tempo through the engine's speed."""
+
+    function: str
+    package: str
+    language: str = "en"
+    charset: str = "utf-8"
+    phones: PhoneSet | None = None
+    hts: bool = False
+    fixed_pitch: bool = False
+    settings: str = ""  # Scheme run after selecting the voice, before each request
+
+
+# festival's Czech voices draw pause lengths (and more) from libc's rand(), whose state runs on from request to request:
+# off, every draw is its range's middle, so a request's audio is its own (module docstring).
+_CZECH_FIXED = "(set! czech-randomize nil)"
+ENGLISH_VOICES: dict[str, Voice] = {
+    "slt_hts": Voice("voice_cmu_us_slt_arctic_hts", "festvox-us-slt-hts", hts=True, fixed_pitch=True),
+    "kal": Voice("voice_kal_diphone", "festvox-kallpc16k"),
+    "ked": Voice("voice_ked_diphone", "festvox-kdlpc16k"),
 }
-HTS_VOICES = frozenset({"slt_hts"})  # tempo through the HTS engine's speed (module docstring)
-FIXED_PITCH = frozenset({"slt_hts"})  # voices whose pitch cannot be set: `pitch` is ignored
+WORLD_VOICES: dict[str, Voice] = {
+    "lp": Voice("voice_lp_diphone", "festvox-italp16k", "it", "latin-1", ITALIAN, fixed_pitch=True),  # woman
+    "pc": Voice("voice_pc_diphone", "festvox-itapc16k", "it", "latin-1", ITALIAN, fixed_pitch=True),  # man
+    "dita": Voice("voice_czech_dita", "festvox-czech-dita", "cs", "iso-8859-2", CZECH, fixed_pitch=True,
+                  settings=_CZECH_FIXED),  # woman
+    "krb": Voice("voice_czech_krb", "festvox-czech-krb", "cs", "iso-8859-2", CZECH, fixed_pitch=True,
+                 settings=_CZECH_FIXED),  # a boy
+    "machac": Voice("voice_czech_machac", "festvox-czech-machac", "cs", "iso-8859-2", CZECH, fixed_pitch=True,
+                    settings=_CZECH_FIXED),  # man
+    "ph": Voice("voice_czech_ph", "festvox-czech-ph", "cs", "iso-8859-2", CZECH, fixed_pitch=True,
+                settings=_CZECH_FIXED),  # man
+    "lj": Voice("voice_suo_fi_lj_diphone", "festvox-suopuhe-lj", "fi", "latin-1", FINNISH, fixed_pitch=True),
+    "mv": Voice("voice_hy_fi_mv_diphone", "festvox-suopuhe-mv", "fi", "latin-1", FINNISH, fixed_pitch=True),
+    "ona": Voice("voice_upc_ca_ona_hts", "festvox-ca-ona-hts", "ca", "latin-1", CATALAN, hts=True,
+                 fixed_pitch=True),  # woman
+}
+VOICE_TABLE: dict[str, Voice] = {**ENGLISH_VOICES, **WORLD_VOICES}
+VOICES: dict[str, str] = {name: voice.function for name, voice in VOICE_TABLE.items()}
+HTS_VOICES = frozenset(name for name, voice in VOICE_TABLE.items() if voice.hts)  # tempo: the module docstring
+FIXED_PITCH = frozenset(name for name, voice in VOICE_TABLE.items() if voice.fixed_pitch)  # `pitch` is ignored
 CHUNK = 200  # requests per festival process
 TIMEOUT_S = (30.0, 5.0)  # a process's limit: the first + the second per request
 
@@ -117,9 +163,8 @@ def _check_voice(voice: str, any_voice: bool = False) -> None:
     if any_voice:
         return
     if VOICES[voice].removeprefix("voice_") not in installed:
-        package = {"slt_hts": "festvox-us-slt-hts", "kal": "festvox-kallpc16k", "ked": "festvox-kdlpc16k"}[voice]
         raise FestivalError(f"festival's voice {voice!r} ({VOICES[voice]}) is not installed "
-                            f"(Debian: apt-get install {package})")
+                            f"(Debian: apt-get install {VOICE_TABLE[voice].package})")
 
 
 def scheme_string(text: str) -> str:
@@ -140,7 +185,8 @@ def _applied_pitch(request: Request) -> float | None:
 
 def _request_scheme(request: Request, wav: Path, listing: Path) -> str:
     """The script's lines for one request: its voice afresh, its tempo and pitch, then `gt_say`."""
-    lines = [f"({VOICES[request.voice]})"]
+    voice = VOICE_TABLE[request.voice]
+    lines = [f"({voice.function})"] + ([voice.settings] if voice.settings else [])
     if request.voice in HTS_VOICES:
         lines.append("(Parameter.set 'Duration_Stretch 1.0)")
         speed = 1.0 / request.tempo  # the engine's speech speed: 0.77 speaks 1.3x longer
@@ -165,10 +211,10 @@ def _read_wave(path: Path) -> np.ndarray:
     return resample(pcm.astype(np.float32) / 32768.0, rate, SAMPLE_RATE).astype(np.float32)
 
 
-def _read_listing(path: Path) -> tuple[list[str], list[Row]]:
+def _read_listing(path: Path, charset: str = "utf-8") -> tuple[list[str], list[Row]]:
     tokens: list[str] = []
     rows: list[Row] = []
-    for line in path.read_bytes().decode("utf-8", "replace").splitlines():
+    for line in path.read_bytes().decode(charset, "replace").splitlines():
         if line.startswith("T "):
             tokens.append(line[2:])
         elif line.startswith("S "):
@@ -178,29 +224,46 @@ def _read_listing(path: Path) -> tuple[list[str], list[Row]]:
     return tokens, rows
 
 
+class Unspoken(FestivalError):
+    """festival could not speak one request (an error inside its synthesis, or no segments)."""
+
+
 def _utterance(request: Request, wav: Path, listing: Path, log: str) -> Utterance:
     if not listing.exists():
-        raise FestivalError(f"festival could not speak {request.text[:60]!r} with {request.voice!r}: "
-                            f"{log.strip()[-400:] or 'it stopped without a message'}")
-    tokens, rows = _read_listing(listing)
-    if not any(not is_silence(row.name) for row in rows) or not wav.exists():
-        raise FestivalError(f"festival spoke nothing for {request.text[:60]!r} with {request.voice!r}")
+        raise Unspoken(f"festival could not speak {request.text[:60]!r} with {request.voice!r}: "
+                       f"{log.strip()[-400:] or 'it stopped without a message'}")
+    voice = VOICE_TABLE[request.voice]
+    tokens, rows = _read_listing(listing, voice.charset)
+    silence = is_silence if voice.phones is None else voice.phones.is_silence
+    if not any(not silence(row.name) for row in rows) or not wav.exists():
+        raise Unspoken(f"festival spoke nothing for {request.text[:60]!r} with {request.voice!r}")
     audio = _read_wave(wav)
     try:
-        phonemes = phonemes_of(rows, tokens, request.text, audio.shape[0] / SAMPLE_RATE)
+        phonemes = phonemes_of(rows, tokens, request.text, audio.shape[0] / SAMPLE_RATE, voice.phones)
     except ValueError as exc:
         raise FestivalError(f"festival spoke {request.text[:60]!r} with a phone it should not: {exc}") from exc
     settings = {"tempo": request.tempo, "pitch": _applied_pitch(request)}
     return Utterance(request.text, f"festival:{request.voice}", audio, phonemes, settings)
 
 
-def _run(requests: Sequence[Request]) -> list[Utterance]:
-    """Speak requests in one festival process."""
+def _spoken_or_none(request: Request, wav: Path, listing: Path, log: str, skip_failed: bool) -> Utterance | None:
+    try:
+        return _utterance(request, wav, listing, log)
+    except Unspoken:
+        if skip_failed:
+            return None
+        raise
+
+
+def _run(requests: Sequence[Request], skip_failed: bool = False) -> list[Utterance | None]:
+    """Speak requests in one festival process (None for one it could not speak, where `skip_failed`)."""
     with tempfile.TemporaryDirectory(prefix="gt-festival-") as name:
         folder = Path(name)
         paths = [(folder / f"{k}.wav", folder / f"{k}.txt") for k in range(len(requests))]
-        script = _PRELUDE + "".join(_request_scheme(r, w, t) for r, (w, t) in zip(requests, paths, strict=True))
-        (folder / "speak.scm").write_text(script, encoding="utf-8", errors="replace")
+        script = _PRELUDE.encode("ascii") + b"".join(
+            _request_scheme(r, w, t).encode(VOICE_TABLE[r.voice].charset, errors="replace")
+            for r, (w, t) in zip(requests, paths, strict=True))
+        (folder / "speak.scm").write_bytes(script)
         timeout = TIMEOUT_S[0] + TIMEOUT_S[1] * len(requests)
         try:
             done = subprocess.run([_program(), "-b", str(folder / "speak.scm")], capture_output=True, timeout=timeout,
@@ -210,18 +273,21 @@ def _run(requests: Sequence[Request]) -> list[Utterance]:
         log = (done.stdout + done.stderr).decode("utf-8", "replace")
         if done.returncode != 0:
             log += f"\n(festival exited with code {done.returncode}{': it crashed' if done.returncode < 0 else ''})"
-        return [_utterance(r, w, t, log) for r, (w, t) in zip(requests, paths, strict=True)]
+        return [_spoken_or_none(r, w, t, log, skip_failed) for r, (w, t) in zip(requests, paths, strict=True)]
 
 
-def synthesize_many(requests: Sequence[Request], chunk: int = CHUNK, workers: int = 1) -> list[Utterance]:
+def synthesize_many(requests: Sequence[Request], chunk: int = CHUNK, workers: int = 1,
+                    skip_failed: bool = False) -> list[Utterance | None]:
     """Speak every request (in order): CHUNK per festival process, `workers` processes at once. Each utterance
-    depends on its own request only (module docstring)."""
+    depends on its own request only (module docstring). A request festival cannot speak is an error naming it, or
+    with `skip_failed` None in its place: the Italian voices' intonation fails on a few random sentences (a Scheme
+    type error inside SynthText), the same ones every time."""
     requests = list(requests)
     for request in requests:
         _validate(request)
     chunks = [requests[k:k + chunk] for k in range(0, len(requests), max(1, chunk))]
     with ThreadPoolExecutor(max(1, workers)) as pool:
-        return [u for spoken in pool.map(_run, chunks) for u in spoken]
+        return [u for spoken in pool.map(lambda part: _run(part, skip_failed), chunks) for u in spoken]
 
 
 def synthesize(text: str, voice: str = "slt_hts", tempo: float = 1.0, pitch: float | None = None) -> Utterance:
@@ -231,5 +297,5 @@ def synthesize(text: str, voice: str = "slt_hts", tempo: float = 1.0, pitch: flo
     return synthesize_many([Request(text, voice, tempo, pitch)])[0]
 
 
-__all__ = ["FIXED_PITCH", "FestivalError", "HTS_VOICES", "Request", "VOICES", "available", "scheme_string",
-           "synthesize", "synthesize_many"]
+__all__ = ["ENGLISH_VOICES", "FIXED_PITCH", "FestivalError", "HTS_VOICES", "Request", "Unspoken", "VOICES",
+           "VOICE_TABLE", "Voice", "WORLD_VOICES", "available", "scheme_string", "synthesize", "synthesize_many"]

@@ -1,5 +1,5 @@
-"""What festival and flite share (docs/voice.md, "Voices"): a synthesis request, and their timed ARPAbet segments
--> `Phoneme`s, with each segment's word found in the text.
+"""What festival and flite share (docs/voice.md, "Voices"): a synthesis request, and their timed segments (ARPAbet,
+or a festival phone set of phonesets.py) -> `Phoneme`s, with each segment's word found in the text.
 
 Both engines give a segment list (phone name, end time, its syllable's stress, the token of the text its word came
 from); a segment starts where the one before it ends, so the phonemes are contiguous by construction, and the last
@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 from .arpabet import VOWELS, ipa_of, is_silence, split_stress
 from .espeak import Phoneme
+from .phonesets import PhoneSet
 
 TEMPO_RANGE, PITCH_RANGE_HZ = (0.25, 4.0), (40.0, 400.0)  # what a request may ask
 
@@ -92,20 +93,32 @@ def phone_ipa(name: str, stress: int) -> str:
     return ipa_of(phone)
 
 
-def phonemes_of(rows: Sequence[Row], tokens: Sequence[str], text: str, seconds: float) -> list[Phoneme]:
+def phonemes_of(rows: Sequence[Row], tokens: Sequence[str], text: str, seconds: float,
+                phones: PhoneSet | None = None) -> list[Phoneme]:
     """Rows -> contiguous Phonemes over [0, seconds): IPA names; stress 1 on a vowel whose syllable's stress is 1,
-    else 0 (both engines' lexicons fold secondary stress into 1: "understand" is 1 0 1); text_position the offset
-    of the segment's word in `text` (a pause: the next word's, or len(text) after the last). ValueError names a
-    phone that is not ARPAbet."""
+    else 0 (both engines' lexicons fold secondary stress into 1: "understand" is 1 0 1; a phone set may mark a
+    stressed vowel in its name instead, or stress each word's first vowel); text_position the offset
+    of the segment's word in `text` (a pause: the next word's, or len(text) after the last). The phones are ARPAbet,
+    or of `phones` where given. ValueError names a phone that is in neither."""
+    silence = is_silence if phones is None else phones.is_silence
     offsets = token_offsets(text, tokens)
     position = word_positions([offsets[row.token] if row.token is not None and 0 <= row.token < len(offsets)
-                               and not is_silence(row.name) else None for row in rows], len(text))
+                               and not silence(row.name) else None for row in rows], len(text))
     out: list[Phoneme] = []
     start = 0.0
+    stressed_words: set[int] = set()  # words whose first vowel was seen (a phone set with initial stress)
     for i, row in enumerate(rows):
         end = seconds if i == len(rows) - 1 else min(max(row.end, start), seconds)
-        ipa = phone_ipa(row.name, row.stress)
-        stress = 1 if row.stress == 1 and split_stress(row.name)[0] in VOWELS else 0
+        if phones is None:
+            ipa = phone_ipa(row.name, row.stress)
+            stress = 1 if row.stress == 1 and split_stress(row.name)[0] in VOWELS else 0
+        else:  # a set whose vowels carry their stress in the name, or one whose syllables do
+            ipa = phones.ipa_of(row.name)
+            vowel = phones.is_vowel(row.name)
+            initial = phones.initial_stress and vowel and row.token is not None and row.token not in stressed_words
+            if initial:
+                stressed_words.add(row.token)
+            stress = 1 if vowel and (row.stress == 1 or phones.stressed(row.name) or initial) else 0
         if end > start:
             out.append(Phoneme(ipa, start, end, stress, position[i]))
         start = end

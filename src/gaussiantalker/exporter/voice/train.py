@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -25,7 +26,7 @@ import torch
 from gaussiantalker.sdk.progress import progress_bar
 from gaussiantalker.sdk.rig import ARKIT_BLENDSHAPES, ARKIT_COUNT
 
-from .corpus import family_specs, training_specs
+from .corpus import family_specs, training_specs, world_specs
 from .data import Stream, batch, make_streams, speak
 from .model import VoiceConfig, VoiceNet, check_receptive_field, count_parameters, mel_warp
 
@@ -68,6 +69,7 @@ class TrainSettings:
     crop_frames: int = 100
     utterances: int = 1400
     natural_utterances: int = 1800  # English ones by festival's and flite's voices (corpus.TRAIN_FAMILIES)
+    world_utterances: int = 0  # Italian, Czech, Finnish and Catalan ones by festival's voices (corpus.WORLD_FAMILY)
     lr: float = 2e-3
     warmup_steps: int = 100
     final_lr_share: float = 0.05
@@ -156,8 +158,13 @@ def _lr_factor(step: int, settings: TrainSettings) -> float:
 def training_streams(settings: TrainSettings, seed: int, progress: bool = True) -> list[Stream]:
     """The training streams of a seed: its sentences spoken and joined (other engines' utterances grouped by
     voice, so a stream is one speaker's, as a call is)."""
-    natural = sorted(family_specs(settings.natural_utterances, seed), key=lambda s: (s.engine, s.voice))
-    utterances = speak(training_specs(settings.utterances, seed) + natural, progress, desc="speaking")
+    natural = sorted(family_specs(settings.natural_utterances, seed) + world_specs(settings.world_utterances, seed),
+                     key=lambda s: (s.engine, s.voice))
+    specs = training_specs(settings.utterances, seed) + natural
+    utterances = speak(specs, progress, desc="speaking")
+    if len(utterances) < len(specs):  # other languages' sentences festival could not speak (data._speak_chunk)
+        print(f"training: festival could not speak {len(specs) - len(utterances)} of {settings.world_utterances} "
+              "sentences of its other languages' voices; trained without them", file=sys.stderr)
     return make_streams(utterances, np.random.default_rng([seed, 1]))
 
 
