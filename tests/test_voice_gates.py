@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from ci_tools import need
 
-from gaussiantalker.exporter.voice import channels, data, evaluate, families, gates, mouths
+from gaussiantalker.exporter.voice import channels, corpus, data, evaluate, families, gates, mouths
 from gaussiantalker.exporter.voice.data import Stream, load_utterance
 from gaussiantalker.exporter.voice.paths import ARKIT_MODEL, FLAME_MODEL
 from gaussiantalker.exporter.voice.targets import arkit_targets
@@ -148,6 +148,28 @@ def test_bench_voice_end_to_end(tmp_path):
     assert text.count("✓") + text.count("✗") == 2 * 2 * 4 - 2  # two goal families x two drivers x four goals,
     # less the FLAME voice's channel agreement (it has no ARKit channels)
     assert result["drivers"]["ARKit voice"]["ms_per_audio_second"] > 0
+    assert set(result["alignment_cost"]) == set(families.ALIGNED_FAMILIES)
+    assert "What the aligner alone costs" in text
+
+
+def test_the_aligners_own_cost_is_measured_on_twins():
+    """Clips whose targets are made twice, from the engine's phone times and from pocketsphinx's alignment: the two
+    agree closely but not exactly (the aligner's boundaries are not the engine's), and the ARKit voice's agreement
+    with each is measured the way the gates measure it."""
+    _real()  # pocketsphinx comes with the same install as the real recordings
+    twins = families.aligned_twins(3, progress=False)
+    assert set(twins) == set(families.ALIGNED_FAMILIES)
+    channels = ["jawOpen", "mouthPucker", "mouthPressLeft"]
+    for name, twin in twins.items():
+        assert len(twin.clips) + len(twin.unaligned) == 3 and twin.clips, (name, twin.unaligned)
+        assert all(a.shape == c.targets.shape and np.isfinite(a).all() for a, c in zip(twin.aligned, twin.clips,
+                                                                                       strict=True))
+        cost = gates.alignment_cost(mouths.ArkitVoice(ARKIT_MODEL), twin.clips, twin.aligned, channels)
+        assert 0.7 < cost["targets_r_mean"] < 0.999, cost
+        assert 0.5 < cost["driver_r_engine"] <= 1.0 and 0.5 < cost["driver_r_aligned"] <= 1.0, cost
+        # the sentences are the word list's alone: the aligner's dictionary has every word
+        assert all(w.strip(",.?!").lower() in {x.lower() for x in corpus.WORDS["en"]}
+                   for c in twin.clips for w in c.text.split())
 
 
 def test_vocal_tract_warp_moves_a_tone_up_the_bands():

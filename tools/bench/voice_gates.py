@@ -5,7 +5,8 @@ The drivers: the built-in ARKit and FLAME voice models (the committed ones, or `
 each `--bundle`'s own translator (the demo speaker's, measured on its Gaussians). The families: held-out espeak-ng
 voices, festival and flite voices saying held-out sentences, the held-out festival diphone family, and the real
 recordings fetched at install (`python -m gaussiantalker.exporter.voice.real_speech fetch`), aligned by
-pocketsphinx. Also each driver's cost per second of audio on one core.
+pocketsphinx. Also what that alignment alone costs the ARKit voice's score (families.aligned_twins) and each
+driver's cost per second of audio on one core.
 """
 
 from __future__ import annotations
@@ -53,6 +54,10 @@ def run_voice_bench(arkit_model: Path = ARKIT_MODEL, flame_model: Path = FLAME_M
     drivers = drivers_of(arkit_model, flame_model, list(bundles))
     table = gates.gate_table(drivers, clip_sets)
     table["alignment"] = real.alignment
+    twins = families.aligned_twins(clips, seed, progress=progress)
+    arkit = drivers[0]
+    table["alignment_cost"] = {name: {**gates.alignment_cost(arkit, t.clips, t.aligned, table["channels"]),
+                                      "unaligned": t.unaligned} for name, t in twins.items()}
     table["drivers"] = {d.name: {"ms_per_audio_second": 1000 * driver_cost(d)} for d in drivers}
     for name, model in (("ARKit voice", arkit_model), ("FLAME voice", flame_model)):
         table["drivers"][name]["model_mb"] = Path(model).stat().st_size / 1e6
@@ -92,6 +97,14 @@ def voice_table(result: dict) -> str:
     for clip_id, quality in result["alignment"].items():
         lines.append(f"| {clip_id} | {quality['seconds']:.1f} | {quality['speaker']} | {quality['mean_score']:.2f} | "
                      f"{quality['squeezed']:.2f} | {'**poor**' if quality['poor'] else 'no'} |")
+    lines += ["", "What the aligner alone costs (word-list sentences, targets from the engine's phone times and from "
+              "pocketsphinx's alignment of the same audio; mean r of the ten channels over all frames):", "",
+              "| family | clips (unaligned) | targets vs aligned targets r | ARKit voice vs engine targets | "
+              "ARKit voice vs aligned targets |", "|---|---:|---:|---:|---:|"]
+    for family, cost in result.get("alignment_cost", {}).items():
+        if cost["clips"]:
+            lines.append(f"| {family} | {cost['clips']} ({len(cost['unaligned'])}) | {cost['targets_r_mean']:.3f} | "
+                         f"{cost['driver_r_engine']:.3f} | {cost['driver_r_aligned']:.3f} |")
     lines += ["", "| driver | one core, ms per s of audio | model file |", "|---|---:|---:|"]
     for name, cost in result["drivers"].items():
         size = f"{cost['model_mb']:.2f} MB" if "model_mb" in cost else "(in its bundle)"

@@ -95,6 +95,7 @@ WORD_GAP = (0, 3)
 TRAIN_STREAM, HELDOUT_STREAM = 1, 2  # seed streams: a seed of one stream never draws a sentence of the other
 NATURAL_STREAM = 3  # the festival and flite training sentences' stream
 WORLD_STREAM = 4  # the stream of WORLD_FAMILY's training sentences
+ALIGNED_STREAM = 5  # word-list sentences the aligner's cost is measured on (families.aligned_twins)
 
 # English voices of other engines (festival.py, flite.py), by family: each voice's own mean pitch (Hz) centres the
 # pitch drawn for it. flite's kal and kal16 are the CMU Kal diphones festival's kal is made of, so they are in no
@@ -164,21 +165,23 @@ def _spec(language: str, variants: tuple[str, ...], rng: np.random.Generator) ->
                 int(rng.integers(*PITCH_RANGE)), int(rng.integers(WORD_GAP[0], WORD_GAP[1] + 1)))
 
 
-def _family_spec(engine: str, voices: dict[str, float], rng: np.random.Generator) -> Spec:
+def _family_spec(engine: str, voices: dict[str, float], rng: np.random.Generator, pseudo_share: float = 0.3
+                 ) -> Spec:
     voice = str(rng.choice(sorted(voices)))
     language = VOICE_LANGUAGES.get(voice, "en")
-    return Spec(sentence(language, rng), language, voice, int(rng.integers(*RATE_WPM)), int(rng.integers(*PITCH)),
-                0, 0, engine)
+    return Spec(sentence(language, rng, pseudo_share), language, voice, int(rng.integers(*RATE_WPM)),
+                int(rng.integers(*PITCH)), 0, 0, engine)
 
 
 def family_specs(count: int, seed: int, families: dict[str, tuple[str, dict[str, float]]] | None = None,
-                 stream: int = NATURAL_STREAM) -> list[Spec]:
+                 stream: int = NATURAL_STREAM, pseudo_share: float = 0.3) -> list[Spec]:
     """`count` utterances of other engines' voices (TRAIN_FAMILIES by default), the families in turn, sentences
-    of `stream` in each voice's language (English but for VOICE_LANGUAGES)."""
+    of `stream` in each voice's language (English but for VOICE_LANGUAGES), `pseudo_share` of their words
+    pseudo-words."""
     families = TRAIN_FAMILIES if families is None else families
     rng = np.random.default_rng([stream, seed])
     order = sorted(families)
-    return [_family_spec(*families[order[i % len(order)]], rng) for i in range(count)]
+    return [_family_spec(*families[order[i % len(order)]], rng, pseudo_share) for i in range(count)]
 
 
 def world_specs(count: int, seed: int) -> list[Spec]:

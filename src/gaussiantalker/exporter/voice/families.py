@@ -9,6 +9,10 @@
 * `real-unseen`: the real clips whose speaker no training voice was built from (CMU ARCTIC's awb and slt are
   also flite's and festival's voices).
 
+What the aligner alone costs a real clip's targets (`aligned_twins`): clips of ALIGNED_FAMILIES saying sentences of
+the English word list only (pocketsphinx's dictionary has no pseudo-words), each with its targets made twice, from
+the engine's own phone times and from pocketsphinx's alignment of the same audio, as a real clip's are.
+
 Synthetic clips have LEAD_S of silence before the speech and TAIL_S after it; real ones the same, added around the
 recording as it is. Targets are the phoneme targets of training (targets.arkit_targets) in every family.
 """
@@ -23,10 +27,12 @@ from . import corpus
 from .data import speak
 from .espeak import Utterance
 from .evaluate import SAMPLE_RATE, Clip, make_clip
+from .targets import arkit_targets
 
 FAMILIES = ("espeak-ng", "festival", "flite", "festival-diphone", "real", "real-unseen")
 HELDOUT_FAMILY = corpus.HELDOUT_FAMILY[0]
 GOAL_FAMILIES = (HELDOUT_FAMILY, "real-unseen")  # where the goals are checked
+ALIGNED_FAMILIES = (HELDOUT_FAMILY, "flite")  # where the aligner's own cost is measured (aligned_twins)
 SEEN_SPEAKERS = ("awb", "slt")  # ARCTIC speakers some training voice was built from
 
 
@@ -46,7 +52,7 @@ def _synthetic(specs: list[corpus.Spec], training_texts: set[str], progress: boo
     return [make_clip(u) for u in speak(specs, progress=progress, desc=desc)]
 
 
-def synthetic_clips(count: int, seed: int = 0, utterances: int = 1400, natural: int = 900,
+def synthetic_clips(count: int, seed: int = 0, utterances: int = 1400, natural: int = 1800,
                     progress: bool = True) -> dict[str, list[Clip]]:
     """`count` clips of each synthetic family, held out from a training run of `seed` with `utterances` espeak-ng
     and `natural` festival and flite utterances (their sentences checked not to repeat)."""
@@ -82,11 +88,46 @@ def real_clips(dest=None) -> RealSet:
     return RealSet(clips, ids, quality)
 
 
+@dataclass
+class AlignedTwins:
+    """Clips whose targets come from the engine's own phone times, the same clips' targets from pocketsphinx's
+    alignment [frames, 52] each, and the clips the aligner could not align (a reason each)."""
+
+    clips: list[Clip]
+    aligned: list[np.ndarray]
+    unaligned: list[str] = field(default_factory=list)
+
+
+def aligned_twins(count: int, seed: int = 0, progress: bool = True) -> dict[str, AlignedTwins]:
+    """`count` clips of each of ALIGNED_FAMILIES (word-list sentences of corpus.ALIGNED_STREAM), targets made from
+    the engine's phone times and again from pocketsphinx's alignment of the audio (module docstring)."""
+    from .align import align
+
+    voices = {HELDOUT_FAMILY: corpus.HELDOUT_FAMILY[1:], "flite": corpus.TRAIN_FAMILIES["flite"]}
+    out = {}
+    for name in ALIGNED_FAMILIES:
+        specs = corpus.family_specs(count, seed, {name: voices[name]}, stream=corpus.ALIGNED_STREAM,
+                                    pseudo_share=0.0)
+        twins = AlignedTwins([], [])
+        for utterance in speak(specs, progress=progress, desc=f"{name} (aligned)"):
+            clip = make_clip(utterance)
+            try:
+                alignment = align(clip.audio, utterance.text)
+            except ValueError as exc:
+                twins.unaligned.append(f"{utterance.text[:40]!r}: {exc}")
+                continue
+            aligned = arkit_targets(alignment.phonemes, utterance.text, clip.audio)[:len(clip.targets)]
+            twins.clips.append(clip)
+            twins.aligned.append(np.pad(aligned, [(0, len(clip.targets) - len(aligned)), (0, 0)], mode="edge"))
+        out[name] = twins
+    return out
+
+
 def unseen_speakers(real: RealSet) -> list[Clip]:
     """The real clips whose speaker no training voice was built from."""
     return [clip for clip, clip_id in zip(real.clips, real.ids, strict=True)
             if not any(f"-{speaker}-" in clip_id for speaker in SEEN_SPEAKERS)]
 
 
-__all__ = ["FAMILIES", "GOAL_FAMILIES", "HELDOUT_FAMILY", "RealSet", "SEEN_SPEAKERS", "real_clips",
-           "synthetic_clips", "unseen_speakers"]
+__all__ = ["ALIGNED_FAMILIES", "AlignedTwins", "FAMILIES", "GOAL_FAMILIES", "HELDOUT_FAMILY", "RealSet",
+           "SEEN_SPEAKERS", "aligned_twins", "real_clips", "synthetic_clips", "unseen_speakers"]

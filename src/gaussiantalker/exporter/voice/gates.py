@@ -86,4 +86,26 @@ def gate_table(drivers: list, families: dict[str, list[Clip]], channels: list[st
     return out
 
 
-__all__ = ["GOALS", "gate_table", "measure", "passes", "targets_row"]
+def _mean_r(a: np.ndarray, b: np.ndarray, channels: list[str]) -> dict[str, float]:
+    return {name: pearson(a[:, ARKIT_BLENDSHAPES.index(name)], b[:, ARKIT_BLENDSHAPES.index(name)])
+            for name in channels}
+
+
+def alignment_cost(driver, clips: list[Clip], aligned: list[np.ndarray], channels: list[str]) -> dict:
+    """What pocketsphinx's alignment alone costs the channels' agreement (families.aligned_twins): the targets from
+    the engine's phone times against those from the alignment (a perfect driver's score on an aligned clip), and an
+    ARKit driver's agreement with each; every r over all the clips' frames, then the mean of the channels."""
+    if not clips:
+        return {"clips": 0}
+    engine = np.concatenate([clip.targets for clip in clips])
+    from_alignment = np.concatenate(aligned)
+    pred = np.concatenate([_fit(driver.mouth(clip.audio), len(clip.targets)).weights for clip in clips])
+    targets_r = _mean_r(engine, from_alignment, channels)
+    out = {"clips": len(clips), "targets_r": targets_r,
+           "driver_r_engine": float(np.nanmean(list(_mean_r(pred, engine, channels).values()))),
+           "driver_r_aligned": float(np.nanmean(list(_mean_r(pred, from_alignment, channels).values())))}
+    out["targets_r_mean"] = float(np.nanmean(list(targets_r.values())))
+    return out
+
+
+__all__ = ["GOALS", "alignment_cost", "gate_table", "measure", "passes", "targets_row"]
