@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .festival import WORLD_VOICES
+
 WORDS = {
     "en": ("people", "maybe", "about", "problem", "simple", "bring", "number", "morning", "power", "member",
            "move", "be", "my", "me", "put", "back", "big", "more", "much", "both", "open", "paper", "happy",
@@ -106,14 +108,14 @@ TRAIN_FAMILIES: dict[str, tuple[str, dict[str, float]]] = {
     "flite": ("flite", {"slt": 170.0, "awb": 110.0, "rms": 110.0}),  # statistical (clustergen) voices
 }
 HELDOUT_FAMILY = ("festival-diphone", "festival", {"kal": 105.0, "ked": 105.0})  # LPC diphone voices, never trained
-# festival's voices of other languages (festival.WORLD_VOICES: diphone, HTS and Czech unit voices of nine people,
-# a boy among them), each saying sentences of its own language: more speakers than English has with phone timings.
+# festival's voices of other languages (festival.WORLD_VOICES: diphone voices of eight people, a boy among them,
+# and an HTS voice), each saying sentences of its own language: more speakers than English has with phone timings.
 # Their pitch cannot be set (the own pitch here is only measured).
 WORLD_FAMILY = ("festival-world", "festival", {"lp": 209.0, "pc": 120.0, "dita": 219.0, "krb": 254.0,
                                                "machac": 110.0, "ph": 110.0, "lj": 172.0, "mv": 110.0,
                                                "ona": 172.0})
-VOICE_LANGUAGES = {"lp": "it", "pc": "it", "dita": "cs", "krb": "cs", "machac": "cs", "ph": "cs", "lj": "fi",
-                   "mv": "fi", "ona": "ca"}  # the other engines' voices that speak no English
+# The other engines' voices that speak no English, and their language.
+VOICE_LANGUAGES = {name: voice.language for name, voice in WORLD_VOICES.items()}
 PITCH_OCTAVES = 0.25  # a voice's pitch drawn within +-this of its own mean
 
 
