@@ -33,6 +33,12 @@ def _fit(track: MouthTrack, frames: int) -> MouthTrack:
     return MouthTrack(fit(track.aperture), fit(track.jaw), fit(track.weights))
 
 
+def channel_r(a: np.ndarray, b: np.ndarray, channels: list[str]) -> dict[str, float]:
+    """Pearson r of each named ARKit channel between two [frames, 52] tracks."""
+    return {name: pearson(a[:, ARKIT_BLENDSHAPES.index(name)], b[:, ARKIT_BLENDSHAPES.index(name)])
+            for name in channels}
+
+
 def measure(driver, clips: list[Clip], channels: list[str]) -> dict:
     """Every measure of the module docstring for one driver on one family's clips."""
     tracks = [_fit(driver.mouth(clip.audio), len(clip.targets)) for clip in clips]
@@ -41,8 +47,7 @@ def measure(driver, clips: list[Clip], channels: list[str]) -> dict:
     if tracks and tracks[0].weights is not None:
         pred = np.concatenate([t.weights for t in tracks])
         targets = np.concatenate([clip.targets for clip in clips])
-        agreement = {name: pearson(pred[:, ARKIT_BLENDSHAPES.index(name)], targets[:, ARKIT_BLENDSHAPES.index(name)])
-                     for name in channels}
+        agreement = channel_r(pred, targets, channels)
         result["mouth_r"] = agreement
         result["mouth_r_mean"] = float(np.nanmean(list(agreement.values())))
     aperture = np.concatenate([t.aperture for t in tracks])
@@ -86,11 +91,6 @@ def gate_table(drivers: list, families: dict[str, list[Clip]], channels: list[st
     return out
 
 
-def _mean_r(a: np.ndarray, b: np.ndarray, channels: list[str]) -> dict[str, float]:
-    return {name: pearson(a[:, ARKIT_BLENDSHAPES.index(name)], b[:, ARKIT_BLENDSHAPES.index(name)])
-            for name in channels}
-
-
 def alignment_cost(driver, clips: list[Clip], aligned: list[np.ndarray], channels: list[str]) -> dict:
     """What pocketsphinx's alignment alone costs the channels' agreement (families.aligned_twins): the targets from
     the engine's phone times against those from the alignment (a perfect driver's score on an aligned clip), and an
@@ -100,12 +100,12 @@ def alignment_cost(driver, clips: list[Clip], aligned: list[np.ndarray], channel
     engine = np.concatenate([clip.targets for clip in clips])
     from_alignment = np.concatenate(aligned)
     pred = np.concatenate([_fit(driver.mouth(clip.audio), len(clip.targets)).weights for clip in clips])
-    targets_r = _mean_r(engine, from_alignment, channels)
+    targets_r = channel_r(engine, from_alignment, channels)
     out = {"clips": len(clips), "targets_r": targets_r,
-           "driver_r_engine": float(np.nanmean(list(_mean_r(pred, engine, channels).values()))),
-           "driver_r_aligned": float(np.nanmean(list(_mean_r(pred, from_alignment, channels).values())))}
+           "driver_r_engine": float(np.nanmean(list(channel_r(pred, engine, channels).values()))),
+           "driver_r_aligned": float(np.nanmean(list(channel_r(pred, from_alignment, channels).values())))}
     out["targets_r_mean"] = float(np.nanmean(list(targets_r.values())))
     return out
 
 
-__all__ = ["GOALS", "alignment_cost", "gate_table", "measure", "passes", "targets_row"]
+__all__ = ["GOALS", "alignment_cost", "channel_r", "gate_table", "measure", "passes", "targets_row"]
