@@ -28,16 +28,22 @@ ROOT = Path(__file__).resolve().parents[1]
 # -- a server on loopback --------------------------------------------------------------------------------------
 
 
-def _serve(bundle, *options: str) -> Iterator[tuple]:
-    """gt-serve --client-render on `bundle` (and `options`), on a free loopback port; after the module, its log
-    holds no traceback and a line for each session's start and end."""
-    module = _server_module()
+def _start(bundle, *options: str, python: tuple[str, ...] = ("-m", "gaussiantalker.cli.serve")) -> tuple:
+    """gt-serve --client-render on `bundle` (and `options`) on a free loopback port, once it answers: (process,
+    port). `python`: what runs the command (a `-c` program that runs it, as the failure test does)."""
     port = free_port()
     # --debug: the admin routes (/health, /drives) without tokens, on loopback (tests/test_serve_security.py has
     # the tokens)
-    process = serving([sys.executable, "-m", "gaussiantalker.cli.serve", str(bundle), "--port", str(port),
-                       "--client-render", "--debug", "--drain-s", "1", *options],
-                      f"http://127.0.0.1:{port}/readyz", 120, name="gt-serve")
+    process = serving([sys.executable, *python, str(bundle), "--port", str(port), "--client-render", "--debug",
+                       "--drain-s", "1", *options], f"http://127.0.0.1:{port}/readyz", 120, name="gt-serve")
+    return process, port
+
+
+def _serve(bundle, *options: str) -> Iterator[tuple]:
+    """`_start`ed for a module; after it, its log holds no traceback and a line for each session's start and
+    end."""
+    module = _server_module()
+    process, port = _start(bundle, *options)
     yield module, port
     process.terminate()
     log = process.communicate(timeout=30)[0]
@@ -264,3 +270,64 @@ def test_a_client_asking_for_deflate_gets_plain_frames(server):
     compress, extensions, packet = asyncio.run(run())
     assert compress == 0 and extensions is None
     assert packet[:4] == b"GTLF"  # a frame packet, as sent
+
+
+# Sessions' driver failures, in order: the first session's frame 25 raises, the second's first frame; later
+# sessions never fail. Injected in LiveSession._render (the driver's work a frame: the drive from the rows), which
+# every client-render session's frames go through.
+DRIVER_FAILURES = (25, 0)
+FAILING_SERVER = f"""
+import runpy, sys
+from gaussiantalker.serve import drive_sessions
+plans, Live = iter({DRIVER_FAILURES!r}), drive_sessions.LiveSession
+class FailingLive(Live):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.fail_from, self.rendered = next(plans, None), 0
+    def _render(self, plan):
+        if self.fail_from is not None and self.rendered >= self.fail_from:
+            raise RuntimeError(f"injected driver failure from frame {{self.fail_from}}")
+        self.rendered += 1
+        return super()._render(plan)
+drive_sessions.LiveSession = FailingLive
+sys.argv = ["gt-serve", *sys.argv[1:]]
+runpy.run_module("gaussiantalker.cli.serve", run_name="__main__", alter_sys=True)
+"""
+
+
+def _until_closed(port: int, timeout: float) -> None:
+    """Wait until the server has no session and no pool thread left (AssertionError after `timeout`)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if json.loads(_get(port, "/health")) == {"sessions": 0, "driver_threads": 0}:
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"the failed session outlived its page by {timeout} s: {_get(port, '/health')!r}")
+
+
+def test_a_session_whose_driver_raises_is_logged_once_told_and_closed(small_export):
+    """Making a frame raises mid-reply (frame 25) and on the first frame: each time the page gets every frame made
+    before, then one error line that names what failed without the error's text, and the session and its pool
+    thread are gone once the page leaves (10 s allows for a loaded machine); the log has each failure once with
+    its traceback (the second, from the same place, points to the first's); the next session works."""
+    module = _server_module()
+    process, port = _start(small_export.path, python=("-c", FAILING_SERVER))
+    told = "the live session ended: its driver raised (RuntimeError)"
+    try:
+        for fail_from in DRIVER_FAILURES:
+            out = asyncio.run(_session(port, {"source": "file", "chunk_ms": 20}, frames=100))
+            indexes = [module.decode_frame_packet(p)["drive"]["index"] for p in out["packets"]]
+            assert indexes == list(range(fail_from)), (fail_from, indexes)
+            assert out["texts"] == [{"error": told}], out["texts"]
+            _until_closed(port, 10.0)
+        out = asyncio.run(_session(port, {"source": "file", "chunk_ms": 20}, frames=30))
+        assert len(out["packets"]) == 30 and not out["texts"], out["texts"]
+    finally:
+        process.terminate()
+        log = process.communicate(timeout=30)[0]
+    records = [line for line in log.splitlines() if " ERROR gaussiantalker.serve: " in line]
+    for fail_from in DRIVER_FAILURES:
+        message = f"injected driver failure from frame {fail_from}"
+        assert sum(message in record for record in records) == 1, (message, log[-5000:])
+    assert log.count("Traceback") == 1 and log.count("its traceback as logged before") == 1, log[-5000:]
+    assert log.count("started: client-render, ws") == log.count("ended after") == 3, log[-3000:]
