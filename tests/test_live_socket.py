@@ -60,6 +60,16 @@ def _get(port: int, path: str) -> bytes:
     return urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=10).read()
 
 
+def _until_closed(port: int, timeout: float) -> None:
+    """Wait until the server has no session and no pool thread left (AssertionError after `timeout`)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if json.loads(_get(port, "/health")) == {"sessions": 0, "driver_threads": 0}:
+            return
+        time.sleep(0.1)
+    raise AssertionError(f"a session outlived its page by {timeout} s: {_get(port, '/health')!r}")
+
+
 async def _session(port: int, start: dict, *, frames: int, interrupt_at: int | None = None, mic=None,
                    raw: bytes | str | None = None) -> dict:
     """Open /live, send `start`, read `frames` frame packets (barging in after `interrupt_at` of them; sending
@@ -187,11 +197,7 @@ def test_a_bad_page_is_told_why_and_its_session_ends(server, start, raw, message
     out = asyncio.run(_session(port, start, frames=1000, raw=raw))
     error = out["answer"].get("error") or out["texts"][-1].get("error")
     assert error is not None and error.startswith(message), (error, message)
-    for _ in range(100):  # (the pool's thread ends once its last session has: within a frame or two)
-        if json.loads(_get(port, "/health")) == {"sessions": 0, "driver_threads": 0}:
-            break
-        time.sleep(0.05)
-    assert json.loads(_get(port, "/health")) == {"sessions": 0, "driver_threads": 0}
+    _until_closed(port, 5.0)  # (the pool's thread ends once its last session has: within a frame or two)
     assert out.get("closed") in (None, aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED, aiohttp.WSMsgType.CLOSING)
 
 
@@ -293,16 +299,6 @@ drive_sessions.LiveSession = FailingLive
 sys.argv = ["gt-serve", *sys.argv[1:]]
 runpy.run_module("gaussiantalker.cli.serve", run_name="__main__", alter_sys=True)
 """
-
-
-def _until_closed(port: int, timeout: float) -> None:
-    """Wait until the server has no session and no pool thread left (AssertionError after `timeout`)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if json.loads(_get(port, "/health")) == {"sessions": 0, "driver_threads": 0}:
-            return
-        time.sleep(0.1)
-    raise AssertionError(f"the failed session outlived its page by {timeout} s: {_get(port, '/health')!r}")
 
 
 def test_a_session_whose_driver_raises_is_logged_once_told_and_closed(small_export):
