@@ -1,13 +1,23 @@
-"""`gt-bench live-clients`' translator rows per speaking session-second (tools/bench/live_clients.py
-`translator_rows_of`, `round_rows`): read from the /metrics body gt-serve writes (serve/metrics.py), so the bench and
-the server agree on the counter's name and labels."""
+"""`gt-bench live-clients`' translator rows per speaking session-second and its pool threads' CPU by part
+(tools/bench/live_clients.py `translator_rows_of`, `round_rows`, `pool_cpu_of`, `round_pool_cpu`): read from the
+/metrics body gt-serve writes (serve/metrics.py), so the bench and the server agree on the counters' names and
+labels."""
 
 from __future__ import annotations
 
 import pytest
 
 from gaussiantalker.serve.metrics import ServeMetrics
-from tools.bench.live_clients import _pooled_rows, _rows, round_rows, translator_rows_of
+from tools.bench.live_clients import (
+    _pool,
+    _pooled_pool_cpu,
+    _pooled_rows,
+    _rows,
+    pool_cpu_of,
+    round_pool_cpu,
+    round_rows,
+    translator_rows_of,
+)
 
 
 def _exposition(committed: int, provisional: int) -> str:
@@ -37,3 +47,25 @@ def test_a_round_counts_its_rows_over_the_seconds_its_voices_spoke():
     assert _rows(rows) == "48.2 (24.7)" and _rows(None) == "–"
     assert _pooled_rows([{"translator_rows": rows}, {"translator_rows": rows}])["speaking_s"] == pytest.approx(17.0)
     assert _pooled_rows([{"translator_rows": rows}, {"translator_rows": None}]) is None
+
+
+def _pool_exposition(translator: float, frames: float) -> str:
+    metrics = ServeMetrics()
+    metrics.pool_cpu.labels(part="translator").inc(translator)
+    metrics.pool_cpu.labels(part="frames").inc(frames)
+    metrics.translator_rows.labels(kind="committed").inc(9)  # another counter: not read as CPU
+    return metrics.exposition().decode()
+
+
+def test_a_round_splits_the_pools_cpu_into_its_translator_calls_and_the_rest():
+    before, after = pool_cpu_of(_pool_exposition(1.5, 0.5)), pool_cpu_of(_pool_exposition(4.75, 2.0))
+    assert before == {"translator": 1.5, "frames": 0.5}
+    assert pool_cpu_of(ServeMetrics().exposition().decode()) == {}  # no frame made yet: no sample
+    spent = round_pool_cpu(before, after)
+    assert spent == {"translator": 3.25, "frames": 1.5}
+    assert round_pool_cpu(None, None) is None  # an older commit's server does not count it
+    assert _pooled_pool_cpu([{"pool_cpu": spent}, {"pool_cpu": spent}]) == {"translator": 6.5, "frames": 3.0}
+    assert _pooled_pool_cpu([{"pool_cpu": spent}, {"pool_cpu": None}]) is None
+    # per session-second of the round's sessions, as the table shows it beside the server's CPU
+    assert _pool({"pool_cpu": spent, "session_s": 500.0}) == "0.0065 / 0.0030"
+    assert _pool({"pool_cpu": None, "session_s": 500.0}) == "–"

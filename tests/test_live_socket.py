@@ -240,6 +240,11 @@ def test_streaming_sessions_share_translator_calls(stream_server):
             for kind in ("committed", "provisional")}
     # a speaking frame's row is final once the frames up to it and its lookahead (the delay, 4 frames) are committed
     assert rows["committed"] >= spoken - 8 * 5 and rows["provisional"] >= 0, (rows, spoken)
+    # the pool threads' CPU, in the translator calls and in the rest of their work, each counted
+    cpu = {part: float(next(line.split()[-1] for line in metrics.splitlines()
+                            if line.startswith(f'gt_serve_pool_cpu_seconds_total{{part="{part}"}}')))
+           for part in ("translator", "frames")}
+    assert cpu["translator"] > 0 and cpu["frames"] > 0, cpu
 
 
 def test_the_load_bench_runs_an_older_gt_serve_as_its_baseline(tmp_path):

@@ -35,6 +35,7 @@ import tempfile
 import threading
 import time
 import urllib.request
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -397,6 +398,15 @@ class Server:
     def translator_rows(self) -> dict[str, float] | None:
         """The rows its pools' streaming translator calls made so far, by kind, over every process (/metrics);
         None where it does not count them (an older commit's server, or /metrics not answering)."""
+        return self._summed(translator_rows_of)
+
+    def pool_cpu(self) -> dict[str, float] | None:
+        """The CPU seconds its client-render pool threads spent so far, by part (translator, frames), over every
+        process (/metrics); None where it does not count them."""
+        return self._summed(pool_cpu_of)
+
+    def _summed(self, read: Callable[[str], dict[str, float]]) -> dict[str, float] | None:
+        """`read` of every process's /metrics body, summed by key; None if one does not answer or nothing counts."""
         headers, totals = self._admin_headers(), {}
         for url in self.replica_urls or [self.url]:
             try:
@@ -404,8 +414,8 @@ class Server:
                                               timeout=10).read().decode("utf-8")
             except (OSError, ValueError):
                 return None
-            for kind, rows in translator_rows_of(text).items():
-                totals[kind] = totals.get(kind, 0.0) + rows
+            for key, value in read(text).items():
+                totals[key] = totals.get(key, 0.0) + value
         return totals or None
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
@@ -572,15 +582,41 @@ def cpu_terms(clients: list[dict], samples: list[tuple[float, float]]) -> tuple[
 
 def translator_rows_of(exposition: str) -> dict[str, float]:
     """gt_serve_translator_rows_total by kind (committed, provisional) from a /metrics body; {} where it has none."""
+    return _counter_of(exposition, "gt_serve_translator_rows_total", "kind")
+
+
+def pool_cpu_of(exposition: str) -> dict[str, float]:
+    """gt_serve_pool_cpu_seconds_total by part (translator, frames) from a /metrics body; {} where it has none."""
+    return _counter_of(exposition, "gt_serve_pool_cpu_seconds_total", "part")
+
+
+def _counter_of(exposition: str, name: str, label: str) -> dict[str, float]:
+    """The samples of counter `name` in a /metrics body, summed by their `label`."""
     from prometheus_client.parser import text_string_to_metric_families
 
-    rows: dict[str, float] = {}
+    values: dict[str, float] = {}
     for family in text_string_to_metric_families(exposition):
         for sample in family.samples:
-            if sample.name == "gt_serve_translator_rows_total":
-                kind = sample.labels.get("kind", "")
-                rows[kind] = rows.get(kind, 0.0) + sample.value
-    return rows
+            if sample.name == name:
+                key = sample.labels.get(label, "")
+                values[key] = values.get(key, 0.0) + sample.value
+    return values
+
+
+def round_pool_cpu(before: dict | None, after: dict | None) -> dict | None:
+    """A round's pool CPU seconds by part (`Server.pool_cpu` before and after it); None where it is not counted."""
+    if after is None:
+        return None
+    before = before or {}
+    return {part: after.get(part, 0.0) - before.get(part, 0.0) for part in ("translator", "frames")}
+
+
+def _pooled_pool_cpu(rows: list[dict]) -> dict | None:
+    """Every round's pool CPU summed by part (None unless each round has it)."""
+    counted = [row.get("pool_cpu") for row in rows]
+    if not counted or any(count is None for count in counted):
+        return None
+    return {part: sum(count[part] for count in counted) for part in ("translator", "frames")}
 
 
 def speaking_seconds(clients: list[dict]) -> float:
@@ -626,7 +662,7 @@ def _run_round(server: Server, n: int, index: int, speak_s: float, idle_s: float
     """N load clients against `server` once: the round's row, its clients' records and its `cpu_terms`."""
     tokens = server.client_tokens(n, f"n{n}-r{index}")
     load_before = os.getloadavg()
-    rows_before = server.translator_rows()
+    rows_before, pool_before = server.translator_rows(), server.pool_cpu()
     sampler = _CpuSampler(server)
     sampler.start()
     started = time.monotonic()
@@ -637,6 +673,7 @@ def _run_round(server: Server, n: int, index: int, speak_s: float, idle_s: float
     row = {"server": server.label, "n": n, "round": index,
            **_analyse(clients, samples[-1][1] - samples[0][1], wall_s), "cpu_split": cpu_split([terms]),
            "translator_rows": round_rows(rows_before, server.translator_rows(), clients),
+           "pool_cpu": round_pool_cpu(pool_before, server.pool_cpu()),
            "load_before": load_before, "load_after": os.getloadavg()}
     row["drained"] = server.wait_idle()  # every session closed before the next round
     return row, clients, terms
@@ -656,7 +693,8 @@ def _pooled(rows: list[dict], clients: list, terms: list[tuple[np.ndarray, np.nd
     fitted over every round's intervals."""
     return {"n": rows[0]["n"], "rounds": len(rows),
             **_analyse(clients, sum(r["server_cpu_s"] for r in rows), sum(r["wall_s"] for r in rows)),
-            "cpu_split": cpu_split(terms), "translator_rows": _pooled_rows(rows), "load_before": rows[0]["load_before"],
+            "cpu_split": cpu_split(terms), "translator_rows": _pooled_rows(rows), "pool_cpu": _pooled_pool_cpu(rows),
+            "load_before": rows[0]["load_before"],
             "load_after": rows[-1]["load_after"]}
 
 
@@ -848,6 +886,14 @@ def _rows(rows: dict | None) -> str:
             f"({rows['provisional'] / rows['speaking_s']:.1f})")
 
 
+def _pool(row: dict) -> str:
+    """The pool threads' CPU per session-second, in the translator calls and the rest, or – (not counted)."""
+    pool, session_s = row.get("pool_cpu"), row.get("session_s", 0.0)
+    if not pool or session_s <= 0:
+        return "–"
+    return f"{pool['translator'] / session_s:.4f} / {pool['frames'] / session_s:.4f}"
+
+
 def _times(value) -> str:
     return "–" if value is None else f"{value:.2f}×"
 
@@ -855,15 +901,16 @@ def _times(value) -> str:
 def _detail_table(runs: list[dict], largest: int, tolerance_ms: float) -> str:
     """One server's figures per N, every column."""
     lines = ["| N | late frames | lost | jitter p50 / p99 | behind schedule | delay p50 / p99 | server CPU s per "
-             "session-s | speaking / idle | translator rows per speaking session-s (provisional) | first frame p50 / "
-             "p95 | barge-in p50 / p95 | audio packets | failed | load avg (1 min) before → after |",
-             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "session-s | speaking / idle | pool: translator / frames | translator rows per speaking session-s "
+             "(provisional) | first frame p50 / p95 | barge-in p50 / p95 | audio packets | failed | load avg (1 min) "
+             "before → after |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for row in runs:
         lines.append(f"| {row['n']} | {100 * row['late_share']:.1f}% ({row['late_frames']}/{row['frames_due']}) | "
                      f"{row['missing_frames']} | {_ms(row['jitter_p50_ms'])} / {_ms(row['jitter_p99_ms'])} ms | "
                      f"{100 * row['behind_share']:.1f}% | {_ms(row['delay_p50_ms'])} / {_ms(row['delay_p99_ms'])} "
                      f"ms | {_cpu(row['cpu_s_per_session_s'])} | {_split(row.get('cpu_split'))} | "
-                     f"{_rows(row.get('translator_rows'))} | "
+                     f"{_pool(row)} | {_rows(row.get('translator_rows'))} | "
                      f"{_ms(row['first_frame']['p50_ms'])} / "
                      f"{_ms(row['first_frame']['p95_ms'])} ms | {_ms(row['barge_in']['p50_ms'])} / "
                      f"{_ms(row['barge_in']['p95_ms'])} ms | {100 * row['audio_packets_per_expected']:.0f}% | "
@@ -871,7 +918,10 @@ def _detail_table(runs: list[dict], largest: int, tolerance_ms: float) -> str:
     lines.append("")
     lines.append("Server CPU per session-second: the round's CPU over its sessions' seconds (offers' ramp and idle "
                  "tail included); speaking / idle: a least-squares split of the CPU read every "
-                 f"{CPU_SAMPLE_S:g} s into a base and a cost per speaking and per idle session-second (`cpu_split`). "
+                 f"{CPU_SAMPLE_S:g} s into a base and a cost per speaking and per idle session-second (`cpu_split`); "
+                 "pool: what the client-render pool threads spent of it in the translator calls and in the rest of "
+                 "their work (`gt_serve_pool_cpu_seconds_total`), the event loop's and the process's other threads' "
+                 "being the remainder. "
                  "Translator rows: the voice frames the server's streaming translator calls made "
                  "(`gt_serve_translator_rows_total`) over the seconds the clients' voices spoke; provisional ones are "
                  "made again once their lookahead is in.")

@@ -299,12 +299,13 @@ class _DriveWorker(threading.Thread):
 
     def run(self) -> None:
         while True:
+            began = time.thread_time()  # the tick's CPU, counted by part (`gt_serve_pool_cpu_seconds`)
             with self._pool_lock:
                 # the sessions with a frame due now (the others' calls would return at once, at a lock and a clock
                 # read each: half the sessions a pass on the half-frame grid); a failed one, to be let go of
                 sessions = [session for session in self.sessions
                             if session.error is not None or session.live.due <= time.monotonic()]
-            _translate_together(sessions)
+            translator_s = _translate_together(sessions)
             _tick.deliveries, ended = [], []
             try:
                 for session in sessions:
@@ -320,6 +321,10 @@ class _DriveWorker(threading.Thread):
                     _post(deliveries)
                 for session in ended:  # after its last frames went to the loop: stop() may end its outbox now
                     session.ended()
+            if sessions:
+                pool_cpu = sessions[0]._metrics.pool_cpu
+                pool_cpu.labels(part="translator").inc(translator_s)
+                pool_cpu.labels(part="frames").inc(max(0.0, time.thread_time() - began - translator_s))
             with self._pool_lock:
                 if not self.sessions:
                     self.ended = True
@@ -329,27 +334,33 @@ class _DriveWorker(threading.Thread):
             self.wake.wait(max(0.0, due - time.monotonic()))
 
 
-def _translate_together(sessions: list[DriveSession]) -> None:
+def _translate_together(sessions: list[DriveSession]) -> float:
     """One streaming translator call for every session with a frame due now (per driver): each session's step()
-    then finds its rows made. A failed call leaves each job to run alone in its session, which reports its error."""
+    then finds its rows made. A failed call leaves each job to run alone in its session, which reports its error.
+    Returns the CPU seconds this thread spent in the calls."""
+    spent = 0.0
     by_driver: dict[int, tuple[object, list[StreamJob]]] = {}
     for session in sessions:
         job = session.prepare()
         if job is not None:
             by_driver.setdefault(id(session.driver), (session.driver, []))[1].append(job)
     for driver, jobs in by_driver.values():
+        began = time.thread_time()
         try:
             calls = run_stream_jobs(jobs, driver.run_stream, driver.stream_rows)
         except Exception:  # each session runs its own call again and fails on its own
+            calls = None
             for job in jobs:
                 job.rows = job.state = job.state_row = None
-        else:
+        spent += time.thread_time() - began
+        if calls is not None:
             metrics = sessions[0]._metrics
             for count in calls:
                 metrics.translator_batch.observe(count)
             committed = sum(job.keep for job in jobs)
             metrics.translator_rows.labels(kind="committed").inc(committed)
             metrics.translator_rows.labels(kind="provisional").inc(sum(job.audio.shape[0] for job in jobs) - committed)
+    return spent
 
 
 __all__ = ["DrivePool", "DriveSession", "WEBRTC_AUDIO_RATE", "clock_grid_s"]

@@ -31,6 +31,10 @@ class ServeMetrics:
         self.translator_rows = Counter(
             "gt_serve_translator_rows", "Rows (voice frames) the pool's streaming translator calls made: committed "
             "(final) or provisional (lookahead not yet in: made again once it is)", ["kind"], registry=registry)
+        self.pool_cpu = Counter(
+            "gt_serve_pool_cpu_seconds", "CPU seconds the client-render pool threads spent, by part: translator (the "
+            "streaming translator calls they ran) or frames (the rest: the voices' feeds, planning, making and handing "
+            "out frames)", ["part"], registry=registry)
         self.refusals = Counter("gt_serve_refusals", "Requests or sessions refused, by reason", ["reason"],
                                 registry=registry)
         self.connections = Gauge("gt_serve_connections", "TCP connections open now", registry=registry)
