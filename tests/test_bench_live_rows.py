@@ -20,11 +20,15 @@ from tools.bench.live_clients import (
 )
 
 
-def _exposition(committed: int, provisional: int) -> str:
+def _exposition(committed: int, provisional: int, pool_cpu: tuple[float, float] | None = None) -> str:
+    """A /metrics body with these rows and, given, the pool's CPU (translator, frames); another counter besides."""
     metrics = ServeMetrics()
     metrics.translator_rows.labels(kind="committed").inc(committed)
     metrics.translator_rows.labels(kind="provisional").inc(provisional)
-    metrics.frames.labels(mode="client-render").inc(7)  # another counter: not read as rows
+    if pool_cpu is not None:
+        metrics.pool_cpu.labels(part="translator").inc(pool_cpu[0])
+        metrics.pool_cpu.labels(part="frames").inc(pool_cpu[1])
+    metrics.frames.labels(mode="client-render").inc(7)  # another counter: neither rows nor CPU
     return metrics.exposition().decode()
 
 
@@ -49,18 +53,10 @@ def test_a_round_counts_its_rows_over_the_seconds_its_voices_spoke():
     assert _pooled_rows([{"translator_rows": rows}, {"translator_rows": None}]) is None
 
 
-def _pool_exposition(translator: float, frames: float) -> str:
-    metrics = ServeMetrics()
-    metrics.pool_cpu.labels(part="translator").inc(translator)
-    metrics.pool_cpu.labels(part="frames").inc(frames)
-    metrics.translator_rows.labels(kind="committed").inc(9)  # another counter: not read as CPU
-    return metrics.exposition().decode()
-
-
 def test_a_round_splits_the_pools_cpu_into_its_translator_calls_and_the_rest():
-    before, after = pool_cpu_of(_pool_exposition(1.5, 0.5)), pool_cpu_of(_pool_exposition(4.75, 2.0))
+    before, after = pool_cpu_of(_exposition(9, 0, (1.5, 0.5))), pool_cpu_of(_exposition(9, 0, (4.75, 2.0)))
     assert before == {"translator": 1.5, "frames": 0.5}
-    assert pool_cpu_of(ServeMetrics().exposition().decode()) == {}  # no frame made yet: no sample
+    assert pool_cpu_of(_exposition(9, 0)) == {}  # no tick counted yet: no sample (the rows are not read as CPU)
     spent = round_pool_cpu(before, after)
     assert spent == {"translator": 3.25, "frames": 1.5}
     assert round_pool_cpu(None, None) is None  # an older commit's server does not count it
