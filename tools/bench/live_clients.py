@@ -35,7 +35,6 @@ import tempfile
 import threading
 import time
 import urllib.request
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -395,28 +394,21 @@ class Server:
                                                      timeout=10).read())["sessions"]
                    for url in self.replica_urls or [self.url])
 
-    def translator_rows(self) -> dict[str, float] | None:
-        """The rows its pools' streaming translator calls made so far, by kind, over every process (/metrics);
-        None where it does not count them (an older commit's server, or /metrics not answering)."""
-        return self._summed(translator_rows_of)
-
-    def pool_cpu(self) -> dict[str, float] | None:
-        """The CPU seconds its client-render pool threads spent so far, by part (translator, frames), over every
-        process (/metrics); None where it does not count them."""
-        return self._summed(pool_cpu_of)
-
-    def _summed(self, read: Callable[[str], dict[str, float]]) -> dict[str, float] | None:
-        """`read` of every process's /metrics body, summed by key; None if one does not answer or nothing counts."""
-        headers, totals = self._admin_headers(), {}
+    def counters(self) -> tuple[dict[str, float] | None, dict[str, float] | None]:
+        """From one read of every process's /metrics, summed over them: the rows its pools' streaming translator
+        calls made so far, by kind, and the CPU seconds its client-render pool threads spent, by part (translator,
+        frames); each None where it is not counted (an older commit's server, or /metrics not answering)."""
+        headers, rows, pool = self._admin_headers(), {}, {}
         for url in self.replica_urls or [self.url]:
             try:
                 text = urllib.request.urlopen(urllib.request.Request(f"{url}/metrics", headers=headers),
                                               timeout=10).read().decode("utf-8")
             except (OSError, ValueError):
-                return None
-            for key, value in read(text).items():
-                totals[key] = totals.get(key, 0.0) + value
-        return totals or None
+                return None, None
+            for totals, read in ((rows, translator_rows_of), (pool, pool_cpu_of)):
+                for key, value in read(text).items():
+                    totals[key] = totals.get(key, 0.0) + value
+        return rows or None, pool or None
 
     def wait_idle(self, timeout: float = 30.0) -> bool:
         """Wait until every session has closed (before the next round); False if some are open at `timeout`."""
@@ -604,7 +596,7 @@ def _counter_of(exposition: str, name: str, label: str) -> dict[str, float]:
 
 
 def round_pool_cpu(before: dict | None, after: dict | None) -> dict | None:
-    """A round's pool CPU seconds by part (`Server.pool_cpu` before and after it); None where it is not counted."""
+    """A round's pool CPU seconds by part (`Server.counters` before and after it); None where it is not counted."""
     if after is None:
         return None
     before = before or {}
@@ -613,10 +605,15 @@ def round_pool_cpu(before: dict | None, after: dict | None) -> dict | None:
 
 def _pooled_pool_cpu(rows: list[dict]) -> dict | None:
     """Every round's pool CPU summed by part (None unless each round has it)."""
-    counted = [row.get("pool_cpu") for row in rows]
+    return _summed_rounds(rows, "pool_cpu", ("translator", "frames"))
+
+
+def _summed_rounds(rows: list[dict], field: str, keys: tuple[str, ...]) -> dict | None:
+    """Every round's `field` (a dict of `keys`) summed key by key; None unless each round has it."""
+    counted = [row.get(field) for row in rows]
     if not counted or any(count is None for count in counted):
         return None
-    return {part: sum(count[part] for count in counted) for part in ("translator", "frames")}
+    return {key: sum(count[key] for count in counted) for key in keys}
 
 
 def speaking_seconds(clients: list[dict]) -> float:
@@ -626,7 +623,7 @@ def speaking_seconds(clients: list[dict]) -> float:
 
 
 def round_rows(before: dict | None, after: dict | None, clients: list[dict]) -> dict | None:
-    """A round's translator rows (`Server.translator_rows` before and after it) and its speaking session-seconds;
+    """A round's translator rows (`Server.counters` before and after it) and its speaking session-seconds;
     None where the server does not count rows."""
     if after is None:
         return None
@@ -638,10 +635,7 @@ def round_rows(before: dict | None, after: dict | None, clients: list[dict]) -> 
 
 def _pooled_rows(rows: list[dict]) -> dict | None:
     """Every round's translator rows summed (None unless each round has them)."""
-    counted = [row.get("translator_rows") for row in rows]
-    if not counted or any(count is None for count in counted):
-        return None
-    return {key: sum(count[key] for count in counted) for key in ("committed", "provisional", "speaking_s")}
+    return _summed_rounds(rows, "translator_rows", ("committed", "provisional", "speaking_s"))
 
 
 def cpu_split(parts: list[tuple[np.ndarray, np.ndarray]]) -> dict | None:
@@ -662,7 +656,7 @@ def _run_round(server: Server, n: int, index: int, speak_s: float, idle_s: float
     """N load clients against `server` once: the round's row, its clients' records and its `cpu_terms`."""
     tokens = server.client_tokens(n, f"n{n}-r{index}")
     load_before = os.getloadavg()
-    rows_before, pool_before = server.translator_rows(), server.pool_cpu()
+    rows_before, pool_before = server.counters()
     sampler = _CpuSampler(server)
     sampler.start()
     started = time.monotonic()
@@ -672,9 +666,10 @@ def _run_round(server: Server, n: int, index: int, speak_s: float, idle_s: float
     terms = cpu_terms(clients, samples)
     row = {"server": server.label, "n": n, "round": index,
            **_analyse(clients, samples[-1][1] - samples[0][1], wall_s), "cpu_split": cpu_split([terms]),
-           "translator_rows": round_rows(rows_before, server.translator_rows(), clients),
-           "pool_cpu": round_pool_cpu(pool_before, server.pool_cpu()),
            "load_before": load_before, "load_after": os.getloadavg()}
+    rows_after, pool_after = server.counters()
+    row["translator_rows"] = round_rows(rows_before, rows_after, clients)
+    row["pool_cpu"] = round_pool_cpu(pool_before, pool_after)
     row["drained"] = server.wait_idle()  # every session closed before the next round
     return row, clients, terms
 
