@@ -108,3 +108,40 @@ def test_pcm16_rounds_and_clips():
     noise = (RNG.standard_normal(4096) * 0.5).astype(np.float32)
     reference = np.clip(np.round(noise * np.float32(32768.0)), -32768, 32767).astype(np.int16)
     assert np.array_equal(to_pcm16(noise), reference)
+
+
+def test_many_drives_at_once_carry_each_drives_values():
+    """frame_drive_rows / blendshape_drive_rows / PoseTrack.rows_at (a pool's frames made together) against a drive
+    made a row at a time, then encoded: the same values, and None (each row then made alone, which names the error)
+    as soon as one row holds a value the drive refuses."""
+    from gaussiantalker.sdk.drive import blendshape_drive_rows, frame_drive_rows
+    from gaussiantalker.serve.wire import encode_drive, encode_frame_packet, frame_packets
+
+    track = PoseTrack(RNG.standard_normal((7, 6)).astype(np.float32) * 0.1)
+    indices = np.array([0, 3, 6, 7, 12, 13, 40])
+    poses = track.rows_at(indices)
+    for k, index in enumerate(indices):
+        pose = track.frame(int(index))
+        assert np.array_equal(poses[k], np.concatenate([pose.rotation, pose.translation]))
+    n_expr = 10
+    flame = RNG.standard_normal((len(indices), n_expr + 3)).astype(np.float32)
+    arkit = RNG.random((len(indices), 52)).astype(np.float32)
+    audio = (RNG.standard_normal((len(indices), 640)) * 0.3).astype(np.float32)
+    speaking, epochs, pts = indices % 2 == 0, indices // 5, indices / 25.0
+    for rig, rows, values in (("flame", flame, frame_drive_rows(n_expr, flame, poses)),
+                              ("arkit", arkit, blendshape_drive_rows(arkit, poses))):
+        packets = frame_packets(rig, indices, pts, values, speaking, epochs, audio)
+        for k, index in enumerate(indices):
+            pose = track.frame(int(index))
+            drive = frame_drive_of(n_expr, rows[k], pose) if rig == "flame" else blendshape_drive_of(rows[k], pose)
+            expected = encode_frame_packet(encode_drive(int(index), float(pts[k]), drive, bool(speaking[k]),
+                                                        int(epochs[k])), audio[k])
+            assert packets[k].tobytes() == expected, (rig, k)
+    for bad in BAD_VALUES:
+        broken = flame.copy()
+        broken[3, 1] = bad
+        assert frame_drive_rows(n_expr, broken, poses) is None
+        broken = arkit.copy()
+        broken[5, 0] = bad
+        assert blendshape_drive_rows(broken, poses) is None
+    assert frame_drive_rows(n_expr, flame[:, :-1], poses) is None  # not the rig's row length

@@ -284,8 +284,8 @@ def test_a_client_asking_for_deflate_gets_plain_frames(server):
 
 
 # Sessions' driver failures, in order: the first session's frame 25 raises, the second's first frame; later
-# sessions never fail. Injected in LiveSession._render (the driver's work a frame: the drive from the rows), which
-# every client-render session's frames go through.
+# sessions never fail. Injected in LiveSession.frame_params (the frame's parameters from the rows), which every
+# client-render session's frames go through, made alone or together.
 DRIVER_FAILURES = (25, 0)
 FAILING_SERVER = f"""
 import runpy, sys
@@ -295,11 +295,11 @@ class FailingLive(Live):
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
         self.fail_from, self.rendered = next(plans, None), 0
-    def _render(self, plan):
+    def frame_params(self, plan):
         if self.fail_from is not None and self.rendered >= self.fail_from:
             raise RuntimeError(f"injected driver failure from frame {{self.fail_from}}")
         self.rendered += 1
-        return super()._render(plan)
+        return super().frame_params(plan)
 drive_sessions.LiveSession = FailingLive
 sys.argv = ["gt-serve", *sys.argv[1:]]
 runpy.run_module("gaussiantalker.cli.serve", run_name="__main__", alter_sys=True)

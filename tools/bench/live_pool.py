@@ -7,8 +7,9 @@ N paced streaming sessions (`LiveSession(output=None, clock_grid_s=...)`, as the
 clock: each speaks the sample speech in 20 ms chunks from its own start (staggered by 13 ms), then idles, its voice
 given as the checkout's server gives it (fed by the pool thread to the sessions it takes up, or, before that,
 pushed at each chunk's time); at every tick of the server's clock grid the pool's work is done as
-`serve/drive_sessions.py` does it: every session's planned
-stream call stacked into one (`run_stream_jobs`), then each session's due frame made and encoded as a frame packet.
+`serve/drive_sessions.py` does it: the steady frames planned together (`runtime/live_steady.py`, where the
+checkout has it), every session's planned stream call stacked into one (`run_stream_jobs`), then each session's due
+frame made and encoded as a frame packet.
 The process's CPU over that loop, over the sessions' seconds, is the result; each round runs in a fresh process, the
 new checkout's and a baseline checkout's (its `src/` first on PYTHONPATH) alternating.
 """
@@ -59,6 +60,12 @@ def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 1
                          clock_grid_s=tick, streaming=True) for _ in range(sessions)]
     starts = [clock[0] + STAGGER_S * k for k in range(sessions)]
     voices = _Voices(lives, speech, driver.sample_rate, starts)
+    try:  # the steady frames planned together and every frame made as arrays, as the checkout's pool does it
+        from gaussiantalker.runtime.live_rows import make_rows  # noqa: F401
+        from gaussiantalker.runtime.live_steady import SteadyFrames
+        steady = SteadyFrames()
+    except ImportError:  # an older checkout: each session's frame its own
+        steady = None
     end = clock[0] + seconds
     frames = calls = rows = 0
     phases = dict.fromkeys(PHASES, 0.0)  # CPU seconds of each part of the loop
@@ -71,17 +78,24 @@ def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 1
             voices.feed(k, clock[0])
         due = [lives[k] for k in due]
         t1 = clock_of()
-        jobs = [job for job in (live.stream_job() for live in due) if job is not None]
+        planned = steady.plan(due, clock[0]) if steady is not None else [None] * len(due)
+        jobs = [job for job in (live.stream_job() if mine is None else mine.job
+                                for live, mine in zip(due, planned, strict=True)) if job is not None]
         t2 = clock_of()
         if jobs:
             calls += len(run_stream_jobs(jobs, driver.run_stream, driver.stream_rows))
             rows += sum(job.audio.shape[0] for job in jobs)
         t3 = clock_of()
-        made = [frame for frame in (live.step() for live in due) if frame is not None]
-        t4 = clock_of()
-        for frame in made:
-            encode_frame_packet(encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, 0), frame.audio)
-        frames += len(made)
+        if steady is None:  # each frame made and encoded alone
+            made = [frame for frame in (live.step() for live in due) if frame is not None]
+            t4 = clock_of()
+            for frame in made:
+                encode_frame_packet(encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, 0), frame.audio)
+            frames += len(made)
+        else:  # the frames made as arrays and packed as one, as `serve/drive_sessions.py` does
+            made_rows = _rows_of(due, planned, steady)
+            t4 = clock_of()
+            frames += _packed(made_rows) if made_rows is not None else 0
         for phase, spent in zip(PHASES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, clock_of() - t4), strict=True):
             phases[phase] += spent
         clock[0] += tick
@@ -89,6 +103,45 @@ def pool_run(bundle: str, sessions: int, seconds: float, lookahead_ms: float = 1
     return {"cpu_s": cpu, "frames": frames, "calls": calls, "rows": rows,
             "cpu_s_per_session_s": cpu / (sessions * seconds), "us_per_frame": 1e6 * cpu / max(frames, 1),
             **{f"{phase}_us_per_frame": 1e6 * spent / max(frames, 1) for phase, spent in phases.items()}}
+
+
+def _rows_of(due: list, planned: list, steady):
+    """The tick's frames as the server's pool makes them: each session's plan (its steady frame's, or its step's),
+    then the frames as arrays (`make_rows`); None when no frame is due."""
+    from gaussiantalker.runtime.live_rows import make_rows
+
+    made = []
+    for live, mine in zip(due, planned, strict=True):
+        taken = steady.take(mine) if mine is not None else None
+        taken = taken or live.next_plan()
+        if taken is not None:
+            made.append((live, *taken))
+    if not made:
+        return None
+    rows = make_rows([item[0] for item in made], [item[1] for item in made])
+    for live, _, due_time in made:
+        live.keep_pace(due_time)
+    return rows
+
+
+def _packed(rows) -> int:
+    """The frames' packets, cut one `bytes` a frame as the pool hands them out; how many."""
+    import numpy as np
+
+    from gaussiantalker.serve.wire import DRIVE_HEADER, PACKET_HEADER, frame_packets
+
+    values = rows.values()
+    message_end = PACKET_HEADER.size + DRIVE_HEADER.size + 4 * values.shape[1]
+    groups: dict[int, list[int]] = {}
+    for k, audio in enumerate(rows.audio):
+        groups.setdefault(audio.shape[0], []).append(k)
+    for group in groups.values():
+        packets = frame_packets(rows.lives[0].driver.rig, rows.indices[group], rows.pts[group], values[group],
+                                rows.speaking[group], np.zeros(len(group), np.int64),
+                                np.stack([rows.audio[k] for k in group]))
+        for packet in packets:
+            packet[PACKET_HEADER.size:message_end].tobytes(), packet.tobytes()
+    return len(rows.audio)
 
 
 class _Voices:

@@ -24,7 +24,9 @@ from gaussiantalker.sdk.drive import (
     HeadPose,
     PoseTrack,
     blendshape_drive_of,
+    blendshape_drive_rows,
     frame_drive_of,
+    frame_drive_rows,
     pose_track_frame,
 )
 from gaussiantalker.sdk.errors import AudioError, BundleError, DriveError
@@ -174,10 +176,27 @@ class Driver:
         if track is None:
             return HeadPose.make()
         if track is self.pose_track:  # the bundle's track, checked once (a live session's pose every frame)
-            if self._checked_track is None or self._checked_track[0] is not track:
-                self._checked_track = (track, PoseTrack(np.asarray(track, dtype=np.float32).reshape(-1, 6)))
-            return self._checked_track[1].frame(index)
+            return self._pose_track().frame(index)
         return pose_track_frame(np.asarray(track, dtype=np.float32).reshape(-1, 6), index)
+
+    def _pose_track(self) -> PoseTrack:
+        """The bundle's pose track, checked once."""
+        track = self.pose_track
+        if self._checked_track is None or self._checked_track[0] is not track:
+            self._checked_track = (track, PoseTrack(np.asarray(track, dtype=np.float32).reshape(-1, 6)))
+        return self._checked_track[1]
+
+    def head_pose_rows(self, indices: np.ndarray) -> np.ndarray:
+        """`head_pose(index)` of many frames at once, as [R, 6] rows (rotation, translation)."""
+        if self.pose_track is None:
+            return np.zeros((len(indices), 6), np.float32)
+        return self._pose_track().rows_at(np.asarray(indices, np.int64))
+
+    def drive_rows(self, params: np.ndarray, poses: np.ndarray) -> np.ndarray | None:
+        """`drive_from_params(clamp_params(row), pose)` of many frames at once (rows [R, D], poses [R, 6]), as the
+        drives' fields' values in order [R, count] (what a drive message carries); None where this driver makes its
+        drives one at a time, or a row fails the drive's check (drive_from_params then names it)."""
+        return None
 
     def drives(self, audio: AudioSource, sample_rate: int | None = None,
                head_pose: HeadPoseSource = None) -> Iterator[Drive]:
@@ -218,6 +237,9 @@ class FlameDriver(Driver):
 
     def drive_from_params(self, params: np.ndarray, head_pose: HeadPose) -> FrameDrive:
         return frame_drive_of(self.config.n_expr, params, head_pose)
+
+    def drive_rows(self, params: np.ndarray, poses: np.ndarray) -> np.ndarray | None:
+        return frame_drive_rows(self.config.n_expr, self.clamp_params(params), poses)
 
     def drive(self, expression=None, jaw_pose=None, neck_pose=None, eye_pose=None, head_rotation=None,
               head_translation=None) -> FrameDrive:
@@ -289,6 +311,11 @@ class ArkitDriver(Driver):
     def clamp_params(self, params: np.ndarray) -> np.ndarray:
         """ARKit weights are in [0, 1] (NaN stays NaN, for the drive's check to name)."""
         return np.minimum(np.maximum(params, np.float32(0.0)), np.float32(1.0))
+
+    def drive_rows(self, params: np.ndarray, poses: np.ndarray) -> np.ndarray | None:
+        if self.arkit.blendshapes != ARKIT_BLENDSHAPES:  # drive() maps them by name, a frame at a time
+            return None
+        return blendshape_drive_rows(self.clamp_params(params), poses)
 
     def drive(self, weights=None, head_pose: HeadPose | np.ndarray | None = None) -> BlendshapeDrive:
         """The validated drive of ARKit weights ({name: weight}, names left out 0, or [52] in ARKIT_BLENDSHAPES

@@ -51,6 +51,9 @@ MAX_LAG_FRAMES = 2
 # every tick. Idle frames take the steps back, one a frame, so a long session does not drift (docs/live.md,
 # "A voice that lands late").
 MAX_DEFERRALS = 2
+# The silence gate's running totals are summed again from its frames every this many frames (float64 rounding does
+# not pile up over a long session).
+GATE_REBUILD = 256
 
 
 @dataclass(frozen=True)
@@ -105,54 +108,96 @@ class _Batch:
     gain: float = 1.0
 
 
+def frame_sums(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's sum and sum of squares, in float64, of frames [n, F] (a frame a row, zero-padded to the longest):
+    what the silence gate keeps of a frame. Reductions along the rows, as runtime/live_steady.py's over many
+    sessions' frames at once: the same bits for the same row."""
+    values = frames.astype(np.float64)
+    return np.add.reduce(values, axis=1), np.add.reduce(values * values, axis=1)
+
+
 class _GateHistory:
-    """Sum, sum of squares and length of each past frame's audio, the last `limit` samples' worth: the silence gate's
-    view of a streaming session's context, which keeps no past audio (zeros at the start, as the windowed path's).
-    Running totals (float64, rebuilt from the frames every REBUILD pushes so rounding cannot pile up)."""
+    """(samples, sum, sum of squares) of each of the last `len(rest)` frames (`frame_sums`): the silence gate's view
+    of a streaming session's context, which keeps no past audio (silent frames of the `rest` spans at the start, as
+    the windowed path's zeros). Running totals (float64, rebuilt from the frames every GATE_REBUILD pushes so
+    rounding cannot pile up)."""
 
-    REBUILD = 256
-
-    def __init__(self, limit: int) -> None:
-        self.limit = limit
+    def __init__(self, rest: tuple[int, ...]) -> None:
+        self.rest = tuple(rest)
         self.reset()
 
     def reset(self) -> None:
-        self.frames: deque[tuple[int, float, float]] = deque([(self.limit, 0.0, 0.0)])
-        self.count, self.total, self.squares, self._pushes = self.limit, 0.0, 0.0, 0
+        self.frames: deque[tuple[int, float, float]] = deque(((n, 0.0, 0.0) for n in self.rest),
+                                                               maxlen=len(self.rest))
+        self.count, self.total, self.squares, self.pushes = sum(self.rest), 0.0, 0.0, 0
 
-    def push(self, samples: np.ndarray) -> None:
-        values = samples.astype(np.float64)
-        # np.add.reduce is what .sum() runs, bit for bit, without its Python wrapper (a call a frame)
-        self._append((values.shape[0], float(np.add.reduce(values)), float(values @ values)))
-
-    def push_silence(self, count: int) -> None:
-        """`push` of `count` zeros (an idle frame), without making them."""
-        self._append((count, 0.0, 0.0))
-
-    def _append(self, entry: tuple[int, float, float]) -> None:
+    def push(self, entry: tuple[int, float, float]) -> None:
+        """A frame's (samples, sum, sum of squares) joins the context; the oldest frame leaves it."""
+        if not self.rest:
+            return
+        oldest = self.frames[0]
         self.frames.append(entry)
-        self.count, self.total, self.squares = self.count + entry[0], self.total + entry[1], self.squares + entry[2]
-        while len(self.frames) > 1 and self.count - self.frames[0][0] >= self.limit:
-            n, t, q = self.frames.popleft()
-            self.count, self.total, self.squares = self.count - n, self.total - t, self.squares - q
-        self._pushes += 1
-        if self._pushes % self.REBUILD == 0:
+        self.count = self.count + entry[0] - oldest[0]
+        self.total = self.total + entry[1] - oldest[1]
+        self.squares = self.squares + entry[2] - oldest[2]
+        self.pushes += 1
+        if self.pushes % GATE_REBUILD == 0:
             self.total = sum(t for _, t, _ in self.frames)
             self.squares = sum(q for _, _, q in self.frames)
 
-    def gain(self, ahead: np.ndarray, gate_dbfs: float | None) -> float:
-        """The gate's gain over the past frames and `ahead` (the batch's audio and its lookahead)."""
-        values = ahead.astype(np.float64)
-        return silence_gain_of_sums(self.total + float(np.add.reduce(values)), self.squares + float(values @ values),
-                                    self.count + values.shape[0], gate_dbfs)
+    def push_silence(self, count: int) -> None:
+        """`push` of a frame of `count` zeros (an idle frame), without making them."""
+        self.push((count, 0.0, 0.0))
+
+    def gain(self, ahead: list[tuple[int, float, float]], gate_dbfs: float | None) -> float:
+        """The gate's gain over the past frames and the frames `ahead` (the batch's and its lookahead's, each as
+        `push` takes it), added one frame at a time in order."""
+        count, total, squares = self.count, self.total, self.squares
+        for n, t, q in ahead:
+            count, total, squares = count + n, total + t, squares + q
+        return silence_gain_of_sums(total, squares, count, gate_dbfs)
 
 
 @dataclass
-class _Plan:
+class FramePlan:
+    """A frame planned, not yet made (`next_plan`): its parameters and audio."""
+
     params: np.ndarray | None  # None: idle
     out_audio: np.ndarray
     late: bool = False
     underrun: bool = False
+
+
+@dataclass
+class SteadyState:
+    """What a pool's steady table (runtime/live_steady.py) holds of a session while its frames are steady: its silence
+    gate (the ring of the last frames' (samples, sum, sum of squares), oldest first, and the running totals) and its
+    stream as the last call left it."""
+
+    gate: list[tuple[int, float, float]]
+    count: int
+    total: float
+    squares: float
+    pushes: int
+    powers: np.ndarray  # the committed frames' mean squares (the loudness gate's)
+    committed: int
+    quiet: int
+    state: np.ndarray
+    state_row: tuple[np.ndarray, int] | None
+    ahead: np.ndarray | None = None  # entering: this frame's and its lookahead's samples but the newest [L, F]
+    final: dict[int, np.ndarray] | None = None  # leaving: the last frame's row, by stream row index
+
+
+@dataclass
+class SteadyTake:
+    """A steady frame taken off a session's queues (`take_steady`)."""
+
+    index: int
+    epoch: int  # the session's epoch: a barge-in since makes it another
+    interrupts: int  # stats.interrupts: the frame's epoch on the wire
+    due: float
+    out_audio: np.ndarray
+    entry: SteadyState | None  # the session entering the table: what it holds of it
 
 
 @dataclass
@@ -216,7 +261,7 @@ class LiveSession:
         # the past audio, whose level the gate history keeps for the silence gate.
         self._stream = TranslatorStream(driver.stream_spec, self._speech.per_frame) \
             if (has_stream if streaming is None else streaming) else None
-        self._gate = _GateHistory(self._history.shape[0])
+        self._gate = _GateHistory(tuple(self._speech.span(k, k + 1) for k in range(self.context_frames)))
         self._stream_epoch = 0
         self._inflight: _Batch | None = None  # taken by stream_job(), translated by the next step()
         self._max_queued = int(max_queued_s * driver.sample_rate)
@@ -362,6 +407,16 @@ class LiveSession:
         """Paced frames on an app's own scheduler (one thread serving many sessions, instead of a thread blocked in
         frames() for each): the next frame if it is due now, else None; call again at `due`. `finished` says when
         frames() would have ended."""
+        planned = self.next_plan()
+        if planned is None:
+            return None
+        frame = self._make(planned[0])
+        self.keep_pace(planned[1])
+        return frame
+
+    def next_plan(self) -> tuple[FramePlan, float] | None:
+        """step() but the making of the frame: the plan of the frame due now and its due time (None: none due), for
+        a pool that makes many sessions' frames together (it then calls `keep_pace`)."""
         with self._cond:
             if self._reading:
                 raise LiveError("frames() of this live session is being read: read it with frames() or step(), "
@@ -379,16 +434,116 @@ class LiveSession:
         if plan is None:
             self._finished = True
             return None
-        frame = self._make(plan)
-        if time.monotonic() - due > MAX_LAG_FRAMES / self.fps:  # behind: re-anchor, as frames() does
+        return plan, due
+
+    def keep_pace(self, due: float) -> None:
+        """After step() made the frame that was due at `due`: a clock behind by more than MAX_LAG_FRAMES re-anchors
+        now, as frames() does."""
+        if time.monotonic() - due > MAX_LAG_FRAMES / self.fps:
             self._anchor = (self._on_grid(time.monotonic()), self._next_index)
             self._deferrals = 0
-        return frame
 
     def _on_grid(self, moment: float) -> float:
         """`moment`, or the first multiple of the clock grid at or after it."""
         grid = self._clock_grid
         return math.ceil(moment / grid) * grid if grid > 0 else moment
+
+    # -- a pool's interface: many sessions' frames planned and made together (runtime/live_steady.py, live_rows.py) --
+    def make_frame(self, plan: FramePlan) -> LiveFrame:
+        """The frame of `plan` (`next_plan`'s) made alone; stops the session if it raises."""
+        return self._make(plan)
+
+    def fail(self, error: BaseException) -> None:
+        """Making this session's frame failed elsewhere (a pool's arrays): the session stops, as `_make` stops it."""
+        self._fail(error)
+
+    @property
+    def sways(self) -> bool:
+        """The head pose is the idle sway (no pose track), a frame at a time (`pose`)."""
+        return self._sway
+
+    def steady_key(self) -> tuple | None:
+        """Which steady table this session's steady frames go to (sessions of one driver, lookahead and context), or
+        None when its frames are never steady: windowed, rendering, free-running, a rig whose frames are not the
+        stream's (a 30 fps avatar on the 25 fps voice interpolates between rows), or rows lagging past the
+        lookahead."""
+        stream = self._stream
+        if stream is None or self.output is not None or not self.paced or not stream.aligned \
+                or self._speech.per_frame != stream.spec.frame_samples or stream.spec.delay > self.lookahead_frames:
+            return None
+        return id(self.driver), self.lookahead_frames, self.context_frames
+
+    def take_steady(self, now: float, entered: int | None, newest: np.ndarray, call: np.ndarray) -> SteadyTake | None:
+        """If the frame due by `now` is a steady one (docs/live.md, "Steady frames made together"), take it off the
+        queues: its newest lookahead frame's samples into `newest`, its call's frame's into `call`; None when it is
+        not (the frame, if any, is `stream_job`'s and `next_plan`'s). `entered`: the epoch at which the session
+        entered the table, None when it is not in it (then it enters: `SteadyTake.entry`)."""
+        with self._cond:
+            if not self._steady_due(now, entered):
+                return None
+            size, lookahead = self._stream.spec.frame_samples, self.lookahead_frames
+            head = self._heard.samples.head((lookahead + 1) * size)
+            entry = None if entered is not None else self._steady_entry(head[:lookahead * size])
+            newest[:] = head[lookahead * size:]
+            delay = self._stream.spec.delay
+            call[:] = head[delay * size:(delay + 1) * size]
+            self._heard.samples.skip(size)  # the frame's own audio leaves the queue
+            index = self._next_index
+            return SteadyTake(index, self._epoch, self.stats.interrupts, self.due,
+                              self._shown.samples.take(self._out.span(index, index + 1)), entry)
+
+    def _steady_due(self, now: float, entered: int | None) -> bool:
+        """Under the lock: whether the frame due by `now` is steady: mid-utterance, exactly its audio and lookahead
+        queued (`_ready_batch`), and its stream's call one committed frame whose row is this frame's (in the table
+        since epoch `entered`, the table keeps it so)."""
+        if self._anchor is None or self._closed or self._ended or self._flushed or self._inflight is not None \
+                or self._translated or self._error is not None or self._reading or self._last_spoken is None \
+                or self._frames_since_speech != 0 or self.due > now:
+            return False
+        stream, lookahead = self._stream, self.lookahead_frames
+        size, index = stream.spec.frame_samples, self._next_index
+        if not (lookahead + 1) * size <= len(self._heard.samples) < (lookahead + 2) * size:
+            return False
+        if entered is not None:
+            return entered == self._epoch
+        return self._stream_epoch == self._epoch and stream.origin % size == 0 \
+            and stream.committed - stream.spec.delay == index - stream.origin // size \
+            and stream.known_end == (index + lookahead) * size and len(self._gate.frames) == self.context_frames
+
+    def _steady_entry(self, ahead: np.ndarray) -> SteadyState:
+        """Under the lock: the gate and stream as the table takes them up; `ahead` this frame's and its lookahead's
+        samples but the newest."""
+        gate, stream, size = self._gate, self._stream, self._stream.spec.frame_samples
+        return SteadyState(list(gate.frames), gate.count, gate.total, gate.squares, gate.pushes, stream.powers,
+                           stream.committed, stream.quiet, stream.state, stream.state_row,
+                           ahead=ahead.reshape(-1, size).copy())
+
+    def leave_steady(self, entered: int, state: SteadyState) -> None:
+        """The table gives the session's gate and stream back (`state`: as its last steady frame left them). After a
+        barge-in since epoch `entered` it does not: interrupt() reset the gate, and the stream restarts at its next
+        call."""
+        with self._cond:
+            if entered != self._epoch:
+                return
+            gate, stream = self._gate, self._stream
+            gate.frames.clear()
+            gate.frames.extend(state.gate)
+            gate.count, gate.total, gate.squares, gate.pushes = state.count, state.total, state.squares, state.pushes
+            # what the stream knows past its committed frames: the lookahead offered with the last frame, still queued
+            first = stream.origin + state.committed * stream.spec.frame_samples \
+                - frame_start(self._next_index, self._speech.per_frame)
+            known = self._heard.samples.peek(self.lookahead_frames * stream.spec.frame_samples)[first:]
+            stream.resume(state.committed, state.state, state.state_row, state.quiet, state.powers,
+                          state.final or {}, known)
+
+    def steady_plan(self, epoch: int, params: np.ndarray, out_audio: np.ndarray) -> FramePlan | None:
+        """The plan of a steady frame taken at `epoch` whose call has run (`params`: its row times its gain); None
+        when the session was barged in on or closed since (its frame, if any, is `next_plan`'s)."""
+        with self._cond:
+            if self._epoch != epoch or self._closed or self._error is not None:
+                return None
+            self.stats.translator_calls += 1
+        return FramePlan(params, out_audio)
 
     @property
     def due(self) -> float:
@@ -416,7 +571,7 @@ class LiveSession:
             frames.append(self._make(plan))
         return frames
 
-    def _plan_or_fail(self, due: float | None) -> _Plan | None:
+    def _plan_or_fail(self, due: float | None) -> FramePlan | None:
         """_plan, stopping the session if it raises (the translator failed)."""
         try:
             return self._plan(due)
@@ -424,7 +579,7 @@ class LiveSession:
             self._fail(error)
             raise
 
-    def _make(self, plan: _Plan) -> LiveFrame:
+    def _make(self, plan: FramePlan) -> LiveFrame:
         """_render, stopping the session if it raises (the renderer failed)."""
         try:
             return self._render(plan)
@@ -450,7 +605,7 @@ class LiveSession:
                 break
         return count
 
-    def _plan(self, due: float | None) -> _Plan | None:
+    def _plan(self, due: float | None) -> FramePlan | None:
         """The next frame's plan, translating a batch when one is ready; waits (paced: until `due`; free: until
         audio or end) when nothing can be shown. `due` None: never wait and never idle (poll)."""
         while True:
@@ -463,7 +618,7 @@ class LiveSession:
                     continue
                 if self._translated:
                     item = self._translated.popleft()
-                    return _Plan(item.params, item.out_audio, late=item.late)
+                    return FramePlan(item.params, item.out_audio, late=item.late)
                 count, late, mid_utterance = (0, False, False) if self._inflight is not None else \
                     self._batch_size(due)
                 if self._inflight is not None:  # taken by stream_job(); a pool may have run its call
@@ -478,7 +633,7 @@ class LiveSession:
                 else:
                     underrun = mid_utterance and bool(len(self._heard.samples))
                     self._place_idle(self._next_index)
-                    return _Plan(None, np.zeros(self._out.span(self._next_index, self._next_index + 1), np.float32),
+                    return FramePlan(None, np.zeros(self._out.span(self._next_index, self._next_index + 1), np.float32),
                                  underrun=underrun)
             self._translate(job)
 
@@ -487,7 +642,7 @@ class LiveSession:
         (MAX_DEFERRALS): mid-utterance, its own audio in and its lookahead not, on a clock grid, not yet the most
         steps later. `ready`: `_ready_batch()` if the caller has it."""
         if self._clock_grid <= 0 or self._anchor is None or self._deferrals >= MAX_DEFERRALS or self._flushed \
-                or self._translated or self._inflight is not None:
+                or self._translated or self._inflight is not None or self._closed:
             return False
         own = self._speech.span(self._next_index, self._next_index + 1)
         if not self._mid_utterance or len(self._heard.samples) < own or (
@@ -544,12 +699,32 @@ class LiveSession:
         batch = _Batch(first, count, shown, late, self._epoch)
         if self._stream is None:
             batch.window = np.concatenate([self._history, known])
+            self._place(speech, first, count)
         else:
-            batch.gain = self._gate.gain(known, self.driver.silence_gate_dbfs)
-            self._synced_stream(first).offer(frame_start(first, self._speech.per_frame), known[:queued])
+            start = frame_start(first, self._speech.per_frame)
+            sums = self._window_sums(known, first, count + self.lookahead_frames)
+            batch.gain = self._gate.gain(sums, self.driver.silence_gate_dbfs)
+            self._synced_stream(first).offer(start, known[:queued])
             batch.job = self._stream.plan(range(first, first + count))
-        self._place(speech, first, count)
+            for entry in sums[:count]:  # the batch's frames (known's first `own` samples) join the gate's context
+                self._gate.push(entry)
         return batch
+
+    def _window_sums(self, known: np.ndarray, first: int, count: int) -> list[tuple[int, float, float]]:
+        """(samples, sum, sum of squares) of each of the `count` frames from `first` whose speech-rate samples
+        `known` holds, in order."""
+        per_frame = self._speech.per_frame
+        edges = [frame_start(index, per_frame) for index in range(first, first + count + 1)]
+        spans = [hi - lo for lo, hi in zip(edges, edges[1:], strict=False)]
+        width = max(spans)
+        if width * count == known.shape[0]:  # frames of one length: the window itself, a frame a row
+            frames = known.reshape(count, width)
+        else:
+            frames = np.zeros((count, width), np.float32)
+            for row, (lo, hi) in enumerate(zip(edges, edges[1:], strict=False)):
+                frames[row, :hi - lo] = known[lo - edges[0]:hi - edges[0]]
+        totals, squares = frame_sums(frames)
+        return list(zip(spans, totals.tolist(), squares.tolist(), strict=True))
 
     def _synced_stream(self, index: int) -> TranslatorStream:
         """Under the lock: the stream, restarted at frame `index` if an interrupt() cleared the context since."""
@@ -559,16 +734,10 @@ class LiveSession:
         return self._stream
 
     def _place(self, speech: np.ndarray, first: int, count: int = 1) -> None:
-        """Frames [first, first + count)'s shown speech-rate samples join the translator's past context (a sliding
-        window; streaming: the gate's history)."""
-        if self._stream is None:
-            if self._history.shape[0]:
-                self._history = np.concatenate([self._history, speech])[-self._history.shape[0]:]
-            return
-        start = frame_start(first, self._speech.per_frame)
-        for index in range(first, first + count):
-            lo, hi = frame_start(index, self._speech.per_frame) - start, frame_start(index + 1, self._speech.per_frame)
-            self._gate.push(speech[lo:hi - start])
+        """Windowed: frames [first, first + count)'s shown speech-rate samples join the translator's past context (a
+        sliding window)."""
+        if self._history.shape[0]:
+            self._history = np.concatenate([self._history, speech])[-self._history.shape[0]:]
 
     def _place_idle(self, index: int) -> None:
         """Idle frame `index`'s silence joins the translator's past context: zeros in the sliding window; streaming,
@@ -607,8 +776,20 @@ class LiveSession:
             for row, audio in zip(rows, batch.shown, strict=True):
                 self._translated.append(_Translated(np.asarray(row, np.float32), audio, batch.late))
 
-    def _render(self, plan: _Plan) -> LiveFrame:
-        """The plan's drive (idle motion added) rendered; bookkeeping of the ease and the stats."""
+    def _render(self, plan: FramePlan) -> LiveFrame:
+        """The plan's drive (idle motion added) rendered."""
+        index, params, speaking = self.frame_params(plan)
+        drive = self.drive_of(params, index)
+        image = None
+        if self.output is not None:
+            image = self.head.render(drive, self.output,
+                                     reference_frame=index if self.head.compositor is not None else None)
+        self.count_frame(plan)
+        return LiveFrame(index, index / self.fps, image, plan.out_audio, self.sample_rate, speaking, drive)
+
+    def frame_params(self, plan: FramePlan) -> tuple[int, np.ndarray, bool]:
+        """The next frame's index, parameters (the plan's, or the ease to idle; a blink added) and whether it speaks,
+        the ease's bookkeeping done: all of making a frame but its drive and `count_frame`."""
         index = self._next_index
         speaking = plan.params is not None
         if speaking:
@@ -623,23 +804,26 @@ class LiveSession:
         blink = self._idle.blink_weight(index, idle=not speaking)
         if blink:
             params = params + np.float32(blink) * self._blink
-        drive = self._drive(params, index)
-        image = None
-        if self.output is not None:
-            image = self.head.render(drive, self.output,
-                                     reference_frame=index if self.head.compositor is not None else None)
+        return index, params, speaking
+
+    def count_frame(self, plan: FramePlan) -> None:
+        """The frame of `plan` made: counted, and the next one's index is next."""
         stats = self.stats
+        speaking = plan.params is not None
         stats.frames += 1
         stats.speaking_frames += speaking
         stats.idle_frames += not speaking
         stats.late_frames += plan.late
         stats.underruns += plan.underrun
         self._next_index += 1
-        return LiveFrame(index, index / self.fps, image, plan.out_audio, self.sample_rate, speaking, drive)
 
-    def _drive(self, params: np.ndarray, index: int) -> FrameDrive | BlendshapeDrive:
-        pose = self._idle.sway(index) if self._sway else self.driver.head_pose(index)
-        return self.driver.drive_from_params(self.driver.clamp_params(params), pose)
+    def pose(self, index: int):
+        """Frame `index`'s head pose: the idle sway, or the driver's (its pose track's)."""
+        return self._idle.sway(index) if self._sway else self.driver.head_pose(index)
+
+    def drive_of(self, params: np.ndarray, index: int) -> FrameDrive | BlendshapeDrive:
+        return self.driver.drive_from_params(self.driver.clamp_params(params), self.pose(index))
 
 
-__all__ = ["LiveSession", "LiveFrame", "LiveStats", "IdleMotion"]
+__all__ = ["FramePlan", "GATE_REBUILD", "IdleMotion", "LiveFrame", "LiveSession", "LiveStats", "SteadyState",
+           "SteadyTake", "frame_sums"]

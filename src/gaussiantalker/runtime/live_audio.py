@@ -52,6 +52,16 @@ class SampleFifo:
             self._start = self._end = 0
         return out
 
+    def head(self, count: int) -> np.ndarray:
+        """A view of the first `count` samples (at most len(self)), valid until the next append."""
+        return self._buffer[self._start:self._start + min(count, len(self))]
+
+    def skip(self, count: int) -> None:
+        """Remove the first `count` samples (all of them when fewer are queued) without copying them."""
+        self._start += min(count, len(self))
+        if self._start == self._end:
+            self._start = self._end = 0
+
     def clear(self) -> None:
         self._start = self._end = 0
 

@@ -298,6 +298,19 @@ class TranslatorStream:
         self._at_rest = False
         self.known = self.known[job.keep * size:]
 
+    @property
+    def powers(self) -> np.ndarray:
+        """The committed frames' mean squares that the loudness gate reads (the last window's at most)."""
+        return self._powers
+
+    def resume(self, committed: int, state: np.ndarray, state_row: tuple[np.ndarray, int] | None, quiet: int,
+               powers: np.ndarray, final: dict[int, np.ndarray], known: np.ndarray) -> None:
+        """Take up the stream as a pool that ran its calls elsewhere left it (runtime/live_steady.py): what `finish`
+        would have left after its last call, which committed every frame it made (no provisional rows)."""
+        self.committed, self.state, self.state_row, self.quiet = committed, state, state_row, quiet
+        self._powers, self.final, self.known = powers, final, known
+        self._provisional, self._at_rest = {}, False
+
     def _row(self, index: int) -> np.ndarray:
         if index < 0:
             return self.spec.rest_row

@@ -177,6 +177,34 @@ def blendshape_drive_of(weights: np.ndarray, head_pose: HeadPose) -> BlendshapeD
     return BlendshapeDrive.make(weights, head_pose)
 
 
+def rows_within_magnitude(rows: np.ndarray) -> bool:
+    """`_within_magnitude` of every row of a float32 [R, D] array, in one reduction."""
+    return rows.dtype == np.float32 and rows.ndim == 2 and bool(
+        np.maximum.reduce(np.abs(rows), axis=None, initial=0.0) <= MAX_DRIVE_MAGNITUDE)
+
+
+def frame_drive_rows(n_expr: int, params: np.ndarray, poses: np.ndarray) -> np.ndarray | None:
+    """Many `frame_drive_of` drives at once, as their fields' values in order (expression, flame_pose,
+    head_translation) [R, n_expr + 18], from rows [R, n_expr + 3] and poses [R, 6] (rotation, translation); None
+    unless every row passes the check (each then goes through frame_drive_of, which names the error)."""
+    if params.shape[1:] != (n_expr + 3,) or not rows_within_magnitude(params):
+        return None
+    values = np.zeros((params.shape[0], n_expr + POSE_DIM + 3), np.float32)
+    values[:, :n_expr] = params[:, :n_expr]
+    values[:, n_expr:n_expr + 3] = poses[:, :3]  # flame_pose: global, neck, jaw, eyes
+    values[:, n_expr + 6:n_expr + 9] = params[:, n_expr:]
+    values[:, n_expr + POSE_DIM:] = poses[:, 3:]
+    return values
+
+
+def blendshape_drive_rows(weights: np.ndarray, poses: np.ndarray) -> np.ndarray | None:
+    """Many `blendshape_drive_of` drives at once, as their fields' values in order (blendshapes, head_rotation,
+    head_translation) [R, 58], from weights [R, 52] and poses [R, 6]; None unless every row passes the check."""
+    if weights.shape[1:] != (len(ARKIT_BLENDSHAPES),) or not rows_within_magnitude(weights):
+        return None
+    return np.concatenate([weights, poses.astype(np.float32)], axis=1)
+
+
 def frame_drive_of(n_expr: int, params: np.ndarray, head_pose: HeadPose) -> FrameDrive:
     """The drive of a FLAME translator's row (float32 [n_expr + 3]: expression, then jaw pose) and a HeadPose:
     the row checked in one pass; anything else goes through FrameDrive.make and its errors."""
@@ -199,6 +227,15 @@ def track_row(count: int, index: int) -> int:
     return phase if phase < count else period - phase
 
 
+def track_rows(count: int, indices: np.ndarray) -> np.ndarray:
+    """`track_row` of many frame indices at once."""
+    if count == 1:
+        return np.zeros(indices.shape, np.int64)
+    period = 2 * (count - 1)
+    phase = np.asarray(indices, np.int64) % period
+    return np.where(phase < count, phase, period - phase)
+
+
 def pose_track_frame(track: np.ndarray, index: int) -> HeadPose:
     """Head pose of frame `index` from a [T, 6] track (rotation, translation), played forth and back (no jump)."""
     row = track[track_row(track.shape[0], index)]
@@ -218,3 +255,7 @@ class PoseTrack:
     def frame(self, index: int) -> HeadPose:
         row = self.rows[track_row(self.rows.shape[0], index)]
         return _unchecked(HeadPose, rotation=row[:3].copy(), translation=row[3:].copy())
+
+    def rows_at(self, indices: np.ndarray) -> np.ndarray:
+        """The [R, 6] rows (rotation, translation) that `frame` gives for each of `indices`."""
+        return self.rows[track_rows(self.rows.shape[0], indices)]

@@ -5,20 +5,23 @@ queue whose bound closes a page that does not read (docs/serve.md, docs/live.md 
 from __future__ import annotations
 
 import asyncio
-import itertools
 import json
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 
+import numpy as np
+
 from gaussiantalker.runtime import LiveSession
+from gaussiantalker.runtime.live_rows import make_rows
+from gaussiantalker.runtime.live_steady import SteadyFrame, SteadyFrames
 from gaussiantalker.runtime.translate_stream import StreamJob, run_stream_jobs
 
 from .limits import ServeLimits, TokenBucket
 from .metrics import ServeMetrics
 from .voices import PacedVoice
-from .wire import encode_drive, encode_frame_packet
+from .wire import DRIVE_HEADER, PACKET_HEADER, encode_drive, encode_frame_packet, frame_packets
 
 WEBRTC_AUDIO_RATE = 48000  # WebRTC's Opus clock
 
@@ -125,35 +128,62 @@ class DriveSession:
             except ConnectionError:  # the page left; its handler closes the session
                 return
 
+    def feed(self) -> bool:
+        """On its pool thread, first in a tick: the server's voice's chunks whose time has come, pushed. False when
+        the session failed (next_plan() then reports it)."""
+        if self.error is not None:
+            return False
+        try:
+            self._feed_voice()
+        except Exception as exc:
+            self._failed(exc)
+            return False
+        return True
+
     def prepare(self) -> StreamJob | None:
-        """On its pool thread: the streaming translator call its frame due now needs, for the pool to run with the
-        other sessions' (None: none needed, or the session failed, which advance() then reports)."""
+        """On its pool thread, after feed(): the streaming translator call its frame due now needs, for the pool to
+        run with the other sessions' (None: none needed, or the session failed, which next_plan() then reports)."""
         if self.error is not None:
             return None
         try:
-            self._feed_voice()
             return self.live.stream_job()
         except Exception as exc:
             self._failed(exc)
             return None
 
-    def advance(self, most: int | None = None) -> bool:
-        """On its pool thread: make and send the frames due now (at most `most`). False once the session has ended
-        (closed, or failed: on_error then hears why on the event loop)."""
+    def next_plan(self, steady: SteadyFrames, planned: SteadyFrame | None) -> tuple | bool:
+        """On its pool thread, after the tick's translator calls: (plan, due time, epoch on the wire) of its frame
+        due now, a steady one's from `steady` (`SteadyFrames.take`), any other's from its session's step
+        (`LiveSession.next_plan`); True when none is due, False once the session has ended (closed, or failed:
+        on_error then hears why on the event loop)."""
         if self.error is not None:
             return False
         try:
             self._feed_voice()  # what came while the pool ran the translator calls (a timer would have pushed it)
-            for _ in itertools.repeat(None) if most is None else range(most):
-                # The epoch is read before the frame is made: a frame planned after an interrupt() has its epoch,
-                # one planned before keeps the older one (interrupt() counts itself once it has cleared the queues).
-                epoch = self.live.stats.interrupts
-                began = time.perf_counter()
-                frame = self.live.step()
-                if frame is None:
-                    return not self.live.finished
-                self._frame_seconds.observe(time.perf_counter() - began)
-                self._emit(frame, epoch)
+            if planned is not None:
+                taken = steady.take(planned)
+                if taken is not None:
+                    return (*taken, planned.interrupts)
+            # The epoch is read before the frame is planned: a frame planned after an interrupt() has its epoch,
+            # one planned before keeps the older one (interrupt() counts itself once it has cleared the queues).
+            epoch = self.live.stats.interrupts
+            taken = self.live.next_plan()
+            if taken is None:
+                return not self.live.finished
+            return (*taken, epoch)
+        except Exception as exc:
+            self._failed(exc)
+            return False
+
+    def send(self, plan, due: float, epoch: int) -> bool:
+        """On its pool thread: make the planned frame alone and send it (a WebRTC session's, or a drive made one at a
+        time). False when making it failed."""
+        try:
+            began = time.perf_counter()
+            frame = self.live.make_frame(plan)
+            self.live.keep_pace(due)
+            self._frame_seconds.observe(time.perf_counter() - began)
+            self._emit(frame, epoch)
         except Exception as exc:
             self._failed(exc)
             return False
@@ -174,26 +204,31 @@ class DriveSession:
 
     def _emit(self, frame, epoch: int) -> None:
         message = encode_drive(frame.index, frame.pts, frame.drive, frame.speaking, epoch)
+        sent = message if self.transport == "webrtc" else encode_frame_packet(message, frame.audio)
+        self._sent(frame.index, frame.speaking, message, sent, epoch)
+        if self.audio is not None:
+            self.audio.put(frame)
+
+    def _sent(self, index: int, speaking: bool, message: bytes, sent: bytes, epoch: int) -> None:
+        """A frame's drive `message` made and `sent` (its packet, or the message itself) handed to the event loop;
+        its stats and metrics counted."""
         self.stats["frames"] += 1
-        self.stats["speaking_frames"] += frame.speaking
+        self.stats["speaking_frames"] += speaking
         self._frames.inc()
         late = self.live.stats.late_frames
         if late > self._late_counted:
             self._metrics.late_frames.labels(mode="client-render").inc(late - self._late_counted)
             self._late_counted = late
         self.recorded.append(message)
-        sent = message if self.transport == "webrtc" else encode_frame_packet(message, frame.audio)
         told = None
         if epoch != self._last_epoch:
             self._last_epoch = epoch
-            told = {"interrupt": {"epoch": epoch, "index": frame.index}}
+            told = {"interrupt": {"epoch": epoch, "index": index}}
         batch = getattr(_tick, "deliveries", None)
         if batch is not None:  # a pool thread hands the event loop a tick's frames at once (_DriveWorker.run)
             batch.append((self, sent, told))
         else:
             _post([(self, sent, told)])
-        if self.audio is not None:
-            self.audio.put(frame)
 
     def _deliver(self, message: bytes, told: dict | None) -> None:
         """On the event loop: a frame's message, and the new epoch's news with its first frame."""
@@ -296,6 +331,7 @@ class _DriveWorker(threading.Thread):
         self.wake = threading.Event()
         self.ended = False
         self._pool_lock = pool_lock
+        self._steady = SteadyFrames()  # its sessions' steady frames, made together
 
     def run(self) -> None:
         while True:
@@ -305,16 +341,22 @@ class _DriveWorker(threading.Thread):
                 # read each: half the sessions a pass on the half-frame grid); a failed one, to be let go of
                 sessions = [session for session in self.sessions
                             if session.error is not None or session.live.due <= time.monotonic()]
-            translator_s = _translate_together(sessions)
-            _tick.deliveries, ended = [], []
+            planned, translator_s = _translate_together(sessions, self._steady)
+            _tick.deliveries, ended, due = [], [], []
             try:
-                for session in sessions:
+                for session, steady in zip(sessions, planned, strict=True):
                     # One frame a session a pass: a session behind makes its next frame in the next pass, its
                     # translator call stacked with the others' (made alone in step() before, one call each).
-                    if not session.advance(1):
-                        with self._pool_lock:
-                            self.sessions.remove(session)
+                    got = session.next_plan(self._steady, steady)
+                    if got is False:
                         ended.append(session)
+                    elif got is not True:
+                        due.append((session, *got))
+                ended += _send_together(due)
+                for session in ended:
+                    with self._pool_lock:
+                        self.sessions.remove(session)
+                    self._steady.forget(session.live)
             finally:
                 deliveries, _tick.deliveries = _tick.deliveries, None
                 if deliveries:
@@ -334,14 +376,67 @@ class _DriveWorker(threading.Thread):
             self.wake.wait(max(0.0, due - time.monotonic()))
 
 
-def _translate_together(sessions: list[DriveSession]) -> float:
-    """One streaming translator call for every session with a frame due now (per driver): each session's step()
-    then finds its rows made. A failed call leaves each job to run alone in its session, which reports its error.
-    Returns the CPU seconds this thread spent in the calls."""
+def _send_together(due: list[tuple]) -> list[DriveSession]:
+    """Make and send the frames of `due` ((session, plan, due time, epoch) each): the WebSocket sessions' of each
+    driver made together (`make_rows`) and their packets written as one array (`frame_packets`), the others' one at a
+    time. Returns the sessions that failed."""
+    failed, together = [], {}
+    for item in due:
+        session = item[0]
+        if session.transport == "ws" and session.audio is None:
+            together.setdefault(id(session.driver), []).append(item)
+        elif not session.send(*item[1:]):
+            failed.append(session)
+    for items in together.values():
+        began = time.perf_counter()
+        rows = make_rows([item[0].live for item in items], [item[1] for item in items])
+        values = rows.values()
+        for k, error in rows.errors.items():
+            items[k][0]._failed(error)
+            failed.append(items[k][0])
+        by_length: dict[int, list[int]] = {}  # a 30 fps rig's frames carry 533 or 534 samples at 16 kHz
+        for k, audio in enumerate(rows.audio):
+            if k in rows.errors:
+                continue
+            if values is None:  # drives one at a time (or one failed its check, which its frame names)
+                try:
+                    frame = rows.frame(k)
+                    items[k][0].live.keep_pace(items[k][2])
+                    items[k][0]._emit(frame, items[k][3])
+                except Exception as exc:
+                    items[k][0]._failed(exc)
+                    failed.append(items[k][0])
+            else:
+                by_length.setdefault(audio.shape[0], []).append(k)
+        for group in by_length.values():
+            packets = frame_packets(items[0][0].driver.rig, rows.indices[group], rows.pts[group], values[group],
+                                    rows.speaking[group], np.array([items[k][3] for k in group], np.int64),
+                                    np.stack([rows.audio[k] for k in group]))
+            message_end = PACKET_HEADER.size + DRIVE_HEADER.size + 4 * values.shape[1]
+            for k, packet in zip(group, packets, strict=True):
+                session, _, due_time, epoch = items[k]
+                session.live.keep_pace(due_time)
+                session._sent(int(rows.indices[k]), bool(rows.speaking[k]),
+                              packet[PACKET_HEADER.size:message_end].tobytes(), packet.tobytes(), epoch)
+        spent = (time.perf_counter() - began) / len(items)
+        for item in items:
+            item[0]._frame_seconds.observe(spent)
+    return failed
+
+
+def _translate_together(sessions: list[DriveSession], steady: SteadyFrames) -> tuple[list, float]:
+    """One streaming translator call for every session with a frame due now (per driver): the steady frames planned
+    together (`SteadyFrames`), the others' calls by each session's stream_job(), whose step() then finds its rows
+    made. A failed call leaves each job to run alone in its session, which reports its error. Returns each session's
+    planned steady frame (None: its own) and the CPU seconds this thread spent in the calls."""
     spent = 0.0
+    fed = [session for session in sessions if session.feed()]
+    planned_of = dict(zip(map(id, fed), steady.plan([session.live for session in fed], time.monotonic()),
+                          strict=True))
+    planned = [planned_of.get(id(session)) for session in sessions]
     by_driver: dict[int, tuple[object, list[StreamJob]]] = {}
-    for session in sessions:
-        job = session.prepare()
+    for session, mine in zip(sessions, planned, strict=True):
+        job = session.prepare() if mine is None else mine.job
         if job is not None:
             by_driver.setdefault(id(session.driver), (session.driver, []))[1].append(job)
     for driver, jobs in by_driver.values():
@@ -360,7 +455,7 @@ def _translate_together(sessions: list[DriveSession]) -> float:
             committed = sum(job.keep for job in jobs)
             metrics.translator_rows.labels(kind="committed").inc(committed)
             metrics.translator_rows.labels(kind="provisional").inc(sum(job.audio.shape[0] for job in jobs) - committed)
-    return spent
+    return planned, spent
 
 
 __all__ = ["DrivePool", "DriveSession", "WEBRTC_AUDIO_RATE", "clock_grid_s"]

@@ -115,6 +115,32 @@ def encode_frame_packet(drive_message: bytes, audio: np.ndarray) -> bytes:
         + audio.astype("<i2", copy=False).tobytes()
 
 
+# struct codes of the headers' fields as numpy's (little-endian, packed: the same bytes)
+_NUMPY_CODES = {"4s": "S4", "B": "u1", "H": "<u2", "I": "<u4", "d": "<f8"}
+
+
+def frame_packets(rig: str, indices: np.ndarray, pts: np.ndarray, values: np.ndarray, speaking: np.ndarray,
+                  epochs: np.ndarray, audio: np.ndarray) -> np.ndarray:
+    """Many frames' packets at once, each the bytes `encode_frame_packet(encode_drive(...), audio)` gives: a
+    [R, packet bytes] uint8 array whose row k is frame k's packet (its drive message at PACKET_HEADER.size on), from
+    the drives' values [R, count] (their fields in order) and audio [R, S] (float, or int16)."""
+    count, samples = values.shape[1], audio.shape[1]
+    drive_bytes = DRIVE_HEADER.size + 4 * count
+    layout = np.dtype([(f"packet_{name}", _NUMPY_CODES[code]) for name, code in PACKET_FIELDS]
+                      + [(f"drive_{name}", _NUMPY_CODES[code]) for name, code in DRIVE_FIELDS]
+                      + [("values", "<f4", (count,)), ("audio", "<i2", (samples,))])
+    packets = np.zeros(values.shape[0], layout)
+    packets["packet_magic"], packets["packet_version"], packets["packet_drive_bytes"] = PACKET_MAGIC, PACKET_VERSION, \
+        drive_bytes
+    packets["drive_magic"], packets["drive_version"], packets["drive_rig"] = DRIVE_MAGIC, DRIVE_VERSION, RIG_CODES[rig]
+    packets["drive_flags"] = np.where(speaking, SPEAKING_FLAG, 0)
+    packets["drive_index"], packets["drive_epoch"], packets["drive_pts"] = indices, epochs, pts
+    packets["drive_count"], packets["drive_split"] = count, count - POSE_VALUES[RIG_CODES[rig]]
+    packets["values"] = values
+    packets["audio"] = audio if audio.dtype == np.int16 else to_pcm16(audio)
+    return packets.view(np.uint8).reshape(values.shape[0], -1)
+
+
 def decode_frame_packet(message: bytes) -> dict:
     """A frame packet -> {"drive": decode_drive's dict, "audio": int16 samples}; DriveFormatError naming what is
     wrong. drive_bytes is checked against the bytes present before anything is read."""
@@ -156,4 +182,5 @@ def js_constants() -> dict[str, object]:
 __all__ = ["CHUNK_MS_RANGE", "CLOSE_GOING_AWAY", "CLOSE_POLICY", "CLOSE_TRY_AGAIN", "DRIVE_HEADER", "DRIVE_MAGIC",
            "DRIVE_VERSION", "DriveFormatError", "INTERRUPT_MESSAGE", "MIC_RATE_RANGE", "PACKET_HEADER", "PACKET_MAGIC",
            "PACKET_VERSION", "POSE_VALUES", "RIG_CODES", "SPEAKING_FLAG", "START_SOURCES", "WIRE_VERSION",
-           "decode_drive", "decode_frame_packet", "encode_drive", "encode_frame_packet", "js_constants"]
+           "decode_drive", "decode_frame_packet", "encode_drive", "encode_frame_packet", "frame_packets",
+           "js_constants"]
