@@ -634,7 +634,7 @@ class LiveSession:
                     underrun = mid_utterance and bool(len(self._heard.samples))
                     self._place_idle(self._next_index)
                     return FramePlan(None, np.zeros(self._out.span(self._next_index, self._next_index + 1), np.float32),
-                                 underrun=underrun)
+                                     underrun=underrun)
             self._translate(job)
 
     def _defer(self, ready: int | None = None) -> bool:
@@ -694,12 +694,12 @@ class LiveSession:
         ahead = self._speech.span(first + count, first + count + self.lookahead_frames)
         queued = min(own + ahead, len(self._heard.samples))  # the rest is unknown (flushed: silence)
         known = self._heard.samples.peek(own + ahead)
-        speech = self._heard.samples.take(own)
+        self._heard.samples.skip(own)  # the batch's own samples: known's first `own`
         shown = [self._shown.samples.take(self._out.span(index, index + 1)) for index in range(first, first + count)]
         batch = _Batch(first, count, shown, late, self._epoch)
         if self._stream is None:
             batch.window = np.concatenate([self._history, known])
-            self._place(speech, first, count)
+            self._place(known[:own])
         else:
             start = frame_start(first, self._speech.per_frame)
             sums = self._window_sums(known, first, count + self.lookahead_frames)
@@ -733,9 +733,9 @@ class LiveSession:
             self._stream_epoch = self._epoch
         return self._stream
 
-    def _place(self, speech: np.ndarray, first: int, count: int = 1) -> None:
-        """Windowed: frames [first, first + count)'s shown speech-rate samples join the translator's past context (a
-        sliding window)."""
+    def _place(self, speech: np.ndarray) -> None:
+        """Windowed: the next frames' shown speech-rate samples join the translator's past context (a sliding
+        window)."""
         if self._history.shape[0]:
             self._history = np.concatenate([self._history, speech])[-self._history.shape[0]:]
 
@@ -744,7 +744,7 @@ class LiveSession:
         the gate counts them without making them and the stream idles over the gap."""
         span = self._speech.span(index, index + 1)
         if self._stream is None:
-            self._place(np.zeros(span, np.float32), index)
+            self._place(np.zeros(span, np.float32))
             return
         self._gate.push_silence(span)
         start = frame_start(index, self._speech.per_frame)

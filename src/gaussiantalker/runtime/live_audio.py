@@ -47,9 +47,7 @@ class SampleFifo:
     def take(self, count: int) -> np.ndarray:
         """Remove and return the first `count` samples, zero-padded when fewer are queued."""
         out = self.peek(count)
-        self._start += min(count, len(self))
-        if self._start == self._end:
-            self._start = self._end = 0
+        self.skip(count)
         return out
 
     def head(self, count: int) -> np.ndarray:
