@@ -34,10 +34,13 @@ from gaussiantalker.runtime import LiveSession
 from gaussiantalker.runtime.stages import open_driver
 from gaussiantalker.runtime.translate_stream import (
     LOUDNESS_WINDOW_FRAMES,
+    REFRESHED_FRAMES,
     REST_FRAMES,
     StreamJob,
     _stacked_states,
     loudness_moved,
+    made_after,
+    window_loudness,
 )
 from gaussiantalker.sdk.bundle import STEADY_STREAM_GRAPH, STREAM_GRAPH, Bundle
 from tools.bench.translator_stream import busiest_r
@@ -344,17 +347,36 @@ def test_the_positional_tail_is_the_embeddings_last_rows(kernel):
         assert rows.shape == expected.shape and torch.abs(rows - expected).max() < 1e-5, (length, tail)
 
 
+def _verdicts(powers: np.ndarray, batch: int = 1) -> list[bool]:
+    """The loudness gate's verdict for each call of `batch` frames over frames of mean squares `powers`, from rest."""
+    made, verdicts = np.zeros(REFRESHED_FRAMES), []
+    for end in range(batch, powers.shape[0] + 1, batch):
+        now = window_loudness(powers[:end])
+        verdicts.append(loudness_moved(now, made))
+        made = made_after(made, batch, verdicts[-1], now)
+    return verdicts
+
+
 def test_the_steady_graph_runs_while_the_loudness_holds():
-    """A call refreshes where the window's loudness moved by the ratio (an utterance's start after silence, its
-    end), and not where it holds (steady speech, silence)."""
+    """A call refreshes where the window's loudness is off by the ratio from the loudness the frames it would make
+    again were made at (an utterance's start after silence, its end), and not where it holds (steady speech,
+    silence)."""
     speech = np.full(60, 0.01)
-    assert not loudness_moved(np.zeros(40))  # silence stays silence
-    assert loudness_moved(np.concatenate([np.zeros(40), [0.01]]))  # the first loud frame after silence
-    assert not loudness_moved(speech)  # a second and more of steady speech
-    assert not loudness_moved(speech * np.linspace(0.8, 1.2, 60))  # loudness drifting, not jumping
+    assert not any(_verdicts(np.zeros(40)))  # silence stays silence
+    start = _verdicts(np.concatenate([np.zeros(40), speech]))
+    # the first loud frame after silence, then wherever the window's loudness passed twice the loudness its last
+    # frames were made at (each refresh made them again at the loudness then): 3 refreshes as the window fills
+    assert [k - 40 for k, moved in enumerate(start) if moved] == [0, 2, 6]
+    assert not any(_verdicts(speech * np.linspace(0.8, 1.2, 60))[LOUDNESS_WINDOW_FRAMES:])  # drifting, not jumping
     # its end: the window's loudness falls gradually as silence fills it, and past the ratio at its last frames
-    assert not loudness_moved(np.concatenate([speech, np.zeros(10)]))
-    assert loudness_moved(np.concatenate([speech, np.zeros(LOUDNESS_WINDOW_FRAMES - 2)]))
+    end = _verdicts(np.concatenate([speech, np.zeros(LOUDNESS_WINDOW_FRAMES)]))
+    assert [k - 60 for k, moved in enumerate(end) if moved and k >= 60] == [25, 27, 28]
+    # a refresh makes the last frames again: the loudness they were made at is the newest
+    assert made_after(np.zeros(REFRESHED_FRAMES), 1, True, 0.5).tolist() == [0.5] * REFRESHED_FRAMES
+    assert made_after(np.arange(4.0), 1, False, 9.0).tolist() == [1.0, 2.0, 3.0, 9.0]
+    assert made_after(np.arange(4.0), 0, True, 9.0).tolist() == [0.0, 1.0, 2.0, 3.0]  # nothing committed
+    # a call of 8 frames moves the window further than one of a frame: its verdicts are its own
+    assert _verdicts(np.concatenate([np.zeros(16), speech[:16]]), 8) == [False, False, True, True]
 
 
 def test_a_live_session_calls_the_steady_graph_mid_utterance(small_export):

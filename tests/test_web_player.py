@@ -252,21 +252,30 @@ def _stream_reference(bundle: Path, audio: np.ndarray, chunk: int) -> tuple[np.n
     rest state's call of silence included)."""
     from gaussiantalker.runtime.stages import open_driver
     from gaussiantalker.runtime.translate import CONTEXT_FRAMES, silence_gain
-    from gaussiantalker.runtime.translate_stream import frame_power, loudness_moved
+    from gaussiantalker.runtime.translate_stream import (
+        REFRESHED_FRAMES,
+        frame_power,
+        loudness_moved,
+        made_after,
+        window_loudness,
+    )
 
     driver = open_driver(bundle)
     spec = driver.stream_spec
     size, delay = spec.frame_samples, spec.delay
     state, pending, committed, rows = spec.rest_state[None], np.zeros(0, np.float32), 0, []
     past = np.zeros(0, np.float32)  # every committed sample
+    made = np.zeros(REFRESHED_FRAMES)  # the loudness gate's (`made_after`)
     calls = {STREAM_GRAPH: 1}  # the rest state's call
 
     def commit(pending, state, committed):
-        nonlocal past
+        nonlocal past, made
         while pending.shape[0] >= size:
             count = min(pending.shape[0] // size, 50)
             block = pending[:count * size]
-            refresh = not spec.steady or loudness_moved(frame_power(np.concatenate([past, block]).reshape(-1, size)))
+            now = window_loudness(frame_power(np.concatenate([past, block]).reshape(-1, size)))
+            refresh = not spec.steady or loudness_moved(now, made)
+            made = made_after(made, count, refresh, now)
             out = driver.run_stream(block.reshape(1, count, size), state, count, refresh)
             graph = STREAM_GRAPH if refresh else STEADY_STREAM_GRAPH
             calls[graph] = calls.get(graph, 0) + 1

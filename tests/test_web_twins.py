@@ -208,22 +208,37 @@ def test_window_plan_gate_crossfades_camera_checks_and_draw_sizes_match_python(t
 
 LOUDNESS_SCRIPT = """
 import fs from 'node:fs';
-import { framePowers, loudnessMoved } from %(stream_js)s;
+import { framePowers, loudnessMoved, madeAfter, windowLoudness } from %(stream_js)s;
+import { REFRESHED_FRAMES } from %(generated_js)s;
 const cases = JSON.parse(fs.readFileSync(%(cases)s, 'utf8'));
 const verdicts = cases.map((c) => {
   const audio = new Float32Array(new Uint8Array(Buffer.from(c.audio, 'base64')).buffer);
   const powers = framePowers(audio, c.frame);
-  return Array.from({ length: powers.length }, (_, n) => loudnessMoved(powers.subarray(0, n + 1)));
+  let made = new Float64Array(REFRESHED_FRAMES);
+  const out = [];
+  for (let end = c.batch; end <= powers.length; end += c.batch) {
+    const now = windowLoudness(powers.subarray(0, end));
+    out.push(loudnessMoved(now, made));
+    made = madeAfter(made, c.batch, out[out.length - 1], now);
+  }
+  return out;
 });
 console.log(JSON.stringify(verdicts));
 """
 
 
 def test_the_loudness_gate_matches_python(tmp_path):
-    """web/src/stream.js `framePowers` + `loudnessMoved` against runtime/translate_stream.py `frame_power` +
-    `loudness_moved` (which graph a stream's call runs): the same verdict after every frame of seeded audio in
-    pieces of speech-like, quiet and silent levels."""
-    from gaussiantalker.runtime.translate_stream import frame_power, loudness_moved
+    """web/src/stream.js `framePowers`, `windowLoudness`, `loudnessMoved` and `madeAfter` against
+    runtime/translate_stream.py `frame_power`, `window_loudness`, `loudness_moved` and `made_after` (which graph a
+    stream's call runs): the same verdict for every call of seeded audio in pieces of speech-like, quiet and silent
+    levels, fed 1, 2 or 8 frames a call."""
+    from gaussiantalker.runtime.translate_stream import (
+        REFRESHED_FRAMES,
+        frame_power,
+        loudness_moved,
+        made_after,
+        window_loudness,
+    )
 
     node = shutil.which("node")
     need(None if node else "node is missing (Debian's npm brings it)", BROWSER_INSTALL)
@@ -233,19 +248,24 @@ def test_the_loudness_gate_matches_python(tmp_path):
         frame = int(rng.choice([640, 320]))
         levels = rng.choice([0.0, 1e-4, 0.01, 0.1, 0.3], size=int(rng.integers(1, 6)))
         pieces = [level * rng.standard_normal(frame * int(rng.integers(1, 40))) for level in levels]
-        cases.append({"frame": frame, "audio": np.concatenate(pieces).astype(np.float32)})
+        cases.append({"frame": frame, "batch": int(rng.choice([1, 2, 8])),
+                      "audio": np.concatenate(pieces).astype(np.float32)})
     listing = tmp_path / "loudness.json"
-    listing.write_text(json.dumps([{"frame": c["frame"], "audio": base64.b64encode(c["audio"].tobytes()).decode()}
-                                   for c in cases]))
+    listing.write_text(json.dumps([{"frame": c["frame"], "batch": c["batch"],
+                                    "audio": base64.b64encode(c["audio"].tobytes()).decode()} for c in cases]))
     script = tmp_path / "loudness.mjs"
     script.write_text(LOUDNESS_SCRIPT % {"stream_js": json.dumps((ROOT / "web" / "src" / "stream.js").as_uri()),
+                                         "generated_js": json.dumps((ROOT / "web" / "src" / "generated.js").as_uri()),
                                          "cases": json.dumps(str(listing))})
     done = subprocess.run([node, str(script)], capture_output=True, text=True, timeout=NODE_TIMEOUT_S)
     assert done.returncode == 0, done.stderr[-2000:]
     moved = 0
     for case, page in zip(cases, json.loads(done.stdout), strict=True):
-        powers = frame_power(case["audio"].reshape(-1, case["frame"]))
-        python = [loudness_moved(powers[:n + 1]) for n in range(powers.shape[0])]
-        assert page == python, case["frame"]
+        powers, made, python = frame_power(case["audio"].reshape(-1, case["frame"])), np.zeros(REFRESHED_FRAMES), []
+        for end in range(case["batch"], powers.shape[0] + 1, case["batch"]):
+            now = window_loudness(powers[:end])
+            python.append(loudness_moved(now, made))
+            made = made_after(made, case["batch"], python[-1], now)
+        assert page == python, (case["frame"], case["batch"])
         moved += sum(python)
     assert 0 < moved < sum(len(p) for p in json.loads(done.stdout))  # both verdicts occur

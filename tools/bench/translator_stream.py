@@ -77,18 +77,27 @@ def _streamed(stream, audio: np.ndarray, batch: int, steady=None) -> tuple[np.nd
     """Rows of the streaming module fed `batch` frames a call from its rest state (the delay's zeros after), and
     the share of calls that refreshed: with a `steady` module, it runs the calls whose window's loudness held, as
     a live session's stream chooses (runtime/translate_stream.py)."""
-    from gaussiantalker.runtime.translate_stream import REST_FRAMES, frame_power, loudness_moved
+    from gaussiantalker.runtime.translate_stream import (
+        REFRESHED_FRAMES,
+        REST_FRAMES,
+        frame_power,
+        loudness_moved,
+        made_after,
+        window_loudness,
+    )
 
     frames, delay = audio.shape[0] // FRAME, stream.delay_frames
     fed = np.concatenate([audio, np.zeros((delay + batch) * FRAME, np.float32)]).reshape(-1, FRAME)
-    rows, powers, refreshed = [], np.zeros(0), []
+    rows, powers, made, refreshed = [], np.zeros(0), np.zeros(REFRESHED_FRAMES), []
     with torch.no_grad():
         state = stream(torch.zeros(1, REST_FRAMES, FRAME), torch.zeros(1, stream.state_size),
                        torch.tensor([float(REST_FRAMES)]))[2]
         for p in range(0, frames + delay, batch):
             powers = np.concatenate([powers, frame_power(fed[p:p + batch])])
-            refreshed.append(steady is None or loudness_moved(powers))
+            now = window_loudness(powers)
+            refreshed.append(steady is None or loudness_moved(now, made))
             chunk = torch.from_numpy(fed[p:p + batch][None])
+            made = made_after(made, chunk.shape[1], refreshed[-1], now)
             module = stream if refreshed[-1] else steady
             expression, jaw, state, _ = module(chunk, state, torch.tensor([float(chunk.shape[1])]))
             rows.append(torch.cat([expression, jaw], -1)[0].numpy())

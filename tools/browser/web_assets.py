@@ -62,7 +62,7 @@ def constants() -> dict[str, object]:
         "FLAME_MOTION_KEYS": [list(pair) for pair in MOTION_KEYS], "TABLE_POSE_COLUMNS": TABLE_POSE_COLUMNS,
         "REST_FRAMES": translate_stream.REST_FRAMES, "FEATURES_PER_FRAME": config.FEATURES_PER_FRAME,
         "LOUDNESS_WINDOW_FRAMES": translate_stream.LOUDNESS_WINDOW_FRAMES,
-        "LOUDNESS_LAG_FRAMES": translate_stream.LOUDNESS_LAG_FRAMES, "LOUDNESS_RATIO": translate_stream.LOUDNESS_RATIO,
+        "REFRESHED_FRAMES": translate_stream.REFRESHED_FRAMES, "LOUDNESS_RATIO": translate_stream.LOUDNESS_RATIO,
         "CROP_MARGIN_PX": reference_clip.CROP_MARGIN_PX, "CROP_MULTIPLE": reference_clip.CROP_MULTIPLE,
         # The bundle's header and bounds (sdk/bundle.py), and its buffer codecs' tables (sdk/codecs.py).
         "MAGIC": bundle.MAGIC.decode("ascii"), "FORMAT_MAJOR": bundle.FORMAT_MAJOR, "HEADER_SIZE": bundle.HEADER_SIZE,

@@ -11,8 +11,9 @@
 //   stream.drive()                // their drive (a stream opened by Player.openAudioStream)
 //
 // A bundle whose stream has a steady form (the speaker's own translator) runs it for every call whose window's
-// loudness held, the refreshing graph where it moved, as the Python runtime chooses (`loudnessMoved`, the twin of
-// runtime/translate_stream.py `loudness_moved`; docs/live.md, "The speaker's own translator").
+// loudness held, the refreshing graph where it moved, as the Python runtime chooses (`windowLoudness`,
+// `loudnessMoved` and `madeAfter`, the twins of runtime/translate_stream.py `window_loudness`, `loudness_moved` and
+// `made_after`; docs/live.md, "The speaker's own translator").
 //
 // Each stream row is gated like a live session's (docs/embedding.md, "Silence gate"): scaled by the gain of the
 // audio window a windowed call would see for it (CONTEXT_FRAMES before, the frame, `delay` after; zeros before the
@@ -21,7 +22,7 @@
 
 import { DriveError, checkSamples, silenceGain } from './drive.js';
 import {
-  CONTEXT_FRAMES, LOUDNESS_LAG_FRAMES, LOUDNESS_RATIO, LOUDNESS_WINDOW_FRAMES, REST_FRAMES, SILENCE_GATE_DBFS,
+  CONTEXT_FRAMES, LOUDNESS_RATIO, LOUDNESS_WINDOW_FRAMES, REFRESHED_FRAMES, REST_FRAMES, SILENCE_GATE_DBFS,
 } from './generated.js';
 
 export const STREAM_GRAPH = 'translator_stream';
@@ -40,24 +41,34 @@ export function framePowers(audio, frameSamples) {
 }
 
 /**
- * Whether a call whose frames end `powers` (per-frame mean squares, the committed frames' before) needs the
- * refreshing graph: the window's mean power against the window's LOUDNESS_LAG_FRAMES frames earlier, either
- * LOUDNESS_RATIO times the other (silence before counts as zeros).
+ * The window's loudness: the mean of the last LOUDNESS_WINDOW_FRAMES frames' mean squares of `powers` (silence
+ * before the first counts as zeros).
  */
-export function loudnessMoved(powers) {
-  const window = LOUDNESS_WINDOW_FRAMES;
-  const lag = LOUDNESS_LAG_FRAMES;
-  const padded = new Float64Array(window + lag);
-  const tail = powers.subarray(Math.max(0, powers.length - window - lag));
-  padded.set(tail, padded.length - tail.length);
-  let now = 0;
-  let then = 0;
-  for (let i = lag; i < padded.length; i++) now += padded[i];
-  for (let i = 0; i < window; i++) then += padded[i];
-  now /= window;
-  then /= window;
-  return Math.max(now, then) > LOUDNESS_RATIO * Math.min(now, then);
+export function windowLoudness(powers) {
+  let sum = 0;
+  for (let i = Math.max(0, powers.length - LOUDNESS_WINDOW_FRAMES); i < powers.length; i++) sum += powers[i];
+  return sum / LOUDNESS_WINDOW_FRAMES;
 }
+
+/**
+ * Whether a call needs the refreshing graph: the window's loudness `now` is LOUDNESS_RATIO times, or a
+ * LOUDNESS_RATIO-th of, the loudness at which any of the last REFRESHED_FRAMES committed frames' features were made
+ * (`made`; the rest state's: zeros).
+ */
+export function loudnessMoved(now, made) {
+  return now > LOUDNESS_RATIO * Math.min(...made) || Math.max(...made) > LOUDNESS_RATIO * now;
+}
+
+/** `made` after a call at loudness `now` that committed `keep` frames (refreshed or not): runtime `made_after`. */
+export function madeAfter(made, keep, refreshed, now) {
+  if (keep <= 0) return made;
+  if (refreshed || keep >= REFRESHED_FRAMES) return new Float64Array(REFRESHED_FRAMES).fill(now);
+  const out = new Float64Array(REFRESHED_FRAMES);
+  out.set(made.subarray(keep));
+  out.fill(now, REFRESHED_FRAMES - keep);
+  return out;
+}
+
 // Frames per graph call at most, so a long push holds a bounded window of audio and rows at a time.
 const MAX_CALL_FRAMES = 50;
 
@@ -97,7 +108,8 @@ export class AudioStream {
       throw new DriveError(`${bundle.name}: the streaming graph says its rows lag ${delay} frames; expected 0..${REST_FRAMES - 1}`);
     }
     const { rows, width } = rowsOf(rest);
-    return new AudioStream({ run, steady, powers: new Float64Array(0), rowsOf, makeDrive, delay, frameSamples,
+    return new AudioStream({ run, steady, powers: new Float64Array(0), made: new Float64Array(REFRESHED_FRAMES),
+      rowsOf, makeDrive, delay, frameSamples,
       width, gateDbfs, contextFrames,
       rigSamplesPerFrame, aligned: Math.abs(rigSamplesPerFrame - frameSamples) < 1e-9,
       restRow: rows.slice((REST_FRAMES - 1) * width, REST_FRAMES * width), state: rest.state_out.data.slice(),
@@ -139,14 +151,19 @@ export class AudioStream {
       const count = Math.min(Math.floor(this.pending.length / size), MAX_CALL_FRAMES);
       const audio = this.pending.slice(0, count * size);
       let powers = null; // one graph without a steady form: no gate, nothing to measure (as Python's plan())
+      let refresh = true;
+      let now = 0;
       if (this.steady) {
         powers = new Float64Array(this.powers.length + count);
         powers.set(this.powers);
         powers.set(framePowers(audio, size), this.powers.length);
+        now = windowLoudness(powers);
+        refresh = loudnessMoved(now, this.made);
       }
-      const out = await this.run(audio, count, this.state, count, powers === null || loudnessMoved(powers));
+      const out = await this.run(audio, count, this.state, count, refresh);
       if (powers !== null) {
-        this.powers = powers.slice(Math.max(0, powers.length - LOUDNESS_WINDOW_FRAMES - LOUDNESS_LAG_FRAMES));
+        this.powers = powers.slice(Math.max(0, powers.length - LOUDNESS_WINDOW_FRAMES));
+        this.made = madeAfter(this.made, count, refresh, now);
       }
       this.state = out.state_out.data.slice();
       this._remember(audio);

@@ -180,6 +180,7 @@ class SteadyState:
     squares: float
     pushes: int
     powers: np.ndarray  # the committed frames' mean squares (the loudness gate's)
+    made: np.ndarray  # the loudness the last frames' features were made at (the loudness gate's)
     committed: int
     quiet: int
     state: np.ndarray
@@ -515,7 +516,7 @@ class LiveSession:
         samples but the newest."""
         gate, stream, size = self._gate, self._stream, self._stream.spec.frame_samples
         return SteadyState(list(gate.frames), gate.count, gate.total, gate.squares, gate.pushes, stream.powers,
-                           stream.committed, stream.quiet, stream.state, stream.state_row,
+                           stream.made, stream.committed, stream.quiet, stream.state, stream.state_row,
                            ahead=ahead.reshape(-1, size).copy())
 
     def leave_steady(self, entered: int, state: SteadyState) -> None:
@@ -534,7 +535,7 @@ class LiveSession:
                 - frame_start(self._next_index, self._speech.per_frame)
             known = self._heard.samples.peek(self.lookahead_frames * stream.spec.frame_samples)[first:]
             stream.resume(state.committed, state.state, state.state_row, state.quiet, state.powers,
-                          state.final or {}, known)
+                          state.made, state.final or {}, known)
 
     def steady_plan(self, epoch: int, params: np.ndarray, out_audio: np.ndarray) -> FramePlan | None:
         """The plan of a steady frame taken at `epoch` whose call has run (`params`: its row times its gain); None

@@ -27,9 +27,9 @@ import numpy as np
 
 from .live import GATE_REBUILD, FramePlan, LiveFrame, LiveSession, SteadyState, SteadyTake, frame_sums
 from .translate import silence_gain_of_sums
-from .translate_stream import LOUDNESS_LAG_FRAMES, LOUDNESS_RATIO, LOUDNESS_WINDOW_FRAMES, StreamJob, run_stream_jobs
+from .translate_stream import LOUDNESS_RATIO, LOUDNESS_WINDOW_FRAMES, REFRESHED_FRAMES, StreamJob, run_stream_jobs
 
-_POWERS = LOUDNESS_WINDOW_FRAMES + LOUDNESS_LAG_FRAMES  # the loudness gate's powers: its window and its lag
+_POWERS = LOUDNESS_WINDOW_FRAMES  # the loudness gate's powers: its window's
 
 
 @dataclass
@@ -93,6 +93,7 @@ class SteadyTable:
         self.ahead_t = grown("ahead_t", (ahead,), np.float64)  # sums of the next frame and its
         self.ahead_q = grown("ahead_q", (ahead,), np.float64)  # lookahead, newest last
         self.powers = grown("powers", (_POWERS,), np.float64)  # the committed frames' powers
+        self.made = grown("made", (REFRESHED_FRAMES,), np.float64)  # the loudness their features were made at
         self.committed = grown("committed", (), np.int64)  # the stream's committed frames
         self.quiet = grown("quiet", (), np.int64)  # and the silence ending them
         self.epoch = grown("epoch", (), np.int64)  # the session's epoch when it entered
@@ -133,7 +134,8 @@ class SteadyTable:
         self.ahead_t[row, :self.lookahead], self.ahead_q[row, :self.lookahead] = frame_sums(entry.ahead)
         powers = entry.powers[-_POWERS:]
         self.powers[row] = 0.0
-        self.powers[row, _POWERS - powers.shape[0]:] = powers  # silence before counts as zeros (`loudness_moved`)
+        self.powers[row, _POWERS - powers.shape[0]:] = powers  # silence before counts as zeros (`window_loudness`)
+        self.made[row] = entry.made
         self.committed[row], self.quiet[row], self.epoch[row] = entry.committed, entry.quiet, epoch
         self.streams[row] = _RowStream(self.spec, entry.state, entry.state_row)
         self.last_rows[row] = None
@@ -149,8 +151,9 @@ class SteadyTable:
         stream = self.streams[row]
         live.leave_steady(int(self.epoch[row]), SteadyState(
             gate, int(self.gate_count[row]), float(self.gate_total[row]), float(self.gate_squares[row]),
-            int(self.gate_pushes[row]), self.powers[row].copy(), int(self.committed[row]), int(self.quiet[row]),
-            stream.state, stream.state_row, final=None if self.last_rows[row] is None else dict([self.last_rows[row]])))
+            int(self.gate_pushes[row]), self.powers[row].copy(), self.made[row].copy(), int(self.committed[row]),
+            int(self.quiet[row]), stream.state, stream.state_row,
+            final=None if self.last_rows[row] is None else dict([self.last_rows[row]])))
 
     def plan(self, rows_planned: list[int], new: np.ndarray, call: np.ndarray) -> list[float]:
         """The gains of planned rows' frames and their gate and stream state moved on by a frame, numpy across the
@@ -190,10 +193,14 @@ class SteadyTable:
             powers[:, :-1] = powers[:, 1:]
             powers[:, -1] = ahead_q[:, self.delay] / size  # `frame_power`
             self.powers[rows] = powers
-            window, lag = LOUDNESS_WINDOW_FRAMES, LOUDNESS_LAG_FRAMES
-            now = np.add.reduce(powers[:, lag:], axis=1) / window
-            then = np.add.reduce(powers[:, :window], axis=1) / window
-            self.refresh = (np.maximum(now, then) > LOUDNESS_RATIO * np.minimum(now, then)).tolist()
+            now = np.add.reduce(powers, axis=1) / LOUDNESS_WINDOW_FRAMES  # `window_loudness`, a row at a time
+            made = self.made[rows]
+            refresh = (now > LOUDNESS_RATIO * made.min(axis=1)) | (made.max(axis=1) > LOUDNESS_RATIO * now)
+            made[:, :-1] = made[:, 1:]  # `made_after`: the frame made at `now`, and a refresh's frames again
+            made[:, -1] = now
+            made[refresh] = now[refresh, None]
+            self.made[rows] = made
+            self.refresh = refresh.tolist()
         else:
             self.refresh = [True] * len(rows_planned)
         spoken = call != 0

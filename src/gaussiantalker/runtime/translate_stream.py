@@ -32,11 +32,12 @@ import numpy as np
 # network sees 1 s = 25 frames back), so the rest state no longer depends on where it started.
 REST_FRAMES = 32
 
-# Frames of the translator stream's window (1 s of context and 160 ms of lookahead at 25 fps) and of its refresh,
-# over which a call compares the window's loudness now with the window's as it was before the refreshed frames;
-# the steady graph runs while neither is LOUDNESS_RATIO times the other (measured on unseen speech in docs/live.md).
+# Frames of the translator stream's window (1 s of context and 160 ms of lookahead at 25 fps), whose mean power is the
+# window's loudness, and the committed frames a refreshing call makes again. A call runs the refreshing graph where
+# the window's loudness now is LOUDNESS_RATIO times, or a LOUDNESS_RATIO-th of, the loudness any of those frames'
+# features were made at, and the steady graph elsewhere (measured on unseen speech in docs/live.md).
 LOUDNESS_WINDOW_FRAMES = 29
-LOUDNESS_LAG_FRAMES = 4
+REFRESHED_FRAMES = 4
 LOUDNESS_RATIO = 2.0
 
 # A call's stacked states at most this many bytes: past it a call costs more a session, not less (the states and
@@ -103,17 +104,32 @@ def frame_power(audio: np.ndarray) -> np.ndarray:
     return np.add.reduce(values, axis=1) / audio.shape[1]
 
 
-def loudness_moved(powers: np.ndarray) -> bool:
-    """Whether a call whose frames end `powers` (per-frame mean squares, the committed frames' before) needs the
-    refreshing graph: the window's mean power against the window's LOUDNESS_LAG_FRAMES frames earlier, either
-    LOUDNESS_RATIO times the other (silence before counts as zeros)."""
-    window, lag = LOUDNESS_WINDOW_FRAMES, LOUDNESS_LAG_FRAMES
-    padded = powers[-(window + lag):]
-    if padded.shape[0] < window + lag:
-        padded = np.concatenate([np.zeros(window + lag - padded.shape[0]), padded])
-    # np.mean's own sums, bit for bit, on the same contiguous values
-    now, then = np.add.reduce(padded[lag:]) / window, np.add.reduce(padded[:window]) / window
-    return bool(max(now, then) > LOUDNESS_RATIO * min(now, then))
+def window_loudness(powers: np.ndarray) -> np.float64:
+    """The window's loudness: the mean of the last LOUDNESS_WINDOW_FRAMES frames' mean squares of `powers` (silence
+    before the first counts as zeros)."""
+    window = powers[-LOUDNESS_WINDOW_FRAMES:]
+    if window.shape[0] < LOUDNESS_WINDOW_FRAMES:
+        window = np.concatenate([np.zeros(LOUDNESS_WINDOW_FRAMES - window.shape[0]), window])
+    # np.mean's own sum, bit for bit, over the same contiguous values as a pool's table sums a row of
+    return np.add.reduce(window) / LOUDNESS_WINDOW_FRAMES
+
+
+def loudness_moved(now: float, made: np.ndarray) -> bool:
+    """Whether a call needs the refreshing graph: the window's loudness `now` is LOUDNESS_RATIO times, or a
+    LOUDNESS_RATIO-th of, the loudness at which any of the last REFRESHED_FRAMES committed frames' features were
+    made (`made`; the rest state's: zeros), so they would be made again at the newest statistics."""
+    return bool(now > LOUDNESS_RATIO * made.min() or made.max() > LOUDNESS_RATIO * now)
+
+
+def made_after(made: np.ndarray, keep: int, refreshed: bool, now: float) -> np.ndarray:
+    """`made` after a call at loudness `now` that committed `keep` frames: a refreshing call made the last
+    REFRESHED_FRAMES again, and every call makes its committed frames, at `now` (a call that commits none leaves
+    the state's features as they were)."""
+    if keep <= 0:
+        return made
+    if refreshed or keep >= REFRESHED_FRAMES:
+        return np.full(REFRESHED_FRAMES, now)
+    return np.concatenate([made[keep:], np.full(keep, now)])
 
 
 @dataclass
@@ -126,6 +142,7 @@ class StreamJob:
     keep: int
     refresh: bool = True  # False: the graph's steady form
     powers: np.ndarray | None = None  # each frame's mean square (a stream with a steady form: its gate reads them)
+    loudness: float = 0.0  # the window's loudness at this call (`window_loudness`; a stream with a steady form)
     rows: np.ndarray | None = None
     state: np.ndarray | None = None
     state_row: tuple[np.ndarray, int] | None = None  # (the call's state_out, this job's row of it)
@@ -207,6 +224,7 @@ class TranslatorStream:
         self.quiet = REST_FRAMES * self.spec.frame_samples  # silent samples at the end of what was committed
         self._provisional: dict[int, np.ndarray] = {}
         self._powers = np.zeros(0)  # the committed frames' mean squares, the last window's (rest: silence)
+        self._made = np.zeros(REFRESHED_FRAMES)  # the loudness its last frames were made at (`loudness_moved`)
         self._at_rest = True  # nothing offered nor run since this reset: all of the above is as it set it
 
     @property
@@ -273,7 +291,8 @@ class TranslatorStream:
         if not self.spec.steady:  # one graph: no gate, nothing to measure
             return StreamJob(self, audio, keep)
         powers = frame_power(audio)
-        return StreamJob(self, audio, keep, loudness_moved(np.concatenate([self._powers, powers])), powers)
+        now = window_loudness(np.concatenate([self._powers, powers]))
+        return StreamJob(self, audio, keep, loudness_moved(now, self._made), powers, now)
 
     def _has_final(self, index: int) -> bool:
         return index < 0 or index in self.final
@@ -287,8 +306,8 @@ class TranslatorStream:
             index = first + k
             (self.final if index < final_end else self._provisional)[index] = row
         if job.powers is not None:  # the gate's history: the committed frames' mean squares, the last window's
-            window = LOUDNESS_WINDOW_FRAMES + LOUDNESS_LAG_FRAMES
-            self._powers = np.concatenate([self._powers, job.powers[:job.keep]])[-window:]
+            self._powers = np.concatenate([self._powers, job.powers[:job.keep]])[-LOUDNESS_WINDOW_FRAMES:]
+            self._made = made_after(self._made, job.keep, job.refresh, job.loudness)
         committed = job.audio[:job.keep].reshape(-1)
         silent = _trailing_silence(committed)
         self.quiet = self.quiet + silent if silent == committed.shape[0] else silent
@@ -303,12 +322,17 @@ class TranslatorStream:
         """The committed frames' mean squares that the loudness gate reads (the last window's at most)."""
         return self._powers
 
+    @property
+    def made(self) -> np.ndarray:
+        """The loudness at which the last REFRESHED_FRAMES committed frames' features were made (`loudness_moved`)."""
+        return self._made
+
     def resume(self, committed: int, state: np.ndarray, state_row: tuple[np.ndarray, int] | None, quiet: int,
-               powers: np.ndarray, final: dict[int, np.ndarray], known: np.ndarray) -> None:
+               powers: np.ndarray, made: np.ndarray, final: dict[int, np.ndarray], known: np.ndarray) -> None:
         """Take up the stream as a pool that ran its calls elsewhere left it (runtime/live_steady.py): what `finish`
         would have left after its last call, which committed every frame it made (no provisional rows)."""
         self.committed, self.state, self.state_row, self.quiet = committed, state, state_row, quiet
-        self._powers, self.final, self.known = powers, final, known
+        self._powers, self._made, self.final, self.known = powers, made, final, known
         self._provisional, self._at_rest = {}, False
 
     def _row(self, index: int) -> np.ndarray:
@@ -331,4 +355,5 @@ class TranslatorStream:
 
 
 __all__ = ["MAX_CALL_STATE_BYTES", "REST_FRAMES", "StreamJob", "StreamSpec", "TranslatorStream", "frame_power",
-           "loudness_moved", "read_stream_spec", "run_stream_jobs", "sessions_per_call"]
+           "loudness_moved", "made_after", "read_stream_spec", "run_stream_jobs", "sessions_per_call",
+           "window_loudness"]
