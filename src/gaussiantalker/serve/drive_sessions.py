@@ -159,11 +159,11 @@ class DriveSession:
         if self.error is not None:
             return False
         try:
-            self._feed_voice()  # what came while the pool ran the translator calls (a timer would have pushed it)
-            if planned is not None:
+            if planned is not None:  # a steady frame took its audio when planned: the next tick's feed pushes the rest
                 taken = steady.take(planned)
                 if taken is not None:
                     return (*taken, planned.interrupts)
+            self._feed_voice()  # what came while the pool ran the translator calls (a timer would have pushed it)
             # The epoch is read before the frame is planned: a frame planned after an interrupt() has its epoch,
             # one planned before keeps the older one (interrupt() counts itself once it has cleared the queues).
             epoch = self.live.stats.interrupts
