@@ -498,8 +498,8 @@ class LiveSession:
         queued (`_ready_batch`), and its stream's call one committed frame whose row is this frame's (in the table
         since epoch `entered`, the table keeps it so)."""
         if self._anchor is None or self._closed or self._ended or self._flushed or self._inflight is not None \
-                or self._translated or self._error is not None or self._reading or self._last_spoken is None \
-                or self._frames_since_speech != 0 or self.due > now:
+                or self._translated or self._error is not None or self._reading or not self._mid_utterance \
+                or self.due > now:
             return False
         stream, lookahead = self._stream, self.lookahead_frames
         size, index = stream.spec.frame_samples, self._next_index
