@@ -85,16 +85,16 @@ def test_the_stream_gives_the_windowed_graphs_rows(path):
             assert np.abs(got - expected[k][0]).max() < EXACT, name
 
 
-@pytest.mark.parametrize("per_call", [None, 2, "padded"], ids=["one-call", "split", "padded"])
+@pytest.mark.parametrize("per_call", [None, 3, "padded"], ids=["one-call", "split", "padded"])
 def test_sessions_batched_in_one_call_get_their_own_rows(monkeypatch, per_call):
-    """Three streams at different places in different clips, stacked on the batch axis in one call (what the live
-    server's pool does), each get the rows and state they get alone; so do they where the states' bytes split them
-    into calls of two (MAX_CALL_STATE_BYTES); and, for a graph that pads exactly, calls of 1, 2 and 3 frames (one
-    committed) stacked into one, zero-padded to 3."""
+    """Four streams at different places in different clips, stacked on the batch axis in one call (what the live
+    server's pool does), each get the rows and state they get alone; so do they where the states' bytes allow three
+    a call (MAX_CALL_STATE_BYTES: two calls of two, not three and one); and, for a graph that pads exactly, calls of
+    1 to 4 frames (one committed) stacked into one, zero-padded to 4."""
     import gaussiantalker.runtime.translate_stream as translate_stream
 
     _, stream = _sessions(ARKIT_MODEL)
-    clips = unseen_speech()[:1] * 3
+    clips = unseen_speech()[:1] * 4
     states = [_rest(stream) for _ in clips]
     lengths = [1 + k if per_call == "padded" else 1 for k in range(len(clips))]
     chunks = [clip[(7 + 5 * k) * FRAME:(7 + 5 * k + n) * FRAME].reshape(1, n, FRAME)
@@ -115,9 +115,9 @@ def test_sessions_batched_in_one_call_get_their_own_rows(monkeypatch, per_call):
         feeds = {"audio": audio, "state": state, "keep": np.array([keep], np.float32)}
         return dict(zip(names, stream.run(names, feeds), strict=True))
 
-    if per_call == 2:
+    if per_call == 3:
         monkeypatch.setattr(translate_stream, "MAX_CALL_STATE_BYTES", 4 * per_call * jobs[0].stream.state.shape[0])
-    assert run_stream_jobs(jobs, run, lambda out: out["blendshapes"]) == ([2, 1] if per_call == 2 else [3])
+    assert run_stream_jobs(jobs, run, lambda out: out["blendshapes"]) == ([2, 2] if per_call == 3 else [4])
     for job, single, n in zip(jobs, alone, lengths, strict=True):
         assert job.rows.shape[0] == n
         assert np.abs(job.rows - single[0][0]).max() < EXACT and np.abs(job.state - single[1][0]).max() < EXACT

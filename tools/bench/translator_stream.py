@@ -154,7 +154,7 @@ def run_cost(translator, variants: list[Variant], cases: list[tuple[int, int]], 
 
     from gaussiantalker.exporter.export.translator_graph import translator_onnx, translator_stream_onnx
     from gaussiantalker.exporter.model.translator_stream import MotionTranslatorStream
-    from gaussiantalker.runtime.translate_stream import sessions_per_call
+    from gaussiantalker.runtime.translate_stream import call_bounds, sessions_per_call
 
     options = ort.SessionOptions()
     options.intra_op_num_threads = 1
@@ -191,10 +191,9 @@ def run_cost(translator, variants: list[Variant], cases: list[tuple[int, int]], 
                 step = sessions_per_call(size)
                 if step < sessions:  # the live pool's split of a group too big for the caches (run_stream_jobs)
                     start = time.perf_counter()
-                    for first in range(0, sessions, step):
-                        session.run(None, {"audio": audio[first:first + step], "state": state[first:first + step],
-                                           "keep": keep})
-                    timings.setdefault(f"{label}, calls of {step}", []).append(time.perf_counter() - start)
+                    for lo, hi in call_bounds(sessions, step):
+                        session.run(None, {"audio": audio[lo:hi], "state": state[lo:hi], "keep": keep})
+                    timings.setdefault(f"{label}, calls of at most {step}", []).append(time.perf_counter() - start)
         per_frame = {mode: 1000 * float(np.median(t)) / (sessions * n) for mode, t in timings.items()}
         out.append({"sessions": sessions, "frames_a_call": n, "ms_per_session_frame": per_frame})
     return out

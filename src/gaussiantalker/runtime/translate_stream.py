@@ -41,10 +41,10 @@ REFRESHED_FRAMES = 4
 LOUDNESS_RATIO = 2.0
 
 # A call's stacked states at most this many bytes: past it a call costs more a session, not less (the states and
-# each layer's activations leave the CPU's caches): 100 of the demo speaker's 116 kB states measured 0.327 ms a
-# session-frame (steady graph) in calls of 18 against 0.366 in one call (docs/live.md, "Sessions batched together").
-# A pool splits a bigger group into calls of this size; the voice's 16 kB states are split only past 129.
-MAX_CALL_STATE_BYTES = 2 << 20
+# each layer's activations leave the CPU's caches), while each call has a fixed cost that a served pool pays several
+# times over (docs/live.md, "Sessions batched together"). A pool splits a bigger group into the fewest calls within
+# it, of equal size: 36 of the demo speaker's 116 kB states a call; the voice's 16 kB states are split past 258.
+MAX_CALL_STATE_BYTES = 4 << 20
 
 RunStream = Callable[[np.ndarray, np.ndarray, int, bool], dict]  # (audio [B, n, F], state, keep, refresh) -> outputs
 RowsOf = Callable[[dict], np.ndarray]  # graph outputs -> rows [B, n, D]
@@ -159,17 +159,17 @@ def sessions_per_call(state_size: int) -> int:
 
 def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) -> list[int]:
     """Run every job: one graph call per distinct (frames, keep, refresh), the sessions stacked on the batch axis
-    (at most `sessions_per_call` of them a call); a graph that pads exactly stacks jobs of different lengths into
-    one call per (keep, refresh), the shorter ones zero-padded at the end. Returns the sessions of each call."""
+    (at most `sessions_per_call` of them a call, a bigger group split evenly); a graph that pads exactly stacks jobs
+    of different lengths into one call per (keep, refresh), the shorter ones zero-padded at the end. Returns the
+    sessions of each call."""
     groups: dict[tuple[int, int, bool], list[StreamJob]] = {}
     for job in jobs:
         frames, keep, refresh = job.shape
         groups.setdefault((-1 if job.stream.spec.pads_exactly else frames, keep, refresh), []).append(job)
     calls = []
     for (_, keep, refresh), group in groups.items():
-        step = sessions_per_call(group[0].stream.state.shape[0])
-        for first in range(0, len(group), step):
-            part = group[first:first + step]
+        for lo, hi in call_bounds(len(group), sessions_per_call(group[0].stream.state.shape[0])):
+            part = group[lo:hi]
             frames = max(job.audio.shape[0] for job in part)
             audio = np.zeros((len(part), frames, part[0].audio.shape[1]), np.float32)
             for k, job in enumerate(part):
@@ -180,6 +180,16 @@ def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) 
                 job.rows, job.state, job.state_row = rows[k, :job.audio.shape[0]], states[k], (states, k)
             calls.append(len(part))
     return calls
+
+
+def call_bounds(count: int, most: int) -> list[tuple[int, int]]:
+    """[lo, hi) of each call that `count` stacked sessions are cut into: the fewest calls of at most `most`, their
+    sizes differing by one at most (37 in calls of 36: 19 and 18, not 36 and 1, whose call of one would pay a call's
+    fixed cost alone)."""
+    calls = -(-count // most)
+    size, extra = divmod(count, calls)
+    edges = [k * size + min(k, extra) for k in range(calls + 1)]
+    return list(zip(edges, edges[1:], strict=False))
 
 
 def _stacked_states(jobs: Sequence[StreamJob]) -> np.ndarray:
@@ -354,6 +364,6 @@ class TranslatorStream:
         return value
 
 
-__all__ = ["MAX_CALL_STATE_BYTES", "REST_FRAMES", "StreamJob", "StreamSpec", "TranslatorStream", "frame_power",
-           "loudness_moved", "made_after", "read_stream_spec", "run_stream_jobs", "sessions_per_call",
+__all__ = ["MAX_CALL_STATE_BYTES", "REST_FRAMES", "StreamJob", "StreamSpec", "TranslatorStream", "call_bounds",
+           "frame_power", "loudness_moved", "made_after", "read_stream_spec", "run_stream_jobs", "sessions_per_call",
            "window_loudness"]
