@@ -444,3 +444,40 @@ def test_a_voice_landing_later_moves_the_clock_instead_of_making_late_frames(ga_
     monkeypatch.setattr(live_module, "MAX_DEFERRALS", 0)
     _, late = _paced_on_a_clock(driver, utterances, monkeypatch, slower_from_s=1.0, slower_by_s=0.045)
     assert late.stats.deferrals == 0 and late.stats.late_frames >= 10
+
+
+def test_a_clock_set_back_by_a_stall_keeps_its_phase_on_the_grid(ga_voice_bundle, monkeypatch):
+    """Two sessions on the live server's grid of half a frame, a grid step apart (the pool's two groups a frame), set
+    back together by a 150 ms stall, past MAX_LAG_FRAMES: each clock re-anchors at its own phase, its next frame due
+    within a frame period of now, so the two groups stay two rather than gathering on the grid's next step (where
+    one group would be left with the few sessions that were not behind, each group a call of its own)."""
+    from gaussiantalker.runtime import live as live_module
+    from gaussiantalker.serve.drive_sessions import clock_grid_s
+
+    clock = [100.0]
+    monkeypatch.setattr(live_module, "time", types.SimpleNamespace(monotonic=lambda: clock[0],
+                                                                   perf_counter=lambda: clock[0]))
+    driver = open_driver(ga_voice_bundle)
+    grid, period = clock_grid_s(driver.fps), 1.0 / driver.fps
+    lives = [LiveSession(driver, output=None, streaming=True, clock_grid_s=grid) for _ in range(2)]
+
+    def tick() -> None:
+        for live in lives:
+            live.step()  # the frame due now, if any (an idle one)
+
+    def phase(live: LiveSession) -> int:
+        return round(live.due / grid) % 2
+
+    lives[0].step()  # its clock starts at this grid step, the other's a step later
+    clock[0] += grid
+    lives[1].step()
+    for _ in range(10):
+        clock[0] += grid
+        tick()
+    before = [phase(live) for live in lives]
+    assert before[0] != before[1]
+    clock[0] += 0.15  # a stall: both more than MAX_LAG_FRAMES behind
+    tick()
+    for live, was in zip(lives, before, strict=True):
+        assert clock[0] <= live.due < clock[0] + period and phase(live) == was
+    assert lives[0].stats.late_frames + lives[1].stats.late_frames == 0  # idle frames: nothing was late to show
