@@ -439,24 +439,10 @@ class LiveSession:
 
     def keep_pace(self, due: float) -> None:
         """After step() made the frame that was due at `due`: a clock behind by more than MAX_LAG_FRAMES re-anchors
-        now, as frames() does (on a clock grid, at its own phase: `_caught_up`)."""
-        now = time.monotonic()
-        if now - due > MAX_LAG_FRAMES / self.fps:
-            self._anchor = (self._caught_up(now), self._next_index)
+        now, as frames() does."""
+        if time.monotonic() - due > MAX_LAG_FRAMES / self.fps:
+            self._anchor = (self._on_grid(time.monotonic()), self._next_index)
             self._deferrals = 0
-
-    def _caught_up(self, now: float) -> float:
-        """When the next frame of a clock that fell behind is due: now; on a clock grid, the first time at or after
-        now a whole number of frame periods after its due time, so that it keeps its phase on the grid. A pool's
-        sessions that a stall set back together then stay in the groups they were in, where snapping each to the
-        grid's next step would gather them into one and leave the other with a few, each group a call of its own
-        (docs/live.md, "Sessions batched together")."""
-        grid = self._clock_grid
-        if grid <= 0:
-            return now
-        due = self.due
-        periods = max(0, math.ceil((now - due) * self.fps - 1e-9))
-        return math.ceil((due + periods / self.fps) / grid - 1e-6) * grid  # the grid's step there (its rounding)
 
     def _on_grid(self, moment: float) -> float:
         """`moment`, or the first multiple of the clock grid at or after it."""
