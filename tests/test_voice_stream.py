@@ -123,6 +123,16 @@ def test_sessions_batched_in_one_call_get_their_own_rows(monkeypatch, per_call):
         assert np.abs(job.rows - single[0][0]).max() < EXACT and np.abs(job.state - single[1][0]).max() < EXACT
 
 
+def test_a_group_too_big_for_one_call_is_split_evenly():
+    """The fewest calls within the cap, their sizes one apart at most, in order (`call_bounds`)."""
+    from gaussiantalker.runtime.translate_stream import call_bounds
+
+    assert call_bounds(37, 36) == [(0, 19), (19, 37)]
+    assert call_bounds(50, 36) == [(0, 25), (25, 50)]
+    assert call_bounds(73, 36) == [(0, 25), (25, 49), (49, 73)]
+    assert call_bounds(36, 36) == [(0, 36)] and call_bounds(1, 36) == [(0, 1)] and call_bounds(0, 36) == []
+
+
 def test_the_voice_graph_pads_exactly():
     """The built-in voice's stream reads no frame past its delay, so its spec says it pads exactly (its calls of
     different lengths may share one call); a graph whose rows read the call's later frames is told apart."""

@@ -185,8 +185,10 @@ def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) 
 def call_bounds(count: int, most: int) -> list[tuple[int, int]]:
     """[lo, hi) of each call that `count` stacked sessions are cut into: the fewest calls of at most `most`, their
     sizes differing by one at most (37 in calls of 36: 19 and 18, not 36 and 1, whose call of one would pay a call's
-    fixed cost alone)."""
-    calls = -(-count // most)
+    fixed cost alone); none for no sessions."""
+    if count <= 0:
+        return []
+    calls = -(-count // max(1, most))
     size, extra = divmod(count, calls)
     edges = [k * size + min(k, extra) for k in range(calls + 1)]
     return list(zip(edges, edges[1:], strict=False))
