@@ -10,6 +10,7 @@ import contextlib
 import dataclasses
 import os
 from collections.abc import Iterator, Sequence
+from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
@@ -199,18 +200,20 @@ def rebinding_onnx_exports(recorded: SimpleNamespace) -> Iterator[list]:
 
 
 @contextlib.contextmanager
-def rebinding_the_translator(recorded: SimpleNamespace) -> Iterator[None]:
-    """Within the block, exporting a translator of the recorded speaker's kind, or its streaming forms, rebinds its
-    recorded graph (as `rebinding_onnx_exports` does); every other graph is exported by torch.onnx."""
+def rebinding_the_translator(recorded: SimpleNamespace, deform: bool = False) -> Iterator[None]:
+    """Within the block, exporting a translator of the recorded speaker's kind, or its streaming forms with the
+    recorded settings (refresh, delay), rebinds its recorded graph (as `rebinding_onnx_exports` does); so does the
+    deformation graph with `deform`; every other graph (a short stream's) is exported by torch.onnx."""
     import gaussiantalker.exporter.export.onnx_export as onnx_export_module
 
     real_export_onnx = onnx_export_module.export_onnx
-    recorded_modules = graph_modules(recorded.speaker)[:3]
+    recorded_modules = graph_modules(recorded.speaker)[:4 if deform else 3]
 
     def export(module, *args, **kwargs):
         for proto, recorded_module in zip(recorded.protos, recorded_modules, strict=False):
-            if type(module) is type(recorded_module) and \
-                    getattr(module, "call_refresh", None) == getattr(recorded_module, "call_refresh", None):
+            if type(module) is type(recorded_module) and all(
+                    getattr(module, name, None) == getattr(recorded_module, name, None)
+                    for name in ("call_refresh", "delay_frames", "refresh_frames", "tail_frames")):
                 return _rebind_onnx(proto, module, recorded_module)
         return real_export_onnx(module, *args, **kwargs)
 
@@ -383,6 +386,18 @@ def small_scene_export(small_speaker, tmp_path_factory) -> SimpleNamespace:
 # the Gaussians, which changes the deformation graph (exported again) but not the translator's (rebound).
 REDUCED_EXPORTS = {"balanced": True, "compact": False, "fast": False, "mobile": False, "translator-fp16": True,
                "translator-int8": True}
+
+
+@pytest.fixture(scope="session")
+def short_stream_export(small_export, tmp_path_factory) -> Path:
+    """`small_export.speaker` exported with its short stream (`short_stream=True`): the recorded graphs rebound, the
+    short stream's two traced."""
+    from gaussiantalker.exporter.export.bundle_export import export_bundle
+
+    path = tmp_path_factory.mktemp("short") / "short.gtb"
+    with rebinding_the_translator(small_export, deform=True):
+        export_bundle(small_export.speaker, path, progress=False, short_stream=True)
+    return path
 
 
 @pytest.fixture(scope="session")

@@ -27,11 +27,11 @@ SPEECH = Path(__file__).resolve().parents[1] / "samples" / "demo_speech.wav"
 
 
 def _pool_packets(bundle, together: bool, monkeypatch, seconds: float = 4.0,
-                  pose_track: bool = True) -> tuple[list[list[bytes]], int]:
+                  pose_track: bool = True, short: bool = False) -> tuple[list[list[bytes]], list[int]]:
     """Ten paced sessions on a fake clock, each frame made by its session's `stream_job` and `step`, or (`together`)
     as the server's pool makes them: the steady frames planned together (live_steady.py), every frame made as arrays
     (live_rows.py) and packed as one (`frame_packets`). Every session's frame packets, and how many frames the steady
-    path made."""
+    path made of each. `short`: every other session at 80 ms of lookahead on the short stream."""
     clock = [1000.0]
     monkeypatch.setattr(live_module, "time", types.SimpleNamespace(monotonic=lambda: clock[0],
                                                                    perf_counter=time.perf_counter, time=time.time))
@@ -41,8 +41,9 @@ def _pool_packets(bundle, together: bool, monkeypatch, seconds: float = 4.0,
         driver.pose_track = None
     speech = np.asarray(load_audio(SPEECH, driver.sample_rate)[: int(2.5 * driver.sample_rate)], np.float32)
     grid = clock_grid_s(driver.fps)
-    lives = [LiveSession(driver, lookahead_ms=160, audio_rate=driver.sample_rate, output=None, clock_grid_s=grid,
-                         streaming=True) for _ in range(10)]
+    lives = [LiveSession(driver, lookahead_ms=80 if short and k % 2 else 160, audio_rate=driver.sample_rate,
+                         output=None, clock_grid_s=grid, streaming=True,
+                         stream_delay_ms=80 if short and k % 2 else None) for k in range(10)]
     # chunks of 20 ms (two a frame at 25 fps), 30 ms (out of step with the frames) and 50 ms (a frame's lookahead
     # arriving in bursts: late frames and deferrals)
     chunks = [0.02, 0.02, 0.03, 0.02, 0.05, 0.02, 0.02, 0.03, 0.02, 0.02]
@@ -51,7 +52,7 @@ def _pool_packets(bundle, together: bool, monkeypatch, seconds: float = 4.0,
     # barge-ins mid-utterance (then a second voice), and one right at a voice's start
     interrupts = {(2, 40), (5, 75), (7, 2)}
     packets: list[list[bytes]] = [[] for _ in lives]
-    made_steady, tick, steady = 0, 0, SteadyFrames()
+    made_steady, tick, steady = [0] * len(lives), 0, SteadyFrames()
     while clock[0] < 1000.0 + seconds:
         due = [k for k, live in enumerate(lives) if live.due <= clock[0]]
         for k in due:
@@ -76,7 +77,7 @@ def _pool_packets(bundle, together: bool, monkeypatch, seconds: float = 4.0,
             made = []
             for p, live in enumerate(sessions):
                 taken = steady.take(planned[p]) if planned[p] is not None else None
-                made_steady += taken is not None
+                made_steady[due[p]] += taken is not None
                 taken = taken or live.next_plan()
                 if taken is not None:
                     made.append((p, live, *taken))
@@ -109,7 +110,8 @@ def test_steady_frames_made_together_are_each_sessions_own(small_export, monkeyp
     steady path, and the refreshing, late and interrupted ones by the sessions' own."""
     alone, none = _pool_packets(small_export.path, False, monkeypatch)
     together, steady = _pool_packets(small_export.path, True, monkeypatch)
-    assert none == 0
+    assert sum(none) == 0
+    steady = sum(steady)
     frames = sum(len(p) for p in alone)
     assert frames > 900 and [len(p) for p in together] == [len(p) for p in alone]
     for k, (mine, theirs) in enumerate(zip(together, alone, strict=True)):
@@ -123,14 +125,25 @@ def test_frames_made_together_sway_as_each_sessions_own(small_export, monkeypatc
     """A bundle without a pose track: each session's idle sway, made into the rows a session at a time."""
     alone, _ = _pool_packets(small_export.path, False, monkeypatch, seconds=1.5, pose_track=False)
     together, steady = _pool_packets(small_export.path, True, monkeypatch, seconds=1.5, pose_track=False)
-    assert steady > 0 and together == alone and sum(len(p) for p in alone) > 300
+    assert sum(steady) > 0 and together == alone and sum(len(p) for p in alone) > 300
+
+
+def test_two_streams_in_one_pool_make_each_sessions_own_frames(short_stream_export, monkeypatch):
+    """Sessions on the main stream at 160 ms and on the short stream at 80 ms (docs/live.md, "A stream for a short
+    lookahead") in one pool: their calls are the streams' own, the packets each session's own bit for bit, and the
+    80 ms sessions' frames steady too (on the main stream their rows would lag past the lookahead: never steady)."""
+    alone, _ = _pool_packets(short_stream_export, False, monkeypatch, short=True)
+    together, steady = _pool_packets(short_stream_export, True, monkeypatch, short=True)
+    assert together == alone and sum(len(p) for p in alone) > 900
+    # every session made steady frames (session 7, barged in on at its start, speaks 1 s of its 4)
+    assert min(steady[1::2]) > 15 and sum(steady[1::2]) > 0.35 * sum(len(p) for p in alone[1::2]), steady
 
 
 def test_a_rig_off_the_streams_frames_makes_no_steady_frames(lam_voice_bundle, monkeypatch):
     """A 30 fps avatar on the 25 fps voice interpolates between rows: its frames stay the sessions' own."""
     alone, _ = _pool_packets(lam_voice_bundle, False, monkeypatch, seconds=1.5)
     together, steady = _pool_packets(lam_voice_bundle, True, monkeypatch, seconds=1.5)
-    assert steady == 0 and together == alone and sum(len(p) for p in alone) > 300
+    assert sum(steady) == 0 and together == alone and sum(len(p) for p in alone) > 300
 
 
 @pytest.mark.parametrize("state", ["closed", "interrupted"])

@@ -392,12 +392,12 @@ def test_a_live_session_calls_the_steady_graph_mid_utterance(small_export):
 
     driver.run_stream = recording
     audio = unseen_speech()[0]
-    _live_rows(driver, np.concatenate([np.zeros(16000, np.float32), audio]), None)
+    live_rows(driver, np.concatenate([np.zeros(16000, np.float32), audio]), None)
     steady = calls.count(False)
     assert calls[0] is True and 0 < calls.count(True) < steady, (calls.count(True), steady)
 
 
-def _live_rows(driver, audio: np.ndarray, streaming: bool, **options) -> tuple[np.ndarray, LiveSession]:
+def live_rows(driver, audio: np.ndarray, streaming: bool, **options) -> tuple[np.ndarray, LiveSession]:
     """A free-running session fed `audio` in uneven chunks then flushed: every frame's expression and jaw."""
     frames = []
     with LiveSession(driver, output=None, paced=False, streaming=streaming, **options) as live:
@@ -421,8 +421,8 @@ def test_live_sessions_stream_the_speakers_translator(small_export, batch_frames
     driver = open_driver(small_export.path)
     for audio in unseen_speech():
         options = {"min_batch_frames": batch_frames}
-        streamed, live = _live_rows(driver, audio, None, **options)
-        windowed, _ = _live_rows(driver, audio, False, **options)
+        streamed, live = live_rows(driver, audio, None, **options)
+        windowed, _ = live_rows(driver, audio, False, **options)
         assert live._stream is not None and streamed.shape == windowed.shape
         offline = np.stack([_row(drive) for drive in driver.drives(audio, 16000)])
         count = min(offline.shape[0], streamed.shape[0])

@@ -106,7 +106,7 @@ def test_sessions_batched_in_one_call_get_their_own_rows(monkeypatch, per_call):
         def __init__(self, state):
             self.state = state[0]
             self.state_row = None  # as a stream that no pooled call has finished
-            self.spec = types.SimpleNamespace(pads_exactly=per_call == "padded")
+            self.spec = types.SimpleNamespace(pads_exactly=per_call == "padded", graphs=None)
 
     jobs = [StreamJob(Fake(s), c[0], 1) for c, s in zip(chunks, states, strict=True)]
 

@@ -836,6 +836,8 @@ def live_clients(
                                  "one process, no nginx"),
     baseline_replicas: int = typer.Option(1, "--baseline-replicas", min=1, max=8, help="the baseline's gt-serve "
                                           "processes behind nginx (a baseline that runs gt-serve)"),
+    stream_delay_ms: float = typer.Option(None, "--stream-delay-ms", min=0.0, help="gt-serve's --stream-delay-ms "
+                                          "(80: the short stream; the baseline runs its default)"),
     out: Path = typer.Option(None, "--out", help="folder for live-clients.md and live-clients.json"),
 ) -> None:
     """Client-render live sessions (gt-serve --client-render, tokens on) under N concurrent load clients: late
@@ -865,7 +867,8 @@ def live_clients(
         result["runs"].append(run_live_clients_bench(bundle, counts, lookahead_ms, speak_s, chunk_ms=chunk,
                                                      log=typer.echo, transport=kind, batch_frames=batch,
                                                      context_ms=context_ms, baseline=baseline, rounds=rounds,
-                                                     replicas=replicas, baseline_replicas=baseline_replicas))
+                                                     replicas=replicas, baseline_replicas=baseline_replicas,
+                                                     stream_delay_ms=stream_delay_ms))
     result["load_at_end"] = os.getloadavg()
     _stamp(result)
     table = "\n\n".join(f"{TRANSPORT_NAMES[run['transport']]}, voice in {run['chunk_ms']:g} ms chunks at "

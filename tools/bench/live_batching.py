@@ -1,6 +1,6 @@
 """Live sessions' translator cost and accuracy (docs/live.md, "Fewer translator calls: --batch-frames" and "Streaming
 translators"): a voice made as it is spoken (20 ms chunks) through `LiveSession(open_driver(bundle), paced=False)`
-per mode (windowed with K frames per call at least, or the bundle's streaming graph) and lookahead, in alternating
+per mode (windowed with K frames per call at least, or each of the bundle's streams) and lookahead, in alternating
 rounds on one thread: translator calls, CPU seconds per second of speech (median of the rounds), and how the drives
 follow the offline ones (the ten busiest mouth channels' mean r, the jaw's r, RMS parameter error)."""
 
@@ -24,13 +24,15 @@ def _params(driver, frame) -> np.ndarray:
 
 def _session(driver, speech: np.ndarray, mode: str, lookahead_ms: float, context_ms: float
              ) -> tuple[np.ndarray, int, float]:
-    """The drives' parameters [T, D] of `speech` pushed in CHUNK_S chunks, the translator calls, CPU seconds."""
+    """The drives' parameters [T, D] of `speech` pushed in CHUNK_S chunks, the translator calls, CPU seconds. `mode`:
+    "K=<frames>" (windowed), "stream" (the main stream) or "stream:<ms>" (the stream whose rows lag so)."""
     from gaussiantalker.runtime import LiveSession
 
-    streaming = mode == "stream"
+    streaming = mode.startswith("stream")
     batch = 1 if streaming else int(mode.removeprefix("K="))
+    delay_ms = float(mode.split(":")[1]) if ":" in mode else None
     live = LiveSession(driver, output=None, paced=False, context_ms=context_ms, min_batch_frames=batch,
-                       lookahead_ms=lookahead_ms, streaming=streaming)
+                       lookahead_ms=lookahead_ms, streaming=streaming, stream_delay_ms=delay_ms)
     step, frames = int(driver.sample_rate * CHUNK_S), []
     started = time.process_time()
     for first in range(0, speech.shape[0], step):
@@ -55,7 +57,7 @@ def _mouth_columns(driver, offline: np.ndarray) -> np.ndarray:
 def run_live_batching(bundle: Path, speech: Path, batches: list[int], seconds: float, rounds: int,
                       context_ms: float = 1000.0, streaming: bool = False,
                       lookaheads: tuple[float, ...] = (160.0,)) -> dict:
-    """Every mode (K per `batches`, and "stream" where asked) at every lookahead, `rounds` alternating rounds."""
+    """Every mode (K per `batches`, and each stream where asked) at every lookahead, `rounds` alternating rounds."""
     from gaussiantalker.runtime import open_driver
     from gaussiantalker.sdk.audio import load_audio
 
@@ -68,6 +70,9 @@ def run_live_batching(bundle: Path, speech: Path, batches: list[int], seconds: f
     jaw = offline.shape[1] - 3 if driver.rig == "flame" else _arkit_index("jawOpen")
     mouth = _mouth_columns(driver, offline)
     modes = [f"K={b}" for b in batches] + (["stream"] if streaming else [])
+    if streaming:  # the other streams (a trained speaker's short one), by how far their rows lag
+        modes += [f"stream:{1000 * spec.delay * spec.frame_samples / driver.sample_rate:g}"
+                  for spec in driver.stream_specs[1:]]
     cases = [(mode, lookahead) for lookahead in lookaheads for mode in modes]
     cpu: dict[tuple, list[float]] = {case: [] for case in cases}
     rows: dict[tuple, dict] = {}
@@ -78,7 +83,7 @@ def run_live_batching(bundle: Path, speech: Path, batches: list[int], seconds: f
             count = min(params.shape[0], offline.shape[0])
             got, want = params[:count], offline[:count]
             rows[(mode, lookahead)] = {
-                "mode": mode, "batch_frames": 1 if mode == "stream" else int(mode.removeprefix("K=")),
+                "mode": mode, "batch_frames": 1 if mode.startswith("stream") else int(mode.removeprefix("K=")),
                 "lookahead_ms": lookahead, "translator_calls": calls, "frames": int(params.shape[0]),
                 "mouth_r": float(np.mean([np.corrcoef(got[:, k], want[:, k])[0, 1] for k in mouth])),
                 "jaw_r": float(np.corrcoef(got[:, jaw], want[:, jaw])[0, 1]),
@@ -102,7 +107,9 @@ def live_batching_table(result: dict) -> str:
              "offline | jaw r vs offline | RMS parameter error vs offline |", "|---|---:|---:|---:|---:|---:|---:|"]
     for row in result["rows"]:
         mode = row.get("mode", f"K={row.get('batch_frames')}")
-        name = "streaming" if mode == "stream" else f"windowed, `--batch-frames {mode.removeprefix('K=')}`"
+        name = f"windowed, `--batch-frames {mode.removeprefix('K=')}`"
+        if mode.startswith("stream"):
+            name = f"streaming, the {mode.split(':')[1]} ms stream" if ":" in mode else "streaming"
         lines.append(f"| {name} | {row.get('lookahead_ms', 160):g} ms | {row['translator_calls']} | "
                      f"{row['cpu_ms_per_speech_s']:.1f} ms | {row.get('mouth_r', float('nan')):.3f} | "
                      f"{row['jaw_r']:.3f} | {row['rms_error']:.3f} |")

@@ -436,10 +436,10 @@ class Server:
 
 
 def _start_new_server(bundle: Path, settings: ServerSettings, folder: Path, max_sessions: int,
-                      replicas: int = 1) -> Server:
+                      replicas: int = 1, options: tuple[str, ...] = ()) -> Server:
     """gt-serve on a free loopback port, tokens on (a fresh secret in `folder`), once /readyz answers; with
     `replicas` > 1, that many gt-serve processes sharing the secret behind nginx (deploy/nginx.conf: least_conn,
-    WebSockets passed through), the clients sent to nginx."""
+    WebSockets passed through), the clients sent to nginx. `options`: more of gt-serve's, this server's alone."""
     from gaussiantalker.serve import new_secret, read_secret
 
     secret_path = folder / "secret.txt"
@@ -450,7 +450,7 @@ def _start_new_server(bundle: Path, settings: ServerSettings, folder: Path, max_
 
     def start(port: int, log_path: Path) -> tuple[subprocess.Popen, list[str]]:
         command = [sys.executable, "-m", SERVE_MODULE, str(bundle), "--port", str(port), "--secret-file",
-                   str(secret_path), "--max-sessions", str(max_sessions), *settings.arguments()]
+                   str(secret_path), "--max-sessions", str(max_sessions), *settings.arguments(), *options]
         return serving(command, f"http://127.0.0.1:{port}/readyz", SERVER_START_S, name=f"gt-serve :{port}",
                        log_path=log_path), command
 
@@ -817,11 +817,12 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
                            speak_s: float = SPEAK_S, idle_s: float = IDLE_S, chunk_ms: float = 20.0,
                            log=print, transport: str = "webrtc", batch_frames: int = 1,
                            context_ms: float = 1000.0, baseline: Baseline | None = None, rounds: int = 1,
-                           replicas: int = 1, baseline_replicas: int = 1) -> dict:
+                           replicas: int = 1, baseline_replicas: int = 1, stream_delay_ms: float | None = None) -> dict:
     """Start gt-serve (tokens on; `replicas` > 1: that many behind nginx) and, with `baseline`, the baseline
     script (`baseline_replicas` of it), then for each N `rounds` rounds of its load clients on `transport`
     ("webrtc": audio track and data channel; "ws": one WebSocket; "ws-deflate": one asking for permessage-deflate)
-    against each server in turn; returns gt-serve's figures per N (`runs`), the baseline's and the ratios."""
+    against each server in turn; returns gt-serve's figures per N (`runs`), the baseline's and the ratios.
+    `stream_delay_ms`: gt-serve's --stream-delay-ms (the baseline runs its default stream)."""
     if transport not in TRANSPORTS:
         raise ValueError(f"transport must be one of {TRANSPORTS}, got {transport!r}")
     settings = ServerSettings(lookahead_ms, batch_frames, context_ms)
@@ -834,7 +835,8 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
             if baseline is not None:
                 servers.append(_start_baseline_server(baseline, bundle, settings, Path(folder), cap,
                                                       baseline_replicas))
-            servers.append(_start_new_server(bundle, settings, Path(folder), cap, replicas))
+            options = () if stream_delay_ms is None else ("--stream-delay-ms", f"{stream_delay_ms:g}")
+            servers.append(_start_new_server(bundle, settings, Path(folder), cap, replicas, options))
             pooled = _alternate(servers, counts, rounds, speak_s, idle_s, chunk_ms, transport, log)
         finally:
             for server in servers:
@@ -844,7 +846,8 @@ def run_live_clients_bench(bundle: Path, counts: list[int], lookahead_ms: float 
               "round_runs": [row for server in servers for row in server.runs], "rounds": rounds,
               "late_tolerance_ms": 1000 * LATE_TOLERANCE_S, "speak_s": speak_s, "idle_s": idle_s,
               "lookahead_ms": lookahead_ms, "chunk_ms": chunk_ms, "transport": transport, "batch_frames": batch_frames,
-              "context_ms": context_ms, "server": {"command": new.command, "tokens": True, "replicas": replicas},
+              "context_ms": context_ms, "stream_delay_ms": stream_delay_ms,
+              "server": {"command": new.command, "tokens": True, "replicas": replicas},
               "server_log_tail": logs["new"]["log_tail"], "server_log_error_lines": logs["new"]["log_error_lines"],
               "baseline": None, "ratios": None}
     if baseline is not None:

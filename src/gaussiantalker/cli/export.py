@@ -92,6 +92,9 @@ def export(
                                "leave out what it never uses, record it in the bundle"),
     mnn: bool = typer.Option(False, "--mnn", help="also store every graph as an MNN model, for "
                              "TalkingHead(backend='mnn') and native ports (docs/mnn.md; needs the mnn extra)"),
+    short_stream: bool = typer.Option(False, "--short-stream", help="also a trained translator's short stream, whose "
+                                      "rows lag 80 ms: live sessions with less than 160 ms of lookahead may run it "
+                                      "(stream_delay_ms=80), cheaper and less accurate (docs/live.md)"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="no progress bars"),
 ) -> None:
     """Export a speaker checkpoint to a bundle; with --verify, place it only if it reproduces the torch frames.
@@ -121,7 +124,7 @@ def export(
         # has passed), so a failed or interrupted run never replaces a good bundle.
         with atomic_path(output) as staged:
             result = export_bundle(speaker, staged, settings=settings, preset=chosen, progress=not quiet,
-                                   scene=scene_spec, mnn=mnn)
+                                   scene=scene_spec, mnn=mnn, short_stream=short_stream)
             if result.specialisation is not None:
                 from gaussiantalker.exporter.export.specialise import format_removals
 

@@ -66,6 +66,10 @@ def serve(
     stream: bool = typer.Option(True, "--stream/--no-stream", help="client-render: run the bundle's streaming "
                                 "translator where it has one, every due session's frame in one call (docs/live.md, "
                                 "\"Streaming translators\"); --no-stream: the windowed translator"),
+    stream_delay_ms: float = typer.Option(None, "--stream-delay-ms", min=0.0, help="client-render: which of the "
+                                          "translator's streams to run, by how far its rows lag the audio [default: "
+                                          "its main one]; 80: a trained speaker's short stream, cheaper below 160 ms "
+                                          "of lookahead and less accurate (docs/live.md)"),
     web_root: Path = typer.Option(None, "--web-root", help="client-render: the web player's folder (web/ with "
                                   "its npm install) [default: the checkout's]"),
     drive_threads: int = typer.Option(1, "--drive-threads", min=1, max=64, help="client-render: threads that make "
@@ -107,7 +111,7 @@ def serve(
                            allow_hosts=listen_hosts(host, allow_host), debug=debug, limits=limits, size=size,
                            lookahead_ms=lookahead_ms, renderer=renderer, audio=audio, batch_frames=batch_frames,
                            context_ms=context_ms, web_root=web_root, streaming=stream,
-                           drive_threads=drive_threads)
+                           stream_delay_ms=stream_delay_ms, drive_threads=drive_threads)
     try:
         app = make_app(bundle, options)
     except (ValueError, GaussianTalkerError) as error:

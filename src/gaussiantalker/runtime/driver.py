@@ -16,7 +16,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from gaussiantalker.sdk.audio import load_audio, prepare_audio
-from gaussiantalker.sdk.bundle import STEADY_STREAM_GRAPH, STREAM_GRAPH, Bundle
+from gaussiantalker.sdk.bundle import STREAM_GRAPH, STREAM_GRAPHS, Bundle
 from gaussiantalker.sdk.config import SpeakerConfig
 from gaussiantalker.sdk.drive import (
     BlendshapeDrive,
@@ -125,12 +125,14 @@ class Driver:
         """Whether the bundle's translator also has a streaming graph (docs/live.md, "Streaming translators")."""
         return STREAM_GRAPH in self.bundle.manifest["graphs"]
 
-    def run_stream(self, audio: np.ndarray, state: np.ndarray, keep: int, refresh: bool = True) -> dict:
+    def run_stream(self, audio: np.ndarray, state: np.ndarray, keep: int, refresh: bool = True,
+                   graphs: tuple[str, str] | None = None) -> dict:
         """One call of the streaming graph (timed): audio [B, n, F], state [B, S], `keep` frames committed;
-        `refresh` False runs its steady form where the bundle has one (no frame's features made again)."""
+        `refresh` False runs its steady form where the bundle has one (no frame's features made again); `graphs`:
+        another stream's (refreshing, steady) graphs (`StreamSpec.graphs`), the main stream's by default."""
         start = time.perf_counter()
-        graph = STREAM_GRAPH if refresh or STEADY_STREAM_GRAPH not in self.bundle.manifest["graphs"] \
-            else STEADY_STREAM_GRAPH
+        refreshing, steady = graphs or STREAM_GRAPHS[0]
+        graph = refreshing if refresh or steady not in self.bundle.manifest["graphs"] else steady
         out = self.graphs.run(graph, {"audio": np.ascontiguousarray(audio, np.float32),
                                       "state": np.ascontiguousarray(state, np.float32),
                                       "keep": np.array([keep], np.float32)})
@@ -143,20 +145,33 @@ class Driver:
 
     @functools.cached_property
     def stream_spec(self) -> StreamSpec:
-        """The streaming graph's delay, frame size and rest state (one call of silence, made once)."""
-        inputs = {value["name"]: value["shape"] for value in self.bundle.graph_info(STREAM_GRAPH)["inputs"]}
+        """The main streaming graph's delay, frame size and rest state (one call of silence, made once)."""
+        return self._read_stream_spec(STREAM_GRAPHS[0], main=True)
+
+    @functools.cached_property
+    def stream_specs(self) -> tuple[StreamSpec, ...]:
+        """Every stream of the bundle's translator, the main one first: a trained speaker's also has a short one
+        (docs/live.md, "A stream for a short lookahead")."""
+        graphs = self.bundle.manifest["graphs"]
+        return (self.stream_spec, *(self._read_stream_spec(pair, main=False) for pair in STREAM_GRAPHS[1:]
+                                    if pair[0] in graphs))
+
+    def _read_stream_spec(self, graphs: tuple[str, str], main: bool) -> StreamSpec:
+        """A stream's spec from its refreshing graph's rest-state call (`graphs`: its refreshing and steady graph)."""
+        inputs = {value["name"]: value["shape"] for value in self.bundle.graph_info(graphs[0])["inputs"]}
         return read_stream_spec(self.run_stream, self.stream_rows, int(inputs["state"][1]), int(inputs["audio"][2]),
-                                steady=STEADY_STREAM_GRAPH in self.bundle.manifest["graphs"])
+                                steady=graphs[1] in self.bundle.manifest["graphs"], graphs=None if main else graphs)
 
     def open_stream(self) -> None:
-        """Open the streaming graphs and read the stream's spec now (they open on first use otherwise): a live
+        """Open the streaming graphs and read the streams' specs now (they open on first use otherwise): a live
         server calls this at start, so that the first utterance does not stall every session on its pool thread
         for the graphs' opening (a stall re-anchors their clocks later: docs/live.md, "Load")."""
         if not self.has_stream:
             return
-        spec = self.stream_spec
-        if spec.steady:
-            self.run_stream(np.zeros((1, 1, spec.frame_samples), np.float32), spec.rest_state[None], 1, False)
+        for spec in self.stream_specs:
+            if spec.steady:
+                self.run_stream(np.zeros((1, 1, spec.frame_samples), np.float32), spec.rest_state[None], 1, False,
+                                graphs=spec.graphs)
 
     def translate_blocks(self, audio: np.ndarray) -> Iterator[np.ndarray]:
         """Audio (speaker rate, mono float32) -> parameter blocks [n, D] in frame order, one window at a time."""

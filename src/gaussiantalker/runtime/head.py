@@ -191,14 +191,16 @@ class TalkingHead:
 
     def live(self, *, lookahead_ms: float = 160.0, paced: bool = True, context_ms: float = 1000.0,
              output: FrameOutput | None = "uint8", audio_rate: int | None = None, idle=None,
-             max_queued_s: float = 120.0, min_batch_frames: int = 1):
+             max_queued_s: float = 120.0, min_batch_frames: int = 1, stream_delay_ms: float | None = None):
         """A live session (runtime/live.py, docs/live.md): push audio chunks as they arrive, read each frame as
-        soon as its audio plus `lookahead_ms` is in. `output` None: drives only (the driver alone, no pixels)."""
+        soon as its audio plus `lookahead_ms` is in. `output` None: drives only (the driver alone, no pixels).
+        `stream_delay_ms`: which of the translator's streams to run (80: a trained speaker's short one, cheaper
+        below 160 ms of lookahead and less accurate; docs/live.md, "A stream for a short lookahead")."""
         from .live import LiveSession
 
         return LiveSession(self, lookahead_ms=lookahead_ms, paced=paced, context_ms=context_ms, output=output,
                            audio_rate=audio_rate, idle=idle, max_queued_s=max_queued_s,
-                           min_batch_frames=min_batch_frames)
+                           min_batch_frames=min_batch_frames, stream_delay_ms=stream_delay_ms)
 
     def write_video(self, path: str | os.PathLike | VideoPlan, audio: AudioSource | None = None,
                     sample_rate: int | None = None, head_pose: HeadPoseSource = None, progress: bool = False,

@@ -33,7 +33,7 @@ from gaussiantalker.sdk.errors import LiveError
 from .idle import IdleMotion, IdleTrack, blink_vector
 from .live_audio import ResampledQueue
 from .translate import frame_start, silence_gain, silence_gain_of_sums
-from .translate_stream import StreamJob, TranslatorStream, run_stream_jobs
+from .translate_stream import StreamJob, StreamSpec, TranslatorStream, run_stream_jobs
 
 # Frames translated per translator call at most when audio is queued ahead (a long push): bigger batches cost
 # fewer calls but delay the first of them.
@@ -217,6 +217,22 @@ class _Timeline:
         return frame_start(last, self.per_frame) - frame_start(first, self.per_frame)
 
 
+def session_stream_spec(driver, delay_ms: float | None) -> StreamSpec:
+    """The stream a session runs: the driver's main one, or the one whose rows lag the audio by `delay_ms` (a trained
+    speaker's short stream: docs/live.md, "A stream for a short lookahead"); LiveError naming the delays the driver's
+    streams have where none lags so."""
+    if delay_ms is None:
+        return driver.stream_spec
+    specs = getattr(driver, "stream_specs", (driver.stream_spec,))  # a duck-typed driver: its one stream
+    delays = [1000.0 * spec.delay * spec.frame_samples / driver.sample_rate for spec in specs]
+    for spec, delay in zip(specs, delays, strict=True):
+        if abs(delay - delay_ms) < 0.5:
+            return spec
+    have = ", ".join(f"{delay:g} ms" for delay in delays)
+    raise LiveError(f"this bundle's translator has no stream whose rows lag {delay_ms:g} ms (its streams: {have}); "
+                    "a trained speaker exported by this SDK also has an 80 ms one (re-export it)")
+
+
 class LiveSession:
     """A live session on a TalkingHead (`TalkingHead.live`): push audio from any thread, read frames on the thread
     that owns the head's GL context. On a Driver alone (`LiveSession(head.driver, output=None)`) it makes each
@@ -225,9 +241,11 @@ class LiveSession:
     def __init__(self, head, *, lookahead_ms: float = 160.0, paced: bool = True, context_ms: float = 1000.0,
                  output: str | None = "uint8", audio_rate: int | None = None, idle: IdleMotion | None = None,
                  max_queued_s: float = MAX_QUEUED_S, min_batch_frames: int = 1, streaming: bool | None = None,
-                 clock_grid_s: float = 0.0) -> None:
+                 clock_grid_s: float = 0.0, stream_delay_ms: float | None = None) -> None:
         for name, value in (("lookahead_ms", lookahead_ms), ("context_ms", context_ms), ("max_queued_s", max_queued_s),
-                            ("clock_grid_s", clock_grid_s)):
+                            ("clock_grid_s", clock_grid_s), ("stream_delay_ms", stream_delay_ms)):
+            if name == "stream_delay_ms" and value is None:
+                continue
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise LiveError(f"{name} must be a finite number >= 0, got {value!r}")
         if not (isinstance(min_batch_frames, int) and 1 <= min_batch_frames <= MAX_BATCH_FRAMES):
@@ -260,8 +278,12 @@ class LiveSession:
         self._history = np.zeros(self._speech.span(0, self.context_frames), np.float32)
         # Streaming (the bundle's translator_stream graph, by default where present): the stream's state replaces
         # the past audio, whose level the gate history keeps for the silence gate.
-        self._stream = TranslatorStream(driver.stream_spec, self._speech.per_frame) \
-            if (has_stream if streaming is None else streaming) else None
+        self._stream = None
+        if has_stream if streaming is None else streaming:
+            self._stream = TranslatorStream(session_stream_spec(driver, stream_delay_ms), self._speech.per_frame)
+        elif stream_delay_ms is not None:
+            raise LiveError("stream_delay_ms picks one of the translator's streams, but this session translates "
+                            "windows (streaming=False, or a bundle without a streaming graph)")
         self._gate = _GateHistory(tuple(self._speech.span(k, k + 1) for k in range(self.context_frames)))
         self._stream_epoch = 0
         self._inflight: _Batch | None = None  # taken by stream_job(), translated by the next step()
@@ -462,6 +484,11 @@ class LiveSession:
     def sways(self) -> bool:
         """The head pose is the idle sway (no pose track), a frame at a time (`pose`)."""
         return self._sway
+
+    @property
+    def stream_spec(self) -> StreamSpec | None:
+        """The spec of the stream this session runs (None: it translates windows)."""
+        return None if self._stream is None else self._stream.spec
 
     def steady_key(self) -> tuple | None:
         """Which steady table this session's steady frames go to (sessions of one driver, lookahead and context), or
@@ -827,4 +854,4 @@ class LiveSession:
 
 
 __all__ = ["FramePlan", "GATE_REBUILD", "IdleMotion", "LiveFrame", "LiveSession", "LiveStats", "SteadyState",
-           "SteadyTake", "frame_sums"]
+           "SteadyTake", "frame_sums", "session_stream_spec"]

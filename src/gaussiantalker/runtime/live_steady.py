@@ -236,7 +236,7 @@ class SteadyFrames:
                 continue
             table = self._tables.get(key)
             if table is None:
-                table = self._tables[key] = SteadyTable(live, live.driver.stream_spec)
+                table = self._tables[key] = SteadyTable(live, live.stream_spec)
             if id(table) not in picked:
                 picked[id(table)] = (table, [])
                 table.scratch(len(lives))

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gaussiantalker.sdk.bundle import STEADY_STREAM_GRAPH, STREAM_GRAPH, Bundle
+from gaussiantalker.sdk.bundle import STREAM_GRAPHS, Bundle
 from gaussiantalker.sdk.errors import BundleError
 
 from .bundle_checks import (
@@ -31,7 +31,7 @@ from .bundle_checks import (
 MAX_REASON_CHARS = 400
 # Graphs only some uses run (a live session streams; offline rendering never does): read and checked with the
 # others, their session opened on first use (the demo speaker's stream: 90 ms of a 430 ms open).
-ON_FIRST_USE = (STREAM_GRAPH, STEADY_STREAM_GRAPH)
+ON_FIRST_USE = tuple(name for graphs in STREAM_GRAPHS for name in graphs)
 
 
 @dataclass

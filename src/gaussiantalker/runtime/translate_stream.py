@@ -46,7 +46,9 @@ LOUDNESS_RATIO = 2.0
 # it, of equal size: 36 of the demo speaker's 116 kB states a call; the voice's 16 kB states are split past 258.
 MAX_CALL_STATE_BYTES = 4 << 20
 
-RunStream = Callable[[np.ndarray, np.ndarray, int, bool], dict]  # (audio [B, n, F], state, keep, refresh) -> outputs
+# (audio [B, n, F], state, keep, refresh) -> outputs; called with graphs=(refreshing, steady) for a stream other than
+# the driver's main one (StreamSpec.graphs)
+RunStream = Callable[..., dict]
 RowsOf = Callable[[dict], np.ndarray]  # graph outputs -> rows [B, n, D]
 
 
@@ -60,11 +62,21 @@ class StreamSpec:
     rest_row: np.ndarray  # [D]: a row of silence (what rows before a stream's start are)
     steady: bool = False  # the graph has a steady form (calls with refresh=False)
     pads_exactly: bool = False  # frames appended to a call change none of its rows nor its state (`pads_exactly`)
+    graphs: tuple[str, str] | None = None  # (refreshing, steady) graph names; None: the driver's main stream
+
+
+def stream_runner(run: RunStream, graphs: tuple[str, str] | None) -> RunStream:
+    """`run` bound to a stream's graphs (`StreamSpec.graphs`; None: the driver's main stream, called as it is)."""
+    if graphs is None:
+        return run
+    return lambda audio, state, keep, refresh=True: run(audio, state, keep, refresh, graphs=graphs)
 
 
 def read_stream_spec(run: RunStream, rows_of: RowsOf, state_size: int, frame_samples: int,
-                     steady: bool = False) -> StreamSpec:
-    """Feed REST_FRAMES frames of silence from an all-zero state: the rest state, the silent row and the delay."""
+                     steady: bool = False, graphs: tuple[str, str] | None = None) -> StreamSpec:
+    """Feed REST_FRAMES frames of silence from an all-zero state: the rest state, the silent row and the delay
+    (`graphs`: the stream's graphs where it is not the driver's main one)."""
+    run = stream_runner(run, graphs)
     zeros = np.zeros((1, REST_FRAMES, frame_samples), np.float32)
     out = run(zeros, np.zeros((1, state_size), np.float32), REST_FRAMES, True)
     delay = int(np.asarray(out["delay_frames"]).reshape(-1)[0])
@@ -73,7 +85,7 @@ def read_stream_spec(run: RunStream, rows_of: RowsOf, state_size: int, frame_sam
     rows = rows_of(out)
     rest_state = out["state_out"][0].astype(np.float32)
     return StreamSpec(delay, frame_samples, rest_state, rows[0, -1].astype(np.float32), steady,
-                      pads_exactly(run, rows_of, rest_state, frame_samples))
+                      pads_exactly(run, rows_of, rest_state, frame_samples), graphs)
 
 
 # How far a padded call's rows and state may lie from the unpadded call's for `pads_exactly` (float32 rounding of
@@ -158,23 +170,25 @@ def sessions_per_call(state_size: int) -> int:
 
 
 def run_stream_jobs(jobs: Sequence[StreamJob], run: RunStream, rows_of: RowsOf) -> list[int]:
-    """Run every job: one graph call per distinct (frames, keep, refresh), the sessions stacked on the batch axis
-    (at most `sessions_per_call` of them a call, a bigger group split evenly); a graph that pads exactly stacks jobs
-    of different lengths into one call per (keep, refresh), the shorter ones zero-padded at the end. Returns the
-    sessions of each call."""
-    groups: dict[tuple[int, int, bool], list[StreamJob]] = {}
+    """Run every job: one graph call per distinct (stream, frames, keep, refresh), the sessions stacked on the batch
+    axis (at most `sessions_per_call` of them a call, a bigger group split evenly); a graph that pads exactly stacks
+    jobs of different lengths into one call per (stream, keep, refresh), the shorter ones zero-padded at the end.
+    Returns the sessions of each call."""
+    groups: dict[tuple[tuple[str, str] | None, int, int, bool], list[StreamJob]] = {}
     for job in jobs:
         frames, keep, refresh = job.shape
-        groups.setdefault((-1 if job.stream.spec.pads_exactly else frames, keep, refresh), []).append(job)
+        spec = job.stream.spec
+        groups.setdefault((spec.graphs, -1 if spec.pads_exactly else frames, keep, refresh), []).append(job)
     calls = []
-    for (_, keep, refresh), group in groups.items():
+    for (graphs, _, keep, refresh), group in groups.items():
+        call = stream_runner(run, graphs)
         for lo, hi in call_bounds(len(group), sessions_per_call(group[0].stream.state.shape[0])):
             part = group[lo:hi]
             frames = max(job.audio.shape[0] for job in part)
             audio = np.zeros((len(part), frames, part[0].audio.shape[1]), np.float32)
             for k, job in enumerate(part):
                 audio[k, :job.audio.shape[0]] = job.audio
-            out = run(audio, _stacked_states(part), keep, refresh)
+            out = call(audio, _stacked_states(part), keep, refresh)
             rows, states = rows_of(out), out["state_out"]
             for k, job in enumerate(part):
                 job.rows, job.state, job.state_row = rows[k, :job.audio.shape[0]], states[k], (states, k)
@@ -368,4 +382,4 @@ class TranslatorStream:
 
 __all__ = ["MAX_CALL_STATE_BYTES", "REST_FRAMES", "StreamJob", "StreamSpec", "TranslatorStream", "call_bounds",
            "frame_power", "loudness_moved", "made_after", "read_stream_spec", "run_stream_jobs", "sessions_per_call",
-           "window_loudness"]
+           "stream_runner", "window_loudness"]

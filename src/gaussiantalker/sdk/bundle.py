@@ -56,6 +56,13 @@ STREAM_GRAPH = "translator_stream"
 # graph's), which a live session calls while the window's loudness holds (docs/live.md, "The speaker's own
 # translator"); bundles without it run STREAM_GRAPH for every call.
 STEADY_STREAM_GRAPH = "translator_stream_steady"
+# The same translator streamed with a shorter delay (its rows lag the audio by half the frames), refreshing and steady,
+# which a live session whose lookahead is shorter than the main stream's delay runs instead: its calls then make no
+# provisional rows (docs/live.md, "A stream for a short lookahead"). Bundles without them run the main stream.
+SHORT_STREAM_GRAPH = "translator_stream_short"
+SHORT_STEADY_STREAM_GRAPH = "translator_stream_short_steady"
+# Each stream's (refreshing, steady) graphs, the main stream first.
+STREAM_GRAPHS = ((STREAM_GRAPH, STEADY_STREAM_GRAPH), (SHORT_STREAM_GRAPH, SHORT_STEADY_STREAM_GRAPH))
 # The header's fields in order (little-endian struct codes), padded with zeros to HEADER_SIZE: the one layout,
 # which web/src/generated.js carries to the browser player as HEADER_LAYOUT (docs/bundle-format.md, "Header").
 HEADER_FIELDS = (("magic", "8s"), ("major", "H"), ("minor", "H"), ("reserved", "I"), ("manifest_length", "Q"),

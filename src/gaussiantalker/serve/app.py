@@ -38,6 +38,7 @@ class ServeOptions:
     context_ms: float = 1000.0  # client-render: past audio the translator sees
     web_root: Path | None = None  # client-render: the web player's folder (default: the checkout's web/)
     streaming: bool = True  # client-render: the bundle's streaming translator where it has one
+    stream_delay_ms: float | None = None  # client-render: which of its streams (None: the main one; 80: the short one)
     drive_threads: int = 1  # client-render: threads that make the WebSocket sessions' frames (docs/live.md, "One pool
     # thread and the voice's MatMul graph")
 
@@ -76,7 +77,7 @@ def make_app(bundle: Path, options: ServeOptions | None = None) -> web.Applicati
         add_client_render_routes(app, bundle, sessions, limits, metrics, files, lookahead_ms=options.lookahead_ms,
                                  batch_frames=options.batch_frames, context_ms=options.context_ms,
                                  web_root=options.web_root, streaming=options.streaming,
-                                 drive_threads=options.drive_threads)
+                                 stream_delay_ms=options.stream_delay_ms, drive_threads=options.drive_threads)
     sessions.route(app)
     add_operations_routes(app, sessions, metrics)
     return app

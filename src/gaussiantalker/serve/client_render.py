@@ -17,6 +17,7 @@ import numpy as np
 from aiohttp import web
 
 from gaussiantalker.runtime import LiveError, open_driver
+from gaussiantalker.runtime.live import session_stream_spec
 
 from .drive_sessions import DrivePool, DriveSession
 from .keys import CLIENT, DRIVER
@@ -42,11 +43,16 @@ def default_web_root() -> Path:
 def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessions, limits: ServeLimits,
                              metrics: ServeMetrics, files: VoiceFiles, *, lookahead_ms: float, batch_frames: int,
                              context_ms: float, web_root: Path | None = None, streaming: bool = True,
-                             drive_threads: int = 1) -> None:
+                             stream_delay_ms: float | None = None, drive_threads: int = 1) -> None:
     """The page and the web player's modules, the bundle, /live, /offer, /interrupt and /drives."""
     # One intra-op thread: the sessions' pool threads are the parallelism.
     driver = open_driver(bundle, threads=1)
     driver.open_stream()
+    if stream_delay_ms is not None:  # a stream the bundle lacks is refused now, not at the first session
+        if not (streaming and driver.has_stream):
+            raise LiveError("--stream-delay-ms picks one of the translator's streams, but this server's sessions "
+                            "translate windows (--no-stream, or a bundle without a streaming graph)")
+        session_stream_spec(driver, stream_delay_ms)
     web_root = (web_root or default_web_root()).resolve()
     # WebSocket sessions share `drive_threads` threads (one by default: a frame's work is Python under the
     # interpreter lock, and a second thread measured more CPU a session and more late frames, as the two contend for
@@ -60,7 +66,7 @@ def add_client_render_routes(app: web.Application, bundle: Path, sessions: Sessi
         return DriveSession(driver, lookahead_ms, loop, webrtc_pool if transport == "webrtc" else pool, limits,
                             metrics, on_error=on_error, on_overflow=on_overflow, transport=transport,
                             batch_frames=batch_frames, context_ms=context_ms,
-                            streaming=None if streaming else False)
+                            streaming=None if streaming else False, stream_delay_ms=stream_delay_ms)
 
     async def page(request: web.Request) -> web.Response:
         return web.Response(text=PAGE.read_text(encoding="utf-8"), content_type="text/html",

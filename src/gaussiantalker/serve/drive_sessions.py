@@ -48,7 +48,8 @@ class DriveSession:
     def __init__(self, driver, lookahead_ms: float, loop: asyncio.AbstractEventLoop, pool: DrivePool,
                  limits: ServeLimits, metrics: ServeMetrics, *, on_error: Callable[[BaseException], None],
                  on_overflow: Callable[[], None], transport: str = "webrtc", batch_frames: int = 1,
-                 context_ms: float = 1000.0, streaming: bool | None = None) -> None:
+                 context_ms: float = 1000.0, streaming: bool | None = None,
+                 stream_delay_ms: float | None = None) -> None:
         self.driver, self._loop, self._on_error, self._on_overflow = driver, loop, on_error, on_overflow
         self.transport, self._limits, self._metrics = transport, limits, metrics
         # the labelled series each frame counts in, looked up once
@@ -58,7 +59,7 @@ class DriveSession:
         self.live = LiveSession(driver, lookahead_ms=lookahead_ms, audio_rate=self.sample_rate, output=None,
                                 min_batch_frames=batch_frames, context_ms=context_ms,
                                 max_queued_s=limits.max_queued_s, streaming=streaming,
-                                clock_grid_s=clock_grid_s(driver.fps))
+                                clock_grid_s=clock_grid_s(driver.fps), stream_delay_ms=stream_delay_ms)
         self.audio = None  # webrtc: the FrameTrack its audio goes to
         self.outbox: asyncio.Queue = asyncio.Queue()  # ws: frame packets (bytes) and JSON (str); None ends write_to
         self.closed = asyncio.Event()

@@ -15,7 +15,7 @@ import torch
 from tqdm import tqdm
 
 from gaussiantalker.sdk import __version__ as sdk_version
-from gaussiantalker.sdk.bundle import FLAME_DRIVER, STEADY_STREAM_GRAPH, STREAM_GRAPH, BundleWriter
+from gaussiantalker.sdk.bundle import FLAME_DRIVER, STREAM_GRAPH, STREAM_GRAPHS, BundleWriter
 from gaussiantalker.sdk.config import POSE_DIM
 from gaussiantalker.sdk.errors import BundleError
 from gaussiantalker.sdk.files import StagedFile
@@ -26,6 +26,7 @@ from gaussiantalker.sdk.scene import Scene
 
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.speaker import Speaker
+from ..model.translator_stream import STREAM_DELAY_FRAMES, STREAM_SHORT_DELAY_FRAMES
 from . import onnx_export
 from .arkit_graph import ARKIT_DEFORM_INPUTS, ArkitDeformationGraph, arkit_deform_example
 from .deform_graph import DeformationGraph
@@ -110,15 +111,16 @@ def rig_of(speaker: Speaker | ArkitSpeaker) -> str:
 
 def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, codec: str | None = None,
                   settings: ExportSettings | None = None, preset: str | Preset | None = None, progress: bool = True,
-                  example_frames: int = 8, scene: Scene | Specialisation | None = None, mnn: bool = False
-                  ) -> ExportResult:
+                  example_frames: int = 8, scene: Scene | Specialisation | None = None, mnn: bool = False,
+                  short_stream: bool = False) -> ExportResult:
     """Export `speaker` to one bundle file at `path` (written atomically), or into a file staged by `atomic_path`.
 
     The speed/accuracy knobs (exporter/export/presets.py, docs/precision.md): `preset` names a preset (its runtime
     defaults are stored in the bundle), `codec` stores every buffer with one codec, `settings` sets each knob. `scene`
     (docs/scene.md) compiles the bundle for one scene, leaving out what it never uses (or an already measured
     `specialise` result for it); the bundle records the scene and its camera. `mnn` also stores every graph as
-    an MNN model (docs/mnn.md; needs the `mnn` extra)."""
+    an MNN model (docs/mnn.md; needs the `mnn` extra). `short_stream` also exports a trained translator's short
+    stream, for live sessions with under 160 ms of lookahead (docs/live.md, "A stream for a short lookahead")."""
     rig = rig_of(speaker)
     settings, chosen, label = resolve_settings(codec, settings, preset, rig)
     runtime, runtime_by_renderer = chosen.stored_runtime(rig) if chosen is not None else (None, {})
@@ -131,6 +133,9 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     if not isinstance(speaker, ArkitSpeaker) and speaker.translator is None and scene is not None:
         raise BundleError("scene specialisation (--scene) needs the speaker's trained translator; an imported avatar's "
                           "bundle is exported without one (docs/import.md)")
+    if short_stream and (isinstance(speaker, ArkitSpeaker) or speaker.translator is None):
+        raise BundleError("a short stream (--short-stream) is a trained Motion Translator's; this speaker drives "
+                          "through a voice or an attached audio model, whose one stream live sessions run")
     if mnn:
         mnn_version()  # a missing converter fails here, before any graph is exported
     speaker = speaker.eval()
@@ -174,7 +179,8 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
     result = ExportResult(path.path if isinstance(path, StagedFile) else Path(path), 0, settings=settings, label=label,
                           gaussians=speaker.gaussians.count, specialisation=spec)
     try:
-        _export_steps(speaker, writer, path, result, settings, example_frames, steps, spec, mnn, asked)
+        _export_steps(speaker, writer, path, result, settings, example_frames, steps, spec, mnn, asked,
+                      short_stream)
     finally:
         steps.close()
     return result
@@ -182,7 +188,7 @@ def export_bundle(speaker: Speaker, path: str | os.PathLike | StagedFile, *, cod
 
 def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLike | StagedFile, result: ExportResult,
                   settings: ExportSettings, example_frames: int, steps: tqdm, spec: Specialisation | None,
-                  mnn: bool, asked: tuple[str, ...] = ()) -> None:
+                  mnn: bool, asked: tuple[str, ...] = (), short_stream: bool = False) -> None:
     """Both graphs into `writer` (and their MNN models), then one atomic write: nothing reaches `result.path`
     until every step worked. A flame-driven scene has no translator graph."""
     if isinstance(speaker, ArkitSpeaker):
@@ -196,9 +202,12 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
     elif spec is None or spec.has_translator:
         model = convert_precision(translator_onnx(speaker.translator, example_frames), settings.translator_precision)
         result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
-        _add_stream(writer, result, settings, translator_stream_onnx(speaker.translator))
-        _add_stream(writer, result, settings, translator_stream_onnx(speaker.translator, call_refresh=0),
-                    STEADY_STREAM_GRAPH)
+        streams = ((STREAM_GRAPHS[0], STREAM_DELAY_FRAMES), (STREAM_GRAPHS[1], STREAM_SHORT_DELAY_FRAMES))
+        for (refreshing, steady), delay in streams[:2 if short_stream else 1]:
+            _add_stream(writer, result, settings, translator_stream_onnx(speaker.translator, delay_frames=delay),
+                        refreshing)
+            _add_stream(writer, result, settings,
+                        translator_stream_onnx(speaker.translator, call_refresh=0, delay_frames=delay), steady)
     steps.update()
 
     steps.set_postfix_str("deformation graph")

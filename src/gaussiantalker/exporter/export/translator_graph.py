@@ -8,7 +8,12 @@ import onnx
 import torch
 
 from ..model.translator import MotionTranslator, check_audio_length, count_parameters
-from ..model.translator_stream import STREAM_REFRESH_FRAMES, STREAM_TAIL_FRAMES, MotionTranslatorStream
+from ..model.translator_stream import (
+    STREAM_DELAY_FRAMES,
+    STREAM_REFRESH_FRAMES,
+    STREAM_TAIL_FRAMES,
+    MotionTranslatorStream,
+)
 from . import onnx_export  # the module, not its function: tests swap `onnx_export.export_onnx` for a replay
 from .window_slices import window_gathers_to_slices
 
@@ -39,17 +44,19 @@ def export_translator_onnx(model: MotionTranslator, path: str | Path, example_fr
 
 
 def translator_stream_onnx(model: MotionTranslator, refresh_frames: int = STREAM_REFRESH_FRAMES,
-                           tail_frames: int | None = STREAM_TAIL_FRAMES, call_refresh: int | None = None):
+                           tail_frames: int | None = STREAM_TAIL_FRAMES, call_refresh: int | None = None,
+                           delay_frames: int = STREAM_DELAY_FRAMES):
     """The translator's streaming form (exporter/model/translator_stream.py) as an ONNX model proto, or None when
     its feature encoder cannot stream on the frame grid (`refresh_frames`, `tail_frames`: the export's, or others
-    for a bench; `call_refresh` 0: the steady form, which makes no frame's features again).
+    for a bench; `call_refresh` 0: the steady form, which makes no frame's features again; `delay_frames`: the
+    frames a row lags its audio, the lookahead each row sees).
 
     Inputs "audio" [B, n, 640], "state" [B, S], "keep" [1] float32; outputs "expression" [B, n, n_expr], "jaw_pose"
     [B, n, 3], "state_out" [B, S], "delay_frames" [1] int64. Batch and frames are dynamic (a live server stacks its
     sessions on the batch axis)."""
     try:
-        stream = MotionTranslatorStream(model.eval(), refresh_frames=refresh_frames, tail_frames=tail_frames,
-                                        call_refresh=call_refresh)
+        stream = MotionTranslatorStream(model.eval(), delay_frames=delay_frames, refresh_frames=refresh_frames,
+                                        tail_frames=tail_frames, call_refresh=call_refresh)
     except ValueError:
         return None
     spf = model.samples_per_frame

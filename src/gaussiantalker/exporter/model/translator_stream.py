@@ -65,6 +65,11 @@ STREAM_REFRESH_FRAMES = STREAM_DELAY_FRAMES
 # cache): the least the refresh and the delay allow; longer tails cost more and gave no better rows on unseen speech
 # (docs/live.md, "The speaker's own translator").
 STREAM_TAIL_FRAMES = 5
+# The short stream's delay (80 ms at 25 fps), for sessions whose lookahead is shorter than STREAM_DELAY_FRAMES: its
+# rows see as much of the future as such a session's windowed call would, with no provisional frames a call. It
+# refreshes and runs its tail as the main stream does, so one gate serves both (docs/live.md, "A stream for a short
+# lookahead").
+STREAM_SHORT_DELAY_FRAMES = 2
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,7 @@ import torch
 
 from gaussiantalker.runtime.composite import crop_box
 from gaussiantalker.runtime.head import TalkingHead
-from gaussiantalker.sdk.bundle import STEADY_STREAM_GRAPH, STREAM_GRAPH
+from gaussiantalker.sdk.bundle import STREAM_GRAPH, STREAM_GRAPHS
 from gaussiantalker.sdk.drive import track_row
 from gaussiantalker.sdk.image import max_abs_error, psnr_db, to_uint8
 from gaussiantalker.sdk.progress import progress_bar
@@ -48,7 +48,7 @@ from ..export.spatial_order import spatial_order
 from ..export.speech import synth_speech
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.speaker import Speaker
-from ..model.translator_stream import MotionTranslatorStream
+from ..model.translator_stream import STREAM_DELAY_FRAMES, STREAM_SHORT_DELAY_FRAMES, MotionTranslatorStream
 from .compositing import composite_reference
 from .random_inputs import random_blendshape_drives, random_crops, random_drives
 
@@ -151,16 +151,20 @@ def verify_translator(speaker: Speaker, head: TalkingHead, frame_counts=(25, 33)
 
 
 def verify_translator_stream(speaker: Speaker, head: TalkingHead, frames: int = 40, seed: int = 2,
-                             tolerance: float | None = GRAPH_RTOL, steady: bool = False) -> dict | None:
+                             tolerance: float | None = GRAPH_RTOL, steady: bool = False, short: bool = False
+                             ) -> dict | None:
     """The streaming translator graph vs its torch module (None where the bundle has none or the speaker has no
     torch translator: the built-in voice's stream is built from its windowed graph, tests/test_voice_stream.py),
     fed a speech-like clip in uneven calls, some with a provisional frame after them. `steady`: its steady form
-    instead (None where the bundle has none), every other call, on the state the two graphs share."""
-    graph = STEADY_STREAM_GRAPH if steady else STREAM_GRAPH
+    instead (None where the bundle has none), every other call, on the state the two graphs share. `short`: the
+    short stream's graphs (`--short-stream`) against its module."""
+    pair = STREAM_GRAPHS[1 if short else 0]
+    graph = pair[1] if steady else pair[0]
     if graph not in head.bundle.manifest["graphs"] or not plays_audio(speaker):
         return None
-    modules = {True: MotionTranslatorStream(speaker.translator).eval(),
-               False: MotionTranslatorStream(speaker.translator, call_refresh=0).eval()}
+    delay = STREAM_SHORT_DELAY_FRAMES if short else STREAM_DELAY_FRAMES
+    modules = {True: MotionTranslatorStream(speaker.translator, delay_frames=delay).eval(),
+               False: MotionTranslatorStream(speaker.translator, delay_frames=delay, call_refresh=0).eval()}
     module = modules[True]
     spf = speaker.config.samples_per_frame
     audio = speech_clip(speaker, frames, seed).reshape(frames, spf)
@@ -170,7 +174,7 @@ def verify_translator_stream(speaker: Speaker, head: TalkingHead, frames: int = 
         keep = min(sizes[len(stats) % len(sizes)], frames - position)
         chunk = np.concatenate([audio[position:position + keep], np.zeros((len(stats) % 2, spf), np.float32)])
         refresh = not steady or len(stats) % 2 == 1
-        out = head.driver.run_stream(chunk[None], state, keep, refresh)
+        out = head.driver.run_stream(chunk[None], state, keep, refresh, graphs=pair)
         with torch.no_grad():
             expected = modules[refresh](torch.from_numpy(chunk[None]), torch.from_numpy(state),
                                         torch.tensor([float(keep)]))
@@ -381,12 +385,12 @@ def _agreement_cases(speaker: Speaker, head: TalkingHead, seed: int = 0) -> list
         for i, frames in enumerate((25, 33)):
             cases.append(("translator", {"audio": np.ascontiguousarray(speech_clip(speaker, frames, seed + i)[None],
                                                                        np.float32)}))
-        if STREAM_GRAPH in head.bundle.manifest["graphs"]:  # two sessions from rest, uneven calls
-            rest = np.stack([head.driver.stream_spec.rest_state] * 2)
+        for stream in head.driver.stream_specs if STREAM_GRAPH in head.bundle.manifest["graphs"] else ():
+            rest = np.stack([stream.rest_state] * 2)  # two sessions from rest, uneven calls
             spf = speaker.config.samples_per_frame
             for frames, keep in ((3, 2), (1, 1)):
                 audio = speech_clip(speaker, 2 * frames, seed + frames).reshape(2, frames, spf)
-                for graph in (STREAM_GRAPH, STEADY_STREAM_GRAPH):
+                for graph in stream.graphs or STREAM_GRAPHS[0]:
                     if graph in head.bundle.manifest["graphs"]:
                         cases.append((graph, {"audio": audio, "state": rest, "keep": np.array([keep], np.float32)}))
     center = head.camera.center.astype(np.float32)[None]
@@ -442,10 +446,12 @@ def verify_bundle(speaker: Speaker, bundle_path, *, frames: int = 25, resolution
         head.bundle.verify_all()
         graphs = {"translator": verify_translator(speaker, head, tolerance=tolerances.graph_rtol),
                   "deform": verify_deformation(speaker, head, tolerance=tolerances.graph_rtol)}
-        for graph, steady in ((STREAM_GRAPH, False), (STEADY_STREAM_GRAPH, True)):
-            stream = verify_translator_stream(speaker, head, tolerance=tolerances.graph_rtol, steady=steady)
-            if stream is not None:
-                graphs[graph] = stream
+        for short, pair in enumerate(STREAM_GRAPHS):
+            for graph, steady in zip(pair, (False, True), strict=True):
+                stream = verify_translator_stream(speaker, head, tolerance=tolerances.graph_rtol, steady=steady,
+                                                  short=bool(short))
+                if stream is not None:
+                    graphs[graph] = stream
         frame_report = verify_frames(speaker, head, frames, tolerances=tolerances, progress=progress)
         views = verify_views(speaker, head, views=min(frames, len(VIEW_ORBITS)), tolerances=tolerances)
         composited = None
@@ -477,13 +483,16 @@ def verify_bundle(speaker: Speaker, bundle_path, *, frames: int = 25, resolution
 
 def format_report(report: dict) -> str:
     """A short human-readable table of a verification report."""
-    lines = [f"{'graph':<12}{'max abs err':>14}{'max rel err':>14}{'tol (rel)':>12}  ok"]
+    mnn = report.get("mnn")
+    names = [*report["graphs"], *(f"mnn {name}" for name in (mnn["graphs"] if mnn is not None else ()))]
+    width = max(12, *(len(name) + 1 for name in names))  # the graph names' column
+    lines = [f"{'graph':<{width}}{'max abs err':>14}{'max rel err':>14}{'tol (rel)':>12}  ok"]
     for name, g in report["graphs"].items():
         if not g.get("compared", True):
-            lines.append(f"{name:<12}  not compared: {g['note']}")
+            lines.append(f"{name:<{width}}  not compared: {g['note']}")
             continue
         tolerance = "report" if g["tolerance_rel"] is None else f"{g['tolerance_rel']:.0e}"
-        lines.append(f"{name:<12}{g['max_abs_err']:>14.3e}{g['max_rel_err']:>14.3e}{tolerance:>12}  "
+        lines.append(f"{name:<{width}}{g['max_abs_err']:>14.3e}{g['max_rel_err']:>14.3e}{tolerance:>12}  "
                      f"{'yes' if g['passed'] else 'NO'}")
     psnrs = [f["psnr_db"] for f in report["frames"]]
     finite = [p for p in psnrs if math.isfinite(p)]
@@ -504,10 +513,9 @@ def format_report(report: dict) -> str:
         lines.append(f"composited: {len(composited['frames'])} frames at {w}x{h} ({composited['generator']} F); "
                      f"8-bit PSNR min {composited['min_psnr_db']:.2f} dB, max pixel error "
                      f"{composited['max_pixel_error']} levels {'ok' if composited['passed'] else 'NO'}")
-    mnn = report.get("mnn")
     if mnn is not None:
         for name, g in mnn["graphs"].items():
-            lines.append(f"{'mnn ' + name:<12}{g['max_abs_err']:>14.3e}{g['max_rel_err']:>14.3e}"
+            lines.append(f"{'mnn ' + name:<{width}}{g['max_abs_err']:>14.3e}{g['max_rel_err']:>14.3e}"
                          f"{g['tolerance_rel']:>12.0e}  {'yes' if g['passed'] else 'NO'}  (vs onnxruntime)")
         lines.append(f"mnn frames: {mnn['frames']} vs onnxruntime's, 8-bit PSNR min {mnn['min_psnr_db']:.2f} dB, "
                      f"max pixel error {mnn['max_pixel_error']} levels ({mnn['converter']}) "
