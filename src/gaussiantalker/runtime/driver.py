@@ -146,21 +146,22 @@ class Driver:
     @functools.cached_property
     def stream_spec(self) -> StreamSpec:
         """The main streaming graph's delay, frame size and rest state (one call of silence, made once)."""
-        return self._read_stream_spec(STREAM_GRAPHS[0], main=True)
+        return self._read_stream_spec(STREAM_GRAPHS[0])
 
     @functools.cached_property
     def stream_specs(self) -> tuple[StreamSpec, ...]:
         """Every stream of the bundle's translator, the main one first: a trained speaker's also has a short one
         (docs/live.md, "A stream for a short lookahead")."""
         graphs = self.bundle.manifest["graphs"]
-        return (self.stream_spec, *(self._read_stream_spec(pair, main=False) for pair in STREAM_GRAPHS[1:]
-                                    if pair[0] in graphs))
+        return (self.stream_spec, *(self._read_stream_spec(pair) for pair in STREAM_GRAPHS[1:] if pair[0] in graphs))
 
-    def _read_stream_spec(self, graphs: tuple[str, str], main: bool) -> StreamSpec:
-        """A stream's spec from its refreshing graph's rest-state call (`graphs`: its refreshing and steady graph)."""
+    def _read_stream_spec(self, graphs: tuple[str, str]) -> StreamSpec:
+        """A stream's spec from its refreshing graph's rest-state call (`graphs`: its refreshing and steady graph;
+        the main stream's spec names none, as `run_stream`'s default)."""
         inputs = {value["name"]: value["shape"] for value in self.bundle.graph_info(graphs[0])["inputs"]}
         return read_stream_spec(self.run_stream, self.stream_rows, int(inputs["state"][1]), int(inputs["audio"][2]),
-                                steady=graphs[1] in self.bundle.manifest["graphs"], graphs=None if main else graphs)
+                                steady=graphs[1] in self.bundle.manifest["graphs"],
+                                graphs=None if graphs == STREAM_GRAPHS[0] else graphs)
 
     def open_stream(self) -> None:
         """Open the streaming graphs and read the streams' specs now (they open on first use otherwise): a live
