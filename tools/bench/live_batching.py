@@ -71,8 +71,7 @@ def run_live_batching(bundle: Path, speech: Path, batches: list[int], seconds: f
     mouth = _mouth_columns(driver, offline)
     modes = [f"K={b}" for b in batches] + (["stream"] if streaming else [])
     if streaming:  # the other streams (a trained speaker's short one), by how far their rows lag
-        modes += [f"stream:{1000 * spec.delay * spec.frame_samples / driver.sample_rate:g}"
-                  for spec in driver.stream_specs[1:]]
+        modes += [f"stream:{spec.delay_ms(driver.sample_rate):g}" for spec in driver.stream_specs[1:]]
     cases = [(mode, lookahead) for lookahead in lookaheads for mode in modes]
     cpu: dict[tuple, list[float]] = {case: [] for case in cases}
     rows: dict[tuple, dict] = {}

@@ -224,7 +224,7 @@ def session_stream_spec(driver, delay_ms: float | None) -> StreamSpec:
     if delay_ms is None:
         return driver.stream_spec
     specs = getattr(driver, "stream_specs", (driver.stream_spec,))  # a duck-typed driver: its one stream
-    delays = [1000.0 * spec.delay * spec.frame_samples / driver.sample_rate for spec in specs]
+    delays = [spec.delay_ms(driver.sample_rate) for spec in specs]
     for spec, delay in zip(specs, delays, strict=True):
         if abs(delay - delay_ms) < 0.5:
             return spec

@@ -64,6 +64,10 @@ class StreamSpec:
     pads_exactly: bool = False  # frames appended to a call change none of its rows nor its state (`pads_exactly`)
     graphs: tuple[str, str] | None = None  # (refreshing, steady) graph names; None: the driver's main stream
 
+    def delay_ms(self, sample_rate: int) -> float:
+        """How far a row lags the audio it is fed, in ms, for audio at `sample_rate` (the driver's)."""
+        return 1000.0 * self.delay * self.frame_samples / sample_rate
+
 
 def stream_runner(run: RunStream, graphs: tuple[str, str] | None) -> RunStream:
     """`run` bound to a stream's graphs (`StreamSpec.graphs`; None: the driver's main stream, called as it is)."""
