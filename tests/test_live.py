@@ -118,6 +118,30 @@ def test_a_lam_bundle_speaks_live_through_the_builtin_voice(lam_voice_bundle):
     assert live_jaw[:10].max() < 0.05 and live_jaw.max() > 0.2
 
 
+@pytest.mark.parametrize("lookahead_ms", [80, 160])
+def test_a_30_fps_avatar_waits_for_its_lookahead_exactly(lam_voice_bundle, lookahead_ms):
+    """A 30 fps avatar's frames end between the 16 kHz samples' 20 ms chunks: free-running, chunks of 10 samples,
+    frame n comes out at the first chunk that brings the audio to its end plus lookahead_ms (80 ms: 1,280 samples,
+    not the 1,600 of three whole frames), and the frames the last lookahead reaches into come with end()."""
+    speech = load_audio("tests/data/voice_heldout.wav", 16000)[:16000]
+    chunk, lookahead = 10, lookahead_ms * 16
+    ready_at: dict[int, int] = {}
+    with TalkingHead(lam_voice_bundle, resolution=(32, 32)) as lam, \
+            lam.live(lookahead_ms=lookahead_ms, paced=False, output=None) as live:
+        pushed = 0
+        for start in range(0, speech.shape[0], chunk):
+            live.push(speech[start:start + chunk], 16000)
+            pushed += speech[start:start + chunk].shape[0]
+            ready_at.update((frame.index, pushed) for frame in live.poll())
+        live.end()
+        rest = [frame.index for frame in live.frames()]
+    ends = [round((index + 1) * 16000 / 30) for index in range(len(ready_at))]
+    assert list(ready_at) == list(range(len(ready_at))) and len(ready_at) >= 20
+    assert list(ready_at.values()) == [-(-(end + lookahead) // chunk) * chunk for end in ends]
+    assert rest[0] == len(ready_at) and rest[-1] == 29  # one second: 30 frames
+    assert round((rest[0] + 1) * 16000 / 30) + lookahead > speech.shape[0]  # only frames whose lookahead never came
+
+
 def test_min_batch_frames_translates_that_many_frames_a_call(head, speech):
     """min_batch_frames=4, 20 ms chunks polled as they arrive: the translator runs once per 4 frames, each batch
     comes out when its last frame's audio and lookahead are in (frame n of batch b, b = n // 4, at the audio of
@@ -151,10 +175,11 @@ def test_min_batch_frames_translates_that_many_frames_a_call(head, speech):
 @pytest.mark.parametrize("lookahead_ms", [0, 80, 100, 160])
 def test_free_running_latency_is_a_frame_and_its_lookahead(head, speech, lookahead_ms):
     """Free-running, 20 ms chunks polled as each arrives: frame n comes out exactly when the audio of frames 0..n
-    and of the lookahead after it is in (lookahead_ms rounded up to whole frames), not a chunk earlier or later;
-    the last lookahead's worth of frames come with end()."""
+    and of the lookahead after it is in (lookahead_ms exactly, 100 ms being two and a half frames), not a chunk
+    earlier or later; the frames the last lookahead reaches into come with end()."""
     per_frame = head.driver.config.samples_per_frame
-    lookahead_frames = int(np.ceil(lookahead_ms * head.fps / 1000))
+    lookahead_samples = lookahead_ms * head.sample_rate // 1000
+    lookahead_frames = -(-lookahead_samples // per_frame)
     chunk = per_frame // 2
     ready_at: dict[int, int] = {}  # frame index -> samples pushed when poll() first gave it
     with head.live(lookahead_ms=lookahead_ms, paced=False, output=None) as live:
@@ -168,7 +193,7 @@ def test_free_running_latency_is_a_frame_and_its_lookahead(head, speech, lookahe
     total, partial = divmod(speech.shape[0], per_frame)
     assert partial == 0  # whole frames: every frame but the lookahead's is ready before end()
     assert list(ready_at) == list(range(total - lookahead_frames))
-    assert list(ready_at.values()) == [(index + 1 + lookahead_frames) * per_frame for index in ready_at]
+    assert list(ready_at.values()) == [(index + 1) * per_frame + lookahead_samples for index in ready_at]
     assert rest == list(range(total - lookahead_frames, total))
 
 

@@ -146,6 +146,15 @@ def test_a_rig_off_the_streams_frames_makes_no_steady_frames(lam_voice_bundle, m
     assert sum(steady) == 0 and together == alone and sum(len(p) for p in alone) > 300
 
 
+def test_a_lookahead_of_part_of_a_frame_makes_no_steady_frames(short_stream_export):
+    """The steady table takes a frame's lookahead as whole frames of the stream's: 100 ms (two and a half 25 fps
+    frames, waited for exactly) is left to the sessions' own path; 80 ms on the short stream is taken."""
+    driver = open_driver(short_stream_export, threads=1)
+    keys = {lookahead: LiveSession(driver, lookahead_ms=lookahead, output=None, streaming=True,
+                                   stream_delay_ms=80).steady_key() for lookahead in (80, 100, 120)}
+    assert keys[100] is None and keys[80] is not None and keys[120] is not None and keys[80] != keys[120]
+
+
 @pytest.mark.parametrize("state", ["closed", "interrupted"])
 def test_a_steady_frame_closed_or_interrupted_after_planning_is_left_to_step(small_export, monkeypatch, state):
     """A session closed or barged in on between its plan and its frame: make() leaves it to step(), which

@@ -265,6 +265,10 @@ class LiveSession:
                             "docs/live.md, \"Streaming translators\"); streaming=None uses one where present")
         self.head, self.driver, self.paced, self.output = head, driver, bool(paced), output
         self.fps = float(driver.fps)
+        # A frame goes out once its audio and lookahead_ms past its end are in (exactly, in the translator's
+        # samples); the window and the silence gate cover the whole frames that lookahead reaches into, the unknown
+        # rest zeros (docs/live.md, "Lookahead on a 30 fps avatar").
+        self.lookahead_samples = round(lookahead_ms * driver.sample_rate / 1000.0)
         self.lookahead_frames = math.ceil(lookahead_ms * self.fps / 1000.0 - 1e-9)
         # An utterance starts once this many frames (and their lookahead) are in, so that the translator then runs
         # once per that many frames: fewer calls, each utterance later by min_batch_frames - 1 frames.
@@ -493,11 +497,12 @@ class LiveSession:
     def steady_key(self) -> tuple | None:
         """Which steady table this session's steady frames go to (sessions of one driver, lookahead and context), or
         None when its frames are never steady: windowed, rendering, free-running, a rig whose frames are not the
-        stream's (a 30 fps avatar on the 25 fps voice interpolates between rows), or rows lagging past the
-        lookahead."""
+        stream's (a 30 fps avatar on the 25 fps voice interpolates between rows), rows lagging past the lookahead,
+        or a lookahead of part of a frame."""
         stream = self._stream
         if stream is None or self.output is not None or not self.paced or not stream.aligned \
-                or self._speech.per_frame != stream.spec.frame_samples or stream.spec.delay > self.lookahead_frames:
+                or self._speech.per_frame != stream.spec.frame_samples or stream.spec.delay > self.lookahead_frames \
+                or self.lookahead_samples != self.lookahead_frames * stream.spec.frame_samples:
             return None
         return id(self.driver), self.lookahead_frames, self.context_frames
 
@@ -624,9 +629,10 @@ class LiveSession:
         # frame k is ready when the queue reaches its lookahead's end (or, flushed, its own start): the span of
         # frames [first, e) is start(e) - start(first), one frame_start a bound rather than two spans' four
         per_frame, start = self._speech.per_frame, frame_start(first, self._speech.per_frame)
+        lookahead = self.lookahead_samples - start
         count = 0
         while count < MAX_BATCH_FRAMES:
-            if queued >= frame_start(first + count + 1 + self.lookahead_frames, per_frame) - start or (
+            if queued >= frame_start(first + count + 1, per_frame) + lookahead or (
                     self._flushed and queued > frame_start(first + count, per_frame) - start):
                 count += 1
             else:
