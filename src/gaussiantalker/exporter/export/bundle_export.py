@@ -26,7 +26,7 @@ from gaussiantalker.sdk.scene import Scene
 
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.speaker import Speaker
-from ..model.translator_stream import STREAM_DELAY_FRAMES, STREAM_SHORT_DELAY_FRAMES
+from ..model.translator_stream import STREAM_DELAYS
 from . import onnx_export
 from .arkit_graph import ARKIT_DEFORM_INPUTS, ArkitDeformationGraph, arkit_deform_example
 from .deform_graph import DeformationGraph
@@ -202,8 +202,8 @@ def _export_steps(speaker: Speaker, writer: BundleWriter, path: str | os.PathLik
     elif spec is None or spec.has_translator:
         model = convert_precision(translator_onnx(speaker.translator, example_frames), settings.translator_precision)
         result.graphs["translator"] = add_graph(writer, "translator", model, settings.codec_for)
-        streams = ((STREAM_GRAPHS[0], STREAM_DELAY_FRAMES), (STREAM_GRAPHS[1], STREAM_SHORT_DELAY_FRAMES))
-        for (refreshing, steady), delay in streams[:2 if short_stream else 1]:
+        streams = list(zip(STREAM_GRAPHS, STREAM_DELAYS, strict=True))
+        for (refreshing, steady), delay in streams if short_stream else streams[:1]:
             _add_stream(writer, result, settings, translator_stream_onnx(speaker.translator, delay_frames=delay),
                         refreshing)
             _add_stream(writer, result, settings,

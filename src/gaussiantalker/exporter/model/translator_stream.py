@@ -70,6 +70,8 @@ STREAM_TAIL_FRAMES = 5
 # refreshes and runs its tail as the main stream does, so one gate serves both (docs/live.md, "A stream for a short
 # lookahead").
 STREAM_SHORT_DELAY_FRAMES = 2
+# Each stream's delay, in the order of sdk/bundle.py's STREAM_GRAPHS (the main stream first).
+STREAM_DELAYS = (STREAM_DELAY_FRAMES, STREAM_SHORT_DELAY_FRAMES)
 
 
 @dataclass(frozen=True)

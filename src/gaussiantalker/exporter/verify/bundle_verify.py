@@ -48,7 +48,7 @@ from ..export.spatial_order import spatial_order
 from ..export.speech import synth_speech
 from ..model.arkit_speaker import ArkitSpeaker
 from ..model.speaker import Speaker
-from ..model.translator_stream import STREAM_DELAY_FRAMES, STREAM_SHORT_DELAY_FRAMES, MotionTranslatorStream
+from ..model.translator_stream import STREAM_DELAYS, MotionTranslatorStream
 from .compositing import composite_reference
 from .random_inputs import random_blendshape_drives, random_crops, random_drives
 
@@ -158,11 +158,10 @@ def verify_translator_stream(speaker: Speaker, head: TalkingHead, frames: int = 
     fed a speech-like clip in uneven calls, some with a provisional frame after them. `steady`: its steady form
     instead (None where the bundle has none), every other call, on the state the two graphs share. `short`: the
     short stream's graphs (`--short-stream`) against its module."""
-    pair = STREAM_GRAPHS[1 if short else 0]
+    pair, delay = STREAM_GRAPHS[int(short)], STREAM_DELAYS[int(short)]
     graph = pair[1] if steady else pair[0]
     if graph not in head.bundle.manifest["graphs"] or not plays_audio(speaker):
         return None
-    delay = STREAM_SHORT_DELAY_FRAMES if short else STREAM_DELAY_FRAMES
     modules = {True: MotionTranslatorStream(speaker.translator, delay_frames=delay).eval(),
                False: MotionTranslatorStream(speaker.translator, delay_frames=delay, call_refresh=0).eval()}
     module = modules[True]
